@@ -1,0 +1,226 @@
+"""The pose graph: an immutable struct-of-arrays (STYLE.md §2, DESIGN.md §1, §8).
+
+Frames and conventions
+----------------------
+* A pose ``X_i = (R_i, t_i)`` maps node-frame coordinates into the world frame (``T_world_node``).
+* A relative constraint ``c`` between ``a = edge_nodes[c, 0]`` and ``b = edge_nodes[c, 1]``
+  measures ``Z_c = X_a^-1 X_b`` (pose of b in a's frame).  Its error is
+  ``e_c = Log(Z_c^-1 X_a^-1 X_b)`` in R^6 ordered (rho, phi) and its energy ``e_c^T Omega_c e_c``.
+* A position-only ("GPS") constraint on node ``n`` measures ``g`` (earth frame) with error
+  ``p_n - g`` and a 3x3 information.
+* 2D graphs are lifted into SE(3) (DESIGN §1): ``is_2d`` remembers to write them back as SE(2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from .errors import GraphError
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int32]
+
+#: Symmetry tolerance of information matrices, relative to their largest entry.
+SYMMETRY_RTOL = 1e-9
+
+
+def _frozen(a: np.ndarray, dtype: type, shape_tail: tuple[int, ...], name: str) -> np.ndarray:
+    arr = np.array(a, dtype=dtype, order="C", copy=True)  # never freeze the caller's array
+    if arr.ndim != 1 + len(shape_tail) or arr.shape[1:] != shape_tail:
+        raise GraphError(f"{name} must have shape (n, {', '.join(map(str, shape_tail))})"
+                         if shape_tail else f"{name} must have shape (n,)")
+    if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
+        bad = int(np.argwhere(~np.isfinite(arr.reshape(arr.shape[0], -1)).any(axis=1))[0, 0])
+        raise GraphError(f"{name}[{bad}] is not finite")
+    arr.flags.writeable = False
+    return arr
+
+
+@dataclass(frozen=True, slots=True)
+class PoseGraph:
+    """A pose graph in struct-of-arrays form.  All arrays are read-only after construction."""
+
+    node_ids: npt.NDArray[np.int64]
+    """(N,) int64: the file's vertex ids; dense index i <-> ``node_ids[i]``."""
+    rotations: FloatArray
+    """(N, 3, 3) float64: R_world_node of the initial estimate (identity where the file has none)."""
+    translations: FloatArray
+    """(N, 3) float64: t_world_node of the initial estimate, metres."""
+    edge_nodes: IntArray
+    """(M, 2) int32: dense indices (a, b) of each relative constraint."""
+    edge_rotations: FloatArray
+    """(M, 3, 3) float64: measured R_a_b."""
+    edge_translations: FloatArray
+    """(M, 3) float64: measured t_a_b (position of b in a's frame)."""
+    edge_information: FloatArray
+    """(M, 6, 6) float64: SPD information over (rho, phi)."""
+    gps_nodes: IntArray = field(default_factory=lambda: np.zeros(0, np.int32))
+    """(G,) int32: dense index of the node each position-only constraint acts on."""
+    gps_positions: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    """(G, 3) float64: measured position in the earth frame."""
+    gps_information: FloatArray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    """(G, 3, 3) float64: SPD information of each position measurement."""
+    fixed_nodes: IntArray = field(default_factory=lambda: np.zeros(0, np.int32))
+    """(F,) int32: dense indices named by ``FIX`` lines (held constant)."""
+    is_2d: bool = False
+    """True when the graph was read from SE(2) data (written back as SE(2))."""
+    has_estimates: bool = True
+    """False when the file had no vertex lines (iSAM): rotations/translations are then identity."""
+    source_format: str = ""
+    """Format the graph was read from ('g2o', 'toro', 'isam'), or '' when built in code."""
+
+    def __post_init__(self) -> None:
+        ids = np.ascontiguousarray(self.node_ids, dtype=np.int64)
+        n = ids.shape[0]
+        if ids.ndim != 1:
+            raise GraphError("node_ids must be one-dimensional")
+        if n == 0:
+            raise GraphError("the graph has no poses")
+        if np.unique(ids).shape[0] != n:
+            raise GraphError("node_ids contains duplicates")
+        object.__setattr__(self, "node_ids", _frozen(ids, np.int64, (), "node_ids"))
+        object.__setattr__(self, "rotations", _frozen(self.rotations, np.float64, (3, 3), "rotations"))
+        object.__setattr__(self, "translations",
+                           _frozen(self.translations, np.float64, (3,), "translations"))
+        if self.rotations.shape[0] != n or self.translations.shape[0] != n:
+            raise GraphError("rotations/translations must have one entry per node")
+        en = np.ascontiguousarray(self.edge_nodes, dtype=np.int32).reshape(-1, 2)
+        object.__setattr__(self, "edge_nodes", _frozen(en, np.int32, (2,), "edge_nodes"))
+        m = en.shape[0]
+        object.__setattr__(self, "edge_rotations",
+                           _frozen(self.edge_rotations, np.float64, (3, 3), "edge_rotations"))
+        object.__setattr__(self, "edge_translations",
+                           _frozen(self.edge_translations, np.float64, (3,), "edge_translations"))
+        object.__setattr__(self, "edge_information",
+                           _frozen(self.edge_information, np.float64, (6, 6), "edge_information"))
+        for name in ("edge_rotations", "edge_translations", "edge_information"):
+            if getattr(self, name).shape[0] != m:
+                raise GraphError(f"{name} must have one entry per edge ({m})")
+        gn = np.ascontiguousarray(self.gps_nodes, dtype=np.int32).reshape(-1)
+        object.__setattr__(self, "gps_nodes", _frozen(gn, np.int32, (), "gps_nodes"))
+        g = gn.shape[0]
+        object.__setattr__(self, "gps_positions",
+                           _frozen(self.gps_positions, np.float64, (3,), "gps_positions"))
+        object.__setattr__(self, "gps_information",
+                           _frozen(self.gps_information, np.float64, (3, 3), "gps_information"))
+        if self.gps_positions.shape[0] != g or self.gps_information.shape[0] != g:
+            raise GraphError("gps_positions/gps_information must have one entry per GPS constraint")
+        fx = np.ascontiguousarray(self.fixed_nodes, dtype=np.int32).reshape(-1)
+        object.__setattr__(self, "fixed_nodes", _frozen(fx, np.int32, (), "fixed_nodes"))
+        for name, arr in (("edge_nodes", en), ("gps_nodes", gn), ("fixed_nodes", fx)):
+            if arr.size and (arr.min() < 0 or arr.max() >= n):
+                raise GraphError(f"{name} refers to a node index outside 0..{n - 1}")
+        if m and np.any(en[:, 0] == en[:, 1]):
+            c = int(np.argmax(en[:, 0] == en[:, 1]))
+            raise GraphError(f"edge {c} is a self-loop on node {int(ids[en[c, 0]])}")
+        check_information(self.edge_information, "edge")
+        check_information(self.gps_information, "GPS constraint")
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def num_nodes(self) -> int:
+        return int(self.node_ids.shape[0])
+
+    @property
+    def num_edges(self) -> int:
+        return int(self.edge_nodes.shape[0])
+
+    @property
+    def num_gps(self) -> int:
+        return int(self.gps_nodes.shape[0])
+
+    @property
+    def num_constraints(self) -> int:
+        return self.num_edges + self.num_gps
+
+    def index_from_id(self) -> dict[int, int]:
+        """Map file id -> dense index."""
+        return {int(v): i for i, v in enumerate(self.node_ids)}
+
+    def with_poses(self, rotations: FloatArray, translations: FloatArray) -> PoseGraph:
+        """Return a copy of this graph whose vertex estimates are the given poses."""
+        return PoseGraph(
+            node_ids=self.node_ids, rotations=rotations, translations=translations,
+            edge_nodes=self.edge_nodes, edge_rotations=self.edge_rotations,
+            edge_translations=self.edge_translations, edge_information=self.edge_information,
+            gps_nodes=self.gps_nodes, gps_positions=self.gps_positions,
+            gps_information=self.gps_information, fixed_nodes=self.fixed_nodes,
+            is_2d=self.is_2d, has_estimates=True, source_format=self.source_format,
+        )
+
+    def connected_components(self) -> npt.NDArray[np.int32]:
+        """Label of the connected component of every node (GPS links through the earth node)."""
+        import scipy.sparse as sp
+        from scipy.sparse.csgraph import connected_components
+
+        n = self.num_nodes
+        a = self.edge_nodes[:, 0].astype(np.int64)
+        b = self.edge_nodes[:, 1].astype(np.int64)
+        if self.num_gps:
+            earth = np.full(self.num_gps, n, np.int64)
+            a = np.concatenate([a, earth])
+            b = np.concatenate([b, self.gps_nodes.astype(np.int64)])
+        size = n + (1 if self.num_gps else 0)
+        adj = sp.coo_matrix((np.ones(a.shape[0]), (a, b)), shape=(size, size))
+        _, labels = connected_components(adj, directed=False)
+        return labels[:n].astype(np.int32)
+
+    def check_connected(self, source: str = "the graph") -> None:
+        """Raise :class:`GraphError` naming the parts when the graph is not connected."""
+        labels = self.connected_components()
+        parts = np.unique(labels)
+        if parts.shape[0] <= 1:
+            return
+        desc = []
+        for p in parts[:5]:
+            members = self.node_ids[labels == p]
+            span = f"{int(members.min())}..{int(members.max())}" if members.size > 1 else ""
+            desc.append(f"{members.size} pose(s) {span}".rstrip() + f" (e.g. id {int(members[0])})")
+        more = f" and {parts.shape[0] - 5} more" if parts.shape[0] > 5 else ""
+        raise GraphError(
+            f"{source} is not connected: {parts.shape[0]} separate parts: "
+            + "; ".join(desc) + more + ". Every pose must be linked to the others by constraints"
+            " (or by GPS constraints through the earth frame)."
+        )
+
+
+def check_information(info: FloatArray, what: str) -> None:
+    """Raise :class:`GraphError` unless every matrix in ``info`` (k, d, d) is symmetric PD."""
+    if info.shape[0] == 0:
+        return
+    scale = np.abs(info).reshape(info.shape[0], -1).max(axis=1)
+    asym = np.abs(info - np.swapaxes(info, 1, 2)).reshape(info.shape[0], -1).max(axis=1)
+    bad = np.nonzero(asym > SYMMETRY_RTOL * np.maximum(scale, 1e-300))[0]
+    if bad.size:
+        raise GraphError(f"{what} {int(bad[0])}: information matrix is not symmetric")
+    eig_min = np.linalg.eigvalsh(info)[:, 0]
+    bad = np.nonzero(~(eig_min > 0.0))[0]
+    if bad.size:
+        raise GraphError(f"{what} {int(bad[0])}: information matrix is not positive definite "
+                         f"(smallest eigenvalue {eig_min[bad[0]]:.3g})")
+
+
+def lift_information_2d(info3: FloatArray) -> FloatArray:
+    """Lift (k, 3, 3) SE(2) information over (x, y, theta) into (k, 6, 6) over (rho, phi).
+
+    DESIGN §1: x, y, yaw go to indices 0, 1, 5; z, roll, pitch get a stiffness equal to the
+    largest in-plane diagonal entry.
+    """
+    info3 = np.asarray(info3, dtype=np.float64)
+    k = info3.shape[0]
+    out = np.zeros((k, 6, 6))
+    idx = np.array([0, 1, 5])
+    out[:, idx[:, None], idx[None, :]] = info3
+    stiff = np.max(np.diagonal(info3, axis1=1, axis2=2), axis=1)
+    for j in (2, 3, 4):
+        out[:, j, j] = stiff
+    return out
+
+
+def planar_information(info6: FloatArray) -> FloatArray:
+    """Inverse of :func:`lift_information_2d`: the (x, y, yaw) block of (k, 6, 6) information."""
+    idx = np.array([0, 1, 5])
+    return np.ascontiguousarray(np.asarray(info6)[:, idx[:, None], idx[None, :]])
