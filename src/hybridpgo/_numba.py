@@ -19,3 +19,32 @@ _OPTIONS: dict[str, Any] = {"cache": True, "nogil": True, "fastmath": False, "er
 def kernel(fn: F) -> F:
     """Compile ``fn`` with the project's Numba options (typed once here for mypy)."""
     return numba.njit(**_OPTIONS)(fn)  # type: ignore[no-any-return]
+
+
+def _make_cycle_counter() -> Any:
+    """``cycle_counter()`` -> uint64: the CPU's cycle counter (``llvm.readcyclecounter``).
+
+    Used to time single constraint updates inside compiled sweeps without leaving compiled code
+    (~20 ns per read).  Counts are converted to seconds by calibrating against
+    ``time.perf_counter`` around each sweep.
+    """
+    from llvmlite import ir
+    from numba import types
+    from numba.core import cgutils
+    from numba.extending import intrinsic
+
+    @intrinsic
+    def cycle_counter(typingctx: Any) -> Any:
+        sig = types.uint64()
+
+        def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+            fnty = ir.FunctionType(ir.IntType(64), [])
+            fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.readcyclecounter")
+            return builder.call(fn, [])
+
+        return sig, codegen
+
+    return cycle_counter
+
+
+cycle_counter = _make_cycle_counter()

@@ -4,8 +4,9 @@ Conventions: tangent vectors xi = (rho, phi) (translation first); ``Exp(xi)`` is
 exponential; poses are (R, t) pairs of a (3, 3) rotation and a (3,) translation.
 
 Small-angle handling: below ``SMALL_ANGLE`` (rad) every coefficient is evaluated with its Taylor
-series (terms listed beside each one), which are accurate to ~1e-16 there.  Near pi the rotation
-logarithm switches to the symmetric-part formula (``NEAR_PI``).
+series (terms listed beside each one), which are accurate to ~1e-16 there; the SE(3) coupling
+block Q uses longer series below ``Q_SERIES_ANGLE``.  Near pi the rotation logarithm switches to the
+symmetric-part formula (``NEAR_PI``).
 """
 
 from __future__ import annotations
@@ -20,6 +21,9 @@ from .._numba import kernel
 SMALL_ANGLE = 1e-4
 #: Within this distance of pi, Log(R) reads the axis from the symmetric part of R.
 NEAR_PI = 1e-2
+#: Below this angle (rad) Q(rho, phi) uses series to theta^6: its closed-form coefficients cancel
+#: like eps / theta^2 (1e-8 at theta = 1e-4), the series' truncation error is < 1e-15 here.
+Q_SERIES_ANGLE = 0.1
 
 
 @kernel
@@ -99,7 +103,8 @@ def _v_coeffs(th: float) -> tuple[float, float]:
     th2 = th * th
     if th < SMALL_ANGLE:
         return 0.5 - th2 / 24.0, 1.0 / 6.0 - th2 / 120.0
-    return (1.0 - math.cos(th)) / th2, (th - math.sin(th)) / (th2 * th)
+    sh = math.sin(0.5 * th)  # 1 - cos th = 2 sin^2(th/2), without cancellation (b multiplies [phi]x)
+    return 2.0 * sh * sh / th2, (th - math.sin(th)) / (th2 * th)
 
 
 @kernel
@@ -147,10 +152,13 @@ def _q_matrix(rho: np.ndarray, phi: np.ndarray) -> np.ndarray:
     """Barfoot's Q(rho, phi), the off-diagonal block of the SE(3) left Jacobian (rho, phi order)."""
     th2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
     th = math.sqrt(th2)
-    if th < SMALL_ANGLE:
-        a1 = 1.0 / 6.0 - th2 / 120.0  # (th - sin th)/th^3
-        a2 = -1.0 / 24.0 + th2 / 720.0  # (1 - th^2/2 - cos th)/th^4
-        a3 = -1.0 / 120.0 + th2 / 5040.0  # (th - sin th - th^3/6)/th^5
+    if th < Q_SERIES_ANGLE:
+        # (th - sin th)/th^3 = 1/6 - th^2/120 + th^4/5040 - th^6/362880
+        a1 = 1.0 / 6.0 - th2 / 120.0 * (1.0 - th2 / 42.0 * (1.0 - th2 / 72.0))
+        # (1 - th^2/2 - cos th)/th^4 = -1/24 + th^2/720 - th^4/40320 + th^6/3628800
+        a2 = -1.0 / 24.0 + th2 / 720.0 * (1.0 - th2 / 56.0 * (1.0 - th2 / 90.0))
+        # (th - sin th - th^3/6)/th^5 = -1/120 + th^2/5040 - th^4/362880 + th^6/39916800
+        a3 = -1.0 / 120.0 + th2 / 5040.0 * (1.0 - th2 / 72.0 * (1.0 - th2 / 110.0))
     else:
         s = math.sin(th)
         c = math.cos(th)
@@ -284,15 +292,15 @@ def euler_rpy_to_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
 def matrix_to_euler_rpy(r: np.ndarray) -> np.ndarray:
     """(roll, pitch, yaw) with R = Rz(yaw) Ry(pitch) Rx(roll); pitch in [-pi/2, pi/2]."""
     out = np.empty(3)
-    sp = -r[2, 0]
-    sp = min(1.0, max(-1.0, sp))
-    out[1] = math.asin(sp)
-    if abs(sp) < 1.0 - 1e-12:
-        out[0] = math.atan2(r[2, 1], r[2, 2])
-        out[2] = math.atan2(r[1, 0], r[0, 0])
-    else:  # gimbal lock: put everything in yaw
-        out[0] = 0.0
-        out[2] = math.atan2(-r[0, 1], r[1, 1])
+    cp = math.sqrt(r[2, 1] * r[2, 1] + r[2, 2] * r[2, 2])  # |cos(pitch)|
+    out[1] = math.atan2(-r[2, 0], cp)  # atan2, not asin: accurate near +-pi/2
+    # Gimbal lock (cp ~ 0): roll is arbitrary, put everything in yaw.  Elsewhere take roll from
+    # row 2 and yaw from R Rx(roll)^T = Rz(yaw) Ry(pitch), whose column 1 is (-sin yaw, cos yaw, 0):
+    # exact for any roll, so R is reproduced to rounding even close to gimbal lock.
+    out[0] = math.atan2(r[2, 1], r[2, 2]) if cp > 1e-14 else 0.0
+    sr = math.sin(out[0])
+    cr = math.cos(out[0])
+    out[2] = math.atan2(sr * r[0, 2] - cr * r[0, 1], cr * r[1, 1] - sr * r[1, 2])
     return out
 
 

@@ -1,0 +1,625 @@
+"""Shared plumbing of the readers and writers: tokeniser with line numbers, vectorised number
+parsing, graph assembly with file-level checks, and atomic writing.
+
+Reading is vectorised per tag (STYLE.md §3 spirit, the brief's "millions of lines"): every line is
+split once, lines are grouped by tag, and each group is converted with one ``np.array(...,
+dtype=float)`` call.  Only when that fails do we scan the group line by line, to name the exact
+line and field (STYLE.md §5: errors read like a compiler's).
+
+Also here: the vectorised rotation conversions used at the I/O boundary (quaternions, Euler
+angles, SE(2) angles).  They are NumPy twins of the Numba kernels in ``geometry/_kernels.py``
+(which work on one matrix at a time).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import warnings
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from ..errors import FormatError, GraphError
+from ..graph import PoseGraph
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+PathLike = str | os.PathLike[str]
+
+#: A PARAMS_SE3OFFSET (or other "identity") value is accepted when every entry is within this
+#: absolute distance of the identity's (files print ~7 digits; a real offset is >> 1e-9).
+IDENTITY_ATOL = 1e-9
+
+
+# =========================================================================== source & tokens
+@dataclass(slots=True)
+class Source:
+    """A text file split into lines, with the data lines grouped by tag (first token)."""
+
+    path: str
+    lines: list[str]
+    #: tag -> (1-based line numbers, token lists including the tag); dict order = first appearance.
+    groups: dict[str, tuple[list[int], list[list[str]]]] = field(default_factory=dict)
+
+    def error(self, line_no: int | None, problem: str) -> FormatError:
+        """A :class:`FormatError` at ``line_no`` (``None``: the file as a whole)."""
+        line = self.lines[line_no - 1] if line_no is not None else None
+        return FormatError(problem, self.path, line_no, line)
+
+    def first_line(self, tag: str) -> int:
+        return self.groups[tag][0][0]
+
+
+def load_source(path: PathLike) -> Source:
+    """Read ``path`` and group its data lines by tag; blank and ``#`` lines are skipped.
+
+    Raises
+    ------
+    FormatError
+        When the file cannot be read (missing, a directory, no permission, ...).
+    """
+    name = os.fspath(path)
+    try:
+        with open(name, "rb") as fh:
+            raw = fh.read()
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        raise FormatError(f"cannot read the file: {reason}", name) from exc
+    # Undecodable bytes become U+FFFD, so a binary file fails later as an unknown tag with a line.
+    text = raw.decode("utf-8", errors="replace")
+    lines = text.splitlines()  # also strips "\r" of CRLF files
+    groups: dict[str, tuple[list[int], list[list[str]]]] = {}
+    for i, line in enumerate(lines, start=1):
+        toks = line.split()
+        if not toks or toks[0].startswith("#"):
+            continue
+        g = groups.get(toks[0])
+        if g is None:
+            g = groups[toks[0]] = ([], [])
+        g[0].append(i)
+        g[1].append(toks)
+    return Source(name, lines, groups)
+
+
+# =========================================================================== tag layouts
+@dataclass(frozen=True, slots=True)
+class TagSpec:
+    """Layout of one line type: ``TAG <id fields> <number fields>``.
+
+    ``optional_from``: the number fields from this index on may be omitted all together (TORO
+    ``EDGE3`` without information).  ``variadic_ids``: one or more ids and no numbers (g2o ``FIX``).
+    """
+
+    tag: str
+    id_fields: tuple[str, ...]
+    number_fields: tuple[str, ...] = ()
+    optional_from: int | None = None
+    variadic_ids: bool = False
+
+    @property
+    def counts(self) -> tuple[int, ...]:
+        """Accepted numbers of fields after the tag, the full layout first."""
+        full = len(self.id_fields) + len(self.number_fields)
+        if self.optional_from is None:
+            return (full,)
+        return (full, len(self.id_fields) + self.optional_from)
+
+    def field_name(self, k: int) -> str:
+        """Name of the k-th field after the tag (0-based)."""
+        if self.variadic_ids:
+            return self.id_fields[0]
+        names = self.id_fields + self.number_fields
+        return names[k]
+
+
+@dataclass(frozen=True, slots=True)
+class Block:
+    """All lines of one tag with one field count, parsed: (k,) line numbers, ids, numbers."""
+
+    spec: TagSpec
+    line_nos: IntArray
+    ids: IntArray
+    """(k, n_ids) int64 (variadic tags: (total, 1), one row per id, ``line_nos`` repeated)."""
+    values: FloatArray
+    """(k, n_numbers) float64, all finite."""
+
+    def __len__(self) -> int:
+        return int(self.line_nos.shape[0])
+
+
+def upper_names(prefix: str, labels: Iterable[str]) -> tuple[str, ...]:
+    """Names of upper-triangular entries, row by row: ``I11 I12 ... Inn`` style."""
+    labs = list(labels)
+    return tuple(f"{prefix}{labs[i]}{labs[j]}" for i in range(len(labs))
+                 for j in range(i, len(labs)))
+
+
+def _count_problem(spec: TagSpec, got: int) -> str:
+    counts = spec.counts
+    if spec.variadic_ids:
+        return f"{spec.tag} needs at least one vertex id after the tag, got none"
+    if len(counts) == 1:
+        return f"{spec.tag} needs {counts[0]} numbers after the tag, got {got}"
+    return (f"{spec.tag} needs {counts[0]} numbers after the tag (or {counts[1]} without the "
+            f"information matrix), got {got}")
+
+
+def unknown_tag_problem(tag: str, fmt: str, supported: Iterable[str]) -> str:
+    return (f"unknown tag {tag!r} for the {fmt} format; supported tags: "
+            + ", ".join(supported) + " (pass skip_unknown=True to skip such lines with a warning)")
+
+
+def parse_blocks(src: Source, specs: Mapping[str, TagSpec], fmt: str,
+                 skip_unknown: bool) -> dict[str, list[Block]]:
+    """Parse every group of ``src`` whose tag is in ``specs`` (one Block per field count).
+
+    Unknown tags raise (earliest line first) or, with ``skip_unknown``, are skipped with ONE
+    warning giving the count per tag.  Field counts are checked for all tags before any number
+    is parsed, so the earliest malformed line is reported.
+    """
+    unknown = [t for t in src.groups if t not in specs]
+    if unknown:
+        if not skip_unknown:
+            first = min(unknown, key=src.first_line)
+            raise src.error(src.first_line(first), unknown_tag_problem(first, fmt, specs))
+        detail = ", ".join(f"{t} ({len(src.groups[t][0])})" for t in unknown)
+        total = sum(len(src.groups[t][0]) for t in unknown)
+        warnings.warn(f"{src.path}: skipped {total} line(s) with tags the {fmt} reader does "
+                      f"not support: {detail}", UserWarning, stacklevel=4)
+    # --- field counts, earliest offending line over all tags
+    bad: tuple[int, str] | None = None
+    for tag, spec in specs.items():
+        if tag not in src.groups:
+            continue
+        line_nos, toks = src.groups[tag]
+        ok = spec.counts
+        for ln, tk in zip(line_nos, toks, strict=True):
+            n = len(tk) - 1
+            if (n < 1) if spec.variadic_ids else (n not in ok):
+                if bad is None or ln < bad[0]:
+                    bad = (ln, _count_problem(spec, n))
+                break
+    if bad is not None:
+        raise src.error(*bad)
+    # --- numbers
+    out: dict[str, list[Block]] = {}
+    failures: list[tuple[int, str]] = []
+    for tag, spec in specs.items():
+        if tag not in src.groups:
+            continue
+        line_nos, toks = src.groups[tag]
+        try:
+            out[tag] = _parse_group(spec, line_nos, toks)
+        except _BadField as exc:
+            failures.append((exc.line_no, exc.problem))
+    if failures:
+        raise src.error(*min(failures))
+    return out
+
+
+class _BadField(Exception):
+    def __init__(self, line_no: int, problem: str) -> None:
+        super().__init__(problem)
+        self.line_no = line_no
+        self.problem = problem
+
+
+def _parse_group(spec: TagSpec, line_nos: list[int], toks: list[list[str]]) -> list[Block]:
+    if spec.variadic_ids:
+        flat = [t for tk in toks for t in tk[1:]]
+        rep = np.repeat(np.asarray(line_nos, np.int64), [len(tk) - 1 for tk in toks])
+        try:
+            ids = np.array(flat, dtype=np.int64)
+        except (ValueError, OverflowError):
+            _scan_ids(spec, rep.tolist(), [[t] for t in flat], 0, 1)
+            raise AssertionError("unreachable: scan found no bad id") from None
+        return [Block(spec, rep, ids.reshape(-1, 1), np.zeros((ids.shape[0], 0)))]
+    n_ids = len(spec.id_fields)
+    blocks = []
+    for count in spec.counts:
+        sel = [k for k, tk in enumerate(toks) if len(tk) - 1 == count]
+        if not sel:
+            continue
+        lns = [line_nos[k] for k in sel] if len(sel) != len(toks) else line_nos
+        tks = [toks[k] for k in sel] if len(sel) != len(toks) else toks
+        try:
+            ids = np.array([tk[1:1 + n_ids] for tk in tks], dtype=np.int64).reshape(-1, n_ids)
+        except (ValueError, OverflowError):
+            _scan_ids(spec, lns, tks, 1, n_ids)
+            raise AssertionError("unreachable: scan found no bad id") from None
+        n_num = count - n_ids
+        try:
+            vals = np.array([tk[1 + n_ids:] for tk in tks], dtype=np.float64).reshape(-1, n_num)
+        except (ValueError, OverflowError):
+            _scan_numbers(spec, lns, tks, n_ids)
+            raise AssertionError("unreachable: scan found no bad number") from None
+        finite = np.isfinite(vals)
+        if not finite.all():
+            r, c = (int(v) for v in np.argwhere(~finite)[0])
+            raise _BadField(lns[r], f"{spec.tag} field {spec.field_name(n_ids + c)!r} is not "
+                            f"finite: {tks[r][1 + n_ids + c]!r}")
+        blocks.append(Block(spec, np.asarray(lns, np.int64), ids, vals))
+    return blocks
+
+
+def _scan_ids(spec: TagSpec, lns: list[int], tks: list[list[str]], start: int, n: int) -> None:
+    for ln, tk in zip(lns, tks, strict=True):
+        for k in range(start, start + n):
+            try:
+                v = int(tk[k])
+                if not -(2**63) <= v < 2**63:
+                    raise OverflowError
+            except (ValueError, OverflowError):
+                raise _BadField(ln, f"{spec.tag} field {spec.field_name(k - start)!r} must be an "
+                                f"integer vertex id, got {tk[k]!r}") from None
+
+
+def _scan_numbers(spec: TagSpec, lns: list[int], tks: list[list[str]], n_ids: int) -> None:
+    for ln, tk in zip(lns, tks, strict=True):
+        for k in range(1 + n_ids, len(tk)):
+            try:
+                float(tk[k])
+            except ValueError:
+                raise _BadField(ln, f"{spec.tag} field {spec.field_name(k - 1)!r} is not a "
+                                f"number: {tk[k]!r}") from None
+
+
+def stack(blocks: Iterable[Block]) -> tuple[IntArray, IntArray, FloatArray, list[Block]]:
+    """Concatenate blocks (same id/number widths) in file order: line_nos, ids, values, blocks."""
+    bl = [b for b in blocks if len(b)]
+    if not bl:
+        return np.zeros(0, np.int64), np.zeros((0, 0), np.int64), np.zeros((0, 0)), []
+    ln = np.concatenate([b.line_nos for b in bl])
+    order = np.argsort(ln, kind="stable")
+    ids = np.concatenate([b.ids for b in bl])[order]
+    vals = np.concatenate([b.values for b in bl])[order]
+    return ln[order], ids, vals, bl
+
+
+# =========================================================================== matrices
+def sym_from_upper(vals: FloatArray, d: int) -> FloatArray:
+    """(k, d(d+1)/2) upper-triangular entries, row by row -> (k, d, d) symmetric."""
+    iu = np.triu_indices(d)
+    out = np.zeros((vals.shape[0], d, d))
+    out[:, iu[0], iu[1]] = vals
+    out[:, iu[1], iu[0]] = vals
+    return out
+
+
+def upper_from_sym(mats: FloatArray) -> FloatArray:
+    """(k, d, d) -> (k, d(d+1)/2) upper-triangular entries, row by row."""
+    iu = np.triu_indices(mats.shape[-1])
+    return np.ascontiguousarray(mats[:, iu[0], iu[1]])
+
+
+def upper_matrix(vals: FloatArray, d: int) -> FloatArray:
+    """(k, d(d+1)/2) entries, row by row -> (k, d, d) upper-triangular matrix (zeros below)."""
+    iu = np.triu_indices(d)
+    out = np.zeros((vals.shape[0], d, d))
+    out[:, iu[0], iu[1]] = vals
+    return out
+
+
+def check_spd(src: Source, mats: FloatArray, line_nos: IntArray, what: str = "information matrix",
+              hint: str = "") -> None:
+    """Raise at the first line whose matrix is not symmetric positive definite.
+
+    The criterion is :func:`hybridpgo.graph.check_information`'s (smallest eigenvalue > 0), so a
+    matrix accepted here is accepted by :class:`PoseGraph`.
+    """
+    if mats.shape[0] == 0:
+        return
+    eig_min = np.linalg.eigvalsh(mats)[:, 0]
+    bad = np.nonzero(~(eig_min > 0.0))[0]
+    if bad.size:
+        k = int(bad[0])
+        raise src.error(int(line_nos[k]), f"{what} is not positive definite (smallest "
+                        f"eigenvalue {eig_min[k]:.6g}){hint}")
+
+
+# =========================================================================== rotations
+def rot_z(theta: FloatArray) -> FloatArray:
+    """(k,) yaw angles -> (k, 3, 3) rotations about z."""
+    c, s = np.cos(theta), np.sin(theta)
+    r = np.zeros((theta.shape[0], 3, 3))
+    r[:, 0, 0] = c
+    r[:, 0, 1] = -s
+    r[:, 1, 0] = s
+    r[:, 1, 1] = c
+    r[:, 2, 2] = 1.0
+    return r
+
+
+def yaw_of(r: FloatArray) -> FloatArray:
+    """(k, 3, 3) planar rotations -> (k,) yaw angles in (-pi, pi]."""
+    return np.arctan2(r[:, 1, 0], r[:, 0, 0])
+
+
+def quat_xyzw_to_matrix(q: FloatArray) -> FloatArray:
+    """(k, 4) quaternions (x, y, z, w), normalized here -> (k, 3, 3); norms must be > 0."""
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    r = np.empty((q.shape[0], 3, 3))
+    r[:, 0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    r[:, 0, 1] = 2.0 * (x * y - z * w)
+    r[:, 0, 2] = 2.0 * (x * z + y * w)
+    r[:, 1, 0] = 2.0 * (x * y + z * w)
+    r[:, 1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    r[:, 1, 2] = 2.0 * (y * z - x * w)
+    r[:, 2, 0] = 2.0 * (x * z - y * w)
+    r[:, 2, 1] = 2.0 * (y * z + x * w)
+    r[:, 2, 2] = 1.0 - 2.0 * (x * x + y * y)
+    return r
+
+
+def matrix_to_quat_xyzw(r: FloatArray) -> FloatArray:
+    """(k, 3, 3) rotations -> (k, 4) unit quaternions (x, y, z, w) with w >= 0 (Shepperd)."""
+    k = r.shape[0]
+    q = np.empty((k, 4))
+    tr = r[:, 0, 0] + r[:, 1, 1] + r[:, 2, 2]
+    d = np.stack([r[:, 0, 0], r[:, 1, 1], r[:, 2, 2]], axis=1)
+    # Case 3 = trace largest, else the largest diagonal entry: keeps the divisor >= 1/2.
+    case = np.where(tr > d.max(axis=1), 3, d.argmax(axis=1))
+    m = case == 3
+    s = 2.0 * np.sqrt(1.0 + tr[m])
+    q[m, 3] = 0.25 * s
+    q[m, 0] = (r[m, 2, 1] - r[m, 1, 2]) / s
+    q[m, 1] = (r[m, 0, 2] - r[m, 2, 0]) / s
+    q[m, 2] = (r[m, 1, 0] - r[m, 0, 1]) / s
+    m = case == 0
+    s = 2.0 * np.sqrt(1.0 + r[m, 0, 0] - r[m, 1, 1] - r[m, 2, 2])
+    q[m, 3] = (r[m, 2, 1] - r[m, 1, 2]) / s
+    q[m, 0] = 0.25 * s
+    q[m, 1] = (r[m, 0, 1] + r[m, 1, 0]) / s
+    q[m, 2] = (r[m, 0, 2] + r[m, 2, 0]) / s
+    m = case == 1
+    s = 2.0 * np.sqrt(1.0 + r[m, 1, 1] - r[m, 0, 0] - r[m, 2, 2])
+    q[m, 3] = (r[m, 0, 2] - r[m, 2, 0]) / s
+    q[m, 0] = (r[m, 0, 1] + r[m, 1, 0]) / s
+    q[m, 1] = 0.25 * s
+    q[m, 2] = (r[m, 1, 2] + r[m, 2, 1]) / s
+    m = case == 2
+    s = 2.0 * np.sqrt(1.0 + r[m, 2, 2] - r[m, 0, 0] - r[m, 1, 1])
+    q[m, 3] = (r[m, 1, 0] - r[m, 0, 1]) / s
+    q[m, 0] = (r[m, 0, 2] + r[m, 2, 0]) / s
+    q[m, 1] = (r[m, 1, 2] + r[m, 2, 1]) / s
+    q[m, 2] = 0.25 * s
+    q[q[:, 3] < 0.0] *= -1.0
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def euler_rpy_to_matrix(rpy: FloatArray) -> FloatArray:
+    """(k, 3) (roll, pitch, yaw) -> (k, 3, 3) R = Rz(yaw) Ry(pitch) Rx(roll) (TORO/iSAM)."""
+    cr, sr = np.cos(rpy[:, 0]), np.sin(rpy[:, 0])
+    cp, sp = np.cos(rpy[:, 1]), np.sin(rpy[:, 1])
+    cy, sy = np.cos(rpy[:, 2]), np.sin(rpy[:, 2])
+    r = np.empty((rpy.shape[0], 3, 3))
+    r[:, 0, 0] = cy * cp
+    r[:, 0, 1] = cy * sp * sr - sy * cr
+    r[:, 0, 2] = cy * sp * cr + sy * sr
+    r[:, 1, 0] = sy * cp
+    r[:, 1, 1] = sy * sp * sr + cy * cr
+    r[:, 1, 2] = sy * sp * cr - cy * sr
+    r[:, 2, 0] = -sp
+    r[:, 2, 1] = cp * sr
+    r[:, 2, 2] = cp * cr
+    return r
+
+
+def matrix_to_euler_rpy(r: FloatArray) -> FloatArray:
+    """(k, 3, 3) -> (k, 3) (roll, pitch, yaw), R = Rz(yaw) Ry(pitch) Rx(roll).
+
+    Accurate to rounding everywhere, including near gimbal lock: roll is read from row 2, then
+    yaw and pitch from ``M = R Rx(roll)^T = Rz(yaw) Ry(pitch)`` (``M01 = -sin yaw``,
+    ``M11 = cos yaw``, ``M20 = -sin pitch``, ``M22 = cos pitch``).  Near the lock roll itself is
+    ill-determined, but any error in it is absorbed by yaw, so ``R`` is reproduced to ~1e-16.
+    """
+    roll = np.arctan2(r[:, 2, 1], r[:, 2, 2])
+    cr, sr = np.cos(roll), np.sin(roll)
+    # M = R Rx(roll)^T; columns 1 and 2 mix, column 0 is unchanged.
+    m01 = r[:, 0, 1] * cr - r[:, 0, 2] * sr
+    m11 = r[:, 1, 1] * cr - r[:, 1, 2] * sr
+    m22 = r[:, 2, 1] * sr + r[:, 2, 2] * cr
+    yaw = np.arctan2(-m01, m11)
+    pitch = np.arctan2(-r[:, 2, 0], m22)
+    return np.stack([roll, pitch, yaw], axis=1)
+
+
+# =========================================================================== assembly
+@dataclass(slots=True)
+class Parts:
+    """What a format reader extracted, in file ids, before the id -> index mapping."""
+
+    is_2d: bool
+    vertex_ids: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
+    vertex_lines: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
+    vertex_rotations: FloatArray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    vertex_translations: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    edge_ids: IntArray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    edge_lines: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
+    edge_rotations: FloatArray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    edge_translations: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    edge_information: FloatArray = field(default_factory=lambda: np.zeros((0, 6, 6)))
+    gps_ids: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
+    gps_lines: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
+    gps_positions: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    gps_information: FloatArray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    fix_ids: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
+    fix_lines: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+
+def check_duplicate_vertices(src: Source, ids: IntArray, line_nos: IntArray) -> None:
+    """Raise at the second definition of a vertex id, naming the first line."""
+    if ids.shape[0] < 2:
+        return
+    _, first = np.unique(ids, return_index=True)
+    if first.shape[0] == ids.shape[0]:
+        return
+    dup = np.ones(ids.shape[0], bool)
+    dup[first] = False
+    k = int(np.nonzero(dup)[0][np.argmin(line_nos[dup])])
+    earlier = int(line_nos[np.nonzero(ids == ids[k])[0]].min())
+    tag = src.lines[int(line_nos[k]) - 1].split()[0]
+    raise src.error(int(line_nos[k]), f"duplicate vertex id {int(ids[k])} ({tag}); it was "
+                    f"already defined at line {earlier}")
+
+
+def check_self_loops(src: Source, edge_ids: IntArray, line_nos: IntArray) -> None:
+    loops = np.nonzero(edge_ids[:, 0] == edge_ids[:, 1])[0] if edge_ids.size else []
+    if len(loops):
+        k = int(loops[0])
+        tag = src.lines[int(line_nos[k]) - 1].split()[0]
+        raise src.error(int(line_nos[k]), f"{tag} connects vertex {int(edge_ids[k, 0])} to "
+                        "itself (self-loop)")
+
+
+def _check_known(src: Source, node_ids: IntArray, ids: IntArray, line_nos: IntArray,
+                 cols: int) -> None:
+    """Raise at the first line (in file order) naming an id that has no vertex line."""
+    if ids.size == 0:
+        return
+    flat = ids.reshape(-1)
+    pos = np.searchsorted(node_ids, flat).clip(0, node_ids.shape[0] - 1)
+    unknown = (node_ids[pos] != flat).reshape(-1, cols).any(axis=1)
+    if unknown.any():
+        rows = np.nonzero(unknown)[0]
+        k = int(rows[np.argmin(line_nos[rows])])
+        row = ids.reshape(-1, cols)[k]
+        missing = int(row[~np.isin(row, node_ids)][0])
+        tag = src.lines[int(line_nos[k]) - 1].split()[0]
+        raise src.error(int(line_nos[k]), f"{tag} refers to vertex {missing}, which no vertex "
+                        "line defines")
+
+
+def assemble(src: Source, fmt: str, parts: Parts, check_connected: bool) -> PoseGraph:
+    """Map file ids to dense indices, run the file-level checks, build the :class:`PoseGraph`."""
+    p = parts
+    has_vertices = p.vertex_ids.shape[0] > 0
+    if not has_vertices and p.edge_ids.shape[0] == 0 and p.gps_ids.shape[0] == 0:
+        raise src.error(None, "empty file: no vertex or edge lines found")
+    check_self_loops(src, p.edge_ids, p.edge_lines)
+    if has_vertices:
+        check_duplicate_vertices(src, p.vertex_ids, p.vertex_lines)
+        order = np.argsort(p.vertex_ids, kind="stable")
+        node_ids = p.vertex_ids[order]
+        rotations = p.vertex_rotations[order]
+        translations = p.vertex_translations[order]
+        _check_known(src, node_ids, p.edge_ids, p.edge_lines, 2)
+        _check_known(src, node_ids, p.gps_ids, p.gps_lines, 1)
+        _check_known(src, node_ids, p.fix_ids, p.fix_lines, 1)
+    else:
+        node_ids = np.unique(np.concatenate([p.edge_ids.reshape(-1), p.gps_ids, p.fix_ids]))
+        n = node_ids.shape[0]
+        rotations = np.broadcast_to(np.eye(3), (n, 3, 3))
+        translations = np.zeros((n, 3))
+    # Safety net with line numbers: the readers check the file's own matrices; this checks the
+    # converted ones with PoseGraph's criterion, so PoseGraph never rejects them without a line.
+    check_spd(src, p.edge_information, p.edge_lines, "information matrix converted to (rho, phi)")
+    check_spd(src, p.gps_information, p.gps_lines)
+    _, first = np.unique(p.fix_ids, return_index=True)
+    fix_ids = p.fix_ids[np.sort(first)]  # first mention order, no repeats
+    try:
+        graph = PoseGraph(
+            node_ids=node_ids, rotations=rotations, translations=translations,
+            edge_nodes=np.searchsorted(node_ids, p.edge_ids).astype(np.int32).reshape(-1, 2),
+            edge_rotations=p.edge_rotations, edge_translations=p.edge_translations,
+            edge_information=p.edge_information,
+            gps_nodes=np.searchsorted(node_ids, p.gps_ids).astype(np.int32),
+            gps_positions=p.gps_positions, gps_information=p.gps_information,
+            fixed_nodes=np.searchsorted(node_ids, fix_ids).astype(np.int32),
+            is_2d=p.is_2d, has_estimates=has_vertices, source_format=fmt,
+        )
+        if check_connected:
+            graph.check_connected(source="the graph")
+    except GraphError as exc:
+        raise src.error(None, str(exc)) from exc
+    return graph
+
+
+# =========================================================================== writing
+def fmt_floats(rows: FloatArray) -> list[str]:
+    """Each row of a (k, n) array as space-separated ``repr`` floats (round-trip exact)."""
+    return [" ".join(map(repr, row)) for row in np.asarray(rows, np.float64).tolist()]
+
+
+def _current_umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _current_umask()  # read once at import (os.umask can only be read by setting it)
+
+
+def write_atomic(path: PathLike, produce: Callable[[], Iterable[str]]) -> None:
+    """Write the lines ``produce()`` yields to ``path`` via a temporary file and ``os.replace``.
+
+    If anything fails (including ``produce`` raising) the temporary file is removed and an
+    existing ``path`` is left untouched.  OS errors become :class:`FormatError` naming the file.
+    """
+    name = os.fspath(path)
+    directory = os.path.dirname(os.path.abspath(name))
+    try:
+        fd, tmp = tempfile.mkstemp(dir=directory, prefix="." + os.path.basename(name) + ".",
+                                   suffix=".tmp")
+    except OSError as exc:
+        raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as fh:
+            for line in produce():
+                fh.write(line)
+                fh.write("\n")
+        try:
+            mode = os.stat(name).st_mode & 0o777
+        except OSError:
+            mode = 0o666 & ~_UMASK
+        os.chmod(tmp, mode)
+        os.replace(tmp, name)
+    except BaseException as exc:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        if isinstance(exc, OSError):
+            raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
+        raise
+
+
+def require_planar(graph: PoseGraph, path: str, fmt: str) -> None:
+    """Raise unless every pose and measurement of a 2D graph is planar (z = roll = pitch = 0)."""
+    tol = 1e-9
+    for what, r, t in (("pose", graph.rotations, graph.translations),
+                       ("edge", graph.edge_rotations, graph.edge_translations)):
+        if r.shape[0] == 0:
+            continue
+        off = np.abs(np.stack([r[:, 0, 2], r[:, 1, 2], r[:, 2, 0], r[:, 2, 1],
+                               r[:, 2, 2] - 1.0], axis=1)).max(axis=1)
+        zoff = np.abs(t[:, 2]) / (1.0 + np.abs(t).max(axis=1))
+        bad = np.nonzero((off > tol) | (zoff > tol))[0]
+        if bad.size:
+            k = int(bad[0])
+            label = (f"pose {int(graph.node_ids[k])}" if what == "pose" else f"edge {k} "
+                     f"({int(graph.node_ids[graph.edge_nodes[k, 0]])} -> "
+                     f"{int(graph.node_ids[graph.edge_nodes[k, 1]])})")
+            raise FormatError(f"cannot write the 2D graph as {fmt} SE(2) lines: {label} is not "
+                              f"planar (z = {t[k, 2]:.3g}, out-of-plane rotation {off[k]:.3g})",
+                              path)
+
+
+
+def write_vertices_needed(graph: PoseGraph) -> bool:
+    """True when vertex lines must be written (estimates, or a node no constraint mentions).
+
+    A graph without estimates (read from iSAM or an edges-only file) is written without vertex
+    lines, so that reading the file back gives the same graph (``has_estimates`` False).
+    """
+    if graph.has_estimates:
+        return True
+    used = np.zeros(graph.num_nodes, bool)
+    used[graph.edge_nodes.reshape(-1)] = True
+    used[graph.gps_nodes] = True
+    used[graph.fixed_nodes] = True
+    return not bool(used.all())

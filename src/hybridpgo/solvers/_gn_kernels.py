@@ -1,0 +1,206 @@
+"""Numba kernels of the exact solver (DESIGN.md §1, §7).
+
+Global parametrization, right perturbation ``X_i <- X_i Exp(delta_i)``, tangent order (rho, phi):
+
+* relative constraint: ``e = Log(Z^-1 X_a^-1 X_b)``, ``de/d delta_b = Jr^-1(e)``,
+  ``de/d delta_a = -Jr^-1(e) Ad(X_b^-1 X_a)``;
+* position constraint: ``e = p_n - g``, ``de/d delta_n = [R_n | 0]``.
+
+The normal equations ``H = J^T Omega J``, ``g = J^T Omega e`` are written straight into the value
+array of a CSC matrix whose pattern was computed once (the "analyze" step in
+:mod:`hybridpgo.solvers.gauss_newton`).  Each 6x6 block ``(row i, col j)`` of H is addressed by a
+*slot*: entry ``(p, q)`` of the block lives at ``data[base + q * stride + p]``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .._numba import kernel
+from ..geometry._kernels import orthonormalize, relative_error, se3_exp, se3_right_jacobian_inv
+
+
+@kernel
+def _matmul6(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """out = a @ b for (6, 6) arrays (explicit loops: no BLAS call overhead for tiny matrices)."""
+    for i in range(6):
+        for j in range(6):
+            s = 0.0
+            for k in range(6):
+                s += a[i, k] * b[k, j]
+            out[i, j] = s
+
+
+@kernel
+def _add_block_atb(a: np.ndarray, b: np.ndarray, data: np.ndarray, base: int,
+                   stride: int) -> None:
+    """data-block += a^T @ b for (6, 6) a, b, into the CSC slot (base, stride)."""
+    for q in range(6):
+        col = base + q * stride
+        for p in range(6):
+            s = 0.0
+            for k in range(6):
+                s += a[k, p] * b[k, q]
+            data[col + p] += s
+
+
+@kernel
+def edge_linearization(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.ndarray,
+                       rz: np.ndarray, tz: np.ndarray, ja: np.ndarray,
+                       jb: np.ndarray) -> np.ndarray:
+    """Error of one relative constraint; writes its Jacobians into ``ja``, ``jb`` (6, 6).
+
+    ``e = Log(Z^-1 X_a^-1 X_b)``; ``jb = Jr^-1(e)``, ``ja = -Jr^-1(e) Ad(X_b^-1 X_a)``.
+    """
+    rab = ra.T @ rb
+    tab = ra.T @ (tb - ta)
+    e = relative_error(rz, tz, rab, tab)
+    jri = se3_right_jacobian_inv(e)
+    # Ad(X_b^-1 X_a) with X_b^-1 X_a = (R_ab^T, -R_ab^T t_ab) = (R, t):
+    # [[R, [t]x R], [0, R]].
+    r = rab.T
+    t = -(r @ tab)
+    ad = np.zeros((6, 6))
+    for i in range(3):
+        for j in range(3):
+            ad[i, j] = r[i, j]
+            ad[i + 3, j + 3] = r[i, j]
+    # [t]x R, row by row: ([t]x R)[i, j] = (t x R[:, j])[i]
+    for j in range(3):
+        ad[0, j + 3] = t[1] * r[2, j] - t[2] * r[1, j]
+        ad[1, j + 3] = t[2] * r[0, j] - t[0] * r[2, j]
+        ad[2, j + 3] = t[0] * r[1, j] - t[1] * r[0, j]
+    _matmul6(jri, ad, ja)
+    for i in range(6):
+        for j in range(6):
+            ja[i, j] = -ja[i, j]
+            jb[i, j] = jri[i, j]
+    return e
+
+
+@kernel
+def edge_jacobians(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarray,
+                   edge_rot: np.ndarray, edge_trans: np.ndarray, out_err: np.ndarray,
+                   out_ja: np.ndarray, out_jb: np.ndarray) -> None:
+    """Errors (M, 6) and Jacobians (M, 6, 6) w.r.t. delta_a and delta_b of every relative edge."""
+    for c in range(edge_nodes.shape[0]):
+        a = edge_nodes[c, 0]
+        b = edge_nodes[c, 1]
+        out_err[c] = edge_linearization(rot[a], trans[a], rot[b], trans[b], edge_rot[c],
+                                        edge_trans[c], out_ja[c], out_jb[c])
+
+
+@kernel
+def assemble_normal_equations(
+    rot: np.ndarray, trans: np.ndarray,
+    edge_nodes: np.ndarray, edge_rot: np.ndarray, edge_trans: np.ndarray, edge_info: np.ndarray,
+    edge_base: np.ndarray, edge_stride: np.ndarray,
+    gps_nodes: np.ndarray, gps_pos: np.ndarray, gps_info: np.ndarray,
+    gps_base: np.ndarray, gps_stride: np.ndarray,
+    var_of_node: np.ndarray, data: np.ndarray, grad: np.ndarray,
+) -> tuple[int, float]:
+    """Fill ``data`` (CSC values of H) and ``grad`` (g = J^T Omega e) in one pass; return energy.
+
+    ``edge_base``/``edge_stride`` (M, 4): slots of the blocks (a, a), (b, b), (a, b), (b, a)
+    (row, column), -1 where a node is fixed.  ``gps_base``/``gps_stride`` (G,): slot of (n, n).
+    ``var_of_node`` (N,): variable index of each node, -1 when fixed.
+
+    Returns ``(status, energy)``: status -1 when every quantity is finite, else the index of
+    the first offending constraint (relative edges 0..M-1, then M + GPS index).
+    """
+    data[:] = 0.0
+    grad[:] = 0.0
+    m = edge_nodes.shape[0]
+    ja = np.empty((6, 6))
+    jb = np.empty((6, 6))
+    wa = np.empty((6, 6))
+    wb = np.empty((6, 6))
+    energy = 0.0
+    for c in range(m):
+        a = edge_nodes[c, 0]
+        b = edge_nodes[c, 1]
+        e = edge_linearization(rot[a], trans[a], rot[b], trans[b], edge_rot[c], edge_trans[c],
+                               ja, jb)
+        om = edge_info[c]
+        oe = om @ e
+        ec = 0.0
+        for i in range(6):
+            ec += e[i] * oe[i]
+        ok = math.isfinite(ec)
+        for i in range(6):
+            for j in range(6):
+                if not (math.isfinite(ja[i, j]) and math.isfinite(jb[i, j])):
+                    ok = False
+        if not ok:
+            return c, energy
+        energy += ec
+        _matmul6(om, ja, wa)
+        _matmul6(om, jb, wb)
+        va = var_of_node[a]
+        vb = var_of_node[b]
+        if va >= 0:
+            _add_block_atb(ja, wa, data, edge_base[c, 0], edge_stride[c, 0])
+            for p in range(6):
+                s = 0.0
+                for k in range(6):
+                    s += ja[k, p] * oe[k]
+                grad[6 * va + p] += s
+        if vb >= 0:
+            _add_block_atb(jb, wb, data, edge_base[c, 1], edge_stride[c, 1])
+            for p in range(6):
+                s = 0.0
+                for k in range(6):
+                    s += jb[k, p] * oe[k]
+                grad[6 * vb + p] += s
+        if va >= 0 and vb >= 0:
+            _add_block_atb(ja, wb, data, edge_base[c, 2], edge_stride[c, 2])
+            _add_block_atb(jb, wa, data, edge_base[c, 3], edge_stride[c, 3])
+    for c in range(gps_nodes.shape[0]):
+        n = gps_nodes[c]
+        e = trans[n] - gps_pos[c]
+        om = gps_info[c]
+        oe = om @ e
+        ec = e[0] * oe[0] + e[1] * oe[1] + e[2] * oe[2]
+        if not math.isfinite(ec):
+            return m + c, energy
+        energy += ec
+        vn = var_of_node[n]
+        if vn < 0:
+            continue
+        # J = [R | 0]: H_nn = [[R^T Omega R, 0], [0, 0]], g_n = (R^T Omega e, 0).
+        r = rot[n]
+        w = om @ r
+        base = gps_base[c]
+        stride = gps_stride[c]
+        for q in range(3):
+            for p in range(3):
+                s = 0.0
+                for k in range(3):
+                    s += r[k, p] * w[k, q]
+                data[base + q * stride + p] += s
+        for p in range(3):
+            grad[6 * vn + p] += r[0, p] * oe[0] + r[1, p] * oe[1] + r[2, p] * oe[2]
+    return -1, energy
+
+
+@kernel
+def retract(rot: np.ndarray, trans: np.ndarray, step: np.ndarray, var_of_node: np.ndarray,
+            scale: float, out_rot: np.ndarray, out_trans: np.ndarray) -> None:
+    """``X_i <- X_i Exp(scale * delta_i)`` for free nodes (re-orthonormalized); copy fixed ones.
+
+    ``step`` is the solution vector (6 * num_vars,) indexed by ``var_of_node``.
+    """
+    xi = np.empty(6)
+    for i in range(rot.shape[0]):
+        v = var_of_node[i]
+        if v < 0:
+            out_rot[i] = rot[i]
+            out_trans[i] = trans[i]
+            continue
+        for k in range(6):
+            xi[k] = scale * step[6 * v + k]
+        dr, dt = se3_exp(xi)
+        out_rot[i] = orthonormalize(rot[i] @ dr)
+        out_trans[i] = trans[i] + rot[i] @ dt

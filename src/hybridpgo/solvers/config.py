@@ -1,0 +1,85 @@
+"""Solver options: frozen dataclasses validated once in ``__post_init__`` (STYLE.md §6).
+
+Every field's docstring states its exact meaning.  Invalid values raise ``ValueError`` naming
+the field, the value and what is allowed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
+
+#: Progress callback: called as ``progress(iteration, energy)`` after every iteration.
+ProgressCallback = Callable[[int, float], None]
+
+#: Sparse linear solvers the exact solver can use (``"auto"``: CHOLMOD if importable, else SuperLU).
+LINEAR_SOLVERS = ("auto", "cholmod", "splu")
+
+
+def _check_int(name: str, value: object, minimum: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+
+
+def _check_float(name: str, value: object, *, positive: bool) -> None:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if ok:
+        ok = value > 0 if positive else value >= 0
+    if not ok:
+        kind = "a finite number > 0" if positive else "a finite number >= 0"
+        raise ValueError(f"{name} must be {kind}, got {value!r}")
+
+
+@dataclass(frozen=True)
+class GaussNewtonConfig:
+    """Options of the exact solver :func:`hybridpgo.solvers.gauss_newton.solve_exact` (DESIGN §7).
+
+    The energy is ``E = sum_c e_c^T Omega_c e_c`` (no 1/2).  The solver stops at the first of:
+    the energy criterion, the step criterion, or ``max_iterations``.
+    """
+
+    method: Literal["gn", "lm"] = "lm"
+    """``"lm"``: Levenberg-Marquardt (Nielsen's damping update, damping ``mu * diag(H)``, a step is
+    accepted only when it lowers the energy, so E never increases).  ``"gn"``: Gauss-Newton."""
+    max_iterations: int = 100
+    """Stop after this many iterations.  An iteration is one linear solve: a rejected LM trial
+    counts, and so does a GN step together with its halvings."""
+    energy_tolerance: float = 1e-10
+    """Stop (converged) when an accepted step changes the energy by ``|dE| / E < energy_tolerance``
+    (or when E reaches exactly 0)."""
+    step_tolerance: float = 1e-12
+    """Stop (converged) when the accepted step satisfies
+    ``max_i |delta_i|_inf < step_tolerance * (1 + max_i |t_i|_inf)`` (delta in (rho, phi) units:
+    translation units and radians)."""
+    initial_damping: float = 1e-4
+    """LM only: the initial ``mu`` of the damped system ``(H + mu * diag(H)) delta = -g``."""
+    step_guard: bool = True
+    """GN only: when a full step raises the energy, halve it until it does not (up to
+    ``max_step_halvings`` times; then stop as STALLED).  ``False``: plain Gauss-Newton, every step
+    is taken.  (DESIGN §9: unguarded GN from outside the basin diverges.)"""
+    max_step_halvings: int = 30
+    """GN with ``step_guard``: at most this many halvings of one step."""
+    linear_solver: Literal["auto", "cholmod", "splu"] = "auto"
+    """Sparse factorization: ``"cholmod"`` (scikit-sparse, optional), ``"splu"`` (SciPy SuperLU
+    on a precomputed fill-reducing ordering, symmetric mode), or ``"auto"`` (CHOLMOD if importable)."""
+    progress: ProgressCallback | None = None
+    """Called as ``progress(iteration, energy)`` after every iteration (iteration 0: the start)."""
+
+    def __post_init__(self) -> None:
+        if self.method not in ("gn", "lm"):
+            raise ValueError(f"method must be 'gn' or 'lm', got {self.method!r}")
+        _check_int("max_iterations", self.max_iterations, 0)
+        _check_float("energy_tolerance", self.energy_tolerance, positive=False)
+        _check_float("step_tolerance", self.step_tolerance, positive=False)
+        _check_float("initial_damping", self.initial_damping, positive=True)
+        if not isinstance(self.step_guard, bool):
+            raise ValueError(f"step_guard must be True or False, got {self.step_guard!r}")
+        _check_int("max_step_halvings", self.max_step_halvings, 0)
+        if self.linear_solver not in LINEAR_SOLVERS:
+            raise ValueError(f"linear_solver must be one of {', '.join(LINEAR_SOLVERS)}, "
+                             f"got {self.linear_solver!r}")
+        if self.progress is not None and not callable(self.progress):
+            raise ValueError(f"progress must be a callable(iteration, energy) or None, "
+                             f"got {self.progress!r}")

@@ -1,0 +1,539 @@
+"""The exact solver: sparse Gauss-Newton / Levenberg-Marquardt (DESIGN.md §7).
+
+Ordinary global parametrization with right perturbations ``X_i <- X_i Exp(delta_i)``, tangent
+order (rho, phi), energy ``E = sum_c e_c^T Omega_c e_c`` (no 1/2, DESIGN §1).  The normal
+equations ``H delta = -g`` with ``H = J^T Omega J``, ``g = J^T Omega e`` are assembled by one Numba
+kernel straight into the values of a CSC matrix whose sparsity pattern (and fill-reducing
+ordering) is computed once per solve ("analyze once, solve many times", STYLE.md §2).
+
+Gauge (STYLE.md §6): the nodes named by ``FIX`` lines (``graph.fixed_nodes``) are held constant.
+Without any, the first pose (dense index 0) is fixed, unless the graph has position-only (GPS)
+constraints: then the earth frame is the gauge and no pose is fixed.
+
+Linear algebra: SciPy has no sparse Cholesky.  The default backend factors ``H`` with SuperLU
+(:func:`scipy.sparse.linalg.splu`) on a fill-reducing ordering computed once on the 6x6 *block*
+graph, in symmetric mode with diagonal pivoting (``H`` is SPD, so no numerical pivoting is needed);
+ordering the matrix ourselves once is what lets every iteration skip SuperLU's column ordering.
+When scikit-sparse is importable, CHOLMOD is used instead (symbolic analysis once, numeric
+factorization in place each iteration).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from ..energy import energy as _energy
+from ..errors import GraphError, SolverError
+from ..graph import FloatArray, PoseGraph
+from . import _gn_kernels as _k
+from .config import GaussNewtonConfig
+from .result import SolveResult, Status
+
+__all__ = ["NormalEquations", "default_fixed_nodes", "gn_step", "normal_equations", "solve_exact"]
+
+Int64Array = npt.NDArray[np.int64]
+
+#: LM gives up (STALLED) when the damping factor mu exceeds this: no step lowers the energy.
+_MAX_DAMPING = 1e16
+#: LM damping matrix: diag(H) clipped below at this fraction of its largest entry, so that the
+#: damped system stays SPD where a direction carries (almost) no information.
+_DIAG_FLOOR = 1e-12
+
+
+# --------------------------------------------------------------------------- gauge
+def default_fixed_nodes(graph: PoseGraph) -> npt.NDArray[np.int32]:
+    """Dense indices of the nodes the exact solver holds constant (the gauge, see module doc)."""
+    if graph.fixed_nodes.size:
+        return np.unique(graph.fixed_nodes).astype(np.int32)
+    if graph.num_gps:
+        return np.zeros(0, np.int32)
+    return np.zeros(1, np.int32)
+
+
+def _check_gauge(graph: PoseGraph, fixed: npt.NDArray[np.int32]) -> None:
+    """Every connected part needs a fixed node or a GPS constraint; else H is singular."""
+    labels = graph.connected_components()
+    anchored = np.zeros(int(labels.max()) + 1, bool)
+    anchored[labels[fixed]] = True
+    anchored[labels[graph.gps_nodes]] = True
+    if not anchored.all():
+        part = int(np.argmin(anchored))
+        members = graph.node_ids[labels == part]
+        raise GraphError(
+            f"the graph is not connected and a part of {members.size} pose(s) (e.g. id "
+            f"{int(members[0])}) has neither a fixed pose nor a GPS constraint, so its position "
+            "is undetermined; link it to the rest or fix one of its poses"
+        )
+
+
+# --------------------------------------------------------------------------- analyze
+@dataclass(frozen=True, slots=True)
+class _Pattern:
+    """Sparsity pattern of H and where each constraint's blocks go (computed once)."""
+
+    var_of_node: Int64Array  # (N,) variable (block column) of each node, -1 when fixed
+    num_vars: int
+    indptr: Int64Array  # CSC of the (6 nv, 6 nv) scalar matrix
+    indices: Int64Array
+    diag_index: Int64Array  # (6 nv,) position of H[k, k] in data
+    edge_base: Int64Array  # (M, 4) slots (a,a), (b,b), (a,b), (b,a)
+    edge_stride: Int64Array
+    gps_base: Int64Array  # (G,) slot (n, n)
+    gps_stride: Int64Array
+
+    @property
+    def dim(self) -> int:
+        return 6 * self.num_vars
+
+    @property
+    def nnz(self) -> int:
+        return int(self.indices.shape[0])
+
+
+def _block_pairs(graph: PoseGraph, var: Int64Array) -> tuple[Int64Array, Int64Array]:
+    """(rows, cols) of every block each constraint touches, -1 for fixed nodes (unfiltered)."""
+    va = var[graph.edge_nodes[:, 0]]
+    vb = var[graph.edge_nodes[:, 1]]
+    vg = var[graph.gps_nodes]
+    rows = np.concatenate([va, vb, va, vb, vg])
+    cols = np.concatenate([va, vb, vb, va, vg])
+    return rows, cols
+
+
+def _fill_reducing_order(nv: int, rows: Int64Array, cols: Int64Array) -> Int64Array:
+    """New position of every variable: minimum degree on the block graph (SuperLU's MMD).
+
+    The ordering is computed on the (nv, nv) block graph, 36x smaller than H, with a diagonally
+    dominant stand-in matrix so SuperLU takes diagonal pivots; its column permutation ``perm_c``
+    maps old -> new position.
+    """
+    if nv <= 2:
+        return np.arange(nv, dtype=np.int64)
+    keep = rows >= 0
+    keep &= cols >= 0
+    r = rows[keep]
+    c = cols[keep]
+    off = r != c
+    deg = np.bincount(r[off], minlength=nv).astype(np.float64)
+    a = sp.coo_matrix(
+        (np.concatenate([-np.ones(int(off.sum())), deg + 1.0]),
+         (np.concatenate([r[off], np.arange(nv)]), np.concatenate([c[off], np.arange(nv)]))),
+        shape=(nv, nv),
+    ).tocsc()
+    lu = spla.splu(a, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                   options={"SymmetricMode": True})
+    return np.asarray(lu.perm_c, dtype=np.int64)
+
+
+def _analyze(graph: PoseGraph, fixed: npt.NDArray[np.int32], reorder: bool) -> _Pattern:
+    n = graph.num_nodes
+    is_fixed = np.zeros(n, bool)
+    is_fixed[fixed] = True
+    free = np.flatnonzero(~is_fixed)
+    nv = int(free.size)
+    var = np.full(n, -1, np.int64)
+    var[free] = np.arange(nv)
+    if reorder:
+        rows, cols = _block_pairs(graph, var)
+        new_pos = _fill_reducing_order(nv, rows, cols)
+        var[free] = new_pos
+    rows, cols = _block_pairs(graph, var)
+    valid = (rows >= 0) & (cols >= 0)
+    keys = np.where(valid, cols * nv + rows, -1)
+    diag_keys = np.arange(nv, dtype=np.int64) * (nv + 1)  # every diagonal block, for damping
+    uniq, inv = np.unique(np.concatenate([keys[valid], diag_keys]), return_inverse=True)
+    bcol = uniq // max(nv, 1)
+    brow = uniq % max(nv, 1)
+    counts = np.bincount(bcol, minlength=nv).astype(np.int64)
+    bptr = np.zeros(nv + 1, np.int64)
+    np.cumsum(counts, out=bptr[1:])
+    pos = np.arange(uniq.shape[0], dtype=np.int64) - bptr[bcol]
+    base = 36 * bptr[bcol] + 6 * pos
+    stride = 6 * counts[bcol]
+    q6 = np.arange(6, dtype=np.int64)
+    indptr = np.empty(6 * nv + 1, np.int64)
+    indptr[:-1] = (36 * bptr[:-1, None] + q6[None, :] * 6 * counts[:, None]).ravel()
+    indptr[-1] = 36 * bptr[-1]
+    where = base[:, None, None] + q6[None, :, None] * stride[:, None, None] + q6[None, None, :]
+    indices = np.empty(36 * uniq.shape[0], np.int64)
+    indices[where.ravel()] = np.broadcast_to(6 * brow[:, None, None] + q6[None, None, :],
+                                             where.shape).ravel()
+    slot_of = np.full(keys.shape[0], -1, np.int64)
+    slot_of[valid] = inv[: int(valid.sum())]
+    slot_base = np.where(slot_of >= 0, base[slot_of], -1)
+    slot_stride = np.where(slot_of >= 0, stride[slot_of], 0)
+    m = graph.num_edges
+    dslot = inv[int(valid.sum()):]
+    diag_index = (base[dslot][:, None] + q6[None, :] * stride[dslot][:, None] + q6[None, :])
+    return _Pattern(
+        var_of_node=var, num_vars=nv, indptr=indptr, indices=indices,
+        diag_index=np.ascontiguousarray(diag_index.ravel()),
+        edge_base=np.ascontiguousarray(slot_base[: 4 * m].reshape(4, m).T),
+        edge_stride=np.ascontiguousarray(slot_stride[: 4 * m].reshape(4, m).T),
+        gps_base=np.ascontiguousarray(slot_base[4 * m:]),
+        gps_stride=np.ascontiguousarray(slot_stride[4 * m:]),
+    )
+
+
+# --------------------------------------------------------------------------- linearize
+def _assemble(graph: PoseGraph, pat: _Pattern, rot: FloatArray, trans: FloatArray,
+              data: FloatArray, grad: FloatArray) -> float:
+    status, e = _k.assemble_normal_equations(
+        rot, trans, graph.edge_nodes, graph.edge_rotations, graph.edge_translations,
+        graph.edge_information, pat.edge_base, pat.edge_stride,
+        graph.gps_nodes, graph.gps_positions, graph.gps_information, pat.gps_base,
+        pat.gps_stride, pat.var_of_node, data, grad,
+    )
+    if status >= 0:
+        raise SolverError(f"the linearization is not finite at {_describe_constraint(graph, status)}")
+    return float(e)
+
+
+def _describe_constraint(graph: PoseGraph, c: int) -> str:
+    if c < graph.num_edges:
+        a, b = (int(graph.node_ids[i]) for i in graph.edge_nodes[c])
+        return f"relative constraint {c} (between ids {a} and {b})"
+    g = c - graph.num_edges
+    return f"GPS constraint {g} (on id {int(graph.node_ids[graph.gps_nodes[g]])})"
+
+
+@dataclass(frozen=True)
+class NormalEquations:
+    """The Gauss-Newton system ``H delta = -g`` at given poses (free nodes in increasing index).
+
+    Block k (rows/columns ``6k .. 6k+5``) belongs to node ``free_nodes[k]``; tangent (rho, phi).
+    """
+
+    hessian: sp.csc_matrix
+    """(6F, 6F) H = J^T Omega J."""
+    gradient: FloatArray
+    """(6F,) g = J^T Omega e (half the gradient of E, which has no 1/2)."""
+    free_nodes: npt.NDArray[np.int64]
+    """(F,) dense indices of the nodes that are variables."""
+    energy: float
+    """E at the linearization point."""
+
+
+def normal_equations(graph: PoseGraph, rotations: FloatArray | None = None,
+                     translations: FloatArray | None = None,
+                     fixed: npt.ArrayLike | None = None) -> NormalEquations:
+    """Assemble the Gauss-Newton normal equations (free nodes in natural order).
+
+    Parameters
+    ----------
+    graph : PoseGraph
+    rotations, translations : (N, 3, 3), (N, 3) float64, optional
+        Linearization point (default: the graph's estimate).
+    fixed : array_like of int, optional
+        Dense indices held constant (default: :func:`default_fixed_nodes`).
+    """
+    rot, trans = _initial_poses(graph, rotations, translations)
+    fx = _fixed_array(graph, fixed)
+    pat = _analyze(graph, fx, reorder=False)
+    data = np.empty(pat.nnz)
+    grad = np.empty(pat.dim)
+    e = _assemble(graph, pat, rot, trans, data, grad)
+    h = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.dim, pat.dim))
+    return NormalEquations(h, grad, np.flatnonzero(pat.var_of_node >= 0), e)
+
+
+def gn_step(graph: PoseGraph, rotations: FloatArray | None = None,
+            translations: FloatArray | None = None,
+            fixed: npt.ArrayLike | None = None) -> FloatArray:
+    """The exact Gauss-Newton step ``delta = -H^-1 g`` as an (N, 6) array (zero on fixed nodes).
+
+    Apply it as ``X_i <- X_i Exp(delta_i)``; tangent order (rho, phi).
+
+    Raises
+    ------
+    SolverError
+        When H is singular (gauge not fixed) or the step is not finite.
+    """
+    rot, trans = _initial_poses(graph, rotations, translations)
+    fx = _fixed_array(graph, fixed)
+    pat = _analyze(graph, fx, reorder=True)
+    data = np.empty(pat.nnz)
+    grad = np.empty(pat.dim)
+    _assemble(graph, pat, rot, trans, data, grad)
+    step = _make_factorizer(pat, "splu").solve(data, -grad)
+    out = np.zeros((graph.num_nodes, 6))
+    free = pat.var_of_node >= 0
+    out[free] = step.reshape(-1, 6)[pat.var_of_node[free]]
+    return out
+
+
+# --------------------------------------------------------------------------- factorization
+class _SuperLU:
+    """SuperLU on the pre-ordered SPD matrix: natural column order, diagonal pivots."""
+
+    name = "splu"
+
+    def __init__(self, pat: _Pattern) -> None:
+        self._pat = pat
+
+    def solve(self, data: FloatArray, rhs: FloatArray) -> FloatArray:
+        pat = self._pat
+        h = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.dim, pat.dim))
+        try:
+            lu = spla.splu(h, permc_spec="NATURAL", diag_pivot_thresh=0.0,
+                           options={"SymmetricMode": True})
+        except RuntimeError as exc:  # "Factor is exactly singular"
+            raise SolverError(f"the normal equations are singular ({exc}); is the gauge fixed?"
+                              ) from exc
+        return np.asarray(lu.solve(rhs), dtype=np.float64)
+
+
+class _Cholmod:
+    """CHOLMOD (scikit-sparse): symbolic analysis once, numeric factorization per iteration."""
+
+    name = "cholmod"
+
+    def __init__(self, pat: _Pattern) -> None:
+        from sksparse import cholmod  # optional; checked by _make_factorizer
+
+        self._cholmod = cholmod
+        self._pat = pat
+        self._factor: Any = None
+
+    def solve(self, data: FloatArray, rhs: FloatArray) -> FloatArray:
+        pat = self._pat
+        h = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.dim, pat.dim))
+        try:
+            if self._factor is None:
+                self._factor = self._cholmod.analyze(h)
+            self._factor.cholesky_inplace(h)
+        except self._cholmod.CholmodError as exc:
+            raise SolverError(f"the normal equations are not positive definite ({exc}); "
+                              "is the gauge fixed?") from exc
+        return np.asarray(self._factor(rhs), dtype=np.float64)
+
+
+def _cholmod_available() -> bool:
+    try:
+        import sksparse.cholmod  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _make_factorizer(pat: _Pattern, backend: str) -> _SuperLU | _Cholmod:
+    if backend == "cholmod" or (backend == "auto" and _cholmod_available()):
+        if not _cholmod_available():
+            raise SolverError("linear_solver='cholmod' needs scikit-sparse "
+                              "(pip install scikit-sparse; it links SuiteSparse's CHOLMOD)")
+        return _Cholmod(pat)
+    return _SuperLU(pat)
+
+
+# --------------------------------------------------------------------------- helpers
+def _initial_poses(graph: PoseGraph, rotations: FloatArray | None,
+                   translations: FloatArray | None) -> tuple[FloatArray, FloatArray]:
+    rot = np.array(graph.rotations if rotations is None else rotations, np.float64, order="C")
+    trans = np.array(graph.translations if translations is None else translations, np.float64,
+                     order="C")
+    n = graph.num_nodes
+    if rot.shape != (n, 3, 3) or trans.shape != (n, 3):
+        raise ValueError(f"poses must have shapes ({n}, 3, 3) and ({n}, 3), "
+                         f"got {rot.shape} and {trans.shape}")
+    for name, arr in (("rotations", rot), ("translations", trans)):
+        bad = ~np.isfinite(arr.reshape(n, -1)).all(axis=1)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise SolverError(f"initial {name}[{i}] (id {int(graph.node_ids[i])}) is not finite")
+    return rot, trans
+
+
+def _fixed_array(graph: PoseGraph, fixed: npt.ArrayLike | None) -> npt.NDArray[np.int32]:
+    if fixed is None:
+        return default_fixed_nodes(graph)
+    fx = np.unique(np.asarray(fixed, dtype=np.int64).reshape(-1))
+    if fx.size and (fx[0] < 0 or fx[-1] >= graph.num_nodes):
+        raise ValueError(f"fixed node indices must lie in 0..{graph.num_nodes - 1}")
+    return fx.astype(np.int32)
+
+
+_compiled = False
+
+
+def _ensure_compiled() -> float:
+    """Compile (or load from cache) the kernels on a two-node graph; return the seconds spent."""
+    global _compiled
+    if _compiled:
+        return 0.0
+    t0 = time.perf_counter()
+    eye = np.eye(3)[None].repeat(2, axis=0)
+    g = PoseGraph(node_ids=np.arange(2), rotations=eye, translations=np.zeros((2, 3)),
+                  edge_nodes=np.array([[0, 1]]), edge_rotations=eye[:1],
+                  edge_translations=np.ones((1, 3)), edge_information=np.eye(6)[None],
+                  gps_nodes=np.array([1]), gps_positions=np.ones((1, 3)),
+                  gps_information=np.eye(3)[None])
+    pat = _analyze(g, np.zeros(0, np.int32), reorder=False)
+    data = np.empty(pat.nnz)
+    grad = np.empty(pat.dim)
+    _assemble(g, pat, g.rotations, g.translations, data, grad)
+    out_r = np.empty((2, 3, 3))
+    out_t = np.empty((2, 3))
+    _k.retract(g.rotations, g.translations, grad, pat.var_of_node, 1.0, out_r, out_t)
+    _energy(g, out_r, out_t)
+    _compiled = True
+    return time.perf_counter() - t0
+
+
+# --------------------------------------------------------------------------- the solver
+def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
+                translations: FloatArray | None = None,
+                config: GaussNewtonConfig | None = None) -> SolveResult:
+    """Minimize E with sparse Gauss-Newton or Levenberg-Marquardt (DESIGN §7).
+
+    Parameters
+    ----------
+    graph : PoseGraph
+    rotations, translations : (N, 3, 3), (N, 3) float64, optional
+        Initial R_world_node, t_world_node (default: the graph's estimate).
+    config : GaussNewtonConfig, optional
+        Method, stopping criteria, damping, linear solver, progress callback.
+
+    Returns
+    -------
+    SolveResult
+        ``method`` is ``"gauss_newton"`` or ``"levenberg_marquardt"``.  ``energy_history[k]`` is
+        E after iteration k (unchanged after a rejected LM trial).  ``stats``: accepted and
+        rejected steps, step halvings, linear solver, final damping, nnz of H.
+
+    Raises
+    ------
+    GraphError
+        A connected part has no fixed pose and no GPS constraint.
+    SolverError
+        Non-finite initial poses or linearization; a singular system (GN without a gauge); a
+        non-finite unguarded GN step.  Never returns non-finite poses.
+    """
+    cfg = GaussNewtonConfig() if config is None else config
+    compile_s = _ensure_compiled()
+    t_start = time.perf_counter()
+    rot, trans = _initial_poses(graph, rotations, translations)
+    fixed = default_fixed_nodes(graph)
+    _check_gauge(graph, fixed)
+    pat = _analyze(graph, fixed, reorder=True)
+    solver = _make_factorizer(pat, cfg.linear_solver)
+    t_analyze = time.perf_counter() - t_start
+    method = "levenberg_marquardt" if cfg.method == "lm" else "gauss_newton"
+
+    data = np.empty(pat.nnz)
+    grad = np.empty(pat.dim)
+    new_rot = np.empty_like(rot)
+    new_trans = np.empty_like(trans)
+    tm = {"assemble": 0.0, "factorize": 0.0, "energy": 0.0}
+
+    t0 = time.perf_counter()
+    e_cur = _assemble(graph, pat, rot, trans, data, grad)
+    tm["assemble"] += time.perf_counter() - t0
+    history = [e_cur]
+    times = [time.perf_counter() - t_start]
+    if cfg.progress is not None:
+        cfg.progress(0, e_cur)
+
+    mu = cfg.initial_damping
+    nu = 2.0
+    accepted = rejected = halvings = 0
+    status = Status.MAX_ITERATIONS
+    iteration = 0
+    if pat.num_vars == 0 or e_cur == 0.0:
+        status = Status.CONVERGED
+    while status is Status.MAX_ITERATIONS and iteration < cfg.max_iterations:
+        iteration += 1
+        t0 = time.perf_counter()
+        if cfg.method == "lm":
+            diag = data[pat.diag_index]
+            damped = data.copy()
+            damped[pat.diag_index] += mu * np.maximum(diag, _DIAG_FLOOR * diag.max())
+            step = solver.solve(damped, -grad)
+        else:
+            step = solver.solve(data, -grad)
+        tm["factorize"] += time.perf_counter() - t0
+        if not np.all(np.isfinite(step)):
+            if cfg.method == "lm":  # cannot happen for SPD H + mu D; treat like a failed trial
+                raise SolverError(f"iteration {iteration}: the LM step is not finite (mu = {mu:.3g})")
+            raise SolverError(f"iteration {iteration}: the Gauss-Newton step is not finite; "
+                              "H is singular or ill-conditioned (use method='lm')")
+        step_small = float(np.max(np.abs(step))) < cfg.step_tolerance * (
+            1.0 + float(np.max(np.abs(trans))))
+
+        t0 = time.perf_counter()
+        scale = 1.0
+        _k.retract(rot, trans, step, pat.var_of_node, scale, new_rot, new_trans)
+        e_new = _energy(graph, new_rot, new_trans)
+        if cfg.method == "gn" and cfg.step_guard:
+            tries = 0
+            while not (e_new <= e_cur) and tries < cfg.max_step_halvings:
+                scale *= 0.5
+                tries += 1
+                _k.retract(rot, trans, step, pat.var_of_node, scale, new_rot, new_trans)
+                e_new = _energy(graph, new_rot, new_trans)
+            halvings += tries
+        tm["energy"] += time.perf_counter() - t0
+
+        if cfg.method == "lm":
+            # Predicted decrease of the quadratic model E + 2 g.d + d.H.d (E has no 1/2).
+            hstep = sp.csc_matrix((data, pat.indices, pat.indptr),
+                                  shape=(pat.dim, pat.dim)) @ step
+            predicted = -2.0 * float(grad @ step) - float(step @ hstep)
+            take = bool(np.isfinite(e_new) and e_new <= e_cur)
+            if take:
+                rho = (e_cur - e_new) / predicted if predicted > 0 else 0.0
+                mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                nu = 2.0
+            else:
+                mu *= nu
+                nu *= 2.0
+        elif cfg.step_guard:
+            take = bool(np.isfinite(e_new) and e_new <= e_cur)
+        else:
+            if not np.isfinite(e_new):
+                raise SolverError(f"iteration {iteration}: the Gauss-Newton step gives a "
+                                  "non-finite energy (use method='lm' or step_guard=True)")
+            take = True
+
+        changed = abs(e_new - e_cur) <= cfg.energy_tolerance * e_cur if np.isfinite(e_new) else False
+        if take:
+            accepted += 1
+            rot, new_rot = new_rot, rot
+            trans, new_trans = new_trans, trans
+            e_prev = e_cur
+            t0 = time.perf_counter()
+            e_cur = _assemble(graph, pat, rot, trans, data, grad)
+            tm["assemble"] += time.perf_counter() - t0
+            if e_cur == 0.0 or abs(e_prev - e_cur) <= cfg.energy_tolerance * e_prev:
+                status = Status.CONVERGED
+            elif step_small and scale == 1.0:
+                status = Status.CONVERGED
+        else:
+            rejected += 1
+            if changed:  # the energy no longer changes measurably: converged to rounding
+                status = Status.CONVERGED
+            elif cfg.method == "gn" or mu > _MAX_DAMPING or step_small:
+                status = Status.STALLED
+        history.append(e_cur)
+        times.append(time.perf_counter() - t_start)
+        if cfg.progress is not None:
+            cfg.progress(iteration, e_cur)
+
+    t_total = time.perf_counter() - t_start
+    return SolveResult(
+        rotations=rot, translations=trans, status=status, iterations=iteration,
+        energy_history=np.asarray(history), times=np.asarray(times), method=method,
+        num_constraints=graph.num_constraints,
+        timings={"compile": compile_s, "analyze": t_analyze, "solve": t_total - t_analyze,
+                 "total": t_total, **tm},
+        stats={"accepted_steps": accepted, "rejected_steps": rejected,
+               "step_halvings": halvings, "linear_solver": solver.name,
+               "final_damping": mu if cfg.method == "lm" else 0.0,
+               "num_variables": pat.dim, "hessian_nnz": pat.nnz},
+    )

@@ -1,0 +1,258 @@
+"""The hybrid Hessian solver (paper Algorithm 1; DESIGN.md §2-§4).
+
+``solve_hybrid`` grows the pose tree, initializes the local transforms, builds 𝔅(H) and then
+runs sweeps of per-constraint stochastic updates, entirely in compiled code, with the paper's
+temperature schedule.  An optional exact polish finishes at the nearest optimum.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .._numba import cycle_counter, kernel
+from ..energy import energy
+from ..errors import SolverError
+from ..graph import FloatArray, PoseGraph
+from ..tree import InitKind, PoseTree, TreeKind, build_tree, global_poses, initial_locals
+from . import _hybrid_kernels as hk
+from .result import SolveResult, Status
+
+STEP_KINDS = {"woodbury": hk.STEP_WOODBURY, "givens": hk.STEP_GIVENS}
+
+ProgressFn = Callable[[int, float, float], None]
+"""``progress(sweep, energy, tau)``, called after every sweep (sweep 0 = initial state)."""
+
+
+@dataclass(frozen=True)
+class HybridConfig:
+    """Options of the hybrid solver; every field is checked in ``__post_init__``."""
+
+    sweeps: int = 10
+    """Maximum number of sweeps over all constraints (the paper's experiments use 10)."""
+    tau0: float = 1.0
+    """Initial temperature tau (paper III-H)."""
+    tau_decay: float = 0.99
+    """tau is multiplied by this after each sweep (paper III-H)."""
+    damping: float = 1e-6
+    """mu: each block of B_c gets mu * trace(B)/6 added to its diagonal (DESIGN §4)."""
+    step: str = "woodbury"
+    """'woodbury' (O(d), default) or 'givens' (the paper's O(d^2) triangularization)."""
+    tree: str = "bfs"
+    """'bfs' (paper) or 'mst' (maximum-stiffness spanning tree)."""
+    init: str = "tree"
+    """'tree' (concatenate tree-edge measurements, paper) or 'file' (the file's vertices)."""
+    energy_tolerance: float = 0.0
+    """Stop when a sweep lowers the energy by less than this fraction (0: run all sweeps)."""
+    polish: bool = False
+    """Finish with the exact Levenberg-Marquardt solver."""
+    polish_iterations: int = 100
+    """Iteration limit of the polish."""
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.sweeps, int) and self.sweeps >= 0):
+            raise ValueError(f"sweeps must be a non-negative integer, got {self.sweeps!r}")
+        if not (self.tau0 > 0 and np.isfinite(self.tau0)):
+            raise ValueError(f"tau0 must be positive, got {self.tau0!r}")
+        if not (0 < self.tau_decay <= 1):
+            raise ValueError(f"tau_decay must be in (0, 1], got {self.tau_decay!r}")
+        if not (self.damping >= 0 and np.isfinite(self.damping)):
+            raise ValueError(f"damping must be >= 0, got {self.damping!r}")
+        if self.step not in STEP_KINDS:
+            raise ValueError(f"step must be one of {sorted(STEP_KINDS)}, got {self.step!r}")
+        TreeKind(self.tree)
+        InitKind(self.init)
+        if not (self.energy_tolerance >= 0):
+            raise ValueError("energy_tolerance must be >= 0")
+        if not (isinstance(self.polish_iterations, int) and self.polish_iterations >= 0):
+            raise ValueError("polish_iterations must be a non-negative integer")
+
+
+@kernel
+def _read_cycles() -> int:
+    return cycle_counter()  # type: ignore[no-any-return]
+
+
+@functools.cache
+def cycles_per_second() -> float:
+    """Frequency of the cycle counter, calibrated once against ``time.perf_counter``."""
+    _read_cycles()
+    c0, t0 = _read_cycles(), time.perf_counter()
+    time.sleep(0.05)
+    c1, t1 = _read_cycles(), time.perf_counter()
+    return float(c1 - c0) / (t1 - t0)
+
+
+@dataclass
+class HybridState:
+    """Mutable solver state (struct-of-arrays) shared by the sweep kernels."""
+
+    graph: PoseGraph
+    tree: PoseTree
+    rot: FloatArray
+    trans: FloatArray
+    edge_lt: FloatArray
+    gps_lt: FloatArray
+    bdiag: FloatArray
+    contrib: FloatArray
+    dmax: int
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def create(cls, graph: PoseGraph, tree: PoseTree, rot: FloatArray,
+               trans: FloatArray) -> HybridState:
+        # Omega = L L^T; the whitened error is L^T e (DESIGN §1)
+        edge_lt = np.ascontiguousarray(
+            np.swapaxes(np.linalg.cholesky(graph.edge_information), 1, 2))
+        if graph.num_gps:
+            gps_lt = np.ascontiguousarray(
+                np.swapaxes(np.linalg.cholesky(graph.gps_information), 1, 2))
+        else:
+            gps_lt = np.zeros((0, 3, 3))
+        lengths = tree.path_lengths()
+        dmax = max(int(lengths.max()) if lengths.size else 1, 1)
+        state = cls(graph=graph, tree=tree, rot=np.ascontiguousarray(rot, np.float64),
+                    trans=np.ascontiguousarray(trans, np.float64), edge_lt=edge_lt,
+                    gps_lt=gps_lt, bdiag=np.zeros((tree.num_tree_nodes, 6, 6)),
+                    contrib=np.zeros((int(tree.path_ptr[-1]), 6, 6)), dmax=dmax)
+        state.rebuild_blocks()
+        return state
+
+    def kernel_args(self) -> tuple[Any, ...]:
+        g, t = self.graph, self.tree
+        return (g.num_edges, t.path_ptr, t.path_node, t.path_sign, self.rot, self.trans,
+                g.edge_rotations, g.edge_translations, self.edge_lt, g.gps_positions,
+                self.gps_lt)
+
+    def rebuild_blocks(self) -> None:
+        """Recompute 𝔅(H) and all contributions from scratch at the current poses."""
+        hk.init_blocks(*self.kernel_args(), self.bdiag, self.contrib, self.dmax)
+
+    def poses(self) -> tuple[FloatArray, FloatArray]:
+        return global_poses(self.tree, self.rot, self.trans)
+
+    def energy(self) -> float:
+        r, t = self.poses()
+        return energy(self.graph, r, t)
+
+
+def solve_hybrid(graph: PoseGraph, config: HybridConfig | None = None, *,
+                 tree: PoseTree | None = None, progress: ProgressFn | None = None,
+                 initial_locals_override: tuple[FloatArray, FloatArray] | None = None,
+                 ) -> SolveResult:
+    """Optimize ``graph`` with the hybrid Hessian method.
+
+    Parameters
+    ----------
+    graph : PoseGraph
+    config : HybridConfig, optional
+    tree : PoseTree, optional
+        A tree built earlier by :func:`hybridpgo.tree.build_tree` (analyze once, solve many).
+    progress : callable, optional
+        ``progress(sweep, energy, tau)`` after every sweep.
+
+    Returns
+    -------
+    SolveResult
+        ``stats`` holds per-constraint update times (``us_per_constraint_mean``,
+        ``us_per_constraint_max``), capped and rejected step counts, and tree statistics.
+
+    Raises
+    ------
+    SolverError
+        When every update of a sweep was rejected as non-finite.
+    """
+    cfg = config or HybridConfig()
+    t_start = time.perf_counter()
+    if tree is None:
+        tree = build_tree(graph, cfg.tree)
+    if initial_locals_override is not None:
+        rot0, trans0 = initial_locals_override
+    else:
+        rot0, trans0 = initial_locals(graph, tree, cfg.init)
+    state = HybridState.create(graph, tree, rot0, trans0)
+    t_analyze = time.perf_counter() - t_start
+
+    freq = cycles_per_second()
+    step_kind = STEP_KINDS[cfg.step]
+    nc = tree.num_constraints
+    cycles = np.zeros(nc, np.uint64)
+    counts = np.zeros(2, np.int64)
+    sum_cycles = 0.0
+    max_cycles = 0
+    e0 = state.energy()
+    history = [e0]
+    times = [0.0]
+    if progress:
+        progress(0, e0, cfg.tau0)
+    tau = cfg.tau0
+    status = Status.MAX_ITERATIONS
+    solve_time = 0.0
+    first_bad = -1
+    sweeps_done = 0
+    for k in range(cfg.sweeps):
+        t0 = time.perf_counter()
+        bad = hk.sweep(tree.sweep_order, tau, cfg.damping, step_kind, *state.kernel_args(),
+                       state.bdiag, state.contrib, state.dmax, cycles, counts)
+        solve_time += time.perf_counter() - t0
+        sweeps_done += 1
+        if bad >= 0 and first_bad < 0:
+            first_bad = int(bad)
+        sum_cycles += float(cycles.sum())
+        max_cycles = max(max_cycles, int(cycles.max()) if nc else 0)
+        e = state.energy()
+        history.append(e)
+        times.append(solve_time)
+        tau *= cfg.tau_decay
+        if progress:
+            progress(k + 1, e, tau)
+        if not np.isfinite(e):
+            raise SolverError(f"the energy became non-finite in sweep {k + 1}")
+        if cfg.energy_tolerance > 0 and history[-2] > 0 and \
+                (history[-2] - e) / history[-2] < cfg.energy_tolerance and e <= history[-2]:
+            status = Status.CONVERGED
+            break
+    if nc and counts[1] >= nc * max(sweeps_done, 1):
+        raise SolverError(f"every update was non-finite (first: constraint {first_bad})")
+    rot, trans = state.poses()
+    timings = {"analyze": t_analyze, "solve": solve_time}
+    n_updates = max(sweeps_done * nc, 1)
+    stats: dict[str, Any] = {
+        "sweeps": sweeps_done,
+        "final_tau": tau,
+        "us_per_constraint_mean": sum_cycles / n_updates / freq * 1e6,
+        "us_per_constraint_max": max_cycles / freq * 1e6,
+        "capped_steps": int(counts[0]),
+        "rejected_steps": int(counts[1]),
+        "first_rejected_constraint": first_bad,
+        "tree_max_depth": tree.max_depth,
+        "path_length_max": int(tree.path_lengths().max()) if nc else 0,
+        "path_length_mean": float(tree.path_lengths().mean()) if nc else 0.0,
+        "step": cfg.step,
+    }
+    method = "hybrid"
+    if cfg.polish:
+        from .gauss_newton import GaussNewtonConfig, solve_exact
+
+        t0 = time.perf_counter()
+        polished = solve_exact(graph, rot, trans,
+                               GaussNewtonConfig(method="lm",
+                                                 max_iterations=cfg.polish_iterations))
+        timings["polish"] = time.perf_counter() - t0
+        rot, trans = polished.rotations, polished.translations
+        offset = times[-1]
+        history.extend(polished.energy_history[1:].tolist())
+        times.extend((offset + np.asarray(polished.times[1:])).tolist())
+        stats["polish_iterations"] = polished.iterations
+        stats["polish_status"] = polished.status.value
+        status = polished.status
+        method = "hybrid+polish"
+    return SolveResult(rotations=rot, translations=trans, status=status,
+                       iterations=sweeps_done, energy_history=np.asarray(history),
+                       times=np.asarray(times), method=method,
+                       num_constraints=graph.num_constraints, timings=timings, stats=stats)
