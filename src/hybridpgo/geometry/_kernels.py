@@ -24,6 +24,8 @@ NEAR_PI = 1e-2
 #: Below this angle (rad) Q(rho, phi) uses series to theta^6: its closed-form coefficients cancel
 #: like eps / theta^2 (1e-8 at theta = 1e-4), the series' truncation error is < 1e-15 here.
 Q_SERIES_ANGLE = 0.1
+#: Below this |cos(pitch)| (gimbal lock) matrix_to_euler_rpy sets roll = 0 and puts it all in yaw.
+GIMBAL_LOCK_COS = 1e-14
 
 
 @kernel
@@ -103,7 +105,7 @@ def _v_coeffs(th: float) -> tuple[float, float]:
     th2 = th * th
     if th < SMALL_ANGLE:
         return 0.5 - th2 / 24.0, 1.0 / 6.0 - th2 / 120.0
-    sh = math.sin(0.5 * th)  # 1 - cos th = 2 sin^2(th/2), without cancellation (b multiplies [phi]x)
+    sh = math.sin(0.5 * th)  # 1 - cos th = 2 sin^2(th/2): no cancellation (b multiplies [phi]x)
     return 2.0 * sh * sh / th2, (th - math.sin(th)) / (th2 * th)
 
 
@@ -297,7 +299,7 @@ def matrix_to_euler_rpy(r: np.ndarray) -> np.ndarray:
     # Gimbal lock (cp ~ 0): roll is arbitrary, put everything in yaw.  Elsewhere take roll from
     # row 2 and yaw from R Rx(roll)^T = Rz(yaw) Ry(pitch), whose column 1 is (-sin yaw, cos yaw, 0):
     # exact for any roll, so R is reproduced to rounding even close to gimbal lock.
-    out[0] = math.atan2(r[2, 1], r[2, 2]) if cp > 1e-14 else 0.0
+    out[0] = math.atan2(r[2, 1], r[2, 2]) if cp > GIMBAL_LOCK_COS else 0.0
     sr = math.sin(out[0])
     cr = math.cos(out[0])
     out[2] = math.atan2(sr * r[0, 2] - cr * r[0, 1], cr * r[1, 1] - sr * r[1, 2])

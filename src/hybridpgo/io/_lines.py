@@ -232,7 +232,8 @@ def _parse_group(spec: TagSpec, line_nos: list[int], toks: list[list[str]]) -> l
             raise AssertionError("unreachable: scan found no bad id") from None
         n_num = count - n_ids
         try:
-            vals = np.array([tk[1 + n_ids:] for tk in tks], dtype=np.float64).reshape(-1, n_num)
+            vals = (np.array([tk[1 + n_ids:] for tk in tks], dtype=np.float64) if n_num
+                    else np.zeros((len(tks), 0)))
         except (ValueError, OverflowError):
             _scan_numbers(spec, lns, tks, n_ids)
             raise AssertionError("unreachable: scan found no bad number") from None

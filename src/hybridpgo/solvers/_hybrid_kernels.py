@@ -24,11 +24,9 @@ import numpy as np
 
 from .._numba import cycle_counter, kernel
 from ..geometry._kernels import (
-    orthonormalize,
     relative_error,
-    se3_exp,
+    SMALL_ANGLE,
     se3_right_jacobian_inv,
-    skew,
 )
 
 STEP_WOODBURY = 0
@@ -109,6 +107,16 @@ def _regularized_factor(bc: np.ndarray, scale: float, mu: float, out: np.ndarray
 
 # --------------------------------------------------------------------------- linearization
 @kernel
+def _mul_pose_into(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.ndarray,
+                   ro: np.ndarray, to: np.ndarray) -> None:
+    """(ro, to) = (ra, ta) * (rb, tb) without allocating (outputs must not alias inputs)."""
+    for i in range(3):
+        for j in range(3):
+            ro[i, j] = ra[i, 0] * rb[0, j] + ra[i, 1] * rb[1, j] + ra[i, 2] * rb[2, j]
+        to[i] = ra[i, 0] * tb[0] + ra[i, 1] * tb[1] + ra[i, 2] * tb[2] + ta[i]
+
+
+@kernel
 def _path_products(c: int, ptr: np.ndarray, pnode: np.ndarray, psign: np.ndarray,
                    rot: np.ndarray, trans: np.ndarray, pr: np.ndarray, pt: np.ndarray) -> int:
     """P_k = X_root^-1 X_{path[k]} for every path node k (into ``pr``, ``pt``); returns n_a.
@@ -120,23 +128,20 @@ def _path_products(c: int, ptr: np.ndarray, pnode: np.ndarray, psign: np.ndarray
     na = 0
     while na < d and psign[s + na] < 0:
         na += 1
-    # a side: indices 0..na-1, top is na-1
-    for k in range(na - 1, -1, -1):
+    for k in range(na - 1, -1, -1):  # a side: indices 0..na-1, top is na-1
         i = pnode[s + k]
         if k == na - 1:
             pr[k] = rot[i]
             pt[k] = trans[i]
         else:
-            pr[k] = pr[k + 1] @ rot[i]
-            pt[k] = pr[k + 1] @ trans[i] + pt[k + 1]
+            _mul_pose_into(pr[k + 1], pt[k + 1], rot[i], trans[i], pr[k], pt[k])
     for k in range(d - 1, na - 1, -1):
         i = pnode[s + k]
         if k == d - 1:
             pr[k] = rot[i]
             pt[k] = trans[i]
         else:
-            pr[k] = pr[k + 1] @ rot[i]
-            pt[k] = pr[k + 1] @ trans[i] + pt[k + 1]
+            _mul_pose_into(pr[k + 1], pt[k + 1], rot[i], trans[i], pr[k], pt[k])
     return na
 
 
@@ -168,28 +173,53 @@ def _linearize(c: int, m_edges: int, ptr: np.ndarray, pnode: np.ndarray, psign: 
         e0 = relative_error(edge_rot[c], edge_trans[c], rab, tab)
         a = edge_lt[c] @ se3_right_jacobian_inv(e0)
         r[:6] = -(edge_lt[c] @ e0)
-        adj = np.zeros((6, 6))
+        rm = np.empty((3, 3))
+        tm = np.empty(3)
+        tx = np.empty((3, 3))
         for k in range(d):
-            rm = rb.T @ pr[k]
-            tm = rb.T @ (pt[k] - tb)
-            adj[0:3, 0:3] = rm
-            adj[3:6, 3:6] = rm
-            adj[0:3, 3:6] = skew(tm) @ rm
-            jac[k] = psign[s + k] * (a @ adj)
+            # M_k = X_b^-1 X_k = P_b^-1 P_k; J_k = s_k A Ad(M_k), Ad = [[R, [t]x R], [0, R]]
+            for i in range(3):
+                tm[i] = (rb[0, i] * (pt[k, 0] - tb[0]) + rb[1, i] * (pt[k, 1] - tb[1])
+                         + rb[2, i] * (pt[k, 2] - tb[2]))
+                for j in range(3):
+                    rm[i, j] = rb[0, i] * pr[k, 0, j] + rb[1, i] * pr[k, 1, j] + rb[2, i] * pr[k, 2, j]
+            for j in range(3):  # tx = [tm]x rm
+                tx[0, j] = tm[1] * rm[2, j] - tm[2] * rm[1, j]
+                tx[1, j] = tm[2] * rm[0, j] - tm[0] * rm[2, j]
+                tx[2, j] = tm[0] * rm[1, j] - tm[1] * rm[0, j]
+            sg = float(psign[s + k])
+            for p in range(6):
+                for j in range(3):
+                    v0 = a[p, 0] * rm[0, j] + a[p, 1] * rm[1, j] + a[p, 2] * rm[2, j]
+                    v1 = (a[p, 0] * tx[0, j] + a[p, 1] * tx[1, j] + a[p, 2] * tx[2, j]
+                          + a[p, 3] * rm[0, j] + a[p, 4] * rm[1, j] + a[p, 5] * rm[2, j])
+                    jac[k, p, j] = sg * v0
+                    jac[k, p, 3 + j] = sg * v1
         return 6
     g = c - m_edges
     tn = pt[0]  # path[0] is n itself; the earth is the identity
     e0 = tn - gps_pos[g]
     lt = gps_lt[g]
     r[:3] = -(lt @ e0)
-    blk = np.zeros((3, 6))
+    blk = np.empty((3, 6))
+    t_kn = np.empty(3)
     for k in range(d):
-        rk = pr[k]
-        t_kn = rk.T @ (tn - pt[k])
-        blk[:, 0:3] = rk
-        blk[:, 3:6] = -(rk @ skew(t_kn))
-        jac[k, 0:3, :] = lt @ blk
-        jac[k, 3:6, :] = 0.0
+        for i in range(3):
+            t_kn[i] = (pr[k, 0, i] * (tn[0] - pt[k, 0]) + pr[k, 1, i] * (tn[1] - pt[k, 1])
+                       + pr[k, 2, i] * (tn[2] - pt[k, 2]))
+        for i in range(3):  # R_k [I | -[t]x], with [t]x's columns (0,t2,-t1), (-t2,0,t0), (t1,-t0,0)
+            blk[i, 0] = pr[k, i, 0]
+            blk[i, 1] = pr[k, i, 1]
+            blk[i, 2] = pr[k, i, 2]
+            blk[i, 3] = -(pr[k, i, 1] * t_kn[2] - pr[k, i, 2] * t_kn[1])
+            blk[i, 4] = -(-pr[k, i, 0] * t_kn[2] + pr[k, i, 2] * t_kn[0])
+            blk[i, 5] = -(pr[k, i, 0] * t_kn[1] - pr[k, i, 1] * t_kn[0])
+        for p in range(3):
+            for j in range(6):
+                jac[k, p, j] = lt[p, 0] * blk[0, j] + lt[p, 1] * blk[1, j] + lt[p, 2] * blk[2, j]
+        for p in range(3, 6):
+            for j in range(6):
+                jac[k, p, j] = 0.0
     return 3
 
 
@@ -287,6 +317,68 @@ def _givens_solve(d: int, kr: int, jac: np.ndarray, lfac: np.ndarray, r: np.ndar
             x[k, i] = rhs[6 * k + i]
 
 
+@kernel
+def _apply_step(rot_i: np.ndarray, trans_i: np.ndarray, xi: np.ndarray, t: float,
+                er: np.ndarray, tmp: np.ndarray) -> None:
+    """T_i <- T_i Exp(t xi) in place, then re-orthonormalize R_i (no allocation)."""
+    rx, ry, rz = t * xi[0], t * xi[1], t * xi[2]
+    px, py, pz = t * xi[3], t * xi[4], t * xi[5]
+    th2 = px * px + py * py + pz * pz
+    th = math.sqrt(th2)
+    if th < SMALL_ANGLE:
+        sa = 1.0 - th2 / 6.0  # sin(th)/th
+        sb = 0.5 - th2 / 24.0  # (1 - cos th)/th^2
+        sc = 1.0 / 6.0 - th2 / 120.0  # (th - sin th)/th^3
+    else:
+        sn = math.sin(th)
+        sh = math.sin(0.5 * th)
+        sa = sn / th
+        sb = 2.0 * sh * sh / th2
+        sc = (th - sn) / (th2 * th)
+    # K = [phi]x, K^2 = phi phi^T - th^2 I
+    k = tmp
+    k[0, 0] = 0.0
+    k[0, 1] = -pz
+    k[0, 2] = py
+    k[1, 0] = pz
+    k[1, 1] = 0.0
+    k[1, 2] = -px
+    k[2, 0] = -py
+    k[2, 1] = px
+    k[2, 2] = 0.0
+    ph = (px, py, pz)
+    for i in range(3):
+        for j in range(3):
+            k2 = ph[i] * ph[j] - (th2 if i == j else 0.0)
+            idn = 1.0 if i == j else 0.0
+            er[i, j] = idn + sa * k[i, j] + sb * k2
+    # t_exp = V rho, V = I + sb K + sc K^2
+    rho = (rx, ry, rz)
+    dt0 = rx
+    dt1 = ry
+    dt2 = rz
+    for j in range(3):
+        v0 = sb * k[0, j] + sc * (ph[0] * ph[j] - (th2 if j == 0 else 0.0))
+        v1 = sb * k[1, j] + sc * (ph[1] * ph[j] - (th2 if j == 1 else 0.0))
+        v2 = sb * k[2, j] + sc * (ph[2] * ph[j] - (th2 if j == 2 else 0.0))
+        dt0 += v0 * rho[j]
+        dt1 += v1 * rho[j]
+        dt2 += v2 * rho[j]
+    for i in range(3):
+        trans_i[i] += rot_i[i, 0] * dt0 + rot_i[i, 1] * dt1 + rot_i[i, 2] * dt2
+    for i in range(3):
+        for j in range(3):
+            tmp[i, j] = rot_i[i, 0] * er[0, j] + rot_i[i, 1] * er[1, j] + rot_i[i, 2] * er[2, j]
+    # one Newton step towards the polar factor: R <- R (3I - R^T R) / 2
+    for i in range(3):
+        for j in range(3):
+            er[i, j] = -(tmp[0, i] * tmp[0, j] + tmp[1, i] * tmp[1, j] + tmp[2, i] * tmp[2, j])
+        er[i, i] += 3.0
+    for i in range(3):
+        for j in range(3):
+            rot_i[i, j] = 0.5 * (tmp[i, 0] * er[0, j] + tmp[i, 1] * er[1, j] + tmp[i, 2] * er[2, j])
+
+
 # --------------------------------------------------------------------------- one update
 @kernel
 def _accumulate_blocks(c: int, d: int, kr: int, ptr: np.ndarray, pnode: np.ndarray,
@@ -352,11 +444,10 @@ def _relax(c: int, tau: float, mu: float, step_kind: int, m_edges: int, ptr: np.
     if t * biggest > MAX_ROTATION:  # paper III-H
         t = MAX_ROTATION / biggest
         status = 1
+    er = np.empty((3, 3))
+    tmp = np.empty((3, 3))
     for k in range(d):
-        i = pnode[s + k]
-        dr, dt = se3_exp(t * x[k])
-        trans[i] = rot[i] @ dt + trans[i]
-        rot[i] = orthonormalize(rot[i] @ dr)
+        _apply_step(rot[pnode[s + k]], trans[pnode[s + k]], x[k], t, er, tmp)
     return status
 
 
@@ -381,16 +472,246 @@ def init_blocks(m_edges: int, ptr: np.ndarray, pnode: np.ndarray, psign: np.ndar
                False)
 
 
+# --------------------------------------------------------------------------- batch updates
 @kernel
-def sweep(order: np.ndarray, tau: float, mu: float, step_kind: int, m_edges: int,
-          ptr: np.ndarray, pnode: np.ndarray, psign: np.ndarray, rot: np.ndarray,
+def _batch_relax(cs: np.ndarray, nb: int, tau: float, mu: float, m_edges: int, ptr: np.ndarray,
+                 pnode: np.ndarray, psign: np.ndarray, rot: np.ndarray, trans: np.ndarray,
+                 edge_rot: np.ndarray, edge_trans: np.ndarray, edge_lt: np.ndarray,
+                 gps_pos: np.ndarray, gps_lt: np.ndarray, bdiag: np.ndarray,
+                 contrib: np.ndarray, path_count: np.ndarray, slot: np.ndarray,
+                 x_out: np.ndarray, nodes_out: np.ndarray, apply: bool) -> int:
+    """Relax the constraints ``cs[:nb]`` together (paper eq. 35-37, DESIGN §5).
+
+    ``H_C = sum_{c in C} J_c^T J_c + B_C`` over the union U of their domains, with
+    ``B_C = 𝔅(H) - sum_{c in C} 𝔅(J_c^T J_c)``.  Solved in Woodbury form (a K x K system, K the
+    stacked rows) when every block of B_C is non-zero, else (B_C vanishes on a node that only
+    the batch touches, e.g. when C is every constraint) by the dense normal equations over U,
+    which then equal the Gauss-Newton step (eq. 37 reduces to eq. 14).
+
+    ``slot`` (T,) must be -1 on entry and is -1 again on exit.  The step of union node
+    ``nodes_out[u]`` is written to ``x_out[u]``.  Returns the number of union nodes, or -1 when
+    the step was non-finite (nothing applied).
+    """
+    # 1. linearize every constraint of the batch
+    ne = 0
+    for q in range(nb):
+        ne += ptr[cs[q] + 1] - ptr[cs[q]]
+    dmax = 1
+    for q in range(nb):
+        dq = ptr[cs[q] + 1] - ptr[cs[q]]
+        if dq > dmax:
+            dmax = dq
+    pr = np.empty((dmax, 3, 3))
+    pt = np.empty((dmax, 3))
+    jb = np.empty((ne, 6, 6))
+    e_off = np.empty(nb + 1, np.int64)
+    r_off = np.empty(nb + 1, np.int64)
+    krs = np.empty(nb, np.int64)
+    rbuf = np.empty(6 * nb)
+    rq = np.empty(6)
+    e_off[0] = 0
+    r_off[0] = 0
+    for q in range(nb):
+        c = cs[q]
+        d = ptr[c + 1] - ptr[c]
+        kr = _linearize(c, m_edges, ptr, pnode, psign, rot, trans, edge_rot, edge_trans,
+                        edge_lt, gps_pos, gps_lt, pr, pt, jb[e_off[q]:e_off[q] + d], rq)
+        krs[q] = kr
+        for i in range(kr):
+            rbuf[r_off[q] + i] = rq[i]
+        e_off[q + 1] = e_off[q] + d
+        r_off[q + 1] = r_off[q] + kr
+    k_rows = r_off[nb]
+    # 2. the union of the domains: slot of each node, entries (path positions) per slot
+    e_slot = np.empty(ne, np.int64)
+    e_q = np.empty(ne, np.int64)
+    nu = 0
+    for q in range(nb):
+        c = cs[q]
+        for k in range(ptr[c + 1] - ptr[c]):
+            i = pnode[ptr[c] + k]
+            if slot[i] < 0:
+                slot[i] = nu
+                nodes_out[nu] = i
+                nu += 1
+            e_slot[e_off[q] + k] = slot[i]
+            e_q[e_off[q] + k] = q
+    cnt = np.zeros(nu + 1, np.int64)
+    for e in range(ne):
+        cnt[e_slot[e] + 1] += 1
+    for u in range(nu):
+        cnt[u + 1] += cnt[u]
+    fill = cnt[:nu].copy()
+    by_slot = np.empty(ne, np.int64)
+    for e in range(ne):
+        by_slot[fill[e_slot[e]]] = e
+        fill[e_slot[e]] += 1
+    # 3. eq. 36 and eq. 24: B_C per union node, and 𝔅(H) updated with the new contributions
+    bc = np.zeros((nu, 6, 6))
+    zero_block = False
+    for u in range(nu):
+        i = nodes_out[u]
+        for p in range(6):
+            for q2 in range(6):
+                bc[u, p, q2] = bdiag[i, p, q2]
+        for t in range(cnt[u], cnt[u + 1]):
+            e = by_slot[t]
+            q = e_q[e]
+            k = e - e_off[q]
+            pe = ptr[cs[q]] + k
+            kr = krs[q]
+            for p in range(6):
+                for q2 in range(6):
+                    acc = 0.0
+                    for w in range(kr):
+                        acc += jb[e, w, p] * jb[e, w, q2]
+                    old = contrib[pe, p, q2]
+                    bc[u, p, q2] -= old
+                    bdiag[i, p, q2] += acc - old
+                    contrib[pe, p, q2] = acc
+        if cnt[u + 1] - cnt[u] == path_count[i]:  # every constraint on node i is in C
+            for p in range(6):
+                for q2 in range(6):
+                    bc[u, p, q2] = 0.0
+            zero_block = True
+    if not apply:
+        for u in range(nu):
+            slot[nodes_out[u]] = -1
+        return nu
+    # 4. solve
+    if zero_block and 6 * nu <= 4096:
+        n6 = 6 * nu
+        amat = np.zeros((n6, n6))
+        g = np.zeros(n6)
+        for u in range(nu):
+            for p in range(6):
+                for q2 in range(6):
+                    amat[6 * u + p, 6 * u + q2] = bc[u, p, q2]
+        for q in range(nb):
+            kr = krs[q]
+            for e in range(e_off[q], e_off[q + 1]):
+                ue = e_slot[e]
+                for p in range(6):
+                    acc = 0.0
+                    for w in range(kr):
+                        acc += jb[e, w, p] * rbuf[r_off[q] + w]
+                    g[6 * ue + p] += acc
+                for f in range(e_off[q], e_off[q + 1]):
+                    uf = e_slot[f]
+                    for p in range(6):
+                        for q2 in range(6):
+                            acc = 0.0
+                            for w in range(kr):
+                                acc += jb[e, w, p] * jb[f, w, q2]
+                            amat[6 * ue + p, 6 * uf + q2] += acc
+        sym = 0.5 * (amat + amat.T)
+        ok = _chol_inplace(sym, n6)
+        if not ok:
+            for u in range(nu):
+                slot[nodes_out[u]] = -1
+            return -1
+        gg = g.reshape((n6, 1)).copy()
+        _chol_solve_cols(sym, n6, gg, 1)
+        for u in range(nu):
+            for p in range(6):
+                x_out[u, p] = gg[6 * u + p, 0]
+    else:
+        lf = np.empty((nu, 6, 6))
+        for u in range(nu):
+            sc = 0.0
+            for t in range(cnt[u], cnt[u + 1]):
+                e = by_slot[t]
+                for p in range(6):
+                    for w in range(krs[e_q[e]]):
+                        sc += jb[e, w, p] * jb[e, w, p]
+            _regularized_factor(bc[u], sc, mu, lf[u])
+        # W_e = L_u^-1 J_e^T (6 x kr), S = I + sum_u sum_{e,f at u} W_e^T W_f
+        wb = np.empty((ne, 6, 6))
+        for e in range(ne):
+            u = e_slot[e]
+            kr = krs[e_q[e]]
+            for w in range(kr):
+                for p in range(6):
+                    acc = jb[e, w, p]
+                    for m in range(p):
+                        acc -= lf[u, p, m] * wb[e, m, w]
+                    wb[e, p, w] = acc / lf[u, p, p]
+        smat = np.zeros((k_rows, k_rows))
+        for i in range(k_rows):
+            smat[i, i] = 1.0
+        for u in range(nu):
+            for t1 in range(cnt[u], cnt[u + 1]):
+                e = by_slot[t1]
+                qe = e_q[e]
+                for t2 in range(cnt[u], cnt[u + 1]):
+                    f = by_slot[t2]
+                    qf = e_q[f]
+                    for a in range(krs[qe]):
+                        for b in range(krs[qf]):
+                            acc = 0.0
+                            for p in range(6):
+                                acc += wb[e, p, a] * wb[f, p, b]
+                            smat[r_off[qe] + a, r_off[qf] + b] += acc
+        sym = 0.5 * (smat + smat.T)
+        ok = _chol_inplace(sym, k_rows)
+        if not ok:
+            for u in range(nu):
+                slot[nodes_out[u]] = -1
+            return -1
+        zz = rbuf[:k_rows].reshape((k_rows, 1)).copy()
+        _chol_solve_cols(sym, k_rows, zz, 1)
+        # x_u = L_u^-T sum_e W_e z_e
+        v = np.empty(6)
+        for u in range(nu):
+            for p in range(6):
+                v[p] = 0.0
+            for t in range(cnt[u], cnt[u + 1]):
+                e = by_slot[t]
+                qe = e_q[e]
+                for p in range(6):
+                    acc = 0.0
+                    for a in range(krs[qe]):
+                        acc += wb[e, p, a] * zz[r_off[qe] + a, 0]
+                    v[p] += acc
+            for p in range(5, -1, -1):
+                acc = v[p]
+                for m in range(p + 1, 6):
+                    acc -= lf[u, m, p] * x_out[u, m]
+                x_out[u, p] = acc / lf[u, p, p]
+    for u in range(nu):
+        slot[nodes_out[u]] = -1
+    # 5. temperature and the pi/8 cap, then apply
+    biggest = 0.0
+    for u in range(nu):
+        for p in range(6):
+            if not math.isfinite(x_out[u, p]):
+                return -1
+        ang = math.sqrt(x_out[u, 3] ** 2 + x_out[u, 4] ** 2 + x_out[u, 5] ** 2)
+        if ang > biggest:
+            biggest = ang
+    t = tau
+    if t * biggest > MAX_ROTATION:
+        t = MAX_ROTATION / biggest
+    er = np.empty((3, 3))
+    tmp = np.empty((3, 3))
+    for u in range(nu):
+        _apply_step(rot[nodes_out[u]], trans[nodes_out[u]], x_out[u], t, er, tmp)
+    return nu
+
+
+@kernel
+def sweep(order: np.ndarray, tau: float, mu: float, step_kind: int, gps_batch: int,
+          m_edges: int, ptr: np.ndarray, pnode: np.ndarray, psign: np.ndarray, rot: np.ndarray,
           trans: np.ndarray, edge_rot: np.ndarray, edge_trans: np.ndarray, edge_lt: np.ndarray,
           gps_pos: np.ndarray, gps_lt: np.ndarray, bdiag: np.ndarray, contrib: np.ndarray,
-          dmax: int, cycles: np.ndarray, counts: np.ndarray) -> int:
-    """One pass over the constraints in ``order`` (paper Algorithm 1, relative constraints).
+          dmax: int, path_count: np.ndarray, cycles: np.ndarray, counts: np.ndarray) -> int:
+    """One pass over the constraints in ``order`` (paper Algorithm 1).
 
-    ``cycles[c]`` receives the cycle count of constraint c's update; ``counts`` accumulates
-    [capped steps, rejected (non-finite) steps].  Returns the first rejected constraint or -1.
+    GPS constraints (index >= m_edges) are buffered and relaxed together in batches of
+    ``gps_batch`` (flushed when full and before every relative constraint).
+    ``cycles[c]`` receives the cycle count of constraint c's update (a batch's count is shared
+    among its members); ``counts`` accumulates [capped steps, rejected steps, max cycles of one
+    update, batches].  Returns the first rejected constraint or -1.
     """
     pr = np.empty((dmax, 3, 3))
     pt = np.empty((dmax, 3))
@@ -399,14 +720,47 @@ def sweep(order: np.ndarray, tau: float, mu: float, step_kind: int, m_edges: int
     y = np.empty((dmax, 6, 6))
     x = np.empty((dmax, 6))
     r = np.empty(6)
+    nt = rot.shape[0]
+    slot = np.full(nt, -1, np.int64)
+    xb = np.empty((nt, 6))
+    nodes = np.empty(nt, np.int64)
+    buf = np.empty(max(gps_batch, 1), np.int64)
+    nbuf = 0
     first_bad = -1
-    for idx in range(order.shape[0]):
-        c = order[idx]
+    n_order = order.shape[0]
+    for idx in range(n_order + 1):
+        c = order[idx] if idx < n_order else -1
+        is_gps = c >= m_edges
+        if nbuf > 0 and (not is_gps or nbuf >= gps_batch):
+            t0 = cycle_counter()
+            nu = _batch_relax(buf, nbuf, tau, mu, m_edges, ptr, pnode, psign, rot, trans,
+                              edge_rot, edge_trans, edge_lt, gps_pos, gps_lt, bdiag, contrib,
+                              path_count, slot, xb, nodes, True)
+            dc = cycle_counter() - t0
+            if dc > counts[2]:
+                counts[2] = dc
+            counts[3] += 1
+            for q in range(nbuf):
+                cycles[buf[q]] = dc // nbuf
+            if nu < 0:
+                counts[1] += nbuf
+                if first_bad < 0:
+                    first_bad = buf[0]
+            nbuf = 0
+        if c < 0:
+            break
+        if is_gps:
+            buf[nbuf] = c
+            nbuf += 1
+            continue
         t0 = cycle_counter()
         st = _relax(c, tau, mu, step_kind, m_edges, ptr, pnode, psign, rot, trans, edge_rot,
                     edge_trans, edge_lt, gps_pos, gps_lt, bdiag, contrib, pr, pt, jac, lfac, y,
                     x, r, True)
-        cycles[c] = cycle_counter() - t0
+        dc = cycle_counter() - t0
+        cycles[c] = dc
+        if dc > counts[2]:
+            counts[2] = dc
         if st == 1:
             counts[0] += 1
         elif st == 2:
@@ -414,6 +768,22 @@ def sweep(order: np.ndarray, tau: float, mu: float, step_kind: int, m_edges: int
             if first_bad < 0:
                 first_bad = c
     return first_bad
+
+
+@kernel
+def batch_step(cs: np.ndarray, mu: float, m_edges: int, ptr: np.ndarray, pnode: np.ndarray,
+               psign: np.ndarray, rot: np.ndarray, trans: np.ndarray, edge_rot: np.ndarray,
+               edge_trans: np.ndarray, edge_lt: np.ndarray, gps_pos: np.ndarray,
+               gps_lt: np.ndarray, bdiag: np.ndarray, contrib: np.ndarray,
+               path_count: np.ndarray, tau: float, x_out: np.ndarray,
+               nodes_out: np.ndarray) -> int:
+    """Relax the batch ``cs`` once with temperature ``tau`` (0: compute the step only)."""
+    slot = np.full(rot.shape[0], -1, np.int64)
+    work_rot = rot if tau > 0.0 else rot.copy()
+    work_trans = trans if tau > 0.0 else trans.copy()
+    return _batch_relax(cs, cs.shape[0], max(tau, 1e-300), mu, m_edges, ptr, pnode, psign,
+                        work_rot, work_trans, edge_rot, edge_trans, edge_lt, gps_pos, gps_lt,
+                        bdiag, contrib, path_count, slot, x_out, nodes_out, True)
 
 
 @kernel

@@ -42,6 +42,9 @@ Int64Array = npt.NDArray[np.int64]
 
 #: LM gives up (STALLED) when the damping factor mu exceeds this: no step lowers the energy.
 _MAX_DAMPING = 1e16
+#: A pivot of the factorization below this fraction of its diagonal entry of H means H is
+#: singular to rounding (measured: 1e-16..5e-16 without a gauge, >= 4e-3 with one).
+_SINGULAR_PIVOT = 1e-12
 #: LM damping matrix: diag(H) clipped below at this fraction of its largest entry, so that the
 #: damped system stays SPD where a direction carries (almost) no information.
 _DIAG_FLOOR = 1e-12
@@ -262,7 +265,7 @@ def gn_step(graph: PoseGraph, rotations: FloatArray | None = None,
     data = np.empty(pat.nnz)
     grad = np.empty(pat.dim)
     _assemble(graph, pat, rot, trans, data, grad)
-    step = _make_factorizer(pat, "splu").solve(data, -grad)
+    step = _make_factorizer(pat, "splu").solve(data, -grad, check=True)
     out = np.zeros((graph.num_nodes, 6))
     free = pat.var_of_node >= 0
     out[free] = step.reshape(-1, 6)[pat.var_of_node[free]]
@@ -278,7 +281,7 @@ class _SuperLU:
     def __init__(self, pat: _Pattern) -> None:
         self._pat = pat
 
-    def solve(self, data: FloatArray, rhs: FloatArray) -> FloatArray:
+    def solve(self, data: FloatArray, rhs: FloatArray, check: bool = False) -> FloatArray:
         pat = self._pat
         h = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.dim, pat.dim))
         try:
@@ -287,6 +290,9 @@ class _SuperLU:
         except RuntimeError as exc:  # "Factor is exactly singular"
             raise SolverError(f"the normal equations are singular ({exc}); is the gauge fixed?"
                               ) from exc
+        if check:  # U's diagonal holds the pivots, in the order of perm_c
+            pivots = np.abs(lu.U.diagonal())
+            _check_pivots(pivots, data[pat.diag_index][np.argsort(lu.perm_c)])
         return np.asarray(lu.solve(rhs), dtype=np.float64)
 
 
@@ -302,7 +308,7 @@ class _Cholmod:
         self._pat = pat
         self._factor: Any = None
 
-    def solve(self, data: FloatArray, rhs: FloatArray) -> FloatArray:
+    def solve(self, data: FloatArray, rhs: FloatArray, check: bool = False) -> FloatArray:
         pat = self._pat
         h = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.dim, pat.dim))
         try:
@@ -312,7 +318,18 @@ class _Cholmod:
         except self._cholmod.CholmodError as exc:
             raise SolverError(f"the normal equations are not positive definite ({exc}); "
                               "is the gauge fixed?") from exc
+        if check:  # D of L D L^T, in the fill-reducing order P
+            _check_pivots(np.abs(self._factor.D()), data[pat.diag_index][self._factor.P()])
         return np.asarray(self._factor(rhs), dtype=np.float64)
+
+
+def _check_pivots(pivots: FloatArray, diagonal: FloatArray) -> None:
+    ratio = pivots / np.maximum(diagonal, np.finfo(np.float64).tiny)
+    if not np.all(ratio >= _SINGULAR_PIVOT):
+        raise SolverError(
+            f"the normal equations are singular to rounding (smallest pivot / diagonal = "
+            f"{float(np.nanmin(ratio)):.2g}): the gauge is not fixed, or some pose is not "
+            "determined by its constraints; fix a pose, or use method='lm'")
 
 
 def _cholmod_available() -> bool:
@@ -377,10 +394,12 @@ def _ensure_compiled() -> float:
     pat = _analyze(g, np.zeros(0, np.int32), reorder=False)
     data = np.empty(pat.nnz)
     grad = np.empty(pat.dim)
-    _assemble(g, pat, g.rotations, g.translations, data, grad)
+    rot = np.array(g.rotations)  # writable, like the solver's state (Numba types differ)
+    trans = np.array(g.translations)
+    _assemble(g, pat, rot, trans, data, grad)
     out_r = np.empty((2, 3, 3))
     out_t = np.empty((2, 3))
-    _k.retract(g.rotations, g.translations, grad, pat.var_of_node, 1.0, out_r, out_t)
+    _k.retract(rot, trans, grad, pat.var_of_node, 1.0, out_r, out_t)
     _energy(g, out_r, out_t)
     _compiled = True
     return time.perf_counter() - t0
@@ -456,7 +475,7 @@ def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
             damped[pat.diag_index] += mu * np.maximum(diag, _DIAG_FLOOR * diag.max())
             step = solver.solve(damped, -grad)
         else:
-            step = solver.solve(data, -grad)
+            step = solver.solve(data, -grad, check=True)
         tm["factorize"] += time.perf_counter() - t0
         if not np.all(np.isfinite(step)):
             if cfg.method == "lm":  # cannot happen for SPD H + mu D; treat like a failed trial

@@ -1,0 +1,16 @@
+"""Shared fixtures; keep this file small (STYLE.md §7)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+#: Small graph files with provenance (tests/data/README.md); tests never read anything else.
+DATA_DIR = Path(__file__).parent / "data"
+
+
+@pytest.fixture
+def data_dir() -> Path:
+    """Directory of the committed test graphs."""
+    return DATA_DIR

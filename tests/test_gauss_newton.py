@@ -1,0 +1,401 @@
+"""Tests of the exact solver (DESIGN.md §7): Jacobians, normal equations, GN/LM optima."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hybridpgo.energy import energy
+from hybridpgo.errors import GraphError, SolverError
+from hybridpgo.geometry._kernels import relative_error, se3_exp
+from hybridpgo.graph import PoseGraph
+from hybridpgo.solvers import _gn_kernels
+from hybridpgo.solvers.config import GaussNewtonConfig
+from hybridpgo.solvers.gauss_newton import (
+    _cholmod_available,
+    default_fixed_nodes,
+    gn_step,
+    normal_equations,
+    solve_exact,
+)
+from hybridpgo.solvers.result import Status
+
+try:  # shared constants (tests/tolerances.py), else the same values here
+    from tolerances import CENTRAL_DIFF, FLOAT64_IDENTITY
+except ImportError:  # pragma: no cover - depends on the other helper's file
+    FLOAT64_IDENTITY = 1e-12
+    CENTRAL_DIFF = 1e-6
+
+#: Finite-difference step for central differences of errors (truncation ~h^2, rounding ~eps/h).
+FD_STEP = 1e-5
+#: Sparse GN step vs a dense solve of the same normal equations (different orderings only).
+SPARSE_VS_DENSE = 1e-9
+#: Two converged optima (GN vs LM, relabelled graphs): relative energy agreement.
+OPTIMUM_RTOL = 1e-9
+#: At a converged optimum: |g|_inf relative to the gradient scale sum_c |J_c^T Omega_c| |e_c|.
+STATIONARY = 1e-7
+
+
+# --------------------------------------------------------------------------- fixtures
+def _rotation(rng: np.random.Generator, max_angle: float) -> np.ndarray:
+    axis = rng.normal(size=3)
+    axis *= rng.uniform(0.0, max_angle) / np.linalg.norm(axis)
+    return se3_exp(np.r_[0.0, 0.0, 0.0, axis])[0]
+
+
+def _spd(rng: np.random.Generator, d: int, scale: float = 1.0) -> np.ndarray:
+    a = rng.normal(size=(d, d))
+    return scale * (a @ a.T + d * np.eye(d))
+
+
+def random_graph(rng: np.random.Generator, n: int = 12, extra: int = 10, noise: float = 0.1,
+                 init_noise: float = 0.2, num_gps: int = 0, fixed: tuple[int, ...] = (),
+                 max_angle: float = np.pi) -> PoseGraph:
+    """Connected random graph: odometry chain plus random loop edges, large absolute rotations.
+
+    Measurements are the true relative poses perturbed by ``noise`` (so errors stay well inside
+    the injectivity radius of Log); the initial estimate is the truth perturbed by ``init_noise``.
+    """
+    rot = np.array([_rotation(rng, max_angle) for _ in range(n)])
+    trans = rng.normal(scale=3.0, size=(n, 3))
+    edges = [(i, i + 1) for i in range(n - 1)]
+    while len(edges) < n - 1 + extra:
+        a, b = rng.choice(n, 2, replace=False)
+        edges.append((int(a), int(b)))
+    en = np.array(edges, dtype=np.int32)
+    er = np.empty((len(en), 3, 3))
+    et = np.empty((len(en), 3))
+    for c, (a, b) in enumerate(en):
+        dr, dt = se3_exp(rng.normal(scale=noise, size=6))
+        rz = rot[a].T @ rot[b]
+        tz = rot[a].T @ (trans[b] - trans[a])
+        er[c] = rz @ dr
+        et[c] = rz @ dt + tz
+    info = np.array([_spd(rng, 6) for _ in en])
+    init_r = np.array([r @ se3_exp(rng.normal(scale=init_noise, size=6))[0] for r in rot])
+    init_t = trans + rng.normal(scale=init_noise, size=trans.shape)
+    kw: dict[str, np.ndarray] = {}
+    if num_gps:
+        gn = rng.choice(n, num_gps, replace=False).astype(np.int32)
+        kw = {"gps_nodes": gn,
+              "gps_positions": trans[gn] + rng.normal(scale=noise, size=(num_gps, 3)),
+              "gps_information": np.array([_spd(rng, 3) for _ in gn])}
+    return PoseGraph(node_ids=np.arange(n) * 10 + 3, rotations=init_r, translations=init_t,
+                     edge_nodes=en, edge_rotations=er, edge_translations=et,
+                     edge_information=info, fixed_nodes=np.array(fixed, np.int32), **kw)
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(0)
+
+
+def _perturb(rot: np.ndarray, trans: np.ndarray, i: int, xi: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray]:
+    r = rot.copy()
+    t = trans.copy()
+    dr, dt = se3_exp(xi)
+    r[i] = rot[i] @ dr
+    t[i] = trans[i] + rot[i] @ dt
+    return r, t
+
+
+def _errors(graph: PoseGraph, rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
+    """Errors of every relative edge, computed as the energy kernel does."""
+    out = np.empty((graph.num_edges, 6))
+    for c, (a, b) in enumerate(graph.edge_nodes):
+        out[c] = relative_error(graph.edge_rotations[c], graph.edge_translations[c],
+                                rot[a].T @ rot[b], rot[a].T @ (trans[b] - trans[a]))
+    return out
+
+
+def _whitened_residuals(graph: PoseGraph, rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
+    """Stacked L_c^T e_c (Omega_c = L_c L_c^T), so that E = |r|^2."""
+    res = []
+    for c, e in enumerate(_errors(graph, rot, trans)):
+        res.append(np.linalg.cholesky(graph.edge_information[c]).T @ e)
+    for c, n in enumerate(graph.gps_nodes):
+        e = trans[n] - graph.gps_positions[c]
+        res.append(np.linalg.cholesky(graph.gps_information[c]).T @ e)
+    return np.concatenate(res)
+
+
+def dense_normal_equations(graph: PoseGraph, rot: np.ndarray, trans: np.ndarray,
+                           free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Dense reference: J of the whitened residuals by central differences; (J^T J, J^T r)."""
+    r0 = _whitened_residuals(graph, rot, trans)
+    jac = np.empty((r0.shape[0], 6 * free.shape[0]))
+    for k, i in enumerate(free):
+        for d in range(6):
+            xi = np.zeros(6)
+            xi[d] = FD_STEP
+            rp = _whitened_residuals(graph, *_perturb(rot, trans, i, xi))
+            rm = _whitened_residuals(graph, *_perturb(rot, trans, i, -xi))
+            jac[:, 6 * k + d] = (rp - rm) / (2 * FD_STEP)
+    return jac.T @ jac, jac.T @ r0
+
+
+def relabelled(graph: PoseGraph, rng: np.random.Generator) -> PoseGraph:
+    """Same problem with permuted nodes, shuffled edges and some edges reversed.
+
+    A reversed edge measures ``Z^-1``; its error is ``Log(Z E^-1 Z^-1) = -Ad(Z) e``, so the
+    information ``Ad(Z)^-T Omega Ad(Z)^-1`` gives exactly the same energy.
+    """
+    n = graph.num_nodes
+    perm = rng.permutation(n)  # new index of old node i: perm[i]
+    inv = np.argsort(perm)
+    order = rng.permutation(graph.num_edges)
+    en = perm[graph.edge_nodes[order]].astype(np.int32)
+    er = graph.edge_rotations[order].copy()
+    et = graph.edge_translations[order].copy()
+    info = graph.edge_information[order].copy()
+    for c in np.flatnonzero(rng.uniform(size=len(order)) < 0.5):
+        r, t = er[c], et[c]
+        ad = np.zeros((6, 6))
+        ad[:3, :3] = r
+        ad[3:, 3:] = r
+        ad[:3, 3:] = _skew(t) @ r
+        adi = np.linalg.inv(ad)
+        info[c] = adi.T @ info[c] @ adi
+        info[c] = 0.5 * (info[c] + info[c].T)
+        er[c], et[c] = r.T, -(r.T @ t)
+        en[c] = en[c, ::-1]
+    gps = {}
+    if graph.num_gps:
+        gps = {"gps_nodes": perm[graph.gps_nodes], "gps_positions": graph.gps_positions,
+               "gps_information": graph.gps_information}
+    return PoseGraph(node_ids=graph.node_ids[inv], rotations=graph.rotations[inv],
+                     translations=graph.translations[inv], edge_nodes=en, edge_rotations=er,
+                     edge_translations=et, edge_information=info, **gps)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _gradient_scale(graph: PoseGraph, rot: np.ndarray, trans: np.ndarray) -> float:
+    """sum_c |J_c| |Omega_c| |e_c|: the size of g's terms, against which g ~ 0 is judged."""
+    m = graph.num_edges
+    err = np.empty((m, 6))
+    ja = np.empty((m, 6, 6))
+    jb = np.empty((m, 6, 6))
+    _gn_kernels.edge_jacobians(rot, trans, graph.edge_nodes, graph.edge_rotations,
+                               graph.edge_translations, err, ja, jb)
+    scale = 0.0
+    for c in range(m):
+        oe = np.abs(graph.edge_information[c] @ err[c]).sum()
+        scale += (np.abs(ja[c]).max() + np.abs(jb[c]).max()) * oe
+    for c, n in enumerate(graph.gps_nodes):
+        scale += np.abs(graph.gps_information[c] @ (trans[n] - graph.gps_positions[c])).sum()
+    return scale
+
+
+# --------------------------------------------------------------------------- Jacobians
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_edge_jacobians_match_central_differences(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    g = random_graph(rng, n=8, extra=8, noise=0.4, init_noise=0.5)  # large rotations everywhere
+    rot, trans = np.array(g.rotations), np.array(g.translations)
+    m = g.num_edges
+    err = np.empty((m, 6))
+    ja = np.empty((m, 6, 6))
+    jb = np.empty((m, 6, 6))
+    _gn_kernels.edge_jacobians(rot, trans, g.edge_nodes, g.edge_rotations, g.edge_translations,
+                               err, ja, jb)
+    np.testing.assert_allclose(err, _errors(g, rot, trans), rtol=0, atol=FLOAT64_IDENTITY)
+    assert np.abs(err[:, 3:]).max() > 0.5  # the check covers large error rotations
+    for c, (a, b) in enumerate(g.edge_nodes):
+        for node, jac in ((a, ja[c]), (b, jb[c])):
+            fd = np.empty((6, 6))
+            for d in range(6):
+                xi = np.zeros(6)
+                xi[d] = FD_STEP
+                ep = _errors(g, *_perturb(rot, trans, node, xi))[c]
+                em = _errors(g, *_perturb(rot, trans, node, -xi))[c]
+                fd[:, d] = (ep - em) / (2 * FD_STEP)
+            np.testing.assert_allclose(jac, fd, rtol=0, atol=CENTRAL_DIFF * max(1.0, np.abs(fd).max()))
+
+
+@pytest.mark.parametrize(("num_gps", "fixed"), [(0, ()), (3, ()), (2, (4, 7))])
+def test_sparse_normal_equations_match_dense_finite_differences(num_gps: int,
+                                                                fixed: tuple[int, ...]) -> None:
+    rng = np.random.default_rng(10 + num_gps)
+    g = random_graph(rng, n=9, extra=7, noise=0.3, init_noise=0.4, num_gps=num_gps, fixed=fixed)
+    neq = normal_equations(g)
+    free = neq.free_nodes
+    expected_fixed = set(fixed) if fixed else ({0} if num_gps == 0 else set())
+    assert set(range(g.num_nodes)) - set(free.tolist()) == expected_fixed
+    h_ref, g_ref = dense_normal_equations(g, np.array(g.rotations), np.array(g.translations), free)
+    h = neq.hessian.toarray()
+    np.testing.assert_allclose(h, h.T, rtol=0, atol=FLOAT64_IDENTITY * np.abs(h).max())
+    np.testing.assert_allclose(h, h_ref, rtol=0, atol=CENTRAL_DIFF * np.abs(h_ref).max())
+    np.testing.assert_allclose(neq.gradient, g_ref, rtol=0,
+                               atol=CENTRAL_DIFF * np.abs(g_ref).max())
+    assert neq.energy == pytest.approx(energy(g), rel=FLOAT64_IDENTITY)
+    # The GN step (fill-reducing ordering, SuperLU) solves the same system as a dense solve.
+    step = gn_step(g)
+    dense = np.linalg.solve(h, -neq.gradient).reshape(-1, 6)
+    np.testing.assert_allclose(step[free], dense, rtol=0,
+                               atol=SPARSE_VS_DENSE * np.abs(dense).max())
+    assert np.all(step[list(expected_fixed)] == 0.0) if expected_fixed else True
+    ref_step = np.linalg.solve(h_ref, -g_ref).reshape(-1, 6)
+    np.testing.assert_allclose(step[free], ref_step, rtol=0,
+                               atol=CENTRAL_DIFF * 10 * np.abs(ref_step).max())
+
+
+def test_gn_step_with_explicit_fixed_set(rng: np.random.Generator) -> None:
+    g = random_graph(rng, n=7, extra=5)
+    step = gn_step(g, fixed=[2, 5])
+    assert np.all(step[[2, 5]] == 0.0)
+    neq = normal_equations(g, fixed=[5, 2])
+    np.testing.assert_array_equal(neq.free_nodes, [0, 1, 3, 4, 6])
+    dense = np.linalg.solve(neq.hessian.toarray(), -neq.gradient).reshape(-1, 6)
+    np.testing.assert_allclose(step[neq.free_nodes], dense, rtol=0,
+                               atol=SPARSE_VS_DENSE * np.abs(dense).max())
+
+
+# --------------------------------------------------------------------------- optima
+@pytest.mark.parametrize("num_gps", [0, 4])
+def test_gn_and_lm_reach_the_same_stationary_point(num_gps: int) -> None:
+    rng = np.random.default_rng(20 + num_gps)
+    g = random_graph(rng, n=25, extra=25, noise=0.05, init_noise=0.1, num_gps=num_gps)
+    res = {m: solve_exact(g, config=GaussNewtonConfig(method=m)) for m in ("gn", "lm")}
+    for m, r in res.items():
+        assert r.status is Status.CONVERGED, (m, r.message)
+        assert r.method == {"gn": "gauss_newton", "lm": "levenberg_marquardt"}[m]
+        assert r.final_energy == pytest.approx(energy(g, r.rotations, r.translations),
+                                               rel=FLOAT64_IDENTITY)
+        neq = normal_equations(g, r.rotations, r.translations)
+        scale = _gradient_scale(g, r.rotations, r.translations)
+        assert np.abs(neq.gradient).max() < STATIONARY * scale, m
+        np.testing.assert_allclose(np.einsum("nij,nkj->nik", r.rotations, r.rotations),
+                                   np.broadcast_to(np.eye(3), (g.num_nodes, 3, 3)), rtol=0,
+                                   atol=FLOAT64_IDENTITY)
+    assert res["gn"].final_energy == pytest.approx(res["lm"].final_energy, rel=OPTIMUM_RTOL)
+    assert res["lm"].final_energy < 0.1 * res["lm"].initial_energy
+    if num_gps == 0:  # node 0 is the gauge: untouched
+        for r in res.values():
+            np.testing.assert_array_equal(r.rotations[0], g.rotations[0])
+            np.testing.assert_array_equal(r.translations[0], g.translations[0])
+
+
+@pytest.mark.parametrize("num_gps", [0, 3])
+def test_optimum_energy_unchanged_by_relabelling(num_gps: int) -> None:
+    rng = np.random.default_rng(30 + num_gps)
+    g = random_graph(rng, n=20, extra=20, noise=0.05, init_noise=0.05, num_gps=num_gps)
+    h = relabelled(g, rng)
+    assert energy(h) == pytest.approx(energy(g), rel=FLOAT64_IDENTITY)
+    eg = solve_exact(g).final_energy
+    eh = solve_exact(h).final_energy
+    assert eh == pytest.approx(eg, rel=OPTIMUM_RTOL)
+
+
+def test_fixed_nodes_are_held_constant(rng: np.random.Generator) -> None:
+    g = random_graph(rng, n=15, extra=10, fixed=(3, 9))
+    assert default_fixed_nodes(g).tolist() == [3, 9]
+    r = solve_exact(g)
+    assert r.status is Status.CONVERGED
+    for i in (3, 9):
+        np.testing.assert_array_equal(r.rotations[i], g.rotations[i])
+        np.testing.assert_array_equal(r.translations[i], g.translations[i])
+    assert not np.array_equal(r.translations[0], g.translations[0])
+
+
+def test_zero_energy_at_ground_truth_converges_immediately(rng: np.random.Generator) -> None:
+    g = random_graph(rng, n=6, extra=3, noise=0.0, init_noise=0.0)
+    r = solve_exact(g)
+    assert r.status is Status.CONVERGED
+    assert r.final_energy < FLOAT64_IDENTITY
+
+
+@pytest.mark.parametrize("method", ["lm", "gn"])
+def test_energy_never_increases_from_a_bad_start(method: str) -> None:
+    rng = np.random.default_rng(40)
+    g = random_graph(rng, n=30, extra=40, noise=0.1, init_noise=1.0)
+    r = solve_exact(g, config=GaussNewtonConfig(method=method, max_iterations=60))
+    hist = r.energy_history
+    assert np.all(np.diff(hist) <= 0.0)
+    assert hist[-1] < hist[0]
+    assert np.all(np.isfinite(r.rotations)) and np.all(np.isfinite(r.translations))
+
+
+def test_unguarded_gn_takes_every_step(rng: np.random.Generator) -> None:
+    g = random_graph(rng, n=10, extra=8, noise=0.05, init_noise=0.05)
+    r = solve_exact(g, config=GaussNewtonConfig(method="gn", step_guard=False))
+    assert r.status is Status.CONVERGED
+    assert r.stats["rejected_steps"] == 0 and r.stats["step_halvings"] == 0
+
+
+def test_max_iterations_and_progress_callback(rng: np.random.Generator) -> None:
+    g = random_graph(rng, n=10, extra=8, init_noise=0.5)
+    seen: list[tuple[int, float]] = []
+    r = solve_exact(g, config=GaussNewtonConfig(max_iterations=2,
+                                                progress=lambda k, e: seen.append((k, e))))
+    assert r.status is Status.MAX_ITERATIONS
+    assert r.iterations == 2
+    assert [k for k, _ in seen] == [0, 1, 2]
+    np.testing.assert_array_equal([e for _, e in seen], r.energy_history)
+    assert r.times.shape == r.energy_history.shape and np.all(np.diff(r.times) >= 0)
+    zero = solve_exact(g, config=GaussNewtonConfig(max_iterations=0))
+    assert zero.iterations == 0 and zero.final_energy == pytest.approx(energy(g), rel=1e-12)
+
+
+@pytest.mark.skipif(not _cholmod_available(), reason="scikit-sparse (CHOLMOD) not installed")
+def test_cholmod_and_superlu_agree(rng: np.random.Generator) -> None:
+    g = random_graph(rng, n=20, extra=15)
+    a = solve_exact(g, config=GaussNewtonConfig(linear_solver="splu"))
+    b = solve_exact(g, config=GaussNewtonConfig(linear_solver="cholmod"))
+    assert a.stats["linear_solver"] == "splu" and b.stats["linear_solver"] == "cholmod"
+    assert a.final_energy == pytest.approx(b.final_energy, rel=OPTIMUM_RTOL)
+
+
+# --------------------------------------------------------------------------- errors
+def test_non_finite_initial_pose_raises_solver_error(rng: np.random.Generator) -> None:
+    g = random_graph(rng, n=5, extra=2)
+    t = np.array(g.translations)
+    t[2, 1] = np.nan
+    with pytest.raises(SolverError, match=r"translations\[2\] \(id 23\)"):
+        solve_exact(g, translations=t)
+
+
+def test_unanchored_part_raises_graph_error(rng: np.random.Generator) -> None:
+    g = random_graph(rng, n=6, extra=0)
+    en = np.array(g.edge_nodes)
+    keep = ~((en[:, 0] == 2) & (en[:, 1] == 3))  # cut the chain 0-1-2 | 3-4-5
+    h = PoseGraph(node_ids=g.node_ids, rotations=g.rotations, translations=g.translations,
+                  edge_nodes=en[keep], edge_rotations=g.edge_rotations[keep],
+                  edge_translations=g.edge_translations[keep],
+                  edge_information=g.edge_information[keep])
+    with pytest.raises(GraphError, match="neither a fixed pose nor a GPS"):
+        solve_exact(h)
+    fixed = PoseGraph(node_ids=h.node_ids, rotations=h.rotations, translations=h.translations,
+                      edge_nodes=h.edge_nodes, edge_rotations=h.edge_rotations,
+                      edge_translations=h.edge_translations,
+                      edge_information=h.edge_information, fixed_nodes=np.array([0, 4]))
+    assert solve_exact(fixed).status is Status.CONVERGED
+
+
+def test_gauss_newton_without_gauge_raises_solver_error(rng: np.random.Generator) -> None:
+    g = random_graph(rng, n=5, extra=3, noise=0.0, init_noise=0.1)
+    with pytest.raises(SolverError):
+        gn_step(g, fixed=[])
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("method", "newton"), ("max_iterations", -1), ("max_iterations", 2.5),
+     ("energy_tolerance", -1e-3), ("energy_tolerance", float("nan")),
+     ("step_tolerance", float("inf")), ("initial_damping", 0.0), ("step_guard", 1),
+     ("max_step_halvings", -2), ("linear_solver", "umfpack"), ("progress", 3)],
+)
+def test_config_validation(field: str, value: object) -> None:
+    with pytest.raises(ValueError, match=field):
+        GaussNewtonConfig(**{field: value})  # type: ignore[arg-type]
+
+
+def test_config_is_frozen() -> None:
+    cfg = GaussNewtonConfig()
+    assert (cfg.method, cfg.max_iterations, cfg.energy_tolerance, cfg.step_tolerance,
+            cfg.initial_damping) == ("lm", 100, 1e-10, 1e-12, 1e-4)
+    with pytest.raises(AttributeError):
+        cfg.method = "gn"  # type: ignore[misc]
