@@ -214,14 +214,18 @@ def test_toro_edge3_information_orders(tmp_path: Path) -> None:
 
 
 def test_toro_edge3_without_information_warns_once(tmp_path: Path) -> None:
+    ident7 = " ".join(str(7.0 * float(v)) for v in IDENT6.split())
     p = write(tmp_path, "bare.graph", "VERTEX3 0 0 0 0 0 0 0", "VERTEX3 1 1 0 0 0 0 0",
-              "VERTEX3 2 2 0 0 0 0 0", "EDGE3 0 1 1 0 0 0 0 0", "EDGE3 1 2 1 0 0 0 0 0")
+              "VERTEX3 2 2 0 0 0 0 0", "EDGE3 0 1 1 0 0 0 0 0", f"EDGE3 1 2 2 0 0 0 0 0 {ident7}",
+              "EDGE3 2 0 3 0 0 0 0 0")
     with pytest.warns(UserWarning, match=r"2 EDGE3 line\(s\) have no information matrix "
                       r"\(first at line 4\); using identity") as rec:
         g = read_graph(p)
     assert len(rec) == 1
     assert g.source_format == "toro"
-    np.testing.assert_array_equal(g.edge_information, np.broadcast_to(np.eye(6), (2, 6, 6)))
+    np.testing.assert_array_equal(g.edge_translations[:, 0], [1, 2, 3])  # file order kept
+    np.testing.assert_array_equal(g.edge_information,
+                                  np.eye(6) * np.array([1.0, 7.0, 1.0])[:, None, None])
 
 
 def test_euler_near_gimbal_lock_round_trip() -> None:
@@ -366,6 +370,8 @@ BAD_G2O = {
                              r"EDGE_SE2 field 'I33' is not finite: 'inf'"),
     "non-integer id": ((*V2, "EDGE_SE2 0 1.5 1 0 0 1 0 0 1 0 1"),
                        r"EDGE_SE2 field 'id_b' must be an integer vertex id, got '1\.5'"),
+    "huge id": ((*V2, "EDGE_SE2 99999999999999999999 1 1 0 0 1 0 0 1 0 1"),
+                r"EDGE_SE2 field 'id_a' must be an integer vertex id, got '9+'"),
     "not positive definite": ((*V2, "EDGE_SE2 0 1 1 0 0 1 2 0 1 0 1"),
                               r"information matrix .* is not positive definite \(smallest "
                               r"eigenvalue -1\)"),

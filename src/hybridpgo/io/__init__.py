@@ -82,7 +82,7 @@ def _detect(src: Source) -> str:
             return owners[0]
         ambiguous = ambiguous or len(owners) > 1
     if ambiguous:
-        if "EDGE3" in src.groups and any(len(t) == 9 for t in src.groups["EDGE3"][1]):
+        if "EDGE3" in src.groups and src.count_fields("EDGE3", 8):
             return "toro"
         return "isam"
     listing = "; ".join(f"{f}: {', '.join(SUPPORTED_TAGS[f])}" for f in FORMATS)

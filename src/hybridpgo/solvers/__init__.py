@@ -1,0 +1,49 @@
+"""Solvers: the hybrid Hessian method (default) and the exact sparse GN/LM solver."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ..graph import PoseGraph
+from .config import GaussNewtonConfig as GaussNewtonConfig
+from .hybrid import HybridConfig as HybridConfig
+from .hybrid import solve_hybrid as solve_hybrid
+from .result import SolveResult as SolveResult
+from .result import Status as Status
+
+METHODS = ("hybrid", "exact")
+
+
+def optimize(graph: PoseGraph, method: str = "hybrid", **options: Any) -> SolveResult:
+    """Optimize a pose graph.
+
+    Parameters
+    ----------
+    graph : PoseGraph
+    method : {"hybrid", "exact"}
+        ``"hybrid"``: the paper's stochastic hybrid Hessian sweeps (options: the fields of
+        :class:`HybridConfig`, plus ``progress``).  ``"exact"``: sparse Levenberg-Marquardt or
+        Gauss-Newton from the graph's vertex estimates (options: the fields of
+        :class:`GaussNewtonConfig`; ``init="tree"`` starts from the tree initialization).
+
+    Returns
+    -------
+    SolveResult
+    """
+    if method == "hybrid":
+        progress = options.pop("progress", None)
+        return solve_hybrid(graph, HybridConfig(**options), progress=progress)
+    if method == "exact":
+        from .gauss_newton import solve_exact
+        from ..tree import build_tree, global_poses, initial_locals
+
+        init = options.pop("init", "file" if graph.has_estimates else "tree")
+        tree_kind = options.pop("tree", "bfs")
+        rot = trans = None
+        if init == "tree" or not graph.has_estimates:
+            tree = build_tree(graph, tree_kind)
+            rot, trans = global_poses(tree, *initial_locals(graph, tree, "tree"))
+        elif init != "file":
+            raise ValueError(f"init must be 'tree' or 'file', got {init!r}")
+        return solve_exact(graph, rot, trans, GaussNewtonConfig(**options))
+    raise ValueError(f"method must be one of {METHODS}, got {method!r}")
