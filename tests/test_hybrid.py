@@ -253,3 +253,25 @@ def test_config_rejects_bad_values():
     with pytest.raises(ValueError, match="sweeps"):
         HybridConfig(sweeps=-1)
     assert dataclasses.replace(HybridConfig(), sweeps=3).sweeps == 3
+
+
+@pytest.mark.parametrize("angle", [1e-9, 1e-5, 0.05, 0.3, 2.0, np.pi - 1e-4])
+def test_hot_path_error_and_jacobian_match_reference_kernels(angle):
+    from hybridpgo.geometry._kernels import relative_error, se3_right_jacobian_inv
+
+    rng = np.random.default_rng(11)
+    for _ in range(5):
+        poses = []
+        for _k in range(3):
+            axis = rng.normal(size=3)
+            axis /= np.linalg.norm(axis)
+            poses.append(se3_exp(np.r_[rng.normal(size=3), angle * axis]))
+        (zr, zt), (ra, ta), (rb, tb) = poses
+        # put the error near the requested angle: measurement = X_a^-1 X_b Exp(-xi)
+        rab, tab = ra.T @ rb, ra.T @ (tb - ta)
+        e = np.empty(6)
+        jri = np.empty((6, 6))
+        hk._error_and_jr_inv(zr, zt, ra, ta, rb, tb, e, jri, np.empty((8, 3, 3)))
+        e_ref = relative_error(zr, zt, rab, tab)
+        np.testing.assert_allclose(e, e_ref, rtol=0, atol=1e-12 * max(1.0, np.abs(e_ref).max()))
+        np.testing.assert_allclose(jri, se3_right_jacobian_inv(e_ref), rtol=0, atol=1e-11)

@@ -23,11 +23,7 @@ import math
 import numpy as np
 
 from .._numba import cycle_counter, kernel
-from ..geometry._kernels import (
-    relative_error,
-    SMALL_ANGLE,
-    se3_right_jacobian_inv,
-)
+from ..geometry._kernels import SMALL_ANGLE, so3_log
 
 STEP_WOODBURY = 0
 STEP_GIVENS = 1
@@ -146,6 +142,127 @@ def _path_products(c: int, ptr: np.ndarray, pnode: np.ndarray, psign: np.ndarray
 
 
 @kernel
+def _mm3(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """out = a @ b for 3x3 (out must not alias a or b)."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
+
+
+@kernel
+def _skew_into(v0: float, v1: float, v2: float, out: np.ndarray) -> None:
+    out[0, 0] = 0.0
+    out[0, 1] = -v2
+    out[0, 2] = v1
+    out[1, 0] = v2
+    out[1, 1] = 0.0
+    out[1, 2] = -v0
+    out[2, 0] = -v1
+    out[2, 1] = v0
+    out[2, 2] = 0.0
+
+
+@kernel
+def _error_and_jr_inv(zr: np.ndarray, zt: np.ndarray, ra: np.ndarray, ta: np.ndarray,
+                      rb: np.ndarray, tb: np.ndarray, e: np.ndarray, jri: np.ndarray,
+                      ws: np.ndarray) -> None:
+    """e = Log(Z^-1 X_a^-1 X_b) and Jr^-1(e), allocation-free (ws: (8, 3, 3) scratch).
+
+    Same mathematics as ``geometry._kernels.relative_error`` and ``se3_right_jacobian_inv``
+    (tested equal); written out because the per-constraint update calls it on the hot path.
+    """
+    # E = Z^-1 X_ab: R_E = Zr^T Ra^T Rb, t_E = Zr^T (Ra^T (tb - ta) - zt)
+    rab = ws[0]
+    for i in range(3):
+        for j in range(3):
+            rab[i, j] = ra[0, i] * rb[0, j] + ra[1, i] * rb[1, j] + ra[2, i] * rb[2, j]
+    d0 = tb[0] - ta[0]
+    d1 = tb[1] - ta[1]
+    d2 = tb[2] - ta[2]
+    u = np.empty(3)
+    for i in range(3):
+        u[i] = ra[0, i] * d0 + ra[1, i] * d1 + ra[2, i] * d2 - zt[i]
+    re = ws[1]
+    te = np.empty(3)
+    for i in range(3):
+        te[i] = zr[0, i] * u[0] + zr[1, i] * u[1] + zr[2, i] * u[2]
+        for j in range(3):
+            re[i, j] = zr[0, i] * rab[0, j] + zr[1, i] * rab[1, j] + zr[2, i] * rab[2, j]
+    phi = so3_log(re)
+    th2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
+    th = math.sqrt(th2)
+    # Jl^-1(phi) = I - 1/2 [phi]x + c [phi]x^2 (c stable at pi)
+    if th < SMALL_ANGLE:
+        cc = 1.0 / 12.0 + th2 / 720.0
+    else:
+        cc = 1.0 / th2 - math.cos(0.5 * th) / (2.0 * th * math.sin(0.5 * th))
+    px = ws[2]
+    _skew_into(phi[0], phi[1], phi[2], px)
+    px2 = ws[3]
+    _mm3(px, px, px2)
+    jli = ws[4]  # Jl^-1(phi); Jl^-1(-phi) = I + 1/2 [phi]x + c [phi]x^2
+    for i in range(3):
+        for j in range(3):
+            jli[i, j] = (1.0 if i == j else 0.0) - 0.5 * px[i, j] + cc * px2[i, j]
+    for i in range(3):
+        e[i] = jli[i, 0] * te[0] + jli[i, 1] * te[1] + jli[i, 2] * te[2]
+        e[3 + i] = phi[i]
+    # Jr^-1(e) = Jl^-1(-e): blocks from rho' = -rho, phi' = -phi
+    jm = ws[5]
+    for i in range(3):
+        for j in range(3):
+            jm[i, j] = (1.0 if i == j else 0.0) + 0.5 * px[i, j] + cc * px2[i, j]
+    # Q(rho', phi') with rho' = -rho, phi' = -phi: Q is odd in (rho, phi) jointly of degree
+    # (1 in rho) x (even/odd in phi); evaluate directly with the negated vectors.
+    if th < 0.1:
+        a1 = 1.0 / 6.0 - th2 / 120.0 * (1.0 - th2 / 42.0 * (1.0 - th2 / 72.0))
+        a2 = -1.0 / 24.0 + th2 / 720.0 * (1.0 - th2 / 56.0 * (1.0 - th2 / 90.0))
+        a3 = -1.0 / 120.0 + th2 / 5040.0 * (1.0 - th2 / 72.0 * (1.0 - th2 / 110.0))
+    else:
+        sn = math.sin(th)
+        cs = math.cos(th)
+        a1 = (th - sn) / (th2 * th)
+        a2 = (1.0 - 0.5 * th2 - cs) / (th2 * th2)
+        a3 = (th - sn - th2 * th / 6.0) / (th2 * th2 * th)
+    rx = ws[6]
+    _skew_into(-e[0], -e[1], -e[2], rx)
+    qx = ws[7]
+    _skew_into(-phi[0], -phi[1], -phi[2], qx)
+    pr_ = ws[0]  # reuse: [phi']x [rho']x
+    _mm3(qx, rx, pr_)
+    rp = ws[1]  # [rho']x [phi']x
+    _mm3(rx, qx, rp)
+    prp = ws[2]  # [phi']x [rho']x [phi']x
+    _mm3(pr_, qx, prp)
+    t1 = ws[3]  # [phi']x^2 [rho']x  (= qx @ pr_)
+    _mm3(qx, pr_, t1)
+    t2 = ws[4]  # [rho']x [phi']x^2 (= rp @ qx)
+    _mm3(rp, qx, t2)
+    q = ws[7]
+    t3 = np.empty((3, 3))  # prp @ qx
+    _mm3(prp, qx, t3)
+    t4 = np.empty((3, 3))  # qx @ prp
+    _mm3(qx, prp, t4)
+    h = 0.5 * (a2 - 3.0 * a3)
+    for i in range(3):
+        for j in range(3):
+            q[i, j] = (0.5 * rx[i, j] + a1 * (pr_[i, j] + rp[i, j] + prp[i, j])
+                       - a2 * (t1[i, j] + t2[i, j] - 3.0 * prp[i, j])
+                       - h * (t3[i, j] + t4[i, j]))
+    # off-diagonal block: -Jm Q Jm
+    _mm3(jm, q, ws[0])
+    _mm3(ws[0], jm, ws[1])
+    for i in range(6):
+        for j in range(6):
+            jri[i, j] = 0.0
+    for i in range(3):
+        for j in range(3):
+            jri[i, j] = jm[i, j]
+            jri[3 + i, 3 + j] = jm[i, j]
+            jri[i, 3 + j] = -ws[1, i, j]
+
+
+@kernel
 def _linearize(c: int, m_edges: int, ptr: np.ndarray, pnode: np.ndarray, psign: np.ndarray,
                rot: np.ndarray, trans: np.ndarray, edge_rot: np.ndarray, edge_trans: np.ndarray,
                edge_lt: np.ndarray, gps_pos: np.ndarray, gps_lt: np.ndarray, pr: np.ndarray,
@@ -168,11 +285,22 @@ def _linearize(c: int, m_edges: int, ptr: np.ndarray, pnode: np.ndarray, psign: 
         if na < d:
             rb = pr[na]
             tb = pt[na]
-        rab = ra.T @ rb
-        tab = ra.T @ (tb - ta)
-        e0 = relative_error(edge_rot[c], edge_trans[c], rab, tab)
-        a = edge_lt[c] @ se3_right_jacobian_inv(e0)
-        r[:6] = -(edge_lt[c] @ e0)
+        e0 = np.empty(6)
+        jri = np.empty((6, 6))
+        ws = np.empty((8, 3, 3))
+        _error_and_jr_inv(edge_rot[c], edge_trans[c], ra, ta, rb, tb, e0, jri, ws)
+        lt = edge_lt[c]
+        a = np.empty((6, 6))
+        for p in range(6):
+            acc = 0.0
+            for q in range(6):
+                acc += lt[p, q] * e0[q]
+            r[p] = -acc
+            for j in range(6):
+                acc = 0.0
+                for q in range(p, 6):  # L^T is upper triangular
+                    acc += lt[p, q] * jri[q, j]
+                a[p, j] = acc
         rm = np.empty((3, 3))
         tm = np.empty(3)
         tx = np.empty((3, 3))
@@ -227,43 +355,52 @@ def _linearize(c: int, m_edges: int, ptr: np.ndarray, pnode: np.ndarray, psign: 
 @kernel
 def _woodbury_solve(d: int, kr: int, jac: np.ndarray, lfac: np.ndarray, r: np.ndarray,
                     y: np.ndarray, x: np.ndarray) -> None:
-    """x = B^-1 J^T (I + J B^-1 J^T)^-1 r with B = blockdiag(lfac lfac^T): O(d) (DESIGN §4)."""
-    smat = np.zeros((kr, kr))
+    """x = B^-1 J^T (I + J B^-1 J^T)^-1 r with B = blockdiag(L_k L_k^T): O(d) (DESIGN §4).
+
+    With W_k = L_k^-1 J_k^T (forward substitution), S = I + sum_k W_k^T W_k and
+    x_k = L_k^-T W_k S^-1 r.  ``y`` holds the W_k.
+    """
+    smat = np.zeros((6, 6))
     for i in range(kr):
         smat[i, i] = 1.0
     for k in range(d):
-        for i in range(6):
-            for q in range(kr):
-                y[k, i, q] = jac[k, q, i]
-        _chol_solve_cols(lfac[k], 6, y[k], kr)
+        lk = lfac[k]
+        for q in range(kr):
+            for i in range(6):
+                acc = jac[k, q, i]
+                for m in range(i):
+                    acc -= lk[i, m] * y[k, m, q]
+                y[k, i, q] = acc / lk[i, i]
         for p in range(kr):
-            for q in range(kr):
+            for q in range(p, kr):
                 acc = 0.0
                 for i in range(6):
-                    acc += jac[k, p, i] * y[k, i, q]
+                    acc += y[k, i, p] * y[k, i, q]
                 smat[p, q] += acc
-    z = np.empty(kr)
-    for i in range(kr):
-        z[i] = r[i]
-    sl = np.zeros((6, 6))
     for p in range(kr):
-        for q in range(kr):
-            sl[p, q] = 0.5 * (smat[p, q] + smat[q, p])
-    ok = _chol_inplace(sl, kr)
-    if not ok:
+        for q in range(p):
+            smat[p, q] = smat[q, p]
+    if not _chol_inplace(smat, kr):
         for k in range(d):
             x[k, :] = np.nan
         return
-    zz = np.empty((kr, 1))
+    zz = np.empty((6, 1))
     for i in range(kr):
-        zz[i, 0] = z[i]
-    _chol_solve_cols(sl, kr, zz, 1)
+        zz[i, 0] = r[i]
+    _chol_solve_cols(smat, kr, zz, 1)
+    v = np.empty(6)
     for k in range(d):
+        lk = lfac[k]
         for i in range(6):
             acc = 0.0
             for q in range(kr):
                 acc += y[k, i, q] * zz[q, 0]
-            x[k, i] = acc
+            v[i] = acc
+        for i in range(5, -1, -1):
+            acc = v[i]
+            for m in range(i + 1, 6):
+                acc -= lk[m, i] * x[k, m]
+            x[k, i] = acc / lk[i, i]
 
 
 @kernel
