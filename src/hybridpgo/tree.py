@@ -49,6 +49,8 @@ class InitKind(enum.Enum):
     """Concatenate the tree edges' measurements down from the root (paper III-A)."""
     FILE = "file"
     """The file's vertex estimates, ``T_i = X_parent^-1 X_i``."""
+    CHORDAL = "chordal"
+    """Chordal relaxation of the rotations, then linear translations (robust to rotation noise)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -293,7 +295,8 @@ def initial_locals(graph: PoseGraph, tree: PoseTree,
 
     ``init="tree"`` concatenates tree-edge measurements (a GPS link gives the child its measured
     position and its rotation from the file, or the identity when the file has no vertices);
-    ``init="file"`` uses the file's vertex estimates.  The root keeps its file pose (the gauge);
+    ``init="file"`` uses the file's vertex estimates; ``init="chordal"`` the chordal relaxation
+    (:mod:`hybridpgo.initialization`).  The root keeps its file pose (the gauge);
     the earth is the identity.
     """
     init = InitKind(init)
@@ -305,11 +308,18 @@ def initial_locals(graph: PoseGraph, tree: PoseTree,
     trans = np.zeros((t_nodes, 3))
     rot[:] = np.eye(3)
     n = graph.num_nodes
-    if init is InitKind.FILE:
-        grot = np.concatenate([graph.rotations, np.eye(3)[None]]) if tree.has_earth \
-            else np.asarray(graph.rotations)
-        gtr = np.concatenate([graph.translations, np.zeros((1, 3))]) if tree.has_earth \
-            else np.asarray(graph.translations)
+    if init in (InitKind.FILE, InitKind.CHORDAL):
+        if init is InitKind.CHORDAL:
+            from .initialization import chordal_initialization
+
+            grot0, gtr0 = chordal_initialization(
+                graph, None if tree.has_earth else tree.root)
+        else:
+            grot0, gtr0 = graph.rotations, graph.translations
+        grot = np.concatenate([grot0, np.eye(3)[None]]) if tree.has_earth \
+            else np.ascontiguousarray(grot0)
+        gtr = np.concatenate([gtr0, np.zeros((1, 3))]) if tree.has_earth \
+            else np.ascontiguousarray(gtr0)
         _locals_from_globals(tree.parent, grot, gtr, rot, trans)
         return rot, trans
     kind = tree.link_kind

@@ -24,7 +24,7 @@ def optimize(graph: PoseGraph, method: str = "hybrid", **options: Any) -> SolveR
         ``"hybrid"``: the paper's stochastic hybrid Hessian sweeps (options: the fields of
         :class:`HybridConfig`, plus ``progress``).  ``"exact"``: sparse Levenberg-Marquardt or
         Gauss-Newton from the graph's vertex estimates (options: the fields of
-        :class:`GaussNewtonConfig`; ``init="tree"`` starts from the tree initialization).
+        :class:`GaussNewtonConfig`; ``init="tree"`` / ``"chordal"`` start from those initializations).
 
     Returns
     -------
@@ -40,10 +40,12 @@ def optimize(graph: PoseGraph, method: str = "hybrid", **options: Any) -> SolveR
         init = options.pop("init", "file" if graph.has_estimates else "tree")
         tree_kind = options.pop("tree", "bfs")
         rot = trans = None
-        if init == "tree" or not graph.has_estimates:
+        if init not in ("tree", "file", "chordal"):
+            raise ValueError(f"init must be 'tree', 'file' or 'chordal', got {init!r}")
+        if init == "file" and not graph.has_estimates:
+            init = "tree"
+        if init != "file":
             tree = build_tree(graph, tree_kind)
-            rot, trans = global_poses(tree, *initial_locals(graph, tree, "tree"))
-        elif init != "file":
-            raise ValueError(f"init must be 'tree' or 'file', got {init!r}")
+            rot, trans = global_poses(tree, *initial_locals(graph, tree, init))
         return solve_exact(graph, rot, trans, GaussNewtonConfig(**options))
     raise ValueError(f"method must be one of {METHODS}, got {method!r}")
