@@ -1,0 +1,1 @@
+"""hybridpgo benchmarks: ``python -m benchmarks --help`` (STYLE.md §8)."""
