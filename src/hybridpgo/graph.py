@@ -13,6 +13,7 @@ Frames and conventions
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -150,6 +151,38 @@ class PoseGraph:
             gps_information=self.gps_information, fixed_nodes=self.fixed_nodes,
             is_2d=self.is_2d, has_estimates=True, source_format=self.source_format,
         )
+
+    def add_gps(self, node_id: int | npt.ArrayLike, xyz: npt.ArrayLike,
+                information: npt.ArrayLike) -> PoseGraph:
+        """Return a copy with position-only (GPS) constraints added (the graph is immutable).
+
+        Parameters
+        ----------
+        node_id : int or (k,) ints
+            File ids of the poses the readings are of.
+        xyz : (3,) or (k, 3) float
+            Measured positions in the earth frame (metres).
+        information : (3, 3) or (k, 3, 3) float
+            SPD information of each reading (inverse covariance, 1/m^2); one matrix is shared.
+        """
+        ids = np.atleast_1d(np.asarray(node_id, dtype=np.int64))
+        pos = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        info = np.asarray(information, dtype=np.float64)
+        if info.shape == (3, 3):
+            info = np.broadcast_to(info, (ids.shape[0], 3, 3))
+        if pos.shape[0] != ids.shape[0] or info.shape != (ids.shape[0], 3, 3):
+            raise GraphError(f"add_gps: {ids.shape[0]} node id(s) need as many positions (k, 3) "
+                             f"and informations (k, 3, 3); got {pos.shape} and {info.shape}")
+        index = np.searchsorted(self.node_ids, ids)
+        index = np.minimum(index, self.num_nodes - 1)
+        unknown = self.node_ids[index] != ids
+        if np.any(unknown):
+            raise GraphError(f"add_gps: unknown pose id(s) {ids[unknown][:5].tolist()}")
+        check_information(np.ascontiguousarray(info), "GPS reading")
+        return dataclasses.replace(
+            self, gps_nodes=np.concatenate([self.gps_nodes, index.astype(np.int32)]),
+            gps_positions=np.concatenate([self.gps_positions, pos]),
+            gps_information=np.concatenate([self.gps_information, info]))
 
     def connected_components(self) -> npt.NDArray[np.int32]:
         """Label of the connected component of every node (GPS links through the earth node)."""

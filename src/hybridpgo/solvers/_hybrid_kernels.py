@@ -611,12 +611,271 @@ def init_blocks(m_edges: int, ptr: np.ndarray, pnode: np.ndarray, psign: np.ndar
 
 # --------------------------------------------------------------------------- batch updates
 @kernel
+def _global_pose(i: int, parent: np.ndarray, rot: np.ndarray, trans: np.ndarray,
+                 ro: np.ndarray, to: np.ndarray) -> None:
+    """Pose of tree node i in the root's frame (product of locals up the tree), O(depth)."""
+    tmp_r = np.empty((3, 3))
+    tmp_t = np.empty(3)
+    if i < 0:
+        for a in range(3):
+            for b in range(3):
+                ro[a, b] = 1.0 if a == b else 0.0
+            to[a] = 0.0
+        return
+    ro[:] = rot[i]
+    to[:] = trans[i]
+    v = parent[i]
+    while v >= 0:
+        _mul_pose_into(rot[v], trans[v], ro, to, tmp_r, tmp_t)
+        ro[:] = tmp_r
+        to[:] = tmp_t
+        v = parent[v]
+
+
+@kernel
+def _adjoint_into(r: np.ndarray, t: np.ndarray, out: np.ndarray) -> None:
+    """Ad(T) = [[R, [t]x R], [0, R]]."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = r[i, j]
+            out[3 + i, 3 + j] = r[i, j]
+            out[3 + i, j] = 0.0
+    for j in range(3):
+        out[0, 3 + j] = t[1] * r[2, j] - t[2] * r[1, j]
+        out[1, 3 + j] = t[2] * r[0, j] - t[0] * r[2, j]
+        out[2, 3 + j] = t[0] * r[1, j] - t[1] * r[0, j]
+
+
+@kernel
+def _woodbury_segments(cs: np.ndarray, nb: int, m_edges: int, ptr: np.ndarray,
+                       pnode: np.ndarray, psign: np.ndarray, rot: np.ndarray, trans: np.ndarray,
+                       parent: np.ndarray, edge_rot: np.ndarray, edge_trans: np.ndarray,
+                       edge_lt: np.ndarray, gps_pos: np.ndarray, gps_lt: np.ndarray, mu: float,
+                       jb: np.ndarray, e_off: np.ndarray, r_off: np.ndarray, krs: np.ndarray,
+                       rbuf: np.ndarray, e_slot: np.ndarray, e_q: np.ndarray, cnt: np.ndarray,
+                       by_slot: np.ndarray, bc: np.ndarray, slot: np.ndarray,
+                       nodes_out: np.ndarray, nu: int, x_out: np.ndarray) -> bool:
+    """Woodbury solve of a batch in O(entries + sum over segments of |sig|^2) (DESIGN §5).
+
+    Every Jacobian block factors as ``J_{c,u} = s_{c,u} A_c Ad(Y_u)`` with ``Y_u`` the pose of
+    node u in the tree root's frame and ``A_c`` a per-constraint matrix (relative:
+    ``L^T Jr^-1(e) Ad(Y_b)^-1``; GPS: ``L^T [I | -[p_n]x]``).  Union nodes whose constraint sets
+    agree (chains between branch points, "segments") share one moment
+    ``M_seg = sum_u Ad(Y_u) B_u^-1 Ad(Y_u)^T``, so
+    ``S = I + sum_seg sum_{c,d} s_c s_d A_c M_seg A_d^T`` costs O(|sig|^2) per segment instead
+    of O(|sig|^2) per node: a batch of GPS readings sharing a long trunk stays cheap.
+    """
+    k_rows = r_off[nb]
+    # per-constraint A_c (kr x 6) and global poses of the union nodes
+    amat = np.zeros((nb, 6, 6))
+    yr = np.empty((nu, 3, 3))
+    yt = np.empty((nu, 3))
+    have = np.zeros(nu, np.bool_)
+    gr = np.empty((3, 3))
+    gt = np.empty(3)
+    tr_ = np.empty((3, 3))
+    tt_ = np.empty(3)
+    dmax = 1
+    for q in range(nb):
+        dq = ptr[cs[q] + 1] - ptr[cs[q]]
+        if dq > dmax:
+            dmax = dq
+    pr = np.empty((dmax, 3, 3))
+    pt = np.empty((dmax, 3))
+    adb = np.empty((6, 6))
+    ws = np.empty((8, 3, 3))
+    e0 = np.empty(6)
+    jri = np.empty((6, 6))
+    for q in range(nb):
+        c = cs[q]
+        s0 = ptr[c]
+        d = ptr[c + 1] - s0
+        na = _path_products(c, ptr, pnode, psign, rot, trans, pr, pt)
+        # the constraint's root: parent of the top node of a non-empty side
+        top = pnode[s0 + na - 1] if na > 0 else pnode[s0 + d - 1]
+        _global_pose(parent[top], parent, rot, trans, gr, gt)
+        for k in range(d):
+            u = e_slot[e_off[q] + k]
+            if not have[u]:
+                _mul_pose_into(gr, gt, pr[k], pt[k], yr[u], yt[u])
+                have[u] = True
+        if c < m_edges:
+            ra = np.eye(3)
+            ta = np.zeros(3)
+            if na > 0:
+                ra = pr[0]
+                ta = pt[0]
+            rb = np.eye(3)
+            tb = np.zeros(3)
+            if na < d:
+                rb = pr[na]
+                tb = pt[na]
+            _error_and_jr_inv(edge_rot[c], edge_trans[c], ra, ta, rb, tb, e0, jri, ws)
+            a6 = edge_lt[c] @ jri
+            # Ad(Y_b)^-1 = Ad(Y_b^-1), Y_b = G_root P_b
+            _mul_pose_into(gr, gt, rb, tb, tr_, tt_)
+            rinv = tr_.T.copy()
+            tinv = -(rinv @ tt_)
+            _adjoint_into(rinv, tinv, adb)
+            amat[q] = a6 @ adb
+        else:
+            g = c - m_edges
+            # p_n in the root (earth) frame: the earth is the root, G = I
+            pn = pt[0]
+            lt = gps_lt[g]
+            blk = np.zeros((3, 6))
+            for i in range(3):
+                blk[i, i] = 1.0
+            # -[p_n]x
+            blk[0, 4] = pn[2]
+            blk[0, 5] = -pn[1]
+            blk[1, 3] = -pn[2]
+            blk[1, 5] = pn[0]
+            blk[2, 3] = pn[1]
+            blk[2, 4] = -pn[0]
+            amat[q, 0:3, :] = lt @ blk
+    # segments: process each constraint side top-down; a node starts a new segment when a
+    # constraint side tops out at it, its parent is outside the union, or the counts differ
+    tops = np.zeros(nu, np.bool_)
+    for q in range(nb):
+        c = cs[q]
+        s0 = ptr[c]
+        d = ptr[c + 1] - s0
+        na = 0
+        while na < d and psign[s0 + na] < 0:
+            na += 1
+        if na > 0:
+            tops[e_slot[e_off[q] + na - 1]] = True
+        if na < d:
+            tops[e_slot[e_off[q] + d - 1]] = True
+    seg = np.full(nu, -1, np.int64)
+    seg_rep = np.empty(nu, np.int64)
+    nseg = 0
+    for q in range(nb):
+        c = cs[q]
+        s0 = ptr[c]
+        d = ptr[c + 1] - s0
+        na = 0
+        while na < d and psign[s0 + na] < 0:
+            na += 1
+        for side in range(2):
+            lo = 0 if side == 0 else na
+            hi = na if side == 0 else d
+            for k in range(hi - 1, lo - 1, -1):
+                u = e_slot[e_off[q] + k]
+                if seg[u] >= 0:
+                    continue
+                p = parent[nodes_out[u]]
+                pu = slot[p] if p >= 0 else -1
+                if tops[u] or pu < 0 or (cnt[u + 1] - cnt[u]) != (cnt[pu + 1] - cnt[pu]):
+                    seg[u] = nseg
+                    seg_rep[nseg] = u
+                    nseg += 1
+                else:
+                    seg[u] = seg[pu]
+    # per node: factor B_u, V_u = L^-1 Ad(Y_u)^T, moments M_seg += V^T V
+    lf = np.empty((nu, 6, 6))
+    vv = np.empty((nu, 6, 6))
+    mseg = np.zeros((nseg, 6, 6))
+    ad = np.empty((6, 6))
+    for u in range(nu):
+        sc = 0.0
+        for t in range(cnt[u], cnt[u + 1]):
+            e = by_slot[t]
+            for p in range(6):
+                for w in range(krs[e_q[e]]):
+                    sc += jb[e, w, p] * jb[e, w, p]
+        _regularized_factor(bc[u], sc, mu, lf[u])
+        _adjoint_into(yr[u], yt[u], ad)
+        lk = lf[u]
+        for col in range(6):  # column col of Ad^T = row col of Ad
+            for i in range(6):
+                acc = ad[col, i]
+                for m in range(i):
+                    acc -= lk[i, m] * vv[u, m, col]
+                vv[u, i, col] = acc / lk[i, i]
+        sg = seg[u]
+        for i in range(6):
+            for j in range(i, 6):
+                acc = 0.0
+                for m in range(6):
+                    acc += vv[u, m, i] * vv[u, m, j]
+                mseg[sg, i, j] += acc
+    for sg in range(nseg):
+        for i in range(6):
+            for j in range(i):
+                mseg[sg, i, j] = mseg[sg, j, i]
+    # S = I + sum_seg sum_{c,d in sig} s_c s_d A_c M A_d^T
+    smat = np.zeros((k_rows, k_rows))
+    for i in range(k_rows):
+        smat[i, i] = 1.0
+    tm = np.empty((6, 6))
+    for sg in range(nseg):
+        u = seg_rep[sg]
+        for t1 in range(cnt[u], cnt[u + 1]):
+            e = by_slot[t1]
+            qe = e_q[e]
+            se = float(psign[ptr[cs[qe]] + e - e_off[qe]])
+            kre = krs[qe]
+            for a in range(kre):
+                for j in range(6):
+                    acc = 0.0
+                    for m in range(6):
+                        acc += amat[qe, a, m] * mseg[sg, m, j]
+                    tm[a, j] = se * acc
+            for t2 in range(cnt[u], cnt[u + 1]):
+                f = by_slot[t2]
+                qf = e_q[f]
+                sf = float(psign[ptr[cs[qf]] + f - e_off[qf]])
+                for a in range(kre):
+                    for b in range(krs[qf]):
+                        acc = 0.0
+                        for m in range(6):
+                            acc += tm[a, m] * amat[qf, b, m]
+                        smat[r_off[qe] + a, r_off[qf] + b] += sf * acc
+    sym = 0.5 * (smat + smat.T)
+    if not _chol_inplace(sym, k_rows):
+        return False
+    zz = rbuf[:k_rows].reshape((k_rows, 1)).copy()
+    _chol_solve_cols(sym, k_rows, zz, 1)
+    # v_seg = sum_c s_c A_c^T z_c ; x_u = L^-T (V_u v_seg)
+    vseg = np.zeros((nseg, 6))
+    for sg in range(nseg):
+        u = seg_rep[sg]
+        for t1 in range(cnt[u], cnt[u + 1]):
+            e = by_slot[t1]
+            qe = e_q[e]
+            se = float(psign[ptr[cs[qe]] + e - e_off[qe]])
+            for j in range(6):
+                acc = 0.0
+                for a in range(krs[qe]):
+                    acc += amat[qe, a, j] * zz[r_off[qe] + a, 0]
+                vseg[sg, j] += se * acc
+    v = np.empty(6)
+    for u in range(nu):
+        sg = seg[u]
+        for i in range(6):
+            acc = 0.0
+            for m in range(6):
+                acc += vv[u, i, m] * vseg[sg, m]
+            v[i] = acc
+        lk = lf[u]
+        for i in range(5, -1, -1):
+            acc = v[i]
+            for m in range(i + 1, 6):
+                acc -= lk[m, i] * x_out[u, m]
+            x_out[u, i] = acc / lk[i, i]
+    return True
+
+
+@kernel
 def _batch_relax(cs: np.ndarray, nb: int, tau: float, mu: float, m_edges: int, ptr: np.ndarray,
                  pnode: np.ndarray, psign: np.ndarray, rot: np.ndarray, trans: np.ndarray,
                  edge_rot: np.ndarray, edge_trans: np.ndarray, edge_lt: np.ndarray,
                  gps_pos: np.ndarray, gps_lt: np.ndarray, bdiag: np.ndarray,
-                 contrib: np.ndarray, path_count: np.ndarray, slot: np.ndarray,
-                 x_out: np.ndarray, nodes_out: np.ndarray, apply: bool) -> int:
+                 contrib: np.ndarray, path_count: np.ndarray, parent: np.ndarray,
+                 slot: np.ndarray, x_out: np.ndarray, nodes_out: np.ndarray,
+                 apply: bool) -> int:
     """Relax the constraints ``cs[:nb]`` together (paper eq. 35-37, DESIGN §5).
 
     ``H_C = sum_{c in C} J_c^T J_c + B_C`` over the union U of their domains, with
@@ -753,68 +1012,13 @@ def _batch_relax(cs: np.ndarray, nb: int, tau: float, mu: float, m_edges: int, p
             for p in range(6):
                 x_out[u, p] = gg[6 * u + p, 0]
     else:
-        lf = np.empty((nu, 6, 6))
-        for u in range(nu):
-            sc = 0.0
-            for t in range(cnt[u], cnt[u + 1]):
-                e = by_slot[t]
-                for p in range(6):
-                    for w in range(krs[e_q[e]]):
-                        sc += jb[e, w, p] * jb[e, w, p]
-            _regularized_factor(bc[u], sc, mu, lf[u])
-        # W_e = L_u^-1 J_e^T (6 x kr), S = I + sum_u sum_{e,f at u} W_e^T W_f
-        wb = np.empty((ne, 6, 6))
-        for e in range(ne):
-            u = e_slot[e]
-            kr = krs[e_q[e]]
-            for w in range(kr):
-                for p in range(6):
-                    acc = jb[e, w, p]
-                    for m in range(p):
-                        acc -= lf[u, p, m] * wb[e, m, w]
-                    wb[e, p, w] = acc / lf[u, p, p]
-        smat = np.zeros((k_rows, k_rows))
-        for i in range(k_rows):
-            smat[i, i] = 1.0
-        for u in range(nu):
-            for t1 in range(cnt[u], cnt[u + 1]):
-                e = by_slot[t1]
-                qe = e_q[e]
-                for t2 in range(cnt[u], cnt[u + 1]):
-                    f = by_slot[t2]
-                    qf = e_q[f]
-                    for a in range(krs[qe]):
-                        for b in range(krs[qf]):
-                            acc = 0.0
-                            for p in range(6):
-                                acc += wb[e, p, a] * wb[f, p, b]
-                            smat[r_off[qe] + a, r_off[qf] + b] += acc
-        sym = 0.5 * (smat + smat.T)
-        ok = _chol_inplace(sym, k_rows)
+        ok = _woodbury_segments(cs, nb, m_edges, ptr, pnode, psign, rot, trans, parent, edge_rot,
+                                edge_trans, edge_lt, gps_pos, gps_lt, mu, jb, e_off, r_off, krs,
+                                rbuf, e_slot, e_q, cnt, by_slot, bc, slot, nodes_out, nu, x_out)
         if not ok:
             for u in range(nu):
                 slot[nodes_out[u]] = -1
             return -1
-        zz = rbuf[:k_rows].reshape((k_rows, 1)).copy()
-        _chol_solve_cols(sym, k_rows, zz, 1)
-        # x_u = L_u^-T sum_e W_e z_e
-        v = np.empty(6)
-        for u in range(nu):
-            for p in range(6):
-                v[p] = 0.0
-            for t in range(cnt[u], cnt[u + 1]):
-                e = by_slot[t]
-                qe = e_q[e]
-                for p in range(6):
-                    acc = 0.0
-                    for a in range(krs[qe]):
-                        acc += wb[e, p, a] * zz[r_off[qe] + a, 0]
-                    v[p] += acc
-            for p in range(5, -1, -1):
-                acc = v[p]
-                for m in range(p + 1, 6):
-                    acc -= lf[u, m, p] * x_out[u, m]
-                x_out[u, p] = acc / lf[u, p, p]
     for u in range(nu):
         slot[nodes_out[u]] = -1
     # 5. temperature and the pi/8 cap, then apply
@@ -841,7 +1045,8 @@ def sweep(order: np.ndarray, tau: float, mu: float, step_kind: int, gps_batch: i
           m_edges: int, ptr: np.ndarray, pnode: np.ndarray, psign: np.ndarray, rot: np.ndarray,
           trans: np.ndarray, edge_rot: np.ndarray, edge_trans: np.ndarray, edge_lt: np.ndarray,
           gps_pos: np.ndarray, gps_lt: np.ndarray, bdiag: np.ndarray, contrib: np.ndarray,
-          dmax: int, path_count: np.ndarray, cycles: np.ndarray, counts: np.ndarray) -> int:
+          dmax: int, path_count: np.ndarray, parent: np.ndarray, cycles: np.ndarray,
+          counts: np.ndarray) -> int:
     """One pass over the constraints in ``order`` (paper Algorithm 1).
 
     GPS constraints (index >= m_edges) are buffered and relaxed together in batches of
@@ -872,7 +1077,7 @@ def sweep(order: np.ndarray, tau: float, mu: float, step_kind: int, gps_batch: i
             t0 = cycle_counter()
             nu = _batch_relax(buf, nbuf, tau, mu, m_edges, ptr, pnode, psign, rot, trans,
                               edge_rot, edge_trans, edge_lt, gps_pos, gps_lt, bdiag, contrib,
-                              path_count, slot, xb, nodes, True)
+                              path_count, parent, slot, xb, nodes, True)
             dc = cycle_counter() - t0
             if dc > counts[2]:
                 counts[2] = dc
@@ -912,7 +1117,7 @@ def batch_step(cs: np.ndarray, mu: float, m_edges: int, ptr: np.ndarray, pnode: 
                psign: np.ndarray, rot: np.ndarray, trans: np.ndarray, edge_rot: np.ndarray,
                edge_trans: np.ndarray, edge_lt: np.ndarray, gps_pos: np.ndarray,
                gps_lt: np.ndarray, bdiag: np.ndarray, contrib: np.ndarray,
-               path_count: np.ndarray, tau: float, x_out: np.ndarray,
+               path_count: np.ndarray, parent: np.ndarray, tau: float, x_out: np.ndarray,
                nodes_out: np.ndarray) -> int:
     """Relax the batch ``cs`` once with temperature ``tau`` (0: compute the step only)."""
     slot = np.full(rot.shape[0], -1, np.int64)
@@ -920,7 +1125,7 @@ def batch_step(cs: np.ndarray, mu: float, m_edges: int, ptr: np.ndarray, pnode: 
     work_trans = trans if tau > 0.0 else trans.copy()
     return _batch_relax(cs, cs.shape[0], max(tau, 1e-300), mu, m_edges, ptr, pnode, psign,
                         work_rot, work_trans, edge_rot, edge_trans, edge_lt, gps_pos, gps_lt,
-                        bdiag, contrib, path_count, slot, x_out, nodes_out, True)
+                        bdiag, contrib, path_count, parent, slot, x_out, nodes_out, True)
 
 
 @kernel

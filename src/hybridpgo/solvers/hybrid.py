@@ -153,7 +153,7 @@ class HybridState:
         x = np.zeros((nt, 6))
         nodes = np.zeros(nt, np.int64)
         nu = hk.batch_step(cs, damping, *self.kernel_args(), self.bdiag, self.contrib,
-                           self.path_count, tau, x, nodes)
+                           self.path_count, self.tree.parent, tau, x, nodes)
         if nu < 0:
             raise SolverError("the batch step was not finite")
         return nodes[:nu].copy(), x[:nu].copy()
@@ -223,7 +223,7 @@ def solve_hybrid(graph: PoseGraph, config: HybridConfig | None = None, *,
         t0 = time.perf_counter()
         bad = hk.sweep(tree.sweep_order, tau, cfg.damping, step_kind, cfg.gps_batch_size,
                        *state.kernel_args(), state.bdiag, state.contrib, state.dmax,
-                       state.path_count, cycles, counts)
+                       state.path_count, tree.parent, cycles, counts)
         solve_time += time.perf_counter() - t0
         sweeps_done += 1
         if bad >= 0 and first_bad < 0:
