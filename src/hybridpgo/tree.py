@@ -145,10 +145,17 @@ def build_tree(graph: PoseGraph, kind: TreeKind | str = TreeKind.BFS) -> PoseTre
             sp.coo_matrix((np.ones(m), (a, b)), shape=(n, n)), directed=False)
         anchor = np.full(ncomp, -1, np.int64)
         anchor_gps = np.full(ncomp, -1, np.int64)
-        for k in range(g - 1, -1, -1):  # first GPS constraint in file order wins
-            c = comp[graph.gps_nodes[k]]
-            anchor[c] = graph.gps_nodes[k]
-            anchor_gps[c] = k
+        # Each part hangs from the earth by the GPS reading nearest its centre (fewest hops to
+        # the farthest pose), which keeps the tree shallow: constraint paths, and so update
+        # costs, are about half as long as from an end of the drive.
+        ecc = _eccentricity_bound(sp.coo_matrix((np.ones(m), (a, b)), shape=(n, n)).tocsr(),
+                                  comp, ncomp, graph.gps_nodes)
+        for k in range(g - 1, -1, -1):  # ties: the first GPS constraint in file order
+            node = graph.gps_nodes[k]
+            c = comp[node]
+            if anchor[c] < 0 or ecc[node] <= ecc[anchor[c]]:
+                anchor[c] = node
+                anchor_gps[c] = k
         if np.any(anchor < 0):
             missing = np.nonzero(anchor < 0)[0]
             ids = [int(graph.node_ids[np.argmax(comp == c)]) for c in missing[:5]]
@@ -227,6 +234,34 @@ def build_tree(graph: PoseGraph, kind: TreeKind | str = TreeKind.BFS) -> PoseTre
     for v in arrays.values():
         v.flags.writeable = False
     return PoseTree(num_poses=n, has_earth=has_earth, root=root, **arrays)
+
+
+def _eccentricity_bound(adj: sp.csr_matrix, comp: np.ndarray, ncomp: int,
+                        seeds: np.ndarray) -> np.ndarray:
+    """Per node, max(hops to u, hops to v) for a far pair (u, v) of its part (double sweep).
+
+    A cheap stand-in for the eccentricity: it is smallest near the middle of the part.
+    """
+    from scipy.sparse.csgraph import shortest_path
+
+    n = adj.shape[0]
+    out = np.zeros(n)
+    starts = np.full(ncomp, -1, np.int64)
+    for node in seeds[::-1]:
+        starts[comp[node]] = node
+    for c in range(ncomp):
+        if starts[c] < 0:
+            continue
+        d0 = shortest_path(adj, directed=False, unweighted=True, indices=int(starts[c]))
+        d0[~np.isfinite(d0)] = -1
+        u = int(np.argmax(d0))
+        du = shortest_path(adj, directed=False, unweighted=True, indices=u)
+        du[~np.isfinite(du)] = -1
+        v = int(np.argmax(du))
+        dv = shortest_path(adj, directed=False, unweighted=True, indices=v)
+        mask = comp == c
+        out[mask] = np.maximum(du[mask], dv[mask])
+    return out
 
 
 @kernel
