@@ -1,0 +1,5 @@
+"""``python -m hybridpgo.cli``: the same as the ``hybridpgo`` console script."""
+
+from . import main
+
+raise SystemExit(main())

@@ -1,0 +1,275 @@
+"""``hybridpgo optimize FILE -o OUT``: optimize a graph, write it, print a summary."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+from ..errors import HybridPGOError
+from ._common import (
+    ProgressBar,
+    describe_graph,
+    fmt_energy,
+    log,
+    output_format,
+    print_json,
+    print_table,
+    read_input,
+)
+
+if TYPE_CHECKING:
+    from ..graph import PoseGraph
+    from ..solvers import SolveResult
+
+#: CLI option -> HybridConfig field, for the options only the hybrid solver takes.
+HYBRID_ONLY = {"sweeps": "--sweeps", "tau0": "--tau0", "tau_decay": "--tau-decay",
+               "damping": "--damping", "step": "--step", "gps_batch_size": "--gps-batch-size"}
+
+
+@dataclass
+class Job:
+    """One optimization: what to read, how to solve, what to write."""
+
+    input: str
+    output: str
+    solver: str = "hybrid"
+    options: dict[str, Any] = field(default_factory=dict)
+    """Solver options by config field name (only those given)."""
+    fmt: str | None = None
+    out_format: str | None = None
+    plot_prefix: str | None = None
+    plots_optional: bool = False
+    """When matplotlib is missing: skip the plots with a note instead of failing (demo)."""
+    skip_unknown: bool = False
+    quiet: bool = False
+
+
+def _check_options(job: Job, graph: PoseGraph) -> str:
+    """Reject options that do not apply; return the init kind."""
+    opts = job.options
+    if job.solver == "exact":
+        given = [flag for key, flag in HYBRID_ONLY.items() if key in opts]
+        if opts.get("polish"):
+            given.append("--polish")
+        if given:
+            raise HybridPGOError(f"{', '.join(given)}: only for the hybrid solver "
+                                 "(--solver hybrid)")
+    elif "max_iterations" in opts and not opts.get("polish"):
+        raise HybridPGOError("--max-iterations limits the exact solver or the polish: add "
+                             "--polish or use --solver exact (the hybrid solver runs --sweeps)")
+    init = opts.get("init") or ("file" if job.solver == "exact" and graph.has_estimates
+                                else "tree")
+    if init == "file" and not graph.has_estimates:
+        raise HybridPGOError(f"{job.input}: --init file needs vertex estimates, but the file has "
+                             "none (iSAM files list only constraints); use --init tree")
+    return init
+
+
+def _check_writable(path: str) -> None:
+    directory = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(directory):
+        raise HybridPGOError(f"{path}: cannot write: directory {directory} does not exist")
+
+
+def _plots_possible(job: Job) -> bool:
+    if job.plot_prefix is None:
+        return False
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        if job.plots_optional:
+            log("hybridpgo: note: no plots (matplotlib is not installed): "
+                "pip install hybridpgo[plot]")
+            return False
+        raise HybridPGOError("--plot needs matplotlib, which is not installed: "
+                             "pip install hybridpgo[plot]") from None
+    _check_writable(job.plot_prefix + "_before.png")
+    return True
+
+
+def _solve(job: Job, graph: PoseGraph, init: str) -> SolveResult:
+    from ..solvers import GaussNewtonConfig, HybridConfig, optimize
+
+    opts = dict(job.options)
+    opts["init"] = init
+    nc = graph.num_constraints
+    if job.solver == "hybrid":
+        if "max_iterations" in opts:
+            opts["polish_iterations"] = opts.pop("max_iterations")
+        try:
+            cfg = HybridConfig(**opts)
+        except ValueError as exc:
+            raise HybridPGOError(f"invalid solver option: {exc}") from exc
+        bar = ProgressBar("hybrid", cfg.sweeps, nc, enabled=not job.quiet)
+
+        def hybrid_progress(k: int, e: float, tau: float) -> None:
+            note = "polishing (exact LM)..." if cfg.polish and k == cfg.sweeps else ""
+            bar.update(k, e, tau, note)
+
+        try:
+            return optimize(graph, "hybrid", progress=hybrid_progress, **opts)
+        finally:
+            bar.close()
+    exact_opts = {k: v for k, v in opts.items() if k not in ("init", "tree")}
+    try:
+        GaussNewtonConfig(**exact_opts)
+    except ValueError as exc:
+        raise HybridPGOError(f"invalid solver option: {exc}") from exc
+    total = exact_opts.get("max_iterations", GaussNewtonConfig.max_iterations)
+    bar = ProgressBar("exact LM", total, nc, enabled=not job.quiet)
+    try:
+        return optimize(graph, "exact", progress=lambda k, e: bar.update(k, e), **opts)
+    finally:
+        bar.close()
+
+
+def run_job(job: Job) -> dict[str, Any]:
+    """Read, optimize, write (and plot); return the JSON-friendly summary."""
+    t0 = time.perf_counter()
+    graph = read_input(job.input, job.fmt, skip_unknown=job.skip_unknown)
+    t_read = time.perf_counter() - t0
+    init = _check_options(job, graph)
+    out_fmt = output_format(job.output, job.out_format, graph, allow_isam=False)
+    if out_fmt == "toro" and graph.num_gps:
+        raise HybridPGOError(f"{job.output}: the TORO format cannot store GPS constraints; "
+                             "write g2o (--out-format g2o)")
+    _check_writable(job.output)
+    plots = _plots_possible(job)
+    if not job.quiet:
+        log(f"read {job.input} ({describe_graph(graph)}) in {t_read:.2f} s")
+
+    result = _solve(job, graph, init)
+
+    from ..io import write_graph
+
+    t0 = time.perf_counter()
+    write_graph(graph.with_poses(result.rotations, result.translations), job.output, out_fmt)
+    t_write = time.perf_counter() - t0
+    written_plots: list[str] = []
+    if plots:
+        assert job.plot_prefix is not None
+        written_plots = write_plots(graph, result, init, job.options.get("tree") or "bfs",
+                                    job.plot_prefix, os.path.basename(job.input))
+    nc = graph.num_constraints
+    summary = result.summary()
+    extra: dict[str, Any] = {}
+    if "polish_iterations" in result.stats:
+        extra["energy_after_sweeps"] = float(result.energy_history[result.iterations])
+    return {
+        "input": {"path": job.input, "format": graph.source_format,
+                  "dimension": "2D" if graph.is_2d else "3D", "poses": graph.num_nodes,
+                  "relative_edges": graph.num_edges, "gps": graph.num_gps, "constraints": nc},
+        "output": {"path": job.output, "format": out_fmt},
+        "solver": job.solver,
+        "init": init,
+        "energy_before": result.initial_energy,
+        "energy_after": result.final_energy,
+        "energy_before_per_constraint": result.initial_energy / max(nc, 1),
+        "energy_after_per_constraint": result.final_energy / max(nc, 1),
+        **extra,
+        "time_read": t_read,
+        "time_write": t_write,
+        "plots": written_plots,
+        "result": summary,
+    }
+
+
+def write_plots(graph: PoseGraph, result: SolveResult, init: str, tree_kind: str,
+                prefix: str, name: str) -> list[str]:
+    """PREFIX_before.png (the solver's initial poses), PREFIX_after.png, PREFIX_energy.png."""
+    from ..plot import (
+        energy_figure,
+        graph_figure,
+        height_scale,
+        residual_energy_range,
+        save_figure,
+    )
+    from ..tree import build_tree, global_poses, initial_locals
+
+    tree = build_tree(graph, tree_kind)
+    before = global_poses(tree, *initial_locals(graph, tree, init))
+    before_title = {"tree": f"{name}: tree initialization", "file": f"{name}: file vertices"
+                    }.get(init, f"{name}: {init} initialization")
+    paths = [f"{prefix}_before.png", f"{prefix}_after.png", f"{prefix}_energy.png"]
+    per = result.final_energy / max(result.num_constraints, 1)
+    after = (result.rotations, result.translations)
+    # one colour scale and one height exaggeration for both maps
+    e_range = residual_energy_range(graph, [before, after])
+    z_scale = height_scale([before, after])
+    figs = [
+        graph_figure(graph, [before], energy_range=e_range, z_scale=z_scale, titles=[
+            f"{before_title} (E/c {result.initial_energy / max(result.num_constraints, 1):.4g})"]),
+        graph_figure(graph, [after], energy_range=e_range, z_scale=z_scale,
+                     titles=[f"{name}: {result.method} (E/c {per:.4g})"]),
+        energy_figure({result.method: result}, title=f"{name}: energy per constraint"),
+    ]
+    for fig, path in zip(figs, paths, strict=True):
+        save_figure(fig, path)
+    return paths
+
+
+def print_summary(s: dict[str, Any]) -> None:
+    """The human-readable summary on stdout."""
+    r = s["result"]
+    nc = s["input"]["constraints"]
+    inp = s["input"]
+    timings = r.get("timings", {})
+    times = [f"read {s['time_read']:.2f} s"]
+    times += [f"{k} {timings[k]:.2f} s" for k in ("compile", "analyze", "solve", "polish")
+              if k in timings]
+    times.append(f"write {s['time_write']:.2f} s")
+    iters = f"{r['iterations']} {'sweeps' if s['solver'] == 'hybrid' else 'iterations'}"
+    if "polish_iterations" in r:
+        iters += f" + {r['polish_iterations']} polish iterations"
+    rows = [
+        ("input", f"{inp['path']} ({inp['format']}, {inp['dimension']}, {inp['poses']} poses, "
+                  f"{inp['relative_edges']} relative constraints, {inp['gps']} GPS)"),
+        ("solver", f"{r['method']}, init {s['init']}"
+                   + (f", {r['step']} step" if "step" in r else "")),
+        ("iterations", f"{iters}: {r['message']}"),
+        ("energy before", fmt_energy(s["energy_before"], nc)),
+    ]
+    if "energy_after_sweeps" in s:
+        rows.append(("after sweeps", fmt_energy(s["energy_after_sweeps"], nc) + ", before the "
+                                     "polish"))
+    rows += [
+        ("energy after", fmt_energy(s["energy_after"], nc)),
+        ("time", ", ".join(times)),
+    ]
+    if "us_per_constraint_mean" in r:
+        rows.append(("per constraint", f"{r['us_per_constraint_mean']:.3g} us mean, "
+                                       f"{r['us_per_constraint_max']:.4g} us max per update"))
+    rows.append(("output", f"{s['output']['path']} ({s['output']['format']})"))
+    for path in s["plots"]:
+        rows.append(("plot", path))
+    print_table(rows)
+
+
+def options_from_args(args: argparse.Namespace) -> dict[str, Any]:
+    """Solver options the user gave (config field names), leaving the rest to the defaults."""
+    opts: dict[str, Any] = {}
+    for key in ("sweeps", "tau0", "tau_decay", "damping", "step", "tree", "gps_batch_size",
+                "max_iterations", "init"):
+        value = getattr(args, key)
+        if value is not None:
+            opts[key] = value
+    if args.tolerance is not None:
+        opts["energy_tolerance"] = args.tolerance
+    if args.polish:
+        opts["polish"] = True
+    return opts
+
+
+def run(args: argparse.Namespace) -> int:
+    job = Job(input=args.file, output=args.output, solver=args.solver,
+              options=options_from_args(args), fmt=args.format, out_format=args.out_format,
+              plot_prefix=args.plot, skip_unknown=args.skip_unknown, quiet=args.quiet)
+    summary = run_job(job)
+    if args.json:
+        print_json(summary)
+    else:
+        print_summary(summary)
+    return 0
