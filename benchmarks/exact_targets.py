@@ -107,7 +107,7 @@ def gtsam_lm(graph: PoseGraph, rot: np.ndarray, trans: np.ndarray,
             model = gtsam.noiseModel.Gaussian.Information(info[np.ix_(perm, perm)])
             graph_g.add(gtsam.BetweenFactorPose3(int(a), int(b), gtsam.Pose3(gtsam.Rot3(rz), tz),
                                                  model))
-    for c, n in enumerate(graph.gps_nodes):
+    if graph.num_gps:
         raise NotImplementedError("GPS constraints in the GTSAM comparison")
     # Gauge: GTSAM's LM damping handles the free gauge; fix node 0 with a tight prior anyway, as
     # our solver fixes it.  The prior's own error is excluded from the energy below.

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from tolerances import CENTRAL_DIFF, CENTRAL_DIFF_STEP, FLOAT64_IDENTITY, SPARSE_VS_DENSE_GN
 
 from hybridpgo.energy import energy
 from hybridpgo.errors import GraphError, SolverError
@@ -20,16 +21,6 @@ from hybridpgo.solvers.gauss_newton import (
 )
 from hybridpgo.solvers.result import Status
 
-try:  # shared constants (tests/tolerances.py), else the same values here
-    from tolerances import CENTRAL_DIFF, FLOAT64_IDENTITY
-except ImportError:  # pragma: no cover - depends on the other helper's file
-    FLOAT64_IDENTITY = 1e-12
-    CENTRAL_DIFF = 1e-6
-
-#: Finite-difference step for central differences of errors (truncation ~h^2, rounding ~eps/h).
-FD_STEP = 1e-5
-#: Sparse GN step vs a dense solve of the same normal equations (different orderings only).
-SPARSE_VS_DENSE = 1e-9
 #: Two converged optima (GN vs LM, relabelled graphs): relative energy agreement.
 OPTIMUM_RTOL = 1e-9
 #: At a converged optimum: |g|_inf relative to the gradient scale sum_c |J_c^T Omega_c| |e_c|.
@@ -128,10 +119,10 @@ def dense_normal_equations(graph: PoseGraph, rot: np.ndarray, trans: np.ndarray,
     for k, i in enumerate(free):
         for d in range(6):
             xi = np.zeros(6)
-            xi[d] = FD_STEP
+            xi[d] = CENTRAL_DIFF_STEP
             rp = _whitened_residuals(graph, *_perturb(rot, trans, i, xi))
             rm = _whitened_residuals(graph, *_perturb(rot, trans, i, -xi))
-            jac[:, 6 * k + d] = (rp - rm) / (2 * FD_STEP)
+            jac[:, 6 * k + d] = (rp - rm) / (2 * CENTRAL_DIFF_STEP)
     return jac.T @ jac, jac.T @ r0
 
 
@@ -190,6 +181,56 @@ def _gradient_scale(graph: PoseGraph, rot: np.ndarray, trans: np.ndarray) -> flo
     return scale
 
 
+# --------------------------------------------------------------------------- kernels vs geometry
+def _error_pose(rng: np.random.Generator, regime: str) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) of a relative error Z^-1 X_a^-1 X_b in one of three angle regimes."""
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    angle = {"normal": rng.uniform(0.1, 3.0), "near_zero": 10 ** rng.uniform(-9, -4),
+             "near_pi": np.pi - 10 ** rng.uniform(-7, -2.5), "mid_series": rng.uniform(1e-4, 0.1)
+             }[regime]
+    r, _ = se3_exp(np.r_[0.0, 0.0, 0.0, angle * axis])
+    return r, rng.normal(scale=2.0, size=3)
+
+
+@pytest.mark.parametrize("regime", ["normal", "near_zero", "near_pi", "mid_series"])
+def test_allocation_free_kernels_match_geometry_kernels(regime: str) -> None:
+    """The solver's inner kernels are twins of hybridpgo.geometry._kernels (DESIGN §1, §3)."""
+    from hybridpgo.geometry._kernels import se3_adjoint, se3_right_jacobian_inv
+
+    rng = np.random.default_rng(7)
+    w = np.empty((12, 3, 3))
+    for _ in range(20):
+        ra = _rotation(rng, np.pi)
+        ta = rng.normal(size=3)
+        rz = _rotation(rng, np.pi)
+        tz = rng.normal(size=3)
+        re, te = _error_pose(rng, regime)
+        rb = ra @ rz @ re  # so that Z^-1 X_a^-1 X_b = (re, te)
+        tb = ta + ra @ (tz + rz @ te)
+        e = np.empty(6)
+        ja = np.empty((6, 6))
+        jb = np.empty((6, 6))
+        _gn_kernels._edge_linearization(ra, ta, rb, tb, rz, tz, e, ja, jb, w)
+        ref_e = relative_error(rz, tz, ra.T @ rb, ra.T @ (tb - ta))
+        np.testing.assert_allclose(e, ref_e, rtol=0, atol=FLOAT64_IDENTITY * 10)
+        jri = se3_right_jacobian_inv(ref_e)
+        rba = rb.T @ ra
+        tba = rb.T @ (ta - tb)
+        np.testing.assert_allclose(jb, jri, rtol=0, atol=FLOAT64_IDENTITY * np.abs(jri).max())
+        ref_a = -jri @ se3_adjoint(rba, tba)
+        np.testing.assert_allclose(ja, ref_a, rtol=0, atol=FLOAT64_IDENTITY * np.abs(ref_a).max())
+
+
+def test_total_energy_kernel_matches_energy_module(rng: np.random.Generator) -> None:
+    g = random_graph(rng, n=15, extra=12, noise=0.5, init_noise=0.5, num_gps=4)
+    ours = _gn_kernels.total_energy(np.array(g.rotations), np.array(g.translations),
+                                    g.edge_nodes, g.edge_rotations, g.edge_translations,
+                                    g.edge_information, g.gps_nodes, g.gps_positions,
+                                    g.gps_information)
+    assert ours == pytest.approx(energy(g), rel=FLOAT64_IDENTITY)
+
+
 # --------------------------------------------------------------------------- Jacobians
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_edge_jacobians_match_central_differences(seed: int) -> None:
@@ -209,11 +250,12 @@ def test_edge_jacobians_match_central_differences(seed: int) -> None:
             fd = np.empty((6, 6))
             for d in range(6):
                 xi = np.zeros(6)
-                xi[d] = FD_STEP
+                xi[d] = CENTRAL_DIFF_STEP
                 ep = _errors(g, *_perturb(rot, trans, node, xi))[c]
                 em = _errors(g, *_perturb(rot, trans, node, -xi))[c]
-                fd[:, d] = (ep - em) / (2 * FD_STEP)
-            np.testing.assert_allclose(jac, fd, rtol=0, atol=CENTRAL_DIFF * max(1.0, np.abs(fd).max()))
+                fd[:, d] = (ep - em) / (2 * CENTRAL_DIFF_STEP)
+            np.testing.assert_allclose(jac, fd, rtol=0,
+                                       atol=CENTRAL_DIFF * max(1.0, np.abs(fd).max()))
 
 
 @pytest.mark.parametrize(("num_gps", "fixed"), [(0, ()), (3, ()), (2, (4, 7))])
@@ -236,7 +278,7 @@ def test_sparse_normal_equations_match_dense_finite_differences(num_gps: int,
     step = gn_step(g)
     dense = np.linalg.solve(h, -neq.gradient).reshape(-1, 6)
     np.testing.assert_allclose(step[free], dense, rtol=0,
-                               atol=SPARSE_VS_DENSE * np.abs(dense).max())
+                               atol=SPARSE_VS_DENSE_GN * np.abs(dense).max())
     assert np.all(step[list(expected_fixed)] == 0.0) if expected_fixed else True
     ref_step = np.linalg.solve(h_ref, -g_ref).reshape(-1, 6)
     np.testing.assert_allclose(step[free], ref_step, rtol=0,
@@ -251,7 +293,7 @@ def test_gn_step_with_explicit_fixed_set(rng: np.random.Generator) -> None:
     np.testing.assert_array_equal(neq.free_nodes, [0, 1, 3, 4, 6])
     dense = np.linalg.solve(neq.hessian.toarray(), -neq.gradient).reshape(-1, 6)
     np.testing.assert_allclose(step[neq.free_nodes], dense, rtol=0,
-                               atol=SPARSE_VS_DENSE * np.abs(dense).max())
+                               atol=SPARSE_VS_DENSE_GN * np.abs(dense).max())
 
 
 # --------------------------------------------------------------------------- optima
@@ -288,6 +330,34 @@ def test_optimum_energy_unchanged_by_relabelling(num_gps: int) -> None:
     eg = solve_exact(g).final_energy
     eh = solve_exact(h).final_energy
     assert eh == pytest.approx(eg, rel=OPTIMUM_RTOL)
+
+
+@pytest.mark.parametrize("method", ["lm", "gn"])
+def test_planar_reduction_equals_full_solve(method: str) -> None:
+    """A lifted 2D graph solved on (x, y, yaw) only equals the full 6-dof solve."""
+    from test_energy import planar_graph
+
+    rng = np.random.default_rng(50)
+    g2, *_ = planar_graph(rng, n=30, extra=25, noise=0.05)
+    fields = {name: getattr(g2, name) for name in (
+        "node_ids", "rotations", "translations", "edge_nodes", "edge_rotations",
+        "edge_translations", "edge_information")}
+    g3 = PoseGraph(**fields, is_2d=False)  # same data, not flagged 2D: full 6-dof system
+    cfg = GaussNewtonConfig(method=method)
+    r2 = solve_exact(g2, config=cfg)
+    r3 = solve_exact(g3, config=cfg)
+    assert r2.stats["planar"] and not r3.stats["planar"]
+    assert r2.stats["num_variables"] * 2 == r3.stats["num_variables"]
+    assert r2.status is Status.CONVERGED and r3.status is Status.CONVERGED
+    assert r2.final_energy == pytest.approx(r3.final_energy, rel=OPTIMUM_RTOL)
+    np.testing.assert_allclose(r2.translations, r3.translations, rtol=0, atol=1e-7)
+    # The reduced solve keeps the poses exactly planar.
+    assert np.all(r2.translations[:, 2] == 0.0)
+    assert np.all(r2.rotations[:, 2, :] == [0.0, 0.0, 1.0])
+    # Non-planar initial poses switch the reduction off.
+    rot = np.array(g2.rotations)
+    rot[3] = rot[3] @ se3_exp(np.r_[0, 0, 0, 0.01, 0, 0])[0]
+    assert not solve_exact(g2, rotations=rot, config=cfg).stats["planar"]
 
 
 def test_fixed_nodes_are_held_constant(rng: np.random.Generator) -> None:
@@ -396,6 +466,6 @@ def test_config_validation(field: str, value: object) -> None:
 def test_config_is_frozen() -> None:
     cfg = GaussNewtonConfig()
     assert (cfg.method, cfg.max_iterations, cfg.energy_tolerance, cfg.step_tolerance,
-            cfg.initial_damping) == ("lm", 100, 1e-10, 1e-12, 1e-4)
+            cfg.initial_damping) == ("lm", 100, 1e-10, 1e-12, 1e-8)
     with pytest.raises(AttributeError):
         cfg.method = "gn"  # type: ignore[misc]
