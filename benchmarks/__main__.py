@@ -20,9 +20,12 @@ HERE = pathlib.Path(__file__).resolve().parent
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__.splitlines()[0])
-    ap.add_argument("--data-dir", type=pathlib.Path,
-                    default=HERE.parent.parent / "shared" / "datasets",
-                    help="folder with the benchmark graphs (default: ../shared/datasets)")
+    ap.add_argument(
+        "--data-dir",
+        type=pathlib.Path,
+        default=HERE.parent.parent / "shared" / "datasets",
+        help="folder with the benchmark graphs (default: ../shared/datasets)",
+    )
     ap.add_argument("--only", nargs="+", choices=sorted(WORKLOADS), default=None)
     ap.add_argument("--quick", action="store_true", help="fewer sweeps, for a smoke run")
     ap.add_argument("--run", default=None, help="name of the result files (default: timestamp)")
@@ -30,8 +33,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--update-baseline", action="store_true")
     args = ap.parse_args(argv)
     if not args.data_dir.is_dir():
-        print(f"benchmarks: error: data directory {args.data_dir} not found (--data-dir)",
-              file=sys.stderr)
+        print(
+            f"benchmarks: error: data directory {args.data_dir} not found (--data-dir)",
+            file=sys.stderr,
+        )
         return 2
     ctx = Context(data_dir=args.data_dir, quick=args.quick, cache={})
     metrics, tables = [], []
@@ -54,12 +59,13 @@ def main(argv: list[str] | None = None) -> int:
         base = {m["key"]: m["value"] for m in json.loads(base_path.read_text())["metrics"]}
         for m in metrics:
             if m.key in base and m.regressed(base[m.key]):
-                print(f"REGRESSION {m.key}: {m.value:.6g} vs baseline {base[m.key]:.6g}",
-                      file=sys.stderr)
+                print(
+                    f"REGRESSION {m.key}: {m.value:.6g} vs baseline {base[m.key]:.6g}",
+                    file=sys.stderr,
+                )
                 status = 1
     if args.update_baseline:
-        (HERE / "baseline.json").write_text(
-            (HERE / "results" / f"{run}.json").read_text())
+        (HERE / "baseline.json").write_text((HERE / "results" / f"{run}.json").read_text())
     return status
 
 

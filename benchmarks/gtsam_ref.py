@@ -32,8 +32,12 @@ def build(graph: PoseGraph, rot: np.ndarray, trans: np.ndarray) -> tuple[Any, An
     idx2 = np.array([0, 1, 5])
     for i in range(graph.num_nodes):
         if planar:
-            values.insert(i, gtsam.Pose2(trans[i, 0], trans[i, 1],
-                                         float(np.arctan2(rot[i, 1, 0], rot[i, 0, 0]))))
+            values.insert(
+                i,
+                gtsam.Pose2(
+                    trans[i, 0], trans[i, 1], float(np.arctan2(rot[i, 1, 0], rot[i, 0, 0]))
+                ),
+            )
         else:
             values.insert(i, gtsam.Pose3(gtsam.Rot3(rot[i]), trans[i]))
     for c, (a, b) in enumerate(graph.edge_nodes):
@@ -45,22 +49,26 @@ def build(graph: PoseGraph, rot: np.ndarray, trans: np.ndarray) -> tuple[Any, An
             factors.add(gtsam.BetweenFactorPose2(int(a), int(b), z, model))
         else:
             model = gtsam.noiseModel.Gaussian.Information(info[np.ix_(perm, perm)])
-            factors.add(gtsam.BetweenFactorPose3(int(a), int(b),
-                                                 gtsam.Pose3(gtsam.Rot3(rz), tz), model))
+            factors.add(
+                gtsam.BetweenFactorPose3(int(a), int(b), gtsam.Pose3(gtsam.Rot3(rz), tz), model)
+            )
     if graph.num_gps:
         raise NotImplementedError("GPS constraints in the GTSAM comparison")
     full = gtsam.NonlinearFactorGraph(factors)
     if planar:
-        full.add(gtsam.PriorFactorPose2(0, values.atPose2(0),
-                                        gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
+        full.add(
+            gtsam.PriorFactorPose2(0, values.atPose2(0), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6))
+        )
     else:
-        full.add(gtsam.PriorFactorPose3(0, values.atPose3(0),
-                                        gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+        full.add(
+            gtsam.PriorFactorPose3(0, values.atPose3(0), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6))
+        )
     return factors, full, values
 
 
-def gtsam_solve(graph: PoseGraph, rot: np.ndarray, trans: np.ndarray, method: str,
-                max_iterations: int = 100) -> dict[str, Any]:
+def gtsam_solve(
+    graph: PoseGraph, rot: np.ndarray, trans: np.ndarray, method: str, max_iterations: int = 100
+) -> dict[str, Any]:
     import gtsam
 
     factors, full, values = build(graph, rot, trans)
@@ -72,16 +80,28 @@ def gtsam_solve(graph: PoseGraph, rot: np.ndarray, trans: np.ndarray, method: st
     params.setRelativeErrorTol(1e-10)
     params.setAbsoluteErrorTol(0.0)
     t0 = time.perf_counter()
-    opt = (gtsam.GaussNewtonOptimizer(full, values, params) if method == "gn"
-           else gtsam.LevenbergMarquardtOptimizer(full, values, params))
+    opt = (
+        gtsam.GaussNewtonOptimizer(full, values, params)
+        if method == "gn"
+        else gtsam.LevenbergMarquardtOptimizer(full, values, params)
+    )
     result = opt.optimize()
     seconds = time.perf_counter() - t0
-    return {"final_energy": 2.0 * factors.error(result), "iterations": int(opt.iterations()),
-            "seconds": seconds}
+    return {
+        "final_energy": 2.0 * factors.error(result),
+        "iterations": int(opt.iterations()),
+        "seconds": seconds,
+    }
 
 
-def gtsam_time_to(graph: PoseGraph, rot: np.ndarray, trans: np.ndarray, optimum: float,
-                  fractions: tuple[float, ...], max_iterations: int = 200) -> dict[float, float]:
+def gtsam_time_to(
+    graph: PoseGraph,
+    rot: np.ndarray,
+    trans: np.ndarray,
+    optimum: float,
+    fractions: tuple[float, ...],
+    max_iterations: int = 200,
+) -> dict[float, float]:
     """Seconds GTSAM's LM needs to reach E <= optimum (1 + f) (NaN if never)."""
     import gtsam
 

@@ -52,14 +52,19 @@ def machine() -> dict[str, Any]:
     import numpy
     import scipy
 
-    out: dict[str, Any] = {"python": platform.python_version(), "machine": platform.machine(),
-                           "processor": platform.processor(), "cpus": os.cpu_count(),
-                           "numpy": numpy.__version__, "scipy": scipy.__version__,
-                           "numba": numba.__version__}
+    out: dict[str, Any] = {
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "processor": platform.processor(),
+        "cpus": os.cpu_count(),
+        "numpy": numpy.__version__,
+        "scipy": scipy.__version__,
+        "numba": numba.__version__,
+    }
     try:
-        import gtsam  # noqa: F401
-
         from importlib.metadata import version
+
+        import gtsam  # noqa: F401
 
         out["gtsam"] = version("gtsam")
     except ImportError:
@@ -75,13 +80,16 @@ def _atomic_write(path: pathlib.Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def write_results(path_stem: pathlib.Path, metrics: list[Metric], tables: list[str],
-                  command: str) -> None:
+def write_results(
+    path_stem: pathlib.Path, metrics: list[Metric], tables: list[str], command: str
+) -> None:
     """Write ``<stem>.json`` (machine-readable) and ``<stem>.md`` (tables)."""
     doc = {"command": command, "machine": machine(), "metrics": [asdict(m) for m in metrics]}
     _atomic_write(path_stem.with_suffix(".json"), json.dumps(doc, indent=1) + "\n")
-    md = [f"# Benchmark results\n\nCommand: `{command}`\n",
-          "Machine: " + ", ".join(f"{k} {v}" for k, v in doc["machine"].items()) + "\n"]
+    md = [
+        f"# Benchmark results\n\nCommand: `{command}`\n",
+        "Machine: " + ", ".join(f"{k} {v}" for k, v in doc["machine"].items()) + "\n",
+    ]
     md.extend(tables)
     _atomic_write(path_stem.with_suffix(".md"), "\n".join(md) + "\n")
 
@@ -94,7 +102,10 @@ def markdown_table(title: str, header: list[str], rows: list[list[Any]]) -> str:
             return f"{v:.4g}"
         return str(v)
 
-    lines = [f"## {title}\n", "| " + " | ".join(header) + " |",
-             "|" + "|".join("---" for _ in header) + "|"]
+    lines = [
+        f"## {title}\n",
+        "| " + " | ".join(header) + " |",
+        "|" + "|".join("---" for _ in header) + "|",
+    ]
     lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in rows]
     return "\n".join(lines) + "\n"

@@ -14,7 +14,6 @@ from typing import Any
 
 import numpy as np
 
-from hybridpgo.energy import energy
 from hybridpgo.graph import PoseGraph
 from hybridpgo.io import read_graph
 from hybridpgo.solvers.config import GaussNewtonConfig
@@ -87,28 +86,61 @@ def exact(ctx: Context) -> Result:
         spi = res.timings["solve"] / it
         s = _stem(name)
         rel = abs(res.final_energy - target) / target
-        metrics += [quality(f"{s}.exact.energy", res.final_energy),
-                    info(f"{s}.exact.iterations", res.iterations),
-                    timing(f"{s}.exact.s_per_iteration", spi),
-                    timing(f"{s}.exact.solve_s", res.timings["solve"])]
-        row: list[Any] = [name, init, target, res.final_energy, f"{rel:.1e}", res.iterations,
-                          f"{spi * 1e3:.1f}", f"{res.timings['solve']:.3f}"]
+        metrics += [
+            quality(f"{s}.exact.energy", res.final_energy),
+            info(f"{s}.exact.iterations", res.iterations),
+            timing(f"{s}.exact.s_per_iteration", spi),
+            timing(f"{s}.exact.solve_s", res.timings["solve"]),
+        ]
+        row: list[Any] = [
+            name,
+            init,
+            target,
+            res.final_energy,
+            f"{rel:.1e}",
+            res.iterations,
+            f"{spi * 1e3:.1f}",
+            f"{res.timings['solve']:.3f}",
+        ]
         if gtsam_available():
             gn = gtsam_solve(g, rot, trans, "gn")
             lm = gtsam_solve(g, rot, trans, "lm")
-            metrics += [info(f"{s}.gtsam_gn.energy", gn["final_energy"]),
-                        info(f"{s}.gtsam_gn.seconds", gn["seconds"], "s"),
-                        info(f"{s}.gtsam_lm.seconds", lm["seconds"], "s")]
-            row += [gn["final_energy"], gn["iterations"], f"{gn['seconds']:.3f}",
-                    f"{res.timings['solve'] / gn['seconds']:.2f}",
-                    lm["final_energy"], f"{lm['seconds']:.3f}"]
+            metrics += [
+                info(f"{s}.gtsam_gn.energy", gn["final_energy"]),
+                info(f"{s}.gtsam_gn.seconds", gn["seconds"], "s"),
+                info(f"{s}.gtsam_lm.seconds", lm["seconds"], "s"),
+            ]
+            row += [
+                gn["final_energy"],
+                gn["iterations"],
+                f"{gn['seconds']:.3f}",
+                f"{res.timings['solve'] / gn['seconds']:.2f}",
+                lm["final_energy"],
+                f"{lm['seconds']:.3f}",
+            ]
         else:
             row += ["-"] * 6
         rows.append(row)
     table = markdown_table(
         "Exact solver (our LM) vs GTSAM, same start, same machine",
-        ["file", "start", "target E", "our E", "rel. diff", "iters", "ms/iter", "solve s",
-         "GTSAM GN E", "GN iters", "GN s", "ours/GN time", "GTSAM LM E", "LM s"], rows)
+        [
+            "file",
+            "start",
+            "target E",
+            "our E",
+            "rel. diff",
+            "iters",
+            "ms/iter",
+            "solve s",
+            "GTSAM GN E",
+            "GN iters",
+            "GN s",
+            "ours/GN time",
+            "GTSAM LM E",
+            "LM s",
+        ],
+        rows,
+    )
     return metrics, [table]
 
 
@@ -126,30 +158,50 @@ def hybrid_manhattan(ctx: Context) -> Result:
     r10 = _hybrid(g, sweeps=10)
     r40 = _hybrid(g, sweeps=40) if not ctx.quick else r10
     pol = _hybrid(g, sweeps=10, polish=True)
-    metrics = [quality("M3500_isam.hybrid10.energy_per_constraint", r10.final_energy / m),
-               quality("M3500_isam.hybrid40.energy_per_constraint", r40.final_energy / m),
-               quality("M3500_isam.hybrid10_polish.energy_per_constraint", pol.final_energy / m),
-               info("M3500_isam.optimum.energy_per_constraint", opt / m),
-               timing("M3500_isam.hybrid.us_per_constraint", r10.stats["us_per_constraint_mean"],
-                      "us"),
-               timing("M3500_isam.hybrid.us_per_constraint_max",
-                      r10.stats["us_per_constraint_max"], "us")]
-    rows = [["tree init", "-", r10.initial_energy / m, "-"],
-            ["10 sweeps", f"{r10.timings['solve']:.2f}", r10.final_energy / m,
-             f"{r10.final_energy / opt:.3f}"],
-            ["40 sweeps", f"{r40.timings['solve']:.2f}", r40.final_energy / m,
-             f"{r40.final_energy / opt:.3f}"],
-            ["10 sweeps + LM polish", f"{pol.timings['solve'] + pol.timings['polish']:.2f}",
-             pol.final_energy / m, f"{pol.final_energy / opt:.9f}"],
-            ["paper: hybrid, 10 sweeps", "-", 1.596, "-"], ["paper: TORO", "-", 2.062, "-"],
-            ["exact optimum", "-", opt / m, "1"]]
+    metrics = [
+        quality("M3500_isam.hybrid10.energy_per_constraint", r10.final_energy / m),
+        quality("M3500_isam.hybrid40.energy_per_constraint", r40.final_energy / m),
+        quality("M3500_isam.hybrid10_polish.energy_per_constraint", pol.final_energy / m),
+        info("M3500_isam.optimum.energy_per_constraint", opt / m),
+        timing("M3500_isam.hybrid.us_per_constraint", r10.stats["us_per_constraint_mean"], "us"),
+        timing("M3500_isam.hybrid.us_per_constraint_max", r10.stats["us_per_constraint_max"], "us"),
+    ]
+    rows = [
+        ["tree init", "-", r10.initial_energy / m, "-"],
+        [
+            "10 sweeps",
+            f"{r10.timings['solve']:.2f}",
+            r10.final_energy / m,
+            f"{r10.final_energy / opt:.3f}",
+        ],
+        [
+            "40 sweeps",
+            f"{r40.timings['solve']:.2f}",
+            r40.final_energy / m,
+            f"{r40.final_energy / opt:.3f}",
+        ],
+        [
+            "10 sweeps + LM polish",
+            f"{pol.timings['solve'] + pol.timings['polish']:.2f}",
+            pol.final_energy / m,
+            f"{pol.final_energy / opt:.9f}",
+        ],
+        ["paper: hybrid, 10 sweeps", "-", 1.596, "-"],
+        ["paper: TORO", "-", 2.062, "-"],
+        ["exact optimum", "-", opt / m, "1"],
+    ]
     hist = " ".join(f"{e / m:.3f}" for e in r10.energy_history)
-    return metrics, [markdown_table(
-        f"Manhattan (M3500_isam.txt, {m} constraints), tree initialization", [
-            "run", "solve s", "E / constraint", "E / optimum"], rows)
+    return metrics, [
+        markdown_table(
+            f"Manhattan (M3500_isam.txt, {m} constraints), tree initialization",
+            ["run", "solve s", "E / constraint", "E / optimum"],
+            rows,
+        )
         + f"\nEnergy per constraint by sweep: {hist}\n"
         + f"\nPer-constraint update: mean {r10.stats['us_per_constraint_mean']:.2f} us, "
-        f"max {r10.stats['us_per_constraint_max']:.0f} us (max path {r10.stats['path_length_max']})\n"]
+        f"max {r10.stats['us_per_constraint_max']:.0f} us "
+        f"(max path {r10.stats['path_length_max']})\n"
+    ]
 
 
 def hybrid_quality(ctx: Context) -> Result:
@@ -162,20 +214,40 @@ def hybrid_quality(ctx: Context) -> Result:
         _hybrid(g, sweeps=1)
         r30 = _hybrid(g, sweeps=10 if ctx.quick else 30)
         e10 = r30.energy_history[min(10, len(r30.energy_history) - 1)]
-        metrics += [quality(f"{s}.hybrid10.energy_ratio", e10 / opt),
-                    quality(f"{s}.hybrid30.energy_ratio", r30.final_energy / opt),
-                    timing(f"{s}.hybrid.us_per_constraint", r30.stats["us_per_constraint_mean"],
-                           "us"),
-                    timing(f"{s}.hybrid.us_per_constraint_max", r30.stats["us_per_constraint_max"],
-                           "us")]
-        rows.append([name, r30.initial_energy / opt, e10 / opt, r30.final_energy / opt,
-                     f"{r30.stats['us_per_constraint_mean']:.2f}",
-                     f"{r30.stats['us_per_constraint_max']:.0f}",
-                     r30.stats["path_length_max"], f"{r30.stats['path_length_mean']:.1f}"])
-    return metrics, [markdown_table(
-        "Hybrid sweeps from the tree initialization: energy / exact optimum",
-        ["file", "initial", "10 sweeps", "30 sweeps", "us/constraint mean", "max us",
-         "max path", "mean path"], rows)]
+        metrics += [
+            quality(f"{s}.hybrid10.energy_ratio", e10 / opt),
+            quality(f"{s}.hybrid30.energy_ratio", r30.final_energy / opt),
+            timing(f"{s}.hybrid.us_per_constraint", r30.stats["us_per_constraint_mean"], "us"),
+            timing(f"{s}.hybrid.us_per_constraint_max", r30.stats["us_per_constraint_max"], "us"),
+        ]
+        rows.append(
+            [
+                name,
+                r30.initial_energy / opt,
+                e10 / opt,
+                r30.final_energy / opt,
+                f"{r30.stats['us_per_constraint_mean']:.2f}",
+                f"{r30.stats['us_per_constraint_max']:.0f}",
+                r30.stats["path_length_max"],
+                f"{r30.stats['path_length_mean']:.1f}",
+            ]
+        )
+    return metrics, [
+        markdown_table(
+            "Hybrid sweeps from the tree initialization: energy / exact optimum",
+            [
+                "file",
+                "initial",
+                "10 sweeps",
+                "30 sweeps",
+                "us/constraint mean",
+                "max us",
+                "max path",
+                "mean path",
+            ],
+            rows,
+        )
+    ]
 
 
 def robustness(ctx: Context) -> Result:
@@ -190,14 +262,27 @@ def robustness(ctx: Context) -> Result:
         lm = solve_exact(g, rot, trans, GaussNewtonConfig(max_iterations=300))
         hy = _hybrid(g, sweeps=sweeps, polish=True, polish_iterations=300)
         hc = _hybrid(g, sweeps=sweeps, init="chordal", polish=True, polish_iterations=300)
-        for label, res in (("lm_tree", lm), ("hybrid_polish_tree", hy),
-                           ("hybrid_polish_chordal", hc)):
+        for label, res in (
+            ("lm_tree", lm),
+            ("hybrid_polish_tree", hy),
+            ("hybrid_polish_chordal", hc),
+        ):
             metrics.append(quality(f"{s}.{label}.energy_ratio", res.final_energy / opt))
-        rows += [[name, "LM from tree (odometry)", lm.final_energy, lm.final_energy / opt],
-                 [name, f"hybrid {sweeps} sweeps + LM, tree init", hy.final_energy,
-                  hy.final_energy / opt],
-                 [name, f"hybrid {sweeps} sweeps + LM, chordal init", hc.final_energy,
-                  hc.final_energy / opt]]
+        rows += [
+            [name, "LM from tree (odometry)", lm.final_energy, lm.final_energy / opt],
+            [
+                name,
+                f"hybrid {sweeps} sweeps + LM, tree init",
+                hy.final_energy,
+                hy.final_energy / opt,
+            ],
+            [
+                name,
+                f"hybrid {sweeps} sweeps + LM, chordal init",
+                hc.final_energy,
+                hc.final_energy / opt,
+            ],
+        ]
     # the paper's noisified Manhattan (Fig. 8)
     from hybridpgo.generate import noisify
 
@@ -209,15 +294,31 @@ def robustness(ctx: Context) -> Result:
     lm = solve_exact(g, rot, trans, GaussNewtonConfig(max_iterations=300))
     hy = _hybrid(g, sweeps=40, polish=True, polish_iterations=300)
     best = min(best, lm.final_energy, hy.final_energy)
-    metrics += [quality("M3500_noisy3deg.lm_tree.energy_ratio", lm.final_energy / best),
-                quality("M3500_noisy3deg.hybrid_polish_tree.energy_ratio", hy.final_energy / best)]
-    rows += [["M3500_isam noisified 3 deg (seed 0)", "LM from tree", lm.final_energy,
-              lm.final_energy / best],
-             ["M3500_isam noisified 3 deg (seed 0)", "hybrid 40 sweeps + LM, tree init",
-              hy.final_energy, hy.final_energy / best]]
-    return metrics, [markdown_table(
-        "Robustness to poor starts: final energy / best known optimum",
-        ["graph", "method", "final E", "E / optimum"], rows)]
+    metrics += [
+        quality("M3500_noisy3deg.lm_tree.energy_ratio", lm.final_energy / best),
+        quality("M3500_noisy3deg.hybrid_polish_tree.energy_ratio", hy.final_energy / best),
+    ]
+    rows += [
+        [
+            "M3500_isam noisified 3 deg (seed 0)",
+            "LM from tree",
+            lm.final_energy,
+            lm.final_energy / best,
+        ],
+        [
+            "M3500_isam noisified 3 deg (seed 0)",
+            "hybrid 40 sweeps + LM, tree init",
+            hy.final_energy,
+            hy.final_energy / best,
+        ],
+    ]
+    return metrics, [
+        markdown_table(
+            "Robustness to poor starts: final energy / best known optimum",
+            ["graph", "method", "final E", "E / optimum"],
+            rows,
+        )
+    ]
 
 
 def step_scaling(ctx: Context) -> Result:
@@ -238,9 +339,15 @@ def step_scaling(ctx: Context) -> Result:
         zt[:, 0] = 1.0
         zt[-1, 0] = float(n - 1) + 0.5
         zt += rng.normal(scale=0.01, size=zt.shape)
-        g = PoseGraph(node_ids=np.arange(n), rotations=np.tile(np.eye(3), (n, 1, 1)),
-                      translations=np.zeros((n, 3)), edge_nodes=en, edge_rotations=zr,
-                      edge_translations=zt, edge_information=np.tile(np.eye(6), (m, 1, 1)))
+        g = PoseGraph(
+            node_ids=np.arange(n),
+            rotations=np.tile(np.eye(3), (n, 1, 1)),
+            translations=np.zeros((n, 3)),
+            edge_nodes=en,
+            edge_rotations=zr,
+            edge_translations=zt,
+            edge_information=np.tile(np.eye(6), (m, 1, 1)),
+        )
         tree = build_tree(g)
         st = HybridState.create(g, tree, *initial_locals(g, tree, "tree"))
         c = int(np.argmax(tree.path_lengths()))
@@ -254,16 +361,30 @@ def step_scaling(ctx: Context) -> Result:
             reps = 2000 if (kind == hk.STEP_WOODBURY or d <= 100) else 3
             t0 = time.perf_counter()
             for _ in range(reps):
-                hk.constraint_step(c, 1e-6, kind, *st.kernel_args(), st.bdiag, st.contrib, jac,
-                                   r, x)
+                hk.constraint_step(
+                    c, 1e-6, kind, *st.kernel_args(), st.bdiag, st.contrib, jac, r, x
+                )
             out[name] = (time.perf_counter() - t0) / reps * 1e6
-        metrics += [timing(f"step_d{d}.woodbury_us", out["woodbury"], "us"),
-                    timing(f"step_d{d}.givens_us", out["givens"], "us")]
-        rows.append([dd, f"{out['woodbury']:.1f}", f"{out['givens']:.1f}",
-                     f"{out['givens'] / out['woodbury']:.1f}"])
-    return metrics, [markdown_table(
-        "One constraint update (linearize + solve, Python call overhead included): "
-        "Woodbury vs Givens", ["path length d", "Woodbury us", "Givens us", "ratio"], rows)]
+        metrics += [
+            timing(f"step_d{d}.woodbury_us", out["woodbury"], "us"),
+            timing(f"step_d{d}.givens_us", out["givens"], "us"),
+        ]
+        rows.append(
+            [
+                dd,
+                f"{out['woodbury']:.1f}",
+                f"{out['givens']:.1f}",
+                f"{out['givens'] / out['woodbury']:.1f}",
+            ]
+        )
+    return metrics, [
+        markdown_table(
+            "One constraint update (linearize + solve, Python call overhead included): "
+            "Woodbury vs Givens",
+            ["path length d", "Woodbury us", "Givens us", "ratio"],
+            rows,
+        )
+    ]
 
 
 def time_to_optimum(ctx: Context) -> Result:
@@ -281,7 +402,7 @@ def time_to_optimum(ctx: Context) -> Result:
         wall = time.perf_counter() - t0
         lm = solve_exact(g, rot, trans, GaussNewtonConfig(max_iterations=300))
 
-        def reach(res: Any, frac: float, offset: float = 0.0) -> float:
+        def reach(res: Any, frac: float, offset: float = 0.0, opt: float = opt) -> float:
             hit = np.nonzero(np.asarray(res.energy_history) <= opt * (1 + frac))[0]
             return float(res.times[hit[0]]) + offset if hit.size else float("nan")
 
@@ -291,8 +412,10 @@ def time_to_optimum(ctx: Context) -> Result:
         for frac in (0.01, 0.001):
             th = reach(hy, frac, off)
             tl = reach(lm, frac)
-            metrics += [timing(f"{s}.hybrid_polish.seconds_to_{frac:g}", th),
-                        timing(f"{s}.lm.seconds_to_{frac:g}", tl)]
+            metrics += [
+                timing(f"{s}.hybrid_polish.seconds_to_{frac:g}", th),
+                timing(f"{s}.lm.seconds_to_{frac:g}", tl),
+            ]
             rowm += [f"{th:.2f}", f"{tl:.2f}"]
         if gtsam_available():
             gt = gtsam_time_to(g, rot, trans, opt, (0.01, 0.001))
@@ -301,10 +424,22 @@ def time_to_optimum(ctx: Context) -> Result:
             rowm += ["-", "-"]
         rowm.append(f"{wall:.2f}")
         rows.append(rowm)
-    return metrics, [markdown_table(
-        "Wall time (s) from the tree initialization to within 1% / 0.1% of the optimum",
-        ["file", "hybrid+polish 1%", "hybrid+polish 0.1%", "our LM 1%", "our LM 0.1%",
-         "GTSAM LM 1%", "GTSAM LM 0.1%", "hybrid+polish total"], rows)]
+    return metrics, [
+        markdown_table(
+            "Wall time (s) from the tree initialization to within 1% / 0.1% of the optimum",
+            [
+                "file",
+                "hybrid+polish 1%",
+                "hybrid+polish 0.1%",
+                "our LM 1%",
+                "our LM 0.1%",
+                "GTSAM LM 1%",
+                "GTSAM LM 0.1%",
+                "hybrid+polish total",
+            ],
+            rows,
+        )
+    ]
 
 
 WORKLOADS: dict[str, Callable[[Context], Result]] = {
@@ -336,33 +471,64 @@ def city(ctx: Context) -> Result:
             runs["hybrid"] = _hybrid(g, sweeps=10)
             runs["hybrid+polish"] = _hybrid(g, sweeps=10, polish=True, polish_iterations=100)
             runs["exact (LM from dead reckoning)"] = solve_exact(
-                g, None, None, GaussNewtonConfig(max_iterations=100))
+                g, None, None, GaussNewtonConfig(max_iterations=100)
+            )
             ctx.cache[f"city:{tag}"] = (c, runs)
             for label, res in runs.items():
-                ev = evaluate(res.rotations, res.translations, c.truth_rotations,
-                              c.truth_translations, align=align)
-                secs = sum(v for k, v in res.timings.items()
-                           if k in ("analyze", "solve", "polish"))
+                ev = evaluate(
+                    res.rotations,
+                    res.translations,
+                    c.truth_rotations,
+                    c.truth_translations,
+                    align=align,
+                )
+                secs = sum(v for k, v in res.timings.items() if k in ("analyze", "solve", "polish"))
                 key = f"{tag}.{label.split()[0]}"
-                metrics += [quality(f"{key}.position_rmse_m", ev["position_rmse_m"], "m"),
-                            quality(f"{key}.heading_mean_deg", ev["heading_error_mean_deg"],
-                                    "deg"),
-                            quality(f"{key}.energy_per_constraint",
-                                    res.final_energy / g.num_constraints),
-                            timing(f"{key}.seconds", secs)]
+                metrics += [
+                    quality(f"{key}.position_rmse_m", ev["position_rmse_m"], "m"),
+                    quality(f"{key}.heading_mean_deg", ev["heading_error_mean_deg"], "deg"),
+                    quality(f"{key}.energy_per_constraint", res.final_energy / g.num_constraints),
+                    timing(f"{key}.seconds", secs),
+                ]
                 max_ms = res.stats.get("us_per_constraint_max", float("nan")) / 1e3
                 if label == "hybrid":
                     metrics.append(timing(f"{key}.max_update_ms", max_ms, "ms"))
-                rows.append([tag, g.num_nodes, g.num_edges, g.num_gps, label,
-                             ev["position_rmse_m"], ev["heading_error_mean_deg"],
-                             ev["heading_error_max_deg"], res.final_energy / g.num_constraints,
-                             f"{secs:.2f}", f"{max_ms:.2f}" if label == "hybrid" else "-"])
+                rows.append(
+                    [
+                        tag,
+                        g.num_nodes,
+                        g.num_edges,
+                        g.num_gps,
+                        label,
+                        ev["position_rmse_m"],
+                        ev["heading_error_mean_deg"],
+                        ev["heading_error_max_deg"],
+                        res.final_energy / g.num_constraints,
+                        f"{secs:.2f}",
+                        f"{max_ms:.2f}" if label == "hybrid" else "-",
+                    ]
+                )
             print(f"  {tag}: {time.perf_counter() - t0:.1f} s", flush=True)
-    return metrics, [markdown_table(
-        "Generated cities (seed 0): accuracy against ground truth "
-        "(no GPS: after rigid alignment; GPS: in the earth frame, no alignment)",
-        ["graph", "poses", "edges", "GPS", "method", "position RMSE m", "heading mean deg",
-         "heading max deg", "E / constraint", "seconds", "max update ms"], rows)]
+    return metrics, [
+        markdown_table(
+            "Generated cities (seed 0): accuracy against ground truth "
+            "(no GPS: after rigid alignment; GPS: in the earth frame, no alignment)",
+            [
+                "graph",
+                "poses",
+                "edges",
+                "GPS",
+                "method",
+                "position RMSE m",
+                "heading mean deg",
+                "heading max deg",
+                "E / constraint",
+                "seconds",
+                "max update ms",
+            ],
+            rows,
+        )
+    ]
 
 
 WORKLOADS["city"] = city

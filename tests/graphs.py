@@ -13,9 +13,17 @@ def random_rotations(rng: np.random.Generator, k: int, scale: float) -> np.ndarr
     return Rotation.from_rotvec(rng.normal(scale=scale, size=(k, 3))).as_matrix()
 
 
-def random_graph(rng: np.random.Generator, n: int = 8, extra: int = 6, *, gps: int = 0,
-                 rot_scale: float = 0.3, noise: float = 0.05, info_scale: float = 1.0,
-                 anisotropic: bool = True) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
+def random_graph(
+    rng: np.random.Generator,
+    n: int = 8,
+    extra: int = 6,
+    *,
+    gps: int = 0,
+    rot_scale: float = 0.3,
+    noise: float = 0.05,
+    info_scale: float = 1.0,
+    anisotropic: bool = True,
+) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
     """A connected 3D graph: an odometry chain plus ``extra`` random loop edges.
 
     Returns ``(graph, true_rot, true_trans)``; measurements are the true relative poses with
@@ -44,8 +52,9 @@ def random_graph(rng: np.random.Generator, n: int = 8, extra: int = 6, *, gps: i
             info[c] = info_scale * (q @ q.T + 6 * np.eye(6))
         else:
             info[c] = info_scale * np.eye(6)
-    gps_nodes = rng.choice(n, size=gps, replace=False).astype(np.int32) if gps else \
-        np.zeros(0, np.int32)
+    gps_nodes = (
+        rng.choice(n, size=gps, replace=False).astype(np.int32) if gps else np.zeros(0, np.int32)
+    )
     gps_pos = trans[gps_nodes] + rng.normal(scale=noise, size=(gps, 3))
     gps_info = np.empty((gps, 3, 3))
     for k in range(gps):
@@ -53,8 +62,16 @@ def random_graph(rng: np.random.Generator, n: int = 8, extra: int = 6, *, gps: i
         gps_info[k] = q @ q.T + 3 * np.eye(3)
     est_rot = rot @ random_rotations(rng, n, rot_scale)
     est_trans = trans + rng.normal(scale=rot_scale, size=(n, 3))
-    graph = PoseGraph(node_ids=np.arange(n) * 10 + 3, rotations=est_rot, translations=est_trans,
-                      edge_nodes=en, edge_rotations=zr, edge_translations=zt,
-                      edge_information=info, gps_nodes=gps_nodes, gps_positions=gps_pos,
-                      gps_information=gps_info)
+    graph = PoseGraph(
+        node_ids=np.arange(n) * 10 + 3,
+        rotations=est_rot,
+        translations=est_trans,
+        edge_nodes=en,
+        edge_rotations=zr,
+        edge_translations=zt,
+        edge_information=info,
+        gps_nodes=gps_nodes,
+        gps_positions=gps_pos,
+        gps_information=gps_info,
+    )
     return graph, rot, trans

@@ -24,8 +24,9 @@ def test_chordal_recovers_noise_free_poses(gps):
     est_rot = graph.rotations.copy()
     est_trans = graph.translations.copy()
     est_rot[0], est_trans[0] = rot[0], trans[0]
-    graph = dataclasses.replace(graph, rotations=est_rot, translations=est_trans,
-                                gps_positions=trans[graph.gps_nodes])
+    graph = dataclasses.replace(
+        graph, rotations=est_rot, translations=est_trans, gps_positions=trans[graph.gps_nodes]
+    )
     r, t = chordal_initialization(graph, gauge=0)
     np.testing.assert_allclose(r, rot, rtol=0, atol=LINEAR_SOLVE)
     np.testing.assert_allclose(t, trans, rtol=0, atol=LINEAR_SOLVE * 100)
@@ -34,8 +35,7 @@ def test_chordal_recovers_noise_free_poses(gps):
 
 def test_chordal_beats_dead_reckoning_under_rotation_noise():
     rng = np.random.default_rng(1)
-    graph, _, _ = random_graph(rng, n=60, extra=60, rot_scale=0.2, noise=0.15,
-                               anisotropic=False)
+    graph, _, _ = random_graph(rng, n=60, extra=60, rot_scale=0.2, noise=0.15, anisotropic=False)
     tree = build_tree(graph)
     e_tree = energy(graph, *global_poses(tree, *initial_locals(graph, tree, "tree")))
     e_chordal = energy(graph, *global_poses(tree, *initial_locals(graph, tree, "chordal")))

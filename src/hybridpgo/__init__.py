@@ -15,14 +15,13 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
+# ``energy`` names both a submodule and the function: import the function eagerly, since the
+# import system would otherwise leave the module object under that name.
+from .energy import energy as energy
 from .errors import FormatError as FormatError
 from .errors import GraphError as GraphError
 from .errors import HybridPGOError as HybridPGOError
 from .errors import SolverError as SolverError
-
-# ``energy`` names both a submodule and the function: import the function eagerly, since the
-# import system would otherwise leave the module object under that name.
-from .energy import energy as energy  # noqa: E402  (after the light imports)
 
 __version__ = "0.1.0"
 
@@ -59,4 +58,4 @@ def __getattr__(name: str) -> Any:
 
 
 def __dir__() -> list[str]:
-    return sorted(__all__ + ["__version__"])
+    return sorted([*__all__, "__version__"])

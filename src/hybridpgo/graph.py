@@ -31,8 +31,11 @@ SYMMETRY_RTOL = 1e-9
 def _frozen(a: np.ndarray, dtype: type, shape_tail: tuple[int, ...], name: str) -> np.ndarray:
     arr = np.array(a, dtype=dtype, order="C", copy=True)  # never freeze the caller's array
     if arr.ndim != 1 + len(shape_tail) or arr.shape[1:] != shape_tail:
-        raise GraphError(f"{name} must have shape (n, {', '.join(map(str, shape_tail))})"
-                         if shape_tail else f"{name} must have shape (n,)")
+        raise GraphError(
+            f"{name} must have shape (n, {', '.join(map(str, shape_tail))})"
+            if shape_tail
+            else f"{name} must have shape (n,)"
+        )
     if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
         bad = int(np.argwhere(~np.isfinite(arr.reshape(arr.shape[0], -1)).any(axis=1))[0, 0])
         raise GraphError(f"{name}[{bad}] is not finite")
@@ -47,7 +50,7 @@ class PoseGraph:
     node_ids: npt.NDArray[np.int64]
     """(N,) int64: the file's vertex ids; dense index i <-> ``node_ids[i]``."""
     rotations: FloatArray
-    """(N, 3, 3) float64: R_world_node of the initial estimate (identity where the file has none)."""
+    """(N, 3, 3) float64: R_world_node of the initial estimate (identity if the file has none)."""
     translations: FloatArray
     """(N, 3) float64: t_world_node of the initial estimate, metres."""
     edge_nodes: IntArray
@@ -83,30 +86,46 @@ class PoseGraph:
         if np.unique(ids).shape[0] != n:
             raise GraphError("node_ids contains duplicates")
         object.__setattr__(self, "node_ids", _frozen(ids, np.int64, (), "node_ids"))
-        object.__setattr__(self, "rotations", _frozen(self.rotations, np.float64, (3, 3), "rotations"))
-        object.__setattr__(self, "translations",
-                           _frozen(self.translations, np.float64, (3,), "translations"))
+        object.__setattr__(
+            self, "rotations", _frozen(self.rotations, np.float64, (3, 3), "rotations")
+        )
+        object.__setattr__(
+            self, "translations", _frozen(self.translations, np.float64, (3,), "translations")
+        )
         if self.rotations.shape[0] != n or self.translations.shape[0] != n:
             raise GraphError("rotations/translations must have one entry per node")
         en = np.ascontiguousarray(self.edge_nodes, dtype=np.int32).reshape(-1, 2)
         object.__setattr__(self, "edge_nodes", _frozen(en, np.int32, (2,), "edge_nodes"))
         m = en.shape[0]
-        object.__setattr__(self, "edge_rotations",
-                           _frozen(self.edge_rotations, np.float64, (3, 3), "edge_rotations"))
-        object.__setattr__(self, "edge_translations",
-                           _frozen(self.edge_translations, np.float64, (3,), "edge_translations"))
-        object.__setattr__(self, "edge_information",
-                           _frozen(self.edge_information, np.float64, (6, 6), "edge_information"))
+        object.__setattr__(
+            self,
+            "edge_rotations",
+            _frozen(self.edge_rotations, np.float64, (3, 3), "edge_rotations"),
+        )
+        object.__setattr__(
+            self,
+            "edge_translations",
+            _frozen(self.edge_translations, np.float64, (3,), "edge_translations"),
+        )
+        object.__setattr__(
+            self,
+            "edge_information",
+            _frozen(self.edge_information, np.float64, (6, 6), "edge_information"),
+        )
         for name in ("edge_rotations", "edge_translations", "edge_information"):
             if getattr(self, name).shape[0] != m:
                 raise GraphError(f"{name} must have one entry per edge ({m})")
         gn = np.ascontiguousarray(self.gps_nodes, dtype=np.int32).reshape(-1)
         object.__setattr__(self, "gps_nodes", _frozen(gn, np.int32, (), "gps_nodes"))
         g = gn.shape[0]
-        object.__setattr__(self, "gps_positions",
-                           _frozen(self.gps_positions, np.float64, (3,), "gps_positions"))
-        object.__setattr__(self, "gps_information",
-                           _frozen(self.gps_information, np.float64, (3, 3), "gps_information"))
+        object.__setattr__(
+            self, "gps_positions", _frozen(self.gps_positions, np.float64, (3,), "gps_positions")
+        )
+        object.__setattr__(
+            self,
+            "gps_information",
+            _frozen(self.gps_information, np.float64, (3, 3), "gps_information"),
+        )
         if self.gps_positions.shape[0] != g or self.gps_information.shape[0] != g:
             raise GraphError("gps_positions/gps_information must have one entry per GPS constraint")
         fx = np.ascontiguousarray(self.fixed_nodes, dtype=np.int32).reshape(-1)
@@ -144,16 +163,25 @@ class PoseGraph:
     def with_poses(self, rotations: FloatArray, translations: FloatArray) -> PoseGraph:
         """Return a copy of this graph whose vertex estimates are the given poses."""
         return PoseGraph(
-            node_ids=self.node_ids, rotations=rotations, translations=translations,
-            edge_nodes=self.edge_nodes, edge_rotations=self.edge_rotations,
-            edge_translations=self.edge_translations, edge_information=self.edge_information,
-            gps_nodes=self.gps_nodes, gps_positions=self.gps_positions,
-            gps_information=self.gps_information, fixed_nodes=self.fixed_nodes,
-            is_2d=self.is_2d, has_estimates=True, source_format=self.source_format,
+            node_ids=self.node_ids,
+            rotations=rotations,
+            translations=translations,
+            edge_nodes=self.edge_nodes,
+            edge_rotations=self.edge_rotations,
+            edge_translations=self.edge_translations,
+            edge_information=self.edge_information,
+            gps_nodes=self.gps_nodes,
+            gps_positions=self.gps_positions,
+            gps_information=self.gps_information,
+            fixed_nodes=self.fixed_nodes,
+            is_2d=self.is_2d,
+            has_estimates=True,
+            source_format=self.source_format,
         )
 
-    def add_gps(self, node_id: int | npt.ArrayLike, xyz: npt.ArrayLike,
-                information: npt.ArrayLike) -> PoseGraph:
+    def add_gps(
+        self, node_id: int | npt.ArrayLike, xyz: npt.ArrayLike, information: npt.ArrayLike
+    ) -> PoseGraph:
         """Return a copy with position-only (GPS) constraints added (the graph is immutable).
 
         Parameters
@@ -171,8 +199,10 @@ class PoseGraph:
         if info.shape == (3, 3):
             info = np.broadcast_to(info, (ids.shape[0], 3, 3))
         if pos.shape[0] != ids.shape[0] or info.shape != (ids.shape[0], 3, 3):
-            raise GraphError(f"add_gps: {ids.shape[0]} node id(s) need as many positions (k, 3) "
-                             f"and informations (k, 3, 3); got {pos.shape} and {info.shape}")
+            raise GraphError(
+                f"add_gps: {ids.shape[0]} node id(s) need as many positions (k, 3) "
+                f"and informations (k, 3, 3); got {pos.shape} and {info.shape}"
+            )
         index = np.searchsorted(self.node_ids, ids)
         index = np.minimum(index, self.num_nodes - 1)
         unknown = self.node_ids[index] != ids
@@ -180,9 +210,11 @@ class PoseGraph:
             raise GraphError(f"add_gps: unknown pose id(s) {ids[unknown][:5].tolist()}")
         check_information(np.ascontiguousarray(info), "GPS reading")
         return dataclasses.replace(
-            self, gps_nodes=np.concatenate([self.gps_nodes, index.astype(np.int32)]),
+            self,
+            gps_nodes=np.concatenate([self.gps_nodes, index.astype(np.int32)]),
             gps_positions=np.concatenate([self.gps_positions, pos]),
-            gps_information=np.concatenate([self.gps_information, info]))
+            gps_information=np.concatenate([self.gps_information, info]),
+        )
 
     def connected_components(self) -> npt.NDArray[np.int32]:
         """Label of the connected component of every node (GPS links through the earth node)."""
@@ -215,7 +247,9 @@ class PoseGraph:
         more = f" and {parts.shape[0] - 5} more" if parts.shape[0] > 5 else ""
         raise GraphError(
             f"{source} is not connected: {parts.shape[0]} separate parts: "
-            + "; ".join(desc) + more + ". Every pose must be linked to the others by constraints"
+            + "; ".join(desc)
+            + more
+            + ". Every pose must be linked to the others by constraints"
             " (or by GPS constraints through the earth frame)."
         )
 
@@ -232,8 +266,10 @@ def check_information(info: FloatArray, what: str) -> None:
     eig_min = np.linalg.eigvalsh(info)[:, 0]
     bad = np.nonzero(~(eig_min > 0.0))[0]
     if bad.size:
-        raise GraphError(f"{what} {int(bad[0])}: information matrix is not positive definite "
-                         f"(smallest eigenvalue {eig_min[bad[0]]:.3g})")
+        raise GraphError(
+            f"{what} {int(bad[0])}: information matrix is not positive definite "
+            f"(smallest eigenvalue {eig_min[bad[0]]:.3g})"
+        )
 
 
 def lift_information_2d(info3: FloatArray) -> FloatArray:

@@ -30,12 +30,13 @@ def _project_to_so3(m: FloatArray) -> FloatArray:
 
 
 def _solve_spd(a: sp.spmatrix, b: FloatArray) -> FloatArray:
-    lu = spla.splu(sp.csc_matrix(a), permc_spec="MMD_AT_PLUS_A",
-                   options={"SymmetricMode": True})
+    lu = spla.splu(sp.csc_matrix(a), permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
     return lu.solve(b)
 
 
-def chordal_initialization(graph: PoseGraph, gauge: int | None = None) -> tuple[FloatArray, FloatArray]:
+def chordal_initialization(
+    graph: PoseGraph, gauge: int | None = None
+) -> tuple[FloatArray, FloatArray]:
     """Global poses ``(R (N,3,3), t (N,3))`` from the chordal relaxation.
 
     Parameters
@@ -70,10 +71,11 @@ def chordal_initialization(graph: PoseGraph, gauge: int | None = None) -> tuple[
             ii.append(rows[:, p])
             jj.append(3 * a + q)
             vv.append(-w * zt[:, p, q])
-    amat = sp.csr_matrix((np.concatenate(vv), (np.concatenate(ii), np.concatenate(jj))),
-                         shape=(3 * m, 3 * n))
+    amat = sp.csr_matrix(
+        (np.concatenate(vv), (np.concatenate(ii), np.concatenate(jj))), shape=(3 * m, 3 * n)
+    )
     free = np.ones(3 * n, bool)
-    free[3 * gauge:3 * gauge + 3] = False
+    free[3 * gauge : 3 * gauge + 3] = False
     a_free = amat[:, free]
     a_fix = amat[:, ~free]
     normal = (a_free.T @ a_free).tocsc()
@@ -87,16 +89,17 @@ def chordal_initialization(graph: PoseGraph, gauge: int | None = None) -> tuple[
             full[~free] = r_gauge[k]
             rot[:, k, :] = full.reshape(n, 3)
     except RuntimeError as exc:  # singular: a part of the graph has no path to the gauge
-        raise GraphError("chordal initialization failed: the rotation system is singular "
-                         "(is the graph connected?)") from exc
+        raise GraphError(
+            "chordal initialization failed: the rotation system is singular "
+            "(is the graph connected?)"
+        ) from exc
     rot = _project_to_so3(rot)
 
     # --- translations: t_b - t_a = R_a t_c, weighted by R_a Omega_tt R_a^T
     info_t = graph.edge_information[:, :3, :3]
     lw = np.linalg.cholesky(info_t)  # Omega = L L^T; whitened residual L^T R_a^T (...)
     wmat = np.einsum("kji,kjl->kil", lw, np.swapaxes(rot[a], 1, 2))  # L^T R_a^T
-    rhs_e = np.einsum("kij,kj->ki", wmat, np.einsum("kij,kj->ki", rot[a],
-                                                     graph.edge_translations))
+    rhs_e = np.einsum("kij,kj->ki", wmat, np.einsum("kij,kj->ki", rot[a], graph.edge_translations))
     ii, jj, vv = [], [], []
     rows = np.arange(3 * m).reshape(m, 3)
     for p in range(3):
@@ -118,19 +121,22 @@ def chordal_initialization(graph: PoseGraph, gauge: int | None = None) -> tuple[
                 vv.append(wg[:, p, q])
         blocks_rhs.append(np.einsum("kij,kj->ki", wg, graph.gps_positions).reshape(-1))
         n_rows += 3 * g
-    tmat = sp.csr_matrix((np.concatenate(vv), (np.concatenate(ii), np.concatenate(jj))),
-                         shape=(n_rows, 3 * n))
+    tmat = sp.csr_matrix(
+        (np.concatenate(vv), (np.concatenate(ii), np.concatenate(jj))), shape=(n_rows, 3 * n)
+    )
     rhs = np.concatenate(blocks_rhs)
     free = np.ones(3 * n, bool)
     if not graph.num_gps:
-        free[3 * gauge:3 * gauge + 3] = False
+        free[3 * gauge : 3 * gauge + 3] = False
         rhs = rhs - tmat[:, ~free] @ t_gauge
     t_free = tmat[:, free]
     try:
         x = _solve_spd((t_free.T @ t_free).tocsc(), t_free.T @ rhs)
     except RuntimeError as exc:
-        raise GraphError("chordal initialization failed: the translation system is singular "
-                         "(a part of the graph without a gauge?)") from exc
+        raise GraphError(
+            "chordal initialization failed: the translation system is singular "
+            "(a part of the graph without a gauge?)"
+        ) from exc
     trans = np.empty(3 * n)
     trans[free] = x
     if not graph.num_gps:

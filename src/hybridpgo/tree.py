@@ -133,7 +133,8 @@ def build_tree(graph: PoseGraph, kind: TreeKind | str = TreeKind.BFS) -> PoseTre
         first[1:] = key[order[1:]] != key[order[:-1]]
         keep = order[first]
         mst = minimum_spanning_tree(
-            sp.coo_matrix((w[keep], (lo[keep], hi[keep])), shape=(n, n)).tocsr())
+            sp.coo_matrix((w[keep], (lo[keep], hi[keep])), shape=(n, n)).tocsr()
+        )
         mst = mst.tocoo()
         ta, tb = mst.row.astype(np.int64), mst.col.astype(np.int64)
     else:
@@ -142,14 +143,16 @@ def build_tree(graph: PoseGraph, kind: TreeKind | str = TreeKind.BFS) -> PoseTre
     # --- root and (with GPS) the anchors that hang each component from the earth
     if has_earth:
         ncomp, comp = connected_components(
-            sp.coo_matrix((np.ones(m), (a, b)), shape=(n, n)), directed=False)
+            sp.coo_matrix((np.ones(m), (a, b)), shape=(n, n)), directed=False
+        )
         anchor = np.full(ncomp, -1, np.int64)
         anchor_gps = np.full(ncomp, -1, np.int64)
         # Each part hangs from the earth by the GPS reading nearest its centre (fewest hops to
         # the farthest pose), which keeps the tree shallow: constraint paths, and so update
         # costs, are about half as long as from an end of the drive.
-        ecc = _eccentricity_bound(sp.coo_matrix((np.ones(m), (a, b)), shape=(n, n)).tocsr(),
-                                  comp, ncomp, graph.gps_nodes)
+        ecc = _eccentricity_bound(
+            sp.coo_matrix((np.ones(m), (a, b)), shape=(n, n)).tocsr(), comp, ncomp, graph.gps_nodes
+        )
         for k in range(g - 1, -1, -1):  # ties: the first GPS constraint in file order
             node = graph.gps_nodes[k]
             c = comp[node]
@@ -162,7 +165,8 @@ def build_tree(graph: PoseGraph, kind: TreeKind | str = TreeKind.BFS) -> PoseTre
             raise GraphError(
                 f"{missing.size} part(s) of the graph have no GPS constraint and so no gauge "
                 f"in the earth frame (e.g. the part containing pose id(s) {ids}); add GPS "
-                "readings to them or link them to the rest with relative constraints")
+                "readings to them or link them to the rest with relative constraints"
+            )
         root = n
         ea = np.concatenate([ta, np.full(ncomp, n, np.int64)])
         eb = np.concatenate([tb, anchor])
@@ -170,7 +174,8 @@ def build_tree(graph: PoseGraph, kind: TreeKind | str = TreeKind.BFS) -> PoseTre
         if graph.fixed_nodes.size > 1:
             raise GraphError(
                 f"the graph fixes {graph.fixed_nodes.size} poses (FIX lines); the pose tree holds "
-                "exactly one pose fixed, its root: keep one FIX line, or use the exact solver")
+                "exactly one pose fixed, its root: keep one FIX line, or use the exact solver"
+            )
         root = int(graph.fixed_nodes[0]) if graph.fixed_nodes.size else 0
         ea, eb = ta, tb
         anchor_gps = np.zeros(0, np.int64)
@@ -227,17 +232,27 @@ def build_tree(graph: PoseGraph, kind: TreeKind | str = TreeKind.BFS) -> PoseTre
     _fill_paths(c_nodes, parent, depth, ptr, path_node, path_sign)
     sweep = np.argsort(depth[croot], kind="stable").astype(np.int32)
 
-    arrays = dict(parent=parent, link_kind=link_kind, link_index=link_index,
-                  link_forward=link_forward, depth=depth, order=order.astype(np.int32),
-                  path_ptr=ptr, path_node=path_node, path_sign=path_sign,
-                  constraint_root=croot, sweep_order=sweep)
+    arrays = dict(
+        parent=parent,
+        link_kind=link_kind,
+        link_index=link_index,
+        link_forward=link_forward,
+        depth=depth,
+        order=order.astype(np.int32),
+        path_ptr=ptr,
+        path_node=path_node,
+        path_sign=path_sign,
+        constraint_root=croot,
+        sweep_order=sweep,
+    )
     for v in arrays.values():
         v.flags.writeable = False
     return PoseTree(num_poses=n, has_earth=has_earth, root=root, **arrays)
 
 
-def _eccentricity_bound(adj: sp.csr_matrix, comp: np.ndarray, ncomp: int,
-                        seeds: np.ndarray) -> np.ndarray:
+def _eccentricity_bound(
+    adj: sp.csr_matrix, comp: np.ndarray, ncomp: int, seeds: np.ndarray
+) -> np.ndarray:
     """Per node, max(hops to u, hops to v) for a far pair (u, v) of its part (double sweep).
 
     A cheap stand-in for the eccentricity: it is smallest near the middle of the part.
@@ -272,8 +287,13 @@ def _depths(order: np.ndarray, parent: np.ndarray, depth: np.ndarray) -> None:
 
 
 @kernel
-def _path_lengths(c_nodes: np.ndarray, parent: np.ndarray, depth: np.ndarray,
-                  lengths: np.ndarray, croot: np.ndarray) -> None:
+def _path_lengths(
+    c_nodes: np.ndarray,
+    parent: np.ndarray,
+    depth: np.ndarray,
+    lengths: np.ndarray,
+    croot: np.ndarray,
+) -> None:
     for c in range(c_nodes.shape[0]):
         u = c_nodes[c, 0]
         v = c_nodes[c, 1]
@@ -293,8 +313,14 @@ def _path_lengths(c_nodes: np.ndarray, parent: np.ndarray, depth: np.ndarray,
 
 
 @kernel
-def _fill_paths(c_nodes: np.ndarray, parent: np.ndarray, depth: np.ndarray, ptr: np.ndarray,
-                path_node: np.ndarray, path_sign: np.ndarray) -> None:
+def _fill_paths(
+    c_nodes: np.ndarray,
+    parent: np.ndarray,
+    depth: np.ndarray,
+    ptr: np.ndarray,
+    path_node: np.ndarray,
+    path_sign: np.ndarray,
+) -> None:
     for c in range(c_nodes.shape[0]):
         a = c_nodes[c, 0]
         b = c_nodes[c, 1]
@@ -324,8 +350,9 @@ def _fill_paths(c_nodes: np.ndarray, parent: np.ndarray, depth: np.ndarray, ptr:
 
 
 # --------------------------------------------------------------------------- poses <-> locals
-def initial_locals(graph: PoseGraph, tree: PoseTree,
-                   init: InitKind | str = InitKind.TREE) -> tuple[FloatArray, FloatArray]:
+def initial_locals(
+    graph: PoseGraph, tree: PoseTree, init: InitKind | str = InitKind.TREE
+) -> tuple[FloatArray, FloatArray]:
     """Initial local transforms ``(rot (T,3,3), trans (T,3))`` of every tree node.
 
     ``init="tree"`` concatenates tree-edge measurements (a GPS link gives the child its measured
@@ -336,8 +363,10 @@ def initial_locals(graph: PoseGraph, tree: PoseTree,
     """
     init = InitKind(init)
     if init is InitKind.FILE and not graph.has_estimates:
-        raise GraphError("init='file' needs vertex estimates, but the file has none "
-                         "(iSAM files list only constraints): use init='tree'")
+        raise GraphError(
+            "init='file' needs vertex estimates, but the file has none "
+            "(iSAM files list only constraints): use init='tree'"
+        )
     t_nodes = tree.num_tree_nodes
     rot = np.zeros((t_nodes, 3, 3))
     trans = np.zeros((t_nodes, 3))
@@ -347,14 +376,19 @@ def initial_locals(graph: PoseGraph, tree: PoseTree,
         if init is InitKind.CHORDAL:
             from .initialization import chordal_initialization
 
-            grot0, gtr0 = chordal_initialization(
-                graph, None if tree.has_earth else tree.root)
+            grot0, gtr0 = chordal_initialization(graph, None if tree.has_earth else tree.root)
         else:
             grot0, gtr0 = graph.rotations, graph.translations
-        grot = np.concatenate([grot0, np.eye(3)[None]]) if tree.has_earth \
+        grot = (
+            np.concatenate([grot0, np.eye(3)[None]])
+            if tree.has_earth
             else np.ascontiguousarray(grot0)
-        gtr = np.concatenate([gtr0, np.zeros((1, 3))]) if tree.has_earth \
+        )
+        gtr = (
+            np.concatenate([gtr0, np.zeros((1, 3))])
+            if tree.has_earth
             else np.ascontiguousarray(gtr0)
+        )
         _locals_from_globals(tree.parent, grot, gtr, rot, trans)
         return rot, trans
     kind = tree.link_kind
@@ -379,8 +413,9 @@ def initial_locals(graph: PoseGraph, tree: PoseTree,
 
 
 @kernel
-def _locals_from_globals(parent: np.ndarray, grot: np.ndarray, gtr: np.ndarray,
-                         rot: np.ndarray, trans: np.ndarray) -> None:
+def _locals_from_globals(
+    parent: np.ndarray, grot: np.ndarray, gtr: np.ndarray, rot: np.ndarray, trans: np.ndarray
+) -> None:
     for i in range(parent.shape[0]):
         p = parent[i]
         if p < 0:
@@ -392,8 +427,14 @@ def _locals_from_globals(parent: np.ndarray, grot: np.ndarray, gtr: np.ndarray,
 
 
 @kernel
-def _globals_from_locals(order: np.ndarray, parent: np.ndarray, rot: np.ndarray,
-                         trans: np.ndarray, grot: np.ndarray, gtr: np.ndarray) -> None:
+def _globals_from_locals(
+    order: np.ndarray,
+    parent: np.ndarray,
+    rot: np.ndarray,
+    trans: np.ndarray,
+    grot: np.ndarray,
+    gtr: np.ndarray,
+) -> None:
     for k in range(order.shape[0]):
         i = order[k]
         p = parent[i]
@@ -405,8 +446,10 @@ def _globals_from_locals(order: np.ndarray, parent: np.ndarray, rot: np.ndarray,
             gtr[i] = grot[p] @ trans[i] + gtr[p]
 
 
-def global_poses(tree: PoseTree, rot: FloatArray, trans: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Global poses ``(R (N,3,3), t (N,3))`` of the N poses from local transforms (earth dropped)."""
+def global_poses(
+    tree: PoseTree, rot: FloatArray, trans: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Global poses ``(R (N,3,3), t (N,3))`` of the N poses from local transforms (no earth)."""
     t_nodes = tree.num_tree_nodes
     grot = np.empty((t_nodes, 3, 3))
     gtr = np.empty((t_nodes, 3))

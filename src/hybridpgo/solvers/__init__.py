@@ -24,7 +24,8 @@ def optimize(graph: PoseGraph, method: str = "hybrid", **options: Any) -> SolveR
         ``"hybrid"``: the paper's stochastic hybrid Hessian sweeps (options: the fields of
         :class:`HybridConfig`, plus ``progress``).  ``"exact"``: sparse Levenberg-Marquardt or
         Gauss-Newton from the graph's vertex estimates (options: the fields of
-        :class:`GaussNewtonConfig`; ``init="tree"`` / ``"chordal"`` start from those initializations).
+        :class:`GaussNewtonConfig`; ``init="tree"`` / ``"chordal"`` start from those
+        initializations).
 
     Returns
     -------
@@ -34,8 +35,8 @@ def optimize(graph: PoseGraph, method: str = "hybrid", **options: Any) -> SolveR
         progress = options.pop("progress", None)
         return solve_hybrid(graph, HybridConfig(**options), progress=progress)
     if method == "exact":
-        from .gauss_newton import solve_exact
         from ..tree import build_tree, global_poses, initial_locals
+        from .gauss_newton import solve_exact
 
         init = options.pop("init", "file" if graph.has_estimates else "tree")
         tree_kind = options.pop("tree", "bfs")

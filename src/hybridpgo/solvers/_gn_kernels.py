@@ -25,34 +25,19 @@ import math
 import numpy as np
 
 from .._numba import kernel
-from ..geometry._kernels import NEAR_PI, Q_SERIES_ANGLE, SMALL_ANGLE, orthonormalize, se3_exp
+from ..geometry._fast import (
+    edge_error_into,
+    jr_inv_blocks,
+    mm3,
+    skew_into,
+)
+from ..geometry._kernels import orthonormalize, se3_exp
 
 #: Scratch (3, 3) matrices the per-edge kernels need.
 _SCRATCH = 12
 
 
 # --------------------------------------------------------------------------- inner kernels
-@kernel
-def _mm3(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
-    """out = a @ b for (3, 3) arrays (out must not alias a or b)."""
-    for i in range(3):
-        for j in range(3):
-            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
-
-
-@kernel
-def _skew_into(v0: float, v1: float, v2: float, out: np.ndarray) -> None:
-    out[0, 0] = 0.0
-    out[0, 1] = -v2
-    out[0, 2] = v1
-    out[1, 0] = v2
-    out[1, 1] = 0.0
-    out[1, 2] = -v0
-    out[2, 0] = -v1
-    out[2, 1] = v0
-    out[2, 2] = 0.0
-
-
 @kernel
 def _matmul6(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
     """out = a @ b for (6, 6) arrays."""
@@ -78,171 +63,6 @@ def _add_block_atb(a: np.ndarray, b: np.ndarray, data: np.ndarray, base: int,
 
 
 @kernel
-def _so3_log_into(r: np.ndarray, out: np.ndarray) -> None:
-    """out[3:6] = Log(R), exactly as geometry's ``so3_log`` (series / generic / near pi)."""
-    vx = 0.5 * (r[2, 1] - r[1, 2])
-    vy = 0.5 * (r[0, 2] - r[2, 0])
-    vz = 0.5 * (r[1, 0] - r[0, 1])
-    s = math.sqrt(vx * vx + vy * vy + vz * vz)  # sin(theta)
-    c = 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0)  # cos(theta)
-    th = math.atan2(s, c)
-    if th < SMALL_ANGLE:
-        f = 1.0 + th * th / 6.0  # th/sin(th) = 1 + th^2/6 + 7 th^4/360
-        out[3] = f * vx
-        out[4] = f * vy
-        out[5] = f * vz
-        return
-    if math.pi - th > NEAR_PI:
-        f = th / s
-        out[3] = f * vx
-        out[4] = f * vy
-        out[5] = f * vz
-        return
-    # Near pi: R + R^T = 2 cos(th) I + 2 (1 - cos th) a a^T; take the largest diagonal column.
-    d0 = r[0, 0] - c
-    d1 = r[1, 1] - c
-    d2 = r[2, 2] - c
-    k = 0
-    if d1 > d0 and d1 >= d2:
-        k = 1
-    elif d2 > d0 and d2 > d1:
-        k = 2
-    a0 = 0.5 * (r[0, k] + r[k, 0]) - (c if k == 0 else 0.0)
-    a1 = 0.5 * (r[1, k] + r[k, 1]) - (c if k == 1 else 0.0)
-    a2 = 0.5 * (r[2, k] + r[k, 2]) - (c if k == 2 else 0.0)
-    n = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
-    sign = 1.0
-    if a0 * vx + a1 * vy + a2 * vz < 0.0:
-        sign = -1.0
-    out[3] = sign * th * a0 / n
-    out[4] = sign * th * a1 / n
-    out[5] = sign * th * a2 / n
-
-
-@kernel
-def _jl_inv_coeff(th: float) -> float:
-    """c of J_l(phi)^-1 = I - 1/2 [phi]x + c [phi]x^2 (geometry's ``so3_left_jacobian_inv``)."""
-    if th < SMALL_ANGLE:
-        return 1.0 / 12.0 + th * th / 720.0  # + th^4/30240
-    return 1.0 / (th * th) - math.cos(0.5 * th) / (2.0 * th * math.sin(0.5 * th))
-
-
-@kernel
-def edge_error_into(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.ndarray,
-                    rz: np.ndarray, tz: np.ndarray, rab: np.ndarray, tab: np.ndarray,
-                    re: np.ndarray, e: np.ndarray) -> None:
-    """e = Log(Z^-1 X_a^-1 X_b) = (V(phi)^-1 t_e, phi); also X_a^-1 X_b -> (rab, tab).
-
-    ``re`` (3, 3) is scratch (it receives the rotation of Z^-1 X_a^-1 X_b).
-    """
-    d0 = tb[0] - ta[0]
-    d1 = tb[1] - ta[1]
-    d2 = tb[2] - ta[2]
-    for i in range(3):
-        tab[i] = ra[0, i] * d0 + ra[1, i] * d1 + ra[2, i] * d2
-        for j in range(3):
-            rab[i, j] = ra[0, i] * rb[0, j] + ra[1, i] * rb[1, j] + ra[2, i] * rb[2, j]
-    u0 = tab[0] - tz[0]
-    u1 = tab[1] - tz[1]
-    u2 = tab[2] - tz[2]
-    for i in range(3):
-        for j in range(3):
-            re[i, j] = rz[0, i] * rab[0, j] + rz[1, i] * rab[1, j] + rz[2, i] * rab[2, j]
-    t0 = rz[0, 0] * u0 + rz[1, 0] * u1 + rz[2, 0] * u2
-    t1 = rz[0, 1] * u0 + rz[1, 1] * u1 + rz[2, 1] * u2
-    t2 = rz[0, 2] * u0 + rz[1, 2] * u1 + rz[2, 2] * u2
-    _so3_log_into(re, e)
-    p0 = e[3]
-    p1 = e[4]
-    p2 = e[5]
-    c = _jl_inv_coeff(math.sqrt(p0 * p0 + p1 * p1 + p2 * p2))
-    # rho = Jl^-1(phi) t = t - 1/2 phi x t + c phi x (phi x t)
-    x0 = p1 * t2 - p2 * t1
-    x1 = p2 * t0 - p0 * t2
-    x2 = p0 * t1 - p1 * t0
-    y0 = p1 * x2 - p2 * x1
-    y1 = p2 * x0 - p0 * x2
-    y2 = p0 * x1 - p1 * x0
-    e[0] = t0 - 0.5 * x0 + c * y0
-    e[1] = t1 - 0.5 * x1 + c * y1
-    e[2] = t2 - 0.5 * x2 + c * y2
-
-
-@kernel
-def _q_into(r0: float, r1: float, r2: float, p0: float, p1: float, p2: float,
-            w: np.ndarray, q: np.ndarray) -> None:
-    """Barfoot's Q(rho, phi) into q, exactly as geometry's ``_q_matrix``; w: >= 7 scratch."""
-    th2 = p0 * p0 + p1 * p1 + p2 * p2
-    th = math.sqrt(th2)
-    if th < Q_SERIES_ANGLE:
-        # (th - sin th)/th^3 = 1/6 - th^2/120 + th^4/5040 - th^6/362880
-        a1 = 1.0 / 6.0 - th2 / 120.0 * (1.0 - th2 / 42.0 * (1.0 - th2 / 72.0))
-        # (1 - th^2/2 - cos th)/th^4 = -1/24 + th^2/720 - th^4/40320 + th^6/3628800
-        a2 = -1.0 / 24.0 + th2 / 720.0 * (1.0 - th2 / 56.0 * (1.0 - th2 / 90.0))
-        # (th - sin th - th^3/6)/th^5 = -1/120 + th^2/5040 - th^4/362880 + th^6/39916800
-        a3 = -1.0 / 120.0 + th2 / 5040.0 * (1.0 - th2 / 72.0 * (1.0 - th2 / 110.0))
-    else:
-        s = math.sin(th)
-        c = math.cos(th)
-        a1 = (th - s) / (th2 * th)
-        a2 = (1.0 - 0.5 * th2 - c) / (th2 * th2)
-        a3 = (th - s - th2 * th / 6.0) / (th2 * th2 * th)
-    rx = w[0]
-    px = w[1]
-    pr = w[2]
-    rp = w[3]
-    prp = w[4]
-    m1 = w[5]
-    m2 = w[6]
-    _skew_into(r0, r1, r2, rx)
-    _skew_into(p0, p1, p2, px)
-    _mm3(px, rx, pr)
-    _mm3(rx, px, rp)
-    _mm3(pr, px, prp)
-    b4 = 0.5 * (a2 - 3.0 * a3)
-    for i in range(3):
-        for j in range(3):
-            q[i, j] = 0.5 * rx[i, j] + a1 * (pr[i, j] + rp[i, j] + prp[i, j]) + 3.0 * a2 * prp[i, j]
-    _mm3(px, pr, m1)  # px pr
-    _mm3(rp, px, m2)  # rp px
-    for i in range(3):
-        for j in range(3):
-            q[i, j] -= a2 * (m1[i, j] + m2[i, j])
-    _mm3(prp, px, m1)
-    _mm3(px, prp, m2)
-    for i in range(3):
-        for j in range(3):
-            q[i, j] -= b4 * (m1[i, j] + m2[i, j])
-
-
-@kernel
-def _jr_inv_blocks(e: np.ndarray, w: np.ndarray) -> None:
-    """Jr^-1(e) = Jl^-1(-e) = [[J, K], [0, J]]: J -> w[8], K -> w[9] (w[0:8] scratch).
-
-    J = Jl^-1(-phi) = I + 1/2 [phi]x + c [phi]x^2, K = -J Q(-rho, -phi) J.
-    """
-    p0 = e[3]
-    p1 = e[4]
-    p2 = e[5]
-    c = _jl_inv_coeff(math.sqrt(p0 * p0 + p1 * p1 + p2 * p2))
-    jm = w[8]
-    km = w[9]
-    q = w[7]
-    px = w[0]
-    _skew_into(p0, p1, p2, px)
-    _mm3(px, px, w[1])
-    for i in range(3):
-        for j in range(3):
-            jm[i, j] = (1.0 if i == j else 0.0) + 0.5 * px[i, j] + c * w[1][i, j]
-    _q_into(-e[0], -e[1], -e[2], -p0, -p1, -p2, w, q)
-    _mm3(q, jm, w[0])
-    _mm3(jm, w[0], km)
-    for i in range(3):
-        for j in range(3):
-            km[i, j] = -km[i, j]
-
-
-@kernel
 def _edge_linearization(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.ndarray,
                         rz: np.ndarray, tz: np.ndarray, e: np.ndarray, ja: np.ndarray,
                         jb: np.ndarray, w: np.ndarray) -> None:
@@ -255,7 +75,7 @@ def _edge_linearization(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.n
     rab = w[10]
     tab = w[11][0]
     edge_error_into(ra, ta, rb, tb, rz, tz, rab, tab, w[0], e)
-    _jr_inv_blocks(e, w)
+    jr_inv_blocks(e, w)
     jm = w[8]
     km = w[9]
     r = w[0]
@@ -266,12 +86,12 @@ def _edge_linearization(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.n
     s1 = -(r[1, 0] * tab[0] + r[1, 1] * tab[1] + r[1, 2] * tab[2])
     s2 = -(r[2, 0] * tab[0] + r[2, 1] * tab[1] + r[2, 2] * tab[2])
     txr = w[1]
-    _skew_into(s0, s1, s2, w[2])
-    _mm3(w[2], r, txr)  # [t]x R
+    skew_into(s0, s1, s2, w[2])
+    mm3(w[2], r, txr)  # [t]x R
     jr = w[3]
-    _mm3(jm, r, jr)  # J R
-    _mm3(jm, txr, w[4])  # J [t]x R
-    _mm3(km, r, w[5])  # K R
+    mm3(jm, r, jr)  # J R
+    mm3(jm, txr, w[4])  # J [t]x R
+    mm3(km, r, w[5])  # K R
     for i in range(3):
         for j in range(3):
             ja[i, j] = -jr[i, j]

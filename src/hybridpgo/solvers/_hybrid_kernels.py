@@ -23,7 +23,8 @@ import math
 import numpy as np
 
 from .._numba import cycle_counter, kernel
-from ..geometry._kernels import SMALL_ANGLE, so3_log
+from ..geometry._fast import edge_error_into, jr_inv_blocks
+from ..geometry._kernels import SMALL_ANGLE
 
 STEP_WOODBURY = 0
 STEP_GIVENS = 1
@@ -103,8 +104,9 @@ def _regularized_factor(bc: np.ndarray, scale: float, mu: float, out: np.ndarray
 
 # --------------------------------------------------------------------------- linearization
 @kernel
-def _mul_pose_into(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.ndarray,
-                   ro: np.ndarray, to: np.ndarray) -> None:
+def _mul_pose_into(
+    ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.ndarray, ro: np.ndarray, to: np.ndarray
+) -> None:
     """(ro, to) = (ra, ta) * (rb, tb) without allocating (outputs must not alias inputs)."""
     for i in range(3):
         for j in range(3):
@@ -113,8 +115,16 @@ def _mul_pose_into(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.ndarra
 
 
 @kernel
-def _path_products(c: int, ptr: np.ndarray, pnode: np.ndarray, psign: np.ndarray,
-                   rot: np.ndarray, trans: np.ndarray, pr: np.ndarray, pt: np.ndarray) -> int:
+def _path_products(
+    c: int,
+    ptr: np.ndarray,
+    pnode: np.ndarray,
+    psign: np.ndarray,
+    rot: np.ndarray,
+    trans: np.ndarray,
+    pr: np.ndarray,
+    pt: np.ndarray,
+) -> int:
     """P_k = X_root^-1 X_{path[k]} for every path node k (into ``pr``, ``pt``); returns n_a.
 
     The a-side nodes are stored from a upward, so products are accumulated from the top down.
@@ -142,131 +152,49 @@ def _path_products(c: int, ptr: np.ndarray, pnode: np.ndarray, psign: np.ndarray
 
 
 @kernel
-def _mm3(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
-    """out = a @ b for 3x3 (out must not alias a or b)."""
-    for i in range(3):
-        for j in range(3):
-            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
-
-
-@kernel
-def _skew_into(v0: float, v1: float, v2: float, out: np.ndarray) -> None:
-    out[0, 0] = 0.0
-    out[0, 1] = -v2
-    out[0, 2] = v1
-    out[1, 0] = v2
-    out[1, 1] = 0.0
-    out[1, 2] = -v0
-    out[2, 0] = -v1
-    out[2, 1] = v0
-    out[2, 2] = 0.0
-
-
-@kernel
-def _error_and_jr_inv(zr: np.ndarray, zt: np.ndarray, ra: np.ndarray, ta: np.ndarray,
-                      rb: np.ndarray, tb: np.ndarray, e: np.ndarray, jri: np.ndarray,
-                      ws: np.ndarray) -> None:
-    """e = Log(Z^-1 X_a^-1 X_b) and Jr^-1(e), allocation-free (ws: (8, 3, 3) scratch).
-
-    Same mathematics as ``geometry._kernels.relative_error`` and ``se3_right_jacobian_inv``
-    (tested equal); written out because the per-constraint update calls it on the hot path.
-    """
-    # E = Z^-1 X_ab: R_E = Zr^T Ra^T Rb, t_E = Zr^T (Ra^T (tb - ta) - zt)
-    rab = ws[0]
-    for i in range(3):
-        for j in range(3):
-            rab[i, j] = ra[0, i] * rb[0, j] + ra[1, i] * rb[1, j] + ra[2, i] * rb[2, j]
-    d0 = tb[0] - ta[0]
-    d1 = tb[1] - ta[1]
-    d2 = tb[2] - ta[2]
-    u = np.empty(3)
-    for i in range(3):
-        u[i] = ra[0, i] * d0 + ra[1, i] * d1 + ra[2, i] * d2 - zt[i]
-    re = ws[1]
-    te = np.empty(3)
-    for i in range(3):
-        te[i] = zr[0, i] * u[0] + zr[1, i] * u[1] + zr[2, i] * u[2]
-        for j in range(3):
-            re[i, j] = zr[0, i] * rab[0, j] + zr[1, i] * rab[1, j] + zr[2, i] * rab[2, j]
-    phi = so3_log(re)
-    th2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
-    th = math.sqrt(th2)
-    # Jl^-1(phi) = I - 1/2 [phi]x + c [phi]x^2 (c stable at pi)
-    if th < SMALL_ANGLE:
-        cc = 1.0 / 12.0 + th2 / 720.0
-    else:
-        cc = 1.0 / th2 - math.cos(0.5 * th) / (2.0 * th * math.sin(0.5 * th))
-    px = ws[2]
-    _skew_into(phi[0], phi[1], phi[2], px)
-    px2 = ws[3]
-    _mm3(px, px, px2)
-    jli = ws[4]  # Jl^-1(phi); Jl^-1(-phi) = I + 1/2 [phi]x + c [phi]x^2
-    for i in range(3):
-        for j in range(3):
-            jli[i, j] = (1.0 if i == j else 0.0) - 0.5 * px[i, j] + cc * px2[i, j]
-    for i in range(3):
-        e[i] = jli[i, 0] * te[0] + jli[i, 1] * te[1] + jli[i, 2] * te[2]
-        e[3 + i] = phi[i]
-    # Jr^-1(e) = Jl^-1(-e): blocks from rho' = -rho, phi' = -phi
-    jm = ws[5]
-    for i in range(3):
-        for j in range(3):
-            jm[i, j] = (1.0 if i == j else 0.0) + 0.5 * px[i, j] + cc * px2[i, j]
-    # Q(rho', phi') with rho' = -rho, phi' = -phi: Q is odd in (rho, phi) jointly of degree
-    # (1 in rho) x (even/odd in phi); evaluate directly with the negated vectors.
-    if th < 0.1:
-        a1 = 1.0 / 6.0 - th2 / 120.0 * (1.0 - th2 / 42.0 * (1.0 - th2 / 72.0))
-        a2 = -1.0 / 24.0 + th2 / 720.0 * (1.0 - th2 / 56.0 * (1.0 - th2 / 90.0))
-        a3 = -1.0 / 120.0 + th2 / 5040.0 * (1.0 - th2 / 72.0 * (1.0 - th2 / 110.0))
-    else:
-        sn = math.sin(th)
-        cs = math.cos(th)
-        a1 = (th - sn) / (th2 * th)
-        a2 = (1.0 - 0.5 * th2 - cs) / (th2 * th2)
-        a3 = (th - sn - th2 * th / 6.0) / (th2 * th2 * th)
-    rx = ws[6]
-    _skew_into(-e[0], -e[1], -e[2], rx)
-    qx = ws[7]
-    _skew_into(-phi[0], -phi[1], -phi[2], qx)
-    pr_ = ws[0]  # reuse: [phi']x [rho']x
-    _mm3(qx, rx, pr_)
-    rp = ws[1]  # [rho']x [phi']x
-    _mm3(rx, qx, rp)
-    prp = ws[2]  # [phi']x [rho']x [phi']x
-    _mm3(pr_, qx, prp)
-    t1 = ws[3]  # [phi']x^2 [rho']x  (= qx @ pr_)
-    _mm3(qx, pr_, t1)
-    t2 = ws[4]  # [rho']x [phi']x^2 (= rp @ qx)
-    _mm3(rp, qx, t2)
-    q = ws[7]
-    t3 = np.empty((3, 3))  # prp @ qx
-    _mm3(prp, qx, t3)
-    t4 = np.empty((3, 3))  # qx @ prp
-    _mm3(qx, prp, t4)
-    h = 0.5 * (a2 - 3.0 * a3)
-    for i in range(3):
-        for j in range(3):
-            q[i, j] = (0.5 * rx[i, j] + a1 * (pr_[i, j] + rp[i, j] + prp[i, j])
-                       - a2 * (t1[i, j] + t2[i, j] - 3.0 * prp[i, j])
-                       - h * (t3[i, j] + t4[i, j]))
-    # off-diagonal block: -Jm Q Jm
-    _mm3(jm, q, ws[0])
-    _mm3(ws[0], jm, ws[1])
-    for i in range(6):
-        for j in range(6):
-            jri[i, j] = 0.0
+def _error_and_jr_inv(
+    zr: np.ndarray,
+    zt: np.ndarray,
+    ra: np.ndarray,
+    ta: np.ndarray,
+    rb: np.ndarray,
+    tb: np.ndarray,
+    e: np.ndarray,
+    jri: np.ndarray,
+    ws: np.ndarray,
+) -> None:
+    """e = Log(Z^-1 X_a^-1 X_b) and Jr^-1(e) (6, 6), allocation-free (ws: (12, 3, 3) scratch)."""
+    edge_error_into(ra, ta, rb, tb, zr, zt, ws[10], ws[11][0], ws[0], e)
+    jr_inv_blocks(e, ws)
+    jm = ws[8]
+    km = ws[9]
     for i in range(3):
         for j in range(3):
             jri[i, j] = jm[i, j]
+            jri[i, 3 + j] = km[i, j]
+            jri[3 + i, j] = 0.0
             jri[3 + i, 3 + j] = jm[i, j]
-            jri[i, 3 + j] = -ws[1, i, j]
 
 
 @kernel
-def _linearize(c: int, m_edges: int, ptr: np.ndarray, pnode: np.ndarray, psign: np.ndarray,
-               rot: np.ndarray, trans: np.ndarray, edge_rot: np.ndarray, edge_trans: np.ndarray,
-               edge_lt: np.ndarray, gps_pos: np.ndarray, gps_lt: np.ndarray, pr: np.ndarray,
-               pt: np.ndarray, jac: np.ndarray, r: np.ndarray) -> int:
+def _linearize(
+    c: int,
+    m_edges: int,
+    ptr: np.ndarray,
+    pnode: np.ndarray,
+    psign: np.ndarray,
+    rot: np.ndarray,
+    trans: np.ndarray,
+    edge_rot: np.ndarray,
+    edge_trans: np.ndarray,
+    edge_lt: np.ndarray,
+    gps_pos: np.ndarray,
+    gps_lt: np.ndarray,
+    pr: np.ndarray,
+    pt: np.ndarray,
+    jac: np.ndarray,
+    r: np.ndarray,
+) -> int:
     """Whitened Jacobian blocks ``jac[k, :kr, :]`` and residual ``r[:kr]`` (= -L^T e0).
 
     Returns kr, the number of rows (6 relative, 3 GPS).
@@ -287,7 +215,7 @@ def _linearize(c: int, m_edges: int, ptr: np.ndarray, pnode: np.ndarray, psign: 
             tb = pt[na]
         e0 = np.empty(6)
         jri = np.empty((6, 6))
-        ws = np.empty((8, 3, 3))
+        ws = np.empty((12, 3, 3))
         _error_and_jr_inv(edge_rot[c], edge_trans[c], ra, ta, rb, tb, e0, jri, ws)
         lt = edge_lt[c]
         a = np.empty((6, 6))
@@ -307,10 +235,15 @@ def _linearize(c: int, m_edges: int, ptr: np.ndarray, pnode: np.ndarray, psign: 
         for k in range(d):
             # M_k = X_b^-1 X_k = P_b^-1 P_k; J_k = s_k A Ad(M_k), Ad = [[R, [t]x R], [0, R]]
             for i in range(3):
-                tm[i] = (rb[0, i] * (pt[k, 0] - tb[0]) + rb[1, i] * (pt[k, 1] - tb[1])
-                         + rb[2, i] * (pt[k, 2] - tb[2]))
+                tm[i] = (
+                    rb[0, i] * (pt[k, 0] - tb[0])
+                    + rb[1, i] * (pt[k, 1] - tb[1])
+                    + rb[2, i] * (pt[k, 2] - tb[2])
+                )
                 for j in range(3):
-                    rm[i, j] = rb[0, i] * pr[k, 0, j] + rb[1, i] * pr[k, 1, j] + rb[2, i] * pr[k, 2, j]
+                    rm[i, j] = (
+                        rb[0, i] * pr[k, 0, j] + rb[1, i] * pr[k, 1, j] + rb[2, i] * pr[k, 2, j]
+                    )
             for j in range(3):  # tx = [tm]x rm
                 tx[0, j] = tm[1] * rm[2, j] - tm[2] * rm[1, j]
                 tx[1, j] = tm[2] * rm[0, j] - tm[0] * rm[2, j]
@@ -319,8 +252,14 @@ def _linearize(c: int, m_edges: int, ptr: np.ndarray, pnode: np.ndarray, psign: 
             for p in range(6):
                 for j in range(3):
                     v0 = a[p, 0] * rm[0, j] + a[p, 1] * rm[1, j] + a[p, 2] * rm[2, j]
-                    v1 = (a[p, 0] * tx[0, j] + a[p, 1] * tx[1, j] + a[p, 2] * tx[2, j]
-                          + a[p, 3] * rm[0, j] + a[p, 4] * rm[1, j] + a[p, 5] * rm[2, j])
+                    v1 = (
+                        a[p, 0] * tx[0, j]
+                        + a[p, 1] * tx[1, j]
+                        + a[p, 2] * tx[2, j]
+                        + a[p, 3] * rm[0, j]
+                        + a[p, 4] * rm[1, j]
+                        + a[p, 5] * rm[2, j]
+                    )
                     jac[k, p, j] = sg * v0
                     jac[k, p, 3 + j] = sg * v1
         return 6
@@ -333,9 +272,14 @@ def _linearize(c: int, m_edges: int, ptr: np.ndarray, pnode: np.ndarray, psign: 
     t_kn = np.empty(3)
     for k in range(d):
         for i in range(3):
-            t_kn[i] = (pr[k, 0, i] * (tn[0] - pt[k, 0]) + pr[k, 1, i] * (tn[1] - pt[k, 1])
-                       + pr[k, 2, i] * (tn[2] - pt[k, 2]))
-        for i in range(3):  # R_k [I | -[t]x], with [t]x's columns (0,t2,-t1), (-t2,0,t0), (t1,-t0,0)
+            t_kn[i] = (
+                pr[k, 0, i] * (tn[0] - pt[k, 0])
+                + pr[k, 1, i] * (tn[1] - pt[k, 1])
+                + pr[k, 2, i] * (tn[2] - pt[k, 2])
+            )
+        for i in range(
+            3
+        ):  # R_k [I | -[t]x], with [t]x's columns (0,t2,-t1), (-t2,0,t0), (t1,-t0,0)
             blk[i, 0] = pr[k, i, 0]
             blk[i, 1] = pr[k, i, 1]
             blk[i, 2] = pr[k, i, 2]
@@ -353,8 +297,9 @@ def _linearize(c: int, m_edges: int, ptr: np.ndarray, pnode: np.ndarray, psign: 
 
 # --------------------------------------------------------------------------- the two solves
 @kernel
-def _woodbury_solve(d: int, kr: int, jac: np.ndarray, lfac: np.ndarray, r: np.ndarray,
-                    y: np.ndarray, x: np.ndarray) -> None:
+def _woodbury_solve(
+    d: int, kr: int, jac: np.ndarray, lfac: np.ndarray, r: np.ndarray, y: np.ndarray, x: np.ndarray
+) -> None:
     """x = B^-1 J^T (I + J B^-1 J^T)^-1 r with B = blockdiag(L_k L_k^T): O(d) (DESIGN §4).
 
     With W_k = L_k^-1 J_k^T (forward substitution), S = I + sum_k W_k^T W_k and
@@ -404,8 +349,9 @@ def _woodbury_solve(d: int, kr: int, jac: np.ndarray, lfac: np.ndarray, r: np.nd
 
 
 @kernel
-def _givens_solve(d: int, kr: int, jac: np.ndarray, lfac: np.ndarray, r: np.ndarray,
-                  x: np.ndarray) -> None:
+def _givens_solve(
+    d: int, kr: int, jac: np.ndarray, lfac: np.ndarray, r: np.ndarray, x: np.ndarray
+) -> None:
     """The paper's solve (eq. 29-30): Givens-triangularize [J; Gamma] x = [r; 0], O(d^2).
 
     Gamma is block diagonal with upper-triangular blocks Gamma_k = L_k^T (Gamma^T Gamma = B).
@@ -455,8 +401,14 @@ def _givens_solve(d: int, kr: int, jac: np.ndarray, lfac: np.ndarray, r: np.ndar
 
 
 @kernel
-def _apply_step(rot_i: np.ndarray, trans_i: np.ndarray, xi: np.ndarray, t: float,
-                er: np.ndarray, tmp: np.ndarray) -> None:
+def _apply_step(
+    rot_i: np.ndarray,
+    trans_i: np.ndarray,
+    xi: np.ndarray,
+    t: float,
+    er: np.ndarray,
+    tmp: np.ndarray,
+) -> None:
     """T_i <- T_i Exp(t xi) in place, then re-orthonormalize R_i (no allocation)."""
     rx, ry, rz = t * xi[0], t * xi[1], t * xi[2]
     px, py, pz = t * xi[3], t * xi[4], t * xi[5]
@@ -518,9 +470,18 @@ def _apply_step(rot_i: np.ndarray, trans_i: np.ndarray, xi: np.ndarray, t: float
 
 # --------------------------------------------------------------------------- one update
 @kernel
-def _accumulate_blocks(c: int, d: int, kr: int, ptr: np.ndarray, pnode: np.ndarray,
-                       jac: np.ndarray, bdiag: np.ndarray, contrib: np.ndarray,
-                       mu: float, lfac: np.ndarray) -> None:
+def _accumulate_blocks(
+    c: int,
+    d: int,
+    kr: int,
+    ptr: np.ndarray,
+    pnode: np.ndarray,
+    jac: np.ndarray,
+    bdiag: np.ndarray,
+    contrib: np.ndarray,
+    mu: float,
+    lfac: np.ndarray,
+) -> None:
     """Eq. 23/24: B_c = 𝔅(H) - 𝔅(J_c^T J_c)_old; 𝔅(H) += new - old; factor damped B_c."""
     s = ptr[c]
     newb = np.empty((6, 6))
@@ -545,12 +506,33 @@ def _accumulate_blocks(c: int, d: int, kr: int, ptr: np.ndarray, pnode: np.ndarr
 
 
 @kernel
-def _relax(c: int, tau: float, mu: float, step_kind: int, m_edges: int, ptr: np.ndarray,
-           pnode: np.ndarray, psign: np.ndarray, rot: np.ndarray, trans: np.ndarray,
-           edge_rot: np.ndarray, edge_trans: np.ndarray, edge_lt: np.ndarray,
-           gps_pos: np.ndarray, gps_lt: np.ndarray, bdiag: np.ndarray, contrib: np.ndarray,
-           pr: np.ndarray, pt: np.ndarray, jac: np.ndarray, lfac: np.ndarray, y: np.ndarray,
-           x: np.ndarray, r: np.ndarray, apply: bool) -> int:
+def _relax(
+    c: int,
+    tau: float,
+    mu: float,
+    step_kind: int,
+    m_edges: int,
+    ptr: np.ndarray,
+    pnode: np.ndarray,
+    psign: np.ndarray,
+    rot: np.ndarray,
+    trans: np.ndarray,
+    edge_rot: np.ndarray,
+    edge_trans: np.ndarray,
+    edge_lt: np.ndarray,
+    gps_pos: np.ndarray,
+    gps_lt: np.ndarray,
+    bdiag: np.ndarray,
+    contrib: np.ndarray,
+    pr: np.ndarray,
+    pt: np.ndarray,
+    jac: np.ndarray,
+    lfac: np.ndarray,
+    y: np.ndarray,
+    x: np.ndarray,
+    r: np.ndarray,
+    apply: bool,
+) -> int:
     """Relax constraint c (paper eq. 25): linearize, update 𝔅(H), solve, apply ``tau x``.
 
     Returns 0 (applied), 1 (capped by the pi/8 rule, applied), 2 (non-finite, rejected).
@@ -559,8 +541,24 @@ def _relax(c: int, tau: float, mu: float, step_kind: int, m_edges: int, ptr: np.
     d = ptr[c + 1] - s
     if d == 0:
         return 0
-    kr = _linearize(c, m_edges, ptr, pnode, psign, rot, trans, edge_rot, edge_trans, edge_lt,
-                    gps_pos, gps_lt, pr, pt, jac, r)
+    kr = _linearize(
+        c,
+        m_edges,
+        ptr,
+        pnode,
+        psign,
+        rot,
+        trans,
+        edge_rot,
+        edge_trans,
+        edge_lt,
+        gps_pos,
+        gps_lt,
+        pr,
+        pt,
+        jac,
+        r,
+    )
     _accumulate_blocks(c, d, kr, ptr, pnode, jac, bdiag, contrib, mu, lfac)
     if not apply:
         return 0
@@ -589,10 +587,22 @@ def _relax(c: int, tau: float, mu: float, step_kind: int, m_edges: int, ptr: np.
 
 
 @kernel
-def init_blocks(m_edges: int, ptr: np.ndarray, pnode: np.ndarray, psign: np.ndarray,
-                rot: np.ndarray, trans: np.ndarray, edge_rot: np.ndarray, edge_trans: np.ndarray,
-                edge_lt: np.ndarray, gps_pos: np.ndarray, gps_lt: np.ndarray,
-                bdiag: np.ndarray, contrib: np.ndarray, dmax: int) -> None:
+def init_blocks(
+    m_edges: int,
+    ptr: np.ndarray,
+    pnode: np.ndarray,
+    psign: np.ndarray,
+    rot: np.ndarray,
+    trans: np.ndarray,
+    edge_rot: np.ndarray,
+    edge_trans: np.ndarray,
+    edge_lt: np.ndarray,
+    gps_pos: np.ndarray,
+    gps_lt: np.ndarray,
+    bdiag: np.ndarray,
+    contrib: np.ndarray,
+    dmax: int,
+) -> None:
     """𝔅(H) and every constraint's contribution at the current poses (no step)."""
     pr = np.empty((dmax, 3, 3))
     pt = np.empty((dmax, 3))
@@ -604,15 +614,40 @@ def init_blocks(m_edges: int, ptr: np.ndarray, pnode: np.ndarray, psign: np.ndar
     bdiag[:] = 0.0
     contrib[:] = 0.0
     for c in range(ptr.shape[0] - 1):
-        _relax(c, 0.0, 0.0, STEP_WOODBURY, m_edges, ptr, pnode, psign, rot, trans, edge_rot,
-               edge_trans, edge_lt, gps_pos, gps_lt, bdiag, contrib, pr, pt, jac, lfac, y, x, r,
-               False)
+        _relax(
+            c,
+            0.0,
+            0.0,
+            STEP_WOODBURY,
+            m_edges,
+            ptr,
+            pnode,
+            psign,
+            rot,
+            trans,
+            edge_rot,
+            edge_trans,
+            edge_lt,
+            gps_pos,
+            gps_lt,
+            bdiag,
+            contrib,
+            pr,
+            pt,
+            jac,
+            lfac,
+            y,
+            x,
+            r,
+            False,
+        )
 
 
 # --------------------------------------------------------------------------- batch updates
 @kernel
-def _global_pose(i: int, parent: np.ndarray, rot: np.ndarray, trans: np.ndarray,
-                 ro: np.ndarray, to: np.ndarray) -> None:
+def _global_pose(
+    i: int, parent: np.ndarray, rot: np.ndarray, trans: np.ndarray, ro: np.ndarray, to: np.ndarray
+) -> None:
     """Pose of tree node i in the root's frame (product of locals up the tree), O(depth)."""
     tmp_r = np.empty((3, 3))
     tmp_t = np.empty(3)
@@ -647,14 +682,37 @@ def _adjoint_into(r: np.ndarray, t: np.ndarray, out: np.ndarray) -> None:
 
 
 @kernel
-def _woodbury_segments(cs: np.ndarray, nb: int, m_edges: int, ptr: np.ndarray,
-                       pnode: np.ndarray, psign: np.ndarray, rot: np.ndarray, trans: np.ndarray,
-                       parent: np.ndarray, edge_rot: np.ndarray, edge_trans: np.ndarray,
-                       edge_lt: np.ndarray, gps_pos: np.ndarray, gps_lt: np.ndarray, mu: float,
-                       jb: np.ndarray, e_off: np.ndarray, r_off: np.ndarray, krs: np.ndarray,
-                       rbuf: np.ndarray, e_slot: np.ndarray, e_q: np.ndarray, cnt: np.ndarray,
-                       by_slot: np.ndarray, bc: np.ndarray, slot: np.ndarray,
-                       nodes_out: np.ndarray, nu: int, x_out: np.ndarray) -> bool:
+def _woodbury_segments(
+    cs: np.ndarray,
+    nb: int,
+    m_edges: int,
+    ptr: np.ndarray,
+    pnode: np.ndarray,
+    psign: np.ndarray,
+    rot: np.ndarray,
+    trans: np.ndarray,
+    parent: np.ndarray,
+    edge_rot: np.ndarray,
+    edge_trans: np.ndarray,
+    edge_lt: np.ndarray,
+    gps_pos: np.ndarray,
+    gps_lt: np.ndarray,
+    mu: float,
+    jb: np.ndarray,
+    e_off: np.ndarray,
+    r_off: np.ndarray,
+    krs: np.ndarray,
+    rbuf: np.ndarray,
+    e_slot: np.ndarray,
+    e_q: np.ndarray,
+    cnt: np.ndarray,
+    by_slot: np.ndarray,
+    bc: np.ndarray,
+    slot: np.ndarray,
+    nodes_out: np.ndarray,
+    nu: int,
+    x_out: np.ndarray,
+) -> bool:
     """Woodbury solve of a batch in O(entries + sum over segments of |sig|^2) (DESIGN §5).
 
     Every Jacobian block factors as ``J_{c,u} = s_{c,u} A_c Ad(Y_u)`` with ``Y_u`` the pose of
@@ -683,7 +741,7 @@ def _woodbury_segments(cs: np.ndarray, nb: int, m_edges: int, ptr: np.ndarray,
     pr = np.empty((dmax, 3, 3))
     pt = np.empty((dmax, 3))
     adb = np.empty((6, 6))
-    ws = np.empty((8, 3, 3))
+    ws = np.empty((12, 3, 3))
     e0 = np.empty(6)
     jri = np.empty((6, 6))
     for q in range(nb):
@@ -869,13 +927,31 @@ def _woodbury_segments(cs: np.ndarray, nb: int, m_edges: int, ptr: np.ndarray,
 
 
 @kernel
-def _batch_relax(cs: np.ndarray, nb: int, tau: float, mu: float, m_edges: int, ptr: np.ndarray,
-                 pnode: np.ndarray, psign: np.ndarray, rot: np.ndarray, trans: np.ndarray,
-                 edge_rot: np.ndarray, edge_trans: np.ndarray, edge_lt: np.ndarray,
-                 gps_pos: np.ndarray, gps_lt: np.ndarray, bdiag: np.ndarray,
-                 contrib: np.ndarray, path_count: np.ndarray, parent: np.ndarray,
-                 slot: np.ndarray, x_out: np.ndarray, nodes_out: np.ndarray,
-                 apply: bool) -> int:
+def _batch_relax(
+    cs: np.ndarray,
+    nb: int,
+    tau: float,
+    mu: float,
+    m_edges: int,
+    ptr: np.ndarray,
+    pnode: np.ndarray,
+    psign: np.ndarray,
+    rot: np.ndarray,
+    trans: np.ndarray,
+    edge_rot: np.ndarray,
+    edge_trans: np.ndarray,
+    edge_lt: np.ndarray,
+    gps_pos: np.ndarray,
+    gps_lt: np.ndarray,
+    bdiag: np.ndarray,
+    contrib: np.ndarray,
+    path_count: np.ndarray,
+    parent: np.ndarray,
+    slot: np.ndarray,
+    x_out: np.ndarray,
+    nodes_out: np.ndarray,
+    apply: bool,
+) -> int:
     """Relax the constraints ``cs[:nb]`` together (paper eq. 35-37, DESIGN §5).
 
     ``H_C = sum_{c in C} J_c^T J_c + B_C`` over the union U of their domains, with
@@ -910,14 +986,29 @@ def _batch_relax(cs: np.ndarray, nb: int, tau: float, mu: float, m_edges: int, p
     for q in range(nb):
         c = cs[q]
         d = ptr[c + 1] - ptr[c]
-        kr = _linearize(c, m_edges, ptr, pnode, psign, rot, trans, edge_rot, edge_trans,
-                        edge_lt, gps_pos, gps_lt, pr, pt, jb[e_off[q]:e_off[q] + d], rq)
+        kr = _linearize(
+            c,
+            m_edges,
+            ptr,
+            pnode,
+            psign,
+            rot,
+            trans,
+            edge_rot,
+            edge_trans,
+            edge_lt,
+            gps_pos,
+            gps_lt,
+            pr,
+            pt,
+            jb[e_off[q] : e_off[q] + d],
+            rq,
+        )
         krs[q] = kr
         for i in range(kr):
             rbuf[r_off[q] + i] = rq[i]
         e_off[q + 1] = e_off[q] + d
         r_off[q + 1] = r_off[q] + kr
-    k_rows = r_off[nb]
     # 2. the union of the domains: slot of each node, entries (path positions) per slot
     e_slot = np.empty(ne, np.int64)
     e_q = np.empty(ne, np.int64)
@@ -1012,9 +1103,37 @@ def _batch_relax(cs: np.ndarray, nb: int, tau: float, mu: float, m_edges: int, p
             for p in range(6):
                 x_out[u, p] = gg[6 * u + p, 0]
     else:
-        ok = _woodbury_segments(cs, nb, m_edges, ptr, pnode, psign, rot, trans, parent, edge_rot,
-                                edge_trans, edge_lt, gps_pos, gps_lt, mu, jb, e_off, r_off, krs,
-                                rbuf, e_slot, e_q, cnt, by_slot, bc, slot, nodes_out, nu, x_out)
+        ok = _woodbury_segments(
+            cs,
+            nb,
+            m_edges,
+            ptr,
+            pnode,
+            psign,
+            rot,
+            trans,
+            parent,
+            edge_rot,
+            edge_trans,
+            edge_lt,
+            gps_pos,
+            gps_lt,
+            mu,
+            jb,
+            e_off,
+            r_off,
+            krs,
+            rbuf,
+            e_slot,
+            e_q,
+            cnt,
+            by_slot,
+            bc,
+            slot,
+            nodes_out,
+            nu,
+            x_out,
+        )
         if not ok:
             for u in range(nu):
                 slot[nodes_out[u]] = -1
@@ -1041,12 +1160,31 @@ def _batch_relax(cs: np.ndarray, nb: int, tau: float, mu: float, m_edges: int, p
 
 
 @kernel
-def sweep(order: np.ndarray, tau: float, mu: float, step_kind: int, gps_batch: int,
-          m_edges: int, ptr: np.ndarray, pnode: np.ndarray, psign: np.ndarray, rot: np.ndarray,
-          trans: np.ndarray, edge_rot: np.ndarray, edge_trans: np.ndarray, edge_lt: np.ndarray,
-          gps_pos: np.ndarray, gps_lt: np.ndarray, bdiag: np.ndarray, contrib: np.ndarray,
-          dmax: int, path_count: np.ndarray, parent: np.ndarray, cycles: np.ndarray,
-          counts: np.ndarray) -> int:
+def sweep(
+    order: np.ndarray,
+    tau: float,
+    mu: float,
+    step_kind: int,
+    gps_batch: int,
+    m_edges: int,
+    ptr: np.ndarray,
+    pnode: np.ndarray,
+    psign: np.ndarray,
+    rot: np.ndarray,
+    trans: np.ndarray,
+    edge_rot: np.ndarray,
+    edge_trans: np.ndarray,
+    edge_lt: np.ndarray,
+    gps_pos: np.ndarray,
+    gps_lt: np.ndarray,
+    bdiag: np.ndarray,
+    contrib: np.ndarray,
+    dmax: int,
+    path_count: np.ndarray,
+    parent: np.ndarray,
+    cycles: np.ndarray,
+    counts: np.ndarray,
+) -> int:
     """One pass over the constraints in ``order`` (paper Algorithm 1).
 
     GPS constraints (index >= m_edges) are buffered and relaxed together in batches of
@@ -1075,9 +1213,31 @@ def sweep(order: np.ndarray, tau: float, mu: float, step_kind: int, gps_batch: i
         is_gps = c >= m_edges
         if nbuf > 0 and (not is_gps or nbuf >= gps_batch):
             t0 = cycle_counter()
-            nu = _batch_relax(buf, nbuf, tau, mu, m_edges, ptr, pnode, psign, rot, trans,
-                              edge_rot, edge_trans, edge_lt, gps_pos, gps_lt, bdiag, contrib,
-                              path_count, parent, slot, xb, nodes, True)
+            nu = _batch_relax(
+                buf,
+                nbuf,
+                tau,
+                mu,
+                m_edges,
+                ptr,
+                pnode,
+                psign,
+                rot,
+                trans,
+                edge_rot,
+                edge_trans,
+                edge_lt,
+                gps_pos,
+                gps_lt,
+                bdiag,
+                contrib,
+                path_count,
+                parent,
+                slot,
+                xb,
+                nodes,
+                True,
+            )
             dc = cycle_counter() - t0
             if dc > counts[2]:
                 counts[2] = dc
@@ -1096,9 +1256,33 @@ def sweep(order: np.ndarray, tau: float, mu: float, step_kind: int, gps_batch: i
             nbuf += 1
             continue
         t0 = cycle_counter()
-        st = _relax(c, tau, mu, step_kind, m_edges, ptr, pnode, psign, rot, trans, edge_rot,
-                    edge_trans, edge_lt, gps_pos, gps_lt, bdiag, contrib, pr, pt, jac, lfac, y,
-                    x, r, True)
+        st = _relax(
+            c,
+            tau,
+            mu,
+            step_kind,
+            m_edges,
+            ptr,
+            pnode,
+            psign,
+            rot,
+            trans,
+            edge_rot,
+            edge_trans,
+            edge_lt,
+            gps_pos,
+            gps_lt,
+            bdiag,
+            contrib,
+            pr,
+            pt,
+            jac,
+            lfac,
+            y,
+            x,
+            r,
+            True,
+        )
         dc = cycle_counter() - t0
         cycles[c] = dc
         if dc > counts[2]:
@@ -1113,28 +1297,81 @@ def sweep(order: np.ndarray, tau: float, mu: float, step_kind: int, gps_batch: i
 
 
 @kernel
-def batch_step(cs: np.ndarray, mu: float, m_edges: int, ptr: np.ndarray, pnode: np.ndarray,
-               psign: np.ndarray, rot: np.ndarray, trans: np.ndarray, edge_rot: np.ndarray,
-               edge_trans: np.ndarray, edge_lt: np.ndarray, gps_pos: np.ndarray,
-               gps_lt: np.ndarray, bdiag: np.ndarray, contrib: np.ndarray,
-               path_count: np.ndarray, parent: np.ndarray, tau: float, x_out: np.ndarray,
-               nodes_out: np.ndarray) -> int:
+def batch_step(
+    cs: np.ndarray,
+    mu: float,
+    m_edges: int,
+    ptr: np.ndarray,
+    pnode: np.ndarray,
+    psign: np.ndarray,
+    rot: np.ndarray,
+    trans: np.ndarray,
+    edge_rot: np.ndarray,
+    edge_trans: np.ndarray,
+    edge_lt: np.ndarray,
+    gps_pos: np.ndarray,
+    gps_lt: np.ndarray,
+    bdiag: np.ndarray,
+    contrib: np.ndarray,
+    path_count: np.ndarray,
+    parent: np.ndarray,
+    tau: float,
+    x_out: np.ndarray,
+    nodes_out: np.ndarray,
+) -> int:
     """Relax the batch ``cs`` once with temperature ``tau`` (0: compute the step only)."""
     slot = np.full(rot.shape[0], -1, np.int64)
     work_rot = rot if tau > 0.0 else rot.copy()
     work_trans = trans if tau > 0.0 else trans.copy()
-    return _batch_relax(cs, cs.shape[0], max(tau, 1e-300), mu, m_edges, ptr, pnode, psign,
-                        work_rot, work_trans, edge_rot, edge_trans, edge_lt, gps_pos, gps_lt,
-                        bdiag, contrib, path_count, parent, slot, x_out, nodes_out, True)
+    return _batch_relax(
+        cs,
+        cs.shape[0],
+        max(tau, 1e-300),
+        mu,
+        m_edges,
+        ptr,
+        pnode,
+        psign,
+        work_rot,
+        work_trans,
+        edge_rot,
+        edge_trans,
+        edge_lt,
+        gps_pos,
+        gps_lt,
+        bdiag,
+        contrib,
+        path_count,
+        parent,
+        slot,
+        x_out,
+        nodes_out,
+        True,
+    )
 
 
 @kernel
-def constraint_step(c: int, mu: float, step_kind: int, m_edges: int, ptr: np.ndarray,
-                    pnode: np.ndarray, psign: np.ndarray, rot: np.ndarray, trans: np.ndarray,
-                    edge_rot: np.ndarray, edge_trans: np.ndarray, edge_lt: np.ndarray,
-                    gps_pos: np.ndarray, gps_lt: np.ndarray, bdiag: np.ndarray,
-                    contrib: np.ndarray, jac_out: np.ndarray, r_out: np.ndarray,
-                    x_out: np.ndarray) -> int:
+def constraint_step(
+    c: int,
+    mu: float,
+    step_kind: int,
+    m_edges: int,
+    ptr: np.ndarray,
+    pnode: np.ndarray,
+    psign: np.ndarray,
+    rot: np.ndarray,
+    trans: np.ndarray,
+    edge_rot: np.ndarray,
+    edge_trans: np.ndarray,
+    edge_lt: np.ndarray,
+    gps_pos: np.ndarray,
+    gps_lt: np.ndarray,
+    bdiag: np.ndarray,
+    contrib: np.ndarray,
+    jac_out: np.ndarray,
+    r_out: np.ndarray,
+    x_out: np.ndarray,
+) -> int:
     """Testing hook: linearize c, update blocks as a sweep would, return its step (not applied).
 
     Writes J blocks (d,6,6), r (6,) and x (d,6); returns kr.
@@ -1144,8 +1381,24 @@ def constraint_step(c: int, mu: float, step_kind: int, m_edges: int, ptr: np.nda
     pt = np.empty((d, 3))
     lfac = np.empty((d, 6, 6))
     y = np.empty((d, 6, 6))
-    kr = _linearize(c, m_edges, ptr, pnode, psign, rot, trans, edge_rot, edge_trans, edge_lt,
-                    gps_pos, gps_lt, pr, pt, jac_out, r_out)
+    kr = _linearize(
+        c,
+        m_edges,
+        ptr,
+        pnode,
+        psign,
+        rot,
+        trans,
+        edge_rot,
+        edge_trans,
+        edge_lt,
+        gps_pos,
+        gps_lt,
+        pr,
+        pt,
+        jac_out,
+        r_out,
+    )
     _accumulate_blocks(c, d, kr, ptr, pnode, jac_out, bdiag, contrib, mu, lfac)
     if step_kind == STEP_GIVENS:
         _givens_solve(d, kr, jac_out, lfac, r_out, x_out)

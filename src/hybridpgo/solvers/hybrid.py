@@ -72,7 +72,9 @@ class HybridConfig:
         TreeKind(self.tree)
         InitKind(self.init)
         if not (isinstance(self.gps_batch_size, int) and self.gps_batch_size >= 1):
-            raise ValueError(f"gps_batch_size must be a positive integer, got {self.gps_batch_size!r}")
+            raise ValueError(
+                f"gps_batch_size must be a positive integer, got {self.gps_batch_size!r}"
+            )
         if not (self.energy_tolerance >= 0):
             raise ValueError("energy_tolerance must be >= 0")
         if not (isinstance(self.polish_iterations, int) and self.polish_iterations >= 0):
@@ -104,14 +106,27 @@ def _ensure_compiled() -> float:
         return 0.0
     t0 = time.perf_counter()
     eye = np.tile(np.eye(3), (3, 1, 1))
-    tiny = PoseGraph(node_ids=np.arange(3), rotations=eye, translations=np.eye(3),
-                     edge_nodes=np.array([[0, 1], [1, 2], [0, 2]], np.int32), edge_rotations=eye,
-                     edge_translations=np.ones((3, 3)), edge_information=np.tile(np.eye(6), (3, 1, 1)),
-                     gps_nodes=np.array([2], np.int32), gps_positions=np.ones((1, 3)),
-                     gps_information=np.eye(3)[None])
-    for g in (tiny, dataclasses.replace(tiny, gps_nodes=np.zeros(0, np.int32),
-                                        gps_positions=np.zeros((0, 3)),
-                                        gps_information=np.zeros((0, 3, 3)))):
+    tiny = PoseGraph(
+        node_ids=np.arange(3),
+        rotations=eye,
+        translations=np.eye(3),
+        edge_nodes=np.array([[0, 1], [1, 2], [0, 2]], np.int32),
+        edge_rotations=eye,
+        edge_translations=np.ones((3, 3)),
+        edge_information=np.tile(np.eye(6), (3, 1, 1)),
+        gps_nodes=np.array([2], np.int32),
+        gps_positions=np.ones((1, 3)),
+        gps_information=np.eye(3)[None],
+    )
+    for g in (
+        tiny,
+        dataclasses.replace(
+            tiny,
+            gps_nodes=np.zeros(0, np.int32),
+            gps_positions=np.zeros((0, 3)),
+            gps_information=np.zeros((0, 3, 3)),
+        ),
+    ):
         _solve(g, HybridConfig(sweeps=1, init="tree"), None, None, None, compile_s=0.0)
     return time.perf_counter() - t0
 
@@ -133,39 +148,59 @@ class HybridState:
     extra: dict[str, Any] = field(default_factory=dict)
 
     @classmethod
-    def create(cls, graph: PoseGraph, tree: PoseTree, rot: FloatArray,
-               trans: FloatArray) -> HybridState:
+    def create(
+        cls, graph: PoseGraph, tree: PoseTree, rot: FloatArray, trans: FloatArray
+    ) -> HybridState:
         # Omega = L L^T; the whitened error is L^T e (DESIGN §1)
         edge_lt = np.ascontiguousarray(
-            np.swapaxes(np.linalg.cholesky(graph.edge_information), 1, 2))
+            np.swapaxes(np.linalg.cholesky(graph.edge_information), 1, 2)
+        )
         if graph.num_gps:
             gps_lt = np.ascontiguousarray(
-                np.swapaxes(np.linalg.cholesky(graph.gps_information), 1, 2))
+                np.swapaxes(np.linalg.cholesky(graph.gps_information), 1, 2)
+            )
         else:
             gps_lt = np.zeros((0, 3, 3))
         lengths = tree.path_lengths()
         dmax = max(int(lengths.max()) if lengths.size else 1, 1)
-        state = cls(graph=graph, tree=tree, rot=np.ascontiguousarray(rot, np.float64),
-                    trans=np.ascontiguousarray(trans, np.float64), edge_lt=edge_lt,
-                    gps_lt=gps_lt, bdiag=np.zeros((tree.num_tree_nodes, 6, 6)),
-                    contrib=np.zeros((int(tree.path_ptr[-1]), 6, 6)), dmax=dmax,
-                    path_count=np.bincount(tree.path_node,
-                                           minlength=tree.num_tree_nodes).astype(np.int64))
+        state = cls(
+            graph=graph,
+            tree=tree,
+            rot=np.ascontiguousarray(rot, np.float64),
+            trans=np.ascontiguousarray(trans, np.float64),
+            edge_lt=edge_lt,
+            gps_lt=gps_lt,
+            bdiag=np.zeros((tree.num_tree_nodes, 6, 6)),
+            contrib=np.zeros((int(tree.path_ptr[-1]), 6, 6)),
+            dmax=dmax,
+            path_count=np.bincount(tree.path_node, minlength=tree.num_tree_nodes).astype(np.int64),
+        )
         state.rebuild_blocks()
         return state
 
     def kernel_args(self) -> tuple[Any, ...]:
         g, t = self.graph, self.tree
-        return (g.num_edges, t.path_ptr, t.path_node, t.path_sign, self.rot, self.trans,
-                g.edge_rotations, g.edge_translations, self.edge_lt, g.gps_positions,
-                self.gps_lt)
+        return (
+            g.num_edges,
+            t.path_ptr,
+            t.path_node,
+            t.path_sign,
+            self.rot,
+            self.trans,
+            g.edge_rotations,
+            g.edge_translations,
+            self.edge_lt,
+            g.gps_positions,
+            self.gps_lt,
+        )
 
     def rebuild_blocks(self) -> None:
         """Recompute 𝔅(H) and all contributions from scratch at the current poses."""
         hk.init_blocks(*self.kernel_args(), self.bdiag, self.contrib, self.dmax)
 
-    def batch_step(self, constraints: npt.ArrayLike, damping: float = 1e-6,
-                   tau: float = 0.0) -> tuple[npt.NDArray[np.int64], FloatArray]:
+    def batch_step(
+        self, constraints: npt.ArrayLike, damping: float = 1e-6, tau: float = 0.0
+    ) -> tuple[npt.NDArray[np.int64], FloatArray]:
         """Hybrid step of a batch of constraints (paper eq. 35-37) over their domains' union.
 
         Returns ``(nodes, x)``: the union's tree nodes and their (6,) steps.  With ``tau > 0``
@@ -175,8 +210,18 @@ class HybridState:
         nt = self.tree.num_tree_nodes
         x = np.zeros((nt, 6))
         nodes = np.zeros(nt, np.int64)
-        nu = hk.batch_step(cs, damping, *self.kernel_args(), self.bdiag, self.contrib,
-                           self.path_count, self.tree.parent, tau, x, nodes)
+        nu = hk.batch_step(
+            cs,
+            damping,
+            *self.kernel_args(),
+            self.bdiag,
+            self.contrib,
+            self.path_count,
+            self.tree.parent,
+            tau,
+            x,
+            nodes,
+        )
         if nu < 0:
             raise SolverError("the batch step was not finite")
         return nodes[:nu].copy(), x[:nu].copy()
@@ -189,10 +234,14 @@ class HybridState:
         return energy(self.graph, r, t)
 
 
-def solve_hybrid(graph: PoseGraph, config: HybridConfig | None = None, *,
-                 tree: PoseTree | None = None, progress: ProgressFn | None = None,
-                 initial_locals_override: tuple[FloatArray, FloatArray] | None = None,
-                 ) -> SolveResult:
+def solve_hybrid(
+    graph: PoseGraph,
+    config: HybridConfig | None = None,
+    *,
+    tree: PoseTree | None = None,
+    progress: ProgressFn | None = None,
+    initial_locals_override: tuple[FloatArray, FloatArray] | None = None,
+) -> SolveResult:
     """Optimize ``graph`` with the hybrid Hessian method.
 
     Parameters
@@ -220,10 +269,14 @@ def solve_hybrid(graph: PoseGraph, config: HybridConfig | None = None, *,
     return _solve(graph, cfg, tree, progress, initial_locals_override, compile_s)
 
 
-def _solve(graph: PoseGraph, cfg: HybridConfig, tree: PoseTree | None,
-           progress: ProgressFn | None,
-           initial_locals_override: tuple[FloatArray, FloatArray] | None,
-           compile_s: float) -> SolveResult:
+def _solve(
+    graph: PoseGraph,
+    cfg: HybridConfig,
+    tree: PoseTree | None,
+    progress: ProgressFn | None,
+    initial_locals_override: tuple[FloatArray, FloatArray] | None,
+    compile_s: float,
+) -> SolveResult:
     t_start = time.perf_counter()
     if tree is None:
         tree = build_tree(graph, cfg.tree)
@@ -252,9 +305,21 @@ def _solve(graph: PoseGraph, cfg: HybridConfig, tree: PoseTree | None,
     sweeps_done = 0
     for k in range(cfg.sweeps):
         t0 = time.perf_counter()
-        bad = hk.sweep(tree.sweep_order, tau, cfg.damping, step_kind, cfg.gps_batch_size,
-                       *state.kernel_args(), state.bdiag, state.contrib, state.dmax,
-                       state.path_count, tree.parent, cycles, counts)
+        bad = hk.sweep(
+            tree.sweep_order,
+            tau,
+            cfg.damping,
+            step_kind,
+            cfg.gps_batch_size,
+            *state.kernel_args(),
+            state.bdiag,
+            state.contrib,
+            state.dmax,
+            state.path_count,
+            tree.parent,
+            cycles,
+            counts,
+        )
         solve_time += time.perf_counter() - t0
         sweeps_done += 1
         if bad >= 0 and first_bad < 0:
@@ -268,8 +333,12 @@ def _solve(graph: PoseGraph, cfg: HybridConfig, tree: PoseTree | None,
             progress(k + 1, e, tau)
         if not np.isfinite(e):
             raise SolverError(f"the energy became non-finite in sweep {k + 1}")
-        if cfg.energy_tolerance > 0 and history[-2] > 0 and \
-                (history[-2] - e) / history[-2] < cfg.energy_tolerance and e <= history[-2]:
+        if (
+            cfg.energy_tolerance > 0
+            and history[-2] > 0
+            and (history[-2] - e) / history[-2] < cfg.energy_tolerance
+            and e <= history[-2]
+        ):
             status = Status.CONVERGED
             break
     if nc and counts[1] >= nc * max(sweeps_done, 1):
@@ -296,9 +365,9 @@ def _solve(graph: PoseGraph, cfg: HybridConfig, tree: PoseTree | None,
         from .gauss_newton import GaussNewtonConfig, solve_exact
 
         t0 = time.perf_counter()
-        polished = solve_exact(graph, rot, trans,
-                               GaussNewtonConfig(method="lm",
-                                                 max_iterations=cfg.polish_iterations))
+        polished = solve_exact(
+            graph, rot, trans, GaussNewtonConfig(method="lm", max_iterations=cfg.polish_iterations)
+        )
         timings["polish"] = time.perf_counter() - t0
         rot, trans = polished.rotations, polished.translations
         offset = times[-1]
@@ -308,7 +377,15 @@ def _solve(graph: PoseGraph, cfg: HybridConfig, tree: PoseTree | None,
         stats["polish_status"] = polished.status.value
         status = polished.status
         method = "hybrid+polish"
-    return SolveResult(rotations=rot, translations=trans, status=status,
-                       iterations=sweeps_done, energy_history=np.asarray(history),
-                       times=np.asarray(times), method=method,
-                       num_constraints=graph.num_constraints, timings=timings, stats=stats)
+    return SolveResult(
+        rotations=rot,
+        translations=trans,
+        status=status,
+        iterations=sweeps_done,
+        energy_history=np.asarray(history),
+        times=np.asarray(times),
+        method=method,
+        num_constraints=graph.num_constraints,
+        timings=timings,
+        stats=stats,
+    )

@@ -1,0 +1,201 @@
+"""Allocation-free SE(3) kernels for the solvers' hot loops (shared by GN/LM and hybrid).
+
+They compute exactly what :mod:`hybridpgo.geometry._kernels` computes (same formulas, same
+series thresholds) into caller-provided buffers, so a per-constraint update allocates nothing.
+``tests/test_gauss_newton.py`` and ``tests/test_hybrid.py`` check them against those kernels.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .._numba import kernel
+from ._kernels import NEAR_PI, Q_SERIES_ANGLE, SMALL_ANGLE
+
+
+@kernel
+def mm3(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """out = a @ b for (3, 3) arrays (out must not alias a or b)."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
+
+
+@kernel
+def skew_into(v0: float, v1: float, v2: float, out: np.ndarray) -> None:
+    out[0, 0] = 0.0
+    out[0, 1] = -v2
+    out[0, 2] = v1
+    out[1, 0] = v2
+    out[1, 1] = 0.0
+    out[1, 2] = -v0
+    out[2, 0] = -v1
+    out[2, 1] = v0
+    out[2, 2] = 0.0
+
+
+@kernel
+def so3_log_into(r: np.ndarray, out: np.ndarray) -> None:
+    """out[3:6] = Log(R), exactly as geometry's ``so3_log`` (series / generic / near pi)."""
+    vx = 0.5 * (r[2, 1] - r[1, 2])
+    vy = 0.5 * (r[0, 2] - r[2, 0])
+    vz = 0.5 * (r[1, 0] - r[0, 1])
+    s = math.sqrt(vx * vx + vy * vy + vz * vz)  # sin(theta)
+    c = 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0)  # cos(theta)
+    th = math.atan2(s, c)
+    if th < SMALL_ANGLE:
+        f = 1.0 + th * th / 6.0  # th/sin(th) = 1 + th^2/6 + 7 th^4/360
+        out[3] = f * vx
+        out[4] = f * vy
+        out[5] = f * vz
+        return
+    if math.pi - th > NEAR_PI:
+        f = th / s
+        out[3] = f * vx
+        out[4] = f * vy
+        out[5] = f * vz
+        return
+    # Near pi: R + R^T = 2 cos(th) I + 2 (1 - cos th) a a^T; take the largest diagonal column.
+    d0 = r[0, 0] - c
+    d1 = r[1, 1] - c
+    d2 = r[2, 2] - c
+    k = 0
+    if d1 > d0 and d1 >= d2:
+        k = 1
+    elif d2 > d0 and d2 > d1:
+        k = 2
+    a0 = 0.5 * (r[0, k] + r[k, 0]) - (c if k == 0 else 0.0)
+    a1 = 0.5 * (r[1, k] + r[k, 1]) - (c if k == 1 else 0.0)
+    a2 = 0.5 * (r[2, k] + r[k, 2]) - (c if k == 2 else 0.0)
+    n = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    sign = 1.0
+    if a0 * vx + a1 * vy + a2 * vz < 0.0:
+        sign = -1.0
+    out[3] = sign * th * a0 / n
+    out[4] = sign * th * a1 / n
+    out[5] = sign * th * a2 / n
+
+
+@kernel
+def jl_inv_coeff(th: float) -> float:
+    """c of J_l(phi)^-1 = I - 1/2 [phi]x + c [phi]x^2 (geometry's ``so3_left_jacobian_inv``)."""
+    if th < SMALL_ANGLE:
+        return 1.0 / 12.0 + th * th / 720.0  # + th^4/30240
+    return 1.0 / (th * th) - math.cos(0.5 * th) / (2.0 * th * math.sin(0.5 * th))
+
+
+@kernel
+def edge_error_into(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.ndarray,
+                    rz: np.ndarray, tz: np.ndarray, rab: np.ndarray, tab: np.ndarray,
+                    re: np.ndarray, e: np.ndarray) -> None:
+    """e = Log(Z^-1 X_a^-1 X_b) = (V(phi)^-1 t_e, phi); also X_a^-1 X_b -> (rab, tab).
+
+    ``re`` (3, 3) is scratch (it receives the rotation of Z^-1 X_a^-1 X_b).
+    """
+    d0 = tb[0] - ta[0]
+    d1 = tb[1] - ta[1]
+    d2 = tb[2] - ta[2]
+    for i in range(3):
+        tab[i] = ra[0, i] * d0 + ra[1, i] * d1 + ra[2, i] * d2
+        for j in range(3):
+            rab[i, j] = ra[0, i] * rb[0, j] + ra[1, i] * rb[1, j] + ra[2, i] * rb[2, j]
+    u0 = tab[0] - tz[0]
+    u1 = tab[1] - tz[1]
+    u2 = tab[2] - tz[2]
+    for i in range(3):
+        for j in range(3):
+            re[i, j] = rz[0, i] * rab[0, j] + rz[1, i] * rab[1, j] + rz[2, i] * rab[2, j]
+    t0 = rz[0, 0] * u0 + rz[1, 0] * u1 + rz[2, 0] * u2
+    t1 = rz[0, 1] * u0 + rz[1, 1] * u1 + rz[2, 1] * u2
+    t2 = rz[0, 2] * u0 + rz[1, 2] * u1 + rz[2, 2] * u2
+    so3_log_into(re, e)
+    p0 = e[3]
+    p1 = e[4]
+    p2 = e[5]
+    c = jl_inv_coeff(math.sqrt(p0 * p0 + p1 * p1 + p2 * p2))
+    # rho = Jl^-1(phi) t = t - 1/2 phi x t + c phi x (phi x t)
+    x0 = p1 * t2 - p2 * t1
+    x1 = p2 * t0 - p0 * t2
+    x2 = p0 * t1 - p1 * t0
+    y0 = p1 * x2 - p2 * x1
+    y1 = p2 * x0 - p0 * x2
+    y2 = p0 * x1 - p1 * x0
+    e[0] = t0 - 0.5 * x0 + c * y0
+    e[1] = t1 - 0.5 * x1 + c * y1
+    e[2] = t2 - 0.5 * x2 + c * y2
+
+
+@kernel
+def q_into(r0: float, r1: float, r2: float, p0: float, p1: float, p2: float,
+            w: np.ndarray, q: np.ndarray) -> None:
+    """Barfoot's Q(rho, phi) into q, exactly as geometry's ``_q_matrix``; w: >= 7 scratch."""
+    th2 = p0 * p0 + p1 * p1 + p2 * p2
+    th = math.sqrt(th2)
+    if th < Q_SERIES_ANGLE:
+        # (th - sin th)/th^3 = 1/6 - th^2/120 + th^4/5040 - th^6/362880
+        a1 = 1.0 / 6.0 - th2 / 120.0 * (1.0 - th2 / 42.0 * (1.0 - th2 / 72.0))
+        # (1 - th^2/2 - cos th)/th^4 = -1/24 + th^2/720 - th^4/40320 + th^6/3628800
+        a2 = -1.0 / 24.0 + th2 / 720.0 * (1.0 - th2 / 56.0 * (1.0 - th2 / 90.0))
+        # (th - sin th - th^3/6)/th^5 = -1/120 + th^2/5040 - th^4/362880 + th^6/39916800
+        a3 = -1.0 / 120.0 + th2 / 5040.0 * (1.0 - th2 / 72.0 * (1.0 - th2 / 110.0))
+    else:
+        s = math.sin(th)
+        c = math.cos(th)
+        a1 = (th - s) / (th2 * th)
+        a2 = (1.0 - 0.5 * th2 - c) / (th2 * th2)
+        a3 = (th - s - th2 * th / 6.0) / (th2 * th2 * th)
+    rx = w[0]
+    px = w[1]
+    pr = w[2]
+    rp = w[3]
+    prp = w[4]
+    m1 = w[5]
+    m2 = w[6]
+    skew_into(r0, r1, r2, rx)
+    skew_into(p0, p1, p2, px)
+    mm3(px, rx, pr)
+    mm3(rx, px, rp)
+    mm3(pr, px, prp)
+    b4 = 0.5 * (a2 - 3.0 * a3)
+    for i in range(3):
+        for j in range(3):
+            q[i, j] = 0.5 * rx[i, j] + a1 * (pr[i, j] + rp[i, j] + prp[i, j]) + 3.0 * a2 * prp[i, j]
+    mm3(px, pr, m1)  # px pr
+    mm3(rp, px, m2)  # rp px
+    for i in range(3):
+        for j in range(3):
+            q[i, j] -= a2 * (m1[i, j] + m2[i, j])
+    mm3(prp, px, m1)
+    mm3(px, prp, m2)
+    for i in range(3):
+        for j in range(3):
+            q[i, j] -= b4 * (m1[i, j] + m2[i, j])
+
+
+@kernel
+def jr_inv_blocks(e: np.ndarray, w: np.ndarray) -> None:
+    """Jr^-1(e) = Jl^-1(-e) = [[J, K], [0, J]]: J -> w[8], K -> w[9] (w[0:8] scratch).
+
+    J = Jl^-1(-phi) = I + 1/2 [phi]x + c [phi]x^2, K = -J Q(-rho, -phi) J.
+    """
+    p0 = e[3]
+    p1 = e[4]
+    p2 = e[5]
+    c = jl_inv_coeff(math.sqrt(p0 * p0 + p1 * p1 + p2 * p2))
+    jm = w[8]
+    km = w[9]
+    q = w[7]
+    px = w[0]
+    skew_into(p0, p1, p2, px)
+    mm3(px, px, w[1])
+    for i in range(3):
+        for j in range(3):
+            jm[i, j] = (1.0 if i == j else 0.0) + 0.5 * px[i, j] + c * w[1][i, j]
+    q_into(-e[0], -e[1], -e[2], -p0, -p1, -p2, w, q)
+    mm3(q, jm, w[0])
+    mm3(jm, w[0], km)
+    for i in range(3):
+        for j in range(3):
+            km[i, j] = -km[i, j]
