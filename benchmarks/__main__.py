@@ -38,7 +38,8 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
-    ctx = Context(data_dir=args.data_dir, quick=args.quick, cache={})
+    ctx = Context(data_dir=args.data_dir, quick=args.quick, cache={},
+                  figures=HERE / "results" / "figures")
     metrics, tables = [], []
     for name in args.only or list(WORKLOADS):
         t0 = time.perf_counter()

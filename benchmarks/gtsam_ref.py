@@ -79,6 +79,7 @@ def gtsam_solve(
     params.setMaxIterations(max_iterations)
     params.setRelativeErrorTol(1e-10)
     params.setAbsoluteErrorTol(0.0)
+    e0 = 2.0 * factors.error(values)
     t0 = time.perf_counter()
     opt = (
         gtsam.GaussNewtonOptimizer(full, values, params)
@@ -88,6 +89,7 @@ def gtsam_solve(
     result = opt.optimize()
     seconds = time.perf_counter() - t0
     return {
+        "initial_energy": e0,
         "final_energy": 2.0 * factors.error(result),
         "iterations": int(opt.iterations()),
         "seconds": seconds,

@@ -29,6 +29,7 @@ class Context:
     data_dir: pathlib.Path
     quick: bool
     cache: dict[str, Any]
+    figures: pathlib.Path | None = None
 
     def graph(self, name: str) -> PoseGraph:
         if name not in self.cache:
@@ -95,6 +96,7 @@ def exact(ctx: Context) -> Result:
         row: list[Any] = [
             name,
             init,
+            res.initial_energy,
             target,
             res.final_energy,
             f"{rel:.1e}",
@@ -111,6 +113,7 @@ def exact(ctx: Context) -> Result:
                 info(f"{s}.gtsam_lm.seconds", lm["seconds"], "s"),
             ]
             row += [
+                f"{abs(gn['initial_energy'] - res.initial_energy) / res.initial_energy:.1e}",
                 gn["final_energy"],
                 gn["iterations"],
                 f"{gn['seconds']:.3f}",
@@ -119,19 +122,21 @@ def exact(ctx: Context) -> Result:
                 f"{lm['seconds']:.3f}",
             ]
         else:
-            row += ["-"] * 6
+            row += ["-"] * 7
         rows.append(row)
     table = markdown_table(
         "Exact solver (our LM) vs GTSAM, same start, same machine",
         [
             "file",
             "start",
+            "E at start",
             "target E",
             "our E",
             "rel. diff",
             "iters",
             "ms/iter",
             "solve s",
+            "|E0 - 2 GTSAM err0| / E0",
             "GTSAM GN E",
             "GN iters",
             "GN s",
@@ -461,6 +466,20 @@ WORKLOADS: dict[str, Callable[[Context], Result]] = {
 
 
 # ------------------------------------------------------------------ GPS and the city (issue 4)
+def _city_figure(c: Any, res: Any, path: pathlib.Path) -> None:
+    """Before (tree initialization) / after (hybrid) map with residuals, GPS ones included."""
+    try:
+        from hybridpgo.plot import graph_figure, save_figure
+    except ImportError:  # pragma: no cover - matplotlib missing
+        return
+    g = c.graph
+    before = start(g, "tree")
+    fig = graph_figure(g, [before, (res.rotations, res.translations)],
+                       titles=[f"{c.name}: tree initialization", f"{c.name}: hybrid, 10 sweeps"])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_figure(fig, path)
+
+
 def city(ctx: Context) -> Result:
     from hybridpgo.generate import generate_city
     from hybridpgo.metrics import evaluate
@@ -482,6 +501,8 @@ def city(ctx: Context) -> Result:
                 g, None, None, GaussNewtonConfig(max_iterations=100)
             )
             ctx.cache[f"city:{tag}"] = (c, runs)
+            if gps_every and ctx.figures is not None:
+                _city_figure(c, runs["hybrid"], ctx.figures / f"city_{tag}.png")
             for label, res in runs.items():
                 ev = evaluate(
                     res.rotations,
