@@ -177,6 +177,7 @@ def test_incremental_block_diagonal_stays_consistent():
             state.path_count,
             tree.parent,
             cycles,
+            np.zeros_like(cycles),
             counts,
         )
         summed = np.zeros_like(state.bdiag)
@@ -198,6 +199,7 @@ def test_incremental_block_diagonal_stays_consistent():
         state.path_count,
         tree.parent,
         cycles,
+        np.zeros_like(cycles),
         counts,
     )
     kept = state.bdiag.copy()

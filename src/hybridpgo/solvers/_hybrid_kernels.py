@@ -1183,6 +1183,7 @@ def sweep(
     path_count: np.ndarray,
     parent: np.ndarray,
     cycles: np.ndarray,
+    batch_cycles: np.ndarray,
     counts: np.ndarray,
 ) -> int:
     """One pass over the constraints in ``order`` (paper Algorithm 1).
@@ -1190,7 +1191,8 @@ def sweep(
     GPS constraints (index >= m_edges) are buffered and relaxed together in batches of
     ``gps_batch`` (flushed when full and before every relative constraint).
     ``cycles[c]`` receives the cycle count of constraint c's update (a batch's count is shared
-    among its members); ``counts`` accumulates [capped steps, rejected steps, max cycles of one
+    among its members, and ``batch_cycles[first member]`` gets the whole batch's count);
+    ``counts`` accumulates [capped steps, rejected steps, max cycles of one
     update, batches].  Returns the first rejected constraint or -1.
     """
     pr = np.empty((dmax, 3, 3))
@@ -1244,6 +1246,7 @@ def sweep(
             counts[3] += 1
             for q in range(nbuf):
                 cycles[buf[q]] = dc // nbuf
+            batch_cycles[buf[0]] = dc
             if nu < 0:
                 counts[1] += nbuf
                 if first_bad < 0:

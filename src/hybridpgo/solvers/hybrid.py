@@ -291,6 +291,8 @@ def _solve(
     step_kind = STEP_KINDS[cfg.step]
     nc = tree.num_constraints
     cycles = np.zeros(nc, np.uint64)
+    batch_cycles = np.zeros(nc, np.uint64)
+    batch_steady = np.full(nc, np.iinfo(np.uint64).max, np.uint64)
     counts = np.zeros(4, np.int64)
     sum_cycles = 0.0
     # per constraint, its cheapest update over the sweeps: the cost of the update itself, free of
@@ -322,6 +324,7 @@ def _solve(
             state.path_count,
             tree.parent,
             cycles,
+            batch_cycles,
             counts,
         )
         solve_time += time.perf_counter() - t0
@@ -330,6 +333,7 @@ def _solve(
             first_bad = int(bad)
         sum_cycles += float(cycles.sum())
         np.minimum(steady, cycles, out=steady)
+        np.minimum(batch_steady, batch_cycles, out=batch_steady)
         if nc:
             p999 = max(p999, float(np.quantile(cycles, 0.999)))
         e = state.energy()
@@ -363,6 +367,9 @@ def _solve(
             float(steady.max()) / freq * 1e6 if sweeps_done and nc else 0.0
         ),
         "gps_batches": int(counts[3]),
+        "ms_per_gps_batch_max_steady": (
+            float(batch_steady[batch_steady < np.iinfo(np.uint64).max].max(initial=0)) / freq * 1e3
+        ),
         "capped_steps": int(counts[0]),
         "rejected_steps": int(counts[1]),
         "first_rejected_constraint": first_bad,
