@@ -222,10 +222,12 @@ def hybrid_quality(ctx: Context) -> Result:
         s = _stem(name)
         _hybrid(g, sweeps=1)
         r30 = _hybrid(g, sweeps=10 if ctx.quick else 30)
+        pol = _hybrid(g, sweeps=10, polish=True, polish_iterations=200)
         e10 = r30.energy_history[min(10, len(r30.energy_history) - 1)]
         metrics += [
             quality(f"{s}.hybrid10.energy_ratio", e10 / opt),
             quality(f"{s}.hybrid30.energy_ratio", r30.final_energy / opt),
+            quality(f"{s}.hybrid10_polish.energy_ratio", pol.final_energy / opt),
             timing(f"{s}.hybrid.us_per_constraint", r30.stats["us_per_constraint_mean"], "us"),
             timing(f"{s}.hybrid.us_per_constraint_max", r30.stats["us_per_constraint_max"], "us"),
             timing(f"{s}.hybrid.us_per_constraint_max_steady",
@@ -237,6 +239,7 @@ def hybrid_quality(ctx: Context) -> Result:
                 r30.initial_energy / opt,
                 e10 / opt,
                 r30.final_energy / opt,
+                f"{pol.final_energy / opt:.9f}",
                 f"{r30.stats['us_per_constraint_mean']:.2f}",
                 f"{r30.stats['us_per_constraint_max']:.0f}",
                 f"{r30.stats['us_per_constraint_max_steady']:.0f}",
@@ -252,6 +255,7 @@ def hybrid_quality(ctx: Context) -> Result:
                 "initial",
                 "10 sweeps",
                 "30 sweeps",
+                "10 sweeps + LM polish",
                 "us/constraint mean",
                 "max us",
                 "steady max us",
