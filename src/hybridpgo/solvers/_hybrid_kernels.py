@@ -49,11 +49,12 @@ def _chol_inplace(a: np.ndarray, n: int) -> bool:
             return False
         d = math.sqrt(s)
         a[j, j] = d
+        inv_d = 1.0 / d  # one division per column (divisions dominate 6x6 factorizations)
         for i in range(j + 1, n):
             s = a[i, j]
             for k in range(j):
                 s -= a[i, k] * a[j, k]
-            a[i, j] = s / d
+            a[i, j] = s * inv_d
         for i in range(j):
             a[i, j] = 0.0
     return True
@@ -310,12 +311,13 @@ def _woodbury_solve(
         smat[i, i] = 1.0
     for k in range(d):
         lk = lfac[k]
-        for q in range(kr):
-            for i in range(6):
+        for i in range(6):
+            inv = 1.0 / lk[i, i]
+            for q in range(kr):
                 acc = jac[k, q, i]
                 for m in range(i):
                     acc -= lk[i, m] * y[k, m, q]
-                y[k, i, q] = acc / lk[i, i]
+                y[k, i, q] = acc * inv
         for p in range(kr):
             for q in range(p, kr):
                 acc = 0.0
