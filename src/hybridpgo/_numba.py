@@ -39,7 +39,9 @@ def _make_cycle_counter() -> Any:
 
         def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
             fnty = ir.FunctionType(ir.IntType(64), [])
-            fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.readcyclecounter")
+            fn = cgutils.get_or_insert_function(  # type: ignore[no-untyped-call]
+                builder.module, fnty, "llvm.readcyclecounter"
+            )
             return builder.call(fn, [])
 
         return sig, codegen

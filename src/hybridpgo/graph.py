@@ -29,7 +29,7 @@ SYMMETRY_RTOL = 1e-9
 
 
 def _frozen(a: np.ndarray, dtype: type, shape_tail: tuple[int, ...], name: str) -> np.ndarray:
-    arr = np.array(a, dtype=dtype, order="C", copy=True)  # never freeze the caller's array
+    arr: np.ndarray = np.array(a, dtype=dtype, order="C", copy=True)  # never freeze the caller's
     if arr.ndim != 1 + len(shape_tail) or arr.shape[1:] != shape_tail:
         raise GraphError(
             f"{name} must have shape (n, {', '.join(map(str, shape_tail))})"
@@ -231,7 +231,8 @@ class PoseGraph:
         size = n + (1 if self.num_gps else 0)
         adj = sp.coo_matrix((np.ones(a.shape[0]), (a, b)), shape=(size, size))
         _, labels = connected_components(adj, directed=False)
-        return labels[:n].astype(np.int32)
+        out: npt.NDArray[np.int32] = labels[:n].astype(np.int32)
+        return out
 
     def check_connected(self, source: str = "the graph") -> None:
         """Raise :class:`GraphError` naming the parts when the graph is not connected."""

@@ -26,12 +26,14 @@ def _project_to_so3(m: FloatArray) -> FloatArray:
     u, _, vt = np.linalg.svd(m)
     det = np.linalg.det(u @ vt)
     u[:, :, 2] *= det[:, None]
-    return u @ vt
+    out: FloatArray = u @ vt
+    return out
 
 
 def _solve_spd(a: sp.spmatrix, b: FloatArray) -> FloatArray:
     lu = spla.splu(sp.csc_matrix(a), permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
-    return lu.solve(b)
+    out: FloatArray = lu.solve(b)
+    return out
 
 
 def chordal_initialization(

@@ -104,7 +104,8 @@ class PoseTree:
 
 
 def _stiffness(info: FloatArray) -> FloatArray:
-    return np.trace(info, axis1=1, axis2=2)
+    out: FloatArray = np.trace(info, axis1=1, axis2=2)
+    return out
 
 
 def build_tree(graph: PoseGraph, kind: TreeKind | str = TreeKind.BFS) -> PoseTree:

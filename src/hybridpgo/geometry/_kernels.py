@@ -53,7 +53,8 @@ def so3_exp(phi: np.ndarray) -> np.ndarray:
         a = math.sin(th) / th
         b = (1.0 - math.cos(th)) / th2
     k = skew(phi)
-    return np.eye(3) + a * k + b * (k @ k)
+    out: np.ndarray = np.eye(3) + a * k + b * (k @ k)
+    return out
 
 
 @kernel
@@ -115,7 +116,8 @@ def so3_left_jacobian(phi: np.ndarray) -> np.ndarray:
     th = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
     b, c = _v_coeffs(th)
     k = skew(phi)
-    return np.eye(3) + b * k + c * (k @ k)
+    out: np.ndarray = np.eye(3) + b * k + c * (k @ k)
+    return out
 
 
 @kernel
@@ -127,7 +129,8 @@ def so3_left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
     else:
         c = 1.0 / (th * th) - math.cos(0.5 * th) / (2.0 * th * math.sin(0.5 * th))
     k = skew(phi)
-    return np.eye(3) - 0.5 * k + c * (k @ k)
+    out: np.ndarray = np.eye(3) - 0.5 * k + c * (k @ k)
+    return out
 
 
 @kernel
@@ -172,8 +175,9 @@ def _q_matrix(rho: np.ndarray, phi: np.ndarray) -> np.ndarray:
     pr = px @ rx
     rp = rx @ px
     prp = pr @ px
-    return (0.5 * rx + a1 * (pr + rp + prp) - a2 * (px @ pr + rp @ px - 3.0 * prp)
-            - 0.5 * (a2 - 3.0 * a3) * (prp @ px + px @ prp))
+    out: np.ndarray = (0.5 * rx + a1 * (pr + rp + prp) - a2 * (px @ pr + rp @ px - 3.0 * prp)
+                       - 0.5 * (a2 - 3.0 * a3) * (prp @ px + px @ prp))
+    return out
 
 
 @kernel

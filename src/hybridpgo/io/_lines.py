@@ -409,7 +409,8 @@ def matrix_to_quat_xyzw(r: FloatArray) -> FloatArray:
     q[m, 1] = (r[m, 1, 2] + r[m, 2, 1]) / s
     q[m, 2] = 0.25 * s
     q[q[:, 3] < 0.0] *= -1.0
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
+    out: FloatArray = q / np.linalg.norm(q, axis=1, keepdims=True)
+    return out
 
 
 def euler_rpy_to_matrix(rpy: FloatArray) -> FloatArray:
@@ -489,7 +490,9 @@ def check_duplicate_vertices(src: Source, ids: IntArray, line_nos: IntArray) -> 
 
 
 def check_self_loops(src: Source, edge_ids: IntArray, line_nos: IntArray) -> None:
-    loops = np.nonzero(edge_ids[:, 0] == edge_ids[:, 1])[0] if edge_ids.size else []
+    loops: npt.NDArray[np.intp] = (
+        np.nonzero(edge_ids[:, 0] == edge_ids[:, 1])[0] if edge_ids.size else np.zeros(0, np.intp)
+    )
     if len(loops):
         k = int(loops[0])
         tag = src.lines[int(line_nos[k]) - 1].split()[0]

@@ -1151,13 +1151,13 @@ def _batch_relax(
         ang = math.sqrt(x_out[u, 3] ** 2 + x_out[u, 4] ** 2 + x_out[u, 5] ** 2)
         if ang > biggest:
             biggest = ang
-    t = tau
-    if t * biggest > MAX_ROTATION:
-        t = MAX_ROTATION / biggest
+    t_step = tau
+    if t_step * biggest > MAX_ROTATION:
+        t_step = MAX_ROTATION / biggest
     er = np.empty((3, 3))
     tmp = np.empty((3, 3))
     for u in range(nu):
-        _apply_step(rot[nodes_out[u]], trans[nodes_out[u]], x_out[u], t, er, tmp)
+        _apply_step(rot[nodes_out[u]], trans[nodes_out[u]], x_out[u], t_step, er, tmp)
     return nu
 
 
