@@ -93,7 +93,7 @@ def _regularized_factor(bc: np.ndarray, scale: float, mu: float, out: np.ndarray
         damp = 1e-300
     for _ in range(60):
         for i in range(6):
-            for j in range(6):
+            for j in range(i + 1):  # the factorization reads the lower triangle only
                 out[i, j] = 0.5 * (bc[i, j] + bc[j, i])
             out[i, i] += damp
         if _chol_inplace(out, 6):
@@ -486,24 +486,28 @@ def _accumulate_blocks(
 ) -> None:
     """Eq. 23/24: B_c = 𝔅(H) - 𝔅(J_c^T J_c)_old; 𝔅(H) += new - old; factor damped B_c."""
     s = ptr[c]
-    newb = np.empty((6, 6))
     bc = np.empty((6, 6))
     for k in range(d):
         i = pnode[s + k]
         scale = 0.0
+        e = s + k
+        # J^T J is symmetric: compute the upper triangle, mirror every store (the blocks stay
+        # exactly symmetric, so B_c needs no symmetrization before its factorization)
         for p in range(6):
-            for q in range(6):
+            for q in range(p, 6):
                 acc = 0.0
                 for t in range(kr):
                     acc += jac[k, t, p] * jac[k, t, q]
-                newb[p, q] = acc
-            scale += newb[p, p]
-        for p in range(6):
-            for q in range(6):
-                old = contrib[s + k, p, q]
-                bc[p, q] = bdiag[i, p, q] - old
-                bdiag[i, p, q] += newb[p, q] - old
-                contrib[s + k, p, q] = newb[p, q]
+                old = contrib[e, p, q]
+                b_old = bdiag[i, p, q]
+                v = b_old + (acc - old)
+                bdiag[i, p, q] = v
+                bdiag[i, q, p] = v
+                contrib[e, p, q] = acc
+                contrib[e, q, p] = acc
+                bc[p, q] = b_old - old
+                bc[q, p] = b_old - old
+            scale += contrib[e, p, p]
         _regularized_factor(bc, scale, mu, lfac[k])
 
 
