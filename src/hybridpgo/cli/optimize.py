@@ -240,8 +240,14 @@ def print_summary(s: dict[str, Any]) -> None:
         ("time", ", ".join(times)),
     ]
     if "us_per_constraint_mean" in r:
-        rows.append(("per constraint", f"{r['us_per_constraint_mean']:.3g} us mean, "
-                                       f"{r['us_per_constraint_max']:.4g} us max per update"))
+        line = (f"{r['us_per_constraint_mean']:.3g} us mean, "
+                f"{r.get('us_per_constraint_max_steady', float('nan')):.4g} us steady max, "
+                f"{r['us_per_constraint_max']:.4g} us max measured")
+        rows.append(("per constraint", line))
+        if r.get("gps_batches"):
+            rows.append(("GPS batches", f"{r['gps_batches']} updates, slowest "
+                                        f"{r.get('ms_per_gps_batch_max_steady', float('nan')):.3g}"
+                                        " ms (steady)"))
     rows.append(("output", f"{s['output']['path']} ({s['output']['format']})"))
     for path in s["plots"]:
         rows.append(("plot", path))
