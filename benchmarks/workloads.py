@@ -279,14 +279,25 @@ def robustness(ctx: Context) -> Result:
         lm = solve_exact(g, rot, trans, GaussNewtonConfig(max_iterations=300))
         hy = _hybrid(g, sweeps=sweeps, polish=True, polish_iterations=300)
         hc = _hybrid(g, sweeps=sweeps, init="chordal", polish=True, polish_iterations=300)
+        lf = solve_exact(g, None, None, GaussNewtonConfig(max_iterations=300))
+        hf = _hybrid(g, sweeps=sweeps, init="file", polish=True, polish_iterations=300)
         for label, res in (
             ("lm_tree", lm),
             ("hybrid_polish_tree", hy),
             ("hybrid_polish_chordal", hc),
+            ("lm_file", lf),
+            ("hybrid_polish_file", hf),
         ):
             metrics.append(quality(f"{s}.{label}.energy_ratio", res.final_energy / opt))
         rows += [
-            [name, "LM from tree (odometry)", lm.final_energy, lm.final_energy / opt],
+            [name, "LM from the file's vertices", lf.final_energy, lf.final_energy / opt],
+            [
+                name,
+                f"hybrid {sweeps} sweeps + LM, file's vertices",
+                hf.final_energy,
+                hf.final_energy / opt,
+            ],
+            [name, "LM from tree (BFS concatenation)", lm.final_energy, lm.final_energy / opt],
             [
                 name,
                 f"hybrid {sweeps} sweeps + LM, tree init",
