@@ -164,44 +164,14 @@ def test_incremental_block_diagonal_stays_consistent():
     cycles = np.zeros(tree.num_constraints, np.uint64)
     counts = np.zeros(4, np.int64)
     for tau in (1.0, 0.5):
-        hk.sweep(
-            tree.sweep_order,
-            tau,
-            1e-6,
-            0,
-            4,
-            *state.kernel_args(),
-            state.bdiag,
-            state.contrib,
-            state.dmax,
-            state.path_count,
-            tree.parent,
-            cycles,
-            np.zeros_like(cycles),
-            counts,
-        )
+        state.sweep(tau, 1e-6, hk.STEP_WOODBURY, 4, cycles, np.zeros_like(cycles), counts)
         summed = np.zeros_like(state.bdiag)
         np.add.at(summed, tree.path_node, state.contrib)
         np.testing.assert_allclose(
             state.bdiag, summed, rtol=0, atol=ROUNDING * np.abs(summed).max()
         )
     # with tau = 0 the poses stay put, so the maintained 𝔅(H) equals one rebuilt from scratch
-    hk.sweep(
-        tree.sweep_order,
-        0.0,
-        1e-6,
-        0,
-        4,
-        *state.kernel_args(),
-        state.bdiag,
-        state.contrib,
-        state.dmax,
-        state.path_count,
-        tree.parent,
-        cycles,
-        np.zeros_like(cycles),
-        counts,
-    )
+    state.sweep(0.0, 1e-6, hk.STEP_WOODBURY, 4, cycles, np.zeros_like(cycles), counts)
     kept = state.bdiag.copy()
     state.rebuild_blocks()
     np.testing.assert_allclose(kept, state.bdiag, rtol=0, atol=ROUNDING * np.abs(kept).max())

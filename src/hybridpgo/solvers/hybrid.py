@@ -230,6 +230,17 @@ class HybridState:
             raise SolverError("the batch step was not finite")
         return nodes[:nu].copy(), x[:nu].copy()
 
+    def sweep(self, tau: float, damping: float, step_kind: int, gps_batch_size: int,
+              cycles: npt.NDArray[np.uint64], batch_cycles: npt.NDArray[np.uint64],
+              counts: npt.NDArray[np.int64]) -> int:
+        """One pass of Algorithm 1 over the constraints in tree order (see ``hk.sweep``).
+
+        Returns the first constraint whose step was rejected as non-finite, or -1.
+        """
+        return int(hk.sweep(self.tree.sweep_order, tau, damping, step_kind, gps_batch_size,
+                            *self.kernel_args(), self.bdiag, self.contrib, self.dmax,
+                            self.path_count, self.tree.parent, cycles, batch_cycles, counts))
+
     def poses(self) -> tuple[FloatArray, FloatArray]:
         return global_poses(self.tree, self.rot, self.trans)
 
@@ -315,22 +326,8 @@ def _solve(
     sweeps_done = 0
     for k in range(cfg.sweeps):
         t0 = time.perf_counter()
-        bad = hk.sweep(
-            tree.sweep_order,
-            tau,
-            cfg.damping,
-            step_kind,
-            cfg.gps_batch_size,
-            *state.kernel_args(),
-            state.bdiag,
-            state.contrib,
-            state.dmax,
-            state.path_count,
-            tree.parent,
-            cycles,
-            batch_cycles,
-            counts,
-        )
+        bad = state.sweep(tau, cfg.damping, step_kind, cfg.gps_batch_size, cycles, batch_cycles,
+                          counts)
         solve_time += time.perf_counter() - t0
         sweeps_done += 1
         if bad >= 0 and first_bad < 0:
