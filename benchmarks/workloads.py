@@ -385,13 +385,11 @@ def step_scaling(ctx: Context) -> Result:
             jac = np.zeros((dd, 6, 6))
             r = np.zeros(6)
             x = np.zeros((dd, 6))
-            hk.constraint_step(c, 1e-6, kind, *st.kernel_args(), st.bdiag, st.contrib, jac, r, x)
+            hk.constraint_step(c, 1e-6, kind, st.problem(), st.arrays(), jac, r, x)
             reps = 2000 if (kind == hk.STEP_WOODBURY or d <= 100) else 3
             t0 = time.perf_counter()
             for _ in range(reps):
-                hk.constraint_step(
-                    c, 1e-6, kind, *st.kernel_args(), st.bdiag, st.contrib, jac, r, x
-                )
+                hk.constraint_step(c, 1e-6, kind, st.problem(), st.arrays(), jac, r, x)
             out[name] = (time.perf_counter() - t0) / reps * 1e6
         metrics += [
             timing(f"step_d{d}.woodbury_us", out["woodbury"], "us"),

@@ -78,9 +78,7 @@ def _step_of(state, c, step_kind):
     jac = np.zeros((d, 6, 6))
     r = np.zeros(6)
     x = np.zeros((d, 6))
-    kr = hk.constraint_step(
-        c, 1e-6, step_kind, *state.kernel_args(), state.bdiag, state.contrib, jac, r, x
-    )
+    kr = hk.constraint_step(c, 1e-6, step_kind, state.problem(), state.arrays(), jac, r, x)
     return kr, jac, r, x
 
 

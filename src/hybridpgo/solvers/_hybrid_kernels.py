@@ -12,13 +12,19 @@ constraint the whitened Jacobian block of path node i is ``s_i L^T Jr^-1(e0) Ad(
 for GPS ``L^T R_i [I | -[t_{i->n}]x]`` (DESIGN §3).  Both are computed from products of local
 transforms along the path only (no global pose is needed), so one update costs O(d).
 
-Status codes returned by the kernels: ``STATUS_OK`` or ``STATUS_NONFINITE`` (a step was
-non-finite and rejected; the poses were not touched).
+The read-only problem arrays travel as one tuple ``prob = (m_edges, path_ptr, path_node,
+path_sign, edge_rot, edge_trans, edge_lt, gps_pos, gps_lt, path_count, parent)`` and the mutable
+arrays as ``state = (rot, trans, bdiag, contrib)`` (built by ``HybridState.problem`` /
+``HybridState.arrays``).
+
+A single update returns 0 (applied), 1 (applied with the pi/8 cap) or 2 (non-finite step,
+rejected: the poses were not touched); a batch returns its number of nodes, or -1 when rejected.
 """
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -180,17 +186,9 @@ def _error_and_jr_inv(
 @kernel
 def _linearize(
     c: int,
-    m_edges: int,
-    ptr: np.ndarray,
-    pnode: np.ndarray,
-    psign: np.ndarray,
+    prob: tuple[Any, ...],
     rot: np.ndarray,
     trans: np.ndarray,
-    edge_rot: np.ndarray,
-    edge_trans: np.ndarray,
-    edge_lt: np.ndarray,
-    gps_pos: np.ndarray,
-    gps_lt: np.ndarray,
     pr: np.ndarray,
     pt: np.ndarray,
     jac: np.ndarray,
@@ -200,6 +198,10 @@ def _linearize(
 
     Returns kr, the number of rows (6 relative, 3 GPS).
     """
+    # fmt: off
+    (m_edges, ptr, pnode, psign, edge_rot, edge_trans, edge_lt, gps_pos, gps_lt, _path_count,
+     _parent) = prob
+    # fmt: on
     s = ptr[c]
     d = ptr[c + 1] - s
     na = _path_products(c, ptr, pnode, psign, rot, trans, pr, pt)
@@ -517,19 +519,8 @@ def _relax(
     tau: float,
     mu: float,
     step_kind: int,
-    m_edges: int,
-    ptr: np.ndarray,
-    pnode: np.ndarray,
-    psign: np.ndarray,
-    rot: np.ndarray,
-    trans: np.ndarray,
-    edge_rot: np.ndarray,
-    edge_trans: np.ndarray,
-    edge_lt: np.ndarray,
-    gps_pos: np.ndarray,
-    gps_lt: np.ndarray,
-    bdiag: np.ndarray,
-    contrib: np.ndarray,
+    prob: tuple[Any, ...],
+    state: tuple[Any, ...],
     pr: np.ndarray,
     pt: np.ndarray,
     jac: np.ndarray,
@@ -543,28 +534,16 @@ def _relax(
 
     Returns 0 (applied), 1 (capped by the pi/8 rule, applied), 2 (non-finite, rejected).
     """
+    # fmt: off
+    (_m_edges, ptr, pnode, _psign, _edge_rot, _edge_trans, _edge_lt, _gps_pos, _gps_lt,
+     _path_count, _parent) = prob
+    # fmt: on
+    rot, trans, bdiag, contrib = state
     s = ptr[c]
     d = ptr[c + 1] - s
     if d == 0:
         return 0
-    kr = _linearize(
-        c,
-        m_edges,
-        ptr,
-        pnode,
-        psign,
-        rot,
-        trans,
-        edge_rot,
-        edge_trans,
-        edge_lt,
-        gps_pos,
-        gps_lt,
-        pr,
-        pt,
-        jac,
-        r,
-    )
+    kr = _linearize(c, prob, rot, trans, pr, pt, jac, r)
     _accumulate_blocks(c, d, kr, ptr, pnode, jac, bdiag, contrib, mu, lfac)
     if not apply:
         return 0
@@ -593,23 +572,13 @@ def _relax(
 
 
 @kernel
-def init_blocks(
-    m_edges: int,
-    ptr: np.ndarray,
-    pnode: np.ndarray,
-    psign: np.ndarray,
-    rot: np.ndarray,
-    trans: np.ndarray,
-    edge_rot: np.ndarray,
-    edge_trans: np.ndarray,
-    edge_lt: np.ndarray,
-    gps_pos: np.ndarray,
-    gps_lt: np.ndarray,
-    bdiag: np.ndarray,
-    contrib: np.ndarray,
-    dmax: int,
-) -> None:
+def init_blocks(prob: tuple[Any, ...], state: tuple[Any, ...], dmax: int) -> None:
     """𝔅(H) and every constraint's contribution at the current poses (no step)."""
+    # fmt: off
+    (_m_edges, ptr, _pnode, _psign, _edge_rot, _edge_trans, _edge_lt, _gps_pos, _gps_lt,
+     _path_count, _parent) = prob
+    # fmt: on
+    _rot, _trans, bdiag, contrib = state
     pr = np.empty((dmax, 3, 3))
     pt = np.empty((dmax, 3))
     jac = np.zeros((dmax, 6, 6))
@@ -620,33 +589,7 @@ def init_blocks(
     bdiag[:] = 0.0
     contrib[:] = 0.0
     for c in range(ptr.shape[0] - 1):
-        _relax(
-            c,
-            0.0,
-            0.0,
-            STEP_WOODBURY,
-            m_edges,
-            ptr,
-            pnode,
-            psign,
-            rot,
-            trans,
-            edge_rot,
-            edge_trans,
-            edge_lt,
-            gps_pos,
-            gps_lt,
-            bdiag,
-            contrib,
-            pr,
-            pt,
-            jac,
-            lfac,
-            y,
-            x,
-            r,
-            False,
-        )
+        _relax(c, 0.0, 0.0, STEP_WOODBURY, prob, state, pr, pt, jac, lfac, y, x, r, False)
 
 
 # --------------------------------------------------------------------------- batch updates
@@ -691,18 +634,9 @@ def _adjoint_into(r: np.ndarray, t: np.ndarray, out: np.ndarray) -> None:
 def _woodbury_segments(
     cs: np.ndarray,
     nb: int,
-    m_edges: int,
-    ptr: np.ndarray,
-    pnode: np.ndarray,
-    psign: np.ndarray,
+    prob: tuple[Any, ...],
     rot: np.ndarray,
     trans: np.ndarray,
-    parent: np.ndarray,
-    edge_rot: np.ndarray,
-    edge_trans: np.ndarray,
-    edge_lt: np.ndarray,
-    gps_pos: np.ndarray,
-    gps_lt: np.ndarray,
     mu: float,
     jb: np.ndarray,
     e_off: np.ndarray,
@@ -729,6 +663,10 @@ def _woodbury_segments(
     ``S = I + sum_seg sum_{c,d} s_c s_d A_c M_seg A_d^T`` costs O(|sig|^2) per segment instead
     of O(|sig|^2) per node: a batch of GPS readings sharing a long trunk stays cheap.
     """
+    # fmt: off
+    (m_edges, ptr, pnode, psign, edge_rot, edge_trans, edge_lt, _gps_pos, gps_lt,
+     _path_count, parent) = prob
+    # fmt: on
     k_rows = r_off[nb]
     # per-constraint A_c (kr x 6) and global poses of the union nodes
     amat = np.zeros((nb, 6, 6))
@@ -938,21 +876,8 @@ def _batch_relax(
     nb: int,
     tau: float,
     mu: float,
-    m_edges: int,
-    ptr: np.ndarray,
-    pnode: np.ndarray,
-    psign: np.ndarray,
-    rot: np.ndarray,
-    trans: np.ndarray,
-    edge_rot: np.ndarray,
-    edge_trans: np.ndarray,
-    edge_lt: np.ndarray,
-    gps_pos: np.ndarray,
-    gps_lt: np.ndarray,
-    bdiag: np.ndarray,
-    contrib: np.ndarray,
-    path_count: np.ndarray,
-    parent: np.ndarray,
+    prob: tuple[Any, ...],
+    state: tuple[Any, ...],
     slot: np.ndarray,
     x_out: np.ndarray,
     nodes_out: np.ndarray,
@@ -970,6 +895,11 @@ def _batch_relax(
     ``nodes_out[u]`` is written to ``x_out[u]``.  Returns the number of union nodes, or -1 when
     the step was non-finite (nothing applied).
     """
+    # fmt: off
+    (_m_edges, ptr, pnode, _psign, _edge_rot, _edge_trans, _edge_lt, _gps_pos, _gps_lt,
+     path_count, _parent) = prob
+    # fmt: on
+    rot, trans, bdiag, contrib = state
     # 1. linearize every constraint of the batch
     ne = 0
     for q in range(nb):
@@ -992,24 +922,7 @@ def _batch_relax(
     for q in range(nb):
         c = cs[q]
         d = ptr[c + 1] - ptr[c]
-        kr = _linearize(
-            c,
-            m_edges,
-            ptr,
-            pnode,
-            psign,
-            rot,
-            trans,
-            edge_rot,
-            edge_trans,
-            edge_lt,
-            gps_pos,
-            gps_lt,
-            pr,
-            pt,
-            jb[e_off[q] : e_off[q] + d],
-            rq,
-        )
+        kr = _linearize(c, prob, rot, trans, pr, pt, jb[e_off[q] : e_off[q] + d], rq)
         krs[q] = kr
         for i in range(kr):
             rbuf[r_off[q] + i] = rq[i]
@@ -1112,18 +1025,9 @@ def _batch_relax(
         ok = _woodbury_segments(
             cs,
             nb,
-            m_edges,
-            ptr,
-            pnode,
-            psign,
+            prob,
             rot,
             trans,
-            parent,
-            edge_rot,
-            edge_trans,
-            edge_lt,
-            gps_pos,
-            gps_lt,
             mu,
             jb,
             e_off,
@@ -1172,22 +1076,9 @@ def sweep(
     mu: float,
     step_kind: int,
     gps_batch: int,
-    m_edges: int,
-    ptr: np.ndarray,
-    pnode: np.ndarray,
-    psign: np.ndarray,
-    rot: np.ndarray,
-    trans: np.ndarray,
-    edge_rot: np.ndarray,
-    edge_trans: np.ndarray,
-    edge_lt: np.ndarray,
-    gps_pos: np.ndarray,
-    gps_lt: np.ndarray,
-    bdiag: np.ndarray,
-    contrib: np.ndarray,
+    prob: tuple[Any, ...],
+    state: tuple[Any, ...],
     dmax: int,
-    path_count: np.ndarray,
-    parent: np.ndarray,
     cycles: np.ndarray,
     batch_cycles: np.ndarray,
     counts: np.ndarray,
@@ -1201,6 +1092,11 @@ def sweep(
     ``counts`` accumulates [capped steps, rejected steps, max cycles of one
     update, batches].  Returns the first rejected constraint or -1.
     """
+    # fmt: off
+    (m_edges, _ptr, _pnode, _psign, _edge_rot, _edge_trans, _edge_lt, _gps_pos, _gps_lt,
+     _path_count, _parent) = prob
+    # fmt: on
+    rot, _trans, _bdiag, _contrib = state
     pr = np.empty((dmax, 3, 3))
     pt = np.empty((dmax, 3))
     jac = np.zeros((dmax, 6, 6))
@@ -1221,31 +1117,7 @@ def sweep(
         is_gps = c >= m_edges
         if nbuf > 0 and (not is_gps or nbuf >= gps_batch):
             t0 = cycle_counter()
-            nu = _batch_relax(
-                buf,
-                nbuf,
-                tau,
-                mu,
-                m_edges,
-                ptr,
-                pnode,
-                psign,
-                rot,
-                trans,
-                edge_rot,
-                edge_trans,
-                edge_lt,
-                gps_pos,
-                gps_lt,
-                bdiag,
-                contrib,
-                path_count,
-                parent,
-                slot,
-                xb,
-                nodes,
-                True,
-            )
+            nu = _batch_relax(buf, nbuf, tau, mu, prob, state, slot, xb, nodes, True)
             dc = cycle_counter() - t0
             if dc > counts[2]:
                 counts[2] = dc
@@ -1265,33 +1137,7 @@ def sweep(
             nbuf += 1
             continue
         t0 = cycle_counter()
-        st = _relax(
-            c,
-            tau,
-            mu,
-            step_kind,
-            m_edges,
-            ptr,
-            pnode,
-            psign,
-            rot,
-            trans,
-            edge_rot,
-            edge_trans,
-            edge_lt,
-            gps_pos,
-            gps_lt,
-            bdiag,
-            contrib,
-            pr,
-            pt,
-            jac,
-            lfac,
-            y,
-            x,
-            r,
-            True,
-        )
+        st = _relax(c, tau, mu, step_kind, prob, state, pr, pt, jac, lfac, y, x, r, True)
         dc = cycle_counter() - t0
         cycles[c] = dc
         if dc > counts[2]:
@@ -1309,26 +1155,18 @@ def sweep(
 def batch_step(
     cs: np.ndarray,
     mu: float,
-    m_edges: int,
-    ptr: np.ndarray,
-    pnode: np.ndarray,
-    psign: np.ndarray,
-    rot: np.ndarray,
-    trans: np.ndarray,
-    edge_rot: np.ndarray,
-    edge_trans: np.ndarray,
-    edge_lt: np.ndarray,
-    gps_pos: np.ndarray,
-    gps_lt: np.ndarray,
-    bdiag: np.ndarray,
-    contrib: np.ndarray,
-    path_count: np.ndarray,
-    parent: np.ndarray,
+    prob: tuple[Any, ...],
+    state: tuple[Any, ...],
     tau: float,
     x_out: np.ndarray,
     nodes_out: np.ndarray,
 ) -> int:
     """Relax the batch ``cs`` once with temperature ``tau`` (0: compute the step only)."""
+    # fmt: off
+    (_m_edges, _ptr, _pnode, _psign, _edge_rot, _edge_trans, _edge_lt, _gps_pos, _gps_lt,
+     _path_count, _parent) = prob
+    # fmt: on
+    rot, trans, bdiag, contrib = state
     slot = np.full(rot.shape[0], -1, np.int64)
     work_rot = rot if tau > 0.0 else rot.copy()
     work_trans = trans if tau > 0.0 else trans.copy()
@@ -1337,21 +1175,8 @@ def batch_step(
         cs.shape[0],
         max(tau, 1e-300),
         mu,
-        m_edges,
-        ptr,
-        pnode,
-        psign,
-        work_rot,
-        work_trans,
-        edge_rot,
-        edge_trans,
-        edge_lt,
-        gps_pos,
-        gps_lt,
-        bdiag,
-        contrib,
-        path_count,
-        parent,
+        prob,
+        (work_rot, work_trans, bdiag, contrib),
         slot,
         x_out,
         nodes_out,
@@ -1364,19 +1189,8 @@ def constraint_step(
     c: int,
     mu: float,
     step_kind: int,
-    m_edges: int,
-    ptr: np.ndarray,
-    pnode: np.ndarray,
-    psign: np.ndarray,
-    rot: np.ndarray,
-    trans: np.ndarray,
-    edge_rot: np.ndarray,
-    edge_trans: np.ndarray,
-    edge_lt: np.ndarray,
-    gps_pos: np.ndarray,
-    gps_lt: np.ndarray,
-    bdiag: np.ndarray,
-    contrib: np.ndarray,
+    prob: tuple[Any, ...],
+    state: tuple[Any, ...],
     jac_out: np.ndarray,
     r_out: np.ndarray,
     x_out: np.ndarray,
@@ -1385,29 +1199,17 @@ def constraint_step(
 
     Writes J blocks (d,6,6), r (6,) and x (d,6); returns kr.
     """
+    # fmt: off
+    (_m_edges, ptr, pnode, _psign, _edge_rot, _edge_trans, _edge_lt, _gps_pos, _gps_lt,
+     _path_count, _parent) = prob
+    # fmt: on
+    rot, trans, bdiag, contrib = state
     d = ptr[c + 1] - ptr[c]
     pr = np.empty((d, 3, 3))
     pt = np.empty((d, 3))
     lfac = np.empty((d, 6, 6))
     y = np.empty((d, 6, 6))
-    kr = _linearize(
-        c,
-        m_edges,
-        ptr,
-        pnode,
-        psign,
-        rot,
-        trans,
-        edge_rot,
-        edge_trans,
-        edge_lt,
-        gps_pos,
-        gps_lt,
-        pr,
-        pt,
-        jac_out,
-        r_out,
-    )
+    kr = _linearize(c, prob, rot, trans, pr, pt, jac_out, r_out)
     _accumulate_blocks(c, d, kr, ptr, pnode, jac_out, bdiag, contrib, mu, lfac)
     if step_kind == STEP_GIVENS:
         _givens_solve(d, kr, jac_out, lfac, r_out, x_out)

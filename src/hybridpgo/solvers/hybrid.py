@@ -25,8 +25,8 @@ from ..tree import InitKind, PoseTree, TreeKind, build_tree, global_poses, initi
 from . import _hybrid_kernels as _hk
 from .result import SolveResult, Status
 
-# The kernels take long positional lists assembled from ``kernel_args``; mypy cannot follow the
-# unpacking, so they are called through an untyped alias.
+# Numba dispatchers carry no useful static types; the kernels are called through an untyped
+# alias so that mypy checks the Python around them, not the tuples passed in.
 hk: Any = _hk
 
 STEP_KINDS = {"woodbury": hk.STEP_WOODBURY, "givens": hk.STEP_GIVENS}
@@ -182,25 +182,22 @@ class HybridState:
         state.rebuild_blocks()
         return state
 
-    def kernel_args(self) -> tuple[Any, ...]:
+    def problem(self) -> tuple[Any, ...]:
+        """The read-only arrays every kernel takes as ``prob`` (see ``_hybrid_kernels``)."""
         g, t = self.graph, self.tree
         return (
-            g.num_edges,
-            t.path_ptr,
-            t.path_node,
-            t.path_sign,
-            self.rot,
-            self.trans,
-            g.edge_rotations,
-            g.edge_translations,
-            self.edge_lt,
-            g.gps_positions,
-            self.gps_lt,
-        )
+            g.num_edges, t.path_ptr, t.path_node, t.path_sign, g.edge_rotations,
+            g.edge_translations, self.edge_lt, g.gps_positions, self.gps_lt, self.path_count,
+            t.parent,
+        )  # fmt: skip
+
+    def arrays(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """The mutable state every kernel takes as ``state``: locals, 𝔅(H), contributions."""
+        return self.rot, self.trans, self.bdiag, self.contrib
 
     def rebuild_blocks(self) -> None:
         """Recompute 𝔅(H) and all contributions from scratch at the current poses."""
-        hk.init_blocks(*self.kernel_args(), self.bdiag, self.contrib, self.dmax)
+        hk.init_blocks(self.problem(), self.arrays(), self.dmax)
 
     def batch_step(
         self, constraints: npt.ArrayLike, damping: float = 1e-6, tau: float = 0.0
@@ -214,18 +211,7 @@ class HybridState:
         nt = self.tree.num_tree_nodes
         x = np.zeros((nt, 6))
         nodes = np.zeros(nt, np.int64)
-        nu = hk.batch_step(
-            cs,
-            damping,
-            *self.kernel_args(),
-            self.bdiag,
-            self.contrib,
-            self.path_count,
-            self.tree.parent,
-            tau,
-            x,
-            nodes,
-        )
+        nu = hk.batch_step(cs, damping, self.problem(), self.arrays(), tau, x, nodes)
         if nu < 0:
             raise SolverError("the batch step was not finite")
         return nodes[:nu].copy(), x[:nu].copy()
@@ -238,8 +224,8 @@ class HybridState:
         Returns the first constraint whose step was rejected as non-finite, or -1.
         """
         return int(hk.sweep(self.tree.sweep_order, tau, damping, step_kind, gps_batch_size,
-                            *self.kernel_args(), self.bdiag, self.contrib, self.dmax,
-                            self.path_count, self.tree.parent, cycles, batch_cycles, counts))
+                            self.problem(), self.arrays(), self.dmax, cycles, batch_cycles,
+                            counts))
 
     def poses(self) -> tuple[FloatArray, FloatArray]:
         return global_poses(self.tree, self.rot, self.trans)
