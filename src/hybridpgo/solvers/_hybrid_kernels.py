@@ -184,6 +184,27 @@ def _error_and_jr_inv(
 
 
 @kernel
+def _endpoints(
+    pr: np.ndarray, pt: np.ndarray, na: int, d: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Poses of a and b relative to the constraint's root, from the path products.
+
+    An empty side means that endpoint is the root itself (the identity).
+    """
+    ra = np.eye(3)
+    ta = np.zeros(3)
+    if na > 0:
+        ra = pr[0]
+        ta = pt[0]
+    rb = np.eye(3)
+    tb = np.zeros(3)
+    if na < d:
+        rb = pr[na]
+        tb = pt[na]
+    return ra, ta, rb, tb
+
+
+@kernel
 def _linearize(
     c: int,
     prob: tuple[Any, ...],
@@ -206,16 +227,7 @@ def _linearize(
     d = ptr[c + 1] - s
     na = _path_products(c, ptr, pnode, psign, rot, trans, pr, pt)
     if c < m_edges:
-        ra = np.eye(3)
-        ta = np.zeros(3)
-        if na > 0:
-            ra = pr[0]
-            ta = pt[0]
-        rb = np.eye(3)
-        tb = np.zeros(3)
-        if na < d:
-            rb = pr[na]
-            tb = pt[na]
+        ra, ta, rb, tb = _endpoints(pr, pt, na, d)
         e0 = np.empty(6)
         jri = np.empty((6, 6))
         ws = np.empty((12, 3, 3))
@@ -702,16 +714,7 @@ def _woodbury_segments(
                 _mul_pose_into(gr, gt, pr[k], pt[k], yr[u], yt[u])
                 have[u] = True
         if c < m_edges:
-            ra = np.eye(3)
-            ta = np.zeros(3)
-            if na > 0:
-                ra = pr[0]
-                ta = pt[0]
-            rb = np.eye(3)
-            tb = np.zeros(3)
-            if na < d:
-                rb = pr[na]
-                tb = pt[na]
+            ra, ta, rb, tb = _endpoints(pr, pt, na, d)
             _error_and_jr_inv(edge_rot[c], edge_trans[c], ra, ta, rb, tb, e0, jri, ws)
             a6 = edge_lt[c] @ jri
             # Ad(Y_b)^-1 = Ad(Y_b^-1), Y_b = G_root P_b
