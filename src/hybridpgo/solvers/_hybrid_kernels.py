@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from .._numba import cycle_counter, kernel
-from ..geometry._fast import edge_error_into, jr_inv_blocks
+from ..geometry._fast import edge_error_into, jr_inv_blocks, skew_into
 from ..geometry._kernels import SMALL_ANGLE
 
 STEP_WOODBURY = 0
@@ -442,15 +442,7 @@ def _apply_step(
         sc = (th - sn) / (th2 * th)
     # K = [phi]x, K^2 = phi phi^T - th^2 I
     k = tmp
-    k[0, 0] = 0.0
-    k[0, 1] = -pz
-    k[0, 2] = py
-    k[1, 0] = pz
-    k[1, 1] = 0.0
-    k[1, 2] = -px
-    k[2, 0] = -py
-    k[2, 1] = px
-    k[2, 2] = 0.0
+    skew_into(px, py, pz, k)
     ph = (px, py, pz)
     for i in range(3):
         for j in range(3):
@@ -584,6 +576,23 @@ def _relax(
 
 
 @kernel
+def _workspace(
+    dmax: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Scratch buffers of single updates for paths of up to ``dmax`` poses:
+    (path products R, t; Jacobian blocks; factors of B_c; W blocks; steps; residual)."""
+    return (
+        np.empty((dmax, 3, 3)),
+        np.empty((dmax, 3)),
+        np.zeros((dmax, 6, 6)),
+        np.empty((dmax, 6, 6)),
+        np.empty((dmax, 6, 6)),
+        np.empty((dmax, 6)),
+        np.empty(6),
+    )
+
+
+@kernel
 def init_blocks(prob: tuple[Any, ...], state: tuple[Any, ...], dmax: int) -> None:
     """𝔅(H) and every constraint's contribution at the current poses (no step)."""
     # fmt: off
@@ -591,13 +600,7 @@ def init_blocks(prob: tuple[Any, ...], state: tuple[Any, ...], dmax: int) -> Non
      _path_count, _parent) = prob
     # fmt: on
     _rot, _trans, bdiag, contrib = state
-    pr = np.empty((dmax, 3, 3))
-    pt = np.empty((dmax, 3))
-    jac = np.zeros((dmax, 6, 6))
-    lfac = np.empty((dmax, 6, 6))
-    y = np.empty((dmax, 6, 6))
-    x = np.empty((dmax, 6))
-    r = np.empty(6)
+    pr, pt, jac, lfac, y, x, r = _workspace(dmax)
     bdiag[:] = 0.0
     contrib[:] = 0.0
     for c in range(ptr.shape[0] - 1):
@@ -1100,13 +1103,7 @@ def sweep(
      _path_count, _parent) = prob
     # fmt: on
     rot, _trans, _bdiag, _contrib = state
-    pr = np.empty((dmax, 3, 3))
-    pt = np.empty((dmax, 3))
-    jac = np.zeros((dmax, 6, 6))
-    lfac = np.empty((dmax, 6, 6))
-    y = np.empty((dmax, 6, 6))
-    x = np.empty((dmax, 6))
-    r = np.empty(6)
+    pr, pt, jac, lfac, y, x, r = _workspace(dmax)
     nt = rot.shape[0]
     slot = np.full(nt, -1, np.int64)
     xb = np.empty((nt, 6))
