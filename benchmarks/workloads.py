@@ -351,8 +351,7 @@ def robustness(ctx: Context) -> Result:
 
 def step_scaling(ctx: Context) -> Result:
     """Woodbury O(d) vs Givens O(d^2): one loop closure of path length d."""
-    from hybridpgo.solvers import _hybrid_kernels as hk
-    from hybridpgo.solvers.hybrid import HybridState
+    from hybridpgo.solvers.hybrid import HybridSolver
 
     metrics: list[Metric] = []
     rows = []
@@ -377,19 +376,16 @@ def step_scaling(ctx: Context) -> Result:
             edge_information=np.tile(np.eye(6), (m, 1, 1)),
         )
         tree = build_tree(g)
-        st = HybridState.create(g, tree, *initial_locals(g, tree, "tree"))
+        st = HybridSolver(g, HybridConfig(init="tree"), tree=tree)
         c = int(np.argmax(tree.path_lengths()))
         dd = int(tree.path_ptr[c + 1] - tree.path_ptr[c])
         out = {}
-        for kind, name in ((hk.STEP_WOODBURY, "woodbury"), (hk.STEP_GIVENS, "givens")):
-            jac = np.zeros((dd, 6, 6))
-            r = np.zeros(6)
-            x = np.zeros((dd, 6))
-            hk.constraint_step(c, 1e-6, kind, st.problem(), st.arrays(), jac, r, x)
-            reps = 2000 if (kind == hk.STEP_WOODBURY or d <= 100) else 3
+        for name in ("woodbury", "givens"):
+            st.probe(c, name)
+            reps = 2000 if (name == "woodbury" or d <= 100) else 3
             t0 = time.perf_counter()
             for _ in range(reps):
-                hk.constraint_step(c, 1e-6, kind, st.problem(), st.arrays(), jac, r, x)
+                st.probe(c, name)
             out[name] = (time.perf_counter() - t0) / reps * 1e6
         metrics += [
             timing(f"step_d{d}.woodbury_us", out["woodbury"], "us"),

@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 from graphs import random_graph
 
+from hybridpgo import _cost
 from hybridpgo.energy import energy
 from hybridpgo.geometry._kernels import se3_exp, se3_log
-from hybridpgo.solvers import _hybrid_kernels as hk
-from hybridpgo.solvers.hybrid import HybridConfig, HybridState, solve_hybrid
-from hybridpgo.tree import build_tree, global_poses, initial_locals
+from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver, solve_hybrid
+from hybridpgo.solvers.hybrid._dense import TINY
+from hybridpgo.tree import global_poses
 
 #: Central differences with h = 1e-6 on O(1) quantities.
 CENTRAL_DIFF = 1e-6
@@ -22,10 +23,8 @@ SAME_EQUATION = 1e-9
 ROUNDING = 1e-10
 
 
-def _state(graph, tree_kind="bfs", init="file"):
-    tree = build_tree(graph, tree_kind)
-    rot, trans = initial_locals(graph, tree, init)
-    return HybridState.create(graph, tree, rot, trans)
+def _state(graph, tree_kind="bfs", init="file", **options):
+    return HybridSolver(graph, HybridConfig(tree=tree_kind, init=init, **options))
 
 
 def _whitened_residuals(state, rot_l, trans_l):
@@ -39,9 +38,9 @@ def _whitened_residuals(state, rot_l, trans_l):
         tab = grot[a].T @ (gtr[b] - gtr[a])
         zr, zt = g.edge_rotations[c], g.edge_translations[c]
         e = se3_log(zr.T @ rab, zr.T @ (tab - zt))
-        out.append(state.edge_lt[c] @ e)
+        out.append(state.problem.edge_lt[c] @ e)
     for k in range(g.num_gps):
-        out.append(state.gps_lt[k] @ (gtr[g.gps_nodes[k]] - g.gps_positions[k]))
+        out.append(state.problem.gps_lt[k] @ (gtr[g.gps_nodes[k]] - g.gps_positions[k]))
     return out
 
 
@@ -49,14 +48,14 @@ def _fd_jacobian(state, h=1e-6):
     """Dense d w / d delta over all non-root tree nodes, by central differences."""
     tree = state.tree
     free = [i for i in range(tree.num_tree_nodes) if tree.parent[i] >= 0]
-    w0 = np.concatenate(_whitened_residuals(state, state.rot, state.trans))
+    w0 = np.concatenate(_whitened_residuals(state, state.state.rot, state.state.trans))
     jac = np.zeros((w0.shape[0], 6 * len(free)))
     for col, i in enumerate(free):
         for k in range(6):
             cols = []
             for sgn in (1.0, -1.0):
-                rot = state.rot.copy()
-                trans = state.trans.copy()
+                rot = state.state.rot.copy()
+                trans = state.state.trans.copy()
                 d = np.zeros(6)
                 d[k] = sgn * h
                 dr, dt = se3_exp(d)
@@ -74,11 +73,8 @@ def _row_offsets(state):
 
 
 def _step_of(state, c, step_kind):
-    d = int(state.tree.path_ptr[c + 1] - state.tree.path_ptr[c])
-    jac = np.zeros((d, 6, 6))
-    r = np.zeros(6)
-    x = np.zeros((d, 6))
-    kr = hk.constraint_step(c, 1e-6, step_kind, state.problem(), state.arrays(), jac, r, x)
+    kr = 6 if c < state.graph.num_edges else 3
+    jac, r, x = state.probe(c, step_kind)
     return kr, jac, r, x
 
 
@@ -94,7 +90,7 @@ def test_constraint_jacobians_match_central_differences(rot_scale, gps):
     tree = state.tree
     checked_sides = set()
     for c in range(tree.num_constraints):
-        kr, jac, _, _ = _step_of(_state(graph), c, hk.STEP_WOODBURY)
+        kr, jac, _, _ = _step_of(_state(graph), c, "woodbury")
         rows = slice(offs[c], offs[c] + kr)
         nodes = tree.path_node[tree.path_ptr[c] : tree.path_ptr[c + 1]]
         signs = tree.path_sign[tree.path_ptr[c] : tree.path_ptr[c + 1]]
@@ -112,8 +108,8 @@ def test_woodbury_equals_givens(gps):
     rng = np.random.default_rng(2)
     graph, _, _ = random_graph(rng, n=12, extra=10, gps=gps, rot_scale=0.5)
     for c in range(graph.num_constraints):
-        _, _, _, xw = _step_of(_state(graph), c, hk.STEP_WOODBURY)
-        _, _, _, xg = _step_of(_state(graph), c, hk.STEP_GIVENS)
+        _, _, _, xw = _step_of(_state(graph), c, "woodbury")
+        _, _, _, xg = _step_of(_state(graph), c, "givens")
         scale = np.abs(xw).max()
         np.testing.assert_allclose(xg, xw, rtol=0, atol=SAME_EQUATION * scale)
 
@@ -126,14 +122,14 @@ def test_step_solves_the_hybrid_normal_equations():
     tree = state.tree
     c = int(np.argmax(tree.path_lengths()))
     nodes = tree.path_node[tree.path_ptr[c] : tree.path_ptr[c + 1]]
-    bc = state.bdiag[nodes] - state.contrib[tree.path_ptr[c] : tree.path_ptr[c + 1]]
-    kr, jac, r, x = _step_of(state, c, hk.STEP_WOODBURY)
+    bc = state.state.bdiag[nodes] - state.state.contrib[tree.path_ptr[c] : tree.path_ptr[c + 1]]
+    kr, jac, r, x = _step_of(state, c, "woodbury")
     d = nodes.shape[0]
     jd = np.concatenate([jac[k, :kr] for k in range(d)], axis=1)
     bd = np.zeros((6 * d, 6 * d))
     for k in range(d):
         b = bc[k] + (
-            1e-6 * np.trace(bc[k]) / 6 + hk.TINY * np.trace(jac[k, :kr].T @ jac[k, :kr])
+            1e-6 * np.trace(bc[k]) / 6 + TINY * np.trace(jac[k, :kr].T @ jac[k, :kr])
         ) * np.eye(6)
         bd[6 * k : 6 * k + 6, 6 * k : 6 * k + 6] = b
     lhs = (jd.T @ jd + bd) @ x.reshape(-1)
@@ -150,29 +146,27 @@ def test_block_diagonal_matches_finite_difference_hessian():
     for k, node in enumerate(free):
         blk = h[6 * k : 6 * k + 6, 6 * k : 6 * k + 6]
         np.testing.assert_allclose(
-            state.bdiag[node], blk, rtol=0, atol=CENTRAL_DIFF * 100 * np.abs(blk).max()
+            state.state.bdiag[node], blk, rtol=0, atol=CENTRAL_DIFF * 100 * np.abs(blk).max()
         )
 
 
 def test_incremental_block_diagonal_stays_consistent():
     rng = np.random.default_rng(5)
     graph, _, _ = random_graph(rng, n=15, extra=12, gps=3, rot_scale=0.5)
-    state = _state(graph, init="tree")
+    state = _state(graph, init="tree", gps_batch_size=4)
     tree = state.tree
-    cycles = np.zeros(tree.num_constraints, np.uint64)
-    counts = np.zeros(4, np.int64)
     for tau in (1.0, 0.5):
-        state.sweep(tau, 1e-6, hk.STEP_WOODBURY, 4, cycles, np.zeros_like(cycles), counts)
-        summed = np.zeros_like(state.bdiag)
-        np.add.at(summed, tree.path_node, state.contrib)
+        state.step(tree.sweep_order, tau=tau)
+        summed = np.zeros_like(state.state.bdiag)
+        np.add.at(summed, tree.path_node, state.state.contrib)
         np.testing.assert_allclose(
-            state.bdiag, summed, rtol=0, atol=ROUNDING * np.abs(summed).max()
+            state.state.bdiag, summed, rtol=0, atol=ROUNDING * np.abs(summed).max()
         )
     # with tau = 0 the poses stay put, so the maintained 𝔅(H) equals one rebuilt from scratch
-    state.sweep(0.0, 1e-6, hk.STEP_WOODBURY, 4, cycles, np.zeros_like(cycles), counts)
-    kept = state.bdiag.copy()
+    state.step(tree.sweep_order, tau=0.0)
+    kept = state.state.bdiag.copy()
     state.rebuild_blocks()
-    np.testing.assert_allclose(kept, state.bdiag, rtol=0, atol=ROUNDING * np.abs(kept).max())
+    np.testing.assert_allclose(kept, state.state.bdiag, rtol=0, atol=ROUNDING * np.abs(kept).max())
 
 
 @pytest.mark.parametrize("gps", [0, 3])
@@ -196,7 +190,7 @@ def test_single_batch_equals_single_update():
     graph, _, _ = random_graph(rng, n=10, extra=8, rot_scale=0.5)
     for c in range(graph.num_constraints):
         s1 = _state(graph)
-        _, _, _, x = _step_of(s1, c, hk.STEP_WOODBURY)
+        _, _, _, x = _step_of(s1, c, "woodbury")
         s2 = _state(graph)
         nodes, xb = s2.batch_step([c])
         path = s1.tree.path_node[s1.tree.path_ptr[c] : s1.tree.path_ptr[c + 1]]
@@ -273,7 +267,9 @@ def test_hot_path_error_and_jacobian_match_reference_kernels(angle):
         rab, tab = ra.T @ rb, ra.T @ (tb - ta)
         e = np.empty(6)
         jri = np.empty((6, 6))
-        hk._error_and_jr_inv(zr, zt, ra, ta, rb, tb, e, jri, np.empty((12, 3, 3)))
+        ws = np.empty((_cost.SCRATCH, 3, 3))
+        _cost.residual_and_jr_inv(zr, zt, ra, ta, rb, tb, e, ws)
+        _cost.jr_inv_matrix(ws, jri)
         e_ref = relative_error(zr, zt, rab, tab)
         np.testing.assert_allclose(e, e_ref, rtol=0, atol=1e-12 * max(1.0, np.abs(e_ref).max()))
         np.testing.assert_allclose(jri, se3_right_jacobian_inv(e_ref), rtol=0, atol=1e-11)
@@ -291,7 +287,7 @@ def test_segmented_woodbury_batch_matches_dense_hybrid_system(gps):
     batch, in_batch = [], np.zeros(tree.num_tree_nodes, int)
     for c in list(range(m, m + gps)) + [int(c) for c in np.argsort(-tree.path_lengths()[:m])]:
         path = tree.path_node[tree.path_ptr[c] : tree.path_ptr[c + 1]]
-        if np.all(in_batch[path] + 1 < state.path_count[path]):
+        if np.all(in_batch[path] + 1 < state.problem.path_count[path]):
             batch.append(c)
             in_batch[path] += 1
         if len(batch) >= gps + 3:
@@ -302,15 +298,15 @@ def test_segmented_woodbury_batch_matches_dense_hybrid_system(gps):
     )
     pos = {v: k for k, v in enumerate(nodes_all)}
     rows, rhs = [], []
-    bc = {v: state.bdiag[v].copy() for v in nodes_all}
+    bc = {v: state.state.bdiag[v].copy() for v in nodes_all}
     scale = dict.fromkeys(nodes_all, 0.0)
     for c in batch:
-        kr, jac, r, _ = _step_of(_state(graph), c, hk.STEP_WOODBURY)
+        kr, jac, r, _ = _step_of(_state(graph), c, "woodbury")
         row = np.zeros((kr, 6 * len(nodes_all)))
         for k, v in enumerate(tree.path_node[tree.path_ptr[c] : tree.path_ptr[c + 1]]):
             v = int(v)
             row[:, 6 * pos[v] : 6 * pos[v] + 6] = jac[k, :kr]
-            bc[v] -= state.contrib[tree.path_ptr[c] + k]
+            bc[v] -= state.state.contrib[tree.path_ptr[c] + k]
             scale[v] += np.trace(jac[k, :kr].T @ jac[k, :kr])
         rows.append(row)
         rhs.append(r[:kr])
@@ -319,7 +315,7 @@ def test_segmented_woodbury_batch_matches_dense_hybrid_system(gps):
     for v in nodes_all:
         if np.abs(bc[v]).max() < 1e-9 * max(scale[v], 1.0):
             pytest.skip("a node only the batch touches: the dense branch applies instead")
-        b = bc[v] + (1e-6 * np.trace(bc[v]) / 6 + hk.TINY * scale[v]) * np.eye(6)
+        b = bc[v] + (1e-6 * np.trace(bc[v]) / 6 + TINY * scale[v]) * np.eye(6)
         bd[6 * pos[v] : 6 * pos[v] + 6, 6 * pos[v] : 6 * pos[v] + 6] = b
     x_ref = np.linalg.solve(jd.T @ jd + bd, jd.T @ np.concatenate(rhs)).reshape(-1, 6)
     nodes, x = state.batch_step(batch)

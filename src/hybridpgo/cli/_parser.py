@@ -32,9 +32,9 @@ def _methods() -> list[str]:
 
 
 def _steps() -> list[str]:
-    from ..solvers.hybrid import STEP_KINDS
+    from ..solvers.config import STEP_NAMES
 
-    return list(STEP_KINDS)
+    return list(STEP_NAMES)
 
 
 def _trees() -> list[str]:

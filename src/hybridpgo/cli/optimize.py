@@ -22,7 +22,7 @@ from ._common import (
 
 if TYPE_CHECKING:
     from ..graph import PoseGraph
-    from ..solvers import SolveResult
+    from ..solvers import SolverConfig, SolveResult
 
 #: CLI option -> HybridConfig field, for the options only the hybrid solver takes.
 HYBRID_ONLY = {"sweeps": "--sweeps", "tau0": "--tau0", "tau_decay": "--tau-decay",
@@ -49,6 +49,8 @@ class Job:
 
 def _check_options(job: Job, graph: PoseGraph) -> str:
     """Reject options that do not apply; return the init kind."""
+    from ..solvers import default_init
+
     opts = job.options
     if job.solver == "exact":
         given = [flag for key, flag in HYBRID_ONLY.items() if key in opts]
@@ -60,12 +62,29 @@ def _check_options(job: Job, graph: PoseGraph) -> str:
     elif "max_iterations" in opts and not opts.get("polish"):
         raise HybridPGOError("--max-iterations limits the exact solver or the polish: add "
                              "--polish or use --solver exact (the hybrid solver runs --sweeps)")
-    init = opts.get("init") or ("file" if job.solver == "exact" and graph.has_estimates
-                                else "tree")
+    init: str = opts.get("init") or default_init(graph, job.solver)
     if init == "file" and not graph.has_estimates:
         raise HybridPGOError(f"{job.input}: --init file needs vertex estimates, but the file has "
                              "none (iSAM files list only constraints); use --init tree")
     return init
+
+
+def _make_config(job: Job, init: str) -> SolverConfig:
+    """The solver's typed options object, built once from the CLI options."""
+    from ..solvers import config_for
+
+    opts = dict(job.options)
+    if job.solver == "hybrid":
+        opts["init"] = init
+        if "max_iterations" in opts:
+            opts["polish_iterations"] = opts.pop("max_iterations")
+    else:
+        opts.pop("init", None)
+        opts.pop("tree", None)
+    try:
+        return config_for(job.solver, **opts)
+    except ValueError as exc:
+        raise HybridPGOError(f"invalid solver option: {exc}") from exc
 
 
 def _check_writable(path: str) -> None:
@@ -90,38 +109,27 @@ def _plots_possible(job: Job) -> bool:
     return True
 
 
-def _solve(job: Job, graph: PoseGraph, init: str) -> SolveResult:
-    from ..solvers import GaussNewtonConfig, HybridConfig, optimize
+def _solve(job: Job, graph: PoseGraph, config: SolverConfig, init: str) -> SolveResult:
+    from ..solvers import HybridConfig, Progress, optimize
 
-    opts = dict(job.options)
-    opts["init"] = init
     nc = graph.num_constraints
-    if job.solver == "hybrid":
-        if "max_iterations" in opts:
-            opts["polish_iterations"] = opts.pop("max_iterations")
-        try:
-            cfg = HybridConfig(**opts)
-        except ValueError as exc:
-            raise HybridPGOError(f"invalid solver option: {exc}") from exc
-        bar = ProgressBar("hybrid", cfg.sweeps, nc, enabled=not job.quiet)
+    if isinstance(config, HybridConfig):
+        bar = ProgressBar("hybrid", config.sweeps, nc, enabled=not job.quiet)
+        polish = config.polish
 
-        def hybrid_progress(k: int, e: float, tau: float) -> None:
-            note = "polishing (exact LM)..." if cfg.polish and k == cfg.sweeps else ""
-            bar.update(k, e, tau, note)
+        def report(p: Progress) -> None:
+            if p.phase == "sweeps":
+                note = "polishing (exact LM)..." if polish and p.iteration == p.total else ""
+                bar.update(p.iteration, p.energy, p.tau, note)
 
         try:
-            return optimize(graph, "hybrid", progress=hybrid_progress, **opts)
+            return optimize(graph, config, progress=report)
         finally:
             bar.close()
-    exact_opts = {k: v for k, v in opts.items() if k not in ("init", "tree")}
+    bar = ProgressBar("exact LM", config.max_iterations, nc, enabled=not job.quiet)
     try:
-        GaussNewtonConfig(**exact_opts)
-    except ValueError as exc:
-        raise HybridPGOError(f"invalid solver option: {exc}") from exc
-    total = exact_opts.get("max_iterations", GaussNewtonConfig.max_iterations)
-    bar = ProgressBar("exact LM", total, nc, enabled=not job.quiet)
-    try:
-        return optimize(graph, "exact", progress=lambda k, e: bar.update(k, e), **opts)
+        return optimize(graph, config, progress=lambda p: bar.update(p.iteration, p.energy),
+                        init=init, tree=job.options.get("tree") or "bfs")
     finally:
         bar.close()
 
@@ -132,6 +140,7 @@ def run_job(job: Job) -> dict[str, Any]:
     graph = read_input(job.input, job.fmt, skip_unknown=job.skip_unknown)
     t_read = time.perf_counter() - t0
     init = _check_options(job, graph)
+    config = _make_config(job, init)
     out_fmt = output_format(job.output, job.out_format, graph, allow_isam=False)
     if out_fmt == "toro" and graph.num_gps:
         raise HybridPGOError(f"{job.output}: the TORO format cannot store GPS constraints; "
@@ -141,7 +150,7 @@ def run_job(job: Job) -> dict[str, Any]:
     if not job.quiet:
         log(f"read {job.input} ({describe_graph(graph)}) in {t_read:.2f} s")
 
-    result = _solve(job, graph, init)
+    result = _solve(job, graph, config, init)
 
     from ..io import write_graph
 

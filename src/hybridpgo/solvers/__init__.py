@@ -6,47 +6,78 @@ from typing import Any
 
 from ..graph import PoseGraph
 from .config import GaussNewtonConfig as GaussNewtonConfig
-from .hybrid import HybridConfig as HybridConfig
+from .config import HybridConfig as HybridConfig
+from .config import Progress as Progress
+from .config import default_init as default_init
+from .hybrid import HybridSolver as HybridSolver
 from .hybrid import solve_hybrid as solve_hybrid
 from .result import SolveResult as SolveResult
 from .result import Status as Status
 
 METHODS = ("hybrid", "exact")
 
+SolverConfig = HybridConfig | GaussNewtonConfig
 
-def optimize(graph: PoseGraph, method: str = "hybrid", **options: Any) -> SolveResult:
+
+def config_for(method: str, **options: Any) -> SolverConfig:
+    """The typed options object of ``method`` built from keyword options (ValueError if bad)."""
+    if method == "hybrid":
+        return HybridConfig(**options)
+    if method == "exact":
+        return GaussNewtonConfig(**options)
+    raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+
+
+def optimize(graph: PoseGraph, config: SolverConfig | str = "hybrid", *,
+             progress: Any = None, init: str | None = None, tree: str = "bfs",
+             **options: Any) -> SolveResult:
     """Optimize a pose graph.
 
     Parameters
     ----------
     graph : PoseGraph
-    method : {"hybrid", "exact"}
-        ``"hybrid"``: the paper's stochastic hybrid Hessian sweeps (options: the fields of
-        :class:`HybridConfig`, plus ``progress``).  ``"exact"``: sparse Levenberg-Marquardt or
-        Gauss-Newton from the graph's vertex estimates (options: the fields of
-        :class:`GaussNewtonConfig`; ``init="tree"`` / ``"chordal"`` start from those
-        initializations).
+    config : HybridConfig, GaussNewtonConfig, or {"hybrid", "exact"}
+        The solver's typed options, or a method name whose options are then given as keywords
+        (the fields of :class:`HybridConfig` or :class:`GaussNewtonConfig`).  ``"hybrid"``: the
+        paper's stochastic hybrid Hessian sweeps; ``"exact"``: sparse Levenberg-Marquardt or
+        Gauss-Newton.
+    progress : callable, optional
+        ``progress(Progress)`` after every iteration (sweep, polish or exact iteration).
+    init, tree : str, optional
+        Exact solver only: the starting point (``"file"``, ``"tree"``, ``"chordal"``; default
+        :func:`default_init`) and the tree the tree/chordal starts are grown on.  The hybrid
+        solver takes them as fields of :class:`HybridConfig`.
 
     Returns
     -------
     SolveResult
     """
-    if method == "hybrid":
-        progress = options.pop("progress", None)
-        return solve_hybrid(graph, HybridConfig(**options), progress=progress)
-    if method == "exact":
-        from ..tree import build_tree, global_poses, initial_locals
-        from .gauss_newton import solve_exact
+    if isinstance(config, str):
+        if config == "hybrid":
+            if init is not None:
+                options["init"] = init
+            options.setdefault("tree", tree)
+        config = config_for(config, **options)
+    elif options:
+        raise TypeError("give either a config object or keyword options, not both")
+    elif isinstance(config, HybridConfig) and init is not None and init != config.init:
+        raise ValueError("the hybrid solver's init is a field of its config")
+    if isinstance(config, HybridConfig):
+        return solve_hybrid(graph, config, progress=progress)
+    from ..tree import build_tree, global_poses, initial_locals
+    from .gauss_newton import solve_exact
 
-        init = options.pop("init", "file" if graph.has_estimates else "tree")
-        tree_kind = options.pop("tree", "bfs")
-        rot = trans = None
-        if init not in ("tree", "file", "chordal"):
-            raise ValueError(f"init must be 'tree', 'file' or 'chordal', got {init!r}")
-        if init == "file" and not graph.has_estimates:
-            init = "tree"
-        if init != "file":
-            tree = build_tree(graph, tree_kind)
-            rot, trans = global_poses(tree, *initial_locals(graph, tree, init))
-        return solve_exact(graph, rot, trans, GaussNewtonConfig(**options))
-    raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    start = init or default_init(graph, "exact")
+    if start == "file" and not graph.has_estimates:
+        start = "tree"
+    if progress is not None:
+        import dataclasses
+
+        total = config.max_iterations
+        config = dataclasses.replace(
+            config, progress=lambda k, e: progress(Progress("exact", k, total, e)))
+    rot = trans = None
+    if start != "file":
+        t = build_tree(graph, tree)
+        rot, trans = global_poses(t, *initial_locals(graph, t, start))
+    return solve_exact(graph, rot, trans, config)

@@ -9,10 +9,37 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal, NamedTuple, get_args
 
-#: Progress callback: called as ``progress(iteration, energy)`` after every iteration.
-ProgressCallback = Callable[[int, float], None]
+if TYPE_CHECKING:
+    from ..graph import PoseGraph
+
+StepName = Literal["woodbury", "givens"]
+TreeName = Literal["bfs", "mst"]
+InitName = Literal["tree", "file", "chordal"]
+#: The names a user may give for each choice (derived once from the Literal types).
+STEP_NAMES: tuple[str, ...] = get_args(StepName)
+TREE_NAMES: tuple[str, ...] = get_args(TreeName)
+INIT_NAMES: tuple[str, ...] = get_args(InitName)
+
+
+class Progress(NamedTuple):
+    """What every solver reports after each iteration (one callback shape for all solvers)."""
+
+    phase: str
+    """``"sweeps"`` (hybrid), ``"polish"`` (exact LM after the sweeps) or ``"exact"``."""
+    iteration: int
+    """Iterations (sweeps) done in this phase; 0 is the phase's starting point."""
+    total: int
+    """The phase's iteration limit."""
+    energy: float
+    """E at this point."""
+    tau: float | None = None
+    """The temperature of the next sweep (hybrid only)."""
+
+
+#: Progress callback: ``progress(Progress(...))`` after every iteration.
+ProgressCallback = Callable[[Progress], None]
 
 #: Sparse linear solvers the exact solver can use (``"auto"``: CHOLMOD if importable, else SuperLU).
 LINEAR_SOLVERS = ("auto", "cholmod", "splu")
@@ -88,3 +115,60 @@ class GaussNewtonConfig:
         if self.progress is not None and not callable(self.progress):
             raise ValueError(f"progress must be a callable(iteration, energy) or None, "
                              f"got {self.progress!r}")
+
+
+@dataclass(frozen=True)
+class HybridConfig:
+    """Options of the hybrid solver (paper Algorithm 1); every field is checked once here."""
+
+    sweeps: int = 10
+    """Maximum number of sweeps over all constraints (the paper's experiments use 10)."""
+    tau0: float = 1.0
+    """Initial temperature tau (paper III-H)."""
+    tau_decay: float = 0.99
+    """tau is multiplied by this after each sweep (paper III-H)."""
+    damping: float = 1e-6
+    """mu: each block of B_c gets ``mu * trace(B)/6`` added to its diagonal (DESIGN §4)."""
+    step: StepName = "woodbury"
+    """``"woodbury"`` (O(d), default) or ``"givens"`` (the paper's O(d^2) triangularization)."""
+    tree: TreeName = "bfs"
+    """``"bfs"`` (paper) or ``"mst"`` (maximum-stiffness spanning tree)."""
+    init: InitName = "tree"
+    """``"tree"`` (concatenate tree-edge measurements, paper), ``"file"`` (the file's vertices)
+    or ``"chordal"`` (chordal rotation relaxation, then positions)."""
+    energy_tolerance: float = 0.0
+    """Stop when a sweep lowers the energy by less than this fraction (0: run all sweeps)."""
+    gps_batch_size: int = 40
+    """GPS constraints are relaxed together in batches of this size (paper: 30-50)."""
+    polish: bool = False
+    """Finish with the exact Levenberg-Marquardt solver."""
+    polish_iterations: int = 100
+    """Iteration limit of the polish."""
+
+    def __post_init__(self) -> None:
+        _check_int("sweeps", self.sweeps, 0)
+        _check_float("tau0", self.tau0, positive=True)
+        if not (isinstance(self.tau_decay, (int, float)) and 0 < self.tau_decay <= 1):
+            raise ValueError(f"tau_decay must be in (0, 1], got {self.tau_decay!r}")
+        _check_float("damping", self.damping, positive=False)
+        for name, value, allowed in (("step", self.step, STEP_NAMES),
+                                     ("tree", self.tree, TREE_NAMES),
+                                     ("init", self.init, INIT_NAMES)):
+            if value not in allowed:
+                raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {value!r}")
+        _check_int("gps_batch_size", self.gps_batch_size, 1)
+        _check_float("energy_tolerance", self.energy_tolerance, positive=False)
+        if not isinstance(self.polish, bool):
+            raise ValueError(f"polish must be True or False, got {self.polish!r}")
+        _check_int("polish_iterations", self.polish_iterations, 0)
+
+
+def default_init(graph: PoseGraph, method: str) -> InitName:
+    """The starting point a solver uses when none is given (the one place that decides).
+
+    The exact solver starts from the file's vertices when the file has them (what g2o and GTSAM
+    do); the hybrid solver, and any solver on a file without vertices, from the tree (paper).
+    """
+    if method == "exact" and graph.has_estimates:
+        return "file"
+    return "tree"

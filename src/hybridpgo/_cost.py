@@ -1,0 +1,213 @@
+"""The cost layer: one definition of every per-constraint quantity (DESIGN.md §1, §3, §4).
+
+Both solvers and :mod:`hybridpgo.energy` compute a constraint's error, its inverse right
+Jacobian, its whitened form, its χ² and the pose retraction through these kernels only, so they
+cannot drift apart:
+
+* relative constraint: ``e = Log(Z^-1 X_a^-1 X_b)`` (tangent order rho, phi) and ``Jr^-1(e)``;
+* position ("GPS") constraint: ``e = p_n - g``;
+* ``χ² = e^T Omega e`` (no 1/2), whitening with ``L^T`` where ``Omega = L L^T``;
+* the retraction ``T <- T Exp(s xi)``, followed by one Newton step towards the polar factor.
+
+All kernels are allocation-free: the caller passes scratch buffers, so they can run in a
+per-constraint hot loop (STYLE.md §3).  A robust kernel (DESIGN §10) enters as a weight on the
+χ² (exact solver) or on the whitened rows (hybrid solver) computed here.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ._numba import kernel
+from .geometry._fast import edge_error_into, jr_inv_blocks, skew_into
+from .geometry._kernels import SMALL_ANGLE
+
+#: Scratch (3, 3) matrices :func:`residual_and_jr_inv` needs.
+SCRATCH = 12
+
+
+@kernel
+def relative_residual(zr: np.ndarray, zt: np.ndarray, ra: np.ndarray, ta: np.ndarray,
+                      rb: np.ndarray, tb: np.ndarray, e: np.ndarray, ws: np.ndarray) -> None:
+    """``e = Log(Z^-1 X_a^-1 X_b)`` (6,); ``ws`` (>= 3, 3, 3) scratch.
+
+    On return ``ws[0]`` holds ``R_a^T R_b`` and ``ws[1][0]`` holds ``R_a^T (t_b - t_a)``.
+    """
+    edge_error_into(ra, ta, rb, tb, zr, zt, ws[0], ws[1][0], ws[2], e)
+
+
+@kernel
+def residual_and_jr_inv(zr: np.ndarray, zt: np.ndarray, ra: np.ndarray, ta: np.ndarray,
+                        rb: np.ndarray, tb: np.ndarray, e: np.ndarray,
+                        ws: np.ndarray) -> None:
+    """``e = Log(Z^-1 X_a^-1 X_b)`` and the blocks of ``Jr^-1(e) = [[J, K], [0, J]]``.
+
+    ``ws`` is (SCRATCH, 3, 3) scratch; on return ``J = ws[8]``, ``K = ws[9]``,
+    ``X_a^-1 X_b = (ws[10], ws[11][0])``.
+    """
+    edge_error_into(ra, ta, rb, tb, zr, zt, ws[10], ws[11][0], ws[0], e)
+    jr_inv_blocks(e, ws)
+
+
+@kernel
+def jr_inv_matrix(ws: np.ndarray, out: np.ndarray) -> None:
+    """The (6, 6) ``Jr^-1`` from the blocks :func:`residual_and_jr_inv` left in ``ws``."""
+    jm = ws[8]
+    km = ws[9]
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = jm[i, j]
+            out[i, 3 + j] = km[i, j]
+            out[3 + i, j] = 0.0
+            out[3 + i, 3 + j] = jm[i, j]
+
+
+@kernel
+def gps_residual(p: np.ndarray, g: np.ndarray, e: np.ndarray) -> None:
+    """``e = p_n - g`` (3,)."""
+    for i in range(3):
+        e[i] = p[i] - g[i]
+
+
+@kernel
+def chi2(info: np.ndarray, e: np.ndarray, n: int) -> float:
+    """``e^T Omega e`` for the leading n entries (no 1/2, DESIGN §1)."""
+    total = 0.0
+    for i in range(n):
+        s = 0.0
+        for j in range(n):
+            s += info[i, j] * e[j]
+        total += e[i] * s
+    return total
+
+
+@kernel
+def whiten_residual(lt: np.ndarray, e: np.ndarray, n: int, out: np.ndarray) -> None:
+    """``out = -L^T e`` (n,): the whitened residual ``r`` of the step equations (DESIGN §3)."""
+    for p in range(n):
+        acc = 0.0
+        for q in range(n):
+            acc += lt[p, q] * e[q]
+        out[p] = -acc
+
+
+@kernel
+def whiten_rows(lt: np.ndarray, m: np.ndarray, n: int, out: np.ndarray) -> None:
+    """``out[:n, :6] = L^T m[:n, :6]`` with ``L^T`` (n, n) upper triangular."""
+    for p in range(n):
+        for j in range(6):
+            acc = 0.0
+            for q in range(p, n):
+                acc += lt[p, q] * m[q, j]
+            out[p, j] = acc
+
+
+@kernel
+def relative_chi2(zr: np.ndarray, zt: np.ndarray, info: np.ndarray, ra: np.ndarray,
+                  ta: np.ndarray, rb: np.ndarray, tb: np.ndarray, e: np.ndarray,
+                  ws: np.ndarray) -> float:
+    """χ² of a relative constraint at global poses a, b (``e`` receives its error)."""
+    relative_residual(zr, zt, ra, ta, rb, tb, e, ws)
+    return chi2(info, e, 6)
+
+
+@kernel
+def gps_chi2(p: np.ndarray, g: np.ndarray, info: np.ndarray, e: np.ndarray) -> float:
+    """χ² of a position constraint at position p (``e`` receives its error)."""
+    gps_residual(p, g, e)
+    return chi2(info, e, 3)
+
+
+@kernel
+def constraint_energies(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarray,
+                        edge_rot: np.ndarray, edge_trans: np.ndarray, edge_info: np.ndarray,
+                        gps_nodes: np.ndarray, gps_pos: np.ndarray, gps_info: np.ndarray,
+                        out_rel: np.ndarray, out_gps: np.ndarray) -> None:
+    """χ² of every relative (M,) and position (G,) constraint at global poses (may be inf/nan)."""
+    ws = np.empty((3, 3, 3))
+    e = np.empty(6)
+    for c in range(edge_nodes.shape[0]):
+        a = edge_nodes[c, 0]
+        b = edge_nodes[c, 1]
+        out_rel[c] = relative_chi2(edge_rot[c], edge_trans[c], edge_info[c], rot[a], trans[a],
+                                   rot[b], trans[b], e, ws)
+    for c in range(gps_nodes.shape[0]):
+        out_gps[c] = gps_chi2(trans[gps_nodes[c]], gps_pos[c], gps_info[c], e)
+
+
+@kernel
+def total_energy(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarray,
+                 edge_rot: np.ndarray, edge_trans: np.ndarray, edge_info: np.ndarray,
+                 gps_nodes: np.ndarray, gps_pos: np.ndarray, gps_info: np.ndarray) -> float:
+    """``E = sum_c e_c^T Omega_c e_c`` at global poses (may be inf/nan), summed in order."""
+    ws = np.empty((3, 3, 3))
+    e = np.empty(6)
+    total = 0.0
+    for c in range(edge_nodes.shape[0]):
+        a = edge_nodes[c, 0]
+        b = edge_nodes[c, 1]
+        total += relative_chi2(edge_rot[c], edge_trans[c], edge_info[c], rot[a], trans[a],
+                               rot[b], trans[b], e, ws)
+    for c in range(gps_nodes.shape[0]):
+        total += gps_chi2(trans[gps_nodes[c]], gps_pos[c], gps_info[c], e)
+    return total
+
+
+@kernel
+def retract_into(r_in: np.ndarray, t_in: np.ndarray, xi: np.ndarray, scale: float,
+                 r_out: np.ndarray, t_out: np.ndarray, er: np.ndarray, tmp: np.ndarray) -> None:
+    """``T_out = T_in Exp(scale xi)``, rotation re-orthonormalized; ``er``, ``tmp`` (3, 3) scratch.
+
+    The output may alias the input (in-place update).  One Newton step towards the polar factor,
+    ``R <- R (3I - R^T R) / 2``, keeps the rotation orthonormal to rounding over many steps.
+    """
+    rx, ry, rz = scale * xi[0], scale * xi[1], scale * xi[2]
+    px, py, pz = scale * xi[3], scale * xi[4], scale * xi[5]
+    th2 = px * px + py * py + pz * pz
+    th = math.sqrt(th2)
+    if th < SMALL_ANGLE:
+        sa = 1.0 - th2 / 6.0  # sin(th)/th
+        sb = 0.5 - th2 / 24.0  # (1 - cos th)/th^2
+        sc = 1.0 / 6.0 - th2 / 120.0  # (th - sin th)/th^3
+    else:
+        sn = math.sin(th)
+        sh = math.sin(0.5 * th)
+        sa = sn / th
+        sb = 2.0 * sh * sh / th2
+        sc = (th - sn) / (th2 * th)
+    # K = [phi]x, K^2 = phi phi^T - th^2 I
+    k = tmp
+    skew_into(px, py, pz, k)
+    ph = (px, py, pz)
+    for i in range(3):
+        for j in range(3):
+            k2 = ph[i] * ph[j] - (th2 if i == j else 0.0)
+            idn = 1.0 if i == j else 0.0
+            er[i, j] = idn + sa * k[i, j] + sb * k2
+    # t_exp = V rho, V = I + sb K + sc K^2
+    rho = (rx, ry, rz)
+    dt0 = rx
+    dt1 = ry
+    dt2 = rz
+    for j in range(3):
+        v0 = sb * k[0, j] + sc * (ph[0] * ph[j] - (th2 if j == 0 else 0.0))
+        v1 = sb * k[1, j] + sc * (ph[1] * ph[j] - (th2 if j == 1 else 0.0))
+        v2 = sb * k[2, j] + sc * (ph[2] * ph[j] - (th2 if j == 2 else 0.0))
+        dt0 += v0 * rho[j]
+        dt1 += v1 * rho[j]
+        dt2 += v2 * rho[j]
+    for i in range(3):
+        t_out[i] = t_in[i] + (r_in[i, 0] * dt0 + r_in[i, 1] * dt1 + r_in[i, 2] * dt2)
+    for i in range(3):
+        for j in range(3):
+            tmp[i, j] = r_in[i, 0] * er[0, j] + r_in[i, 1] * er[1, j] + r_in[i, 2] * er[2, j]
+    for i in range(3):
+        for j in range(3):
+            er[i, j] = -(tmp[0, i] * tmp[0, j] + tmp[1, i] * tmp[1, j] + tmp[2, i] * tmp[2, j])
+        er[i, i] += 3.0
+    for i in range(3):
+        for j in range(3):
+            r_out[i, j] = 0.5 * (tmp[i, 0] * er[0, j] + tmp[i, 1] * er[1, j]
+                                 + tmp[i, 2] * er[2, j])

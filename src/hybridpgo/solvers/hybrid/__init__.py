@@ -1,0 +1,27 @@
+"""The hybrid Hessian solver (Grimes, Anguelov & LeCun, IROS 2010), one file per paper section.
+
+=========================  ===================================================================
+module                     paper
+=========================  ===================================================================
+``problem``                named data: :class:`Problem`, :class:`State`, :class:`Workspace`
+``_linearize``             III-B: path products, whitened Jacobian blocks (eq. 17-22)
+``_step``                  III-C/D/H: 𝔅(H) (eq. 23/24), damping, Woodbury, Givens (eq. 25-30),
+                           the pi/8 cap and the retraction
+``_batch``                 III-F/G: batch updates (eq. 35-37), GPS batches
+``_sweep``                 Algorithm 1: sweeps in root-depth order, GPS buffering
+``solver``                 :class:`HybridSolver` (built once, run or stepped), :func:`solve_hybrid`
+=========================  ===================================================================
+"""
+
+from __future__ import annotations
+
+from ..config import HybridConfig as HybridConfig
+from .problem import StepKind as StepKind
+from .solver import STEP_KINDS as STEP_KINDS
+from .solver import HybridSolver as HybridSolver
+from .solver import StepReport as StepReport
+from .solver import cycles_per_second as cycles_per_second
+from .solver import solve_hybrid as solve_hybrid
+
+__all__ = ["STEP_KINDS", "HybridConfig", "HybridSolver", "StepKind", "StepReport",
+           "cycles_per_second", "solve_hybrid"]

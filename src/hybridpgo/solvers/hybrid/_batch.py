@@ -1,0 +1,512 @@
+"""Batch updates: several constraints relaxed together (paper III-F, III-G; DESIGN.md §5).
+
+For a set C of constraints, ``H_C = sum_{c in C} J_c^T J_c + B_C`` over the union U of their
+domains, with ``B_C = 𝔅(H) - sum_{c in C} 𝔅(J_c^T J_c)`` (eq. 35-37).  GPS readings are relaxed
+this way in batches (III-G); the batch of every constraint is the exact Gauss-Newton step
+(eq. 37 reduces to eq. 14).
+
+Stages (:func:`batch_relax`): the union of the domains, one linearization per constraint, the
+blocks of B_C with 𝔅(H) updated (eq. 36, 24), the solve, and :func:`~._step.cap_and_apply`.
+The solve is the Woodbury form over *segments* (:func:`woodbury_segments`) when every block of
+B_C is non-zero, else (B_C vanishes on a node only the batch touches) the dense normal
+equations over U.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..._cost import whiten_rows
+from ..._numba import kernel
+from ._dense import chol_inplace, chol_solve_cols, regularized_factor
+from ._linearize import endpoints, linearize, mul_pose_into
+from ._step import cap_and_apply
+from .problem import (
+    BATCH_REJECTED,
+    Problem,
+    State,
+    Update,
+    Workspace,
+    domain,
+    is_gps,
+    new_workspace,
+)
+
+#: Largest union (nodes) solved by the dense normal equations when B_C has a zero block.
+MAX_DENSE_NODES = 4096 // 6
+
+
+# --------------------------------------------------------------------------- helpers
+@kernel
+def global_pose(i: int, parent: np.ndarray, rot: np.ndarray, trans: np.ndarray, ro: np.ndarray,
+                to: np.ndarray) -> None:
+    """Pose of tree node i in the root's frame (product of locals up the tree), O(depth)."""
+    tmp_r = np.empty((3, 3))
+    tmp_t = np.empty(3)
+    if i < 0:
+        for a in range(3):
+            for b in range(3):
+                ro[a, b] = 1.0 if a == b else 0.0
+            to[a] = 0.0
+        return
+    ro[:] = rot[i]
+    to[:] = trans[i]
+    v = parent[i]
+    while v >= 0:
+        mul_pose_into(rot[v], trans[v], ro, to, tmp_r, tmp_t)
+        ro[:] = tmp_r
+        to[:] = tmp_t
+        v = parent[v]
+
+
+@kernel
+def adjoint_into(r: np.ndarray, t: np.ndarray, out: np.ndarray) -> None:
+    """Ad(T) = [[R, [t]x R], [0, R]]."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = r[i, j]
+            out[3 + i, 3 + j] = r[i, j]
+            out[3 + i, j] = 0.0
+    for j in range(3):
+        out[0, 3 + j] = t[1] * r[2, j] - t[2] * r[1, j]
+        out[1, 3 + j] = t[2] * r[0, j] - t[0] * r[2, j]
+        out[2, 3 + j] = t[0] * r[1, j] - t[1] * r[0, j]
+
+
+class _Batch:
+    """Documentation of the batch arrays (Numba passes them one by one).
+
+    ``e`` indexes *entries*: the (constraint, domain position) pairs of the batch, constraint q's
+    entries being ``e_off[q] .. e_off[q+1]-1``; ``u`` indexes union nodes (``nodes_out[u]``);
+    ``e_slot[e]`` / ``e_q[e]``: the union node and the batch position of entry e;
+    ``cnt`` / ``by_slot``: CSR of the entries of each union node; ``jb[e]``: whitened Jacobian
+    block; rows ``r_off[q] .. r_off[q+1]-1`` of the stacked residual ``rbuf`` belong to q.
+    """
+
+
+# --------------------------------------------------------------------------- 1. union
+@kernel
+def _union(prob: Problem, cs: np.ndarray, nb: int, slot: np.ndarray, nodes_out: np.ndarray,
+           e_off: np.ndarray, e_slot: np.ndarray, e_q: np.ndarray) -> int:
+    """Number the union of the domains (``slot[node]``, ``nodes_out[u]``); returns its size."""
+    nu = 0
+    for q in range(nb):
+        s, d = domain(prob, cs[q])
+        for k in range(d):
+            i = prob.path_node[s + k]
+            if slot[i] < 0:
+                slot[i] = nu
+                nodes_out[nu] = i
+                nu += 1
+            e_slot[e_off[q] + k] = slot[i]
+            e_q[e_off[q] + k] = q
+    return nu
+
+
+@kernel
+def _entries_by_node(e_slot: np.ndarray, nu: int) -> tuple[np.ndarray, np.ndarray]:
+    """CSR ``(cnt, by_slot)`` of the entries of every union node."""
+    ne = e_slot.shape[0]
+    cnt = np.zeros(nu + 1, np.int64)
+    for e in range(ne):
+        cnt[e_slot[e] + 1] += 1
+    for u in range(nu):
+        cnt[u + 1] += cnt[u]
+    fill = cnt[:nu].copy()
+    by_slot = np.empty(ne, np.int64)
+    for e in range(ne):
+        by_slot[fill[e_slot[e]]] = e
+        fill[e_slot[e]] += 1
+    return cnt, by_slot
+
+
+# --------------------------------------------------------------------------- 2. linearize
+@kernel
+def _linearize_batch(prob: Problem, state: State, cs: np.ndarray, nb: int, wk: Workspace,
+                     e_off: np.ndarray, e_slot: np.ndarray, jb: np.ndarray, r_off: np.ndarray,
+                     krs: np.ndarray, rbuf: np.ndarray, amat: np.ndarray, yr: np.ndarray,
+                     yt: np.ndarray) -> None:
+    """Linearize every constraint once: blocks ``jb``, residuals ``rbuf``, and the factors
+    ``J_{c,u} = s_{c,u} A_c Ad(Y_u)`` the segmented Woodbury solve uses: ``A_c`` (``amat[q]``)
+    and the global pose ``Y_u`` of every union node (``yr``, ``yt``).
+
+    ``A_c`` is ``L^T Jr^-1(e) Ad(Y_b)^-1`` for a relative constraint and ``L^T [I | -[p_n]x]``
+    for GPS (the earth is the root).
+    """
+    nu = yr.shape[0]
+    have = np.zeros(nu, np.bool_)
+    gr = np.empty((3, 3))
+    gt = np.empty(3)
+    tr_ = np.empty((3, 3))
+    tt_ = np.empty(3)
+    adb = np.empty((6, 6))
+    blk = np.zeros((3, 6))
+    r_off[0] = 0
+    for q in range(nb):
+        c = cs[q]
+        s0, d = domain(prob, c)
+        kr, na = linearize(prob, c, state.rot, state.trans, wk, jb[e_off[q] : e_off[q] + d])
+        krs[q] = kr
+        for i in range(kr):
+            rbuf[r_off[q] + i] = wk.r[i]
+        r_off[q + 1] = r_off[q] + kr
+        pr = wk.path_rot
+        pt = wk.path_trans
+        # the constraint's root: parent of the top node of a non-empty side
+        top = prob.path_node[s0 + na - 1] if na > 0 else prob.path_node[s0 + d - 1]
+        global_pose(prob.parent[top], prob.parent, state.rot, state.trans, gr, gt)
+        for k in range(d):
+            u = e_slot[e_off[q] + k]
+            if not have[u]:
+                mul_pose_into(gr, gt, pr[k], pt[k], yr[u], yt[u])
+                have[u] = True
+        if not is_gps(prob, c):
+            _ra, _ta, rb, tb = endpoints(pr, pt, na, d)
+            # Ad(Y_b)^-1 = Ad(Y_b^-1), Y_b = G_root P_b
+            mul_pose_into(gr, gt, rb, tb, tr_, tt_)
+            rinv = tr_.T.copy()
+            tinv = -(rinv @ tt_)
+            adjoint_into(rinv, tinv, adb)
+            amat[q] = wk.a @ adb
+        else:
+            pn = pt[0]  # p_n in the earth frame (G = I)
+            for i in range(3):
+                blk[i, i] = 1.0
+            blk[0, 4] = pn[2]  # -[p_n]x
+            blk[0, 5] = -pn[1]
+            blk[1, 3] = -pn[2]
+            blk[1, 5] = pn[0]
+            blk[2, 3] = pn[1]
+            blk[2, 4] = -pn[0]
+            whiten_rows(prob.gps_lt[c - prob.num_edges], blk, 3, amat[q])
+
+
+# --------------------------------------------------------------------------- 3. blocks of B_C
+@kernel
+def _batch_blocks(prob: Problem, state: State, cs: np.ndarray, jb: np.ndarray,
+                  e_off: np.ndarray, krs: np.ndarray, e_q: np.ndarray, cnt: np.ndarray,
+                  by_slot: np.ndarray, nodes_out: np.ndarray, bc: np.ndarray) -> bool:
+    """Eq. 36 and 24: B_C per union node, 𝔅(H) updated with the batch's new contributions.
+
+    Returns True when some node has every constraint through it in C (its block of B_C is 0).
+    """
+    nu = bc.shape[0]
+    bdiag = state.bdiag
+    contrib = state.contrib
+    zero_block = False
+    for u in range(nu):
+        i = nodes_out[u]
+        for p in range(6):
+            for q2 in range(6):
+                bc[u, p, q2] = bdiag[i, p, q2]
+        for t in range(cnt[u], cnt[u + 1]):
+            e = by_slot[t]
+            q = e_q[e]
+            pe = prob.path_ptr[cs[q]] + e - e_off[q]
+            kr = krs[q]
+            for p in range(6):
+                for q2 in range(6):
+                    acc = 0.0
+                    for w in range(kr):
+                        acc += jb[e, w, p] * jb[e, w, q2]
+                    old = contrib[pe, p, q2]
+                    bc[u, p, q2] -= old
+                    bdiag[i, p, q2] += acc - old
+                    contrib[pe, p, q2] = acc
+        if cnt[u + 1] - cnt[u] == prob.path_count[i]:  # every constraint on node i is in C
+            for p in range(6):
+                for q2 in range(6):
+                    bc[u, p, q2] = 0.0
+            zero_block = True
+    return zero_block
+
+
+# --------------------------------------------------------------------------- 4a. dense solve
+@kernel
+def _dense_solve(nb: int, jb: np.ndarray, e_off: np.ndarray, e_slot: np.ndarray,
+                 r_off: np.ndarray, krs: np.ndarray, rbuf: np.ndarray, bc: np.ndarray,
+                 x_out: np.ndarray) -> bool:
+    """``(sum_c J_c^T J_c + B_C) x = sum_c J_c^T r_c`` densely over the union (6|U| unknowns)."""
+    nu = bc.shape[0]
+    n6 = 6 * nu
+    amat = np.zeros((n6, n6))
+    g = np.zeros(n6)
+    for u in range(nu):
+        for p in range(6):
+            for q2 in range(6):
+                amat[6 * u + p, 6 * u + q2] = bc[u, p, q2]
+    for q in range(nb):
+        kr = krs[q]
+        for e in range(e_off[q], e_off[q + 1]):
+            ue = e_slot[e]
+            for p in range(6):
+                acc = 0.0
+                for w in range(kr):
+                    acc += jb[e, w, p] * rbuf[r_off[q] + w]
+                g[6 * ue + p] += acc
+            for f in range(e_off[q], e_off[q + 1]):
+                uf = e_slot[f]
+                for p in range(6):
+                    for q2 in range(6):
+                        acc = 0.0
+                        for w in range(kr):
+                            acc += jb[e, w, p] * jb[f, w, q2]
+                        amat[6 * ue + p, 6 * uf + q2] += acc
+    sym = 0.5 * (amat + amat.T)
+    if not chol_inplace(sym, n6):
+        return False
+    gg = g.reshape((n6, 1)).copy()
+    chol_solve_cols(sym, n6, gg, 1)
+    for u in range(nu):
+        for p in range(6):
+            x_out[u, p] = gg[6 * u + p, 0]
+    return True
+
+
+# --------------------------------------------------------------------------- 4b. Woodbury
+@kernel
+def _entry_sign(prob: Problem, cs: np.ndarray, e_off: np.ndarray, e_q: np.ndarray,
+                e: int) -> float:
+    q = e_q[e]
+    return float(prob.path_sign[prob.path_ptr[cs[q]] + e - e_off[q]])
+
+
+@kernel
+def _segments(prob: Problem, cs: np.ndarray, nb: int, e_off: np.ndarray, e_slot: np.ndarray,
+              cnt: np.ndarray, slot: np.ndarray, nodes_out: np.ndarray,
+              seg: np.ndarray, seg_rep: np.ndarray) -> int:
+    """Group union nodes into segments: chains whose nodes lie on the same constraints.
+
+    Each constraint side is walked top-down; a node starts a new segment when a constraint
+    side tops out at it, its parent is outside the union, or the counts differ.  Returns the
+    number of segments; ``seg[u]`` is u's segment and ``seg_rep[s]`` a representative node.
+    """
+    nu = seg.shape[0]
+    tops = np.zeros(nu, np.bool_)
+    for q in range(nb):
+        c = cs[q]
+        s0, d = domain(prob, c)
+        na = 0
+        while na < d and prob.path_sign[s0 + na] < 0:
+            na += 1
+        if na > 0:
+            tops[e_slot[e_off[q] + na - 1]] = True
+        if na < d:
+            tops[e_slot[e_off[q] + d - 1]] = True
+    seg[:] = -1
+    nseg = 0
+    for q in range(nb):
+        c = cs[q]
+        s0, d = domain(prob, c)
+        na = 0
+        while na < d and prob.path_sign[s0 + na] < 0:
+            na += 1
+        for side in range(2):
+            lo = 0 if side == 0 else na
+            hi = na if side == 0 else d
+            for k in range(hi - 1, lo - 1, -1):
+                u = e_slot[e_off[q] + k]
+                if seg[u] >= 0:
+                    continue
+                p = prob.parent[nodes_out[u]]
+                pu = slot[p] if p >= 0 else -1
+                if tops[u] or pu < 0 or (cnt[u + 1] - cnt[u]) != (cnt[pu + 1] - cnt[pu]):
+                    seg[u] = nseg
+                    seg_rep[nseg] = u
+                    nseg += 1
+                else:
+                    seg[u] = seg[pu]
+    return nseg
+
+
+@kernel
+def _segment_moments(jb: np.ndarray, krs: np.ndarray, e_q: np.ndarray, cnt: np.ndarray,
+                     by_slot: np.ndarray, bc: np.ndarray, mu: float, yr: np.ndarray,
+                     yt: np.ndarray, seg: np.ndarray, nseg: int, lf: np.ndarray,
+                     vv: np.ndarray) -> np.ndarray:
+    """Per node: factor of damped B_u, ``V_u = L_u^-1 Ad(Y_u)^T``; per segment the moment
+    ``M_seg = sum_u V_u^T V_u`` (returned, (nseg, 6, 6))."""
+    nu = bc.shape[0]
+    mseg = np.zeros((nseg, 6, 6))
+    ad = np.empty((6, 6))
+    for u in range(nu):
+        sc = 0.0
+        for t in range(cnt[u], cnt[u + 1]):
+            e = by_slot[t]
+            for p in range(6):
+                for w in range(krs[e_q[e]]):
+                    sc += jb[e, w, p] * jb[e, w, p]
+        regularized_factor(bc[u], sc, mu, lf[u])
+        adjoint_into(yr[u], yt[u], ad)
+        lk = lf[u]
+        for col in range(6):  # column col of Ad^T = row col of Ad
+            for i in range(6):
+                acc = ad[col, i]
+                for m in range(i):
+                    acc -= lk[i, m] * vv[u, m, col]
+                vv[u, i, col] = acc / lk[i, i]
+        sg = seg[u]
+        for i in range(6):
+            for j in range(i, 6):
+                acc = 0.0
+                for m in range(6):
+                    acc += vv[u, m, i] * vv[u, m, j]
+                mseg[sg, i, j] += acc
+    for sg in range(nseg):
+        for i in range(6):
+            for j in range(i):
+                mseg[sg, i, j] = mseg[sg, j, i]
+    return mseg
+
+
+@kernel
+def _capacitance(prob: Problem, cs: np.ndarray, e_off: np.ndarray, e_q: np.ndarray,
+                 r_off: np.ndarray, krs: np.ndarray, cnt: np.ndarray, by_slot: np.ndarray,
+                 amat: np.ndarray, mseg: np.ndarray, seg_rep: np.ndarray,
+                 k_rows: int) -> np.ndarray:
+    """``S = I + sum_seg sum_{c,d in seg} s_c s_d A_c M_seg A_d^T`` (k_rows x k_rows)."""
+    smat = np.zeros((k_rows, k_rows))
+    for i in range(k_rows):
+        smat[i, i] = 1.0
+    tm = np.empty((6, 6))
+    for sg in range(mseg.shape[0]):
+        u = seg_rep[sg]
+        for t1 in range(cnt[u], cnt[u + 1]):
+            e = by_slot[t1]
+            qe = e_q[e]
+            se = _entry_sign(prob, cs, e_off, e_q, e)
+            kre = krs[qe]
+            for a in range(kre):
+                for j in range(6):
+                    acc = 0.0
+                    for m in range(6):
+                        acc += amat[qe, a, m] * mseg[sg, m, j]
+                    tm[a, j] = se * acc
+            for t2 in range(cnt[u], cnt[u + 1]):
+                f = by_slot[t2]
+                qf = e_q[f]
+                sf = _entry_sign(prob, cs, e_off, e_q, f)
+                for a in range(kre):
+                    for b in range(krs[qf]):
+                        acc = 0.0
+                        for m in range(6):
+                            acc += tm[a, m] * amat[qf, b, m]
+                        smat[r_off[qe] + a, r_off[qf] + b] += sf * acc
+    return smat
+
+
+@kernel
+def _back_substitute(prob: Problem, cs: np.ndarray, e_off: np.ndarray, e_q: np.ndarray,
+                     r_off: np.ndarray, krs: np.ndarray, cnt: np.ndarray, by_slot: np.ndarray,
+                     amat: np.ndarray, zz: np.ndarray, seg: np.ndarray, seg_rep: np.ndarray,
+                     nseg: int, lf: np.ndarray, vv: np.ndarray, x_out: np.ndarray) -> None:
+    """``v_seg = sum_c s_c A_c^T z_c``, then ``x_u = L_u^-T (V_u v_seg)``."""
+    vseg = np.zeros((nseg, 6))
+    for sg in range(nseg):
+        u = seg_rep[sg]
+        for t1 in range(cnt[u], cnt[u + 1]):
+            e = by_slot[t1]
+            qe = e_q[e]
+            se = _entry_sign(prob, cs, e_off, e_q, e)
+            for j in range(6):
+                acc = 0.0
+                for a in range(krs[qe]):
+                    acc += amat[qe, a, j] * zz[r_off[qe] + a, 0]
+                vseg[sg, j] += se * acc
+    v = np.empty(6)
+    for u in range(lf.shape[0]):
+        sg = seg[u]
+        for i in range(6):
+            acc = 0.0
+            for m in range(6):
+                acc += vv[u, i, m] * vseg[sg, m]
+            v[i] = acc
+        lk = lf[u]
+        for i in range(5, -1, -1):
+            acc = v[i]
+            for m in range(i + 1, 6):
+                acc -= lk[m, i] * x_out[u, m]
+            x_out[u, i] = acc / lk[i, i]
+
+
+@kernel
+def woodbury_segments(prob: Problem, cs: np.ndarray, nb: int, mu: float, jb: np.ndarray,
+                      e_off: np.ndarray, r_off: np.ndarray, krs: np.ndarray, rbuf: np.ndarray,
+                      e_slot: np.ndarray, e_q: np.ndarray, cnt: np.ndarray,
+                      by_slot: np.ndarray, bc: np.ndarray, slot: np.ndarray,
+                      nodes_out: np.ndarray, amat: np.ndarray, yr: np.ndarray, yt: np.ndarray,
+                      x_out: np.ndarray) -> bool:
+    """Woodbury solve of a batch in O(entries + sum over segments of |sig|^2) (DESIGN §5).
+
+    Every Jacobian block factors as ``J_{c,u} = s_{c,u} A_c Ad(Y_u)``.  Union nodes whose
+    constraint sets agree (chains between branch points, "segments") share one moment
+    ``M_seg = sum_u Ad(Y_u) B_u^-1 Ad(Y_u)^T``, so the capacitance matrix
+    ``S = I + sum_seg sum_{c,d} s_c s_d A_c M_seg A_d^T`` costs O(|sig|^2) per segment instead
+    of per node: a batch of GPS readings sharing a long trunk stays cheap.
+    """
+    nu = bc.shape[0]
+    seg = np.empty(nu, np.int64)
+    seg_rep = np.empty(nu, np.int64)
+    nseg = _segments(prob, cs, nb, e_off, e_slot, cnt, slot, nodes_out, seg, seg_rep)
+    lf = np.empty((nu, 6, 6))
+    vv = np.empty((nu, 6, 6))
+    mseg = _segment_moments(jb, krs, e_q, cnt, by_slot, bc, mu, yr, yt, seg, nseg, lf, vv)
+    k_rows = r_off[nb]
+    smat = _capacitance(prob, cs, e_off, e_q, r_off, krs, cnt, by_slot, amat, mseg[:nseg],
+                        seg_rep, k_rows)
+    sym = 0.5 * (smat + smat.T)
+    if not chol_inplace(sym, k_rows):
+        return False
+    zz = rbuf[:k_rows].reshape((k_rows, 1)).copy()
+    chol_solve_cols(sym, k_rows, zz, 1)
+    _back_substitute(prob, cs, e_off, e_q, r_off, krs, cnt, by_slot, amat, zz, seg, seg_rep,
+                     nseg, lf, vv, x_out)
+    return True
+
+
+# --------------------------------------------------------------------------- the batch update
+@kernel
+def batch_relax(prob: Problem, state: State, cs: np.ndarray, nb: int, tau: float, mu: float,
+                slot: np.ndarray, x_out: np.ndarray, nodes_out: np.ndarray) -> int:
+    """Relax the constraints ``cs[:nb]`` together (paper eq. 35-37, DESIGN §5).
+
+    ``slot`` (T,) must be -1 on entry and is -1 again on exit.  The step of union node
+    ``nodes_out[u]`` is written to ``x_out[u]``.  Returns the number of union nodes, or
+    ``BATCH_REJECTED`` when the step was not finite (nothing applied).
+    """
+    e_off = np.empty(nb + 1, np.int64)
+    e_off[0] = 0
+    dmax = 1
+    for q in range(nb):
+        d = domain(prob, cs[q])[1]
+        e_off[q + 1] = e_off[q] + d
+        dmax = max(dmax, d)
+    ne = e_off[nb]
+    e_slot = np.empty(ne, np.int64)
+    e_q = np.empty(ne, np.int64)
+    nu = _union(prob, cs, nb, slot, nodes_out, e_off, e_slot, e_q)
+    cnt, by_slot = _entries_by_node(e_slot, nu)
+    wk = new_workspace(dmax)
+    jb = np.empty((ne, 6, 6))
+    r_off = np.empty(nb + 1, np.int64)
+    krs = np.empty(nb, np.int64)
+    rbuf = np.empty(6 * nb)
+    amat = np.zeros((nb, 6, 6))
+    yr = np.empty((nu, 3, 3))
+    yt = np.empty((nu, 3))
+    _linearize_batch(prob, state, cs, nb, wk, e_off, e_slot, jb, r_off, krs, rbuf, amat, yr, yt)
+    bc = np.zeros((nu, 6, 6))
+    zero_block = _batch_blocks(prob, state, cs, jb, e_off, krs, e_q, cnt, by_slot, nodes_out,
+                               bc)
+    if zero_block and nu <= MAX_DENSE_NODES:
+        ok = _dense_solve(nb, jb, e_off, e_slot, r_off, krs, rbuf, bc, x_out)
+    else:
+        ok = woodbury_segments(prob, cs, nb, mu, jb, e_off, r_off, krs, rbuf, e_slot, e_q, cnt,
+                               by_slot, bc, slot, nodes_out, amat, yr, yt, x_out)
+    for u in range(nu):
+        slot[nodes_out[u]] = -1
+    if not ok:
+        return BATCH_REJECTED
+    if cap_and_apply(nodes_out, 0, nu, x_out, tau, state, wk.ws) == Update.REJECTED:
+        return BATCH_REJECTED
+    return nu

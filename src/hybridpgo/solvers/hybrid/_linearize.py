@@ -1,0 +1,187 @@
+"""Linearization in the tree parametrization (paper III-B; DESIGN.md §3).
+
+Perturbing every local transform on the right, ``T_i <- T_i Exp(delta_i)``, constraint c's
+whitened Jacobian block for domain node i is
+
+* relative: ``s_i L^T Jr^-1(e0) Ad(X_b^-1 X_i)`` (s_i = +1 on the b side, -1 on the a side);
+* GPS on n: ``L^T R_i [I | -[t_{i->n}]x]``.
+
+Both come from products of local transforms along the path only (no global pose is needed),
+so one linearization costs O(d).  The error, ``Jr^-1`` and the whitening come from the cost
+layer (:mod:`hybridpgo._cost`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..._cost import gps_residual, jr_inv_matrix, residual_and_jr_inv, whiten_residual, whiten_rows
+from ..._numba import kernel
+from .problem import Problem, Workspace, domain, is_gps
+
+
+@kernel
+def mul_pose_into(
+    ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.ndarray, ro: np.ndarray, to: np.ndarray
+) -> None:
+    """(ro, to) = (ra, ta) * (rb, tb) without allocating (outputs must not alias inputs)."""
+    for i in range(3):
+        for j in range(3):
+            ro[i, j] = ra[i, 0] * rb[0, j] + ra[i, 1] * rb[1, j] + ra[i, 2] * rb[2, j]
+        to[i] = ra[i, 0] * tb[0] + ra[i, 1] * tb[1] + ra[i, 2] * tb[2] + ta[i]
+
+
+@kernel
+def num_a_side(prob: Problem, c: int) -> int:
+    """How many of c's domain nodes are on the a side (they come first in the path)."""
+    s, d = domain(prob, c)
+    na = 0
+    while na < d and prob.path_sign[s + na] < 0:
+        na += 1
+    return na
+
+
+@kernel
+def path_products(prob: Problem, c: int, rot: np.ndarray, trans: np.ndarray,
+                  pr: np.ndarray, pt: np.ndarray) -> int:
+    """P_k = X_root^-1 X_{path[k]} for every domain node k (into ``pr``, ``pt``); returns n_a.
+
+    The a-side nodes are stored from a upward, so products are accumulated from the top down.
+    """
+    s, d = domain(prob, c)
+    pnode = prob.path_node
+    na = num_a_side(prob, c)
+    for k in range(na - 1, -1, -1):  # a side: indices 0..na-1, top is na-1
+        i = pnode[s + k]
+        if k == na - 1:
+            pr[k] = rot[i]
+            pt[k] = trans[i]
+        else:
+            mul_pose_into(pr[k + 1], pt[k + 1], rot[i], trans[i], pr[k], pt[k])
+    for k in range(d - 1, na - 1, -1):
+        i = pnode[s + k]
+        if k == d - 1:
+            pr[k] = rot[i]
+            pt[k] = trans[i]
+        else:
+            mul_pose_into(pr[k + 1], pt[k + 1], rot[i], trans[i], pr[k], pt[k])
+    return na
+
+
+@kernel
+def endpoints(
+    pr: np.ndarray, pt: np.ndarray, na: int, d: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Poses of a and b relative to the constraint's root, from the path products.
+
+    An empty side means that endpoint is the root itself (the identity).
+    """
+    ra = np.eye(3)
+    ta = np.zeros(3)
+    if na > 0:
+        ra = pr[0]
+        ta = pt[0]
+    rb = np.eye(3)
+    tb = np.zeros(3)
+    if na < d:
+        rb = pr[na]
+        tb = pt[na]
+    return ra, ta, rb, tb
+
+
+@kernel
+def _relative_blocks(prob: Problem, c: int, na: int, wk: Workspace, jac: np.ndarray) -> None:
+    """``jac[k] = s_k A Ad(M_k)`` with ``A = L^T Jr^-1(e0)``, ``M_k = X_b^-1 X_k = P_b^-1 P_k``."""
+    s, d = domain(prob, c)
+    pr = wk.path_rot
+    pt = wk.path_trans
+    _ra, _ta, rb, tb = endpoints(pr, pt, na, d)
+    a = wk.a
+    rm = wk.ws[0]
+    tx = wk.ws[1]
+    tm = wk.ws[2][0]
+    for k in range(d):
+        # Ad(M_k) = [[R, [t]x R], [0, R]]
+        for i in range(3):
+            tm[i] = (
+                rb[0, i] * (pt[k, 0] - tb[0])
+                + rb[1, i] * (pt[k, 1] - tb[1])
+                + rb[2, i] * (pt[k, 2] - tb[2])
+            )
+            for j in range(3):
+                rm[i, j] = rb[0, i] * pr[k, 0, j] + rb[1, i] * pr[k, 1, j] + rb[2, i] * pr[k, 2, j]
+        for j in range(3):  # tx = [tm]x rm
+            tx[0, j] = tm[1] * rm[2, j] - tm[2] * rm[1, j]
+            tx[1, j] = tm[2] * rm[0, j] - tm[0] * rm[2, j]
+            tx[2, j] = tm[0] * rm[1, j] - tm[1] * rm[0, j]
+        sg = float(prob.path_sign[s + k])
+        for p in range(6):
+            for j in range(3):
+                v0 = a[p, 0] * rm[0, j] + a[p, 1] * rm[1, j] + a[p, 2] * rm[2, j]
+                v1 = (
+                    a[p, 0] * tx[0, j]
+                    + a[p, 1] * tx[1, j]
+                    + a[p, 2] * tx[2, j]
+                    + a[p, 3] * rm[0, j]
+                    + a[p, 4] * rm[1, j]
+                    + a[p, 5] * rm[2, j]
+                )
+                jac[k, p, j] = sg * v0
+                jac[k, p, 3 + j] = sg * v1
+
+
+@kernel
+def _gps_blocks(prob: Problem, c: int, wk: Workspace, jac: np.ndarray) -> None:
+    """``jac[k] = L^T R_k [I | -[t_{k->n}]x]`` (rows 3..5 zero); path[0] is n itself."""
+    _s, d = domain(prob, c)
+    pr = wk.path_rot
+    pt = wk.path_trans
+    lt = prob.gps_lt[c - prob.num_edges]
+    tn = pt[0]
+    blk = wk.a  # (3, 6) used
+    t_kn = wk.ws[0][0]
+    for k in range(d):
+        for i in range(3):
+            t_kn[i] = (
+                pr[k, 0, i] * (tn[0] - pt[k, 0])
+                + pr[k, 1, i] * (tn[1] - pt[k, 1])
+                + pr[k, 2, i] * (tn[2] - pt[k, 2])
+            )
+        for i in range(3):  # R_k [I | -[t]x], [t]x's columns (0,t2,-t1), (-t2,0,t0), (t1,-t0,0)
+            blk[i, 0] = pr[k, i, 0]
+            blk[i, 1] = pr[k, i, 1]
+            blk[i, 2] = pr[k, i, 2]
+            blk[i, 3] = -(pr[k, i, 1] * t_kn[2] - pr[k, i, 2] * t_kn[1])
+            blk[i, 4] = -(-pr[k, i, 0] * t_kn[2] + pr[k, i, 2] * t_kn[0])
+            blk[i, 5] = -(pr[k, i, 0] * t_kn[1] - pr[k, i, 1] * t_kn[0])
+        whiten_rows(lt, blk, 3, jac[k])
+        for p in range(3, 6):
+            for j in range(6):
+                jac[k, p, j] = 0.0
+
+
+@kernel
+def linearize(prob: Problem, c: int, rot: np.ndarray, trans: np.ndarray, wk: Workspace,
+              jac: np.ndarray) -> tuple[int, int]:
+    """Whitened Jacobian blocks ``jac[k, :kr, :]`` and residual ``wk.r[:kr]`` (= -L^T e0).
+
+    Returns ``(kr, na)``: the number of rows (6 relative, 3 GPS) and of a-side domain nodes.
+    Leaves the path products in ``wk.path_rot/path_trans``; for a relative constraint also
+    ``e0`` in ``wk.e``, ``Jr^-1(e0)`` in ``wk.jri`` and ``L^T Jr^-1(e0)`` in ``wk.a``.
+    """
+    _s, d = domain(prob, c)
+    na = path_products(prob, c, rot, trans, wk.path_rot, wk.path_trans)
+    if not is_gps(prob, c):
+        ra, ta, rb, tb = endpoints(wk.path_rot, wk.path_trans, na, d)
+        residual_and_jr_inv(prob.edge_rot[c], prob.edge_trans[c], ra, ta, rb, tb, wk.e, wk.ws)
+        jr_inv_matrix(wk.ws, wk.jri)
+        lt = prob.edge_lt[c]
+        whiten_residual(lt, wk.e, 6, wk.r)
+        whiten_rows(lt, wk.jri, 6, wk.a)
+        _relative_blocks(prob, c, na, wk, jac)
+        return 6, na
+    g = c - prob.num_edges
+    gps_residual(wk.path_trans[0], prob.gps_pos[g], wk.e)  # the earth is the identity
+    whiten_residual(prob.gps_lt[g], wk.e, 3, wk.r)
+    _gps_blocks(prob, c, wk, jac)
+    return 3, na

@@ -1,0 +1,124 @@
+"""Sweeps over the constraints (paper Algorithm 1, III-H).
+
+Constraints are relaxed in the given order (increasing root depth for a full sweep); GPS
+readings are buffered and relaxed together in batches of ``gps_batch_size`` (III-G), the buffer
+being flushed when full and before every relative constraint.  A sweep can stop at a deadline
+on the CPU's cycle counter (the online mode's time budget).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..._numba import cycle_counter, kernel
+from ._batch import batch_relax
+from ._step import relax
+from .problem import (
+    BATCH_REJECTED,
+    Count,
+    Problem,
+    State,
+    StepKind,
+    Update,
+    domain,
+    is_gps,
+    new_workspace,
+)
+
+#: ``deadline`` value meaning "no deadline" (the largest uint64).
+NO_DEADLINE = np.uint64(np.iinfo(np.uint64).max)
+
+
+@kernel
+def max_domain(prob: Problem) -> int:
+    """The largest domain size (at least 1): the workspace capacity single updates need."""
+    dmax = 1
+    for c in range(prob.path_ptr.shape[0] - 1):
+        d = domain(prob, c)[1]
+        if d > dmax:
+            dmax = d
+    return dmax
+
+
+@kernel
+def init_blocks(prob: Problem, state: State, dmax: int) -> None:
+    """𝔅(H) and every constraint's contribution at the current poses (no step)."""
+    wk = new_workspace(dmax)
+    state.bdiag[:] = 0.0
+    state.contrib[:] = 0.0
+    for c in range(prob.path_ptr.shape[0] - 1):
+        relax(prob, state, wk, c, 0.0, 0.0, StepKind.WOODBURY, False)
+
+
+@kernel
+def _flush(prob: Problem, state: State, buf: np.ndarray, nbuf: int, tau: float, mu: float,
+           slot: np.ndarray, xb: np.ndarray, nodes: np.ndarray, cycles: np.ndarray,
+           batch_cycles: np.ndarray, counts: np.ndarray) -> bool:
+    """Relax the buffered GPS readings as one batch; True when the batch was rejected."""
+    t0 = cycle_counter()
+    nu = batch_relax(prob, state, buf, nbuf, tau, mu, slot, xb, nodes)
+    dc = cycle_counter() - t0
+    if dc > counts[Count.MAX_CYCLES]:
+        counts[Count.MAX_CYCLES] = dc
+    counts[Count.BATCHES] += 1
+    for q in range(nbuf):
+        cycles[buf[q]] = dc // nbuf
+    batch_cycles[buf[0]] = dc
+    if nu == BATCH_REJECTED:
+        counts[Count.REJECTED] += nbuf
+        return True
+    return False
+
+
+@kernel
+def sweep(prob: Problem, state: State, order: np.ndarray, tau: float, mu: float,
+          step_kind: int, gps_batch_size: int, dmax: int, deadline: np.uint64,
+          cycles: np.ndarray, batch_cycles: np.ndarray, counts: np.ndarray) -> int:
+    """One pass over the constraints in ``order`` (paper Algorithm 1).
+
+    ``cycles[c]`` receives the cycle count of constraint c's update (a batch's count is shared
+    among its members, and ``batch_cycles[first member]`` gets the whole batch's count);
+    ``counts`` accumulates the entries named by :class:`Count`.  When the cycle counter passes
+    ``deadline`` no further constraint is started (the GPS buffer is still flushed);
+    ``counts[Count.DONE]`` tells how many were processed.  Returns the first rejected
+    constraint or -1.
+    """
+    wk = new_workspace(dmax)
+    nt = state.rot.shape[0]
+    slot = np.full(nt, -1, np.int64)
+    xb = np.empty((nt, 6))
+    nodes = np.empty(nt, np.int64)
+    buf = np.empty(max(gps_batch_size, 1), np.int64)
+    nbuf = 0
+    first_bad = -1
+    n_order = order.shape[0]
+    for idx in range(n_order + 1):
+        c = order[idx] if idx < n_order else -1
+        if c >= 0 and idx > 0 and cycle_counter() >= deadline:
+            c = -1
+        gps = c >= 0 and is_gps(prob, c)
+        if nbuf > 0 and (not gps or nbuf >= gps_batch_size):
+            if _flush(prob, state, buf, nbuf, tau, mu, slot, xb, nodes, cycles, batch_cycles,
+                      counts) and first_bad < 0:
+                first_bad = buf[0]
+            nbuf = 0
+        if c < 0:
+            counts[Count.DONE] += idx
+            break
+        if gps:
+            buf[nbuf] = c
+            nbuf += 1
+            continue
+        t0 = cycle_counter()
+        st = relax(prob, state, wk, c, tau, mu, step_kind, True)
+        dc = cycle_counter() - t0
+        cycles[c] = dc
+        if dc > counts[Count.MAX_CYCLES]:
+            counts[Count.MAX_CYCLES] = dc
+        if st == Update.CAPPED:
+            counts[Count.CAPPED] += 1
+        elif st == Update.REJECTED:
+            counts[Count.REJECTED] += 1
+            if first_bad < 0:
+                first_bad = c
+    return first_bad

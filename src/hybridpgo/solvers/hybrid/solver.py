@@ -1,0 +1,363 @@
+"""The hybrid solver object: built once, then run or stepped many times (paper Algorithm 1).
+
+:class:`HybridSolver` grows the pose tree and the constraint paths (III-A), initializes the
+local transforms, whitens the information and builds 𝔅(H) once; then :meth:`~HybridSolver.run`
+performs sweeps with the temperature schedule (III-H) and :meth:`~HybridSolver.step` relaxes a
+chosen list of constraints within a time budget (the online mode stands on it).
+:func:`solve_hybrid` is the one-call form, with the optional exact polish.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+from typing import Any, NamedTuple
+
+import numpy as np
+import numpy.typing as npt
+
+from ..._numba import cycle_counter, kernel
+from ...energy import energy
+from ...errors import SolverError
+from ...graph import FloatArray, PoseGraph
+from ...tree import PoseTree, build_tree, global_poses, initial_locals
+from ..config import HybridConfig, Progress, ProgressCallback
+from ..result import SolveResult, Status
+from . import _batch, _linearize, _step, _sweep
+from .problem import NUM_COUNTS, Count, Problem, State, StepKind, new_workspace
+
+#: Step names of :class:`HybridConfig` -> kernel codes.
+STEP_KINDS = {"woodbury": StepKind.WOODBURY, "givens": StepKind.GIVENS}
+_U64_MAX = np.iinfo(np.uint64).max
+
+
+@kernel
+def _read_cycles() -> int:
+    return cycle_counter()  # type: ignore[no-any-return]
+
+
+@functools.cache
+def cycles_per_second() -> float:
+    """Frequency of the cycle counter, calibrated once against ``time.perf_counter``."""
+    _read_cycles()
+    c0, t0 = _read_cycles(), time.perf_counter()
+    time.sleep(0.05)
+    c1, t1 = _read_cycles(), time.perf_counter()
+    return float(c1 - c0) / (t1 - t0)
+
+
+class StepReport(NamedTuple):
+    """What :meth:`HybridSolver.step` did."""
+
+    done: int
+    """Constraints processed (fewer than asked when the budget ran out)."""
+    capped: int
+    """Updates whose rotation was capped at pi/8."""
+    rejected: int
+    """Updates rejected as non-finite (nothing applied)."""
+    seconds: float
+    """Wall time of the call."""
+
+
+def _whitening(information: FloatArray, k: int) -> FloatArray:
+    """``L^T`` (upper triangular) of every information matrix, ``Omega = L L^T`` (DESIGN §1)."""
+    if information.shape[0] == 0:
+        return np.zeros((0, k, k))
+    return np.ascontiguousarray(np.swapaxes(np.linalg.cholesky(information), 1, 2))
+
+
+class HybridSolver:
+    """The hybrid Hessian solver of one graph, analyzed once.
+
+    Parameters
+    ----------
+    graph : PoseGraph
+    config : HybridConfig, optional
+    tree : PoseTree, optional
+        A tree built earlier by :func:`hybridpgo.tree.build_tree` (else grown from
+        ``config.tree``).
+    locals0 : (rot (T,3,3), trans (T,3)), optional
+        Initial local transforms (else from ``config.init``).
+    """
+
+    def __init__(self, graph: PoseGraph, config: HybridConfig | None = None, *,
+                 tree: PoseTree | None = None,
+                 locals0: tuple[FloatArray, FloatArray] | None = None) -> None:
+        self.config = cfg = config or HybridConfig()
+        self.compile_seconds = ensure_compiled()
+        t0 = time.perf_counter()
+        self.graph = graph
+        self.tree = tree = tree if tree is not None else build_tree(graph, cfg.tree)
+        rot0, trans0 = locals0 if locals0 is not None else initial_locals(graph, tree, cfg.init)
+        self.problem = Problem(
+            graph.num_edges, tree.path_ptr, tree.path_node, tree.path_sign,
+            graph.edge_rotations, graph.edge_translations, _whitening(graph.edge_information, 6),
+            graph.gps_positions, _whitening(graph.gps_information, 3),
+            np.bincount(tree.path_node, minlength=tree.num_tree_nodes).astype(np.int64),
+            tree.parent,
+        )  # fmt: skip
+        self.state = State(
+            np.ascontiguousarray(rot0, np.float64), np.ascontiguousarray(trans0, np.float64),
+            np.zeros((tree.num_tree_nodes, 6, 6)), np.zeros((int(tree.path_ptr[-1]), 6, 6)),
+        )
+        lengths = tree.path_lengths()
+        self.dmax = max(int(lengths.max()) if lengths.size else 1, 1)
+        self.rebuild_blocks()
+        self.tau = cfg.tau0
+        """The temperature of the next sweep."""
+        self.sweeps_done = 0
+        self.analyze_seconds = time.perf_counter() - t0
+        nc = tree.num_constraints
+        self._cycles = np.zeros(nc, np.uint64)
+        self._batch_cycles = np.zeros(nc, np.uint64)
+
+    # ----------------------------------------------------------------- state
+    @property
+    def num_constraints(self) -> int:
+        return self.tree.num_constraints
+
+    def rebuild_blocks(self) -> None:
+        """Recompute 𝔅(H) and all contributions from scratch at the current poses."""
+        _sweep.init_blocks(self.problem, self.state, self.dmax)
+
+    def poses(self) -> tuple[FloatArray, FloatArray]:
+        """Global poses ``(R (N,3,3), t (N,3))`` of the current estimate."""
+        return global_poses(self.tree, self.state.rot, self.state.trans)
+
+    def energy(self) -> float:
+        """E of the current estimate."""
+        return energy(self.graph, *self.poses())
+
+    # ----------------------------------------------------------------- updates
+    def _sweep(self, order: npt.NDArray[Any], tau: float, deadline: int,
+               counts: npt.NDArray[np.int64]) -> int:
+        cfg = self.config
+        return int(_sweep.sweep(self.problem, self.state, order, tau, cfg.damping,
+                                STEP_KINDS[cfg.step], cfg.gps_batch_size, self.dmax,
+                                np.uint64(deadline), self._cycles, self._batch_cycles, counts))
+
+    def step(self, constraints: npt.ArrayLike, budget_s: float | None = None,
+             tau: float | None = None) -> StepReport:
+        """Relax ``constraints`` in the given order (GPS readings batched, Algorithm 1).
+
+        Parameters
+        ----------
+        constraints : array_like of int
+            Constraint indices (relative edges ``0..M-1``, then GPS ``M..``).
+        budget_s : float, optional
+            Start no further constraint once this many seconds have passed (the update in
+            progress finishes).  At least one constraint is always processed.
+        tau : float, optional
+            Temperature of these updates (default: the solver's current ``tau``).
+        """
+        t0 = time.perf_counter()
+        order = np.ascontiguousarray(constraints, dtype=np.int32)
+        if order.size and (order.min() < 0 or order.max() >= self.num_constraints):
+            raise ValueError(f"constraint indices must lie in 0..{self.num_constraints - 1}")
+        deadline = _U64_MAX
+        if budget_s is not None:
+            deadline = int(_read_cycles()) + int(budget_s * cycles_per_second())
+        counts = np.zeros(NUM_COUNTS, np.int64)
+        self._sweep(order, self.tau if tau is None else tau, min(deadline, _U64_MAX), counts)
+        return StepReport(int(counts[Count.DONE]), int(counts[Count.CAPPED]),
+                          int(counts[Count.REJECTED]), time.perf_counter() - t0)
+
+    def batch_step(self, constraints: npt.ArrayLike, tau: float = 0.0,
+                   damping: float | None = None) -> tuple[npt.NDArray[np.int64], FloatArray]:
+        """Hybrid step of a batch of constraints (paper eq. 35-37) over their domains' union.
+
+        Returns ``(nodes, x)``: the union's tree nodes and their (6,) steps.  With ``tau > 0``
+        the step is also applied (scaled by tau, capped at pi/8); 𝔅(H) is updated either way.
+        ``damping`` overrides ``config.damping`` (0 with every constraint: the Gauss-Newton step).
+        """
+        cs = np.ascontiguousarray(constraints, dtype=np.int64)
+        nt = self.tree.num_tree_nodes
+        x = np.zeros((nt, 6))
+        nodes = np.zeros(nt, np.int64)
+        state = self.state
+        if tau <= 0.0:  # compute only: apply to a scratch copy of the poses
+            state = State(state.rot.copy(), state.trans.copy(), state.bdiag, state.contrib)
+        slot = np.full(nt, -1, np.int64)
+        mu = self.config.damping if damping is None else damping
+        nu = _batch.batch_relax(self.problem, state, cs, cs.shape[0], max(tau, 1e-300), mu,
+                                slot, x, nodes)
+        if nu < 0:
+            raise SolverError("the batch step was not finite")
+        return nodes[:nu].copy(), x[:nu].copy()
+
+    def probe(self, c: int, step: str | None = None
+              ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Linearize constraint c and update 𝔅(H) as a sweep would; return its step unapplied.
+
+        Returns ``(jac (d,6,6), r (6,), x (d,6))``: whitened Jacobian blocks, residual, step.
+        """
+        d = int(self.tree.path_ptr[c + 1] - self.tree.path_ptr[c])
+        wk = new_workspace(max(d, 1))
+        kr, _na = _linearize.linearize(self.problem, c, self.state.rot, self.state.trans, wk,
+                                       wk.jac)
+        _step.accumulate_blocks(self.problem, self.state, c, kr, wk.jac, self.config.damping,
+                                wk.lfac, wk.bc)
+        _step.solve_single(d, kr, STEP_KINDS[step or self.config.step], wk)
+        return wk.jac[:d].copy(), wk.r.copy(), wk.x[:d].copy()
+
+    # ----------------------------------------------------------------- sweeps
+    def run(self, sweeps: int | None = None,
+            progress: ProgressCallback | None = None) -> SolveResult:
+        """Run sweeps (default: ``config.sweeps``) from the current state, no polish.
+
+        Stops early when ``config.energy_tolerance`` is met.  The temperature continues from
+        earlier calls.  ``stats`` holds per-constraint update times and step counts.
+        """
+        cfg = self.config
+        n_sweeps = cfg.sweeps if sweeps is None else sweeps
+        tree = self.tree
+        nc = tree.num_constraints
+        freq = cycles_per_second()
+        steady = np.full(nc, _U64_MAX, np.uint64)
+        batch_steady = np.full(nc, _U64_MAX, np.uint64)
+        counts = np.zeros(NUM_COUNTS, np.int64)
+        sum_cycles = 0.0
+        p999 = 0.0
+        history = [self.energy()]
+        times = [0.0]
+        if progress:
+            progress(Progress("sweeps", 0, n_sweeps, history[0], self.tau))
+        status = Status.MAX_ITERATIONS
+        solve_time = 0.0
+        first_bad = -1
+        done = 0
+        for k in range(n_sweeps):
+            t0 = time.perf_counter()
+            bad = self._sweep(tree.sweep_order, self.tau, _U64_MAX, counts)
+            solve_time += time.perf_counter() - t0
+            done += 1
+            self.sweeps_done += 1
+            if bad >= 0 and first_bad < 0:
+                first_bad = bad
+            sum_cycles += float(self._cycles.sum())
+            np.minimum(steady, self._cycles, out=steady)
+            np.minimum(batch_steady, self._batch_cycles, out=batch_steady)
+            if nc:
+                p999 = max(p999, float(np.quantile(self._cycles, 0.999)))
+            e = self.energy()
+            history.append(e)
+            times.append(solve_time)
+            self.tau *= cfg.tau_decay
+            if progress:
+                progress(Progress("sweeps", k + 1, n_sweeps, e, self.tau))
+            if not np.isfinite(e):
+                raise SolverError(f"the energy became non-finite in sweep {k + 1}")
+            if (cfg.energy_tolerance > 0 and history[-2] > 0
+                    and (history[-2] - e) / history[-2] < cfg.energy_tolerance
+                    and e <= history[-2]):
+                status = Status.CONVERGED
+                break
+        if nc and counts[Count.REJECTED] >= nc * max(done, 1):
+            raise SolverError(f"every update was non-finite (first: constraint {first_bad})")
+        rot, trans = self.poses()
+        n_updates = max(done * nc, 1)
+        finite_batches = batch_steady[batch_steady < _U64_MAX]
+        stats: dict[str, Any] = {
+            "sweeps": done,
+            "final_tau": self.tau,
+            "us_per_constraint_mean": sum_cycles / n_updates / freq * 1e6,
+            "us_per_constraint_max": float(counts[Count.MAX_CYCLES]) / freq * 1e6,
+            "us_per_constraint_p999": p999 / freq * 1e6,
+            "us_per_constraint_max_steady": (
+                float(steady.max()) / freq * 1e6 if done and nc else 0.0),
+            "gps_batches": int(counts[Count.BATCHES]),
+            "ms_per_gps_batch_max_steady": float(finite_batches.max(initial=0)) / freq * 1e3,
+            "capped_steps": int(counts[Count.CAPPED]),
+            "rejected_steps": int(counts[Count.REJECTED]),
+            "first_rejected_constraint": first_bad,
+            "tree_max_depth": tree.max_depth,
+            "path_length_max": int(tree.path_lengths().max()) if nc else 0,
+            "path_length_mean": float(tree.path_lengths().mean()) if nc else 0.0,
+            "step": cfg.step,
+        }
+        return SolveResult(
+            rotations=rot, translations=trans, status=status, iterations=done,
+            energy_history=np.asarray(history), times=np.asarray(times), method="hybrid",
+            num_constraints=self.graph.num_constraints,
+            timings={"compile": self.compile_seconds, "analyze": self.analyze_seconds,
+                     "solve": solve_time},
+            stats=stats,
+        )
+
+
+def solve_hybrid(graph: PoseGraph, config: HybridConfig | None = None, *,
+                 tree: PoseTree | None = None, progress: ProgressCallback | None = None,
+                 locals0: tuple[FloatArray, FloatArray] | None = None) -> SolveResult:
+    """Optimize ``graph`` with the hybrid Hessian method (sweeps, then the optional polish).
+
+    Parameters
+    ----------
+    graph : PoseGraph
+    config : HybridConfig, optional
+    tree : PoseTree, optional
+        A tree built earlier by :func:`hybridpgo.tree.build_tree` (analyze once, solve many).
+    progress : callable, optional
+        ``progress(Progress)`` after every sweep and polish iteration.
+    locals0 : (rot, trans), optional
+        Initial local transforms of the tree nodes (else from ``config.init``).
+
+    Raises
+    ------
+    SolverError
+        When every update of a sweep was rejected as non-finite.
+    """
+    cfg = config or HybridConfig()
+    result = HybridSolver(graph, cfg, tree=tree, locals0=locals0).run(progress=progress)
+    if not cfg.polish:
+        return result
+    from ..config import GaussNewtonConfig
+    from ..gauss_newton import solve_exact
+
+    t0 = time.perf_counter()
+    polished = solve_exact(graph, result.rotations, result.translations,
+                           GaussNewtonConfig(method="lm", max_iterations=cfg.polish_iterations))
+    offset = result.times[-1]
+    stats = dict(result.stats, polish_iterations=polished.iterations,
+                 polish_status=polished.status.value)
+    return dataclasses.replace(
+        result, rotations=polished.rotations, translations=polished.translations,
+        status=polished.status, method="hybrid+polish",
+        energy_history=np.concatenate([result.energy_history, polished.energy_history[1:]]),
+        times=np.concatenate([result.times, offset + np.asarray(polished.times[1:])]),
+        timings=dict(result.timings, polish=time.perf_counter() - t0), stats=stats,
+    )
+
+
+#: Set once the kernels have been compiled (or loaded from the cache) in this process.
+_COMPILED = [False]
+
+
+def ensure_compiled() -> float:
+    """Compile (or load from Numba's cache) every kernel a solve uses; returns the seconds spent.
+
+    Runs a three-pose graph with a GPS reading, and one without, once per process, so a caller's
+    ``analyze`` and ``solve`` times are not inflated by compilation (STYLE.md §6).
+    """
+    if _COMPILED[0]:
+        return 0.0
+    _COMPILED[0] = True  # first: the tiny solves below construct solvers too
+    t0 = time.perf_counter()
+    eye = np.tile(np.eye(3), (3, 1, 1))
+    tiny = PoseGraph(
+        node_ids=np.arange(3), rotations=eye, translations=np.eye(3),
+        edge_nodes=np.array([[0, 1], [1, 2], [0, 2]], np.int32), edge_rotations=eye,
+        edge_translations=np.ones((3, 3)), edge_information=np.tile(np.eye(6), (3, 1, 1)),
+        gps_nodes=np.array([2], np.int32), gps_positions=np.ones((1, 3)),
+        gps_information=np.eye(3)[None],
+    )
+    no_gps = dataclasses.replace(tiny, gps_nodes=np.zeros(0, np.int32),
+                                 gps_positions=np.zeros((0, 3)),
+                                 gps_information=np.zeros((0, 3, 3)))
+    try:
+        for g in (tiny, no_gps):
+            HybridSolver(g, HybridConfig(sweeps=1, init="tree")).run()
+    except BaseException:
+        _COMPILED[0] = False
+        raise
+    return time.perf_counter() - t0
