@@ -70,14 +70,8 @@ def optimize(graph: PoseGraph, config: SolverConfig | str = "hybrid", *,
     start = init or default_init(graph, "exact")
     if start == "file" and not graph.has_estimates:
         start = "tree"
-    if progress is not None:
-        import dataclasses
-
-        total = config.max_iterations
-        config = dataclasses.replace(
-            config, progress=lambda k, e: progress(Progress("exact", k, total, e)))
     rot = trans = None
     if start != "file":
         t = build_tree(graph, tree)
         rot, trans = global_poses(t, *initial_locals(graph, t, start))
-    return solve_exact(graph, rot, trans, config)
+    return solve_exact(graph, rot, trans, config, progress=progress)

@@ -11,10 +11,9 @@ array of a CSC matrix whose pattern was computed once (the "analyze" step in
 :mod:`hybridpgo.solvers.gauss_newton`).  Each 6x6 block ``(row i, col j)`` of H is addressed by a
 *slot*: entry ``(p, q)`` of the block lives at ``data[base + q * stride + p]``.
 
-The per-constraint maths are allocation-free twins of :mod:`hybridpgo.geometry._kernels` (same
-formulas, series and thresholds; STYLE.md §3: no allocation in the per-constraint path).  The
-drivers allocate one scratch buffer per call.  Measured on sphere2500 (4949 edges): assembly
-31 ms -> 5 ms, energy 12 ms -> 1 ms with respect to calling the allocating geometry kernels.
+The error, ``Jr^-1``, χ², energy and retraction come from the cost layer
+(:mod:`hybridpgo._cost`), shared with the hybrid solver and :mod:`hybridpgo.energy`; they are
+allocation-free (STYLE.md §3).  The drivers allocate one scratch buffer per call.
 ``tests/test_gauss_newton.py`` checks them against the geometry kernels to float64 rounding.
 """
 
@@ -24,17 +23,10 @@ import math
 
 import numpy as np
 
+from .._cost import SCRATCH as _SCRATCH
+from .._cost import gps_residual, residual_and_jr_inv, retract_into
 from .._numba import kernel
-from ..geometry._fast import (
-    edge_error_into,
-    jr_inv_blocks,
-    mm3,
-    skew_into,
-)
-from ..geometry._kernels import orthonormalize, se3_exp
-
-#: Scratch (3, 3) matrices the per-edge kernels need.
-_SCRATCH = 12
+from ..geometry._fast import mm3, skew_into
 
 
 # --------------------------------------------------------------------------- inner kernels
@@ -72,10 +64,9 @@ def _edge_linearization(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.n
     (R_ab^T, -R_ab^T t_ab) and Ad = [[R, [t]x R], [0, R]], Jr^-1 = [[J, K], [0, J]]:
     ``ja = -[[J R, J [t]x R + K R], [0, J R]]``.
     """
+    residual_and_jr_inv(rz, tz, ra, ta, rb, tb, e, w)
     rab = w[10]
     tab = w[11][0]
-    edge_error_into(ra, ta, rb, tb, rz, tz, rab, tab, w[0], e)
-    jr_inv_blocks(e, w)
     jm = w[8]
     km = w[9]
     r = w[0]
@@ -116,36 +107,6 @@ def edge_jacobians(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarray,
         b = edge_nodes[c, 1]
         _edge_linearization(rot[a], trans[a], rot[b], trans[b], edge_rot[c], edge_trans[c],
                             out_err[c], out_ja[c], out_jb[c], w)
-
-
-@kernel
-def total_energy(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarray,
-                 edge_rot: np.ndarray, edge_trans: np.ndarray, edge_info: np.ndarray,
-                 gps_nodes: np.ndarray, gps_pos: np.ndarray, gps_info: np.ndarray) -> float:
-    """E = sum_c e_c^T Omega_c e_c (same errors as :mod:`hybridpgo.energy`); may be inf/nan."""
-    w = np.empty((3, 3, 3))
-    e = np.empty(6)
-    total = 0.0
-    for c in range(edge_nodes.shape[0]):
-        a = edge_nodes[c, 0]
-        b = edge_nodes[c, 1]
-        edge_error_into(rot[a], trans[a], rot[b], trans[b], edge_rot[c], edge_trans[c], w[0],
-                        w[1][0], w[2], e)
-        om = edge_info[c]
-        for i in range(6):
-            s = 0.0
-            for j in range(6):
-                s += om[i, j] * e[j]
-            total += e[i] * s
-    for c in range(gps_nodes.shape[0]):
-        n = gps_nodes[c]
-        om = gps_info[c]
-        for i in range(3):
-            s = 0.0
-            for j in range(3):
-                s += om[i, j] * (trans[n, j] - gps_pos[c, j])
-            total += (trans[n, i] - gps_pos[c, i]) * s
-    return total
 
 
 @kernel
@@ -223,13 +184,14 @@ def assemble_normal_equations(
         n = gps_nodes[c]
         om = gps_info[c]
         r = rot[n]
+        gps_residual(trans[n], gps_pos[c], e)
         ec = 0.0
         for i in range(3):
             s = 0.0
             for j in range(3):
-                s += om[i, j] * (trans[n, j] - gps_pos[c, j])
+                s += om[i, j] * e[j]
             oe[i] = s
-            ec += (trans[n, i] - gps_pos[c, i]) * s
+            ec += e[i] * s
         if not math.isfinite(ec):
             return m + c, energy
         energy += ec
@@ -254,19 +216,16 @@ def assemble_normal_equations(
 @kernel
 def retract(rot: np.ndarray, trans: np.ndarray, step: np.ndarray, var_of_node: np.ndarray,
             scale: float, out_rot: np.ndarray, out_trans: np.ndarray) -> None:
-    """``X_i <- X_i Exp(scale * delta_i)`` for free nodes (re-orthonormalized); copy fixed ones.
-
-    ``step`` is the solution vector (6 * num_vars,) indexed by ``var_of_node``.
+    """``X_i <- X_i Exp(scale * delta_i)`` for free nodes (the cost layer's retraction); copy
+    fixed ones.  ``step`` is the solution vector (6 * num_vars,) indexed by ``var_of_node``.
     """
-    xi = np.empty(6)
+    er = np.empty((3, 3))
+    tmp = np.empty((3, 3))
     for i in range(rot.shape[0]):
         v = var_of_node[i]
         if v < 0:
             out_rot[i] = rot[i]
             out_trans[i] = trans[i]
             continue
-        for k in range(6):
-            xi[k] = scale * step[6 * v + k]
-        dr, dt = se3_exp(xi)
-        out_rot[i] = orthonormalize(rot[i] @ dr)
-        out_trans[i] = trans[i] + rot[i] @ dt
+        retract_into(rot[i], trans[i], step[6 * v: 6 * v + 6], scale, out_rot[i], out_trans[i],
+                     er, tmp)

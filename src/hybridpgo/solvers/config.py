@@ -96,8 +96,6 @@ class GaussNewtonConfig:
     """Sparse factorization: ``"cholmod"`` (scikit-sparse, optional), ``"splu"`` (SciPy SuperLU
     on a precomputed fill-reducing ordering, symmetric mode), or ``"auto"`` (CHOLMOD when
     importable, else SuperLU)."""
-    progress: ProgressCallback | None = None
-    """Called as ``progress(iteration, energy)`` after every iteration (iteration 0: the start)."""
 
     def __post_init__(self) -> None:
         if self.method not in ("gn", "lm"):
@@ -112,9 +110,6 @@ class GaussNewtonConfig:
         if self.linear_solver not in LINEAR_SOLVERS:
             raise ValueError(f"linear_solver must be one of {', '.join(LINEAR_SOLVERS)}, "
                              f"got {self.linear_solver!r}")
-        if self.progress is not None and not callable(self.progress):
-            raise ValueError(f"progress must be a callable(iteration, energy) or None, "
-                             f"got {self.progress!r}")
 
 
 @dataclass(frozen=True)

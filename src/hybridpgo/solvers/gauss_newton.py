@@ -34,10 +34,11 @@ import numpy.typing as npt
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from .. import _cost
 from ..errors import GraphError, SolverError
 from ..graph import FloatArray, PoseGraph
 from . import _gn_kernels as _k
-from .config import GaussNewtonConfig
+from .config import GaussNewtonConfig, Progress, ProgressCallback
 from .result import SolveResult, Status
 
 __all__ = ["NormalEquations", "default_fixed_nodes", "gn_step", "normal_equations", "solve_exact"]
@@ -280,7 +281,7 @@ def _assemble(graph: PoseGraph, pat: _Pattern, rot: FloatArray, trans: FloatArra
 
 def _energy(graph: PoseGraph, rot: FloatArray, trans: FloatArray) -> float:
     """E at trial poses (may be inf/nan: the callers reject such steps)."""
-    return float(_k.total_energy(rot, trans, graph.edge_nodes, graph.edge_rotations,
+    return float(_cost.total_energy(rot, trans, graph.edge_nodes, graph.edge_rotations,
                                  graph.edge_translations, graph.edge_information,
                                  graph.gps_nodes, graph.gps_positions, graph.gps_information))
 
@@ -492,9 +493,129 @@ def _ensure_compiled() -> float:
 
 
 # --------------------------------------------------------------------------- the solver
+@dataclass
+class _Run:
+    """One exact solve after its analysis: pattern, factorizer, buffers, current poses."""
+
+    graph: PoseGraph
+    cfg: GaussNewtonConfig
+    pat: _Pattern
+    system: _System
+    solver: Any
+    rot: FloatArray
+    trans: FloatArray
+    data: FloatArray
+    grad: FloatArray
+    new_rot: FloatArray
+    new_trans: FloatArray
+    planar: bool
+    seconds: dict[str, float]
+
+    @classmethod
+    def analyze(cls, graph: PoseGraph, rotations: FloatArray | None,
+                translations: FloatArray | None, cfg: GaussNewtonConfig) -> _Run:
+        """Check the start and the gauge, compute the pattern and ordering once."""
+        rot, trans = _initial_poses(graph, rotations, translations)
+        fixed = default_fixed_nodes(graph)
+        _check_gauge(graph, fixed)
+        pat = _analyze(graph, fixed, reorder=True)
+        planar = _is_planar(graph, rot, trans)
+        system = _planar_system(pat) if planar else _full_system(pat)
+        return cls(graph, cfg, pat, system, _make_factorizer(system, cfg.linear_solver), rot,
+                   trans, np.empty(pat.nnz), np.empty(pat.dim), np.empty_like(rot),
+                   np.empty_like(trans), planar,
+                   {"assemble": 0.0, "factorize": 0.0, "energy": 0.0})
+
+    def assemble(self) -> float:
+        """H and g at the current poses; returns E there."""
+        t0 = time.perf_counter()
+        e = _assemble(self.graph, self.pat, self.rot, self.trans, self.data, self.grad)
+        self.seconds["assemble"] += time.perf_counter() - t0
+        return e
+
+    def solve(self, mu: float, iteration: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """The step: ``(H + mu D) delta = -g`` (LM) or ``H delta = -g`` (GN).
+
+        Returns ``(h_values, step_sys, step)``: the undamped system values, the step over the
+        system's unknowns and over all of them.
+        """
+        t0 = time.perf_counter()
+        system = self.system
+        h_values = system.values(self.data)
+        g_sys = system.restrict(self.grad)
+        if self.cfg.method == "lm":
+            diag = h_values[system.diag_index]
+            damped = h_values.copy()
+            damped[system.diag_index] += mu * np.maximum(diag, _DIAG_FLOOR * diag.max())
+            step_sys = self.solver.solve(damped, -g_sys)
+        else:
+            step_sys = self.solver.solve(h_values, -g_sys, check=True)
+        step = system.expand(step_sys, self.pat.dim)
+        self.seconds["factorize"] += time.perf_counter() - t0
+        if not np.all(np.isfinite(step)):
+            if self.cfg.method == "lm":  # H + mu D is SPD: only overflow can cause this
+                raise SolverError(f"iteration {iteration}: the LM step is not finite "
+                                  f"(mu = {mu:.3g})")
+            raise SolverError(f"iteration {iteration}: the Gauss-Newton step is not finite; "
+                              "H is singular or ill-conditioned (use method='lm')")
+        return h_values, step_sys, step
+
+    def trial(self, step: FloatArray, e_cur: float) -> tuple[float, float, int]:
+        """Energy at the retracted poses (into ``new_rot/new_trans``); GN with its step guard
+        halves the step until E does not rise.  Returns ``(e_new, scale, halvings)``."""
+        t0 = time.perf_counter()
+        scale = 1.0
+        _k.retract(self.rot, self.trans, step, self.pat.var_of_node, scale, self.new_rot,
+                   self.new_trans)
+        e_new = _energy(self.graph, self.new_rot, self.new_trans)
+        tries = 0
+        if self.cfg.method == "gn" and self.cfg.step_guard:
+            while not (e_new <= e_cur) and tries < self.cfg.max_step_halvings:
+                scale *= 0.5
+                tries += 1
+                _k.retract(self.rot, self.trans, step, self.pat.var_of_node, scale,
+                           self.new_rot, self.new_trans)
+                e_new = _energy(self.graph, self.new_rot, self.new_trans)
+        self.seconds["energy"] += time.perf_counter() - t0
+        return e_new, scale, tries
+
+    def accept(self) -> None:
+        """Make the trial poses current."""
+        self.rot, self.new_rot = self.new_rot, self.rot
+        self.trans, self.new_trans = self.new_trans, self.trans
+
+
+def _lm_damping(run: _Run, h_values: FloatArray, step_sys: FloatArray, e_cur: float,
+                e_new: float, mu: float, nu: float) -> tuple[bool, float, float]:
+    """LM: accept when E did not rise; update mu by the gain ratio (Nielsen).
+
+    Returns ``(take, mu, nu)``.
+    """
+    g_sys = run.system.restrict(run.grad)
+    # Predicted decrease of the quadratic model E + 2 g.d + d.H.d (E has no 1/2).
+    hstep = run.system.matrix(h_values) @ step_sys
+    predicted = -2.0 * float(g_sys @ step_sys) - float(step_sys @ hstep)
+    take = bool(np.isfinite(e_new) and e_new <= e_cur)
+    if take:
+        rho = (e_cur - e_new) / predicted if predicted > 0 else 0.0
+        return take, mu * max(_MAX_DECREASE, 1.0 - (2.0 * rho - 1.0) ** 3), 2.0
+    return take, mu * nu, nu * 2.0
+
+
+def _gn_accept(cfg: GaussNewtonConfig, e_cur: float, e_new: float, iteration: int) -> bool:
+    """GN: with the step guard, accept when E did not rise; without it, always (finite E)."""
+    if cfg.step_guard:
+        return bool(np.isfinite(e_new) and e_new <= e_cur)
+    if not np.isfinite(e_new):
+        raise SolverError(f"iteration {iteration}: the Gauss-Newton step gives a "
+                          "non-finite energy (use method='lm' or step_guard=True)")
+    return True
+
+
 def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
                 translations: FloatArray | None = None,
-                config: GaussNewtonConfig | None = None) -> SolveResult:
+                config: GaussNewtonConfig | None = None, *,
+                progress: ProgressCallback | None = None) -> SolveResult:
     """Minimize E with sparse Gauss-Newton or Levenberg-Marquardt (DESIGN §7).
 
     Parameters
@@ -503,14 +624,18 @@ def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
     rotations, translations : (N, 3, 3), (N, 3) float64, optional
         Initial R_world_node, t_world_node (default: the graph's estimate).
     config : GaussNewtonConfig, optional
-        Method, stopping criteria, damping, linear solver, progress callback.
+        Method, stopping criteria, damping, linear solver.
+    progress : callable, optional
+        ``progress(Progress("exact", iteration, max_iterations, energy))`` after every
+        iteration (iteration 0: the start).
 
     Returns
     -------
     SolveResult
-        ``method`` is ``"gauss_newton"`` or ``"levenberg_marquardt"``.  ``energy_history[k]`` is
-        E after iteration k (unchanged after a rejected LM trial).  ``stats``: accepted and
-        rejected steps, step halvings, linear solver, final damping, nnz of H.
+        ``method`` is ``"exact"``; ``stats["algorithm"]`` is ``"lm"`` or ``"gn"``.
+        ``energy_history[k]`` is E after iteration k (unchanged after a rejected LM trial).
+        ``stats``: accepted and rejected steps, step halvings, linear solver, final damping,
+        nnz of H.
 
     Raises
     ------
@@ -523,103 +648,38 @@ def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
     cfg = GaussNewtonConfig() if config is None else config
     compile_s = _ensure_compiled()
     t_start = time.perf_counter()
-    rot, trans = _initial_poses(graph, rotations, translations)
-    fixed = default_fixed_nodes(graph)
-    _check_gauge(graph, fixed)
-    pat = _analyze(graph, fixed, reorder=True)
-    planar = _is_planar(graph, rot, trans)
-    system = _planar_system(pat) if planar else _full_system(pat)
-    solver = _make_factorizer(system, cfg.linear_solver)
+    run = _Run.analyze(graph, rotations, translations, cfg)
     t_analyze = time.perf_counter() - t_start
-    method = "levenberg_marquardt" if cfg.method == "lm" else "gauss_newton"
 
-    data = np.empty(pat.nnz)
-    grad = np.empty(pat.dim)
-    new_rot = np.empty_like(rot)
-    new_trans = np.empty_like(trans)
-    tm = {"assemble": 0.0, "factorize": 0.0, "energy": 0.0}
-
-    t0 = time.perf_counter()
-    e_cur = _assemble(graph, pat, rot, trans, data, grad)
-    tm["assemble"] += time.perf_counter() - t0
+    e_cur = run.assemble()
     history = [e_cur]
     times = [time.perf_counter() - t_start]
-    if cfg.progress is not None:
-        cfg.progress(0, e_cur)
-
+    if progress is not None:
+        progress(Progress("exact", 0, cfg.max_iterations, e_cur))
     mu = cfg.initial_damping
     nu = 2.0
     accepted = rejected = halvings = 0
     status = Status.MAX_ITERATIONS
     iteration = 0
-    if pat.num_vars == 0 or e_cur == 0.0:
+    if run.pat.num_vars == 0 or e_cur == 0.0:
         status = Status.CONVERGED
     while status is Status.MAX_ITERATIONS and iteration < cfg.max_iterations:
         iteration += 1
-        t0 = time.perf_counter()
-        h_values = system.values(data)
-        g_sys = system.restrict(grad)
-        if cfg.method == "lm":
-            diag = h_values[system.diag_index]
-            damped = h_values.copy()
-            damped[system.diag_index] += mu * np.maximum(diag, _DIAG_FLOOR * diag.max())
-            step_sys = solver.solve(damped, -g_sys)
-        else:
-            step_sys = solver.solve(h_values, -g_sys, check=True)
-        step = system.expand(step_sys, pat.dim)
-        tm["factorize"] += time.perf_counter() - t0
-        if not np.all(np.isfinite(step)):
-            if cfg.method == "lm":  # H + mu D is SPD: only overflow can cause this
-                raise SolverError(f"iteration {iteration}: the LM step is not finite "
-                                  f"(mu = {mu:.3g})")
-            raise SolverError(f"iteration {iteration}: the Gauss-Newton step is not finite; "
-                              "H is singular or ill-conditioned (use method='lm')")
+        h_values, step_sys, step = run.solve(mu, iteration)
         step_small = float(np.max(np.abs(step))) < cfg.step_tolerance * (
-            1.0 + float(np.max(np.abs(trans))))
-
-        t0 = time.perf_counter()
-        scale = 1.0
-        _k.retract(rot, trans, step, pat.var_of_node, scale, new_rot, new_trans)
-        e_new = _energy(graph, new_rot, new_trans)
-        if cfg.method == "gn" and cfg.step_guard:
-            tries = 0
-            while not (e_new <= e_cur) and tries < cfg.max_step_halvings:
-                scale *= 0.5
-                tries += 1
-                _k.retract(rot, trans, step, pat.var_of_node, scale, new_rot, new_trans)
-                e_new = _energy(graph, new_rot, new_trans)
-            halvings += tries
-        tm["energy"] += time.perf_counter() - t0
-
+            1.0 + float(np.max(np.abs(run.trans))))
+        e_new, scale, tries = run.trial(step, e_cur)
+        halvings += tries
         if cfg.method == "lm":
-            # Predicted decrease of the quadratic model E + 2 g.d + d.H.d (E has no 1/2).
-            hstep = system.matrix(h_values) @ step_sys
-            predicted = -2.0 * float(g_sys @ step_sys) - float(step_sys @ hstep)
-            take = bool(np.isfinite(e_new) and e_new <= e_cur)
-            if take:
-                rho = (e_cur - e_new) / predicted if predicted > 0 else 0.0
-                mu *= max(_MAX_DECREASE, 1.0 - (2.0 * rho - 1.0) ** 3)
-                nu = 2.0
-            else:
-                mu *= nu
-                nu *= 2.0
-        elif cfg.step_guard:
-            take = bool(np.isfinite(e_new) and e_new <= e_cur)
+            take, mu, nu = _lm_damping(run, h_values, step_sys, e_cur, e_new, mu, nu)
         else:
-            if not np.isfinite(e_new):
-                raise SolverError(f"iteration {iteration}: the Gauss-Newton step gives a "
-                                  "non-finite energy (use method='lm' or step_guard=True)")
-            take = True
-
+            take = _gn_accept(cfg, e_cur, e_new, iteration)
         changed = bool(np.isfinite(e_new)) and abs(e_new - e_cur) <= cfg.energy_tolerance * e_cur
         if take:
             accepted += 1
-            rot, new_rot = new_rot, rot
-            trans, new_trans = new_trans, trans
+            run.accept()
             e_prev = e_cur
-            t0 = time.perf_counter()
-            e_cur = _assemble(graph, pat, rot, trans, data, grad)
-            tm["assemble"] += time.perf_counter() - t0
+            e_cur = run.assemble()
             if e_cur == 0.0 or abs(e_prev - e_cur) <= cfg.energy_tolerance * e_prev:
                 status = Status.CONVERGED
             elif step_small and scale == 1.0:
@@ -632,19 +692,19 @@ def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
                 status = Status.STALLED
         history.append(e_cur)
         times.append(time.perf_counter() - t_start)
-        if cfg.progress is not None:
-            cfg.progress(iteration, e_cur)
+        if progress is not None:
+            progress(Progress("exact", iteration, cfg.max_iterations, e_cur))
 
     t_total = time.perf_counter() - t_start
     return SolveResult(
-        rotations=rot, translations=trans, status=status, iterations=iteration,
-        energy_history=np.asarray(history), times=np.asarray(times), method=method,
+        rotations=run.rot, translations=run.trans, status=status, iterations=iteration,
+        energy_history=np.asarray(history), times=np.asarray(times), method="exact",
         num_constraints=graph.num_constraints,
         timings={"compile": compile_s, "analyze": t_analyze, "solve": t_total - t_analyze,
-                 "total": t_total, **tm},
-        stats={"accepted_steps": accepted, "rejected_steps": rejected,
-               "step_halvings": halvings, "linear_solver": solver.name,
+                 "total": t_total, **run.seconds},
+        stats={"algorithm": cfg.method, "accepted_steps": accepted, "rejected_steps": rejected,
+               "step_halvings": halvings, "linear_solver": run.solver.name,
                "final_damping": mu if cfg.method == "lm" else 0.0,
-               "num_variables": system.dim, "hessian_nnz": int(system.indices.shape[0]),
-               "planar": planar},
+               "num_variables": run.system.dim,
+               "hessian_nnz": int(run.system.indices.shape[0]), "planar": run.planar},
     )
