@@ -72,13 +72,15 @@ def gps_residual(p: np.ndarray, g: np.ndarray, e: np.ndarray) -> None:
 
 
 @kernel
-def chi2(info: np.ndarray, e: np.ndarray, n: int) -> float:
-    """``e^T Omega e`` for the leading n entries (no 1/2, DESIGN §1)."""
+def chi2(info: np.ndarray, e: np.ndarray, n: int, oe: np.ndarray) -> float:
+    """``e^T Omega e`` for the leading n entries (no 1/2, DESIGN §1); ``oe`` receives
+    ``Omega e`` (the exact solver's gradient needs it)."""
     total = 0.0
     for i in range(n):
         s = 0.0
         for j in range(n):
             s += info[i, j] * e[j]
+        oe[i] = s
         total += e[i] * s
     return total
 
@@ -107,17 +109,18 @@ def whiten_rows(lt: np.ndarray, m: np.ndarray, n: int, out: np.ndarray) -> None:
 @kernel
 def relative_chi2(zr: np.ndarray, zt: np.ndarray, info: np.ndarray, ra: np.ndarray,
                   ta: np.ndarray, rb: np.ndarray, tb: np.ndarray, e: np.ndarray,
-                  ws: np.ndarray) -> float:
-    """χ² of a relative constraint at global poses a, b (``e`` receives its error)."""
+                  oe: np.ndarray, ws: np.ndarray) -> float:
+    """χ² of a relative constraint at global poses a, b (``e``: its error, ``oe``: Omega e)."""
     relative_residual(zr, zt, ra, ta, rb, tb, e, ws)
-    return chi2(info, e, 6)
+    return chi2(info, e, 6, oe)
 
 
 @kernel
-def gps_chi2(p: np.ndarray, g: np.ndarray, info: np.ndarray, e: np.ndarray) -> float:
+def gps_chi2(p: np.ndarray, g: np.ndarray, info: np.ndarray, e: np.ndarray,
+             oe: np.ndarray) -> float:
     """χ² of a position constraint at position p (``e`` receives its error)."""
     gps_residual(p, g, e)
-    return chi2(info, e, 3)
+    return chi2(info, e, 3, oe)
 
 
 @kernel
@@ -128,13 +131,14 @@ def constraint_energies(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarr
     """χ² of every relative (M,) and position (G,) constraint at global poses (may be inf/nan)."""
     ws = np.empty((3, 3, 3))
     e = np.empty(6)
+    oe = np.empty(6)
     for c in range(edge_nodes.shape[0]):
         a = edge_nodes[c, 0]
         b = edge_nodes[c, 1]
         out_rel[c] = relative_chi2(edge_rot[c], edge_trans[c], edge_info[c], rot[a], trans[a],
-                                   rot[b], trans[b], e, ws)
+                                   rot[b], trans[b], e, oe, ws)
     for c in range(gps_nodes.shape[0]):
-        out_gps[c] = gps_chi2(trans[gps_nodes[c]], gps_pos[c], gps_info[c], e)
+        out_gps[c] = gps_chi2(trans[gps_nodes[c]], gps_pos[c], gps_info[c], e, oe)
 
 
 @kernel
@@ -144,14 +148,15 @@ def total_energy(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarray,
     """``E = sum_c e_c^T Omega_c e_c`` at global poses (may be inf/nan), summed in order."""
     ws = np.empty((3, 3, 3))
     e = np.empty(6)
+    oe = np.empty(6)
     total = 0.0
     for c in range(edge_nodes.shape[0]):
         a = edge_nodes[c, 0]
         b = edge_nodes[c, 1]
         total += relative_chi2(edge_rot[c], edge_trans[c], edge_info[c], rot[a], trans[a],
-                               rot[b], trans[b], e, ws)
+                               rot[b], trans[b], e, oe, ws)
     for c in range(gps_nodes.shape[0]):
-        total += gps_chi2(trans[gps_nodes[c]], gps_pos[c], gps_info[c], e)
+        total += gps_chi2(trans[gps_nodes[c]], gps_pos[c], gps_info[c], e, oe)
     return total
 
 

@@ -24,7 +24,7 @@ import math
 import numpy as np
 
 from .._cost import SCRATCH as _SCRATCH
-from .._cost import gps_residual, residual_and_jr_inv, retract_into
+from .._cost import chi2, gps_chi2, residual_and_jr_inv, retract_into
 from .._numba import kernel
 from ..geometry._fast import mm3, skew_into
 
@@ -144,13 +144,7 @@ def assemble_normal_equations(
         _edge_linearization(rot[a], trans[a], rot[b], trans[b], edge_rot[c], edge_trans[c],
                             e, ja, jb, w)
         om = edge_info[c]
-        ec = 0.0
-        for i in range(6):
-            s = 0.0
-            for j in range(6):
-                s += om[i, j] * e[j]
-            oe[i] = s
-            ec += e[i] * s
+        ec = chi2(om, e, 6, oe)
         ok = math.isfinite(ec)
         for i in range(6):
             for j in range(6):
@@ -184,14 +178,7 @@ def assemble_normal_equations(
         n = gps_nodes[c]
         om = gps_info[c]
         r = rot[n]
-        gps_residual(trans[n], gps_pos[c], e)
-        ec = 0.0
-        for i in range(3):
-            s = 0.0
-            for j in range(3):
-                s += om[i, j] * e[j]
-            oe[i] = s
-            ec += e[i] * s
+        ec = gps_chi2(trans[n], gps_pos[c], om, e, oe)
         if not math.isfinite(ec):
             return m + c, energy
         energy += ec

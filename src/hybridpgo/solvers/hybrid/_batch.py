@@ -18,8 +18,8 @@ import numpy as np
 
 from ..._cost import whiten_rows
 from ..._numba import kernel
-from ._dense import chol_inplace, chol_solve_cols, regularized_factor
-from ._linearize import endpoints, linearize, mul_pose_into
+from ._dense import chol_inplace, chol_solve_cols, regularized_factor, solve_lt
+from ._linearize import endpoints, linearize, mul_pose_into, num_a_side
 from ._step import cap_and_apply
 from .problem import (
     BATCH_REJECTED,
@@ -284,11 +284,8 @@ def _segments(prob: Problem, cs: np.ndarray, nb: int, e_off: np.ndarray, e_slot:
     nu = seg.shape[0]
     tops = np.zeros(nu, np.bool_)
     for q in range(nb):
-        c = cs[q]
-        s0, d = domain(prob, c)
-        na = 0
-        while na < d and prob.path_sign[s0 + na] < 0:
-            na += 1
+        d = domain(prob, cs[q])[1]
+        na = num_a_side(prob, cs[q])
         if na > 0:
             tops[e_slot[e_off[q] + na - 1]] = True
         if na < d:
@@ -296,11 +293,8 @@ def _segments(prob: Problem, cs: np.ndarray, nb: int, e_off: np.ndarray, e_slot:
     seg[:] = -1
     nseg = 0
     for q in range(nb):
-        c = cs[q]
-        s0, d = domain(prob, c)
-        na = 0
-        while na < d and prob.path_sign[s0 + na] < 0:
-            na += 1
+        d = domain(prob, cs[q])[1]
+        na = num_a_side(prob, cs[q])
         for side in range(2):
             lo = 0 if side == 0 else na
             hi = na if side == 0 else d
@@ -421,12 +415,7 @@ def _back_substitute(prob: Problem, cs: np.ndarray, e_off: np.ndarray, e_q: np.n
             for m in range(6):
                 acc += vv[u, i, m] * vseg[sg, m]
             v[i] = acc
-        lk = lf[u]
-        for i in range(5, -1, -1):
-            acc = v[i]
-            for m in range(i + 1, 6):
-                acc -= lk[m, i] * x_out[u, m]
-            x_out[u, i] = acc / lk[i, i]
+        solve_lt(lf[u], v, x_out[u])
 
 
 @kernel

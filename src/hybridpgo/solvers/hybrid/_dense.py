@@ -59,6 +59,16 @@ def chol_solve_cols(lo: np.ndarray, n: int, b: np.ndarray, ncols: int) -> None:
 
 
 @kernel
+def solve_lt(lo: np.ndarray, v: np.ndarray, x: np.ndarray) -> None:
+    """Solve ``L^T x = v`` for a (6, 6) lower factor L (back substitution)."""
+    for i in range(5, -1, -1):
+        acc = v[i]
+        for m in range(i + 1, 6):
+            acc -= lo[m, i] * x[m]
+        x[i] = acc / lo[i, i]
+
+
+@kernel
 def regularized_factor(bc: np.ndarray, scale: float, mu: float, out: np.ndarray) -> int:
     """``out`` = lower Cholesky factor of sym(bc) + (mu tr(bc)/6 + TINY scale) I (DESIGN §4).
 

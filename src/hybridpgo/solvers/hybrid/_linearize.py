@@ -49,22 +49,15 @@ def path_products(prob: Problem, c: int, rot: np.ndarray, trans: np.ndarray,
     The a-side nodes are stored from a upward, so products are accumulated from the top down.
     """
     s, d = domain(prob, c)
-    pnode = prob.path_node
     na = num_a_side(prob, c)
-    for k in range(na - 1, -1, -1):  # a side: indices 0..na-1, top is na-1
-        i = pnode[s + k]
-        if k == na - 1:
-            pr[k] = rot[i]
-            pt[k] = trans[i]
-        else:
-            mul_pose_into(pr[k + 1], pt[k + 1], rot[i], trans[i], pr[k], pt[k])
-    for k in range(d - 1, na - 1, -1):
-        i = pnode[s + k]
-        if k == d - 1:
-            pr[k] = rot[i]
-            pt[k] = trans[i]
-        else:
-            mul_pose_into(pr[k + 1], pt[k + 1], rot[i], trans[i], pr[k], pt[k])
+    for lo, hi in ((0, na), (na, d)):  # the a side (top at na-1), then the b side (top at d-1)
+        for k in range(hi - 1, lo - 1, -1):
+            i = prob.path_node[s + k]
+            if k == hi - 1:
+                pr[k] = rot[i]
+                pt[k] = trans[i]
+            else:
+                mul_pose_into(pr[k + 1], pt[k + 1], rot[i], trans[i], pr[k], pt[k])
     return na
 
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..._cost import retract_into
 from ..._numba import kernel
-from ._dense import chol_inplace, chol_solve_cols, regularized_factor
+from ._dense import chol_inplace, chol_solve_cols, regularized_factor, solve_lt
 from ._linearize import linearize
 from .problem import Problem, State, StepKind, Update, Workspace, domain
 
@@ -102,11 +102,7 @@ def woodbury_solve(d: int, kr: int, jac: np.ndarray, lfac: np.ndarray, r: np.nda
             for q in range(kr):
                 acc += y[k, i, q] * zz[q, 0]
             v[i] = acc
-        for i in range(5, -1, -1):
-            acc = v[i]
-            for m in range(i + 1, 6):
-                acc -= lk[m, i] * x[k, m]
-            x[k, i] = acc / lk[i, i]
+        solve_lt(lk, v, x[k])
 
 
 @kernel
