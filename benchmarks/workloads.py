@@ -571,3 +571,12 @@ def city(ctx: Context) -> Result:
 
 
 WORKLOADS["city"] = city
+
+
+def _toro(ctx: Context) -> Result:
+    from .toro import run
+
+    return run(ctx)
+
+
+WORKLOADS["toro"] = _toro

@@ -1,0 +1,402 @@
+"""Numba kernels of the TORO-style baseline (``hybridpgo.solvers.toro``; shared/TORO.md).
+
+Layout (DESIGN.md §8): tree nodes ``0..N-1`` are the poses, node ``N`` the earth when the graph
+has GPS constraints.  Constraints are the M relative edges, then the G GPS readings (constraint
+``M + g`` joins the earth to ``gps_nodes[g]``).  Paths are CSR: the a-side nodes from a up to
+(excluding) the top with sign -1, then the b-side nodes from b up with sign +1.
+
+Every constraint update works in the frame of the constraint's *top* (its lowest common
+ancestor): the poses of the path nodes relative to the top are composed from the local
+transforms along the path, the update is made there, and the path's local transforms are
+rewritten.  The top and everything outside the path keep their local transforms, so this is the
+global-frame rule of TORO.md exactly (a rotation about the global axis ``a`` is a rotation about
+``R_top^T a`` in the top's frame), at O(path length) cost and without stale global poses.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from .._numba import cycle_counter, kernel
+from ..geometry._kernels import so3_log
+
+# ----------------------------------------------------------------------------- tree building
+
+
+@kernel
+def smallest_id_tree(
+    indptr: np.ndarray, indices: np.ndarray, root: int, parent: np.ndarray, order: np.ndarray
+) -> int:
+    """Grow TORO's tree: visit nodes by increasing index; parent = smallest visited neighbour.
+
+    Starting from ``root``, repeatedly visit the smallest-index node adjacent to the visited set
+    and give it as parent its smallest-index visited neighbour.  When the root has the smallest
+    index and every other node has a neighbour of smaller index, nodes are visited in index order
+    and each parent is the node's smallest-index neighbour (TORO's rule).  The earth (index N,
+    the largest) is therefore chosen as a parent only by a pose no other visited pose reaches.
+
+    Writes ``parent`` (-1 for the root and unvisited nodes) and the visit ``order``; returns the
+    number of nodes visited.
+    """
+    t_nodes = parent.shape[0]
+    visited = np.zeros(t_nodes, np.bool_)
+    for i in range(t_nodes):
+        parent[i] = -1
+    heap = np.empty(indices.shape[0] + 1, np.int64)
+    size = 0
+    heap[0] = root
+    size = 1
+    count = 0
+    while size > 0:
+        # pop the smallest
+        node = heap[0]
+        size -= 1
+        last = heap[size]
+        pos = 0
+        while True:
+            child = 2 * pos + 1
+            if child >= size:
+                break
+            if child + 1 < size and heap[child + 1] < heap[child]:
+                child += 1
+            if heap[child] >= last:
+                break
+            heap[pos] = heap[child]
+            pos = child
+        if size > 0:
+            heap[pos] = last
+        if visited[node]:
+            continue
+        visited[node] = True
+        order[count] = node
+        count += 1
+        best = -1
+        for q in range(indptr[node], indptr[node + 1]):
+            nb = indices[q]
+            if visited[nb]:
+                if nb != node and (best < 0 or nb < best):
+                    best = nb
+            else:
+                # push nb
+                pos = size
+                size += 1
+                while pos > 0:
+                    up = (pos - 1) // 2
+                    if heap[up] <= nb:
+                        break
+                    heap[pos] = heap[up]
+                    pos = up
+                heap[pos] = nb
+        if node != root:
+            parent[node] = best
+    return count
+
+
+@kernel
+def depths(order: np.ndarray, parent: np.ndarray, depth: np.ndarray) -> None:
+    """Depth below the root of every node (``order``: parents before children)."""
+    for k in range(order.shape[0]):
+        i = order[k]
+        depth[i] = 0 if parent[i] < 0 else depth[parent[i]] + 1
+
+
+@kernel
+def path_lengths(
+    c_nodes: np.ndarray, parent: np.ndarray, depth: np.ndarray, lengths: np.ndarray,
+    top: np.ndarray,
+) -> None:
+    """Path length (nodes other than the top) and top (lowest common ancestor) per constraint."""
+    for c in range(c_nodes.shape[0]):
+        u = c_nodes[c, 0]
+        v = c_nodes[c, 1]
+        count = 0
+        while depth[u] > depth[v]:
+            u = parent[u]
+            count += 1
+        while depth[v] > depth[u]:
+            v = parent[v]
+            count += 1
+        while u != v:
+            u = parent[u]
+            v = parent[v]
+            count += 2
+        lengths[c] = count
+        top[c] = u
+
+
+@kernel
+def fill_paths(
+    c_nodes: np.ndarray, parent: np.ndarray, top: np.ndarray, ptr: np.ndarray,
+    path_node: np.ndarray, path_sign: np.ndarray,
+) -> None:
+    """CSR paths: a up to the top (sign -1), then b up to the top (sign +1), top excluded."""
+    for c in range(c_nodes.shape[0]):
+        r = top[c]
+        k = ptr[c]
+        u = c_nodes[c, 0]
+        while u != r:
+            path_node[k] = u
+            path_sign[k] = -1
+            k += 1
+            u = parent[u]
+        v = c_nodes[c, 1]
+        while v != r:
+            path_node[k] = v
+            path_sign[k] = 1
+            k += 1
+            v = parent[v]
+
+
+@kernel
+def globals_from_locals(
+    order: np.ndarray, parent: np.ndarray, rot: np.ndarray, trans: np.ndarray,
+    grot: np.ndarray, gtr: np.ndarray,
+) -> None:
+    """Global poses from local transforms, parents before children."""
+    for k in range(order.shape[0]):
+        i = order[k]
+        p = parent[i]
+        if p < 0:
+            grot[i] = rot[i]
+            gtr[i] = trans[i]
+        else:
+            for r in range(3):
+                for s in range(3):
+                    grot[i, r, s] = (grot[p, r, 0] * rot[i, 0, s] + grot[p, r, 1] * rot[i, 1, s]
+                                     + grot[p, r, 2] * rot[i, 2, s])
+                gtr[i, r] = gtr[p, r] + (grot[p, r, 0] * trans[i, 0] + grot[p, r, 1] * trans[i, 1]
+                                         + grot[p, r, 2] * trans[i, 2])
+
+
+# ----------------------------------------------------------------------------- small maths
+
+
+@kernel
+def _compose_into(qa: np.ndarray, pa: np.ndarray, rb: np.ndarray, tb: np.ndarray,
+                  qout: np.ndarray, pout: np.ndarray) -> None:
+    """(qout, pout) = (qa, pa) * (rb, tb)."""
+    for r in range(3):
+        for s in range(3):
+            qout[r, s] = qa[r, 0] * rb[0, s] + qa[r, 1] * rb[1, s] + qa[r, 2] * rb[2, s]
+        pout[r] = pa[r] + qa[r, 0] * tb[0] + qa[r, 1] * tb[1] + qa[r, 2] * tb[2]
+
+
+@kernel
+def _local_into(qa: np.ndarray, pa: np.ndarray, qb: np.ndarray, pb: np.ndarray,
+                rout: np.ndarray, tout: np.ndarray, with_rotation: bool) -> None:
+    """(rout, tout) = (qa, pa)^-1 * (qb, pb); the rotation only when ``with_rotation``."""
+    d0 = pb[0] - pa[0]
+    d1 = pb[1] - pa[1]
+    d2 = pb[2] - pa[2]
+    for r in range(3):
+        if with_rotation:
+            for s in range(3):
+                rout[r, s] = qa[0, r] * qb[0, s] + qa[1, r] * qb[1, s] + qa[2, r] * qb[2, s]
+        tout[r] = qa[0, r] * d0 + qa[1, r] * d1 + qa[2, r] * d2
+
+
+@kernel
+def _orthonormalize_rows(r: np.ndarray) -> None:
+    """Gram-Schmidt on the rows of a nearly orthonormal R, in place (removes rounding drift)."""
+    n0 = math.sqrt(r[0, 0] * r[0, 0] + r[0, 1] * r[0, 1] + r[0, 2] * r[0, 2])
+    for s in range(3):
+        r[0, s] /= n0
+    d = r[0, 0] * r[1, 0] + r[0, 1] * r[1, 1] + r[0, 2] * r[1, 2]
+    for s in range(3):
+        r[1, s] -= d * r[0, s]
+    n1 = math.sqrt(r[1, 0] * r[1, 0] + r[1, 1] * r[1, 1] + r[1, 2] * r[1, 2])
+    for s in range(3):
+        r[1, s] /= n1
+    r[2, 0] = r[0, 1] * r[1, 2] - r[0, 2] * r[1, 1]
+    r[2, 1] = r[0, 2] * r[1, 0] - r[0, 0] * r[1, 2]
+    r[2, 2] = r[0, 0] * r[1, 1] - r[0, 1] * r[1, 0]
+
+
+@kernel
+def _rotate_left(ax: float, ay: float, az: float, angle: float, q: np.ndarray,
+                 tmp: np.ndarray) -> None:
+    """q <- Rot(a, angle) q for the unit axis a (Rodrigues), in place."""
+    s = math.sin(angle)
+    c1 = 1.0 - math.cos(angle)
+    # Rot = I + s K + c1 K^2, K = [a]x, K^2 = a a^T - I
+    m00 = 1.0 + c1 * (ax * ax - 1.0)
+    m11 = 1.0 + c1 * (ay * ay - 1.0)
+    m22 = 1.0 + c1 * (az * az - 1.0)
+    m01 = -s * az + c1 * ax * ay
+    m10 = s * az + c1 * ax * ay
+    m02 = s * ay + c1 * ax * az
+    m20 = -s * ay + c1 * ax * az
+    m12 = -s * ax + c1 * ay * az
+    m21 = s * ax + c1 * ay * az
+    for j in range(3):
+        x = q[0, j]
+        y = q[1, j]
+        z = q[2, j]
+        tmp[0, j] = m00 * x + m01 * y + m02 * z
+        tmp[1, j] = m10 * x + m11 * y + m12 * z
+        tmp[2, j] = m20 * x + m21 * y + m22 * z
+    q[:, :] = tmp
+
+
+# ----------------------------------------------------------------------------- the update
+
+
+@kernel
+def update_constraint(
+    c: int, k: float, prob: tuple[Any, ...], state: tuple[Any, ...], work: tuple[Any, ...]
+) -> int:
+    """Relax constraint ``c`` once with sweep counter ``k`` (TORO.md, steps 1 and 2).
+
+    ``prob = (num_edges, path_ptr, path_node, path_sign, top, meas_rot, meas_trans, rho, tau,
+    gamma_r, gamma_t, w_rot, w_trans)``: ``meas_trans`` has M + G rows (a GPS constraint's row
+    is the measured position), ``meas_rot`` M; ``rho``/``tau`` the per-constraint gains' Omega
+    terms (rho = 0 for GPS); ``w_rot``/``w_trans`` the node weights 1/M_n.
+    ``state = (rot, trans)``: local transforms, updated in place.
+    ``work = (wq, wp, tmp, eye, zero)``: workspaces of the longest path.
+
+    Returns 0, or 1 when the update was not finite (then nothing is written).
+    """
+    (num_edges, ptr, path_node, path_sign, _top, meas_rot, meas_trans, rho, tau, gamma_r,
+     gamma_t, w_rot, w_trans) = prob
+    rot, trans = state
+    wq, wp, tmp, eye, zero = work
+    s0 = ptr[c]
+    ell = ptr[c + 1] - s0
+    if ell == 0:
+        return 0
+    na = 0
+    while na < ell and path_sign[s0 + na] < 0:
+        na += 1
+    # poses of the path nodes relative to the top, composed down each wing from the top
+    for j in range(na - 1, -1, -1):
+        node = path_node[s0 + j]
+        if j == na - 1:
+            _compose_into(eye, zero, rot[node], trans[node], wq[j], wp[j])
+        else:
+            _compose_into(wq[j + 1], wp[j + 1], rot[node], trans[node], wq[j], wp[j])
+    for j in range(ell - 1, na - 1, -1):
+        node = path_node[s0 + j]
+        if j == ell - 1:
+            _compose_into(eye, zero, rot[node], trans[node], wq[j], wp[j])
+        else:
+            _compose_into(wq[j + 1], wp[j + 1], rot[node], trans[node], wq[j], wp[j])
+
+    rotated = False
+    if c < num_edges:
+        # 1. rotation: dR = R_v1 R_e R_v2^-1 = Rot(a, theta), in the top's frame
+        qv1 = wq[0] if na > 0 else eye
+        qv2 = wq[na] if na < ell else eye
+        re = meas_rot[c]
+        for r in range(3):
+            for s in range(3):
+                acc = 0.0
+                for u in range(3):
+                    acc += (qv1[r, 0] * re[0, u] + qv1[r, 1] * re[1, u]
+                            + qv1[r, 2] * re[2, u]) * qv2[s, u]
+                tmp[r, s] = acc
+        phi = so3_log(tmp)
+        theta = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
+        if not math.isfinite(theta):
+            return 1
+        wsum = 0.0
+        for j in range(ell):
+            wsum += w_rot[path_node[s0 + j]]
+        if theta > 0.0 and wsum > 0.0:
+            rotated = True
+            ax = phi[0] / theta
+            ay = phi[1] / theta
+            az = phi[2] / theta
+            f_r = min(1.0, math.sqrt(ell) * rho[c] / (gamma_r * k))
+            step = f_r * theta / wsum
+            # C(n) - C(top): minus the cumulative weight from the top on the v1 wing, plus on v2
+            cum = 0.0
+            for j in range(na - 1, -1, -1):
+                cum += w_rot[path_node[s0 + j]]
+                _rotate_left(ax, ay, az, -step * cum, wq[j], tmp)
+            cum = 0.0
+            for j in range(ell - 1, na - 1, -1):
+                cum += w_rot[path_node[s0 + j]]
+                _rotate_left(ax, ay, az, step * cum, wq[j], tmp)
+            # re-bend the path: local translations are kept
+            for j in range(na - 1, -1, -1):
+                node = path_node[s0 + j]
+                if j == na - 1:
+                    for r in range(3):
+                        wp[j, r] = trans[node, r]
+                else:
+                    for r in range(3):
+                        wp[j, r] = wp[j + 1, r] + (wq[j + 1, r, 0] * trans[node, 0]
+                                                   + wq[j + 1, r, 1] * trans[node, 1]
+                                                   + wq[j + 1, r, 2] * trans[node, 2])
+            for j in range(ell - 1, na - 1, -1):
+                node = path_node[s0 + j]
+                if j == ell - 1:
+                    for r in range(3):
+                        wp[j, r] = trans[node, r]
+                else:
+                    for r in range(3):
+                        wp[j, r] = wp[j + 1, r] + (wq[j + 1, r, 0] * trans[node, 0]
+                                                   + wq[j + 1, r, 1] * trans[node, 1]
+                                                   + wq[j + 1, r, 2] * trans[node, 2])
+
+    # 2. translation on the re-bent path: t_R = (T_v1 T_e).t - t_v2
+    qv1 = wq[0] if na > 0 else eye
+    pv1 = wp[0] if na > 0 else zero
+    pv2 = wp[na] if na < ell else zero
+    te = meas_trans[c]
+    t0 = qv1[0, 0] * te[0] + qv1[0, 1] * te[1] + qv1[0, 2] * te[2] + pv1[0] - pv2[0]
+    t1 = qv1[1, 0] * te[0] + qv1[1, 1] * te[1] + qv1[1, 2] * te[2] + pv1[1] - pv2[1]
+    t2 = qv1[2, 0] * te[0] + qv1[2, 1] * te[1] + qv1[2, 2] * te[2] + pv1[2] - pv2[2]
+    if not (math.isfinite(t0) and math.isfinite(t1) and math.isfinite(t2)):
+        return 1
+    wsum = 0.0
+    for j in range(ell):
+        wsum += w_trans[path_node[s0 + j]]
+    if wsum > 0.0:
+        f_t = min(1.0, ell * tau[c] / (gamma_t * k))
+        g = f_t / wsum
+        cum = 0.0
+        for j in range(na - 1, -1, -1):
+            cum += w_trans[path_node[s0 + j]]
+            wp[j, 0] -= g * cum * t0
+            wp[j, 1] -= g * cum * t1
+            wp[j, 2] -= g * cum * t2
+        cum = 0.0
+        for j in range(ell - 1, na - 1, -1):
+            cum += w_trans[path_node[s0 + j]]
+            wp[j, 0] += g * cum * t0
+            wp[j, 1] += g * cum * t1
+            wp[j, 2] += g * cum * t2
+
+    # rewrite the path's local transforms (rotations only when they turned)
+    for j in range(ell):
+        node = path_node[s0 + j]
+        last = na - 1 if j < na else ell - 1
+        if j == last:
+            _local_into(eye, zero, wq[j], wp[j], rot[node], trans[node], rotated)
+        else:
+            _local_into(wq[j + 1], wp[j + 1], wq[j], wp[j], rot[node], trans[node], rotated)
+        if rotated:
+            _orthonormalize_rows(rot[node])
+    return 0
+
+
+@kernel
+def sweep(order: np.ndarray, k: float, prob: tuple[Any, ...], state: tuple[Any, ...],
+          work: tuple[Any, ...], cycles: np.ndarray) -> int:
+    """Relax every constraint in ``order`` once; ``cycles[c]``: CPU cycles of c's update.
+
+    Returns -1, or the first constraint whose update was not finite (it is skipped).
+    """
+    bad = -1
+    for q in range(order.shape[0]):
+        c = order[q]
+        c0 = cycle_counter()
+        status = update_constraint(c, k, prob, state, work)
+        cycles[c] = cycle_counter() - c0
+        if status != 0 and bad < 0:
+            bad = c
+    return bad
