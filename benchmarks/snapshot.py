@@ -37,7 +37,7 @@ CASES: list[tuple[str, str, list[str]]] = [
     ("city_gps_g", "city", ["--solver", "hybrid", "--sweeps", "2", "--step", "givens"]),
     ("city_gps_polish", "city", ["--solver", "hybrid", "--sweeps", "3", "--polish"]),
     ("city_gps_exact", "city", ["--solver", "exact", "--init", "tree"]),
-]  # noqa: E501
+]
 # fmt: on
 
 

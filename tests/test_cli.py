@@ -20,7 +20,7 @@ from hybridpgo.cli import main
 from hybridpgo.cli._common import LazyChoices, ProgressBar, output_format
 from hybridpgo.cli._parser import build_parser
 from hybridpgo.io import FORMATS
-from hybridpgo.solvers import METHODS
+from hybridpgo.solvers import METHODS, TREES
 from hybridpgo.solvers.hybrid import STEP_KINDS
 from hybridpgo.tree import InitKind, TreeKind
 
@@ -105,7 +105,8 @@ def test_choices_are_the_library_lists() -> None:
     assert _choices("optimize", "out_format") == list(FORMATS)
     assert _choices("optimize", "solver") == list(METHODS)
     assert _choices("optimize", "step") == list(STEP_KINDS)
-    assert _choices("optimize", "tree") == [k.value for k in TreeKind]
+    assert _choices("optimize", "tree") == list(TREES)
+    assert [k.value for k in TreeKind] == [t for t in TREES if t != "toro"]
     assert _choices("optimize", "init") == [k.value for k in InitKind]
     assert _choices("generate", "preset") == sorted(PRESETS)
 
@@ -142,7 +143,7 @@ def test_lazy_choices_accept_anything_when_the_module_is_missing() -> None:
     (["--damping", "nan"], "--damping: must be a number >= 0"),
     (["--gps-batch-size", "0"], "--gps-batch-size: must be an integer >= 1"),
     (["--step", "cholesky"], "invalid choice: 'cholesky'"),
-    (["--solver", "toro"], "invalid choice: 'toro'"),
+    (["--solver", "g2o"], "invalid choice: 'g2o'"),
 ])
 def test_bad_option_values_are_usage_errors(capsys: pytest.CaptureFixture[str], tiny: Path,
                                             tmp_path: Path, argv: list[str],
@@ -655,3 +656,37 @@ def test_console_script(tiny: Path) -> None:
                           text=True, env=env, timeout=120, check=False)
     assert done.returncode == 2
     assert done.stderr.startswith("hybridpgo: error:")
+
+
+# =========================================================================== --solver toro
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--polish"], "--polish: not an option of --solver toro"),
+    (["--tau0", "0.5"], "--tau0: not an option of --solver toro"),
+    (["--max-iterations", "3"], "--max-iterations"),
+    (["--init", "chordal"], "--init chordal"),
+    (["--tree", "mst"], "--tree mst"),
+])
+def test_toro_refuses_options_it_does_not_take(capsys: pytest.CaptureFixture[str], tiny: Path,
+                                               tmp_path: Path, argv: list[str],
+                                               message: str) -> None:
+    out = tmp_path / "out.g2o"
+    code, _, err = run_cli(capsys, "optimize", str(tiny), "-o", str(out), "--solver", "toro",
+                           *argv)
+    assert code == 2
+    assert message in err
+    assert not out.exists()
+
+
+def test_toro_runs_its_sweeps_as_iterations(capsys: pytest.CaptureFixture[str], tiny: Path,
+                                            tmp_path: Path) -> None:
+    out = tmp_path / "out.g2o"
+    code, text, _ = run_cli(capsys, "optimize", str(tiny), "-o", str(out), "--solver", "toro",
+                            "--sweeps", "3", "--json", "--quiet")
+    assert code == 0
+    summary = json.loads(text)
+    assert summary["result"]["method"] == "toro"
+    assert summary["result"]["iterations"] == 3
+    assert summary["energy_after"] < summary["energy_before"]
+    assert out.exists()
+    code, _, err = run_cli(capsys, "optimize", str(tiny), "-o", str(out), "--tree", "toro")
+    assert code == 2 and "--tree toro: only for --solver toro" in err

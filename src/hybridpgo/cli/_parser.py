@@ -38,9 +38,9 @@ def _steps() -> list[str]:
 
 
 def _trees() -> list[str]:
-    from ..tree import TreeKind
+    from ..solvers import TREES
 
-    return [k.value for k in TreeKind]
+    return list(TREES)
 
 
 def _inits() -> list[str]:
@@ -139,13 +139,16 @@ def build_parser() -> argparse.ArgumentParser:
                     "sparse Levenberg-Marquardt solver, and write the optimized graph.",
         epilog="Hybrid-only options: --sweeps --tau0 --tau-decay --damping --step "
                "--gps-batch-size --polish.  --max-iterations limits the exact solver, or the "
-               "polish with --polish.")
+               "polish with --polish.  --solver toro (the TORO-style baseline) takes --sweeps "
+               "(its iterations, default 100), --tolerance, --init tree|file and --tree "
+               "toro|bfs.")
     p.add_argument("file", help="pose-graph file (g2o, TORO or iSAM)")
     p.add_argument("-o", "--output", required=True, metavar="OUT",
                    help="where to write the optimized graph (written atomically)")
     _add_format(p, out=True)
     p.add_argument("--solver", choices=LazyChoices(_methods), default="hybrid",
-                   help="solver (default: hybrid)")
+                   help="solver: 'hybrid' (the paper's), 'exact' (sparse LM), 'toro' (the "
+                        "TORO-style baseline) (default: hybrid)")
     p.add_argument("--init", choices=LazyChoices(_inits),
                    help="initial poses: 'tree' concatenates the tree edges' measurements (the "
                         "paper), 'file' uses the file's vertices, 'chordal' a chordal "
@@ -165,7 +168,8 @@ def build_parser() -> argparse.ArgumentParser:
                         f"O(d^2) triangularization (default {hy.step})")
     p.add_argument("--tree", choices=LazyChoices(_trees),
                    help="spanning tree: 'bfs' breadth-first (the paper's), 'mst' "
-                        f"maximum-stiffness (default {hy.tree})")
+                        f"maximum-stiffness (default {hy.tree}); 'toro': each pose hangs from "
+                        "its smallest-id neighbour (--solver toro's default)")
     p.add_argument("--gps-batch-size", type=_pos_int, metavar="N",
                    help=f"hybrid: GPS constraints relaxed together (default {hy.gps_batch_size})")
     p.add_argument("--tolerance", type=_nonneg_float, metavar="TOL",

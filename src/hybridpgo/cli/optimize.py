@@ -52,14 +52,24 @@ def _check_options(job: Job, graph: PoseGraph) -> str:
     from ..solvers import default_init
 
     opts = job.options
-    if job.solver == "exact":
-        given = [flag for key, flag in HYBRID_ONLY.items() if key in opts]
+    if job.solver in ("exact", "toro"):
+        skip = {"sweeps"} if job.solver == "toro" else set()
+        given = [flag for key, flag in HYBRID_ONLY.items() if key in opts and key not in skip]
         if opts.get("polish"):
             given.append("--polish")
+        if job.solver == "toro" and "max_iterations" in opts:
+            given.append("--max-iterations (toro runs --sweeps iterations)")
         if given:
-            raise HybridPGOError(f"{', '.join(given)}: only for the hybrid solver "
-                                 "(--solver hybrid)")
-    elif "max_iterations" in opts and not opts.get("polish"):
+            where = ("only for the hybrid solver (--solver hybrid)" if job.solver == "exact"
+                     else "not an option of --solver toro")
+            raise HybridPGOError(f"{', '.join(given)}: {where}")
+        if job.solver == "toro" and opts.get("init") == "chordal":
+            raise HybridPGOError("--init chordal: --solver toro starts from 'tree' or 'file'")
+        if job.solver == "toro" and opts.get("tree") == "mst":
+            raise HybridPGOError("--tree mst: --solver toro grows a 'toro' or 'bfs' tree")
+    elif opts.get("tree") == "toro":
+        raise HybridPGOError("--tree toro: only for --solver toro")
+    if job.solver == "hybrid" and "max_iterations" in opts and not opts.get("polish"):
         raise HybridPGOError("--max-iterations limits the exact solver or the polish: add "
                              "--polish or use --solver exact (the hybrid solver runs --sweeps)")
     init: str = opts.get("init") or default_init(graph, job.solver)
@@ -78,6 +88,10 @@ def _make_config(job: Job, init: str) -> SolverConfig:
         opts["init"] = init
         if "max_iterations" in opts:
             opts["polish_iterations"] = opts.pop("max_iterations")
+    elif job.solver == "toro":
+        opts["init"] = init
+        if "sweeps" in opts:
+            opts["iterations"] = opts.pop("sweeps")
     else:
         opts.pop("init", None)
         opts.pop("tree", None)
@@ -110,9 +124,15 @@ def _plots_possible(job: Job) -> bool:
 
 
 def _solve(job: Job, graph: PoseGraph, config: SolverConfig, init: str) -> SolveResult:
-    from ..solvers import HybridConfig, Progress, optimize
+    from ..solvers import HybridConfig, Progress, ToroConfig, optimize
 
     nc = graph.num_constraints
+    if isinstance(config, ToroConfig):
+        tbar = ProgressBar("toro", config.iterations, nc, enabled=not job.quiet)
+        try:
+            return optimize(graph, config, progress=lambda p: tbar.update(p.iteration, p.energy))
+        finally:
+            tbar.close()
     if isinstance(config, HybridConfig):
         bar = ProgressBar("hybrid", config.sweeps, nc, enabled=not job.quiet)
         polish = config.polish
@@ -160,7 +180,8 @@ def run_job(job: Job) -> dict[str, Any]:
     written_plots: list[str] = []
     if plots:
         assert job.plot_prefix is not None
-        written_plots = write_plots(graph, result, init, job.options.get("tree") or "bfs",
+        default_tree = "toro" if job.solver == "toro" else "bfs"
+        written_plots = write_plots(graph, result, init, job.options.get("tree") or default_tree,
                                     job.plot_prefix, os.path.basename(job.input))
     nc = graph.num_constraints
     summary = result.summary()
@@ -198,8 +219,14 @@ def write_plots(graph: PoseGraph, result: SolveResult, init: str, tree_kind: str
     )
     from ..tree import build_tree, global_poses, initial_locals
 
-    tree = build_tree(graph, tree_kind)
-    before = global_poses(tree, *initial_locals(graph, tree, init))
+    if tree_kind == "toro":
+        from ..solvers.toro import ToroState, build_toro_tree, toro_initial_locals
+
+        ttree = build_toro_tree(graph, "toro")
+        before = ToroState.create(graph, ttree, *toro_initial_locals(graph, ttree, init)).poses()
+    else:
+        tree = build_tree(graph, tree_kind)
+        before = global_poses(tree, *initial_locals(graph, tree, init))
     before_title = {"tree": f"{name}: tree initialization", "file": f"{name}: file vertices"
                     }.get(init, f"{name}: {init} initialization")
     paths = [f"{prefix}_before.png", f"{prefix}_after.png", f"{prefix}_energy.png"]

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from ..graph import PoseGraph
+from .config import TREE_NAMES
 from .config import GaussNewtonConfig as GaussNewtonConfig
 from .config import HybridConfig as HybridConfig
 from .config import Progress as Progress
@@ -13,10 +14,14 @@ from .hybrid import HybridSolver as HybridSolver
 from .hybrid import solve_hybrid as solve_hybrid
 from .result import SolveResult as SolveResult
 from .result import Status as Status
+from .toro import TREES as _TORO_TREES
+from .toro import ToroConfig as ToroConfig
 
-METHODS = ("hybrid", "exact")
+METHODS = ("hybrid", "exact", "toro")
+#: Every tree name some solver accepts (the CLI's --tree choices).
+TREES: tuple[str, ...] = tuple(dict.fromkeys(TREE_NAMES + _TORO_TREES))
 
-SolverConfig = HybridConfig | GaussNewtonConfig
+SolverConfig = HybridConfig | GaussNewtonConfig | ToroConfig
 
 
 def config_for(method: str, **options: Any) -> SolverConfig:
@@ -25,6 +30,8 @@ def config_for(method: str, **options: Any) -> SolverConfig:
         return HybridConfig(**options)
     if method == "exact":
         return GaussNewtonConfig(**options)
+    if method == "toro":
+        return ToroConfig(**options)
     raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
 
 
@@ -36,11 +43,11 @@ def optimize(graph: PoseGraph, config: SolverConfig | str = "hybrid", *,
     Parameters
     ----------
     graph : PoseGraph
-    config : HybridConfig, GaussNewtonConfig, or {"hybrid", "exact"}
+    config : HybridConfig, GaussNewtonConfig, ToroConfig, or {"hybrid", "exact", "toro"}
         The solver's typed options, or a method name whose options are then given as keywords
         (the fields of :class:`HybridConfig` or :class:`GaussNewtonConfig`).  ``"hybrid"``: the
         paper's stochastic hybrid Hessian sweeps; ``"exact"``: sparse Levenberg-Marquardt or
-        Gauss-Newton.
+        Gauss-Newton; ``"toro"``: the TORO-style baseline (:mod:`hybridpgo.solvers.toro`).
     progress : callable, optional
         ``progress(Progress)`` after every iteration (sweep, polish or exact iteration).
     init, tree : str, optional
@@ -53,17 +60,23 @@ def optimize(graph: PoseGraph, config: SolverConfig | str = "hybrid", *,
     SolveResult
     """
     if isinstance(config, str):
-        if config == "hybrid":
+        if config in ("hybrid", "toro"):
             if init is not None:
                 options["init"] = init
-            options.setdefault("tree", tree)
+            if config == "hybrid" or tree != "bfs":
+                options.setdefault("tree", tree)
         config = config_for(config, **options)
     elif options:
         raise TypeError("give either a config object or keyword options, not both")
-    elif isinstance(config, HybridConfig) and init is not None and init != config.init:
-        raise ValueError("the hybrid solver's init is a field of its config")
+    elif (isinstance(config, (HybridConfig, ToroConfig)) and init is not None
+          and init != config.init):
+        raise ValueError("this solver's init is a field of its config")
     if isinstance(config, HybridConfig):
         return solve_hybrid(graph, config, progress=progress)
+    if isinstance(config, ToroConfig):
+        from .toro import solve_toro
+
+        return solve_toro(graph, config, progress=progress)
     from ..tree import build_tree, global_poses, initial_locals
     from .gauss_newton import solve_exact
 

@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import functools
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -54,6 +53,7 @@ from ..energy import energy
 from ..errors import GraphError, SolverError
 from ..graph import FloatArray, PoseGraph
 from . import _toro_kernels as _tk
+from .config import Progress, ProgressCallback
 from .result import SolveResult, Status
 
 # Numba dispatchers carry no useful static types (as in hybrid.py).
@@ -65,8 +65,6 @@ TREES = ("toro", "bfs")
 INITS = ("tree", "file")
 WEIGHTS = ("documented", "swapped")
 
-ProgressFn = Callable[[int, float], None]
-"""``progress(iteration, energy)``, called after every iteration (iteration 0 = the start)."""
 
 
 @dataclass(frozen=True)
@@ -447,7 +445,7 @@ def _ensure_compiled() -> float:
 
 # ----------------------------------------------------------------------------- the solver
 def solve_toro(
-    graph: PoseGraph, config: ToroConfig | None = None, progress: ProgressFn | None = None
+    graph: PoseGraph, config: ToroConfig | None = None, progress: ProgressCallback | None = None
 ) -> SolveResult:
     """Optimize ``graph`` with the TORO-style baseline (module docstring, shared/TORO.md).
 
@@ -456,7 +454,8 @@ def solve_toro(
     graph : PoseGraph
     config : ToroConfig, optional
     progress : callable, optional
-        ``progress(iteration, energy)`` after every iteration (iteration 0: the start).
+        ``progress(Progress("toro", iteration, iterations, energy))`` after every iteration
+        (iteration 0: the start).
 
     Returns
     -------
@@ -485,7 +484,7 @@ def solve_toro(
     return _solve(graph, cfg, progress, compile_s)
 
 
-def _solve(graph: PoseGraph, cfg: ToroConfig, progress: ProgressFn | None,
+def _solve(graph: PoseGraph, cfg: ToroConfig, progress: ProgressCallback | None,
            compile_s: float) -> SolveResult:
     t_start = time.perf_counter()
     tree = build_toro_tree(graph, cfg.tree)
@@ -502,7 +501,7 @@ def _solve(graph: PoseGraph, cfg: ToroConfig, progress: ProgressFn | None,
     history = [e0]
     times = [0.0]
     if progress:
-        progress(0, e0)
+        progress(Progress("toro", 0, cfg.iterations, e0))
     status = Status.MAX_ITERATIONS
     solve_time = 0.0
     first_bad = -1
@@ -521,7 +520,7 @@ def _solve(graph: PoseGraph, cfg: ToroConfig, progress: ProgressFn | None,
         history.append(e)
         times.append(solve_time)
         if progress:
-            progress(it, e)
+            progress(Progress("toro", it, cfg.iterations, e))
         if not np.isfinite(e):
             raise SolverError(f"the energy became non-finite in iteration {it}")
         prev = history[-2]
