@@ -251,7 +251,8 @@ def test_energy_decreases_on_w100(data_dir):
         warnings.simplefilter("ignore", UserWarning)  # the file's EQUIV merges are reported
         graph = read_graph(data_dir / "w100_toro.graph")
     seen = []
-    res = solve_toro(graph, ToroConfig(iterations=30), progress=lambda p: seen.append((p.iteration, p.energy)))
+    res = solve_toro(graph, ToroConfig(iterations=30),
+                     progress=lambda p: seen.append((p.iteration, p.energy)))
     assert [i for i, _ in seen] == list(range(31))
     assert res.energy_history.tolist() == [e for _, e in seen]
     assert res.final_energy == pytest.approx(energy(graph, res.rotations, res.translations),
