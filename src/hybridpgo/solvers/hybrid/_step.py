@@ -28,8 +28,9 @@ MAX_ROTATION = math.pi / 8.0
 
 @kernel
 def accumulate_blocks(prob: Problem, state: State, c: int, kr: int, jac: np.ndarray,
-                      mu: float, lfac: np.ndarray, bc: np.ndarray) -> None:
-    """Eq. 23/24: B_c = 𝔅(H) - 𝔅(J_c^T J_c)_old; 𝔅(H) += new - old; factor the damped B_c."""
+                      mu: float, lfac: np.ndarray, bc: np.ndarray, factor: bool = True) -> None:
+    """Eq. 23/24: B_c = 𝔅(H) - 𝔅(J_c^T J_c)_old; 𝔅(H) += new - old; factor the damped B_c
+    into ``lfac`` (unless ``factor`` is False: interpolated solving factors its own blocks)."""
     s, d = domain(prob, c)
     bdiag = state.bdiag
     contrib = state.contrib
@@ -54,7 +55,8 @@ def accumulate_blocks(prob: Problem, state: State, c: int, kr: int, jac: np.ndar
                 bc[p, q] = b_old - old
                 bc[q, p] = b_old - old
             scale += contrib[e, p, p]
-        regularized_factor(bc, scale, mu, lfac[k])
+        if factor:
+            regularized_factor(bc, scale, mu, lfac[k])
 
 
 @kernel
@@ -157,26 +159,33 @@ def givens_solve(d: int, kr: int, jac: np.ndarray, lfac: np.ndarray, r: np.ndarr
 
 
 @kernel
-def cap_and_apply(nodes: np.ndarray, start: int, n: int, x: np.ndarray, tau: float,
-                  state: State, ws: np.ndarray) -> int:
-    """Apply ``T_i <- T_i Exp(t x_k)`` to ``i = nodes[start + k]``, k < n (paper III-H).
+def step_temperature(x: np.ndarray, n: int, tau: float) -> tuple[float, int]:
+    """The factor t a step ``x[:n]`` is applied with (paper III-H) and the outcome.
 
-    ``t = tau``, or smaller so that the largest rotation of the step is exactly pi/8.  Returns
-    APPLIED, CAPPED, or REJECTED (a non-finite step: nothing is applied).
+    ``t = tau``, or smaller so that the largest rotation of ``t x`` is exactly pi/8 (CAPPED);
+    REJECTED when the step is not finite.
     """
     biggest = 0.0
     for k in range(n):
         for i in range(6):
             if not math.isfinite(x[k, i]):
-                return Update.REJECTED
+                return 0.0, Update.REJECTED
         ang = math.sqrt(x[k, 3] ** 2 + x[k, 4] ** 2 + x[k, 5] ** 2)
         if ang > biggest:
             biggest = ang
-    status = Update.APPLIED
-    t = tau
-    if t * biggest > MAX_ROTATION:
-        t = MAX_ROTATION / biggest
-        status = Update.CAPPED
+    if tau * biggest > MAX_ROTATION:
+        return MAX_ROTATION / biggest, Update.CAPPED
+    return tau, Update.APPLIED
+
+
+@kernel
+def cap_and_apply(nodes: np.ndarray, start: int, n: int, x: np.ndarray, tau: float,
+                  state: State, ws: np.ndarray) -> int:
+    """Apply ``T_i <- T_i Exp(t x_k)`` to ``i = nodes[start + k]``, k < n, with the factor t of
+    :func:`step_temperature`.  Returns APPLIED, CAPPED, or REJECTED (nothing applied)."""
+    t, status = step_temperature(x, n, tau)
+    if status == Update.REJECTED:
+        return status
     rot = state.rot
     trans = state.trans
     for k in range(n):

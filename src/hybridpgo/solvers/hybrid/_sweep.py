@@ -12,6 +12,7 @@ import numpy as np
 
 from ..._numba import cycle_counter, kernel
 from ._batch import batch_relax
+from ._interpolate import relax_interpolated
 from ._step import relax
 from .problem import (
     BATCH_REJECTED,
@@ -72,9 +73,12 @@ def _flush(prob: Problem, state: State, buf: np.ndarray, nbuf: int, tau: float, 
 
 @kernel
 def sweep(prob: Problem, state: State, order: np.ndarray, tau: float, mu: float,
-          step_kind: int, gps_batch_size: int, dmax: int, deadline: np.uint64,
+          step_kind: int, gps_batch_size: int, dmax: int, d_max: int, deadline: np.uint64,
           cycles: np.ndarray, batch_cycles: np.ndarray, counts: np.ndarray) -> int:
     """One pass over the constraints in ``order`` (paper Algorithm 1).
+
+    ``dmax`` is the largest domain (workspace capacity); ``d_max`` > 0 solves single updates of
+    longer domains for at most ``d_max`` nodes (interpolated solving, III-E), 0 never.
 
     ``cycles[c]`` receives the cycle count of constraint c's update (a batch's count is shared
     among its members, and ``batch_cycles[first member]`` gets the whole batch's count);
@@ -84,6 +88,8 @@ def sweep(prob: Problem, state: State, order: np.ndarray, tau: float, mu: float,
     constraint or -1.
     """
     wk = new_workspace(dmax)
+    sub = new_workspace(max(min(d_max, dmax), 1))
+    keep = np.empty(max(d_max, 1), np.int64)
     nt = state.rot.shape[0]
     slot = np.full(nt, -1, np.int64)
     xb = np.empty((nt, 6))
@@ -110,7 +116,10 @@ def sweep(prob: Problem, state: State, order: np.ndarray, tau: float, mu: float,
             nbuf += 1
             continue
         t0 = cycle_counter()
-        st = relax(prob, state, wk, c, tau, mu, step_kind, True)
+        if 0 < d_max < domain(prob, c)[1]:
+            st = relax_interpolated(prob, state, wk, sub, keep, c, tau, mu, step_kind, d_max)
+        else:
+            st = relax(prob, state, wk, c, tau, mu, step_kind, True)
         dc = cycle_counter() - t0
         cycles[c] = dc
         if dc > counts[Count.MAX_CYCLES]:

@@ -44,6 +44,11 @@ class Problem(NamedTuple):
     """(T,) how many constraint domains contain each tree node."""
     parent: npt.NDArray[np.int32]
     """(T,) parent of each tree node, -1 for the root."""
+    link_constraint: npt.NDArray[np.int64]
+    """(T,) the constraint linking each node to its parent (a relative edge, or ``M + g`` for
+    a GPS link to the earth), -1 for the root (interpolated solving merges these links)."""
+    link_forward: npt.NDArray[np.bool_]
+    """(T,) True when the linking edge is stored as (parent, child)."""
 
 
 class State(NamedTuple):

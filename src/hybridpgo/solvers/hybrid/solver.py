@@ -21,7 +21,7 @@ from ..._numba import cycle_counter, kernel
 from ...energy import energy
 from ...errors import SolverError
 from ...graph import FloatArray, PoseGraph
-from ...tree import PoseTree, build_tree, global_poses, initial_locals
+from ...tree import LINK_EDGE, LINK_GPS, PoseTree, build_tree, global_poses, initial_locals
 from ..config import HybridConfig, Progress, ProgressCallback
 from ..result import SolveResult, Status
 from . import _batch, _linearize, _step, _sweep
@@ -67,6 +67,16 @@ def _whitening(information: FloatArray, k: int) -> FloatArray:
     return np.ascontiguousarray(np.swapaxes(np.linalg.cholesky(information), 1, 2))
 
 
+def _link_constraints(tree: PoseTree, num_edges: int) -> npt.NDArray[np.int64]:
+    """The constraint index of every node's tree link (-1 for the root)."""
+    out = np.full(tree.num_tree_nodes, -1, np.int64)
+    edge = tree.link_kind == LINK_EDGE
+    gps = tree.link_kind == LINK_GPS
+    out[edge] = tree.link_index[edge]
+    out[gps] = num_edges + tree.link_index[gps].astype(np.int64)
+    return out
+
+
 class HybridSolver:
     """The hybrid Hessian solver of one graph, analyzed once.
 
@@ -95,7 +105,7 @@ class HybridSolver:
             graph.edge_rotations, graph.edge_translations, _whitening(graph.edge_information, 6),
             graph.gps_positions, _whitening(graph.gps_information, 3),
             np.bincount(tree.path_node, minlength=tree.num_tree_nodes).astype(np.int64),
-            tree.parent,
+            tree.parent, _link_constraints(tree, graph.num_edges), tree.link_forward,
         )  # fmt: skip
         self.state = State(
             np.ascontiguousarray(rot0, np.float64), np.ascontiguousarray(trans0, np.float64),
@@ -135,7 +145,8 @@ class HybridSolver:
         cfg = self.config
         return int(_sweep.sweep(self.problem, self.state, order, tau, cfg.damping,
                                 STEP_KINDS[cfg.step], cfg.gps_batch_size, self.dmax,
-                                np.uint64(deadline), self._cycles, self._batch_cycles, counts))
+                                cfg.dmax or 0, np.uint64(deadline), self._cycles,
+                                self._batch_cycles, counts))
 
     def step(self, constraints: npt.ArrayLike, budget_s: float | None = None,
              tau: float | None = None) -> StepReport:
