@@ -599,3 +599,20 @@ def test_a_single_gps_reading_is_relaxed():
     after = np.linalg.norm(result.translations[anchor] - graph.gps_positions[0])
     assert result.stats["rejected_steps"] == 0
     assert after < 0.5 * before
+
+
+def test_non_finite_updates_are_rejected_counted_and_not_applied():
+    """A NaN whitening makes a single update and a GPS batch non-finite: nothing moves."""
+    from hybridpgo.errors import SolverError
+
+    solver = _solver(_graph(38, gps=2))
+    m = solver.graph.num_edges
+    rot0, trans0 = _poses(solver)
+    solver.problem.edge_lt[0, 0, 0] = np.nan
+    solver.problem.gps_lt[1, 0, 0] = np.nan
+    report = solver.step([0, m + 1], tau=1.0)
+    assert (report.done, report.capped, report.rejected) == (2, 0, 2)
+    assert np.array_equal(solver.state.rot, rot0) and np.array_equal(solver.state.trans, trans0)
+    with pytest.raises(SolverError, match="not finite"):
+        solver.batch_step([m + 1], tau=1.0)
+    assert np.array_equal(solver.state.rot, rot0) and np.array_equal(solver.state.trans, trans0)
