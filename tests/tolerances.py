@@ -22,3 +22,13 @@ CENTRAL_DIFF_STEP = 1e-6
 
 #: Sparse vs dense Gauss-Newton solution (STYLE.md §7).
 SPARSE_VS_DENSE_GN = 1e-9
+
+#: A kernel vs its NumPy twin when the two take different routes through float64 (path products
+#: vs global 4x4 products, Jr^-1 in closed form vs a series inverse), relative to the data's size.
+TWIN_JACOBIAN = 1e-12
+
+#: Two exact solves of the same linear system (Woodbury / Givens / Cholesky vs numpy.linalg.solve),
+#: relative to the size of the solution.  Blocks of B_c that are singular but for the damping (a
+#: GPS anchor: rank 3 per reading, damped by ~1e-9 relative) make the Woodbury forms lose digits:
+#: measured 8e-11 (single step) and 3e-10 (segmented batch) on the twin tests, Givens 3e-15.
+SAME_EQUATION = 1e-9
