@@ -231,8 +231,12 @@ def _looks_like_tum(src: Source) -> bool:
     return False
 
 
-def read_ground_truth(path: PathLike) -> tuple[FloatArray, FloatArray, IdArray]:
+def read_ground_truth(path: PathLike, *, fix_information: str | None = None,
+                      ) -> tuple[FloatArray, FloatArray, IdArray]:
     """Poses of a ground-truth file: g2o/TORO vertices, or a TUM trajectory (``"-"``: stdin).
+
+    ``fix_information`` applies to the constraints of a graph file, as in
+    :func:`hybridpgo.io.read_graph` (they are read but not used).
 
     A file whose first data line starts with a number is read as TUM (:func:`read_tum`);
     anything else with :func:`hybridpgo.io.read_graph` (its vertex lines; the constraints are
@@ -251,7 +255,7 @@ def read_ground_truth(path: PathLike) -> tuple[FloatArray, FloatArray, IdArray]:
     FormatError
         The file cannot be read, is malformed, or has no vertex lines (e.g. iSAM).
     """
-    src = load_source(path)  # once: "-" (standard input) can be read only once
+    src = load_source(path, fix_information)  # once: "-" (standard input) can be read once
     if _looks_like_tum(src):
         stamps, rot, trans = read_tum_source(src)
         if (np.all(np.equal(np.mod(stamps, 1.0), 0.0)) and np.unique(stamps).size == stamps.size

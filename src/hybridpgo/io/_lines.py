@@ -23,7 +23,7 @@ import stat
 import sys
 import tempfile
 import warnings
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import IO
 
@@ -779,33 +779,64 @@ def write_atomic(path: PathLike, produce: Callable[[], Iterable[str]]) -> None:
     * A symbolic link is written through: the file it points to is replaced as above (a
       dangling link creates its target) and the link stays a link, as with ``cp`` or ``>``.
     * A FIFO or character device (``/dev/null``, ``/dev/stdout``) cannot be replaced: the
-      content is produced completely in memory, then written into it in one go.
-    * ``"-"`` writes to standard output (:data:`STDOUT_TARGET`), also after producing everything.
+      content is written into it in one go.
+    * ``"-"`` writes to standard output (:data:`STDOUT_TARGET`).
     * A directory, socket or block device is refused.
 
-    If anything fails (including ``produce`` raising) nothing is written: the temporary file is
-    removed and an existing ``path`` is left untouched.  OS errors become :class:`FormatError`
+    The lines are produced completely before anything is created; if anything fails nothing is
+    written (an existing ``path`` is left untouched).  OS errors become :class:`FormatError`
     naming the file.
     """
-    name = os.fspath(path)
-    if name == "":
-        raise FormatError("cannot write: the output path is empty")
-    if name == STDIO:
-        text = "".join(line + "\n" for line in produce())
-        stream = STDOUT_TARGET.get() or sys.stdout
-        stream.write(text)
-        stream.flush()
-        return
-    target = os.path.realpath(name) if os.path.islink(name) else name
-    kind = _existing_kind(target, name)
-    if kind == "stream":
-        text = "".join(line + "\n" for line in produce())
+    write_atomic_all([(path, list(produce()))])
+
+
+def write_atomic_all(items: Sequence[tuple[PathLike, Sequence[str]]]) -> None:
+    """Write several files all or nothing: every temporary file is written first, then all are
+    renamed into place (as :func:`write_atomic`, which is the one-file case).  FIFOs, devices
+    and standard output are written last, after the renames."""
+    staged: list[tuple[str, str, str]] = []  # (temporary, target, name)
+    direct: list[tuple[str, str, Sequence[str]]] = []  # (target, name, lines)
+    try:
+        for path, lines in items:
+            name = os.fspath(path)
+            if name == "":
+                raise FormatError("cannot write: the output path is empty")
+            if name == STDIO:
+                direct.append((STDIO, name, lines))
+                continue
+            target = os.path.realpath(name) if os.path.islink(name) else name
+            kind = _existing_kind(target, name)
+            if kind == "stream":
+                direct.append((target, name, lines))
+                continue
+            staged.append((_write_temporary(target, name, lines, kind), target, name))
+        for k, (tmp, target, name) in enumerate(staged):
+            try:
+                os.replace(tmp, target)
+            except OSError as exc:
+                raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
+            staged[k] = ("", target, name)
+    finally:
+        for tmp, _, _ in staged:
+            if tmp:
+                with contextlib.suppress(OSError):
+                    os.unlink(tmp)
+    for target, name, lines in direct:
+        text = "".join(line + "\n" for line in lines)
+        if target == STDIO:
+            stream = STDOUT_TARGET.get() or sys.stdout
+            stream.write(text)
+            stream.flush()
+            continue
         try:
             with open(target, "w", encoding="utf-8", newline="\n") as fh:
                 fh.write(text)
         except OSError as exc:
             raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
-        return
+
+
+def _write_temporary(target: str, name: str, lines: Sequence[str], kind: str) -> str:
+    """A temporary file beside ``target`` holding ``lines``, with ``target``'s permissions."""
     directory = os.path.dirname(os.path.abspath(target))
     try:
         fd, tmp = tempfile.mkstemp(dir=directory, prefix="." + os.path.basename(target) + ".",
@@ -814,7 +845,7 @@ def write_atomic(path: PathLike, produce: Callable[[], Iterable[str]]) -> None:
         raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
     try:
         with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as fh:
-            for line in produce():
+            for line in lines:
                 fh.write(line)
                 fh.write("\n")
         mode = 0o666 & ~_UMASK
@@ -822,15 +853,13 @@ def write_atomic(path: PathLike, produce: Callable[[], Iterable[str]]) -> None:
             with contextlib.suppress(OSError):
                 mode = os.stat(target).st_mode & 0o777
         os.chmod(tmp, mode)
-        os.replace(tmp, target)
     except BaseException as exc:
-        try:
+        with contextlib.suppress(OSError):
             os.unlink(tmp)
-        except OSError:
-            pass
         if isinstance(exc, OSError):
             raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
         raise
+    return tmp
 
 
 def _existing_kind(target: str, name: str) -> str:
