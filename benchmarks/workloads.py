@@ -575,3 +575,9 @@ def city(ctx: Context) -> Result:
 
 
 WORKLOADS["city"] = city
+
+
+# ------------------------------------------------------------------ fuzzing (issue 9 item 6)
+from .fuzz import run as _fuzz  # noqa: E402
+
+WORKLOADS["fuzz"] = _fuzz

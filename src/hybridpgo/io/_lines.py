@@ -31,7 +31,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..errors import FormatError, GraphError, option_hint
-from ..graph import MAX_INFORMATION, PoseGraph
+from ..graph import MAX_INFORMATION, PoseGraph, lift_information_2d
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -450,11 +450,11 @@ def nearest_spd(mats: FloatArray) -> FloatArray:
 
 def spd_filter(src: Source, mats: FloatArray, line_nos: IntArray, kind: str,
                what: str = "information matrix", hint: str = "",
-               limit: float = MAX_INFORMATION) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
+               ) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
     """Check the information matrices of ``kind`` lines (e.g. ``"EDGE_SE2"``).
 
-    Entries beyond ``limit`` (they would overflow when squared; :data:`MAX_INFORMATION` in
-    (rho, phi) units) always raise at their line.  Matrices that are not positive definite
+    Entries beyond :data:`MAX_INFORMATION` (they would overflow when squared) always raise at
+    their line.  Matrices that are not positive definite
     (smallest eigenvalue not > 0, :func:`hybridpgo.graph.check_information`'s criterion) raise
     at the first such line, with their count, unless ``src.fix_information`` says to project
     them (:func:`nearest_spd`) or to drop them; either is warned about once, with the count.
@@ -471,6 +471,7 @@ def spd_filter(src: Source, mats: FloatArray, line_nos: IntArray, kind: str,
     if k == 0:
         return mats, keep
     big = np.abs(mats).reshape(k, -1).max(axis=1)
+    limit = MAX_INFORMATION
     over = np.nonzero(~(big <= limit))[0]
     if over.size:
         j = int(over[np.argmin(line_nos[over])])
@@ -898,6 +899,35 @@ def require_planar(graph: PoseGraph, path: str, fmt: str) -> None:
                               f"planar (z = {t[k, 2]:.3g}, out-of-plane rotation {off[k]:.3g})",
                               path)
 
+
+
+def require_readable_information(graph: PoseGraph, mats: FloatArray, path: str,
+                                 fmt: str) -> None:
+    """Raise unless ``mats`` -- the information exactly as the reader will compute it from the
+    written text (the planar 3x3 block of a 2D graph, iSAM's ``R^T R``) -- passes the reader's
+    checks, including the lift of a 3x3 to 6x6.
+
+    A matrix at the edge of positive definiteness (smallest eigenvalue ~1e-16 of the largest)
+    can lose it to the rounding of a conversion; the file would then not read back.
+    """
+    if mats.shape[0] == 0:
+        return
+    checks = [mats] if mats.shape[-1] == 6 else [mats, lift_information_2d(mats)]
+    for m in checks:
+        big = np.abs(m).reshape(m.shape[0], -1).max(axis=1)
+        with np.errstate(invalid="ignore"):
+            eig_min = np.where(big <= MAX_INFORMATION,
+                               np.linalg.eigvalsh(np.where((big <= MAX_INFORMATION)[:, None, None],
+                                                           m, 1.0))[:, 0], -np.inf)
+        bad = np.nonzero(~(eig_min > 0.0))[0]
+        if bad.size:
+            k = int(bad[0])
+            a, b = graph.node_ids[graph.edge_nodes[k]].tolist()
+            raise FormatError(f"edge {k} ({a} -> {b}): its information matrix is so close to "
+                              f"singular that it would not read back positive definite from "
+                              f"{fmt} (smallest eigenvalue {eig_min[k]:.3g} after the "
+                              "conversion)" + ("; write g2o or TORO instead, which store the "
+                                               "matrix itself" if fmt == "iSAM" else ""), path)
 
 
 def write_vertices_needed(graph: PoseGraph) -> bool:

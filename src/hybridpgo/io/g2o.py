@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import FormatError
-from ..graph import MAX_INFORMATION, PoseGraph, lift_information_2d, planar_information
+from ..graph import PoseGraph, lift_information_2d, planar_information
 from ._lines import (
     IDENTITY_ATOL,
     Block,
@@ -38,6 +38,7 @@ from ._lines import (
     parse_blocks,
     quat_xyzw_to_matrix,
     require_planar,
+    require_readable_information,
     rot_z,
     spd_filter,
     stack,
@@ -182,15 +183,17 @@ def _edges_se3(src: Source, blocks: dict[str, list[Block]], parts: Parts) -> Non
     ln, ids, v = _get(blocks, "EDGE_SE3:QUAT")
     if ln.size == 0:
         return
-    # (rho, phi) information is P Omega_q P, so the file may hold up to 4x the bound
-    info_q, keep = spd_filter(src, sym_from_upper(v[:, 7:28], 6), ln, "EDGE_SE3:QUAT",
-                              "information matrix (21 entries over x, y, z, qx, qy, qz)",
-                              limit=4.0 * MAX_INFORMATION)
-    ln, ids, v, info_q = ln[keep], ids[keep], v[keep], info_q[keep]
+    # Checked (and repaired) in (rho, phi) units, P Omega_q P: the scaling by powers of two is
+    # exact, so writing (P^-1 Omega P^-1) and reading back gives the same bits, the same verdict.
+    info_q = sym_from_upper(v[:, 7:28], 6)
+    info = info_q * _P[:, None] * _P[None, :]
+    info, keep = spd_filter(src, info, ln, "EDGE_SE3:QUAT",
+                            "information matrix (21 entries over x, y, z, qx, qy, qz)")
+    ln, ids, v, info = ln[keep], ids[keep], v[keep], info[keep]
     parts.edge_ids, parts.edge_lines = ids, ln
     parts.edge_rotations = _quaternions(src, v[:, 3:7], ln, "EDGE_SE3:QUAT")
     parts.edge_translations = np.ascontiguousarray(v[:, 0:3])
-    parts.edge_information = info_q * _P[:, None] * _P[None, :]
+    parts.edge_information = info
 
 
 def _priors(src: Source, blocks: dict[str, list[Block]], parts: Parts) -> None:
@@ -254,6 +257,8 @@ def g2o_lines(graph: PoseGraph, name: str) -> list[str]:
             raise FormatError("a 2D graph with position priors cannot be written as g2o "
                               "SE(2) lines", name)
         require_planar(graph, name, "g2o")
+        require_readable_information(graph, planar_information(graph.edge_information), name,
+                                     "g2o")
     return _g2o_lines(graph)
 
 

@@ -32,6 +32,7 @@ from ._lines import (
     matrix_to_euler_rpy,
     parse_blocks,
     require_planar,
+    require_readable_information,
     rot_z,
     spd_filter,
     stack,
@@ -171,12 +172,15 @@ def isam_lines(graph: PoseGraph, name: str) -> list[str]:
     eb = graph.node_ids[graph.edge_nodes[:, 1]].tolist()
     if graph.is_2d:
         r = _upper_cholesky(planar_information(graph.edge_information), name, graph)
+        # the reader squares the written R again: check what it will get
+        require_readable_information(graph, _square(r), name, "iSAM")
         et = graph.edge_translations
         vals = np.column_stack([et[:, 0], et[:, 1], yaw_of(graph.edge_rotations),
                                 upper_from_sym(r)])
         tag = "EDGE2"
     else:
         r = _upper_cholesky(graph.edge_information, name, graph)
+        require_readable_information(graph, _square(r), name, "iSAM")
         vals = np.column_stack([graph.edge_translations,
                                 matrix_to_euler_rpy(graph.edge_rotations), upper_from_sym(r)])
         tag = "EDGE3"

@@ -41,6 +41,7 @@ from ._lines import (
     matrix_to_euler_rpy,
     parse_blocks,
     require_planar,
+    require_readable_information,
     rot_z,
     spd_filter,
     stack,
@@ -165,13 +166,14 @@ def _read_3d(src: Source, blocks: dict[str, list[Block]], parts: Parts, order: s
     infos, bare_lines, kept = [], [], []
     for b in edge_blocks:
         if b.values.shape[1] == 27:
-            info, keep = spd_filter(src, sym_from_upper(b.values[:, 6:27], 6), b.line_nos, "EDGE3",
+            info = sym_from_upper(b.values[:, 6:27], 6)
+            if order == "code":  # checked in our order, as written back (same bits)
+                info = info[:, _CODE_PERM[:, None], _CODE_PERM[None, :]]
+            info, keep = spd_filter(src, info, b.line_nos, "EDGE3",
                                     "information matrix (21 values over "
                                     + ("x, y, z, roll, pitch, yaw)" if order == "documented"
                                        else "roll, pitch, yaw, x, y, z: edge3_order='code')"))
             info = info[keep]
-            if order == "code":
-                info = info[:, _CODE_PERM[:, None], _CODE_PERM[None, :]]
         else:  # no information on the line: identity, warned about below
             keep = np.ones(len(b), bool)
             info = np.broadcast_to(np.eye(6), (len(b), 6, 6)).copy()
@@ -291,6 +293,8 @@ def toro_lines(graph: PoseGraph, name: str, edge3_order: str = "documented") -> 
                           name)
     if graph.is_2d:
         require_planar(graph, name, "TORO")
+        require_readable_information(graph, planar_information(graph.edge_information), name,
+                                     "TORO")
     return _toro_lines(graph, edge3_order)
 
 
