@@ -370,3 +370,26 @@ def test_evaluate_warns_about_different_pose_sets(capsys: pytest.CaptureFixture[
         code, out, err = run_cli(capsys, "evaluate", est, "--ground-truth", gt, "--json")
     assert code == 0, err
     assert json.loads(out)["num_poses"] == 2
+
+
+def test_output_to_dev_stdout(capsys: pytest.CaptureFixture[str], g2d: Path) -> None:
+    # /dev/stdout is standard output, like "-" (was: resolved to /proc/self/fd/1 and renamed
+    # over, or opened a second time and truncated)
+    code, out, err = run_cli(capsys, "convert", g2d, "/dev/stdout", "--out-format", "g2o")
+    assert code == 0, err
+    assert out.startswith("VERTEX_SE2 0 ") and "wrote /dev/stdout" in err
+
+
+def test_start_up_imports_nothing_heavy_before_the_error_boundary() -> None:
+    """A Ctrl-C during ``import hybridpgo`` (Numba: ~0.5 s) printed a traceback: the package and
+    the CLI module must import nothing heavy, so main()'s boundary is entered within ~0.1 s."""
+    import subprocess
+
+    code = ("import sys, hybridpgo.cli, hybridpgo; "
+            "heavy = [m for m in ('numba', 'scipy', 'numpy', 'matplotlib') if m in sys.modules]; "
+            "assert not heavy, heavy; "
+            "assert callable(hybridpgo.energy)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)},
+                          timeout=120, check=False)
+    assert done.returncode == 0, done.stderr

@@ -27,6 +27,8 @@ FORMAT_FROM_SUFFIX: dict[str, str] = {".g2o": "g2o", ".graph": "toro", ".txt": "
 
 #: The path that means standard input / standard output.
 STDIO = "-"
+#: Output paths that mean standard output (as ``hybridpgo.io._lines.STDOUT_NAMES``).
+STDOUT_NAMES = (STDIO, "/dev/stdout")
 
 
 class LazyChoices:
@@ -154,15 +156,15 @@ def check_outputs(inputs: Sequence[str], outputs: Sequence[Output]) -> None:
     if sum(1 for p in inputs if p == STDIO) > 1:
         raise HybridPGOError("standard input ('-') can be read only once: give '-' for at most "
                              "one input")
-    stdout_users = [o for o in outputs if o.path == STDIO]
+    stdout_users = [o for o in outputs if o.path in STDOUT_NAMES]
     for o in stdout_users:
         if not o.stdout_ok:
-            raise HybridPGOError(f"{o.option} -: this output cannot go to standard output; "
-                                 "give a file name")
+            raise HybridPGOError(f"{o.option} {o.path}: this output cannot go to standard "
+                                 "output; give a file name")
     if len(stdout_users) > 1:
         raise HybridPGOError(f"{stdout_users[0].option} and {stdout_users[1].option}: only one "
                              "output can go to standard output ('-')")
-    files = [o for o in outputs if o.path != STDIO]
+    files = [o for o in outputs if o.path not in STDOUT_NAMES]
     real_inputs = [p for p in inputs if p != STDIO]
     for k, o in enumerate(files):
         if o.path == "":
@@ -188,9 +190,8 @@ def _same_file(a: str, b: str) -> bool:
 
 
 def _check_writable(o: Output) -> None:
-    target = os.path.realpath(o.path)  # through symlinks, as the writers do
     try:
-        mode: int | None = os.stat(target).st_mode
+        mode: int | None = os.stat(o.path).st_mode  # through symlinks, as the writers do
     except FileNotFoundError:
         mode = None
     except OSError as exc:
@@ -203,6 +204,7 @@ def _check_writable(o: Output) -> None:
         if not stat.S_ISREG(mode):
             raise HybridPGOError(f"{o.path}: cannot write {o.option}: not a regular file, FIFO "
                                  "or device")
+    target = os.path.realpath(o.path)  # a symlink's target is replaced, in its directory
     directory = os.path.dirname(target) or "."
     if not os.path.isdir(directory):
         raise HybridPGOError(f"{o.path}: cannot write {o.option}: directory {directory} does "
@@ -246,7 +248,7 @@ def command_files(args: Any) -> tuple[list[str], list[Output]]:
 
 def uses_stdout(args: Any) -> bool:
     """True when the command writes a file to standard output (``-o -``)."""
-    return any(o.path == STDIO for o in command_files(args)[1])
+    return any(o.path in STDOUT_NAMES for o in command_files(args)[1])
 
 
 def output_format(path: str, explicit: str | None, graph: PoseGraph, *,

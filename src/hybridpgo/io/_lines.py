@@ -43,6 +43,9 @@ IDENTITY_ATOL = 1e-9
 
 #: The path that means standard input (reading) or standard output (writing).
 STDIO = "-"
+#: Output paths written to ``sys.stdout`` (:data:`STDOUT_TARGET`): ``/dev/stdout`` too, so that
+#: a shell redirection of it to a file is not replaced by a rename, nor truncated twice.
+STDOUT_NAMES = (STDIO, "/dev/stdout")
 #: How standard input is named in messages.
 STDIN_NAME = "<stdin>"
 #: Where writing to ``"-"`` goes (None: ``sys.stdout``).  The CLI sets it to the real standard
@@ -781,7 +784,7 @@ def write_atomic(path: PathLike, produce: Callable[[], Iterable[str]]) -> None:
       dangling link creates its target) and the link stays a link, as with ``cp`` or ``>``.
     * A FIFO or character device (``/dev/null``, ``/dev/stdout``) cannot be replaced: the
       content is written into it in one go.
-    * ``"-"`` writes to standard output (:data:`STDOUT_TARGET`).
+    * ``"-"`` (and ``/dev/stdout``) writes to standard output (:data:`STDOUT_TARGET`).
     * A directory, socket or block device is refused.
 
     The lines are produced completely before anything is created; if anything fails nothing is
@@ -802,14 +805,14 @@ def write_atomic_all(items: Sequence[tuple[PathLike, Sequence[str]]]) -> None:
             name = os.fspath(path)
             if name == "":
                 raise FormatError("cannot write: the output path is empty")
-            if name == STDIO:
+            if name in STDOUT_NAMES:
                 direct.append((STDIO, name, lines))
                 continue
-            target = os.path.realpath(name) if os.path.islink(name) else name
-            kind = _existing_kind(target, name)
-            if kind == "stream":
-                direct.append((target, name, lines))
+            kind = _existing_kind(name)
+            if kind == "stream":  # opened by name: /dev/stdout -> /proc/self/fd/1 -> a pipe
+                direct.append((name, name, lines))
                 continue
+            target = os.path.realpath(name) if os.path.islink(name) else name
             staged.append((_write_temporary(target, name, lines, kind), target, name))
         for k, (tmp, target, name) in enumerate(staged):
             try:
@@ -863,10 +866,11 @@ def _write_temporary(target: str, name: str, lines: Sequence[str], kind: str) ->
     return tmp
 
 
-def _existing_kind(target: str, name: str) -> str:
-    """"new", "file" (regular) or "stream" (FIFO, character device); raise for the rest."""
+def _existing_kind(name: str) -> str:
+    """What ``name`` is, following symlinks: "new" (nothing there, or a dangling link), "file"
+    (regular) or "stream" (FIFO, character device); raise for the rest."""
     try:
-        mode = os.stat(target).st_mode
+        mode = os.stat(name).st_mode
     except FileNotFoundError:
         return "new"
     except OSError as exc:
