@@ -580,3 +580,9 @@ def _toro(ctx: Context) -> Result:
 
 
 WORKLOADS["toro"] = _toro
+
+
+# ------------------------------------------------------------------ fuzzing (issue 9 item 6)
+from .fuzz import run as _fuzz  # noqa: E402
+
+WORKLOADS["fuzz"] = _fuzz

@@ -19,7 +19,7 @@ from hybridpgo import energy, read_graph
 from hybridpgo.cli import main
 from hybridpgo.cli._common import LazyChoices, ProgressBar, output_format
 from hybridpgo.cli._parser import build_parser
-from hybridpgo.io import FORMATS
+from hybridpgo.io import FORMATS, WRITE_FORMATS
 from hybridpgo.solvers import METHODS, TREES
 from hybridpgo.solvers.hybrid import STEP_KINDS
 from hybridpgo.tree import InitKind, TreeKind
@@ -102,7 +102,7 @@ def test_choices_are_the_library_lists() -> None:
     from hybridpgo.generate import PRESETS
 
     assert _choices("optimize", "format") == list(FORMATS)
-    assert _choices("optimize", "out_format") == list(FORMATS)
+    assert _choices("optimize", "out_format") == list(WRITE_FORMATS)
     assert _choices("optimize", "solver") == list(METHODS)
     assert _choices("optimize", "step") == list(STEP_KINDS)
     assert _choices("optimize", "tree") == list(TREES)

@@ -13,11 +13,10 @@ Numba and SciPy load when a solver or reader is first used.
 from __future__ import annotations
 
 import importlib
+import sys
+import types
 from typing import TYPE_CHECKING, Any
 
-# ``energy`` names both a submodule and the function: import the function eagerly, since the
-# import system would otherwise leave the module object under that name.
-from .energy import energy as energy
 from .errors import FormatError as FormatError
 from .errors import GraphError as GraphError
 from .errors import HybridPGOError as HybridPGOError
@@ -26,6 +25,7 @@ from .errors import SolverError as SolverError
 __version__ = "0.1.0"
 
 _LAZY = {
+    "energy": ".energy",
     "PoseGraph": ".graph",
     "read_graph": ".io",
     "write_graph": ".io",
@@ -36,9 +36,27 @@ _LAZY = {
     "build_tree": ".tree",
 }
 
-__all__ = ["FormatError", "GraphError", "HybridPGOError", "SolverError", "energy", *_LAZY]
+__all__ = ["FormatError", "GraphError", "HybridPGOError", "SolverError", *_LAZY]
+
+
+class _Package(types.ModuleType):
+    """``energy`` names both a submodule and the function: when the submodule is imported the
+    import system binds it as ``hybridpgo.energy``; keep the lazily loaded function instead.
+
+    Loading the function lazily keeps ``import hybridpgo`` free of Numba, so the command line
+    enters its error boundary (Ctrl-C -> "interrupted", exit 130) before any heavy import.
+    """
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name in _LAZY and isinstance(value, types.ModuleType):
+            return
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package
 
 if TYPE_CHECKING:
+    from .energy import energy as energy
     from .graph import PoseGraph as PoseGraph
     from .io import read_graph as read_graph
     from .io import write_graph as write_graph

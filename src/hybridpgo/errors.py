@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+from collections.abc import Iterator
+
 
 class HybridPGOError(Exception):
     """Base class of every error hybridpgo raises on purpose."""
@@ -31,3 +35,39 @@ class GraphError(HybridPGOError, ValueError):
 
 class SolverError(HybridPGOError, RuntimeError):
     """A solver could not proceed (non-finite step, singular system, ...)."""
+
+
+# --------------------------------------------------------------------------- option names
+#: True while the command line runs: messages then name CLI flags (``--skip-unknown``) instead
+#: of Python parameters (``skip_unknown=True``).
+_CLI_NAMES: contextvars.ContextVar[bool] = contextvars.ContextVar("hybridpgo_cli_names",
+                                                                  default=False)
+
+
+@contextlib.contextmanager
+def cli_option_names() -> Iterator[None]:
+    """Within this block :func:`option_hint` names command-line flags (used by the CLI)."""
+    token = _CLI_NAMES.set(True)
+    try:
+        yield
+    finally:
+        _CLI_NAMES.reset(token)
+
+
+def option_hint(parameter: str, *values: str) -> str:
+    """How to pass an option, in the caller's terms.
+
+    >>> option_hint("skip_unknown")
+    'skip_unknown=True'
+    >>> option_hint("fix_information", "nearest", "skip")
+    'fix_information="nearest" or "skip"'
+
+    Under :func:`cli_option_names` the same calls give ``--skip-unknown`` and
+    ``--fix-information nearest or --fix-information skip``.
+    """
+    if _CLI_NAMES.get():
+        flag = "--" + parameter.replace("_", "-")
+        return " or ".join(f"{flag} {v}" for v in values) if values else flag
+    if not values:
+        return f"{parameter}=True"
+    return f"{parameter}=" + " or ".join(f'"{v}"' for v in values)

@@ -27,6 +27,13 @@ IntArray = npt.NDArray[np.int32]
 #: Symmetry tolerance of information matrices, relative to their largest entry.
 SYMMETRY_RTOL = 1e-9
 
+#: Largest magnitude of an information entry (over (rho, phi), or of a GPS information).  The
+#: solvers square and whiten information (``Omega = L L^T``, energies ``e^T Omega e``, normal
+#: equations ``J^T Omega J``); with entries up to 1e150 those stay finite (an entry of 1e308
+#: overflowed the SPD check and made the chordal SVD fail), and every writer can represent the
+#: graph (the iSAM square root is at most ~1e75, g2o's (t, q_vec) rotation block 4e150).
+MAX_INFORMATION = 1e150
+
 
 def _frozen(a: np.ndarray, dtype: type, shape_tail: tuple[int, ...], name: str) -> np.ndarray:
     arr: np.ndarray = np.array(a, dtype=dtype, order="C", copy=True)  # never freeze the caller's
@@ -60,7 +67,8 @@ class PoseGraph:
     edge_translations: FloatArray
     """(M, 3) float64: measured t_a_b (position of b in a's frame)."""
     edge_information: FloatArray
-    """(M, 6, 6) float64: SPD information over (rho, phi)."""
+    """(M, 6, 6) float64: SPD information over (rho, phi).  A 2D graph (``is_2d``) may be given
+    (M, 3, 3) information over (x, y, theta): it is lifted by :func:`lift_information_2d`."""
     gps_nodes: IntArray = field(default_factory=lambda: np.zeros(0, np.int32))
     """(G,) int32: dense index of the node each position-only constraint acts on."""
     gps_positions: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
@@ -107,10 +115,16 @@ class PoseGraph:
             "edge_translations",
             _frozen(self.edge_translations, np.float64, (3,), "edge_translations"),
         )
+        info = np.asarray(self.edge_information, dtype=np.float64)
+        if info.ndim == 3 and info.shape[1:] == (3, 3):
+            if not self.is_2d:
+                raise GraphError("edge_information: 3x3 information (over x, y, theta) is "
+                                 "only for 2D graphs (is_2d=True); a 3D graph needs 6x6 over "
+                                 "(rho, phi)")
+            _check_entries(info, "edge")
+            info = lift_information_2d(info)  # DESIGN §1
         object.__setattr__(
-            self,
-            "edge_information",
-            _frozen(self.edge_information, np.float64, (6, 6), "edge_information"),
+            self, "edge_information", _frozen(info, np.float64, (6, 6), "edge_information"),
         )
         for name in ("edge_rotations", "edge_translations", "edge_information"):
             if getattr(self, name).shape[0] != m:
@@ -255,10 +269,26 @@ class PoseGraph:
         )
 
 
-def check_information(info: FloatArray, what: str) -> None:
-    """Raise :class:`GraphError` unless every matrix in ``info`` (k, d, d) is symmetric PD."""
+def _check_entries(info: FloatArray, what: str) -> None:
+    """Raise unless every entry is finite and at most :data:`MAX_INFORMATION` in magnitude."""
     if info.shape[0] == 0:
         return
+    big = np.abs(info).reshape(info.shape[0], -1).max(axis=1)
+    bad = np.nonzero(~(big <= MAX_INFORMATION))[0]
+    if bad.size:
+        k = int(bad[0])
+        if not np.isfinite(big[k]):
+            raise GraphError(f"{what} {k}: information matrix is not finite")
+        raise GraphError(f"{what} {k}: information entry {big[k]:.3g} is too large (at most "
+                         f"{MAX_INFORMATION:.0e} in magnitude, so that it can be squared)")
+
+
+def check_information(info: FloatArray, what: str) -> None:
+    """Raise :class:`GraphError` unless every matrix in ``info`` (k, d, d) is symmetric PD
+    with entries at most :data:`MAX_INFORMATION` in magnitude."""
+    if info.shape[0] == 0:
+        return
+    _check_entries(info, what)
     scale = np.abs(info).reshape(info.shape[0], -1).max(axis=1)
     asym = np.abs(info - np.swapaxes(info, 1, 2)).reshape(info.shape[0], -1).max(axis=1)
     bad = np.nonzero(asym > SYMMETRY_RTOL * np.maximum(scale, 1e-300))[0]

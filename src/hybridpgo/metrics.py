@@ -26,16 +26,15 @@ format (``timestamp tx ty tz qx qy qz qw``) that ``evo`` reads.
 
 from __future__ import annotations
 
-import math
-import os
-
 import numpy as np
 import numpy.typing as npt
 
 from .errors import FormatError, GraphError
 from .geometry import se3, so3
-from .io import read_graph
-from .io._lines import PathLike, fmt_floats, write_atomic
+from .io import read_graph_source
+from .io._lines import PathLike, Source, fmt_floats, load_source, parse_float, write_atomic
+from .io.tum import read_tum as _io_read_tum
+from .io.tum import read_tum_source
 
 __all__ = [
     "align_rigid",
@@ -222,26 +221,22 @@ def _listing(ids: npt.NDArray[np.int64]) -> str:
 
 
 # =========================================================================== files
-def _looks_like_tum(path: PathLike) -> bool:
+def _looks_like_tum(src: Source) -> bool:
     """True when the first data line starts with a number (g2o/TORO lines start with a tag)."""
-    try:
-        with open(os.fspath(path), encoding="utf-8", errors="replace") as fh:
-            for line in fh:
-                tok = line.split()
-                if not tok or tok[0].startswith("#"):
-                    continue
-                try:
-                    float(tok[0])
-                except ValueError:
-                    return False
-                return True
-    except OSError as exc:
-        raise FormatError(f"cannot read the file: {exc.strerror or exc}", os.fspath(path)) from exc
+    for line in src.lines:
+        tok = line.split()
+        if not tok or tok[0].startswith("#"):
+            continue
+        return parse_float(tok[0]) is not None
     return False
 
 
-def read_ground_truth(path: PathLike) -> tuple[FloatArray, FloatArray, IdArray]:
-    """Poses of a ground-truth file: g2o/TORO vertices, or a TUM trajectory.
+def read_ground_truth(path: PathLike, *, fix_information: str | None = None,
+                      ) -> tuple[FloatArray, FloatArray, IdArray]:
+    """Poses of a ground-truth file: g2o/TORO vertices, or a TUM trajectory (``"-"``: stdin).
+
+    ``fix_information`` applies to the constraints of a graph file, as in
+    :func:`hybridpgo.io.read_graph` (they are read but not used).
 
     A file whose first data line starts with a number is read as TUM (:func:`read_tum`);
     anything else with :func:`hybridpgo.io.read_graph` (its vertex lines; the constraints are
@@ -260,17 +255,18 @@ def read_ground_truth(path: PathLike) -> tuple[FloatArray, FloatArray, IdArray]:
     FormatError
         The file cannot be read, is malformed, or has no vertex lines (e.g. iSAM).
     """
-    if _looks_like_tum(path):
-        stamps, rot, trans = read_tum(path)
-        if np.all(np.equal(np.mod(stamps, 1.0), 0.0)) and np.unique(stamps).size == stamps.size:
+    src = load_source(path, fix_information)  # once: "-" (standard input) can be read once
+    if _looks_like_tum(src):
+        stamps, rot, trans = read_tum_source(src)
+        if (np.all(np.equal(np.mod(stamps, 1.0), 0.0)) and np.unique(stamps).size == stamps.size
+                and np.abs(stamps).max() < 2.0**63):
             ids = stamps.astype(np.int64)
         else:
             ids = np.arange(stamps.size, dtype=np.int64)
         return rot, trans, ids
-    graph = read_graph(path, check_connected=False)
+    graph = read_graph_source(src, check_connected=False)
     if not graph.has_estimates:
-        raise FormatError("the file has no vertex lines, so no poses to compare with",
-                          os.fspath(path))
+        raise FormatError("the file has no vertex lines, so no poses to compare with", src.path)
     return (np.array(graph.rotations), np.array(graph.translations), np.array(graph.node_ids))
 
 
@@ -288,31 +284,7 @@ def read_tum(path: PathLike) -> tuple[FloatArray, FloatArray, FloatArray]:
     FormatError
         Naming the line of the first malformed row.
     """
-    name = os.fspath(path)
-    try:
-        with open(name, encoding="utf-8", errors="replace") as fh:
-            lines = fh.read().splitlines()
-    except OSError as exc:
-        raise FormatError(f"cannot read the file: {exc.strerror or exc}", name) from exc
-    rows: list[list[float]] = []
-    for no, line in enumerate(lines, start=1):
-        tok = line.split()
-        if not tok or tok[0].startswith("#"):
-            continue
-        if len(tok) != 8:
-            raise FormatError(f"a TUM line needs 8 numbers (timestamp tx ty tz qx qy qz qw), "
-                              f"got {len(tok)}", name, no, line)
-        try:
-            vals = [float(v) for v in tok]
-        except ValueError as exc:
-            raise FormatError(f"not a number: {exc}", name, no, line) from exc
-        if not all(math.isfinite(v) for v in vals) or not any(vals[4:]):
-            raise FormatError("values must be finite and the quaternion non-zero", name, no, line)
-        rows.append(vals)
-    if not rows:
-        raise FormatError("empty file: no trajectory lines found", name)
-    data = np.array(rows)
-    return data[:, 0].copy(), so3.quat_xyzw_to_matrix(data[:, 4:8]), data[:, 1:4].copy()
+    return _io_read_tum(path)
 
 
 def write_tum(path: PathLike, rotations: npt.ArrayLike, translations: npt.ArrayLike,
@@ -335,4 +307,4 @@ def write_tum(path: PathLike, rotations: npt.ArrayLike, translations: npt.ArrayL
     if stamps.shape[0] != n:
         raise ValueError(f"timestamps must have one entry per pose ({n}), got {stamps.shape[0]}")
     rows = np.column_stack([stamps, t, so3.matrix_to_quat_xyzw(r)])
-    write_atomic(path, lambda: fmt_floats(rows))
+    write_atomic(path, lambda: fmt_floats(rows))  # "-": standard output

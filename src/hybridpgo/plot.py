@@ -415,6 +415,11 @@ def _umask() -> int:
     return mask
 
 
+#: Largest resolution :func:`save_figure` renders: a 2x2-panel figure (13 x 12 in) at 600 dpi
+#: is ~7800 x 7200 pixels, ~225 MB of RGBA (``plot --dpi 100000`` ran out of memory).
+MAX_DPI = 600
+
+
 def save_figure(fig: Figure, path: str | os.PathLike[str], *, dpi: int = 150) -> None:
     """Write ``fig`` to ``path`` atomically (temporary file in the same directory, then
     ``os.replace``); the format comes from the extension (``.png`` when there is none).
@@ -422,8 +427,11 @@ def save_figure(fig: Figure, path: str | os.PathLike[str], *, dpi: int = 150) ->
     Raises
     ------
     HybridPGOError
-        For an unsupported extension or when the file cannot be written.
+        For an unsupported extension, ``dpi`` outside 1..:data:`MAX_DPI`, or when the file
+        cannot be written.
     """
+    if not 1 <= dpi <= MAX_DPI:
+        raise HybridPGOError(f"{os.fspath(path)}: dpi must be in 1..{MAX_DPI}, got {dpi}")
     _require_matplotlib()
     name = os.fspath(path)
     ext = os.path.splitext(name)[1].lower().lstrip(".") or "png"

@@ -5,20 +5,27 @@ there, after parsing) and runs it inside the one error boundary:
 
 * :class:`~hybridpgo.errors.HybridPGOError` (bad file, bad graph, solver failure, a missing
   optional package): ``hybridpgo: error: <message>`` on stderr, exit 2;
-* ``KeyboardInterrupt``: exit 130; a closed stdout pipe (``| head``): exit 141, silently;
+* ``KeyboardInterrupt`` (also during start-up: parsing, imports): "interrupted", exit 130; a
+  closed stdout pipe (``| head``): exit 141, silently;
 * anything else is a bug: traceback, exit 1.
+
+Before a command runs, every file it will write is checked (``_common.check_outputs``): a
+command writes all its outputs or none, and never overwrites an input.  With ``-`` as an output
+(``-o -``) the graph goes to standard output and the command's own report to stderr.  Messages
+name command-line flags (``--skip-unknown``), not the library's parameters.
 
 ``--debug`` prints the traceback in every case.  Usage errors from argparse also exit 2.
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import os
 import sys
 import traceback
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 from ..errors import HybridPGOError
@@ -44,9 +51,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         The exit code: 0 success, 2 user error (bad input or usage), 130 interrupted,
         1 an unexpected error (a bug: the traceback is printed).
     """
-    from ._parser import build_parser
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # during start-up (parsing, imports) or outside _run's boundary
+        print("\nhybridpgo: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
-    parser = build_parser()
+
+def _main(argv: Sequence[str] | None) -> int:
+    from . import _parser
+
+    parser = _parser.build_parser()
     try:
         args = parser.parse_args(None if argv is None else list(argv))
     except SystemExit as exc:  # --help, --version, usage errors
@@ -66,10 +81,35 @@ def main(argv: Sequence[str] | None = None) -> int:
         warnings.formatwarning = saved
 
 
+@contextlib.contextmanager
+def _graph_to_stdout(args: Any) -> Iterator[None]:
+    """With ``-o -`` the graph is written to the real standard output and everything else the
+    command prints goes to stderr, so the graph stays clean for a pipe."""
+    from ._common import uses_stdout
+
+    if not uses_stdout(args):
+        yield
+        return
+    from ..io._lines import STDOUT_TARGET
+
+    token = STDOUT_TARGET.set(sys.stdout)
+    try:
+        with contextlib.redirect_stdout(sys.stderr):
+            yield
+    finally:
+        STDOUT_TARGET.reset(token)
+
+
 def _run(args: Any, debug: bool) -> int:
     try:
-        module = importlib.import_module(f"{__name__}.{args.command}")
-        return int(module.run(args))
+        from ..errors import cli_option_names
+        from ._common import ReadOptions, check_outputs, command_files, read_options
+
+        check_outputs(*command_files(args))
+        with cli_option_names(), read_options(ReadOptions.from_args(args)), \
+                _graph_to_stdout(args):
+            module = importlib.import_module(f"{__name__}.{args.command}")
+            return int(module.run(args))
     except KeyboardInterrupt:
         if debug:
             traceback.print_exc()

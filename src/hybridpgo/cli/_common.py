@@ -4,11 +4,16 @@ bar, and printing summaries.  Results go to stdout, progress and logs to stderr 
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import json
 import os
+import stat
 import sys
+import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from typing import IO, TYPE_CHECKING, Any
 
 from ..errors import HybridPGOError
@@ -17,7 +22,13 @@ if TYPE_CHECKING:
     from ..graph import FloatArray, PoseGraph
 
 #: Output format from a file name's extension (``convert``; ``optimize`` ignores ``.txt``).
-FORMAT_FROM_SUFFIX: dict[str, str] = {".g2o": "g2o", ".graph": "toro", ".txt": "isam"}
+FORMAT_FROM_SUFFIX: dict[str, str] = {".g2o": "g2o", ".graph": "toro", ".txt": "isam",
+                                      ".tum": "tum"}
+
+#: The path that means standard input / standard output.
+STDIO = "-"
+#: Output paths that mean standard output (as ``hybridpgo.io._lines.STDOUT_NAMES``).
+STDOUT_NAMES = (STDIO, "/dev/stdout")
 
 
 class LazyChoices:
@@ -56,18 +67,196 @@ def log(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
+# --------------------------------------------------------------------------- reading
+@dataclass(frozen=True)
+class ReadOptions:
+    """Options of the command line that apply to every graph a command reads."""
+
+    fix_information: str | None = None
+    """``--fix-information``: None, "nearest" or "skip" (see :func:`hybridpgo.io.read_graph`)."""
+    fix_ids: tuple[int, ...] = ()
+    """``--fix ID`` (optimize): pose ids to hold fixed, added to the file's ``FIX`` lines."""
+
+    @classmethod
+    def from_args(cls, args: Any) -> ReadOptions:
+        return cls(fix_information=getattr(args, "fix_information", None),
+                   fix_ids=tuple(getattr(args, "fix", None) or ()))
+
+
+_NO_READ_OPTIONS = ReadOptions()
+_READ_OPTIONS: contextvars.ContextVar[ReadOptions] = contextvars.ContextVar(
+    "hybridpgo_read_options", default=_NO_READ_OPTIONS)
+
+
+@contextlib.contextmanager
+def read_options(options: ReadOptions) -> Iterator[None]:
+    """Within this block :func:`read_input` applies ``options`` (set by ``main`` per command)."""
+    token = _READ_OPTIONS.set(options)
+    try:
+        yield
+    finally:
+        _READ_OPTIONS.reset(token)
+
+
 def read_input(path: str, fmt: str | None, *, skip_unknown: bool = False,
                check_connected: bool = True) -> PoseGraph:
-    """Read a graph file for a command (every problem is a FormatError/GraphError)."""
+    """Read a graph file for a command (every problem is a FormatError/GraphError).
+
+    ``"-"`` reads standard input.  The command's ``--fix-information`` applies, and ``--fix ID``
+    adds ``ID`` to the graph's fixed poses (``PoseGraph.fixed_nodes``, as a ``FIX`` line would).
+    """
     from ..io import read_graph
 
-    return read_graph(path, format=fmt, skip_unknown=skip_unknown,
-                      check_connected=check_connected)
+    opts = _READ_OPTIONS.get()
+    graph = read_graph(path, format=fmt, skip_unknown=skip_unknown,
+                       check_connected=check_connected, fix_information=opts.fix_information)
+    if opts.fix_ids:
+        graph = with_fixed(graph, opts.fix_ids, path)
+    return graph
+
+
+def with_fixed(graph: PoseGraph, ids: Sequence[int], path: str) -> PoseGraph:
+    """``graph`` with the poses of file ids ``ids`` added to ``fixed_nodes`` (``--fix``)."""
+    import dataclasses
+
+    import numpy as np
+
+    index = graph.index_from_id()
+    missing = [i for i in ids if i not in index]
+    if missing:
+        raise HybridPGOError(f"--fix {missing[0]}: {path} has no pose with id {missing[0]} "
+                             f"(ids {int(graph.node_ids[0])}..{int(graph.node_ids[-1])})")
+    fixed = list(graph.fixed_nodes.tolist())
+    fixed += [index[i] for i in ids if index[i] not in fixed]
+    return dataclasses.replace(graph, fixed_nodes=np.array(fixed, np.int32))
+
+
+# --------------------------------------------------------------------------- outputs
+@dataclass(frozen=True)
+class Output:
+    """A file a command will write: its path, the option that named it, and whether ``-``
+    (standard output) is allowed for it."""
+
+    path: str
+    option: str
+    stdout_ok: bool = False
+
+
+def check_outputs(inputs: Sequence[str], outputs: Sequence[Output]) -> None:
+    """Check every output before any work, so that a command writes all its files or none.
+
+    Refuses (:class:`HybridPGOError`, exit 2): an empty path; ``-`` where standard output is not
+    allowed, or for two outputs; two ``-`` inputs (standard input can be read once); an output
+    that is an input (same file, also through a symlink or hard link: no command may destroy
+    an input); two outputs that are one file; an existing directory, socket or block device;
+    a directory that does not exist or where no file can be created (probed by creating and
+    removing a temporary file).  A FIFO or character device (``/dev/null``) is accepted and
+    written directly; a symbolic link is written through (its target is replaced).
+    """
+    if sum(1 for p in inputs if p == STDIO) > 1:
+        raise HybridPGOError("standard input ('-') can be read only once: give '-' for at most "
+                             "one input")
+    stdout_users = [o for o in outputs if o.path in STDOUT_NAMES]
+    for o in stdout_users:
+        if not o.stdout_ok:
+            raise HybridPGOError(f"{o.option} {o.path}: this output cannot go to standard "
+                                 "output; give a file name")
+    if len(stdout_users) > 1:
+        raise HybridPGOError(f"{stdout_users[0].option} and {stdout_users[1].option}: only one "
+                             "output can go to standard output ('-')")
+    files = [o for o in outputs if o.path not in STDOUT_NAMES]
+    real_inputs = [p for p in inputs if p != STDIO]
+    for k, o in enumerate(files):
+        if o.path == "":
+            raise HybridPGOError(f"{o.option}: the output path is empty")
+        for inp in real_inputs:
+            if _same_file(o.path, inp):
+                raise HybridPGOError(f"{o.path}: {o.option} is the input file {inp}; refusing to "
+                                     "overwrite it (choose another output name)")
+        for other in files[:k]:
+            if _same_file(o.path, other.path):
+                raise HybridPGOError(f"{o.path}: would be written twice ({other.option} and "
+                                     f"{o.option} name the same file)")
+        _check_writable(o)
+
+
+def _same_file(a: str, b: str) -> bool:
+    if os.path.realpath(a) == os.path.realpath(b):
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def _check_writable(o: Output) -> None:
+    try:
+        mode: int | None = os.stat(o.path).st_mode  # through symlinks, as the writers do
+    except FileNotFoundError:
+        mode = None
+    except OSError as exc:
+        raise HybridPGOError(f"{o.path}: cannot write: {exc.strerror or exc}") from exc
+    if mode is not None:
+        if stat.S_ISDIR(mode):
+            raise HybridPGOError(f"{o.path}: cannot write {o.option}: it is a directory")
+        if stat.S_ISFIFO(mode) or stat.S_ISCHR(mode):
+            return  # written directly (a pipe, /dev/null)
+        if not stat.S_ISREG(mode):
+            raise HybridPGOError(f"{o.path}: cannot write {o.option}: not a regular file, FIFO "
+                                 "or device")
+    target = os.path.realpath(o.path)  # a symlink's target is replaced, in its directory
+    directory = os.path.dirname(target) or "."
+    if not os.path.isdir(directory):
+        raise HybridPGOError(f"{o.path}: cannot write {o.option}: directory {directory} does "
+                             "not exist")
+    try:  # the real test: create (and remove) a file where the output's temporary file goes
+        fd, probe = tempfile.mkstemp(dir=directory, prefix=".hybridpgo-probe-")
+    except OSError as exc:
+        raise HybridPGOError(f"{o.path}: cannot write {o.option} in {directory}: "
+                             f"{exc.strerror or exc}") from exc
+    os.close(fd)
+    os.unlink(probe)
+
+
+def command_files(args: Any) -> tuple[list[str], list[Output]]:
+    """The graph/trajectory/figure files a parsed command reads and writes (for
+    :func:`check_outputs`).  ``generate`` and ``demo`` check their own outputs."""
+    cmd = args.command
+    if cmd == "info":
+        return [args.file], []
+    if cmd == "optimize":
+        outs = [Output(args.output, "-o/--output", stdout_ok=True)]
+        if args.plot is not None:
+            outs += [Output(f"{args.plot}_{k}.png", "--plot") for k in ("before", "after",
+                                                                        "energy")]
+        return [args.file], outs
+    if cmd in ("convert", "noisify"):
+        option = "OUT" if cmd == "convert" else "-o/--output"
+        return [args.input], [Output(args.output, option, stdout_ok=True)]
+    if cmd == "plot":
+        inputs = [args.file] + ([args.optimized] if args.optimized is not None else [])
+        return inputs, [Output(args.output, "-o/--output")]
+    if cmd == "evaluate":
+        outs = []
+        if args.tum is not None:
+            from .evaluate import tum_ground_truth_path
+
+            outs = [Output(args.tum, "--tum"), Output(tum_ground_truth_path(args.tum), "--tum")]
+        return [args.file, args.ground_truth], outs
+    return [], []
+
+
+def uses_stdout(args: Any) -> bool:
+    """True when the command writes a file to standard output (``-o -``)."""
+    return any(o.path in STDOUT_NAMES for o in command_files(args)[1])
 
 
 def output_format(path: str, explicit: str | None, graph: PoseGraph, *,
                   allow_isam: bool) -> str:
     """The format to write: ``explicit`` > the extension of ``path`` > the input's format.
+
+    ``.tum`` (or ``--out-format tum``) writes the poses as a TUM trajectory (the constraints are
+    lost, with a warning).
 
     An input read from iSAM is written as g2o unless ``allow_isam`` (iSAM has no vertex lines, so
     writing optimized poses to it would lose them).  With ``allow_isam`` False, the ``.txt``

@@ -25,6 +25,18 @@ def _formats() -> list[str]:
     return list(FORMATS)
 
 
+def _write_formats() -> list[str]:
+    from ..io import WRITE_FORMATS
+
+    return list(WRITE_FORMATS)
+
+
+def _fix_policies() -> list[str]:
+    from ..io import FIX_INFORMATION
+
+    return list(FIX_INFORMATION)
+
+
 def _methods() -> list[str]:
     from ..solvers import METHODS
 
@@ -84,6 +96,16 @@ _any_int = _number(int, lambda v: True, "an integer")
 _pos_float = _number(float, lambda v: v > 0, "a number > 0")
 _nonneg_float = _number(float, lambda v: v >= 0, "a number >= 0")
 _decay = _number(float, lambda v: 0 < v <= 1, "a number in (0, 1]")
+#: Largest ``plot --dpi`` (the same as ``hybridpgo.plot.MAX_DPI``; not imported, to keep the
+#: parser light).  A 2x2-panel figure at 600 dpi is ~7800 x 7200 pixels (~225 MB to render).
+MAX_DPI = 600
+_dpi = _number(int, lambda v: 1 <= v <= MAX_DPI, f"an integer in 1..{MAX_DPI}")
+
+#: How outputs are written, for the help of every command that writes a file.
+OUTPUT_HELP = ("Outputs are checked before any work and written atomically (temporary file, then "
+               "rename), so a command writes all its files or none; an output may not be one of "
+               "the inputs.  A symbolic link is written through (its target is replaced, the "
+               "link kept); a FIFO or character device (/dev/null) is written directly.")
 
 
 # --------------------------------------------------------------------------- parser
@@ -91,9 +113,14 @@ def _add_format(p: argparse.ArgumentParser, *, out: bool = False) -> None:
     p.add_argument("--format", choices=LazyChoices(_formats),
                    help="input format (default: detected from the content)")
     if out:
-        p.add_argument("--out-format", choices=LazyChoices(_formats),
-                       help="output format (default: from the output's extension, else the "
-                            "input's format)")
+        p.add_argument("--out-format", choices=LazyChoices(_write_formats),
+                       help="output format (default: from the output's extension, .tum -> tum, "
+                            "else the input's format); tum writes the poses only")
+    p.add_argument("--fix-information", choices=LazyChoices(_fix_policies),
+                   help="information matrices that are not positive definite: 'nearest' "
+                        "projects each onto the nearest positive definite matrix (eigenvalues "
+                        "clipped at 1e-9 x the largest), 'skip' drops those constraints; both "
+                        "warn with the count (default: error)")
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
@@ -121,7 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Counts by constraint type, dimension, pose-tree depth and "
                                    "constraint path lengths, and the energy at the file's "
                                    "vertices and at the tree initialization.")
-    p.add_argument("file", help="pose-graph file (g2o, TORO or iSAM)")
+    p.add_argument("file", help="pose-graph file (g2o, TORO or iSAM; '-': standard input)")
     _add_format(p)
     p.add_argument("--tree", choices=LazyChoices(_trees), default="bfs",
                    help="spanning tree to analyze (default: bfs, the paper's)")
@@ -141,10 +168,11 @@ def build_parser() -> argparse.ArgumentParser:
                "--gps-batch-size --polish.  --max-iterations limits the exact solver, or the "
                "polish with --polish.  --solver toro (the TORO-style baseline) takes --sweeps "
                "(its iterations, default 100), --tolerance, --init tree|file and --tree "
-               "toro|bfs.")
-    p.add_argument("file", help="pose-graph file (g2o, TORO or iSAM)")
+               "toro|bfs.  " + OUTPUT_HELP)
+    p.add_argument("file", help="pose-graph file (g2o, TORO or iSAM; '-': standard input)")
     p.add_argument("-o", "--output", required=True, metavar="OUT",
-                   help="where to write the optimized graph (written atomically)")
+                   help="where to write the optimized graph ('-': standard output, the summary "
+                        "then goes to stderr)")
     _add_format(p, out=True)
     p.add_argument("--solver", choices=LazyChoices(_methods), default="hybrid",
                    help="solver: 'hybrid' (the paper's), 'exact' (sparse LM), 'toro' (the "
@@ -178,6 +206,9 @@ def build_parser() -> argparse.ArgumentParser:
                         f"exact default {gn.energy_tolerance:g})")
     p.add_argument("--polish", action="store_true",
                    help="hybrid: finish with the exact Levenberg-Marquardt solver")
+    p.add_argument("--fix", type=_any_int, action="append", metavar="ID",
+                   help="hold pose ID fixed (the gauge), as a 'FIX ID' line in the file would; "
+                        "may be repeated (the hybrid solver holds exactly one pose fixed)")
     p.add_argument("--max-iterations", type=_nonneg_int, metavar="N",
                    help=f"iteration limit of the exact solver (default {gn.max_iterations}) or of "
                         f"the polish (default {hy.polish_iterations})")
@@ -196,9 +227,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("convert", help="convert a graph between g2o, TORO and iSAM",
                        description="Convert a graph file.  The output format comes from "
                                    "--out-format, else OUT's extension (.g2o -> g2o, .graph -> "
-                                   "toro, .txt -> isam), else the input's format.")
-    p.add_argument("input", metavar="IN", help="pose-graph file to read")
-    p.add_argument("output", metavar="OUT", help="file to write (atomically)")
+                                   "toro, .txt -> isam, .tum -> tum), else the input's format.  "
+                                   "TUM keeps the poses only (timestamp = pose id) and warns "
+                                   "that the constraints are lost.  The converted text is read "
+                                   "back in memory before it is written.",
+                       epilog=OUTPUT_HELP)
+    p.add_argument("input", metavar="IN", help="pose-graph file to read ('-': standard input)")
+    p.add_argument("output", metavar="OUT", help="file to write ('-': standard output)")
     _add_format(p, out=True)
     p.add_argument("--skip-unknown", action="store_true",
                    help="skip lines with unsupported tags (one warning) instead of failing")
@@ -210,16 +245,18 @@ def build_parser() -> argparse.ArgumentParser:
         "plot", help="draw a graph with its constraint residuals",
         description="Draw the trajectory top-down (plus an oblique 3D view for 3D graphs) with "
                     "each constraint's residual from its desired to its actual pose, redder for "
-                    "higher energy (paper Fig. 6).  With --optimized, draw before and after.")
+                    "higher energy (paper Fig. 6).  With --optimized, draw before and after.",
+        epilog=OUTPUT_HELP)
     p.add_argument("file", help="pose-graph file (its vertices, or the tree initialization "
-                                "when it has none)")
+                                "when it has none; '-': standard input)")
     p.add_argument("--optimized", metavar="OUT",
                    help="an optimized version of FILE (same pose ids): draw it beside FILE")
     p.add_argument("-o", "--output", required=True, metavar="FIG",
                    help="image to write (.png, .pdf, .svg; written atomically)")
     _add_format(p)
     p.add_argument("--no-residuals", action="store_true", help="draw the trajectory only")
-    p.add_argument("--dpi", type=_pos_int, default=150, help="resolution (default 150)")
+    p.add_argument("--dpi", type=_dpi, default=150,
+                   help=f"resolution, 1..{MAX_DPI} (default 150)")
     _add_common(p)
     p.set_defaults(command="plot")
 
@@ -261,10 +298,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "noisify", help="perturb every edge rotation about its local up axis (paper Fig. 8)",
         description="Multiply every relative constraint's rotation by a rotation about the "
-                    "local up (z) axis with angle ~ N(0, sigma) (paper Fig. 8).")
-    p.add_argument("input", metavar="IN", help="pose-graph file to read")
+                    "local up (z) axis with angle ~ N(0, sigma) (paper Fig. 8).",
+        epilog=OUTPUT_HELP)
+    p.add_argument("input", metavar="IN", help="pose-graph file to read ('-': standard input)")
     p.add_argument("-o", "--output", required=True, metavar="OUT",
-                   help="file to write (format: --out-format, else OUT's extension, else IN's)")
+                   help="file to write (format: --out-format, else OUT's extension, else IN's; "
+                        "'-': standard output)")
     _add_format(p, out=True)
     p.add_argument("--yaw-sigma-deg", type=_nonneg_float, default=3.0, metavar="DEG",
                    help="standard deviation of the yaw noise in degrees (default 3)")
@@ -278,15 +317,19 @@ def build_parser() -> argparse.ArgumentParser:
         description="Position RMSE, heading error (mean and max, degrees) and relative pose "
                     "error of a graph's poses against ground truth.  Without GPS the estimate "
                     "is first rigidly aligned to the ground truth; with GPS the earth frame is "
-                    "absolute and no alignment is done (override with --align).")
-    p.add_argument("file", metavar="OUT", help="graph file with the estimated poses")
-    p.add_argument("--ground-truth", required=True, metavar="GT", help="ground-truth file")
+                    "absolute and no alignment is done (override with --align).",
+        epilog=OUTPUT_HELP)
+    p.add_argument("file", metavar="OUT", help="graph file with the estimated poses ('-': "
+                                               "standard input)")
+    p.add_argument("--ground-truth", required=True, metavar="GT",
+                   help="ground-truth file: g2o/TORO vertices or a TUM trajectory ('-': "
+                        "standard input)")
     _add_format(p)
     p.add_argument("--align", choices=["auto", "yes", "no"], default="auto",
                    help="rigid alignment before comparing (default auto: only without GPS)")
     p.add_argument("--tum", metavar="PATH",
                    help="also write the estimate to PATH and the ground truth to "
-                        "PATH_gt (TUM trajectory format, for evo)")
+                        "PATH_gt (TUM trajectory format, for evo); both or neither is written")
     p.add_argument("--json", action="store_true", help="print a JSON object instead of text")
     _add_common(p)
     p.set_defaults(command="evaluate")

@@ -18,13 +18,17 @@ def graph_info(path: str, fmt: str | None = None, *, tree_kind: str = "bfs",
     import numpy as np
 
     from ..energy import energy
+    from ..errors import GraphError
     from ..tree import LINK_EDGE, build_tree, global_poses, initial_locals
 
     graph = read_input(path, fmt, skip_unknown=skip_unknown)
     # odometry: edges between poses adjacent in id order (dense index = rank of the id)
     en = graph.edge_nodes
     odometry = int(np.count_nonzero(np.abs(en[:, 0] - en[:, 1]) == 1))
-    tree = build_tree(graph, tree_kind)
+    try:
+        tree = build_tree(graph, tree_kind)
+    except GraphError as exc:  # e.g. two FIX lines: the message must name the file
+        raise GraphError(f"{path}: {exc}") from exc
     in_tree = np.zeros(graph.num_edges, bool)
     in_tree[tree.link_index[tree.link_kind == LINK_EDGE]] = True
     lengths = tree.path_lengths()

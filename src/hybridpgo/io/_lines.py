@@ -14,19 +14,24 @@ angles, SE(2) angles).  They are NumPy twins of the Numba kernels in ``geometry/
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import io
 import math
 import os
+import stat
+import sys
 import tempfile
 import warnings
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import IO
 
 import numpy as np
 import numpy.typing as npt
 
-from ..errors import FormatError, GraphError
-from ..graph import PoseGraph
+from ..errors import FormatError, GraphError, option_hint
+from ..graph import MAX_INFORMATION, PoseGraph, lift_information_2d
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -35,6 +40,47 @@ PathLike = str | os.PathLike[str]
 #: A PARAMS_SE3OFFSET (or other "identity") value is accepted when every entry is within this
 #: absolute distance of the identity's (files print ~7 digits; a real offset is >> 1e-9).
 IDENTITY_ATOL = 1e-9
+
+#: The path that means standard input (reading) or standard output (writing).
+STDIO = "-"
+#: Output paths written to ``sys.stdout`` (:data:`STDOUT_TARGET`): ``/dev/stdout`` too, so that
+#: a shell redirection of it to a file is not replaced by a rename, nor truncated twice.
+STDOUT_NAMES = (STDIO, "/dev/stdout")
+#: How standard input is named in messages.
+STDIN_NAME = "<stdin>"
+#: Where writing to ``"-"`` goes (None: ``sys.stdout``).  The CLI sets it to the real standard
+#: output while its own messages go to stderr, so a graph written to ``-o -`` stays clean.
+STDOUT_TARGET: contextvars.ContextVar[IO[str] | None] = contextvars.ContextVar(
+    "hybridpgo_stdout", default=None)
+
+#: Policies for information matrices that are not positive definite (``fix_information``).
+FIX_INFORMATION: tuple[str, ...] = ("nearest", "skip")
+#: ``fix_information="nearest"`` clips the eigenvalues of a symmetric matrix at this fraction of
+#: its largest eigenvalue magnitude (at this absolute value for the zero matrix): the result is
+#: the nearest (Frobenius norm) symmetric matrix whose eigenvalues are all >= that floor, and its
+#: condition number is at most 1e9.
+NEAREST_SPD_FLOOR = 1e-9
+
+#: Echoed file tokens longer than this are shortened in messages (a million-digit number must
+#: not give a megabyte error line).
+MAX_ECHO = 40
+#: At most this many line numbers are listed in a message.
+MAX_LINES_LISTED = 5
+
+
+def show_token(tok: str) -> str:
+    """``repr(tok)``, shortened to :data:`MAX_ECHO` characters with the full length noted."""
+    if len(tok) <= MAX_ECHO:
+        return repr(tok)
+    return repr(tok[:MAX_ECHO]) + f"... ({len(tok)} characters)"
+
+
+def list_lines(line_nos: Iterable[int]) -> str:
+    """``lines 4, 6`` or ``lines 4, 6, 9, 12, 15 and 5016 more``."""
+    nums = [int(n) for n in line_nos]
+    shown = ", ".join(str(n) for n in nums[:MAX_LINES_LISTED])
+    more = f" and {len(nums) - MAX_LINES_LISTED} more" if len(nums) > MAX_LINES_LISTED else ""
+    return f"line{'s' if len(nums) > 1 else ''} {shown}{more}"
 
 
 # =========================================================================== source & tokens
@@ -46,6 +92,9 @@ class Source:
     lines: list[str]
     #: tag -> (1-based line numbers, the text after the tag); dict order = first appearance.
     groups: dict[str, tuple[list[int], list[str]]] = field(default_factory=dict)
+    #: What to do with information that is not positive definite: None (raise), or one of
+    #: :data:`FIX_INFORMATION` (set by the readers from their ``fix_information`` argument).
+    fix_information: str | None = None
 
     def error(self, line_no: int | None, problem: str) -> FormatError:
         """A :class:`FormatError` at ``line_no`` (``None``: the file as a whole)."""
@@ -60,24 +109,64 @@ class Source:
         return any(len(rest.split()) == count for rest in self.groups[tag][1])
 
 
-def load_source(path: PathLike) -> Source:
-    """Read ``path`` and group its data lines by tag; blank and ``#`` lines are skipped.
+def check_fix_information(fix_information: str | None) -> None:
+    if fix_information is not None and fix_information not in FIX_INFORMATION:
+        raise ValueError(f"fix_information must be one of {FIX_INFORMATION} or None, got "
+                         f"{fix_information!r}")
+
+
+def split_lines(text: str) -> list[str]:
+    """Lines broken at ``\\n``, ``\\r\\n`` and ``\\r`` only.
+
+    ``str.splitlines`` also breaks at form feeds, vertical tabs, ``\\x1c``-``\\x1e``, U+0085 and
+    U+2028/9, which a text editor (and every other tool) shows inside one line: every later line
+    number would be off.
+    """
+    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+    if lines and lines[-1] == "":
+        lines.pop()
+    return lines
+
+
+def read_bytes(path: PathLike) -> tuple[str, bytes]:
+    """(name for messages, content) of ``path``; ``"-"`` reads standard input."""
+    name = os.fspath(path)
+    if name == STDIO:
+        stream = sys.stdin
+        buffer = getattr(stream, "buffer", None)
+        try:
+            raw = buffer.read() if buffer is not None else stream.read().encode("utf-8")
+        except (OSError, ValueError) as exc:
+            raise FormatError(f"cannot read standard input: {exc}", STDIN_NAME) from exc
+        return STDIN_NAME, raw
+    try:
+        with open(name, "rb") as fh:
+            return name, fh.read()
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        raise FormatError(f"cannot read the file: {reason}", name) from exc
+
+
+def load_source(path: PathLike, fix_information: str | None = None) -> Source:
+    """Read ``path`` (``"-"``: standard input) and group its data lines by tag; blank and ``#``
+    lines are skipped.  ``fix_information`` becomes ``Source.fix_information``.
 
     Raises
     ------
     FormatError
         When the file cannot be read (missing, a directory, no permission, ...).
     """
-    name = os.fspath(path)
-    try:
-        with open(name, "rb") as fh:
-            raw = fh.read()
-    except OSError as exc:
-        reason = exc.strerror or str(exc)
-        raise FormatError(f"cannot read the file: {reason}", name) from exc
+    check_fix_information(fix_information)
+    name, raw = read_bytes(path)
+    src = source_from_text(raw.decode("utf-8", errors="replace"), name)
+    src.fix_information = fix_information
+    return src
+
+
+def source_from_text(text: str, name: str) -> Source:
+    """A :class:`Source` from text in memory (``name`` is used in messages)."""
     # Undecodable bytes become U+FFFD, so a binary file fails later as an unknown tag with a line.
-    text = raw.decode("utf-8", errors="replace")
-    lines = text.splitlines()  # also strips "\r" of CRLF files
+    lines = split_lines(text)
     groups: dict[str, tuple[list[int], list[str]]] = {}
     for i, line in enumerate(lines, start=1):
         head = line.split(None, 1)  # only the tag is split off here (see the module doc)
@@ -155,8 +244,9 @@ def _count_problem(spec: TagSpec, got: int) -> str:
 
 
 def unknown_tag_problem(tag: str, fmt: str, supported: Iterable[str]) -> str:
-    return (f"unknown tag {tag!r} for the {fmt} format; supported tags: "
-            + ", ".join(supported) + " (pass skip_unknown=True to skip such lines with a warning)")
+    return (f"unknown tag {show_token(tag)} for the {fmt} format; supported tags: "
+            + ", ".join(supported) + f" (pass {option_hint('skip_unknown')} to skip such lines "
+            "with a warning)")
 
 
 def parse_blocks(src: Source, specs: Mapping[str, TagSpec], fmt: str,
@@ -235,29 +325,50 @@ class _BadField(Exception):
         self.problem = problem
 
 
-def _to_int(spec: TagSpec, ln: int, k: int, tok: str) -> int:
+def parse_int(tok: str) -> int | None:
+    """An int64 written with ASCII digits (optional sign), else None.
+
+    Python's ``int`` also accepts ``"1_0"`` and non-ASCII digits (``"١"``); the fast path
+    (``loadtxt``) and every other tool do not.
+    """
+    if not tok.isascii() or "_" in tok or len(tok) > 20:
+        return None
     try:
-        if "_" in tok:  # Python's int() accepts "1_0"; the fast path does not
-            raise ValueError
         v = int(tok)
-        if not -(2**63) <= v < 2**63:
-            raise OverflowError
-    except (ValueError, OverflowError):
+    except ValueError:
+        return None
+    return v if -(2**63) <= v < 2**63 else None
+
+
+def parse_float(tok: str) -> float | None:
+    """A float written in ASCII (``1``, ``-2.5e-3``, ``inf``, ``nan``), else None.
+
+    Rejects what Python's ``float`` accepts beyond that: ``"1_0"`` and non-ASCII digits.
+    """
+    if not tok.isascii() or "_" in tok:
+        return None
+    try:
+        return float(tok)
+    except ValueError:
+        return None
+
+
+def _to_int(spec: TagSpec, ln: int, k: int, tok: str) -> int:
+    v = parse_int(tok)
+    if v is None:
         raise _BadField(ln, f"{spec.tag} field {spec.field_name(k)!r} must be an integer vertex "
-                        f"id, got {tok!r}") from None
+                        f"id, got {show_token(tok)}")
     return v
 
 
 def _to_float(spec: TagSpec, ln: int, k: int, tok: str) -> float:
-    try:
-        if "_" in tok:
-            raise ValueError
-        v = float(tok)
-    except ValueError:
+    v = parse_float(tok)
+    if v is None:
         raise _BadField(ln, f"{spec.tag} field {spec.field_name(k)!r} is not a number: "
-                        f"{tok!r}") from None
+                        f"{show_token(tok)}")
     if not math.isfinite(v):
-        raise _BadField(ln, f"{spec.tag} field {spec.field_name(k)!r} is not finite: {tok!r}")
+        raise _BadField(ln, f"{spec.tag} field {spec.field_name(k)!r} is not finite: "
+                        f"{show_token(tok)}")
     return v
 
 
@@ -324,21 +435,79 @@ def upper_matrix(vals: FloatArray, d: int) -> FloatArray:
     return out
 
 
-def check_spd(src: Source, mats: FloatArray, line_nos: IntArray, what: str = "information matrix",
-              hint: str = "") -> None:
-    """Raise at the first line whose matrix is not symmetric positive definite.
+def nearest_spd(mats: FloatArray) -> FloatArray:
+    """(k, d, d) symmetric -> the nearest (Frobenius) symmetric matrices with eigenvalues >= the
+    floor ``NEAREST_SPD_FLOOR * max |eigenvalue|`` (``NEAREST_SPD_FLOOR`` for a zero matrix).
 
-    The criterion is :func:`hybridpgo.graph.check_information`'s (smallest eigenvalue > 0), so a
-    matrix accepted here is accepted by :class:`PoseGraph`.
+    Eigenvalues above the floor and the eigenvectors are kept; the result is exactly symmetric.
     """
-    if mats.shape[0] == 0:
-        return
+    sym = 0.5 * (mats + np.swapaxes(mats, 1, 2))
+    lam, vec = np.linalg.eigh(sym)
+    scale = np.abs(lam).max(axis=1)
+    floor = np.where(scale > 0.0, NEAREST_SPD_FLOOR * scale, NEAREST_SPD_FLOOR)
+    lam = np.maximum(lam, floor[:, None])
+    out = (vec * lam[:, None, :]) @ np.swapaxes(vec, 1, 2)
+    res: FloatArray = 0.5 * (out + np.swapaxes(out, 1, 2))
+    return res
+
+
+def spd_filter(src: Source, mats: FloatArray, line_nos: IntArray, kind: str,
+               what: str = "information matrix", hint: str = "",
+               ) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
+    """Check the information matrices of ``kind`` lines (e.g. ``"EDGE_SE2"``).
+
+    Entries beyond :data:`MAX_INFORMATION` (they would overflow when squared) always raise at
+    their line.  Matrices that are not positive definite
+    (smallest eigenvalue not > 0, :func:`hybridpgo.graph.check_information`'s criterion) raise
+    at the first such line, with their count, unless ``src.fix_information`` says to project
+    them (:func:`nearest_spd`) or to drop them; either is warned about once, with the count.
+
+    Returns
+    -------
+    mats : (k, d, d)
+        The matrices, repaired where needed (the input when nothing was).
+    keep : (k,) bool
+        False for the lines to drop.
+    """
+    k = mats.shape[0]
+    keep = np.ones(k, bool)
+    if k == 0:
+        return mats, keep
+    big = np.abs(mats).reshape(k, -1).max(axis=1)
+    limit = MAX_INFORMATION
+    over = np.nonzero(~(big <= limit))[0]
+    if over.size:
+        j = int(over[np.argmin(line_nos[over])])
+        size = (f"an entry of magnitude {big[j]:.3g}" if np.isfinite(big[j])
+                else "entries that overflow float64")
+        raise src.error(int(line_nos[j]), f"{what} is too large: {size}; at most {limit:.3g} is "
+                        f"supported (larger values overflow when squared){hint}")
     eig_min = np.linalg.eigvalsh(mats)[:, 0]
     bad = np.nonzero(~(eig_min > 0.0))[0]
-    if bad.size:
-        k = int(bad[0])
-        raise src.error(int(line_nos[k]), f"{what} is not positive definite (smallest "
-                        f"eigenvalue {eig_min[k]:.6g}){hint}")
+    if bad.size == 0:
+        return mats, keep
+    bad = bad[np.argsort(line_nos[bad], kind="stable")]
+    lines = list_lines(line_nos[bad])
+    count = f"{bad.size} of {k} {kind} lines"
+    policy = src.fix_information
+    if policy is None:
+        j = int(bad[0])
+        raise src.error(int(line_nos[j]), f"{what} is not positive definite (smallest "
+                        f"eigenvalue {eig_min[j]:.6g}){hint}; {count} have such information "
+                        f"({lines}); pass {option_hint('fix_information', *FIX_INFORMATION)} "
+                        "to project them onto the nearest positive definite matrix or to drop "
+                        "them")
+    if policy == "nearest":
+        mats = np.array(mats, copy=True)
+        mats[bad] = nearest_spd(mats[bad])
+        done = (f"projected onto the nearest positive definite matrix (eigenvalues clipped at "
+                f"{NEAREST_SPD_FLOOR:g} x the largest)")
+    else:
+        keep[bad] = False
+        done = "dropped them"
+    warnings.warn(f"{src.path}: {count} have information that is not positive definite "
+                  f"({lines}); {done}", UserWarning, stacklevel=2)
+    return mats, keep
 
 
 # =========================================================================== rotations
@@ -359,9 +528,19 @@ def yaw_of(r: FloatArray) -> FloatArray:
     return np.arctan2(r[:, 1, 0], r[:, 0, 0])
 
 
+def normalize_quaternions(q: FloatArray) -> FloatArray:
+    """(k, 4) -> unit quaternions, exact for any finite non-zero input (no over/underflow: each
+    row is divided by its largest magnitude before the norm is taken).  Zero rows stay zero."""
+    peak = np.abs(q).max(axis=1, keepdims=True)
+    scaled = q / np.where(peak > 0.0, peak, 1.0)
+    norm = np.linalg.norm(scaled, axis=1, keepdims=True)
+    out: FloatArray = scaled / np.where(norm > 0.0, norm, 1.0)
+    return out
+
+
 def quat_xyzw_to_matrix(q: FloatArray) -> FloatArray:
-    """(k, 4) quaternions (x, y, z, w), normalized here -> (k, 3, 3); norms must be > 0."""
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    """(k, 4) quaternions (x, y, z, w), normalized here -> (k, 3, 3); rows must be non-zero."""
+    q = normalize_quaternions(q)
     x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
     r = np.empty((q.shape[0], 3, 3))
     r[:, 0, 0] = 1.0 - 2.0 * (y * y + z * z)
@@ -473,6 +652,19 @@ class Parts:
     fix_lines: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
 
 
+def drop_edges(p: Parts, keep: npt.NDArray[np.bool_]) -> None:
+    """Keep only the relative edges where ``keep`` is True."""
+    p.edge_ids, p.edge_lines = p.edge_ids[keep], p.edge_lines[keep]
+    p.edge_rotations, p.edge_translations = p.edge_rotations[keep], p.edge_translations[keep]
+    p.edge_information = p.edge_information[keep]
+
+
+def drop_gps(p: Parts, keep: npt.NDArray[np.bool_]) -> None:
+    """Keep only the position priors where ``keep`` is True."""
+    p.gps_ids, p.gps_lines = p.gps_ids[keep], p.gps_lines[keep]
+    p.gps_positions, p.gps_information = p.gps_positions[keep], p.gps_information[keep]
+
+
 def check_duplicate_vertices(src: Source, ids: IntArray, line_nos: IntArray) -> None:
     """Raise at the second definition of a vertex id, naming the first line."""
     if ids.shape[0] < 2:
@@ -541,8 +733,13 @@ def assemble(src: Source, fmt: str, parts: Parts, check_connected: bool) -> Pose
         translations = np.zeros((n, 3))
     # Safety net with line numbers: the readers check the file's own matrices; this checks the
     # converted ones with PoseGraph's criterion, so PoseGraph never rejects them without a line.
-    check_spd(src, p.edge_information, p.edge_lines, "information matrix converted to (rho, phi)")
-    check_spd(src, p.gps_information, p.gps_lines)
+    p.edge_information, keep = spd_filter(src, p.edge_information, p.edge_lines, "edge",
+                                          "information matrix converted to (rho, phi)")
+    if not keep.all():
+        drop_edges(p, keep)
+    p.gps_information, keep = spd_filter(src, p.gps_information, p.gps_lines, "position prior")
+    if not keep.all():
+        drop_gps(p, keep)
     _, first = np.unique(p.fix_ids, return_index=True)
     fix_ids = p.fix_ids[np.sort(first)]  # first mention order, no repeats
     try:
@@ -579,37 +776,111 @@ _UMASK = _current_umask()  # read once at import (os.umask can only be read by s
 
 
 def write_atomic(path: PathLike, produce: Callable[[], Iterable[str]]) -> None:
-    """Write the lines ``produce()`` yields to ``path`` via a temporary file and ``os.replace``.
+    """Write the lines ``produce()`` yields to ``path`` so that a reader never sees half a file.
 
-    If anything fails (including ``produce`` raising) the temporary file is removed and an
-    existing ``path`` is left untouched.  OS errors become :class:`FormatError` naming the file.
+    * A regular file (or a new one) is written to a temporary file in the same directory, then
+      ``os.replace``-d over ``path``; its permissions are kept.
+    * A symbolic link is written through: the file it points to is replaced as above (a
+      dangling link creates its target) and the link stays a link, as with ``cp`` or ``>``.
+    * A FIFO or character device (``/dev/null``, ``/dev/stdout``) cannot be replaced: the
+      content is written into it in one go.
+    * ``"-"`` (and ``/dev/stdout``) writes to standard output (:data:`STDOUT_TARGET`).
+    * A directory, socket or block device is refused.
+
+    The lines are produced completely before anything is created; if anything fails nothing is
+    written (an existing ``path`` is left untouched).  OS errors become :class:`FormatError`
+    naming the file.
     """
-    name = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(name))
+    write_atomic_all([(path, list(produce()))])
+
+
+def write_atomic_all(items: Sequence[tuple[PathLike, Sequence[str]]]) -> None:
+    """Write several files all or nothing: every temporary file is written first, then all are
+    renamed into place (as :func:`write_atomic`, which is the one-file case).  FIFOs, devices
+    and standard output are written last, after the renames."""
+    staged: list[tuple[str, str, str]] = []  # (temporary, target, name)
+    direct: list[tuple[str, str, Sequence[str]]] = []  # (target, name, lines)
     try:
-        fd, tmp = tempfile.mkstemp(dir=directory, prefix="." + os.path.basename(name) + ".",
+        for path, lines in items:
+            name = os.fspath(path)
+            if name == "":
+                raise FormatError("cannot write: the output path is empty")
+            if name in STDOUT_NAMES:
+                direct.append((STDIO, name, lines))
+                continue
+            kind = _existing_kind(name)
+            if kind == "stream":  # opened by name: /dev/stdout -> /proc/self/fd/1 -> a pipe
+                direct.append((name, name, lines))
+                continue
+            target = os.path.realpath(name) if os.path.islink(name) else name
+            staged.append((_write_temporary(target, name, lines, kind), target, name))
+        for k, (tmp, target, name) in enumerate(staged):
+            try:
+                os.replace(tmp, target)
+            except OSError as exc:
+                raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
+            staged[k] = ("", target, name)
+    finally:
+        for tmp, _, _ in staged:
+            if tmp:
+                with contextlib.suppress(OSError):
+                    os.unlink(tmp)
+    for target, name, lines in direct:
+        text = "".join(line + "\n" for line in lines)
+        if target == STDIO:
+            stream = STDOUT_TARGET.get() or sys.stdout
+            stream.write(text)
+            stream.flush()
+            continue
+        try:
+            with open(target, "w", encoding="utf-8", newline="\n") as fh:
+                fh.write(text)
+        except OSError as exc:
+            raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
+
+
+def _write_temporary(target: str, name: str, lines: Sequence[str], kind: str) -> str:
+    """A temporary file beside ``target`` holding ``lines``, with ``target``'s permissions."""
+    directory = os.path.dirname(os.path.abspath(target))
+    try:
+        fd, tmp = tempfile.mkstemp(dir=directory, prefix="." + os.path.basename(target) + ".",
                                    suffix=".tmp")
     except OSError as exc:
         raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
     try:
         with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as fh:
-            for line in produce():
+            for line in lines:
                 fh.write(line)
                 fh.write("\n")
-        try:
-            mode = os.stat(name).st_mode & 0o777
-        except OSError:
-            mode = 0o666 & ~_UMASK
+        mode = 0o666 & ~_UMASK
+        if kind == "file":
+            with contextlib.suppress(OSError):
+                mode = os.stat(target).st_mode & 0o777
         os.chmod(tmp, mode)
-        os.replace(tmp, name)
     except BaseException as exc:
-        try:
+        with contextlib.suppress(OSError):
             os.unlink(tmp)
-        except OSError:
-            pass
         if isinstance(exc, OSError):
             raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
         raise
+    return tmp
+
+
+def _existing_kind(name: str) -> str:
+    """What ``name`` is, following symlinks: "new" (nothing there, or a dangling link), "file"
+    (regular) or "stream" (FIFO, character device); raise for the rest."""
+    try:
+        mode = os.stat(name).st_mode
+    except FileNotFoundError:
+        return "new"
+    except OSError as exc:
+        raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
+    if stat.S_ISREG(mode):
+        return "file"
+    if stat.S_ISFIFO(mode) or stat.S_ISCHR(mode):
+        return "stream"
+    what = "a directory" if stat.S_ISDIR(mode) else "not a regular file, FIFO or device"
+    raise FormatError(f"cannot write the file: it is {what}", name)
 
 
 def require_planar(graph: PoseGraph, path: str, fmt: str) -> None:
@@ -632,6 +903,35 @@ def require_planar(graph: PoseGraph, path: str, fmt: str) -> None:
                               f"planar (z = {t[k, 2]:.3g}, out-of-plane rotation {off[k]:.3g})",
                               path)
 
+
+
+def require_readable_information(graph: PoseGraph, mats: FloatArray, path: str,
+                                 fmt: str) -> None:
+    """Raise unless ``mats`` -- the information exactly as the reader will compute it from the
+    written text (the planar 3x3 block of a 2D graph, iSAM's ``R^T R``) -- passes the reader's
+    checks, including the lift of a 3x3 to 6x6.
+
+    A matrix at the edge of positive definiteness (smallest eigenvalue ~1e-16 of the largest)
+    can lose it to the rounding of a conversion; the file would then not read back.
+    """
+    if mats.shape[0] == 0:
+        return
+    checks = [mats] if mats.shape[-1] == 6 else [mats, lift_information_2d(mats)]
+    for m in checks:
+        big = np.abs(m).reshape(m.shape[0], -1).max(axis=1)
+        with np.errstate(invalid="ignore"):
+            eig_min = np.where(big <= MAX_INFORMATION,
+                               np.linalg.eigvalsh(np.where((big <= MAX_INFORMATION)[:, None, None],
+                                                           m, 1.0))[:, 0], -np.inf)
+        bad = np.nonzero(~(eig_min > 0.0))[0]
+        if bad.size:
+            k = int(bad[0])
+            a, b = graph.node_ids[graph.edge_nodes[k]].tolist()
+            raise FormatError(f"edge {k} ({a} -> {b}): its information matrix is so close to "
+                              f"singular that it would not read back positive definite from "
+                              f"{fmt} (smallest eigenvalue {eig_min[k]:.3g} after the "
+                              "conversion)" + ("; write g2o or TORO instead, which store the "
+                                               "matrix itself" if fmt == "iSAM" else ""), path)
 
 
 def write_vertices_needed(graph: PoseGraph) -> bool:

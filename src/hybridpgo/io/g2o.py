@@ -31,14 +31,16 @@ from ._lines import (
     Source,
     TagSpec,
     assemble,
-    check_spd,
     fmt_floats,
     load_source,
     matrix_to_quat_xyzw,
+    normalize_quaternions,
     parse_blocks,
     quat_xyzw_to_matrix,
     require_planar,
+    require_readable_information,
     rot_z,
+    spd_filter,
     stack,
     sym_from_upper,
     upper_from_sym,
@@ -73,7 +75,8 @@ _P_INV = np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0])
 
 
 def read_g2o(path: PathLike, *, skip_unknown: bool = False,
-             check_connected: bool = True) -> PoseGraph:
+             check_connected: bool = True,
+             fix_information: str | None = None) -> PoseGraph:
     """Read a g2o file (2D ``SE2`` or 3D ``SE3:QUAT`` lines, position priors, ``FIX``).
 
     Parameters
@@ -84,6 +87,12 @@ def read_g2o(path: PathLike, *, skip_unknown: bool = False,
         Skip lines with other tags (one warning with the count) instead of raising.
     check_connected
         Raise when the graph falls apart into several pieces.
+    fix_information
+        None: information that is not positive definite raises (naming its line and how many
+        lines have it).  ``"nearest"``: such matrices are projected onto the nearest positive
+        definite matrix (:func:`~hybridpgo.io._lines.nearest_spd`: eigenvalues clipped at
+        ``NEAREST_SPD_FLOOR`` times the largest).  ``"skip"``: their lines are dropped.  Either
+        warns once per line type with the count.
 
     Returns
     -------
@@ -94,11 +103,12 @@ def read_g2o(path: PathLike, *, skip_unknown: bool = False,
     Raises
     ------
     FormatError
-        ``"{path}:{line}: {problem}"`` for malformed lines, non-SPD information, unknown or
+        ``"{path}:{line}: {problem}"`` for malformed lines, non-SPD information (unless
+        ``fix_information``), information entries beyond ``MAX_INFORMATION``, unknown or
         duplicate vertices, self-loops, non-identity ``PARAMS_SE3OFFSET``; ``"{path}: ..."`` for
         an empty, unreadable or disconnected file.
     """
-    return read_g2o_source(load_source(path), skip_unknown=skip_unknown,
+    return read_g2o_source(load_source(path, fix_information), skip_unknown=skip_unknown,
                            check_connected=check_connected)
 
 
@@ -143,8 +153,9 @@ def _edges_se2(src: Source, blocks: dict[str, list[Block]], parts: Parts) -> Non
     ln, ids, v = _get(blocks, "EDGE_SE2")
     if ln.size == 0:
         return
-    info3 = sym_from_upper(v[:, 3:9], 3)
-    check_spd(src, info3, ln, "information matrix (I11 I12 I13 I22 I23 I33 over x, y, theta)")
+    info3, keep = spd_filter(src, sym_from_upper(v[:, 3:9], 3), ln, "EDGE_SE2",
+                             "information matrix (I11 I12 I13 I22 I23 I33 over x, y, theta)")
+    ln, ids, v, info3 = ln[keep], ids[keep], v[keep], info3[keep]
     parts.edge_ids, parts.edge_lines = ids, ln
     parts.edge_rotations = rot_z(v[:, 2])
     parts.edge_translations = np.column_stack([v[:, 0], v[:, 1], np.zeros(ln.shape[0])])
@@ -152,7 +163,7 @@ def _edges_se2(src: Source, blocks: dict[str, list[Block]], parts: Parts) -> Non
 
 
 def _quaternions(src: Source, q: FloatArray, ln: np.ndarray, tag: str) -> FloatArray:
-    zero = np.nonzero(np.linalg.norm(q, axis=1) == 0.0)[0]
+    zero = np.nonzero(np.abs(q).max(axis=1) == 0.0)[0]
     if zero.size:
         raise src.error(int(ln[zero[0]]), f"{tag} quaternion (qx, qy, qz, qw) is zero; it must "
                         "be a (nearly) unit quaternion")
@@ -172,12 +183,17 @@ def _edges_se3(src: Source, blocks: dict[str, list[Block]], parts: Parts) -> Non
     ln, ids, v = _get(blocks, "EDGE_SE3:QUAT")
     if ln.size == 0:
         return
+    # Checked (and repaired) in (rho, phi) units, P Omega_q P: the scaling by powers of two is
+    # exact, so writing (P^-1 Omega P^-1) and reading back gives the same bits, the same verdict.
     info_q = sym_from_upper(v[:, 7:28], 6)
-    check_spd(src, info_q, ln, "information matrix (21 entries over x, y, z, qx, qy, qz)")
+    info = info_q * _P[:, None] * _P[None, :]
+    info, keep = spd_filter(src, info, ln, "EDGE_SE3:QUAT",
+                            "information matrix (21 entries over x, y, z, qx, qy, qz)")
+    ln, ids, v, info = ln[keep], ids[keep], v[keep], info[keep]
     parts.edge_ids, parts.edge_lines = ids, ln
     parts.edge_rotations = _quaternions(src, v[:, 3:7], ln, "EDGE_SE3:QUAT")
     parts.edge_translations = np.ascontiguousarray(v[:, 0:3])
-    parts.edge_information = info_q * _P[:, None] * _P[None, :]
+    parts.edge_information = info
 
 
 def _priors(src: Source, blocks: dict[str, list[Block]], parts: Parts) -> None:
@@ -189,9 +205,8 @@ def _priors(src: Source, blocks: dict[str, list[Block]], parts: Parts) -> None:
         if pid in declared:
             raise src.error(line, f"PARAMS_SE3OFFSET {pid} is declared twice (first at line "
                             f"{declared[pid]})")
-        q = pv[k, 3:7]
-        qn = np.linalg.norm(q)
-        q = q / qn if qn > 0 else q
+        q = normalize_quaternions(pv[k:k + 1, 3:7])[0]
+        qn = np.abs(pv[k, 3:7]).max()
         if (np.abs(pv[k, 0:3]).max() > IDENTITY_ATOL or qn == 0.0
                 or np.abs(q[0:3]).max() > IDENTITY_ATOL or abs(abs(q[3]) - 1.0) > IDENTITY_ATOL):
             raise src.error(line, f"PARAMS_SE3OFFSET {pid} is not the identity offset "
@@ -207,8 +222,9 @@ def _priors(src: Source, blocks: dict[str, list[Block]], parts: Parts) -> None:
         k = int(np.nonzero(undeclared)[0][0])
         raise src.error(int(ln[k]), f"EDGE_SE3_XYZ_PRIOR uses parameter id {int(ids[k, 1])}, "
                         "which no PARAMS_SE3OFFSET line declares")
-    info = sym_from_upper(v[:, 3:9], 3)
-    check_spd(src, info, ln, "information matrix (I11 I12 I13 I22 I23 I33 over x, y, z)")
+    info, keep = spd_filter(src, sym_from_upper(v[:, 3:9], 3), ln, "EDGE_SE3_XYZ_PRIOR",
+                            "information matrix (I11 I12 I13 I22 I23 I33 over x, y, z)")
+    ln, ids, v, info = ln[keep], ids[keep], v[keep], info[keep]
     parts.gps_ids, parts.gps_lines = ids[:, 0], ln
     parts.gps_positions = np.ascontiguousarray(v[:, 0:3])
     parts.gps_information = info
@@ -231,12 +247,19 @@ def write_g2o(graph: PoseGraph, path: PathLike) -> None:
         When a 2D graph is not planar or has position priors, or the file cannot be written.
     """
     name = str(path)
+    write_atomic(path, lambda: g2o_lines(graph, name))
+
+
+def g2o_lines(graph: PoseGraph, name: str) -> list[str]:
+    """The lines :func:`write_g2o` writes (``name`` is used in messages)."""
     if graph.is_2d:
         if graph.num_gps:
             raise FormatError("a 2D graph with position priors cannot be written as g2o "
                               "SE(2) lines", name)
         require_planar(graph, name, "g2o")
-    write_atomic(path, lambda: _g2o_lines(graph))
+        require_readable_information(graph, planar_information(graph.edge_information), name,
+                                     "g2o")
+    return _g2o_lines(graph)
 
 
 def _g2o_lines(graph: PoseGraph) -> list[str]:
@@ -275,3 +298,4 @@ def _g2o_lines(graph: PoseGraph) -> list[str]:
 
 def _fix_lines(graph: PoseGraph) -> list[str]:
     return [f"FIX {i}" for i in graph.node_ids[graph.fixed_nodes].tolist()]
+

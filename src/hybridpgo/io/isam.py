@@ -26,14 +26,15 @@ from ._lines import (
     Source,
     TagSpec,
     assemble,
-    check_spd,
     euler_rpy_to_matrix,
     fmt_floats,
     load_source,
     matrix_to_euler_rpy,
     parse_blocks,
     require_planar,
+    require_readable_information,
     rot_z,
+    spd_filter,
     stack,
     upper_from_sym,
     upper_matrix,
@@ -57,8 +58,11 @@ _HINT = (" (the numbers are the upper-triangular square-root information R, Omeg
 
 
 def read_isam(path: PathLike, *, skip_unknown: bool = False,
-              check_connected: bool = True) -> PoseGraph:
+              check_connected: bool = True,
+              fix_information: str | None = None) -> PoseGraph:
     """Read an iSAM file (``ODOMETRY``/``EDGE2`` 2D or ``EDGE3`` 3D, square-root information).
+
+    ``skip_unknown``, ``check_connected`` and ``fix_information`` as :func:`~hybridpgo.io.read_g2o`.
 
     Returns
     -------
@@ -71,13 +75,15 @@ def read_isam(path: PathLike, *, skip_unknown: bool = False,
     FormatError
         As :func:`~hybridpgo.io.read_g2o`.
     """
-    return read_isam_source(load_source(path), skip_unknown=skip_unknown,
+    return read_isam_source(load_source(path, fix_information), skip_unknown=skip_unknown,
                             check_connected=check_connected)
 
 
 def _square(r_upper: FloatArray) -> FloatArray:
-    omega = np.swapaxes(r_upper, 1, 2) @ r_upper
-    return 0.5 * (omega + np.swapaxes(omega, 1, 2))  # exactly symmetric
+    # huge square roots overflow to inf here; spd_filter then reports the line
+    with np.errstate(over="ignore", invalid="ignore"):
+        omega = np.swapaxes(r_upper, 1, 2) @ r_upper
+        return 0.5 * (omega + np.swapaxes(omega, 1, 2))  # exactly symmetric
 
 
 def read_isam_source(src: Source, *, skip_unknown: bool, check_connected: bool) -> PoseGraph:
@@ -92,8 +98,10 @@ def read_isam_source(src: Source, *, skip_unknown: bool, check_connected: bool) 
     if parts.is_2d:
         ln, ids, v, _ = stack(blocks.get("ODOMETRY", []) + blocks.get("EDGE2", []))
         if ln.size:
-            omega = _square(upper_matrix(v[:, 3:9], 3))
-            check_spd(src, omega, ln, "information matrix", _HINT)
+            omega, keep = spd_filter(src, _square(upper_matrix(v[:, 3:9], 3)), ln,
+                                     "/".join(t for t in ("ODOMETRY", "EDGE2") if t in blocks),
+                                     "information matrix", _HINT)
+            ln, ids, v, omega = ln[keep], ids[keep], v[keep], omega[keep]
             parts.edge_ids, parts.edge_lines = ids, ln
             parts.edge_rotations = rot_z(v[:, 2])
             parts.edge_translations = np.column_stack([v[:, 0], v[:, 1], np.zeros(ln.shape[0])])
@@ -101,8 +109,9 @@ def read_isam_source(src: Source, *, skip_unknown: bool, check_connected: bool) 
     else:
         ln, ids, v, _ = stack(blocks.get("EDGE3", []))
         if ln.size:
-            omega = _square(upper_matrix(v[:, 6:27], 6))
-            check_spd(src, omega, ln, "information matrix", _HINT)
+            omega, keep = spd_filter(src, _square(upper_matrix(v[:, 6:27], 6)), ln, "EDGE3",
+                                     "information matrix", _HINT)
+            ln, ids, v, omega = ln[keep], ids[keep], v[keep], omega[keep]
             parts.edge_ids, parts.edge_lines = ids, ln
             parts.edge_rotations = euler_rpy_to_matrix(v[:, 3:6])
             parts.edge_translations = np.ascontiguousarray(v[:, 0:3])
@@ -143,6 +152,11 @@ def write_isam(graph: PoseGraph, path: PathLike) -> None:
         not planar, or the file cannot be written.
     """
     name = str(path)
+    write_atomic(path, lambda: isam_lines(graph, name))
+
+
+def isam_lines(graph: PoseGraph, name: str) -> list[str]:
+    """The lines :func:`write_isam` writes (``name`` is used in messages)."""
     if graph.num_gps:
         raise FormatError("the iSAM format cannot store position (GPS) priors; write g2o "
                           "instead", name)
@@ -158,15 +172,18 @@ def write_isam(graph: PoseGraph, path: PathLike) -> None:
     eb = graph.node_ids[graph.edge_nodes[:, 1]].tolist()
     if graph.is_2d:
         r = _upper_cholesky(planar_information(graph.edge_information), name, graph)
+        # the reader squares the written R again: check what it will get
+        require_readable_information(graph, _square(r), name, "iSAM")
         et = graph.edge_translations
         vals = np.column_stack([et[:, 0], et[:, 1], yaw_of(graph.edge_rotations),
                                 upper_from_sym(r)])
         tag = "EDGE2"
     else:
         r = _upper_cholesky(graph.edge_information, name, graph)
+        require_readable_information(graph, _square(r), name, "iSAM")
         vals = np.column_stack([graph.edge_translations,
                                 matrix_to_euler_rpy(graph.edge_rotations), upper_from_sym(r)])
         tag = "EDGE3"
     rows = fmt_floats(vals)
-    write_atomic(path, lambda: [f"{tag} {a} {b} {s}" for a, b, s in zip(ea, eb, rows,
-                                                                       strict=True)])
+    return [f"{tag} {a} {b} {s}" for a, b, s in zip(ea, eb, rows, strict=True)]
+

@@ -35,14 +35,15 @@ from ._lines import (
     assemble,
     check_duplicate_vertices,
     check_self_loops,
-    check_spd,
     euler_rpy_to_matrix,
     fmt_floats,
     load_source,
     matrix_to_euler_rpy,
     parse_blocks,
     require_planar,
+    require_readable_information,
     rot_z,
+    spd_filter,
     stack,
     sym_from_upper,
     upper_from_sym,
@@ -87,7 +88,8 @@ def toro2_information(vals: FloatArray) -> FloatArray:
 
 
 def read_toro(path: PathLike, *, skip_unknown: bool = False, edge3_order: str = "documented",
-              check_connected: bool = True) -> PoseGraph:
+              check_connected: bool = True,
+              fix_information: str | None = None) -> PoseGraph:
     """Read a TORO ``.graph`` file (2D ``VERTEX2``/``EDGE2`` or 3D ``VERTEX3``/``EDGE3``).
 
     Parameters
@@ -101,6 +103,8 @@ def read_toro(path: PathLike, *, skip_unknown: bool = False, edge3_order: str = 
         ``EDGE3`` information values are ordered.
     check_connected
         Raise when the graph (after ``EQUIV`` merging) falls apart into several pieces.
+    fix_information
+        As :func:`~hybridpgo.io.read_g2o`.
 
     Raises
     ------
@@ -108,7 +112,7 @@ def read_toro(path: PathLike, *, skip_unknown: bool = False, edge3_order: str = 
         As :func:`~hybridpgo.io.read_g2o`; also for ``EQUIV`` lines naming unknown vertices.
     """
     _check_order(edge3_order)
-    return read_toro_source(load_source(path), skip_unknown=skip_unknown,
+    return read_toro_source(load_source(path, fix_information), skip_unknown=skip_unknown,
                             edge3_order=edge3_order, check_connected=check_connected)
 
 
@@ -140,9 +144,10 @@ def _read_2d(src: Source, blocks: dict[str, list[Block]], parts: Parts) -> None:
         parts.vertex_translations = np.column_stack([v[:, 0], v[:, 1], np.zeros(ln.shape[0])])
     ln, ids, v, _ = stack(blocks.get("EDGE2", []))
     if ln.size:
-        info3 = toro2_information(v[:, 3:9])
-        check_spd(src, info3, ln, "information matrix (TORO order inf_xx inf_xy inf_yy inf_tt "
-                  "inf_xt inf_yt)")
+        info3, keep = spd_filter(src, toro2_information(v[:, 3:9]), ln, "EDGE2",
+                                 "information matrix (TORO order inf_xx inf_xy inf_yy inf_tt "
+                                 "inf_xt inf_yt)")
+        ln, ids, v, info3 = ln[keep], ids[keep], v[keep], info3[keep]
         parts.edge_ids, parts.edge_lines = ids, ln
         parts.edge_rotations = rot_z(v[:, 2])
         parts.edge_translations = np.column_stack([v[:, 0], v[:, 1], np.zeros(ln.shape[0])])
@@ -158,24 +163,29 @@ def _read_3d(src: Source, blocks: dict[str, list[Block]], parts: Parts, order: s
     edge_blocks = blocks.get("EDGE3", [])
     if not edge_blocks:
         return
-    infos, bare_lines = [], []
+    infos, bare_lines, kept = [], [], []
     for b in edge_blocks:
         if b.values.shape[1] == 27:
             info = sym_from_upper(b.values[:, 6:27], 6)
-            check_spd(src, info, b.line_nos, "information matrix (21 values over "
-                      + ("x, y, z, roll, pitch, yaw)" if order == "documented"
-                         else "roll, pitch, yaw, x, y, z: edge3_order='code')"))
-            if order == "code":
+            if order == "code":  # checked in our order, as written back (same bits)
                 info = info[:, _CODE_PERM[:, None], _CODE_PERM[None, :]]
+            info, keep = spd_filter(src, info, b.line_nos, "EDGE3",
+                                    "information matrix (21 values over "
+                                    + ("x, y, z, roll, pitch, yaw)" if order == "documented"
+                                       else "roll, pitch, yaw, x, y, z: edge3_order='code')"))
+            info = info[keep]
         else:  # no information on the line: identity, warned about below
+            keep = np.ones(len(b), bool)
             info = np.broadcast_to(np.eye(6), (len(b), 6, 6)).copy()
             bare_lines.append(b.line_nos)
         infos.append(info)
-    all_lines = np.concatenate([b.line_nos for b in edge_blocks])
+        kept.append(keep)
+    all_lines = np.concatenate([b.line_nos[k] for b, k in zip(edge_blocks, kept, strict=True)])
     order_idx = np.argsort(all_lines, kind="stable")
     ln = all_lines[order_idx]
-    ids = np.concatenate([b.ids for b in edge_blocks])[order_idx]
-    v = np.concatenate([b.values[:, 0:6] for b in edge_blocks])[order_idx]
+    ids = np.concatenate([b.ids[k] for b, k in zip(edge_blocks, kept, strict=True)])[order_idx]
+    v = np.concatenate([b.values[k, 0:6] for b, k in zip(edge_blocks, kept,
+                                                         strict=True)])[order_idx]
     parts.edge_ids, parts.edge_lines = ids, ln
     parts.edge_rotations = euler_rpy_to_matrix(v[:, 3:6])
     parts.edge_translations = np.ascontiguousarray(v[:, 0:3])
@@ -268,6 +278,12 @@ def write_toro(graph: PoseGraph, path: PathLike, *, edge3_order: str = "document
     """
     _check_order(edge3_order)
     name = str(path)
+    write_atomic(path, lambda: toro_lines(graph, name, edge3_order))
+
+
+def toro_lines(graph: PoseGraph, name: str, edge3_order: str = "documented") -> list[str]:
+    """The lines :func:`write_toro` writes (``name`` is used in messages)."""
+    _check_order(edge3_order)
     if graph.num_gps:
         raise FormatError("the TORO format cannot store position (GPS) priors; write g2o "
                           "instead", name)
@@ -277,7 +293,9 @@ def write_toro(graph: PoseGraph, path: PathLike, *, edge3_order: str = "document
                           name)
     if graph.is_2d:
         require_planar(graph, name, "TORO")
-    write_atomic(path, lambda: _toro_lines(graph, edge3_order))
+        require_readable_information(graph, planar_information(graph.edge_information), name,
+                                     "TORO")
+    return _toro_lines(graph, edge3_order)
 
 
 def _toro_lines(graph: PoseGraph, order: str) -> list[str]:
@@ -305,3 +323,4 @@ def _toro_lines(graph: PoseGraph, order: str) -> list[str]:
                             upper_from_sym(info)])
     out += [f"EDGE3 {a} {b} {r}" for a, b, r in zip(ea, eb, fmt_floats(vals), strict=True)]
     return out
+
