@@ -102,6 +102,12 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                    help="show a traceback for every error")
 
 
+def _add_progress(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--progress", action="store_true",
+                   help="draw progress even when stderr is not a terminal (default: only on a "
+                        "terminal; --quiet turns it off)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``hybridpgo`` argument parser; each subcommand sets ``command`` (its module name)."""
     from .. import __version__
@@ -185,6 +191,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true",
                    help="print the summary as JSON instead of text")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    _add_progress(p)
     _add_common(p)
     p.set_defaults(command="optimize")
 
@@ -230,6 +237,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sweeps", type=_nonneg_int, default=hy.sweeps, metavar="N",
                    help=f"hybrid sweeps before the polish (default {hy.sweeps})")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    _add_progress(p)
     _add_common(p)
     p.set_defaults(command="demo")
 
