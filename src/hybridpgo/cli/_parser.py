@@ -213,7 +213,8 @@ def build_parser() -> argparse.ArgumentParser:
         "plot", help="draw a graph with its constraint residuals",
         description="Draw the trajectory top-down (plus an oblique 3D view for 3D graphs) with "
                     "each constraint's residual from its desired to its actual pose, redder for "
-                    "higher energy (paper Fig. 6).  With --optimized, draw before and after.")
+                    "higher energy (paper Fig. 6), a legend, start and end markers and the "
+                    "energy per constraint.  With --optimized, draw before and after.")
     p.add_argument("file", help="pose-graph file (its vertices, or the tree initialization "
                                 "when it has none)")
     p.add_argument("--optimized", metavar="OUT",
@@ -222,7 +223,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="image to write (.png, .pdf, .svg; written atomically)")
     _add_format(p)
     p.add_argument("--no-residuals", action="store_true", help="draw the trajectory only")
+    p.add_argument("--shared-scale", action="store_true",
+                   help="with --optimized: one energy colour scale for both maps (default: each "
+                        "map its own, so each shows its worst residuals in red)")
     p.add_argument("--dpi", type=_pos_int, default=150, help="resolution (default 150)")
+    _add_progress(p)
     _add_common(p)
     p.set_defaults(command="plot")
 
@@ -279,8 +284,10 @@ def build_parser() -> argparse.ArgumentParser:
     # ---------------------------------------------------------------- evaluate
     p = sub.add_parser(
         "evaluate", help="accuracy of an optimized graph against ground truth",
-        description="Position RMSE, heading error (mean and max, degrees) and relative pose "
-                    "error of a graph's poses against ground truth.  Without GPS the estimate "
+        description="Position error, rotation error (full 3D angle) and heading error (yaw "
+                    "only), each as RMSE, mean, median, standard deviation and max (evo's "
+                    "statistics), and the relative pose error of a graph's poses against ground "
+                    "truth.  Without GPS the estimate "
                     "is first rigidly aligned to the ground truth; with GPS the earth frame is "
                     "absolute and no alignment is done (override with --align).")
     p.add_argument("file", metavar="OUT", help="graph file with the estimated poses")
