@@ -23,7 +23,8 @@ from hybridpgo.solvers import METHODS
 from hybridpgo.solvers.hybrid import STEP_KINDS
 from hybridpgo.tree import InitKind, TreeKind
 
-COMMANDS = ("info", "optimize", "convert", "plot", "demo", "generate", "noisify", "evaluate")
+COMMANDS = ("info", "optimize", "convert", "plot", "demo", "generate", "noisify", "evaluate",
+            "batch")
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 

@@ -302,4 +302,38 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(p)
     p.set_defaults(command="evaluate")
 
+    # ---------------------------------------------------------------- batch
+    p = sub.add_parser(
+        "batch", help="optimize many graphs, or one over a grid of options, on Dask",
+        description="Optimize every INPUT with every combination of the --grid options, each "
+                    "as one task on a Dask cluster: a local one (one worker process per core) "
+                    "unless --scheduler names a running one.  A failing job does not stop the "
+                    "others.  Writes the optimized graphs and OUTDIR/summary.csv and "
+                    "summary.json (input, options, energy, time, status, error per job).  "
+                    "Needs: pip install hybridpgo[dask].",
+        epilog="Exit status: 0 every job succeeded, 3 some failed (see the summary), 2 bad "
+               "arguments (nothing run).  Example: hybridpgo batch city*.g2o -o out --grid "
+               "sweeps=10,40 --grid polish=false,true")
+    p.add_argument("inputs", nargs="+", metavar="INPUT", help="pose-graph files")
+    p.add_argument("-o", "--output-dir", required=True, metavar="OUTDIR",
+                   help="directory for the optimized graphs and the summary (created if "
+                        "missing; its parent must exist)")
+    p.add_argument("--solver", choices=LazyChoices(_methods), default="hybrid",
+                   help="solver (default: hybrid)")
+    p.add_argument("--grid", action="append", metavar="KEY=V1,V2",
+                   help="a solver option and its values (repeatable; every combination runs). "
+                        "KEY: a HybridConfig / GaussNewtonConfig field, e.g. sweeps, tau_decay, "
+                        "polish, init, method, max_iterations")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="address of a running Dask scheduler, e.g. tcp://10.0.0.5:8786 "
+                        "(default: start a local cluster)")
+    p.add_argument("--workers", type=_pos_int, metavar="N",
+                   help="local cluster: number of worker processes (default: one per core)")
+    p.add_argument("--json", action="store_true",
+                   help="print the summary as JSON instead of a table")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or log lines")
+    _add_progress(p)
+    _add_common(p)
+    p.set_defaults(command="batch")
+
     return parser
