@@ -230,6 +230,8 @@ def run_on_dask(jobs: Sequence[BatchJob], *, scheduler: str | None = None,
             raise HybridPGOError(f"cannot reach the Dask scheduler {scheduler}: {exc}") from exc
     rows: list[dict[str, Any] | None] = [None] * len(jobs)
     failed = 0
+    if bar is not None:
+        bar.update(0, None)  # the rate counts from here, not from the cluster's start
     try:
         futures = client.map(run_job, list(jobs), pure=False)
         index = {f.key: k for k, f in enumerate(futures)}
@@ -321,7 +323,6 @@ def run(args: argparse.Namespace) -> int:
             f"combination(s), solver {args.solver}")
     bar = ProgressBar("batch", len(jobs), 0, enabled=not args.quiet, unit="job")
     try:
-        bar.update(0, None)
         rows = run_on_dask(jobs, scheduler=args.scheduler, workers=args.workers, bar=bar)
     finally:
         bar.close()
