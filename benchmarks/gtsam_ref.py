@@ -1,4 +1,5 @@
-"""GTSAM reference runs on factors built from *our* converted information (DESIGN.md §1).
+"""GTSAM reference runs on factors built from *our* converted information (DESIGN.md §1) by
+:mod:`hybridpgo.gtsam_bridge`.
 
 Built this way, ``2 * graph.error`` equals our energy E, so energies and times compare directly.
 """
@@ -22,47 +23,14 @@ def gtsam_available() -> bool:
 
 
 def build(graph: PoseGraph, rot: np.ndarray, trans: np.ndarray) -> tuple[Any, Any, Any]:
-    """(factors without the gauge prior, factors with it, initial values)."""
+    """(factors without the gauge prior, factors with it, initial values), from the bridge."""
     import gtsam
 
-    factors = gtsam.NonlinearFactorGraph()
-    values = gtsam.Values()
-    perm = np.r_[3:6, 0:3]  # our (rho, phi) -> GTSAM's (rotation, translation)
-    planar = graph.is_2d
-    idx2 = np.array([0, 1, 5])
-    for i in range(graph.num_nodes):
-        if planar:
-            values.insert(
-                i,
-                gtsam.Pose2(
-                    trans[i, 0], trans[i, 1], float(np.arctan2(rot[i, 1, 0], rot[i, 0, 0]))
-                ),
-            )
-        else:
-            values.insert(i, gtsam.Pose3(gtsam.Rot3(rot[i]), trans[i]))
-    for c, (a, b) in enumerate(graph.edge_nodes):
-        info = graph.edge_information[c]
-        rz, tz = graph.edge_rotations[c], graph.edge_translations[c]
-        if planar:
-            model = gtsam.noiseModel.Gaussian.Information(info[np.ix_(idx2, idx2)])
-            z = gtsam.Pose2(tz[0], tz[1], float(np.arctan2(rz[1, 0], rz[0, 0])))
-            factors.add(gtsam.BetweenFactorPose2(int(a), int(b), z, model))
-        else:
-            model = gtsam.noiseModel.Gaussian.Information(info[np.ix_(perm, perm)])
-            factors.add(
-                gtsam.BetweenFactorPose3(int(a), int(b), gtsam.Pose3(gtsam.Rot3(rz), tz), model)
-            )
-    if graph.num_gps:
-        raise NotImplementedError("GPS constraints in the GTSAM comparison")
+    from hybridpgo.gtsam_bridge import gauge_prior, to_gtsam
+
+    factors, values = to_gtsam(graph, rot, trans)
     full = gtsam.NonlinearFactorGraph(factors)
-    if planar:
-        full.add(
-            gtsam.PriorFactorPose2(0, values.atPose2(0), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6))
-        )
-    else:
-        full.add(
-            gtsam.PriorFactorPose3(0, values.atPose3(0), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6))
-        )
+    full.push_back(gauge_prior(graph, values))
     return factors, full, values
 
 

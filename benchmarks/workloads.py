@@ -524,7 +524,8 @@ def city(ctx: Context) -> Result:
                 key = f"{tag}.{label.split()[0]}"
                 metrics += [
                     quality(f"{key}.position_rmse_m", ev["position_rmse_m"], "m"),
-                    quality(f"{key}.heading_mean_deg", ev["heading_error_mean_deg"], "deg"),
+                    # the key predates the metrics' rename: its value is the full rotation angle
+                    quality(f"{key}.heading_mean_deg", ev["rotation_error_mean_deg"], "deg"),
                     quality(f"{key}.energy_per_constraint", res.final_energy / g.num_constraints),
                     timing(f"{key}.seconds", secs),
                 ]
@@ -540,8 +541,8 @@ def city(ctx: Context) -> Result:
                         g.num_gps,
                         label,
                         ev["position_rmse_m"],
-                        ev["heading_error_mean_deg"],
-                        ev["heading_error_max_deg"],
+                        ev["rotation_error_mean_deg"],
+                        ev["rotation_error_max_deg"],
                         res.final_energy / g.num_constraints,
                         f"{secs:.2f}",
                         f"{max_ms:.2f}" if label == "hybrid" else "-",
@@ -559,8 +560,8 @@ def city(ctx: Context) -> Result:
                 "GPS",
                 "method",
                 "position RMSE m",
-                "heading mean deg",
-                "heading max deg",
+                "rotation error mean deg",
+                "rotation error max deg",
                 "E / constraint",
                 "seconds",
                 "steady max update ms",

@@ -3,7 +3,6 @@ boundary, and one subprocess smoke test of the installed console script (STYLE.m
 
 from __future__ import annotations
 
-import io
 import json
 import os
 import subprocess
@@ -17,14 +16,15 @@ from tolerances import FLOAT64_IDENTITY
 
 from hybridpgo import energy, read_graph
 from hybridpgo.cli import main
-from hybridpgo.cli._common import LazyChoices, ProgressBar, output_format
+from hybridpgo.cli._common import LazyChoices, output_format
 from hybridpgo.cli._parser import build_parser
 from hybridpgo.io import FORMATS, WRITE_FORMATS
 from hybridpgo.solvers import METHODS, TREES
 from hybridpgo.solvers.hybrid import STEP_KINDS
 from hybridpgo.tree import InitKind, TreeKind
 
-COMMANDS = ("info", "optimize", "convert", "plot", "demo", "generate", "noisify", "evaluate")
+COMMANDS = ("info", "optimize", "convert", "plot", "demo", "generate", "noisify", "evaluate",
+            "batch")
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
@@ -229,9 +229,8 @@ def test_optimize_hybrid_writes_the_result(capsys: pytest.CaptureFixture[str], s
     assert code == 0, err
     for label in ("energy before", "energy after", "per constraint", "analyze", "solve"):
         assert label in text
-    # not a terminal: no redraws, one final progress line
-    assert "\r" not in err
-    assert err.count("hybrid [") == 1 and "10/10" in err
+    # not a terminal: no progress drawn (tests/test_progress.py: --progress forces it)
+    assert "\r" not in err and "10/10" not in err
     g0 = read_graph(small)
     g1 = read_graph(out)
     assert g1.num_nodes == g0.num_nodes and g1.num_edges == g0.num_edges
@@ -422,36 +421,16 @@ def test_closed_stdout_pipe_exits_quietly(capsys: pytest.CaptureFixture[str],
 
 
 # =========================================================================== progress bar
-class _Terminal(io.StringIO):
-    def isatty(self) -> bool:
-        return True
-
-
-def test_progress_bar_redraws_on_a_terminal() -> None:
-    stream = _Terminal()
-    bar = ProgressBar("hybrid", 3, 10, stream=stream)
-    for k, e in enumerate([100.0, 50.0, 20.0, 10.0]):
-        bar.update(k, e, tau=0.99**k)
-    bar.close()
-    text = stream.getvalue()
-    assert text.startswith("\r") and text.endswith("\n")
-    assert "3/3" in text and "E/c 1 " in text and "tau 0.970" in text
-
-
-def test_progress_bar_off_a_terminal_writes_one_final_line() -> None:
-    stream = io.StringIO()
-    bar = ProgressBar("exact LM", 5, 2, stream=stream)
-    for k in range(4):
-        bar.update(k, 10.0 - k)
-    bar.close("done")
-    assert stream.getvalue().count("\n") == 1
-    assert "\r" not in stream.getvalue()
-    assert "3/5" in stream.getvalue() and stream.getvalue().rstrip().endswith("done")
-    quiet = io.StringIO()
-    bar = ProgressBar("x", 5, 2, enabled=False, stream=quiet)
-    bar.update(1, 1.0)
-    bar.close()
-    assert quiet.getvalue() == ""
+# (the bar itself: tests/test_progress.py)
+def test_progress_flag_draws_off_a_terminal(capsys: pytest.CaptureFixture[str], tiny: Path,
+                                            tmp_path: Path) -> None:
+    code, _, err = run_cli(capsys, "optimize", tiny, "-o", tmp_path / "o.g2o", "--progress",
+                           "--sweeps", "3")
+    assert code == 0
+    assert "hybrid" in err and "3/3" in err and "E/c" in err
+    code, _, err = run_cli(capsys, "optimize", tiny, "-o", tmp_path / "o.g2o", "--progress",
+                           "-q")
+    assert code == 0 and err == ""  # --quiet wins
 
 
 # =========================================================================== convert

@@ -24,6 +24,9 @@ from hybridpgo.metrics import (
 
 #: Metrics of exactly equal poses: rounding of angles near 0 (atan2 of ~1e-16) and positions.
 EXACT = 1e-9
+#: Ours vs evo's (same formulas, different code paths: quaternions, SVD): relative; measured
+#: agreement 1e-14 (evo 1.38.1).
+EVO_AGREEMENT = 1e-12
 
 
 @pytest.fixture
@@ -44,9 +47,9 @@ def test_identical_poses_have_zero_errors(rng: np.random.Generator) -> None:
         m = evaluate(rot, trans, rot, trans, align=align)
         assert m["num_poses"] == 200 and m["aligned"] is align
         assert m["rpe_num_pairs"] == 199
-        for key in ("position_rmse_m", "position_max_m", "heading_error_mean_deg",
-                    "heading_error_max_deg", "rpe_translation_rmse_m", "rpe_rotation_rmse_deg",
-                    "alignment_rotation_deg"):
+        for key in ("position_rmse_m", "position_max_m", "rotation_error_mean_deg",
+                    "rotation_error_max_deg", "heading_error_max_deg", "rpe_translation_rmse_m",
+                    "rpe_rotation_rmse_deg", "alignment_rotation_deg"):
             assert m[key] < EXACT, (key, m[key])
         json.dumps(m)  # plain numbers
         assert all(type(v) in (int, float, bool) for v in m.values())
@@ -59,7 +62,7 @@ def test_rigidly_moved_copy(rng: np.random.Generator) -> None:
     mrot, mtrans = r @ rot, trans @ r.T + t
     aligned = evaluate(mrot, mtrans, rot, trans, align=True)
     assert aligned["position_rmse_m"] < EXACT * 1e3  # positions ~1e3 m
-    assert aligned["heading_error_max_deg"] < EXACT
+    assert aligned["rotation_error_max_deg"] < EXACT
     assert aligned["alignment_rotation_deg"] == pytest.approx(math.degrees(so3.angle(r)),
                                                               abs=EXACT)
     raw = evaluate(mrot, mtrans, rot, trans, align=False)
@@ -69,8 +72,9 @@ def test_rigidly_moved_copy(rng: np.random.Generator) -> None:
     assert raw["position_max_m"] == pytest.approx(expected.max(), rel=FLOAT64_IDENTITY)
     # R_gt^T (R R_gt) is conjugate to R: the same angle for every pose.
     angle = math.degrees(float(so3.angle(r)))
-    assert raw["heading_error_mean_deg"] == pytest.approx(angle, abs=EXACT)
-    assert raw["heading_error_max_deg"] == pytest.approx(angle, abs=EXACT)
+    assert raw["rotation_error_mean_deg"] == pytest.approx(angle, abs=EXACT)
+    assert raw["rotation_error_max_deg"] == pytest.approx(angle, abs=EXACT)
+    assert raw["rotation_error_std_deg"] < EXACT
     # The relative pose error does not see a rigid motion.
     for m in (aligned, raw):
         assert m["rpe_translation_rmse_m"] < EXACT * 1e3
@@ -83,20 +87,108 @@ def test_pure_offset_without_alignment_is_the_offset(rng: np.random.Generator) -
     m = evaluate(rot, trans + offset, rot, trans, align=False)
     assert m["position_rmse_m"] == pytest.approx(5.0, rel=FLOAT64_IDENTITY * 1e3)
     assert m["position_mean_m"] == pytest.approx(5.0, rel=FLOAT64_IDENTITY * 1e3)
-    assert m["heading_error_max_deg"] == 0.0
+    assert m["rotation_error_max_deg"] == 0.0 and m["heading_error_max_deg"] == 0.0
 
 
-def test_heading_error_of_known_rotations(rng: np.random.Generator) -> None:
+def test_rotation_error_of_known_rotations(rng: np.random.Generator) -> None:
     rot, trans = trajectory(rng, n=100)
     axes = rng.normal(size=(100, 3))
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
     deg = np.where(np.arange(100) < 50, 2.0, 6.0)
     est = rot @ so3.exp(axes * np.radians(deg)[:, None])  # body-frame error of known angle
     m = evaluate(est, trans, rot, trans, align=False)
-    assert m["heading_error_mean_deg"] == pytest.approx(4.0, abs=EXACT)
-    assert m["heading_error_max_deg"] == pytest.approx(6.0, abs=EXACT)
-    assert m["heading_error_rmse_deg"] == pytest.approx(math.sqrt(20.0), abs=EXACT)
+    assert m["rotation_error_mean_deg"] == pytest.approx(4.0, abs=EXACT)
+    assert m["rotation_error_max_deg"] == pytest.approx(6.0, abs=EXACT)
+    assert m["rotation_error_rmse_deg"] == pytest.approx(math.sqrt(20.0), abs=EXACT)
+    assert m["rotation_error_median_deg"] == pytest.approx(4.0, abs=EXACT)  # mid of 2s and 6s
+    assert m["rotation_error_std_deg"] == pytest.approx(2.0, abs=EXACT)  # ddof=0, as evo
     assert m["position_rmse_m"] == 0.0
+
+
+def planar(yaw: np.ndarray) -> np.ndarray:
+    """Rotations about z by ``yaw`` (radians)."""
+    return so3.exp(np.outer(yaw, [0.0, 0.0, 1.0]))
+
+
+def test_heading_error_is_the_yaw_difference(rng: np.random.Generator) -> None:
+    n = 60
+    yaw = rng.uniform(-np.pi, np.pi, n)
+    trans = rng.normal(size=(n, 3))
+    deg = np.linspace(-170.0, 170.0, n)  # signed yaw errors, some across +-180
+    m = evaluate(planar(yaw + np.radians(deg)), trans, planar(yaw), trans, align=False)
+    assert m["heading_error_max_deg"] == pytest.approx(170.0, abs=EXACT * 1e3)
+    assert m["heading_error_mean_deg"] == pytest.approx(np.abs(deg).mean(), abs=EXACT * 1e3)
+    assert m["heading_error_median_deg"] == pytest.approx(np.median(np.abs(deg)),
+                                                          abs=EXACT * 1e3)
+    # a pure yaw error is the whole rotation error
+    assert m["rotation_error_mean_deg"] == pytest.approx(m["heading_error_mean_deg"],
+                                                         abs=EXACT * 1e3)
+    # wrap-around: 179 deg against -179 deg is 2 deg
+    m = evaluate(planar(np.radians([179.0])), trans[:1], planar(np.radians([-179.0])),
+                 trans[:1], align=False)
+    assert m["heading_error_max_deg"] == pytest.approx(2.0, abs=EXACT * 1e3)
+
+
+def test_roll_and_pitch_errors_are_not_heading_errors(rng: np.random.Generator) -> None:
+    n = 40
+    gt = planar(rng.uniform(-np.pi, np.pi, n))  # a level vehicle
+    trans = rng.normal(size=(n, 3))
+    for axis in ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0]):  # body roll, body pitch of 5 deg
+        est = gt @ so3.exp(np.radians(5.0) * np.array(axis))
+        m = evaluate(est, trans, gt, trans, align=False)
+        assert m["heading_error_max_deg"] < EXACT
+        assert m["rotation_error_mean_deg"] == pytest.approx(5.0, abs=EXACT)
+
+
+def test_statistics_are_numpys(rng: np.random.Generator) -> None:
+    """The naive twin of every summary: NumPy on the per-pose position errors."""
+    rot, trans = trajectory(rng, n=77)
+    est = trans + rng.normal(scale=0.5, size=trans.shape)
+    m = evaluate(rot, est, rot, trans, align=False)
+    err = np.linalg.norm(est - trans, axis=1)
+    expected = {"rmse": np.sqrt(np.mean(err**2)), "mean": err.mean(), "median": np.median(err),
+                "std": err.std(), "max": err.max()}
+    for stat, value in expected.items():
+        assert m[f"position_{stat}_m"] == pytest.approx(value, rel=FLOAT64_IDENTITY)
+
+
+def test_agrees_with_evo(rng: np.random.Generator) -> None:
+    """Every statistic that evo computes too is evo's to (nearly) every digit: APE of the
+    translation and of the rotation angle, aligned or not, and the RPE over consecutive poses."""
+    evo_metrics = pytest.importorskip("evo.core.metrics")
+    from evo.core.trajectory import PoseTrajectory3D
+
+    def traj(rot: np.ndarray, trans: np.ndarray) -> PoseTrajectory3D:
+        quat_wxyz = np.roll(so3.matrix_to_quat_xyzw(rot), 1, axis=1)
+        return PoseTrajectory3D(positions_xyz=trans, orientations_quat_wxyz=quat_wxyz,
+                                timestamps=np.arange(rot.shape[0], dtype=float))
+
+    rot, trans = trajectory(rng, n=150)
+    est_rot = rot @ so3.exp(rng.normal(scale=0.05, size=(150, 3)))
+    est_trans = trans + rng.normal(scale=0.8, size=trans.shape)
+    r = Rotation.from_rotvec([0.0, 0.1, 0.4]).as_matrix()
+    est_rot, est_trans = r @ est_rot, est_trans @ r.T + [3.0, 1.0, 0.0]
+    pe = evo_metrics.PoseRelation
+    for align in (False, True):
+        ours = evaluate(est_rot, est_trans, rot, trans, align=align)
+        ref, est = traj(rot, trans), traj(est_rot, est_trans)
+        if align:
+            est.align(ref, correct_scale=False)
+        for relation, prefix, unit in ((pe.translation_part, "position", "m"),
+                                       (pe.rotation_angle_deg, "rotation_error", "deg")):
+            ape = evo_metrics.APE(relation)
+            ape.process_data((ref, est))
+            for stat in ("rmse", "mean", "median", "std", "max"):
+                assert ours[f"{prefix}_{stat}_{unit}"] == pytest.approx(
+                    ape.get_statistic(getattr(evo_metrics.StatisticsType, stat)),
+                    rel=EVO_AGREEMENT), (align, prefix, stat)
+        for relation, key in ((pe.translation_part, "rpe_translation_rmse_m"),
+                              (pe.rotation_angle_deg, "rpe_rotation_rmse_deg")):
+            rpe = evo_metrics.RPE(relation, delta=1, delta_unit=evo_metrics.Unit.frames,
+                                  all_pairs=False)
+            rpe.process_data((traj(rot, trans), traj(est_rot, est_trans)))
+            assert ours[key] == pytest.approx(
+                rpe.get_statistic(evo_metrics.StatisticsType.rmse), rel=EVO_AGREEMENT), key
 
 
 def test_relative_pose_error_of_one_displaced_pose(rng: np.random.Generator) -> None:

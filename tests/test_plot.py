@@ -138,8 +138,57 @@ def test_oblique_projection() -> None:
 def test_plot_graph_3d_title_and_scale(data_dir: Path) -> None:
     g = read_graph(data_dir / "smallGrid3D.g2o")
     ax = plot.plot_graph_3d(g, title="grid", z_scale=1.0)
-    assert ax.get_title().startswith("grid\noblique view")
+    name, energy_line, view = ax.get_title().split("\n")
+    assert name == "grid" and energy_line.startswith("E/c ") and view.startswith("oblique view")
     assert "heights x1" in ax.get_title()
+
+
+def test_titles_carry_the_energy_per_constraint(rng: np.random.Generator) -> None:
+    from hybridpgo.energy import energy
+
+    g, _, _ = random_graph(rng, n=10, extra=5, noise=0.3)
+    e = energy(g)
+    expected = f"E/c {e / g.num_constraints:.4g}  (E {e:.4g}, {g.num_constraints} constraints)"
+    assert plot.energy_title(g) == expected
+    assert plot.plot_graph(g, title="t").get_title() == "t\n" + expected
+    assert plot.plot_graph(g).get_title() == expected
+    assert plot.plot_graph(g, title="t", energy_in_title=False).get_title() == "t"
+
+
+def test_legend_and_start_end_markers(rng: np.random.Generator) -> None:
+    g = consistent_graph(rng, gps=True)
+    ax = plot.plot_graph(g)
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert labels[0].startswith("trajectory") and labels[1].startswith("residual")
+    assert labels[2].startswith("GPS residual")
+    assert labels[3:] == [f"start (pose {g.node_ids[0]})", f"end (pose {g.node_ids[-1]})"]
+    start = next(ln for ln in ax.get_lines() if ln.get_marker() == plot.START_STYLE["marker"])
+    end = next(ln for ln in ax.get_lines() if ln.get_marker() == plot.END_STYLE["marker"])
+    np.testing.assert_array_equal(np.column_stack([start.get_xdata(), start.get_ydata()]),
+                                  g.translations[:1, :2])
+    np.testing.assert_array_equal(np.column_stack([end.get_xdata(), end.get_ydata()]),
+                                  g.translations[-1:, :2])
+    # no GPS: no GPS entry; no residuals: no residual entry
+    g0, _, _ = random_graph(rng, n=6, extra=2)
+    labels = [t.get_text() for t in plot.plot_graph(g0, residuals=False).get_legend().get_texts()]
+    assert [x.split()[0] for x in labels] == ["trajectory", "start", "end"]
+    assert plot.plot_graph(g0, legend=False).get_legend() is None
+
+
+def test_scale_bar_of_the_oblique_view(data_dir: Path) -> None:
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    assert [plot._nice_length(s) for s in (100.0, 47.0, 0.3, 5e4)] == [20.0, 5.0, 0.05, 1e4]
+    assert [plot._fmt_length(v) for v in (20.0, 0.05, 1e4)] == ["20 m", "5 cm", "10 km"]
+    g = read_graph(data_dir / "smallGrid3D.g2o")
+    ax = plot.plot_graph_3d(g)
+    [bar] = [a for a in ax.artists if isinstance(a, AnchoredSizeBar)]
+    screen_x = plot.oblique_projection(g.translations)[:, 0]
+    length = plot._nice_length(float(np.ptp(screen_x)))
+    assert bar.size_bar.get_children()[0].get_width() == pytest.approx(length)
+    assert bar.txt_label.get_text() == plot._fmt_length(length)
+    assert not [a for a in plot.plot_graph_3d(g, scale_bar=False).artists
+                if isinstance(a, AnchoredSizeBar)]
 
 
 def test_isam_graph_is_drawn_at_the_tree_initialization(tmp_path: Path, data_dir: Path) -> None:
@@ -194,6 +243,34 @@ def test_graph_figure_layout(data_dir: Path) -> None:
         g2 = read_graph(data_dir / "w100_toro.graph")
     fig = plot.graph_figure(g2, residuals=False)
     assert len(fig.axes) == 1  # 2D: top-down only, no colour bar without residuals
+
+
+def _colorbar_ranges(fig: object) -> list[tuple[float, float]]:
+    bars = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]  # type: ignore[attr-defined]
+    return [(ax._colorbar.norm.vmin, ax._colorbar.norm.vmax) for ax in bars]
+
+
+def test_each_map_has_its_own_colour_scale_by_default(rng: np.random.Generator) -> None:
+    """An optimized map shows its own worst residuals in red, not the darkest brown of the
+    initial map's scale."""
+    g = consistent_graph(rng)
+    rot = np.array(g.rotations)
+    before = (rot, g.translations + rng.normal(scale=1.0, size=(g.num_nodes, 3)))
+    after = (rot, g.translations + rng.normal(scale=0.01, size=(g.num_nodes, 3)))
+    before_e = constraint_energies(g, *before)[0]
+    after_e = constraint_energies(g, *after)[0]
+    assert before_e.max() > 100 * after_e.max()
+    fig = plot.graph_figure(g, [before, after], titles=["before", "after"])
+    ranges = _colorbar_ranges(fig)
+    assert len(ranges) == 2
+    assert ranges[0][1] == pytest.approx(before_e.max(), rel=FLOAT64_IDENTITY)
+    assert ranges[1][1] == pytest.approx(after_e.max(), rel=FLOAT64_IDENTITY)
+    # a shared range: one colour bar for the figure
+    shared = plot.residual_energy_range(g, [before, after])
+    fig = plot.graph_figure(g, [before, after], energy_range=shared)
+    assert _colorbar_ranges(fig) == [shared]
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert labels[0].startswith("trajectory") and labels[-1].startswith("end")
 
 
 def test_shared_energy_range(rng: np.random.Generator) -> None:

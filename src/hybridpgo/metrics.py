@@ -11,14 +11,20 @@ Example (not a doctest)::
     evaluate(out.rotations[ie], out.translations[ie], gt_rot[ig], gt_trans[ig],
              align=out.num_gps == 0)
 
-* **Position error**: RMSE (and mean, max) of ``|p_est - p_gt|``.  Without GPS the solution's
-  frame is arbitrary (gauge: the first pose), so ``align=True`` first moves the estimate by the
-  rigid motion (rotation + translation, no scale; Kabsch/Umeyama) that best fits its positions
-  onto the true ones.  With GPS the earth frame is absolute: ``align=False``.
-* **Heading error**: the angle of ``R_gt^T R_est`` (the full 3D orientation difference, after
-  the alignment rotation when aligned), mean / RMS / max in degrees.
+* **Position error**: ``|p_est - p_gt|``.  Without GPS the solution's frame is arbitrary (gauge:
+  the first pose), so ``align=True`` first moves the estimate by the rigid motion (rotation +
+  translation, no scale; Kabsch/Umeyama) that best fits its positions onto the true ones.  With
+  GPS the earth frame is absolute: ``align=False``.
+* **Rotation error**: the angle of ``R_gt^T R_est``, the full 3D orientation difference (after
+  the alignment rotation when aligned); evo's APE ``rotation_angle_deg``.
+* **Heading error**: the yaw-only difference ``|wrap(yaw_est - yaw_gt)|`` with
+  ``yaw = atan2(R[1, 0], R[0, 0])``, the direction of the body x axis in the horizontal plane
+  (the vehicle's heading); roll and pitch errors do not count.
 * **Relative pose error** (RPE) over pose pairs ``(i, i + delta)``: the translation (m) and angle
   (deg) of ``(T_gt_i^-1 T_gt_j)^-1 (T_est_i^-1 T_est_j)``, RMSE; alignment-free by nature.
+
+Each per-pose error is summarized as evo does: RMSE, mean, median, standard deviation
+(population, ``ddof=0``) and max (keys ``<error>_<stat>_<unit>``).
 
 Poses are ``(R_world_node (N, 3, 3), t_world_node (N, 3))``.  :func:`write_tum` writes the TUM
 format (``timestamp tx ty tz qx qy qz qw``) that ``evo`` reads.
@@ -113,9 +119,10 @@ def evaluate(est_rot: npt.ArrayLike, est_trans: npt.ArrayLike, gt_rot: npt.Array
     -------
     dict
         JSON-friendly plain numbers: ``num_poses``, ``aligned``, ``alignment_rotation_deg``,
-        ``alignment_translation_m`` (the applied fit; 0 when not aligned),
-        ``position_rmse_m``, ``position_mean_m``, ``position_max_m``,
-        ``heading_error_mean_deg``, ``heading_error_rmse_deg``, ``heading_error_max_deg``,
+        ``alignment_translation_m`` (the applied fit; 0 when not aligned); for each of
+        ``position_..._m``, ``rotation_error_..._deg`` (full angle) and
+        ``heading_error_..._deg`` (yaw only) the statistics ``rmse``, ``mean``, ``median``,
+        ``std``, ``max`` (e.g. ``position_rmse_m``, ``heading_error_median_deg``); then
         ``rpe_delta``, ``rpe_num_pairs``, ``rpe_translation_rmse_m``, ``rpe_rotation_rmse_deg``
         (RPE values are 0 with no pairs).
 
@@ -143,7 +150,8 @@ def evaluate(est_rot: npt.ArrayLike, est_trans: npt.ArrayLike, gt_rot: npt.Array
     else:
         al_rot = al_trans = 0.0
     pos = np.linalg.norm(et - gt, axis=1)
-    head = np.degrees(so3.angle(np.swapaxes(gr, 1, 2) @ er))
+    rot_err = np.degrees(so3.angle(np.swapaxes(gr, 1, 2) @ er))
+    head = np.degrees(np.abs(_wrap(_yaw(er) - _yaw(gr))))
 
     pairs = max(n - rpe_delta, 0)
     rpe_t = rpe_r = 0.0
@@ -159,17 +167,35 @@ def evaluate(est_rot: npt.ArrayLike, est_trans: npt.ArrayLike, gt_rot: npt.Array
         "aligned": bool(align),
         "alignment_rotation_deg": al_rot,
         "alignment_translation_m": al_trans,
-        "position_rmse_m": float(np.sqrt(np.mean(pos**2))),
-        "position_mean_m": float(pos.mean()),
-        "position_max_m": float(pos.max()),
-        "heading_error_mean_deg": float(head.mean()),
-        "heading_error_rmse_deg": float(np.sqrt(np.mean(head**2))),
-        "heading_error_max_deg": float(head.max()),
+        **_stats(pos, "position", "m"),
+        **_stats(rot_err, "rotation_error", "deg"),
+        **_stats(head, "heading_error", "deg"),
         "rpe_delta": int(rpe_delta),
         "rpe_num_pairs": int(pairs),
         "rpe_translation_rmse_m": rpe_t,
         "rpe_rotation_rmse_deg": rpe_r,
     }
+
+
+#: The statistics of each per-pose error, in evo's definitions.
+STATISTICS = ("rmse", "mean", "median", "std", "max")
+
+
+def _stats(err: FloatArray, name: str, unit: str) -> dict[str, float]:
+    """``{name_rmse_unit: ..., name_mean_unit: ...}`` as evo computes them (std: ddof=0)."""
+    values = {"rmse": np.sqrt(np.mean(err**2)), "mean": np.mean(err), "median": np.median(err),
+              "std": np.std(err), "max": np.max(err)}
+    return {f"{name}_{k}_{unit}": float(values[k]) for k in STATISTICS}
+
+
+def _yaw(rot: FloatArray) -> FloatArray:
+    """Heading of the body x axis in the horizontal plane (ZYX Euler yaw), radians."""
+    return np.arctan2(rot[..., 1, 0], rot[..., 0, 0])
+
+
+def _wrap(angle: FloatArray) -> FloatArray:
+    """Angles into [-pi, pi)."""
+    return (angle + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def match_by_ids(est_ids: npt.ArrayLike, gt_ids: npt.ArrayLike) -> tuple[IdArray, IdArray]:

@@ -11,6 +11,11 @@
 * :func:`graph_figure` and :func:`energy_figure` build whole figures; :func:`save_figure`
   writes one atomically.
 
+Every map has a legend (trajectory, residuals, GPS residuals, start and end markers), its
+energy per constraint in the title, and, for oblique views, a horizontal scale bar.  Each map's
+colour scale is its own by default (so an optimized map shows *its* worst residuals in red);
+pass ``energy_range`` (:func:`residual_energy_range`) to compare maps on one scale.
+
 Every ``plot_*`` function takes ``ax=None`` (a new figure is made) and returns the axes.  Figures
 are made with :class:`matplotlib.figure.Figure` on the Agg canvas, never through ``pyplot``, so
 nothing here opens a window or changes matplotlib's global backend.  Segments are drawn as
@@ -38,8 +43,10 @@ if TYPE_CHECKING:
 
 __all__ = [
     "energy_figure",
+    "energy_title",
     "graph_figure",
     "height_scale",
+    "legend_handles",
     "oblique_projection",
     "plot_energy",
     "plot_graph",
@@ -53,6 +60,9 @@ RESIDUAL_COLORS = ("#3b1d0e", "#8b4513", "#ff1a1a")
 #: GPS residuals are blue (paper Fig. 3d).
 GPS_COLOR = "#1f5fff"
 TRAJECTORY_COLOR = "0.55"
+#: Start (first pose in id order) and end (last) markers.
+START_STYLE = {"marker": "o", "color": "#1a9e3a", "markersize": 8, "markeredgecolor": "white"}
+END_STYLE = {"marker": "s", "color": "#111111", "markersize": 7, "markeredgecolor": "white"}
 #: The colour scale spans at most this many decades below the highest energy.
 ENERGY_DECADES = 4.0
 
@@ -183,19 +193,101 @@ def _draw_residuals(ax: Axes, seg: FloatArray, energies: FloatArray, norm: Norma
                        linewidth=0.9, zorder=zorder + k / COLOR_LEVELS)
 
 
+def energy_title(graph: PoseGraph, rot: FloatArray | None = None,
+                 trans: FloatArray | None = None) -> str:
+    """``E/c 1.167  (E 6533, 5453 constraints)``: the energy line of a map's title."""
+    from .energy import energy
+
+    r, t = _poses(graph, rot, trans)
+    e = energy(graph, r, t)
+    nc = graph.num_constraints
+    return f"E/c {e / max(nc, 1):.4g}  (E {e:.4g}, {nc} constraints)"
+
+
+def _colorbar(fig: Any, norm: Normalize, axes: Axes | Sequence[Axes]) -> None:
+    from matplotlib.cm import ScalarMappable
+
+    fig.colorbar(ScalarMappable(norm=norm, cmap=_residual_cmap()), ax=axes, shrink=0.8,
+                 label=r"constraint energy $e^\top \Omega\, e$")
+
+
+def legend_handles(graph: PoseGraph, residuals: bool = True) -> list[Any]:
+    """Legend entries of a map: trajectory, residuals, GPS residuals (if any), start, end."""
+    from matplotlib.lines import Line2D
+
+    handles: list[Any] = [Line2D([], [], color=TRAJECTORY_COLOR, linewidth=1.0,
+                                 label="trajectory (consecutive poses)")]
+    if residuals:
+        handles.append(Line2D([], [], color=RESIDUAL_COLORS[-1], linewidth=1.5,
+                              label="residual: desired \u2192 actual pose (redder: higher energy)"))
+        if graph.num_gps:
+            handles.append(Line2D([], [], color=GPS_COLOR, linewidth=1.5,
+                                  label="GPS residual: measured \u2192 actual"))
+    first, last = int(graph.node_ids[0]), int(graph.node_ids[-1])
+    handles.append(Line2D([], [], linestyle="none", label=f"start (pose {first})",
+                          **START_STYLE))  # type: ignore[arg-type]
+    handles.append(Line2D([], [], linestyle="none", label=f"end (pose {last})",
+                          **END_STYLE))  # type: ignore[arg-type]
+    return handles
+
+
+def _legend_below(ax: Axes, handles: list[Any]) -> None:
+    """A legend under the axes (never over the map; loc="best" is slow on 100k points)."""
+    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.07),
+              ncols=2, fontsize="small", frameon=False)
+
+
 def _finish_panel(ax: Axes, norm: Normalize | None, colorbar: bool, title: str | None,
                   xlabel: str, ylabel: str) -> None:
     if norm is not None and colorbar and ax.figure is not None:
-        from matplotlib.cm import ScalarMappable
-
-        ax.figure.colorbar(ScalarMappable(norm=norm, cmap=_residual_cmap()), ax=ax, shrink=0.8,
-                           label="constraint energy")
+        _colorbar(ax.figure, norm, ax)
     ax.set_aspect("equal", adjustable="datalim")
     ax.autoscale_view()
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     if title:
         ax.set_title(title)
+
+
+def _title(title: str | None, graph: PoseGraph, rot: FloatArray, trans: FloatArray,
+           with_energy: bool) -> str | None:
+    if not with_energy:
+        return title
+    line = energy_title(graph, rot, trans)
+    return f"{title}\n{line}" if title else line
+
+
+def _nice_length(span: float) -> float:
+    """1, 2 or 5 x 10^k metres, about a fifth of ``span``."""
+    target = max(span / 5.0, 1e-9)
+    k = np.floor(np.log10(target))
+    for m in (5.0, 2.0, 1.0):
+        if m * 10.0**k <= target:
+            return float(m * 10.0**k)
+    return float(10.0**k)  # pragma: no cover - m = 1 always fits
+
+
+def _fmt_length(metres: float) -> str:
+    if metres >= 1000.0:
+        return f"{metres / 1000.0:g} km"
+    if metres >= 1.0:
+        return f"{metres:g} m"
+    return f"{metres * 100.0:g} cm"
+
+
+def _scale_bar(ax: Axes, span: float) -> float:
+    """A horizontal scale bar in the lower left; returns its length (metres)."""
+    from mpl_toolkits.axes_grid1.anchored_artists import (  # type: ignore[import-untyped]
+        AnchoredSizeBar,
+    )
+
+    length = _nice_length(span)
+    bar = AnchoredSizeBar(ax.transData, length, _fmt_length(length), loc="lower left",
+                          pad=0.5, borderpad=0.6, sep=4, frameon=False, size_vertical=0,
+                          color="black")
+    bar.set_gid("scale-bar")
+    ax.add_artist(bar)
+    return length
 
 
 def _draw_graph(ax: Axes, graph: PoseGraph, project: Callable[[FloatArray], FloatArray],
@@ -212,6 +304,9 @@ def _draw_graph(ax: Axes, graph: PoseGraph, project: Callable[[FloatArray], Floa
     p = project(trans)
     ax.plot(p[:, 0], p[:, 1], linestyle="none", marker=".", markersize=1.0, color="0.35",
             zorder=2)
+    # start and end of the trajectory (first and last pose in id order), above everything
+    ax.plot(p[:1, 0], p[:1, 1], linestyle="none", zorder=7, **START_STYLE)  # type: ignore[arg-type]
+    ax.plot(p[-1:, 0], p[-1:, 1], linestyle="none", zorder=7, **END_STYLE)  # type: ignore[arg-type]
     if not residuals:
         return None
     e = seg["residual_energy"]
@@ -224,7 +319,8 @@ def _draw_graph(ax: Axes, graph: PoseGraph, project: Callable[[FloatArray], Floa
 def plot_graph(graph: PoseGraph, rot: FloatArray | None = None, trans: FloatArray | None = None,
                ax: Axes | None = None, residuals: bool = True, *,
                energy_range: tuple[float, float] | None = None, colorbar: bool = True,
-               title: str | None = None) -> Axes:
+               title: str | None = None, legend: bool = True,
+               energy_in_title: bool = True) -> Axes:
     """Draw ``graph`` top-down (x right, y up) with its constraint residuals (paper Fig. 6).
 
     Parameters
@@ -240,11 +336,16 @@ def plot_graph(graph: PoseGraph, rot: FloatArray | None = None, trans: FloatArra
         actual position), coloured from brown to bright red by its energy on a log scale, and
         each GPS residual (measured position to the pose) in blue.
     energy_range : (low, high), optional
-        Energies at the ends of the colour scale (share one between before/after plots, see
-        :func:`residual_energy_range`); default: from this graph's energies.
+        Energies at the ends of the colour scale (to compare maps on one scale, see
+        :func:`residual_energy_range`); default: this map's own energies, so its highest-energy
+        residuals are the reddest.
     colorbar : bool
         Add a colour bar of the constraint energy (with ``residuals``).
     title : str, optional
+    legend : bool
+        A legend under the map: trajectory, residuals, GPS residuals, start and end markers.
+    energy_in_title : bool
+        Add a title line with the energy per constraint (:func:`energy_title`).
 
     Returns
     -------
@@ -255,7 +356,10 @@ def plot_graph(graph: PoseGraph, rot: FloatArray | None = None, trans: FloatArra
     if ax is None:
         ax = _new_figure().add_subplot()
     norm = _draw_graph(ax, graph, lambda p: p[:, :2], rot, trans, residuals, energy_range)
-    _finish_panel(ax, norm, colorbar, title, "x [m]", "y [m]")
+    _finish_panel(ax, norm, colorbar, _title(title, graph, rot, trans, energy_in_title),
+                  "x [m]", "y [m]")
+    if legend:
+        _legend_below(ax, legend_handles(graph, residuals))
     return ax
 
 
@@ -288,13 +392,16 @@ def plot_graph_3d(graph: PoseGraph, rot: FloatArray | None = None,
                   trans: FloatArray | None = None, ax: Axes | None = None,
                   residuals: bool = True, *, energy_range: tuple[float, float] | None = None,
                   elev: float = 30.0, azim: float = -60.0, z_scale: float | None = None,
-                  colorbar: bool = False, title: str | None = None) -> Axes:
+                  colorbar: bool = False, title: str | None = None, legend: bool = True,
+                  energy_in_title: bool = True, scale_bar: bool = True) -> Axes:
     """Draw ``graph`` in an oblique view (paper Fig. 6c/d), same colours as :func:`plot_graph`.
 
     The view is an orthographic projection (:func:`oblique_projection`) drawn on ordinary 2D
     axes (mplot3d re-projects every segment in Python at each draw: 10 s for 50 000 poses).
     ``z_scale`` exaggerates heights (default: so that they span at least 15 % of the horizontal
-    extent, which makes vertical residuals visible; the factor is given in the title).
+    extent, which makes vertical residuals visible; the factor is given in the title).  The
+    view has no axis ticks; ``scale_bar`` draws a horizontal one in metres instead (screen x is
+    a true horizontal distance in an orthographic view; screen y mixes depth and height).
     """
     _require_matplotlib()
     rot, trans = _poses(graph, rot, trans)
@@ -307,9 +414,15 @@ def plot_graph_3d(graph: PoseGraph, rot: FloatArray | None = None,
 
     norm = _draw_graph(ax, graph, project, rot, trans, residuals, energy_range)
     label = f"oblique view (azimuth {azim:g}, elevation {elev:g} deg, heights x{zs:.3g})"
-    _finish_panel(ax, norm, colorbar, f"{title}\n{label}" if title else label, "", "")
+    head = _title(title, graph, rot, trans, energy_in_title)
+    _finish_panel(ax, norm, colorbar, f"{head}\n{label}" if head else label, "", "")
     ax.set_xticks([])
     ax.set_yticks([])
+    if scale_bar:
+        screen_x = project(trans)[:, 0]
+        _scale_bar(ax, float(np.ptp(screen_x)) if screen_x.size else 0.0)
+    if legend:
+        _legend_below(ax, legend_handles(graph, residuals))
     return ax
 
 
@@ -355,13 +468,15 @@ def graph_figure(graph: PoseGraph,
                  poses: Sequence[tuple[FloatArray, FloatArray] | None] | None = None, *,
                  titles: Sequence[str] | None = None, residuals: bool = True,
                  energy_range: tuple[float, float] | None = None,
-                 z_scale: float | None = None) -> Figure:
+                 z_scale: float | None = None, energy_in_title: bool = True) -> Figure:
     """A figure with one column per pose set: top-down, plus an oblique 3D view for 3D graphs.
 
     ``poses`` is a list of ``(rot, trans)`` (``None`` entries: the graph's own poses); default:
-    one column with the graph's own poses.  All panels share one energy colour scale:
-    ``energy_range`` (see :func:`residual_energy_range`), by default the panels' own; the
-    oblique views share one height exaggeration ``z_scale`` (default: fitted to all the sets).
+    one column with the graph's own poses.  Each column has its own energy colour scale and
+    colour bar (so every map shows its own worst residuals in red), unless ``energy_range``
+    (see :func:`residual_energy_range`) puts them all on one scale.  The oblique views share one
+    height exaggeration ``z_scale`` (default: fitted to all the sets).  One legend for the
+    figure sits at the bottom; every title carries the energy per constraint.
     """
     cols = list(poses) if poses is not None else [None]
     resolved = [_poses(graph, *(p if p is not None else (None, None))) for p in cols]
@@ -369,22 +484,34 @@ def graph_figure(graph: PoseGraph,
     views = 1 if graph.is_2d else 2
     # one pose set: views side by side; several: one column per set, one row per view
     nrows, ncols = (1, views) if n == 1 else (views, n)
-    fig = _new_figure((6.5 * ncols, 6.0 * nrows))
+    fig = _new_figure((6.5 * ncols, 6.0 * nrows + 0.6))
     # one height exaggeration for every oblique panel, so that they compare
     if z_scale is None:
         z_scale = _auto_z_scale(np.concatenate([t for _, t in resolved]))
-    e_range = energy_range
-    if residuals and e_range is None:
-        e_range = _energy_range([_graph_energies(graph, r, t) for r, t in resolved])
     for k, (r, t) in enumerate(resolved):
         title = titles[k] if titles is not None and k < len(titles) else None
+        e_range = energy_range
+        if residuals and e_range is None:
+            e_range = _energy_range([_graph_energies(graph, r, t)])
         ax = fig.add_subplot(nrows, ncols, 1 + k)
         plot_graph(graph, r, t, ax=ax, residuals=residuals, energy_range=e_range,
-                   colorbar=residuals and k == n - 1, title=title)
+                   colorbar=False, title=title, legend=False, energy_in_title=energy_in_title)
+        column = [ax]
         if views == 2:
             ax3 = fig.add_subplot(nrows, ncols, 2 + k if n == 1 else 1 + n + k)
             plot_graph_3d(graph, r, t, ax=ax3, residuals=residuals, energy_range=e_range,
-                          z_scale=z_scale, title=title)
+                          z_scale=z_scale, title=title, legend=False,
+                          energy_in_title=energy_in_title)
+            column.append(ax3)
+        # a colour bar per column, or one for the figure when the scale is shared
+        if residuals and e_range is not None and (energy_range is None or k == n - 1):
+            axes = column if energy_range is None else fig.axes[:]
+            _colorbar(fig, _energy_norm(e_range, np.zeros(0)), axes)
+    handles = legend_handles(graph, residuals)
+    # about two entries per panel across: wider figures get fewer legend rows
+    fig.legend(handles=handles, loc="outside lower center",
+               ncols=min(len(handles), 2 * ncols + (ncols > 1)), fontsize="small",
+               frameon=False)
     return fig
 
 

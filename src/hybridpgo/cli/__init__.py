@@ -75,10 +75,14 @@ def _main(argv: Sequence[str] | None) -> int:
     # in-process callers keep working; restored afterwards
     saved = warnings.formatwarning
     warnings.formatwarning = _format_warning
+    from ._progress import configure
+
+    configure(force=bool(getattr(args, "progress", False)))  # --progress: draw off a terminal
     try:
         return _run(args, debug)
     finally:
         warnings.formatwarning = saved
+        configure(force=False)
 
 
 @contextlib.contextmanager

@@ -11,12 +11,13 @@ import os
 import stat
 import sys
 import tempfile
-import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import IO, TYPE_CHECKING, Any
 
 from ..errors import HybridPGOError
+from ._progress import ProgressBar as ProgressBar
+from ._progress import phase as phase
 
 if TYPE_CHECKING:
     from ..graph import FloatArray, PoseGraph
@@ -333,69 +334,3 @@ def fmt_energy(e: float, num_constraints: int) -> str:
     """``3.2780e+06 (585.567 per constraint)``."""
     per = e / max(num_constraints, 1)
     return f"{e:.6g} ({per:.6g} per constraint)"
-
-
-class ProgressBar:
-    """A one-line progress bar on stderr, redrawn with ``\\r`` (STYLE.md §11).
-
-    When stderr is not a terminal only the final line is written (at :meth:`close`), so logs
-    and CI output stay readable; ``enabled=False`` (``--quiet``) writes nothing.
-    """
-
-    WIDTH = 24
-
-    def __init__(self, label: str, total: int, num_constraints: int, *, enabled: bool = True,
-                 stream: IO[str] | None = None) -> None:
-        self.label = label
-        self.total = max(total, 0)
-        self.num_constraints = max(num_constraints, 1)
-        self.enabled = enabled
-        self.stream = stream or sys.stderr
-        isatty = getattr(self.stream, "isatty", None)
-        self.live = bool(enabled and isatty is not None and isatty())
-        self._line = ""
-        self._last_draw = 0.0
-        self._drawn = 0
-        self._t0 = time.perf_counter()
-
-    def _render(self, k: int, energy: float, tau: float | None, note: str) -> str:
-        frac = min(k / self.total, 1.0) if self.total else 1.0
-        filled = round(frac * self.WIDTH)
-        bar = "#" * filled + "." * (self.WIDTH - filled)
-        parts = [f"{self.label} [{bar}] {k}/{self.total}",
-                 f"E/c {energy / self.num_constraints:.4g}"]
-        if tau is not None:
-            parts.append(f"tau {tau:.3f}")
-        parts.append(f"{time.perf_counter() - self._t0:.1f}s")
-        if note:
-            parts.append(note)
-        return "  ".join(parts)
-
-    def update(self, k: int, energy: float, tau: float | None = None, note: str = "") -> None:
-        """Record progress: iteration ``k`` of ``total`` reached ``energy``."""
-        if not self.enabled:
-            return
-        self._line = self._render(k, energy, tau, note)
-        now = time.perf_counter()
-        # redraw at most ~20 times a second (an LM iteration on a small graph takes microseconds)
-        if self.live and (now - self._last_draw > 0.05 or k >= self.total):
-            self._draw(self._line)
-            self._last_draw = now
-
-    def _draw(self, line: str) -> None:
-        pad = max(self._drawn - len(line), 0)
-        self.stream.write("\r" + line + " " * pad)
-        self.stream.flush()
-        self._drawn = len(line)
-
-    def close(self, note: str = "") -> None:
-        """Finish the bar: the final line, then a newline."""
-        if not self.enabled or not self._line:
-            return
-        line = self._line + (f"  {note}" if note else "")
-        if self.live:
-            self._draw(line)
-            self.stream.write("\n")
-        else:
-            self.stream.write(line + "\n")
-        self.stream.flush()

@@ -129,6 +129,12 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                    help="show a traceback for every error")
 
 
+def _add_progress(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--progress", action="store_true",
+                   help="draw progress even when stderr is not a terminal (default: only on a "
+                        "terminal; --quiet turns it off)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``hybridpgo`` argument parser; each subcommand sets ``command`` (its module name)."""
     from .. import __version__
@@ -220,6 +226,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true",
                    help="print the summary as JSON instead of text")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    _add_progress(p)
     _add_common(p)
     p.set_defaults(command="optimize")
 
@@ -245,7 +252,8 @@ def build_parser() -> argparse.ArgumentParser:
         "plot", help="draw a graph with its constraint residuals",
         description="Draw the trajectory top-down (plus an oblique 3D view for 3D graphs) with "
                     "each constraint's residual from its desired to its actual pose, redder for "
-                    "higher energy (paper Fig. 6).  With --optimized, draw before and after.",
+                    "higher energy (paper Fig. 6), a legend, start and end markers and the "
+                    "energy per constraint.  With --optimized, draw before and after.",
         epilog=OUTPUT_HELP)
     p.add_argument("file", help="pose-graph file (its vertices, or the tree initialization "
                                 "when it has none; '-': standard input)")
@@ -255,8 +263,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="image to write (.png, .pdf, .svg; written atomically)")
     _add_format(p)
     p.add_argument("--no-residuals", action="store_true", help="draw the trajectory only")
+    p.add_argument("--shared-scale", action="store_true",
+                   help="with --optimized: one energy colour scale for both maps (default: each "
+                        "map its own, so each shows its worst residuals in red)")
     p.add_argument("--dpi", type=_dpi, default=150,
                    help=f"resolution, 1..{MAX_DPI} (default 150)")
+    _add_progress(p)
     _add_common(p)
     p.set_defaults(command="plot")
 
@@ -271,6 +283,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sweeps", type=_nonneg_int, default=hy.sweeps, metavar="N",
                    help=f"hybrid sweeps before the polish (default {hy.sweeps})")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    _add_progress(p)
     _add_common(p)
     p.set_defaults(command="demo")
 
@@ -314,8 +327,10 @@ def build_parser() -> argparse.ArgumentParser:
     # ---------------------------------------------------------------- evaluate
     p = sub.add_parser(
         "evaluate", help="accuracy of an optimized graph against ground truth",
-        description="Position RMSE, heading error (mean and max, degrees) and relative pose "
-                    "error of a graph's poses against ground truth.  Without GPS the estimate "
+        description="Position error, rotation error (full 3D angle) and heading error (yaw "
+                    "only), each as RMSE, mean, median, standard deviation and max (evo's "
+                    "statistics), and the relative pose error of a graph's poses against ground "
+                    "truth.  Without GPS the estimate "
                     "is first rigidly aligned to the ground truth; with GPS the earth frame is "
                     "absolute and no alignment is done (override with --align).",
         epilog=OUTPUT_HELP)
@@ -333,5 +348,39 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print a JSON object instead of text")
     _add_common(p)
     p.set_defaults(command="evaluate")
+
+    # ---------------------------------------------------------------- batch
+    p = sub.add_parser(
+        "batch", help="optimize many graphs, or one over a grid of options, on Dask",
+        description="Optimize every INPUT with every combination of the --grid options, each "
+                    "as one task on a Dask cluster: a local one (one worker process per core) "
+                    "unless --scheduler names a running one.  A failing job does not stop the "
+                    "others.  Writes the optimized graphs and OUTDIR/summary.csv and "
+                    "summary.json (input, options, energy, time, status, error per job).  "
+                    "Needs: pip install hybridpgo[dask].",
+        epilog="Exit status: 0 every job succeeded, 3 some failed (see the summary), 2 bad "
+               "arguments (nothing run).  Example: hybridpgo batch city*.g2o -o out --grid "
+               "sweeps=10,40 --grid polish=false,true")
+    p.add_argument("inputs", nargs="+", metavar="INPUT", help="pose-graph files")
+    p.add_argument("-o", "--output-dir", required=True, metavar="OUTDIR",
+                   help="directory for the optimized graphs and the summary (created if "
+                        "missing; its parent must exist)")
+    p.add_argument("--solver", choices=LazyChoices(_methods), default="hybrid",
+                   help="solver (default: hybrid)")
+    p.add_argument("--grid", action="append", metavar="KEY=V1,V2",
+                   help="a solver option and its values (repeatable; every combination runs). "
+                        "KEY: a HybridConfig / GaussNewtonConfig field, e.g. sweeps, tau_decay, "
+                        "polish, init, method, max_iterations")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="address of a running Dask scheduler, e.g. tcp://10.0.0.5:8786 "
+                        "(default: start a local cluster)")
+    p.add_argument("--workers", type=_pos_int, metavar="N",
+                   help="local cluster: number of worker processes (default: one per core)")
+    p.add_argument("--json", action="store_true",
+                   help="print the summary as JSON instead of a table")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or log lines")
+    _add_progress(p)
+    _add_common(p)
+    p.set_defaults(command="batch")
 
     return parser

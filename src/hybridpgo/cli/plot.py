@@ -6,20 +6,22 @@ import argparse
 import os
 
 from ..errors import HybridPGOError
-from ._common import display_poses, read_input
+from ._common import display_poses, phase, read_input
 
 
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..plot import graph_figure, save_figure
+    from ..plot import graph_figure, residual_energy_range, save_figure
 
-    graph = read_input(args.file, args.format)
+    with phase(f"reading {args.file}"):
+        graph = read_input(args.file, args.format)
     name = os.path.basename(args.file)
     poses = [display_poses(graph)]
     titles = [name + ("" if graph.has_estimates else " (tree initialization)")]
     if args.optimized is not None:
-        opt = read_input(args.optimized, None)
+        with phase(f"reading {args.optimized}"):
+            opt = read_input(args.optimized, None)
         if not opt.has_estimates:
             raise HybridPGOError(f"{args.optimized}: has no vertex estimates to draw (an iSAM "
                                  "file holds only constraints)")
@@ -32,7 +34,12 @@ def run(args: argparse.Namespace) -> int:
                 f"e.g. {extra[:3].tolist()}): --optimized must be an optimized version of FILE")
         poses.append((opt.rotations, opt.translations))
         titles.append(os.path.basename(args.optimized))
-    fig = graph_figure(graph, poses, titles=titles, residuals=not args.no_residuals)
-    save_figure(fig, args.output, dpi=args.dpi)
+    with phase(f"drawing {args.output}"):
+        # each map on its own colour scale unless --shared-scale (then "redder" compares)
+        e_range = (residual_energy_range(graph, poses)
+                   if args.shared_scale and not args.no_residuals else None)
+        fig = graph_figure(graph, poses, titles=titles, residuals=not args.no_residuals,
+                           energy_range=e_range)
+        save_figure(fig, args.output, dpi=args.dpi)
     print(f"wrote {args.output}")
     return 0
