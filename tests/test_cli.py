@@ -142,6 +142,9 @@ def test_lazy_choices_accept_anything_when_the_module_is_missing() -> None:
     (["--tau0", "0"], "--tau0: must be a number > 0"),
     (["--damping", "nan"], "--damping: must be a number >= 0"),
     (["--gps-batch-size", "0"], "--gps-batch-size: must be an integer >= 1"),
+    (["--dmax", "0"], "--dmax: must be an integer >= 1"),
+    (["--dmax", "-3"], "--dmax: must be an integer >= 1"),
+    (["--dmax", "2.5"], "--dmax: must be an integer >= 1"),
     (["--step", "cholesky"], "invalid choice: 'cholesky'"),
     (["--solver", "g2o"], "invalid choice: 'g2o'"),
 ])
@@ -641,6 +644,7 @@ def test_console_script(tiny: Path) -> None:
 @pytest.mark.parametrize(("argv", "message"), [
     (["--polish"], "--polish: not an option of --solver toro"),
     (["--tau0", "0.5"], "--tau0: not an option of --solver toro"),
+    (["--dmax", "30"], "--dmax: not an option of --solver toro"),
     (["--max-iterations", "3"], "--max-iterations"),
     (["--init", "chordal"], "--init chordal"),
     (["--tree", "mst"], "--tree mst"),

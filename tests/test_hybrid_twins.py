@@ -341,9 +341,9 @@ def test_cost_kernels_match_twins(angle):
         q = rng.normal(size=(6, 6))
         info = q @ q.T + 6 * np.eye(6)
         lt = np.linalg.cholesky(info).T
-        assert abs(_cost.chi2(info, e, 6) - naive.chi2(info, e)) <= FLOAT64_IDENTITY * naive.chi2(
+        assert abs(_cost.chi2(info, e, 6, np.empty(6)) - naive.chi2(info, e)) <= FLOAT64_IDENTITY * naive.chi2(
             info, e)
-        assert abs(_cost.chi2(info[:3, :3], e, 3) - naive.chi2(info[:3, :3], e[:3])) <= (
+        assert abs(_cost.chi2(info[:3, :3], e, 3, np.empty(3)) - naive.chi2(info[:3, :3], e[:3])) <= (
             FLOAT64_IDENTITY * naive.chi2(info[:3, :3], e[:3]))
         for n in (6, 3):
             mat = rng.normal(size=(6, 6))
@@ -586,11 +586,10 @@ def test_a_block_that_never_factors_reports_max_escalations():
 
 
 # --------------------------------------------------------------------------------- known bugs
-@pytest.mark.xfail(strict=True, reason=(
-    "_batch.batch_relax: with one GPS reading (or two, or collinear ones) the anchor's block of "
-    "B_C is exactly 0, so the undamped dense branch (_dense_solve) gets a singular system, its "
-    "Cholesky fails and every GPS batch is BATCH_REJECTED: the reading is never relaxed"))
 def test_a_single_gps_reading_is_relaxed():
+    """Was a bug: with one GPS reading the anchor's block of B_C is exactly 0, the undamped
+    dense system is singular (a rotation about the reading is free), and every GPS batch was
+    rejected.  The dense branch now falls back to the damped system (DESIGN §4)."""
     graph = _graph(37, n=10, extra=6, gps=1)
     solver = _solver(graph, sweeps=5)
     anchor = int(graph.gps_nodes[0])

@@ -206,6 +206,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "its smallest-id neighbour (--solver toro's default)")
     p.add_argument("--gps-batch-size", type=_pos_int, metavar="N",
                    help=f"hybrid: GPS constraints relaxed together (default {hy.gps_batch_size})")
+    p.add_argument("--dmax", type=_pos_int, metavar="N",
+                   help="hybrid: interpolated solving (paper III-E): solve each update for at "
+                        "most N nodes of its path and distribute the rest (default: the whole "
+                        "path)")
     p.add_argument("--tolerance", type=_nonneg_float, metavar="TOL",
                    help="stop when an iteration lowers the energy by less than this fraction "
                         f"(hybrid default {hy.energy_tolerance:g}, where 0 runs all sweeps; "

@@ -26,7 +26,8 @@ if TYPE_CHECKING:
 
 #: CLI option -> HybridConfig field, for the options only the hybrid solver takes.
 HYBRID_ONLY = {"sweeps": "--sweeps", "tau0": "--tau0", "tau_decay": "--tau-decay",
-               "damping": "--damping", "step": "--step", "gps_batch_size": "--gps-batch-size"}
+               "damping": "--damping", "step": "--step", "gps_batch_size": "--gps-batch-size",
+               "dmax": "--dmax"}
 
 
 @dataclass
@@ -123,6 +124,19 @@ def _plots_possible(job: Job) -> bool:
     return True
 
 
+def _compile_kernels(job: Job) -> None:
+    """Compile (or load from Numba's cache) the solver's kernels under a visible phase."""
+    from ..solvers.gauss_newton import _ensure_compiled as ensure_exact
+    from ..solvers.hybrid.solver import ensure_compiled as ensure_hybrid
+    from ._progress import phase
+
+    with phase("compiling kernels (first run only)", enabled=not job.quiet):
+        if job.solver == "hybrid":
+            ensure_hybrid()
+        if job.solver == "exact" or job.options.get("polish"):
+            ensure_exact()
+
+
 def _solve(job: Job, graph: PoseGraph, config: SolverConfig, init: str) -> SolveResult:
     from ..solvers import HybridConfig, Progress, ToroConfig, optimize
 
@@ -169,6 +183,7 @@ def run_job(job: Job) -> dict[str, Any]:
     plots = _plots_possible(job)
     if not job.quiet:
         log(f"read {job.input} ({describe_graph(graph)}) in {t_read:.2f} s")
+    _compile_kernels(job)
 
     result = _solve(job, graph, config, init)
 
@@ -210,13 +225,7 @@ def run_job(job: Job) -> dict[str, Any]:
 def write_plots(graph: PoseGraph, result: SolveResult, init: str, tree_kind: str,
                 prefix: str, name: str) -> list[str]:
     """PREFIX_before.png (the solver's initial poses), PREFIX_after.png, PREFIX_energy.png."""
-    from ..plot import (
-        energy_figure,
-        graph_figure,
-        height_scale,
-        residual_energy_range,
-        save_figure,
-    )
+    from ..plot import energy_figure, graph_figure, height_scale, save_figure
     from ..tree import build_tree, global_poses, initial_locals
 
     if tree_kind == "toro":
@@ -230,16 +239,13 @@ def write_plots(graph: PoseGraph, result: SolveResult, init: str, tree_kind: str
     before_title = {"tree": f"{name}: tree initialization", "file": f"{name}: file vertices"
                     }.get(init, f"{name}: {init} initialization")
     paths = [f"{prefix}_before.png", f"{prefix}_after.png", f"{prefix}_energy.png"]
-    per = result.final_energy / max(result.num_constraints, 1)
     after = (result.rotations, result.translations)
-    # one colour scale and one height exaggeration for both maps
-    e_range = residual_energy_range(graph, [before, after])
+    # one height exaggeration for both maps; each map its own colour scale (graph_figure's
+    # default), so the after map shows its own residuals; titles carry E/c themselves
     z_scale = height_scale([before, after])
     figs = [
-        graph_figure(graph, [before], energy_range=e_range, z_scale=z_scale, titles=[
-            f"{before_title} (E/c {result.initial_energy / max(result.num_constraints, 1):.4g})"]),
-        graph_figure(graph, [after], energy_range=e_range, z_scale=z_scale,
-                     titles=[f"{name}: {result.method} (E/c {per:.4g})"]),
+        graph_figure(graph, [before], z_scale=z_scale, titles=[before_title]),
+        graph_figure(graph, [after], z_scale=z_scale, titles=[f"{name}: {result.method}"]),
         energy_figure({result.method: result}, title=f"{name}: energy per constraint"),
     ]
     for fig, path in zip(figs, paths, strict=True):
@@ -294,7 +300,7 @@ def options_from_args(args: argparse.Namespace) -> dict[str, Any]:
     """Solver options the user gave (config field names), leaving the rest to the defaults."""
     opts: dict[str, Any] = {}
     for key in ("sweeps", "tau0", "tau_decay", "damping", "step", "tree", "gps_batch_size",
-                "max_iterations", "init"):
+                "max_iterations", "init", "dmax"):
         value = getattr(args, key)
         if value is not None:
             opts[key] = value

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..._cost import whiten_rows
 from ..._numba import kernel
-from ._dense import chol_inplace, chol_solve_cols, regularized_factor, solve_lt
+from ._dense import TINY, chol_inplace, chol_solve_cols, regularized_factor, solve_lt
 from ._linearize import endpoints, linearize, mul_pose_into, num_a_side
 from ._step import cap_and_apply
 from .problem import (
@@ -34,6 +34,9 @@ from .problem import (
 
 #: Largest union (nodes) solved by the dense normal equations when B_C has a zero block.
 MAX_DENSE_NODES = 4096 // 6
+#: An undamped dense batch system whose Cholesky pivot^2 falls below this fraction of its
+#: diagonal entry is singular to rounding; it is solved again with the damping of DESIGN §4.
+SINGULAR_PIVOT = 1e-12
 
 
 # --------------------------------------------------------------------------- helpers
@@ -185,8 +188,10 @@ def _linearize_batch(prob: Problem, state: State, cs: np.ndarray, nb: int, wk: W
 @kernel
 def _batch_blocks(prob: Problem, state: State, cs: np.ndarray, jb: np.ndarray,
                   e_off: np.ndarray, krs: np.ndarray, e_q: np.ndarray, cnt: np.ndarray,
-                  by_slot: np.ndarray, nodes_out: np.ndarray, bc: np.ndarray) -> bool:
-    """Eq. 36 and 24: B_C per union node, 𝔅(H) updated with the batch's new contributions.
+                  by_slot: np.ndarray, nodes_out: np.ndarray, bc: np.ndarray,
+                  scale: np.ndarray) -> bool:
+    """Eq. 36 and 24: B_C per union node, 𝔅(H) updated with the batch's new contributions;
+    ``scale[u]``: the trace of the batch's own blocks on node u (for the damping rule).
 
     Returns True when some node has every constraint through it in C (its block of B_C is 0).
     """
@@ -213,6 +218,7 @@ def _batch_blocks(prob: Problem, state: State, cs: np.ndarray, jb: np.ndarray,
                     bc[u, p, q2] -= old
                     bdiag[i, p, q2] += acc - old
                     contrib[pe, p, q2] = acc
+                scale[u] += contrib[pe, p, p]
         if cnt[u + 1] - cnt[u] == prob.path_count[i]:  # every constraint on node i is in C
             for p in range(6):
                 for q2 in range(6):
@@ -225,16 +231,27 @@ def _batch_blocks(prob: Problem, state: State, cs: np.ndarray, jb: np.ndarray,
 @kernel
 def _dense_solve(nb: int, jb: np.ndarray, e_off: np.ndarray, e_slot: np.ndarray,
                  r_off: np.ndarray, krs: np.ndarray, rbuf: np.ndarray, bc: np.ndarray,
-                 x_out: np.ndarray) -> bool:
-    """``(sum_c J_c^T J_c + B_C) x = sum_c J_c^T r_c`` densely over the union (6|U| unknowns)."""
+                 scale: np.ndarray, mu: float, damped: bool, x_out: np.ndarray) -> bool:
+    """``(sum_c J_c^T J_c + B_C) x = sum_c J_c^T r_c`` densely over the union (6|U| unknowns).
+
+    ``damped``: every block of B_C gets the damping of DESIGN §4 (``mu tr(B)/6 + TINY scale``),
+    which keeps the system SPD where the batch alone leaves a direction free (e.g. the rotation
+    of a subtree about a single GPS reading).
+    """
     nu = bc.shape[0]
     n6 = 6 * nu
     amat = np.zeros((n6, n6))
     g = np.zeros(n6)
     for u in range(nu):
+        damp = 0.0
+        if damped:
+            tr = max(bc[u, 0, 0] + bc[u, 1, 1] + bc[u, 2, 2] + bc[u, 3, 3] + bc[u, 4, 4]
+                     + bc[u, 5, 5], 0.0)
+            damp = mu * tr / 6.0 + TINY * scale[u]
         for p in range(6):
             for q2 in range(6):
                 amat[6 * u + p, 6 * u + q2] = bc[u, p, q2]
+            amat[6 * u + p, 6 * u + p] += damp
     for q in range(nb):
         kr = krs[q]
         for e in range(e_off[q], e_off[q + 1]):
@@ -253,8 +270,13 @@ def _dense_solve(nb: int, jb: np.ndarray, e_off: np.ndarray, e_slot: np.ndarray,
                             acc += jb[e, w, p] * jb[f, w, q2]
                         amat[6 * ue + p, 6 * uf + q2] += acc
     sym = 0.5 * (amat + amat.T)
+    diag = np.diag(sym).copy()
     if not chol_inplace(sym, n6):
         return False
+    if not damped:  # singular to rounding: a direction the batch leaves free
+        for k in range(n6):
+            if not (sym[k, k] * sym[k, k] > SINGULAR_PIVOT * diag[k]):
+                return False
     gg = g.reshape((n6, 1)).copy()
     chol_solve_cols(sym, n6, gg, 1)
     for u in range(nu):
@@ -485,10 +507,16 @@ def batch_relax(prob: Problem, state: State, cs: np.ndarray, nb: int, tau: float
     yt = np.empty((nu, 3))
     _linearize_batch(prob, state, cs, nb, wk, e_off, e_slot, jb, r_off, krs, rbuf, amat, yr, yt)
     bc = np.zeros((nu, 6, 6))
+    scale = np.zeros(nu)
     zero_block = _batch_blocks(prob, state, cs, jb, e_off, krs, e_q, cnt, by_slot, nodes_out,
-                               bc)
+                               bc, scale)
     if zero_block and nu <= MAX_DENSE_NODES:
-        ok = _dense_solve(nb, jb, e_off, e_slot, r_off, krs, rbuf, bc, x_out)
+        # the exact step (eq. 37; the GN step when C is every constraint) when it is defined;
+        # damped when the batch alone leaves a direction free (DESIGN §4)
+        ok = _dense_solve(nb, jb, e_off, e_slot, r_off, krs, rbuf, bc, scale, mu, False, x_out)
+        if not ok:
+            ok = _dense_solve(nb, jb, e_off, e_slot, r_off, krs, rbuf, bc, scale, mu, True,
+                              x_out)
     else:
         ok = woodbury_segments(prob, cs, nb, mu, jb, e_off, r_off, krs, rbuf, e_slot, e_q, cnt,
                                by_slot, bc, slot, nodes_out, amat, yr, yt, x_out)
