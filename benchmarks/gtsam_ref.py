@@ -22,7 +22,11 @@ def gtsam_available() -> bool:
 
 
 def build(graph: PoseGraph, rot: np.ndarray, trans: np.ndarray) -> tuple[Any, Any, Any]:
-    """(factors without the gauge prior, factors with it, initial values)."""
+    """(factors without the gauge prior, factors with it, initial values).
+
+    The gauge prior (sigma 1e-6 on pose 0) is added only without GPS constraints: with them the
+    earth frame is the gauge, as in :func:`hybridpgo.solvers.gauss_newton.default_fixed_nodes`.
+    """
     import gtsam
 
     factors = gtsam.NonlinearFactorGraph()
@@ -52,14 +56,17 @@ def build(graph: PoseGraph, rot: np.ndarray, trans: np.ndarray) -> tuple[Any, An
             factors.add(
                 gtsam.BetweenFactorPose3(int(a), int(b), gtsam.Pose3(gtsam.Rot3(rz), tz), model)
             )
-    if graph.num_gps:
-        raise NotImplementedError("GPS constraints in the GTSAM comparison")
+    if graph.num_gps and planar:
+        raise NotImplementedError("GPS constraints on a 2D graph in the GTSAM comparison")
+    for c, n in enumerate(graph.gps_nodes):  # error t_n - g_c in the earth frame, as ours
+        model = gtsam.noiseModel.Gaussian.Information(graph.gps_information[c])
+        factors.add(gtsam.GPSFactor(int(n), graph.gps_positions[c], model))
     full = gtsam.NonlinearFactorGraph(factors)
     if planar:
         full.add(
             gtsam.PriorFactorPose2(0, values.atPose2(0), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6))
         )
-    else:
+    elif not graph.num_gps:  # with GPS the earth frame is the gauge, as in our exact solver
         full.add(
             gtsam.PriorFactorPose3(0, values.atPose3(0), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6))
         )

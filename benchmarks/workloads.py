@@ -575,3 +575,7 @@ def city(ctx: Context) -> Result:
 
 
 WORKLOADS["city"] = city
+
+from .linear import run as _linear_run  # noqa: E402  (issue 11 item 4)
+
+WORKLOADS["linear"] = _linear_run

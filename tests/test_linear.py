@@ -146,3 +146,19 @@ def test_cholmod_missing_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> No
     assert _make_factorizer(pat, "auto").name == "splu"
     with pytest.raises(SolverError, match="pip install cvxopt"):
         _make_factorizer(pat, "cholmod")
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_unsorted_pattern(backend: str, rng: np.random.Generator) -> None:
+    """A CSC pattern whose row indices are not sorted within columns solves the same."""
+    a = _sparse_spd(rng, 20)
+    pat, values = _pattern_of(a)
+    perm = np.concatenate([np.arange(lo, hi)[::-1] for lo, hi in zip(pat.indptr[:-1],
+                                                                       pat.indptr[1:])])
+    indices = pat.indices[perm]
+    col = np.repeat(np.arange(20), np.diff(pat.indptr))
+    shuffled = Pattern(pat.indptr, indices, np.flatnonzero(indices == col), 20)
+    b = rng.normal(size=20)
+    x = _make_factorizer(shuffled, backend).solve(values[perm], b, check=True)
+    np.testing.assert_allclose(x, np.linalg.solve(a, b), rtol=0,
+                               atol=FLOAT64_IDENTITY * np.linalg.cond(a) * np.abs(x).max())

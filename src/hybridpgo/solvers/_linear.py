@@ -159,6 +159,9 @@ class _SuperLU:
         """Numeric factorization of A with the given values (in the pattern's order)."""
         p = self._pat
         h = sp.csc_matrix((values, p.indices, p.indptr), shape=(p.dim, p.dim))
+        if not h.has_sorted_indices:  # SuperLU needs sorted rows (sort a copy, not values)
+            h = h.copy()
+            h.sort_indices()
         try:
             self._lu = spla.splu(h, permc_spec="NATURAL", diag_pivot_thresh=0.0,
                                  options={"SymmetricMode": True})
@@ -244,9 +247,12 @@ class _Cholmod:
         indices = np.asarray(pattern.indices, np.int64)
         col = np.repeat(np.arange(dim, dtype=np.int64), np.diff(indptr))
         lower = np.flatnonzero(indices >= col)
-        order = np.lexsort((indices[lower], col[lower]))  # cvxopt's CCS order
+        rows = indices[lower]
+        cols = col[lower]
+        if not np.all((np.diff(rows) > 0) | (np.diff(cols) > 0)):  # not in cvxopt's CCS order
+            lower = lower[np.lexsort((rows, cols))]
         #: values[take] are the lower triangle's values in the order cvxopt stores them
-        self._take = lower[order]
+        self._take = lower
         self._matrix = cvxopt.spmatrix(
             0.0, cvxopt.matrix(indices[self._take], tc="i"),
             cvxopt.matrix(col[self._take], tc="i"), (dim, dim))
