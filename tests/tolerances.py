@@ -22,3 +22,7 @@ CENTRAL_DIFF_STEP = 1e-6
 
 #: Sparse vs dense Gauss-Newton solution (STYLE.md §7).
 SPARSE_VS_DENSE_GN = 1e-9
+
+#: Marginal covariance blocks vs GTSAM's Marginals (a different factorization and a 1e-6 sigma
+#: prior standing in for our fixed gauge pose): relative to the block's largest entry.
+COVARIANCE_VS_GTSAM = 1e-6
