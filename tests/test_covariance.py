@@ -109,14 +109,11 @@ def test_bad_nodes_raise() -> None:
     assert marginal_covariances(graph, None, None, np.zeros(0, int)).shape == (0, 6, 6)
 
 
-def test_undetermined_pose_raises_solver_error() -> None:
-    """A pose linked only by a rotation-only measurement: its position is undetermined."""
-    graph, _, _ = random_graph(np.random.default_rng(7), n=4, extra=0, anisotropic=False)
-    info = np.array(graph.edge_information)
-    info[2, :3, :3] = 0.0  # the edge 2-3 says nothing about position: H is singular
-    g = PoseGraph(node_ids=graph.node_ids, rotations=graph.rotations,
-                  translations=graph.translations, edge_nodes=graph.edge_nodes,
-                  edge_rotations=graph.edge_rotations, edge_translations=graph.edge_translations,
-                  edge_information=info)
-    with pytest.raises(SolverError):
-        marginal_covariances(g, None, None, [3])
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_undetermined_gauge_raises_solver_error(backend: str) -> None:
+    """One GPS reading is the gauge (no pose fixed) but leaves the rotation about it free."""
+    graph, _, _ = random_graph(np.random.default_rng(7), n=5, extra=2, gps=1)
+    res = solve_exact(graph)
+    with pytest.raises(SolverError, match="singular|positive definite"):
+        marginal_covariances(graph, res.rotations, res.translations, [3],
+                             linear_solver=backend)
