@@ -153,8 +153,8 @@ def test_unsorted_pattern(backend: str, rng: np.random.Generator) -> None:
     """A CSC pattern whose row indices are not sorted within columns solves the same."""
     a = _sparse_spd(rng, 20)
     pat, values = _pattern_of(a)
-    perm = np.concatenate([np.arange(lo, hi)[::-1] for lo, hi in zip(pat.indptr[:-1],
-                                                                       pat.indptr[1:])])
+    perm = np.concatenate([np.arange(lo, hi)[::-1]
+                           for lo, hi in zip(pat.indptr[:-1], pat.indptr[1:], strict=True)])
     indices = pat.indices[perm]
     col = np.repeat(np.arange(20), np.diff(pat.indptr))
     shuffled = Pattern(pat.indptr, indices, np.flatnonzero(indices == col), 20)
