@@ -8,15 +8,14 @@ pattern (both triangles stored, as :class:`hybridpgo.solvers.gauss_newton` assem
     Windows wheels bundle CHOLMOD and OpenBLAS, nothing to compile).  Supernodal ``L L^T``; the
     symbolic analysis is done once in the constructor, each :meth:`factor` is a numeric
     factorization into the same factor object.  Measured on paris2 with GPS (251 742 unknowns,
-    5.5 M nonzeros, 2 shared cores): symbolic 0.27-0.48 s once, numeric 0.5-0.95 s per
-    iteration.
+    5.5 M nonzeros, 2 cores shared with other jobs): symbolic 0.27-0.48 s once, numeric
+    0.5-1.0 s per iteration (``python -m benchmarks --only linear``).
 ``_SuperLU`` (``linear_solver="splu"``)
     SciPy's SuperLU on the pre-ordered matrix (natural column order, symmetric mode, diagonal
-    pivots).  A full LU (no BLAS-3 supernodes), so 2-5x slower than CHOLMOD, but it does not
-    collapse on dense loop closures as long as the pre-ordering is AMD: paris2 1.3 s per
-    factorization with the block AMD ordering vs > 300 s (killed) with the block MMD ordering,
-    the only one SciPy offers without cvxopt (the old default, 108 s per factorization in the
-    issue's measurement).
+    pivots).  A full LU (no BLAS-3 supernodes), 2-3x slower than CHOLMOD, but it no longer
+    collapses on dense loop closures now that the pre-ordering is AMD: paris2 with GPS 1.3-2.1 s
+    per factorization, against > 600 s (time limit) with SuperLU's block MMD ordering, the old
+    default (108 s on a quiet machine in the issue's measurement).
 
 The fill-reducing ordering (:func:`_fill_reducing_order`) is computed once per solve on the 6x6
 *block* graph (36x smaller than A): AMD from :mod:`cvxopt.amd` (15 ms on paris2's 42k blocks), or
