@@ -587,3 +587,7 @@ WORKLOADS["toro"] = _toro
 from .fuzz import run as _fuzz  # noqa: E402
 
 WORKLOADS["fuzz"] = _fuzz
+
+from .linear import run as _linear_run  # noqa: E402  (issue 11 item 4)
+
+WORKLOADS["linear"] = _linear_run

@@ -32,3 +32,7 @@ TWIN_JACOBIAN = 1e-12
 #: GPS anchor: rank 3 per reading, damped by ~1e-9 relative) make the Woodbury forms lose digits:
 #: measured 8e-11 (single step) and 3e-10 (segmented batch) on the twin tests, Givens 3e-15.
 SAME_EQUATION = 1e-9
+
+#: Marginal covariance blocks vs GTSAM's Marginals (a different factorization and a 1e-6 sigma
+#: prior standing in for our fixed gauge pose): relative to the block's largest entry.
+COVARIANCE_VS_GTSAM = 1e-6

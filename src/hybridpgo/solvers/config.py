@@ -41,7 +41,8 @@ class Progress(NamedTuple):
 #: Progress callback: ``progress(Progress(...))`` after every iteration.
 ProgressCallback = Callable[[Progress], None]
 
-#: Sparse linear solvers the exact solver can use (``"auto"``: CHOLMOD if importable, else SuperLU).
+#: Sparse linear solvers of the exact solver (``"auto"``: CHOLMOD via cvxopt if importable, else
+#: SuperLU; see :mod:`hybridpgo.solvers._linear`).
 LINEAR_SOLVERS = ("auto", "cholmod", "splu")
 
 
@@ -93,9 +94,12 @@ class GaussNewtonConfig:
     max_step_halvings: int = 30
     """GN with ``step_guard``: at most this many halvings of one step."""
     linear_solver: Literal["auto", "cholmod", "splu"] = "auto"
-    """Sparse factorization: ``"cholmod"`` (scikit-sparse, optional), ``"splu"`` (SciPy SuperLU
-    on a precomputed fill-reducing ordering, symmetric mode), or ``"auto"`` (CHOLMOD when
-    importable, else SuperLU)."""
+    """Sparse factorization of the normal equations, on a fill-reducing (AMD) ordering of the
+    block graph computed once per solve: ``"cholmod"`` (SuiteSparse CHOLMOD through cvxopt, a
+    runtime dependency: supernodal Cholesky, symbolic analysis once per solve, numeric
+    factorization per iteration), ``"splu"`` (SciPy's SuperLU in symmetric mode with diagonal
+    pivots: an LU, 2-5x slower), or ``"auto"`` (CHOLMOD when cvxopt is importable, else
+    SuperLU)."""
 
     def __post_init__(self) -> None:
         if self.method not in ("gn", "lm"):

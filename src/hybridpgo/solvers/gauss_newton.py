@@ -10,13 +10,10 @@ Gauge (STYLE.md §6): the nodes named by ``FIX`` lines (``graph.fixed_nodes``) a
 Without any, the first pose (dense index 0) is fixed, unless the graph has position-only (GPS)
 constraints: then the earth frame is the gauge and no pose is fixed.
 
-Linear algebra: SciPy has no sparse Cholesky.  Without scikit-sparse, ``H`` is factored with
-SuperLU (:func:`scipy.sparse.linalg.splu`) on a fill-reducing ordering computed once on the 6x6
-*block* graph (minimum degree, 36x smaller than H), in symmetric mode with diagonal pivots (H is
-SPD).  Measured on sphere2500 (15k unknowns): 120-170 ms per factorization, vs 250 ms for SuperLU's
-own MMD ordering in symmetric mode, 1.1 s for COLAMD and 45 s for MMD with partial pivoting.  When
-scikit-sparse is importable, CHOLMOD (supernodal, symbolic analysis once, numeric factorization
-in place each iteration) takes 75-80 ms for the same matrix with OpenBLAS.
+Linear algebra (:mod:`._linear`): the variables are permuted once per solve by a fill-reducing
+ordering of the 6x6 *block* graph (AMD, 36x smaller than H); then CHOLMOD through cvxopt
+(supernodal, symbolic analysis once, numeric factorization each iteration) or, with
+``linear_solver="splu"``, SciPy's SuperLU in symmetric mode with diagonal pivots.
 
 Lifted 2D graphs (DESIGN §1) at planar poses solve only the (x, y, yaw) unknowns: the other three
 are decoupled and their step is exactly zero (see ``_PLANAR_DOFS``); M3500: 133 -> 38 ms per
@@ -32,12 +29,13 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from .. import _cost
 from ..errors import GraphError, SolverError
 from ..graph import FloatArray, PoseGraph
 from . import _gn_kernels as _k
+from ._linear import _cholmod_available as _cholmod_available  # re-exported for the tests
+from ._linear import _fill_reducing_order, _make_factorizer
 from .config import GaussNewtonConfig, Progress, ProgressCallback
 from .result import SolveResult, Status
 
@@ -52,9 +50,6 @@ Int64Array = npt.NDArray[np.int64]
 _MAX_DECREASE = 0.1
 #: LM gives up (STALLED) when the damping factor mu exceeds this: no step lowers the energy.
 _MAX_DAMPING = 1e16
-#: A pivot of the factorization below this fraction of its diagonal entry of H means H is
-#: singular to rounding (measured: 1e-16..5e-16 without a gauge, >= 4e-3 with one).
-_SINGULAR_PIVOT = 1e-12
 #: LM damping matrix: diag(H) clipped below at this fraction of its largest entry, so that the
 #: damped system stays SPD where a direction carries (almost) no information.
 _DIAG_FLOOR = 1e-12
@@ -118,31 +113,6 @@ def _block_pairs(graph: PoseGraph, var: Int64Array) -> tuple[Int64Array, Int64Ar
     rows = np.concatenate([va, vb, va, vb, vg])
     cols = np.concatenate([va, vb, vb, va, vg])
     return rows, cols
-
-
-def _fill_reducing_order(nv: int, rows: Int64Array, cols: Int64Array) -> Int64Array:
-    """New position of every variable: minimum degree on the block graph (SuperLU's MMD).
-
-    The ordering is computed on the (nv, nv) block graph, 36x smaller than H, with a diagonally
-    dominant stand-in matrix so SuperLU takes diagonal pivots; its column permutation ``perm_c``
-    maps old -> new position.
-    """
-    if nv <= 2:
-        return np.arange(nv, dtype=np.int64)
-    keep = rows >= 0
-    keep &= cols >= 0
-    r = rows[keep]
-    c = cols[keep]
-    off = r != c
-    deg = np.bincount(r[off], minlength=nv).astype(np.float64)
-    a = sp.coo_matrix(
-        (np.concatenate([-np.ones(int(off.sum())), deg + 1.0]),
-         (np.concatenate([r[off], np.arange(nv)]), np.concatenate([c[off], np.arange(nv)]))),
-        shape=(nv, nv),
-    ).tocsc()
-    lu = spla.splu(a, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                   options={"SymmetricMode": True})
-    return np.asarray(lu.perm_c, dtype=np.int64)
 
 
 def _analyze(graph: PoseGraph, fixed: npt.NDArray[np.int32], reorder: bool) -> _Pattern:
@@ -352,88 +322,11 @@ def gn_step(graph: PoseGraph, rotations: FloatArray | None = None,
     data = np.empty(pat.nnz)
     grad = np.empty(pat.dim)
     _assemble(graph, pat, rot, trans, data, grad)
-    step = _make_factorizer(_full_system(pat), "splu").solve(data, -grad, check=True)
+    step = _make_factorizer(_full_system(pat), "auto").solve(data, -grad, check=True)
     out = np.zeros((graph.num_nodes, 6))
     free = pat.var_of_node >= 0
     out[free] = step.reshape(-1, 6)[pat.var_of_node[free]]
     return out
-
-
-# --------------------------------------------------------------------------- factorization
-class _SuperLU:
-    """SuperLU on the pre-ordered SPD matrix: natural column order, diagonal pivots."""
-
-    name = "splu"
-
-    def __init__(self, system: _System) -> None:
-        self._sys = system
-
-    def solve(self, values: FloatArray, rhs: FloatArray, check: bool = False) -> FloatArray:
-        """Solve ``A x = rhs`` for the system matrix A with the given values."""
-        h = self._sys.matrix(values)
-        try:
-            lu = spla.splu(h, permc_spec="NATURAL", diag_pivot_thresh=0.0,
-                           options={"SymmetricMode": True})
-        except RuntimeError as exc:  # "Factor is exactly singular"
-            raise SolverError(f"the normal equations are singular ({exc}); is the gauge fixed?"
-                              ) from exc
-        if check:  # U's diagonal holds the pivots, in the order of perm_c
-            pivots = np.abs(lu.U.diagonal())
-            _check_pivots(pivots, values[self._sys.diag_index][np.argsort(lu.perm_c)])
-        return np.asarray(lu.solve(rhs), dtype=np.float64)
-
-
-class _Cholmod:
-    """CHOLMOD (scikit-sparse): symbolic analysis once, numeric factorization per iteration."""
-
-    name = "cholmod"
-
-    def __init__(self, system: _System) -> None:
-        from sksparse import cholmod  # optional; checked by _make_factorizer
-
-        self._cholmod = cholmod
-        self._sys = system
-        self._factor: Any = None
-
-    def solve(self, values: FloatArray, rhs: FloatArray, check: bool = False) -> FloatArray:
-        """Solve ``A x = rhs`` for the system matrix A with the given values."""
-        h = self._sys.matrix(values)
-        try:
-            if self._factor is None:
-                self._factor = self._cholmod.analyze(h)
-            self._factor.cholesky_inplace(h)
-        except self._cholmod.CholmodError as exc:
-            raise SolverError(f"the normal equations are not positive definite ({exc}); "
-                              "is the gauge fixed?") from exc
-        if check:  # D of L D L^T, in the fill-reducing order P
-            _check_pivots(np.abs(self._factor.D()), values[self._sys.diag_index][self._factor.P()])
-        return np.asarray(self._factor(rhs), dtype=np.float64)
-
-
-def _check_pivots(pivots: FloatArray, diagonal: FloatArray) -> None:
-    ratio = pivots / np.maximum(diagonal, np.finfo(np.float64).tiny)
-    if not np.all(ratio >= _SINGULAR_PIVOT):
-        raise SolverError(
-            f"the normal equations are singular to rounding (smallest pivot / diagonal = "
-            f"{float(np.nanmin(ratio)):.2g}): the gauge is not fixed, or some pose is not "
-            "determined by its constraints; fix a pose, or use method='lm'")
-
-
-def _cholmod_available() -> bool:
-    try:
-        import sksparse.cholmod  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-def _make_factorizer(system: _System, backend: str) -> _SuperLU | _Cholmod:
-    if backend == "cholmod" or (backend == "auto" and _cholmod_available()):
-        if not _cholmod_available():
-            raise SolverError("linear_solver='cholmod' needs scikit-sparse "
-                              "(pip install scikit-sparse; it links SuiteSparse's CHOLMOD)")
-        return _Cholmod(system)
-    return _SuperLU(system)
 
 
 # --------------------------------------------------------------------------- helpers

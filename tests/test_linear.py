@@ -1,0 +1,164 @@
+"""Tests of the sparse factorization backends (solvers/_linear.py) against dense linear algebra."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from tolerances import FLOAT64_IDENTITY
+
+from hybridpgo.errors import SolverError
+from hybridpgo.solvers import _linear
+from hybridpgo.solvers._linear import _cholmod_available, _fill_reducing_order, _make_factorizer
+
+BACKENDS = [
+    "splu",
+    pytest.param("cholmod", marks=pytest.mark.skipif(not _cholmod_available(),
+                                                     reason="cvxopt not installed")),
+]
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(0)
+
+
+@dataclass(frozen=True)
+class Pattern:
+    """A CSC pattern with both triangles stored, as the exact solver assembles it."""
+
+    indptr: np.ndarray
+    indices: np.ndarray
+    diag_index: np.ndarray
+    dim: int
+
+
+def _pattern_of(a: np.ndarray) -> tuple[Pattern, np.ndarray]:
+    """Pattern and values of a dense symmetric matrix (every diagonal entry stored)."""
+    m = sp.csc_matrix(a + np.eye(a.shape[0]))  # the pattern holds the whole diagonal
+    m.data[:] = a[m.nonzero()[0], np.repeat(np.arange(a.shape[0]), np.diff(m.indptr))]
+    m.sort_indices()
+    indptr = m.indptr.astype(np.int64)
+    indices = m.indices.astype(np.int64)
+    col = np.repeat(np.arange(a.shape[0]), np.diff(indptr))
+    values = a[indices, col]
+    return Pattern(indptr, indices, np.flatnonzero(indices == col), a.shape[0]), values
+
+
+def _sparse_spd(rng: np.random.Generator, n: int) -> np.ndarray:
+    """A random sparse SPD matrix with a few dense rows (like loop closures)."""
+    a = np.zeros((n, n))
+    for _ in range(3 * n):
+        i, j = rng.integers(0, n, 2)
+        w = rng.normal()
+        a[i, j] += w
+        a[j, i] += w
+    a[:, 3] += rng.normal(size=n)
+    a[3, :] = a[:, 3]
+    return a @ a.T + np.eye(n)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_solve_matches_dense(backend: str, rng: np.random.Generator) -> None:
+    a = _sparse_spd(rng, 40)
+    pat, values = _pattern_of(a)
+    f = _make_factorizer(pat, backend)
+    assert f.name == backend
+    for scale in (1.0, 2.0):  # the second numeric factorization reuses the symbolic analysis
+        a = a * scale
+        values = values * scale
+        b = rng.normal(size=40)
+        x = f.solve(values, b, check=True)
+        np.testing.assert_allclose(a @ x, b, rtol=0, atol=FLOAT64_IDENTITY * np.abs(b).max()
+                                   * np.linalg.cond(a))
+    rhs = rng.normal(size=(40, 3))
+    np.testing.assert_allclose(f.solve_factored(rhs), np.linalg.solve(a, rhs),
+                               rtol=0, atol=FLOAT64_IDENTITY * np.linalg.cond(a)
+                               * np.abs(np.linalg.solve(a, rhs)).max())
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_inverse_blocks_match_dense_inverse(backend: str, rng: np.random.Generator,
+                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    a = _sparse_spd(rng, 36)
+    pat, values = _pattern_of(a)
+    f = _make_factorizer(pat, backend)
+    f.factor(values)
+    idx = np.array([[0, 1, 2], [33, 34, 35], [12, 5, 20], [3, 4, 7]])
+    inv = np.linalg.inv(a)
+    expected = np.stack([inv[np.ix_(r, r)] for r in idx])
+    scale = np.abs(expected).max() * np.linalg.cond(a)
+    np.testing.assert_allclose(f.inverse_blocks(idx), expected, rtol=0,
+                               atol=FLOAT64_IDENTITY * scale)
+    monkeypatch.setattr(_linear, "_RHS_BATCH_BYTES", 1)  # one block per batch
+    np.testing.assert_allclose(f.inverse_blocks(idx), expected, rtol=0,
+                               atol=FLOAT64_IDENTITY * scale)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_singular_matrix_raises_solver_error(backend: str) -> None:
+    # Exactly singular (a free gauge): [[1, -1], [-1, 1]] + an unrelated SPD block.
+    a = np.zeros((4, 4))
+    a[:2, :2] = [[1.0, -1.0], [-1.0, 1.0]]
+    a[2:, 2:] = [[2.0, 1.0], [1.0, 2.0]]
+    pat, values = _pattern_of(a)
+    with pytest.raises(SolverError, match="gauge"):
+        _make_factorizer(pat, backend).solve(values, np.ones(4), check=True)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_singular_to_rounding_raises_only_when_checked(backend: str) -> None:
+    # Pivot 1e-14 of a diagonal entry: positive, so it factors, but below _SINGULAR_PIVOT.
+    a = np.array([[1.0, 1.0, 0.0], [1.0, 1.0 + 1e-14, 0.0], [0.0, 0.0, 3.0]])
+    pat, values = _pattern_of(a)
+    f = _make_factorizer(pat, backend)
+    f.solve(values, np.ones(3))  # unchecked (LM): no error
+    with pytest.raises(SolverError, match="singular to rounding"):
+        f.solve(values, np.ones(3), check=True)
+
+
+@pytest.mark.parametrize("use_cvxopt", [True, False])
+def test_fill_reducing_order_is_a_permutation(use_cvxopt: bool, rng: np.random.Generator,
+                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    if use_cvxopt and not _cholmod_available():
+        pytest.skip("cvxopt not installed")
+    monkeypatch.setattr(_linear, "_cvxopt_available", lambda: use_cvxopt)
+    nv = 30
+    r = rng.integers(-1, nv, 80)
+    c = rng.integers(-1, nv, 80)
+    rows = np.concatenate([r, c, np.arange(nv)])
+    cols = np.concatenate([c, r, np.arange(nv)])
+    new_pos = _fill_reducing_order(nv, rows, cols)
+    np.testing.assert_array_equal(np.sort(new_pos), np.arange(nv))
+    # An arrow matrix (one node linked to all): minimum degree eliminates the hub last.
+    hub = np.zeros(nv - 1, np.int64)
+    spokes = np.arange(1, nv)
+    arrow = _fill_reducing_order(nv, np.concatenate([hub, spokes]),
+                                 np.concatenate([spokes, hub]))
+    assert arrow[0] == nv - 1
+
+
+def test_cholmod_missing_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(_linear, "_cholmod_available", lambda: False)
+    pat, _ = _pattern_of(np.eye(3))
+    assert _make_factorizer(pat, "auto").name == "splu"
+    with pytest.raises(SolverError, match="pip install cvxopt"):
+        _make_factorizer(pat, "cholmod")
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_unsorted_pattern(backend: str, rng: np.random.Generator) -> None:
+    """A CSC pattern whose row indices are not sorted within columns solves the same."""
+    a = _sparse_spd(rng, 20)
+    pat, values = _pattern_of(a)
+    perm = np.concatenate([np.arange(lo, hi)[::-1]
+                           for lo, hi in zip(pat.indptr[:-1], pat.indptr[1:], strict=True)])
+    indices = pat.indices[perm]
+    col = np.repeat(np.arange(20), np.diff(pat.indptr))
+    shuffled = Pattern(pat.indptr, indices, np.flatnonzero(indices == col), 20)
+    b = rng.normal(size=20)
+    x = _make_factorizer(shuffled, backend).solve(values[perm], b, check=True)
+    np.testing.assert_allclose(x, np.linalg.solve(a, b), rtol=0,
+                               atol=FLOAT64_IDENTITY * np.linalg.cond(a) * np.abs(x).max())
