@@ -79,17 +79,17 @@ def test_one_measurement_from_the_gauge_has_its_noise_covariance() -> None:
 
 def test_gtsam_marginals_on_small_grid(data_dir: Path) -> None:
     gtsam = pytest.importorskip("gtsam")
-    from test_gtsam import gtsam_factors, gtsam_values
+    from hybridpgo.gtsam_bridge import to_gtsam
 
     graph = read_graph(data_dir / "smallGrid3D.g2o")
     res = solve_exact(graph, config=GaussNewtonConfig(method="lm"))
     nodes = np.array([1, 17, 62, 124])
     ours = marginal_covariances(graph, res.rotations, res.translations, nodes)
-    fg = gtsam_factors(graph)
+    fg, values = to_gtsam(graph, res.rotations, res.translations)
     fg.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(gtsam.Rot3(res.rotations[0]),
                                                  res.translations[0]),
                                   gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))  # our gauge
-    marginals = gtsam.Marginals(fg, gtsam_values(graph, res.rotations, res.translations))
+    marginals = gtsam.Marginals(fg, values)
     for k, n in enumerate(nodes):
         theirs = np.asarray(marginals.marginalCovariance(int(n)))
         back = np.argsort(_TO_GTSAM)  # GTSAM's (rotation, translation) -> our (rho, phi)
