@@ -10,6 +10,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from .._numba import kernel
 from ..geometry import se3
 from ..graph import FloatArray, PoseGraph
 from ..io import write_graph
@@ -42,16 +43,29 @@ def diag_information(sigma: FloatArray) -> FloatArray:
 
 def chain(r0: FloatArray, t0: FloatArray, zr: FloatArray, zt: FloatArray
           ) -> tuple[FloatArray, FloatArray]:
-    """Dead reckoning ``X_0, X_0 Z_0, X_0 Z_0 Z_1, ...``: a log-depth prefix product in NumPy."""
-    r = np.concatenate([r0[None], zr])
-    t = np.concatenate([t0[None], zt])
-    shift = 1
-    while shift < r.shape[0]:  # Hillis-Steele scan: P[i] <- P[i - shift] P[i]
-        nr, nt = se3.compose(r[:-shift], t[:-shift], r[shift:], t[shift:])
-        r[shift:] = nr
-        t[shift:] = nt
-        shift *= 2
+    """Dead reckoning ``X_0, X_0 Z_0, X_0 Z_0 Z_1, ...`` of (k, 3, 3), (k, 3) measurements."""
+    k = zr.shape[0]
+    r = np.empty((k + 1, 3, 3))
+    t = np.empty((k + 1, 3))
+    r[0] = r0
+    t[0] = t0
+    _chain_into(np.ascontiguousarray(zr, np.float64), np.ascontiguousarray(zt, np.float64), r, t)
     return r, t
+
+
+@kernel
+def _chain_into(zr: FloatArray, zt: FloatArray, r: FloatArray, t: FloatArray) -> None:
+    """``X_{i+1} = X_i Z_i`` for i = 0..k-1, given X_0 in ``r[0], t[0]`` (O(k), sequential)."""
+    for i in range(zr.shape[0]):
+        for a in range(3):
+            acc = t[i, a]
+            for b in range(3):
+                acc += r[i, a, b] * zt[i, b]
+                s = 0.0
+                for c in range(3):
+                    s += r[i, a, c] * zr[i, c, b]
+                r[i + 1, a, b] = s
+            t[i + 1, a] = acc
 
 
 def online_order(num_nodes: int, later: np.ndarray) -> np.ndarray:

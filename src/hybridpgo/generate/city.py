@@ -45,6 +45,7 @@ generation is vectorized (a 1M-pose city takes about 10 s; see the report in CHA
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import math
 from dataclasses import dataclass
@@ -108,6 +109,10 @@ class CityParams:
     """Odometry rotation noise about the vehicle's x and y axes, per step, degrees."""
     p_loop: float = 0.05
     """Probability that a pose with a loop-closure candidate gets a loop closure."""
+    loop_density: float | None = None
+    """Target number of loop closures per pose: when set, ``p_loop`` is replaced by the
+    probability that gives this many in expectation (the fraction of poses with a candidate is
+    estimated from up to 20 000 sampled poses), capped at 1.  :func:`scale_city` sets it."""
     loop_radius_m: float = 4.0
     """A candidate is an earlier pose within this horizontal distance ..."""
     loop_max_heading_deg: float = 20.0
@@ -159,6 +164,10 @@ class CityParams:
             raise ValueError(f"revisit_bias must be greater than -1, got {self.revisit_bias!r}")
         if not 0.0 <= self.p_loop <= 1.0:
             raise ValueError(f"p_loop must be in [0, 1], got {self.p_loop!r}")
+        if self.loop_density is not None and not (math.isfinite(self.loop_density)
+                                                  and self.loop_density >= 0.0):
+            raise ValueError(f"loop_density must be a number >= 0 or None, got "
+                             f"{self.loop_density!r}")
         if self.step_jitter >= 1.0:
             raise ValueError(f"step_jitter must be below 1, got {self.step_jitter!r}")
         if not 0.0 <= self.loop_max_heading_deg <= 90.0:
@@ -335,16 +344,18 @@ def scale_city(preset: str | None, num_poses: int) -> dict[str, Any]:
     """Parameters of a city of ``num_poses`` poses shaped like ``preset`` (None: the defaults).
 
     The street grid is scaled by ``sqrt(num_poses / preset poses)`` along each axis (at least
-    one block), so the drive covers its streets as often as the preset's does and the density
-    of loop closures per pose stays about the preset's; everything else (block size, noise,
-    ``p_loop``, GPS spacing) is the preset's.  Pass the result to :func:`generate_city`::
+    one block), so the drive covers its streets about as often as the preset's does, and
+    ``loop_density`` is set to the preset's own (its seed-0 drive's loop closures per pose):
+    without it the density would creep up with the size, since a longer random drive in 2D
+    revisits a larger share of its streets.  Everything else (block size, noise, GPS spacing
+    when ``gps_every`` is given) is the preset's.  Pass the result to :func:`generate_city`::
 
         city = generate_city("paris1", **scale_city("paris1", 1_000_000), gps_every=100)
 
     Returns
     -------
     dict
-        ``{"num_poses": ..., "nx": ..., "ny": ...}``.
+        ``{"num_poses": ..., "nx": ..., "ny": ..., "loop_density": ...}``.
     """
     if preset is not None and preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
@@ -353,7 +364,14 @@ def scale_city(preset: str | None, num_poses: int) -> dict[str, Any]:
     base = CityParams(**(PRESETS[preset] if preset is not None else {}))
     f = math.sqrt(num_poses / base.num_poses)
     return {"num_poses": int(num_poses), "nx": max(1, round(base.nx * f)),
-            "ny": max(1, round(base.ny * f))}
+            "ny": max(1, round(base.ny * f)), "loop_density": _preset_loop_density(preset)}
+
+
+@functools.cache
+def _preset_loop_density(preset: str | None) -> float:
+    """Loop closures per pose of the preset's seed-0 drive (generated once, then cached)."""
+    city = generate_city(preset, seed=0)
+    return city.num_loop_edges / city.graph.num_nodes
 
 
 # =========================================================================== route
@@ -481,26 +499,22 @@ def _true_poses(p: CityParams, rng: np.random.Generator) -> tuple[FloatArray, Fl
 # =========================================================================== loop closures
 def _loop_pairs(p: CityParams, rot: FloatArray, trans: FloatArray, rng: np.random.Generator
                 ) -> tuple[IntArray, IntArray]:
-    """Loop closures (earlier a, later b): each pose b is drawn with probability ``p_loop``;
-    if it has candidates (the ``loop_*`` fields of :class:`CityParams`), one of them is chosen
-    uniformly at random."""
+    """Loop closures (earlier a, later b): each pose b is drawn with probability ``p_loop``
+    (or the one that gives ``loop_density``); if it has candidates (the ``loop_*`` fields of
+    :class:`CityParams`), one of them is chosen uniformly at random."""
     n = trans.shape[0]
-    drawn = np.flatnonzero(rng.random(size=(n,)) < p.p_loop)
+    xy = trans[:, :2]
+    tree = None
+    p_loop = p.p_loop
+    if p.loop_density is not None:
+        tree = cKDTree(xy)
+        p_loop = _p_loop_for_density(p, rot, xy, tree, rng)
+    drawn = np.flatnonzero(rng.random(size=(n,)) < p_loop)
     drawn = drawn[drawn >= p.loop_min_gap]
     empty = np.zeros(0, np.int32)
     if drawn.size == 0 or p.loop_radius_m == 0.0:
         return empty, empty
-    xy = trans[:, :2]
-    hits = cKDTree(xy).query_ball_point(xy[drawn], r=p.loop_radius_m)
-    counts = np.fromiter((len(h) for h in hits), np.int64, drawn.size)
-    cand = np.fromiter(itertools.chain.from_iterable(hits), np.int64, int(counts.sum()))
-    owner = np.repeat(drawn, counts)
-    heading = rot[:, :2, 0]  # horizontal part of the x axis
-    cos = np.einsum("ij,ij->i", heading[owner], heading[cand])
-    cos /= np.linalg.norm(heading[owner], axis=1) * np.linalg.norm(heading[cand], axis=1)
-    ok = (cand <= owner - p.loop_min_gap) & (np.abs(cos) >= math.cos(
-        math.radians(p.loop_max_heading_deg)))
-    owner, cand = owner[ok], cand[ok]
+    owner, cand = _candidates(p, rot, xy, cKDTree(xy) if tree is None else tree, drawn)
     order = np.lexsort((cand, owner))  # canonical order, then a random key per candidate
     owner, cand = owner[order], cand[order]
     key = rng.random(owner.shape[0])
@@ -508,3 +522,36 @@ def _loop_pairs(p: CityParams, rot: FloatArray, trans: FloatArray, rng: np.rando
     last = np.concatenate([owner[pick][1:] != owner[pick][:-1], [True]])
     chosen = pick[last] if owner.size else np.zeros(0, np.int64)
     return cand[chosen].astype(np.int32), owner[chosen].astype(np.int32)
+
+
+def _candidates(p: CityParams, rot: FloatArray, xy: FloatArray, tree: cKDTree,
+                owners: npt.NDArray[np.int64]) -> tuple[npt.NDArray[np.int64],
+                                                        npt.NDArray[np.int64]]:
+    """Every (owner, candidate) pair: an earlier pose within ``loop_radius_m``, at least
+    ``loop_min_gap`` poses back, driving along the same street (either direction)."""
+    hits = tree.query_ball_point(xy[owners], r=p.loop_radius_m)
+    counts = np.fromiter((len(h) for h in hits), np.int64, owners.size)
+    cand = np.fromiter(itertools.chain.from_iterable(hits), np.int64, int(counts.sum()))
+    owner = np.repeat(owners, counts)
+    heading = rot[:, :2, 0]  # horizontal part of the x axis
+    cos = np.einsum("ij,ij->i", heading[owner], heading[cand])
+    cos /= np.linalg.norm(heading[owner], axis=1) * np.linalg.norm(heading[cand], axis=1)
+    ok = (cand <= owner - p.loop_min_gap) & (np.abs(cos) >= math.cos(
+        math.radians(p.loop_max_heading_deg)))
+    return owner[ok], cand[ok]
+
+
+def _p_loop_for_density(p: CityParams, rot: FloatArray, xy: FloatArray, tree: cKDTree,
+                        rng: np.random.Generator) -> float:
+    """The p_loop that gives ``loop_density`` closures per pose in expectation."""
+    assert p.loop_density is not None
+    n = xy.shape[0]
+    eligible = n - p.loop_min_gap
+    if eligible <= 0 or p.loop_radius_m == 0.0:
+        return 1.0
+    sample = p.loop_min_gap + rng.choice(eligible, size=min(eligible, 20000), replace=False)
+    owner, _ = _candidates(p, rot, xy, tree, np.sort(sample))
+    with_candidates = np.unique(owner).size / sample.size * eligible
+    if with_candidates == 0:
+        return 1.0
+    return min(1.0, p.loop_density * n / with_candidates)
