@@ -517,7 +517,7 @@ def _loop_pairs(p: CityParams, rot: FloatArray, trans: FloatArray, rng: np.rando
     owner, cand = _candidates(p, rot, xy, cKDTree(xy) if tree is None else tree, drawn)
     order = np.lexsort((cand, owner))  # canonical order, then a random key per candidate
     owner, cand = owner[order], cand[order]
-    key = rng.random(owner.shape[0])
+    key = rng.random(size=(owner.shape[0],))
     pick = np.lexsort((key, owner))
     last = np.concatenate([owner[pick][1:] != owner[pick][:-1], [True]])
     chosen = pick[last] if owner.size else np.zeros(0, np.int64)
