@@ -677,3 +677,19 @@ def test_write_outliers_csv_names_the_file_lines(tmp_path: Path) -> None:
         assert edge_lines[i][1:3] == [row["id_a"], row["id_b"]]
         assert float(row["true_distance_m"]) == dist
         assert row["kind"] in OUTLIER_KINDS
+
+
+def test_dead_reckoning_kernel_matches_a_naive_loop() -> None:
+    """``chain`` (a Numba kernel) against the plain NumPy twin: one compose per step."""
+    from hybridpgo.generate._common import chain
+
+    rng = np.random.default_rng(27)
+    zr, zt = se3.exp(rng.normal(size=(300, 6)))
+    r0, t0 = se3.exp(rng.normal(size=6))
+    r, t = chain(r0, t0, zr, zt)
+    nr, nt = r0, t0
+    for i in range(300):
+        np.testing.assert_allclose(r[i], nr, atol=FLOAT64_IDENTITY)
+        np.testing.assert_allclose(t[i], nt, atol=FLOAT64_IDENTITY * (1 + np.abs(nt).max()))
+        nr, nt = se3.compose(nr, nt, zr[i], zt[i])
+    np.testing.assert_allclose(r[300], nr, atol=FLOAT64_IDENTITY)
