@@ -3,6 +3,7 @@ boundary, and one subprocess smoke test of the installed console script (STYLE.m
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import subprocess
@@ -91,15 +92,18 @@ def test_no_command_prints_help_and_fails(capsys: pytest.CaptureFixture[str]) ->
 
 
 def _choices(cmd: str, dest: str) -> list[str]:
+    """The choices of option ``dest`` of (sub)command ``cmd``, e.g. "generate city"."""
     parser = build_parser()
-    sub = next(a for a in parser._actions if a.dest == "command")
-    action = next(a for a in sub.choices[cmd]._actions if a.dest == dest)  # type: ignore[index]
-    return list(action.choices)
+    for name in cmd.split():
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        parser = sub.choices[name]
+    action = next(a for a in parser._actions if a.dest == dest)
+    return list(action.choices)  # type: ignore[arg-type]
 
 
 def test_choices_are_the_library_lists() -> None:
     """``choices=`` come from the lists the library validates against, not copies."""
-    from hybridpgo.generate import PRESETS
+    from hybridpgo.generate import GRID_PRESETS, PRESETS
 
     assert _choices("optimize", "format") == list(FORMATS)
     assert _choices("optimize", "out_format") == list(WRITE_FORMATS)
@@ -108,7 +112,8 @@ def test_choices_are_the_library_lists() -> None:
     assert _choices("optimize", "tree") == list(TREES)
     assert [k.value for k in TreeKind] == [t for t in TREES if t != "toro"]
     assert _choices("optimize", "init") == [k.value for k in InitKind]
-    assert _choices("generate", "preset") == sorted(PRESETS)
+    assert _choices("generate city", "preset") == sorted(PRESETS)
+    assert _choices("generate grid", "preset") == list(GRID_PRESETS)
 
 
 def test_help_shows_the_solvers_real_defaults(capsys: pytest.CaptureFixture[str]) -> None:

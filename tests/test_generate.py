@@ -1,10 +1,13 @@
-"""Tests of the city generator ``hybridpgo.generate`` (issue 4; paper Table II, Fig. 3, Fig. 8)."""
+"""Tests of the generators ``hybridpgo.generate``: the city (issue 4; paper Table II, Fig. 3,
+Fig. 8), its size scaling, the grid world (issue 11) and outliers (issue 9)."""
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import math
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,16 +15,25 @@ from tolerances import FLOAT64_IDENTITY
 
 from hybridpgo.energy import constraint_energies, energy
 from hybridpgo.generate import (
+    GRID_PRESETS,
     MIN_SIGMA,
+    OUTLIER_KINDS,
     PRESETS,
     City,
     CityParams,
+    Grid,
+    GridParams,
+    Outliers,
+    add_outliers,
     generate_city,
+    generate_grid,
     noisify,
+    scale_city,
     write_ground_truth,
+    write_outliers,
 )
 from hybridpgo.geometry import se3, so3
-from hybridpgo.io import read_graph
+from hybridpgo.io import read_graph, write_graph
 from hybridpgo.metrics import read_ground_truth
 
 #: A small city that generates in milliseconds: 4 x 4 blocks of 60 m, 1500 poses (3 km).
@@ -264,7 +276,7 @@ def test_bad_parameters_raise() -> None:
     with pytest.raises(ValueError, match="p_loop"):
         generate_city(p_loop=1.5)
     with pytest.raises(ValueError, match="gps_every"):
-        generate_city(gps_every=0)
+        generate_city(gps_every=-1)
     with pytest.raises(ValueError, match="num_poses"):
         generate_city(num_poses=1)
 
@@ -342,3 +354,342 @@ def test_write_ground_truth_round_trip(tmp_path: object) -> None:
     # The file is the whole problem, with the truth as vertex estimates.
     g = read_graph(path)
     assert g.num_edges == city.graph.num_edges and g.num_gps == city.graph.num_gps
+
+
+def test_gps_every_zero_means_no_gps() -> None:
+    city = small_city(18, gps_every=0)
+    assert city.graph.num_gps == 0 and city.params.gps_every is None
+    np.testing.assert_array_equal(city.graph.edge_translations,
+                                  small_city(18).graph.edge_translations)
+
+
+def test_write_ground_truth_reusing_the_graph_file_gives_the_same_bytes(tmp_path: Path) -> None:
+    """Oracle: the fast path (copying the graph file's constraint lines) writes exactly what the
+    plain path writes, for a 3D city with GPS and a 2D grid."""
+    for k, made in enumerate((small_city(19, gps_every=9),
+                              generate_grid(seed=2, num_poses=400, num_outliers=6))):
+        g = made.graph
+        graph_file = tmp_path / f"g{k}.g2o"
+        write_graph(g, graph_file)
+        plain, fast = tmp_path / f"plain{k}.g2o", tmp_path / f"fast{k}.g2o"
+        write_ground_truth(plain, g, made.truth_rotations, made.truth_translations)
+        write_ground_truth(fast, g, made.truth_rotations, made.truth_translations,
+                           graph_file=graph_file)
+        assert fast.read_bytes() == plain.read_bytes()
+
+
+def test_g2o_writer_output_does_not_depend_on_its_chunk_size(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import hybridpgo.io.g2o as g2o
+
+    for k, g in enumerate((small_city(20, gps_every=11).graph,
+                           generate_grid(seed=3, num_poses=300).graph)):
+        write_graph(g, tmp_path / "big.g2o")
+        monkeypatch.setattr(g2o, "_WRITE_CHUNK", 7)
+        write_graph(g, tmp_path / "small.g2o")
+        monkeypatch.undo()
+        assert (tmp_path / "small.g2o").read_bytes() == (tmp_path / "big.g2o").read_bytes(), k
+
+
+# =========================================================================== city size
+def test_scale_city_grows_the_street_grid_and_keeps_the_loop_density() -> None:
+    kw = scale_city("paris1", 4 * 27093)
+    assert kw["num_poses"] == 4 * 27093 and (kw["nx"], kw["ny"]) == (28, 24)  # 2 x (14, 12)
+    small = scale_city(None, 2)
+    assert (small["nx"], small["ny"]) == (1, 1)
+    base = generate_city("paris1")
+    density = base.num_loop_edges / base.graph.num_nodes
+    assert kw["loop_density"] == density
+    # A city 1/3 and one 1.5 times the preset's size close loops at its rate (sampling spread
+    # of a few hundred closures: 15%).
+    for n in (9000, 40000):
+        city = generate_city("paris1", seed=1, **scale_city("paris1", n))
+        assert city.graph.num_nodes == n
+        assert city.num_loop_edges / n == pytest.approx(density, rel=0.15), n
+    with pytest.raises(ValueError, match="num_poses"):
+        scale_city(None, 1)
+    with pytest.raises(ValueError, match="unknown preset"):
+        scale_city("rome", 10)
+
+
+def test_loop_density_replaces_p_loop() -> None:
+    few = small_city(21, loop_density=0.01).num_loop_edges
+    many = small_city(21, loop_density=0.05).num_loop_edges
+    n = SMALL["num_poses"]
+    assert few == pytest.approx(0.01 * n, rel=0.35) and many == pytest.approx(0.05 * n, rel=0.2)
+    assert small_city(21, loop_density=0.0).num_loop_edges == 0
+
+
+# =========================================================================== grid
+#: A small grid that generates in milliseconds.
+GRID = dict(num_poses=600)
+
+
+def _grid_errors(grid: Grid) -> np.ndarray:
+    g = grid.graph
+    r, t = grid.truth_rotations, grid.truth_translations
+    a, b = g.edge_nodes[:, 0], g.edge_nodes[:, 1]
+    xr, xt = se3.between(r[a], t[a], r[b], t[b])
+    dr, dt = se3.between(g.edge_rotations, g.edge_translations, xr, xt)
+    return se3.log(dr, dt)
+
+
+def test_grid_is_deterministic_per_seed() -> None:
+    a, b = generate_grid(seed=5, **GRID), generate_grid(seed=5, **GRID)
+    for name in ("truth_rotations", "truth_translations"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    for f in dataclasses.fields(a.graph):
+        va, vb = getattr(a.graph, f.name), getattr(b.graph, f.name)
+        if isinstance(va, np.ndarray):
+            np.testing.assert_array_equal(va, vb, err_msg=f.name)
+    c = generate_grid(seed=6, **GRID)
+    assert not np.array_equal(a.truth_translations, c.truth_translations)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_grid_walks_unit_steps_on_the_street_grid(dim: int) -> None:
+    grid = generate_grid(seed=7, dim=dim, street_spacing=3, num_poses=1500)
+    p = grid.params
+    t, r = grid.truth_translations, grid.truth_rotations
+    assert grid.graph.is_2d == (dim == 2) and grid.graph.num_nodes == 1500
+    # positions are integers inside the box; rotations are proper with entries 0, +-1
+    np.testing.assert_array_equal(t, np.round(t))
+    hi = np.array([p.nx, p.ny, p.nz or 0]) * p.street_spacing
+    assert np.all(t >= 0) and np.all(t <= hi)
+    if dim == 2:
+        np.testing.assert_array_equal(t[:, 2], 0.0)
+        np.testing.assert_array_equal(r[:, 2, 2], 1.0)
+    else:
+        assert np.unique(t[:, 2]).size > 1
+    assert set(np.unique(r)) <= {-1.0, 0.0, 1.0}
+    np.testing.assert_array_equal(np.linalg.det(r), 1.0)
+    # every step is one metre along the new heading (turn, then step, as in M3500)
+    np.testing.assert_array_equal(t[1:] - t[:-1], r[1:, :, 0])
+    # turns only at intersections (all coordinates multiples of the street spacing)
+    turned = np.any(r[1:] != r[:-1], axis=(1, 2))
+    assert turned.sum() > 20
+    np.testing.assert_array_equal(t[:-1][turned] % p.street_spacing, 0.0)
+    # odometry edges come first per pose and join consecutive poses
+    g = grid.graph
+    later = g.edge_nodes.max(axis=1)
+    assert np.all(np.diff(later) >= 0)
+    g.check_connected()
+
+
+def test_grid_turn_frequencies_follow_m3500() -> None:
+    """With a turn at every step, the heading changes with the configured probabilities
+    (straight 76%, left 8%, right 8%, back 8%), up to the walls' forced turns."""
+    grid = generate_grid(seed=8, num_poses=20000, nx=200)
+    r = grid.truth_rotations
+    rel = np.swapaxes(r[:-1], 1, 2) @ r[1:]
+    yaw = np.round(np.degrees(np.arctan2(rel[:, 1, 0], rel[:, 0, 0]))).astype(int)
+    n = yaw.size
+    p = grid.params
+    for angle, prob in ((0, 1 - p.p_turn - p.p_uturn), (90, p.p_turn / 2), (-90, p.p_turn / 2),
+                        (180, p.p_uturn)):
+        sd = math.sqrt(n * prob * (1 - prob))
+        assert abs((yaw == angle).sum() - n * prob) < CHI2_SIGMAS * sd + 0.01 * n, angle
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_grid_truth_has_zero_energy_against_noise_free_measurements(dim: int) -> None:
+    grid = generate_grid(seed=9, dim=dim, trans_sigma_m=0.0, rot_sigma_rad=0.0, **GRID)
+    g = grid.graph
+    assert grid.num_loop_edges > 20
+    assert energy(g, grid.truth_rotations, grid.truth_translations) < NOISE_FREE_ENERGY
+    # the odometry chained from the true first pose is the truth (the file's vertices)
+    np.testing.assert_allclose(g.translations, grid.truth_translations, atol=NOISE_FREE_CHAIN)
+    np.testing.assert_allclose(g.rotations, grid.truth_rotations, atol=NOISE_FREE_CHAIN)
+
+
+@pytest.mark.parametrize("dim, dof", [(2, 3), (3, 6)])
+def test_grid_truth_energy_is_chi2_and_noise_matches_sigmas(dim: int, dof: int) -> None:
+    grid = generate_grid(seed=10, dim=dim, num_poses=2000, rot_sigma_rad=0.2,
+                         trans_sigma_m=0.05)
+    g = grid.graph
+    e = constraint_energies(g, grid.truth_rotations, grid.truth_translations)[0]
+    k = dof * e.size
+    assert abs(e.sum() - k) < CHI2_SIGMAS * math.sqrt(2 * k), (e.sum(), k)
+    err = _grid_errors(grid)
+    if dim == 2:  # planar: no z, roll or pitch error at all
+        np.testing.assert_array_equal(err[:, 2:5], 0.0)
+        assert np.std(err[:, 5]) == pytest.approx(0.2, rel=SAMPLE_STD_RTOL)
+        assert np.std(err[:, :2]) == pytest.approx(0.05, rel=SAMPLE_STD_RTOL)
+    else:
+        assert np.std(err[:, 3:]) == pytest.approx(0.2, rel=SAMPLE_STD_RTOL)
+        assert np.std(err[:, :3]) == pytest.approx(0.05, rel=SAMPLE_STD_RTOL)
+    # information is the inverse covariance (2D: lifted like a g2o EDGE_SE2 line)
+    diag = np.diagonal(g.edge_information, axis1=1, axis2=2)
+    expect = ([1 / 0.05**2] * 2 + [1 / 0.05**2] * 3 + [1 / 0.2**2] if dim == 2
+              else [1 / 0.05**2] * 3 + [1 / 0.2**2] * 3)
+    np.testing.assert_allclose(diag, np.broadcast_to(expect, diag.shape), rtol=FLOAT64_IDENTITY)
+
+
+def test_grid_loop_closures_join_nearby_earlier_poses() -> None:
+    grid = generate_grid(seed=0)
+    p = grid.params
+    g, t = grid.graph, grid.truth_translations
+    a, b = g.edge_nodes[:, 0], g.edge_nodes[:, 1]
+    loop = b - a != 1
+    d = np.linalg.norm(t[b[loop]] - t[a[loop]], axis=1)
+    assert np.all(d <= p.loop_radius_m) and np.all(b[loop] - a[loop] >= p.loop_min_gap)
+    # M3500-like (2 099 closures on 3 500 poses, 90% at distance 0 or 1): seeds 0-19 give
+    # 1 745-2 983, mean 2 151
+    assert 1500 < grid.num_loop_edges < 3100
+    assert np.mean(d <= 1.0) > 0.7
+    assert generate_grid(seed=0, p_loop=0.0).num_loop_edges == 0
+    assert generate_grid(seed=0, p_loop=0.24).num_loop_edges > 1.5 * grid.num_loop_edges
+
+
+def test_grid_presets_raise_the_rotation_noise() -> None:
+    assert GRID_PRESETS["m3500a"]["rot_sigma_rad"] == 0.1
+    for name, sigma in (("m3500", GridParams().rot_sigma_rad), ("m3500c", 0.3)):
+        grid = generate_grid(name, seed=12, num_poses=3000)
+        assert grid.name == name and grid.params.rot_sigma_rad == sigma
+        assert np.std(_grid_errors(grid)[:, 5]) == pytest.approx(sigma, rel=SAMPLE_STD_RTOL)
+    g3 = generate_grid("grid3d", **GRID)
+    assert g3.params.dim == 3 and not g3.graph.is_2d
+    assert g3.params.nx == g3.params.ny == g3.params.nz
+
+
+def test_grid_is_written_as_se2_and_reads_back(tmp_path: Path) -> None:
+    grid = generate_grid(seed=13, **GRID)
+    path = tmp_path / "grid.g2o"
+    write_graph(grid.graph, path)
+    tags = {line.split()[0] for line in path.read_text().splitlines()}
+    assert tags == {"VERTEX_SE2", "EDGE_SE2"}
+    back = read_graph(path)
+    assert back.is_2d and back.num_edges == grid.graph.num_edges
+    e0 = energy(grid.graph, grid.truth_rotations, grid.truth_translations)
+    assert energy(back, grid.truth_rotations, grid.truth_translations) == pytest.approx(
+        e0, rel=1e-9)
+
+
+def test_grid_bad_parameters_raise() -> None:
+    with pytest.raises(ValueError, match="unknown grid preset 'm4000'"):
+        generate_grid("m4000")
+    with pytest.raises(TypeError, match=r"unknown grid parameter.*poses"):
+        generate_grid(poses=10)
+    with pytest.raises(ValueError, match="dim"):
+        generate_grid(dim=4)
+    with pytest.raises(ValueError, match="nz"):
+        generate_grid(nz=3)
+    with pytest.raises(ValueError, match="at most 1"):
+        generate_grid(p_turn=0.6, p_uturn=0.5)
+    with pytest.raises(ValueError, match="num_poses"):
+        generate_grid(num_poses=1)
+
+
+# =========================================================================== outliers
+def _strip(graph_edges: np.ndarray, outliers: Outliers) -> np.ndarray:
+    return np.delete(graph_edges, outliers.edges, axis=0)
+
+
+@pytest.mark.parametrize("kind", ["city", "grid2d", "grid3d"])
+def test_outliers_are_false_closures_listed_exactly(kind: str) -> None:
+    k = 30
+    if kind == "city":
+        make = lambda **kw: small_city(22, **kw)  # noqa: E731
+        lo, hi, gap = CityParams().near_miss_min_m, CityParams().near_miss_max_m, 100
+    else:
+        make = lambda **kw: generate_grid(  # noqa: E731
+            seed=22, dim=2 if kind == "grid2d" else 3, **GRID, **kw)
+        lo, hi, gap = GridParams().near_miss_min_m, GridParams().near_miss_max_m, 4
+    clean, dirty = make(), make(num_outliers=k)
+    o = dirty.outliers
+    g, c = dirty.graph, clean.graph
+    assert o.num_outliers == k and g.num_edges == c.num_edges + k
+    assert dirty.num_loop_edges == clean.num_loop_edges
+    assert np.all(np.diff(o.edges) > 0)
+    # Oracle: without the listed edges the graph is exactly the clean one.
+    for name in ("edge_nodes", "edge_rotations", "edge_translations", "edge_information"):
+        np.testing.assert_array_equal(_strip(getattr(g, name), o), getattr(c, name))
+    for name in ("rotations", "translations", "gps_nodes"):
+        np.testing.assert_array_equal(getattr(g, name), getattr(c, name))
+    # Still in online order; earlier pose first, the real closures' minimum gap.
+    assert np.all(np.diff(g.edge_nodes.max(axis=1)) >= 0)
+    a, b = g.edge_nodes[o.edges, 0], g.edge_nodes[o.edges, 1]
+    assert np.all(b - a >= gap)
+    t = dirty.truth_translations
+    np.testing.assert_allclose(o.true_distances_m, np.linalg.norm(t[b] - t[a], axis=1),
+                               rtol=FLOAT64_IDENTITY)
+    near = o.kinds == OUTLIER_KINDS.index("near_miss")
+    assert near.sum() == k // 2
+    assert np.all((o.true_distances_m[near] >= lo) & (o.true_distances_m[near] <= hi))
+    # The information of a real loop closure.
+    real = np.flatnonzero(np.diff(c.edge_nodes, axis=1)[:, 0] != 1)
+    real_info = {c.edge_information[i].tobytes() for i in real}
+    assert all(g.edge_information[i].tobytes() in real_info for i in o.edges)
+    # False: at the truth every near miss is off by at least near_miss_min_m - loop radius
+    # (energies of hundreds; real closures have chi^2 ~ 6), and random pairs mostly far off.
+    e = constraint_energies(g, dirty.truth_rotations, t)[0]
+    assert np.all(e[o.edges][near] > 100.0)
+    assert np.median(e[o.edges][~near]) > 100.0
+    assert np.median(np.delete(e, o.edges)) < 10.0
+    if kind == "grid2d":  # planar outliers, so the graph is still written as SE2
+        np.testing.assert_array_equal(g.edge_translations[o.edges, 2], 0.0)
+        np.testing.assert_array_equal(g.edge_rotations[o.edges, 2, 2], 1.0)
+
+
+def test_outliers_are_deterministic_and_use_their_own_random_stream() -> None:
+    a = generate_grid(seed=23, num_outliers=10, **GRID)
+    b = generate_grid(seed=23, num_outliers=10, **GRID)
+    np.testing.assert_array_equal(a.outliers.edges, b.outliers.edges)
+    np.testing.assert_array_equal(a.graph.edge_rotations, b.graph.edge_rotations)
+    c = generate_grid(seed=24, num_outliers=10, **GRID)
+    assert not np.array_equal(a.graph.edge_nodes[a.outliers.edges],
+                              c.graph.edge_nodes[c.outliers.edges])
+    only_random = generate_grid(seed=23, num_outliers=10, near_miss_fraction=0.0, **GRID)
+    assert np.all(only_random.outliers.kinds == OUTLIER_KINDS.index("random"))
+
+
+def test_add_outliers_errors() -> None:
+    grid = generate_grid(seed=25, **GRID)
+    args = (grid.graph, grid.truth_rotations, grid.truth_translations)
+    with pytest.raises(ValueError, match="near-miss"):
+        add_outliers(*args, 5, near_miss_min_m=1e4, near_miss_max_m=2e4)
+    with pytest.raises(ValueError, match="num_outliers"):
+        add_outliers(*args, -1)
+    with pytest.raises(ValueError, match="near_miss_fraction"):
+        add_outliers(*args, 3, near_miss_fraction=1.5)
+    same, none = add_outliers(*args, 0)
+    assert same is grid.graph and none.num_outliers == 0
+
+
+def test_write_outliers_csv_names_the_file_lines(tmp_path: Path) -> None:
+    city = small_city(26, num_outliers=8, gps_every=50)
+    graph_file, csv_file = tmp_path / "c.g2o", tmp_path / "c.outliers.csv"
+    write_graph(city.graph, graph_file)
+    write_outliers(csv_file, city.graph, city.outliers)
+    with csv_file.open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0]) == ["edge_index", "id_a", "id_b", "kind", "true_distance_m"]
+    back = read_graph(graph_file)
+    edge_lines = [ln.split() for ln in graph_file.read_text().splitlines()
+                  if ln.startswith("EDGE_SE3:QUAT")]
+    assert len(rows) == 8
+    for row, e, dist in zip(rows, city.outliers.edges, city.outliers.true_distances_m,
+                            strict=True):
+        i = int(row["edge_index"])
+        assert i == e
+        ids = back.node_ids[back.edge_nodes[i]]
+        assert (int(row["id_a"]), int(row["id_b"])) == tuple(ids)
+        assert edge_lines[i][1:3] == [row["id_a"], row["id_b"]]
+        assert float(row["true_distance_m"]) == dist
+        assert row["kind"] in OUTLIER_KINDS
+
+
+def test_dead_reckoning_kernel_matches_a_naive_loop() -> None:
+    """``chain`` (a Numba kernel) against the plain NumPy twin: one compose per step."""
+    from hybridpgo.generate._common import chain
+
+    rng = np.random.default_rng(27)
+    zr, zt = se3.exp(rng.normal(size=(300, 6)))
+    r0, t0 = se3.exp(rng.normal(size=6))
+    r, t = chain(r0, t0, zr, zt)
+    nr, nt = r0, t0
+    for i in range(300):
+        np.testing.assert_allclose(r[i], nr, atol=FLOAT64_IDENTITY)
+        np.testing.assert_allclose(t[i], nt, atol=FLOAT64_IDENTITY * (1 + np.abs(nt).max()))
+        nr, nt = se3.compose(nr, nt, zr[i], zt[i])
+    np.testing.assert_allclose(r[300], nr, atol=FLOAT64_IDENTITY)

@@ -67,6 +67,12 @@ def _presets() -> list[str]:
     return sorted(PRESETS)
 
 
+def _grid_presets() -> list[str]:
+    from ..generate import GRID_PRESETS
+
+    return list(GRID_PRESETS)
+
+
 def _solver_defaults() -> tuple[Any, Any]:
     """Default configs, so that --help shows the solvers' real defaults."""
     from ..solvers import GaussNewtonConfig, HybridConfig
@@ -108,6 +114,10 @@ OUTPUT_HELP = ("Outputs are checked before any work and written atomically (temp
                "link kept); a FIFO or character device (/dev/null) is written directly.")
 
 
+_probability = _number(float, lambda v: 0 <= v <= 1, "a number in [0, 1]")
+_at_least_2 = _number(int, lambda v: v >= 2, "an integer >= 2")
+
+
 # --------------------------------------------------------------------------- parser
 def _add_format(p: argparse.ArgumentParser, *, out: bool = False) -> None:
     p.add_argument("--format", choices=LazyChoices(_formats),
@@ -133,6 +143,30 @@ def _add_progress(p: argparse.ArgumentParser) -> None:
     p.add_argument("--progress", action="store_true",
                    help="draw progress even when stderr is not a terminal (default: only on a "
                         "terminal; --quiet turns it off)")
+
+
+def _add_generate_common(p: argparse.ArgumentParser, kind: str) -> None:
+    """Outliers, seed and outputs of ``generate city`` and ``generate grid``."""
+    p.add_argument("--outliers", type=_nonneg_int, default=0, metavar="N",
+                   help="add N false loop closures with the information of real ones: random "
+                        "pose pairs and near misses (poses a few metres apart with a wrong "
+                        "relative pose) (default 0)")
+    p.add_argument("--near-miss-fraction", type=_probability, metavar="F",
+                   help="fraction of the outliers that are near misses (default 0.5)")
+    p.add_argument("--outliers-out", metavar="CSV",
+                   help="where to list the false edges: CSV with columns edge_index (0-based "
+                        "among the file's edge lines), id_a, id_b, kind (random or near_miss), "
+                        "true_distance_m (default with --outliers: GT, else OUT, with its "
+                        "extension replaced by .outliers.csv)")
+    p.add_argument("--seed", type=_any_int, default=0, help="random seed (default 0)")
+    p.add_argument("-o", "--output", required=True, metavar="OUT",
+                   help="graph file to write (g2o, or TORO for a .graph name; vertices are the "
+                        "noisy odometry chained from the true first pose)")
+    p.add_argument("--ground-truth", metavar="GT",
+                   help="also write the ground truth: the same graph with the true poses as "
+                        "vertices (g2o)")
+    _add_common(p)
+    p.set_defaults(command="generate", kind=kind)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -296,20 +330,73 @@ def build_parser() -> argparse.ArgumentParser:
         "generate", help="generate a synthetic graph with ground truth",
         description="Generate a synthetic pose graph with ground truth.  'city': a street-grid "
                     "city driven by a vehicle, with odometry, probabilistic loop closures and "
-                    "optional GPS (paper Table II shapes).")
-    p.add_argument("kind", choices=["city"], help="what to generate")
-    p.add_argument("--preset", choices=LazyChoices(_presets),
-                   help="size and shape like the paper's Table II graphs (default: the "
-                        "generator's default city, 2000 poses)")
-    p.add_argument("--gps-every", type=_pos_int, metavar="K",
-                   help="a GPS reading on every K-th pose (default: the preset's)")
-    p.add_argument("--seed", type=_any_int, default=0, help="random seed (default 0)")
-    p.add_argument("-o", "--output", required=True, metavar="OUT",
-                   help="graph file to write (g2o; vertices are dead reckoning)")
-    p.add_argument("--ground-truth", required=True, metavar="GT",
-                   help="ground-truth poses file to write")
+                    "optional GPS (paper Table II shapes), any size.  'grid': a Manhattan world "
+                    "after Olson (M3500-like), 2D or 3D, with adjustable noise.  Both can add "
+                    "false loop closures (--outliers).  Every output is checked before any work "
+                    "and all are written or none.",
+        epilog="Run 'hybridpgo generate city --help' or 'hybridpgo generate grid --help' for "
+               "their options.")
+    kinds = p.add_subparsers(dest="kind", metavar="KIND", required=True)
     _add_common(p)
     p.set_defaults(command="generate")
+
+    c = kinds.add_parser(
+        "city", help="a vehicle driving through a 3D street-grid city (paper Table II shapes)",
+        description="A vehicle drives through a street-grid city with gentle elevation; the "
+                    "graph has odometry, loop closures detected with some probability when it "
+                    "revisits a street, and optional GPS readings.  The file's vertices are "
+                    "dead reckoning (the noisy odometry chained from the true first pose).")
+    c.add_argument("--preset", choices=LazyChoices(_presets),
+                   help="size and shape like the paper's Table II graphs (default: the "
+                        "generator's default city, 2000 poses)")
+    c.add_argument("--poses", type=_at_least_2, metavar="N",
+                   help="number of poses; the street grid grows with N so that the density of "
+                        "loop closures stays the preset's (default: the preset's)")
+    c.add_argument("--gps-every", type=_nonneg_int, metavar="K",
+                   help="a GPS reading on every K-th pose (the paper: 100); 0: no GPS "
+                        "(default: no GPS)")
+    _add_generate_common(c, "city")
+
+    g = kinds.add_parser(
+        "grid", help="a Manhattan world after Olson (M3500-like), 2D or 3D",
+        description="A robot takes unit steps (1 m) on a grid of streets, turning at "
+                    "intersections (straight 76%, left 8%, right 8%, back 8%; in 3D also up "
+                    "and down), with a loop closure to each earlier pose nearby with probability "
+                    "P_LOOP exp(-d^2 / (2 x 0.8^2)) within 3 m, like M3500.  Every measurement "
+                    "has the same noise (TRANS_SIGMA per axis, ROT_SIGMA per axis) and matching "
+                    "information.  The file's vertices are the odometry chained from the true "
+                    "first pose; 2D grids are written as g2o SE2.",
+        epilog="Hard graphs (local minima): --preset m3500a, m3500b, m3500c have rotation noise "
+               "0.1, 0.2, 0.3 rad; for a family vary --rot-sigma and --seed, e.g. "
+               "'for s in 0.1 0.2 0.3 0.5; do hybridpgo generate grid --rot-sigma $s --seed 1 "
+               "-o m_$s.g2o --ground-truth m_${s}_gt.g2o; done'.")
+    g.add_argument("--preset", choices=LazyChoices(_grid_presets),
+                   help="m3500 (the default: 3500 poses, sigma 0.0224 m and rad like M3500), "
+                        "m3500a/b/c (rotation sigma 0.1/0.2/0.3 rad), grid3d (3D)")
+    g.add_argument("--poses", type=_at_least_2, metavar="N",
+                   help="number of poses (default 3500); the grid grows with N unless --nx is "
+                        "given")
+    g.add_argument("--3d", dest="three_d", action="store_true",
+                   help="a 3D lattice (turns up and down too), written as g2o SE3:QUAT")
+    g.add_argument("--nx", type=_pos_int, metavar="B",
+                   help="blocks along x (default: 0.73 sqrt(N) in 2D, 0.86 N^(1/3) in 3D)")
+    g.add_argument("--ny", type=_pos_int, metavar="B", help="blocks along y (default: as --nx)")
+    g.add_argument("--nz", type=_pos_int, metavar="B",
+                   help="3D: blocks along z (default: as --nx)")
+    g.add_argument("--street-spacing", type=_pos_int, metavar="K",
+                   help="unit steps between intersections (default 1: turn at any step)")
+    g.add_argument("--rot-sigma", type=_nonneg_float, metavar="RAD",
+                   help="rotation noise of every measurement, radians per axis (default: the "
+                        "preset's, 0.0224 for m3500)")
+    g.add_argument("--trans-sigma", type=_nonneg_float, metavar="M",
+                   help="translation noise of every measurement, metres per axis (default "
+                        "0.0224)")
+    g.add_argument("--p-loop", type=_probability, metavar="P",
+                   help="probability of closing a pair of poses at the same place (default "
+                        "0.12; falls off with distance)")
+    g.add_argument("--loop-radius", type=_nonneg_float, metavar="M",
+                   help="only poses within this distance are closed (default 3)")
+    _add_generate_common(g, "grid")
 
     # ---------------------------------------------------------------- noisify
     p = sub.add_parser(

@@ -1,36 +1,209 @@
-"""``hybridpgo generate city``: a synthetic city drive with ground truth (issue 4)."""
+"""``hybridpgo generate city|grid``: synthetic graphs with ground truth and optional false loop
+closures (issues 4, 9, 11).
+
+Outputs are all or nothing: every output path is checked (distinct files, writable directories)
+and a temporary file is reserved beside each before any work; the files are written to those
+temporaries and renamed into place together only when all of them have been written.
+"""
 
 from __future__ import annotations
 
 import argparse
+import os
+import tempfile
+from types import TracebackType
 from typing import Any
 
 from ..errors import HybridPGOError
-from ._common import describe_graph, output_format, print_table
+from ._common import FORMAT_FROM_SUFFIX, describe_graph, print_table
+
+#: Extension of the default outliers file (replacing the ground truth's, else the graph's).
+OUTLIERS_SUFFIX = ".outliers.csv"
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..generate import PRESETS, generate_city, write_ground_truth
+    from ..generate import write_ground_truth, write_outliers
     from ..io import write_graph
+
+    fmt = _graph_format(args.output)
+    outliers_out = args.outliers_out
+    if outliers_out is None and args.outliers > 0:
+        outliers_out = os.path.splitext(args.ground_truth or args.output)[0] + OUTLIERS_SUFFIX
+    outputs = [("-o/--output", args.output)]
+    if args.ground_truth is not None:
+        outputs.append(("--ground-truth", args.ground_truth))
+    if outliers_out is not None:
+        outputs.append(("--outliers-out" if args.outliers_out else "the outliers file",
+                        outliers_out))
+    if fmt == "toro" and args.kind == "city" and args.gps_every:
+        raise HybridPGOError(f"{args.output}: TORO files cannot hold GPS readings; write g2o "
+                             "(a .g2o name) or drop --gps-every")
+
+    with OutputGroup(outputs) as group:  # reserves the outputs before any work
+        made = _city(args) if args.kind == "city" else _grid(args)
+        graph = made.graph
+        write_graph(graph, group.temp(args.output), fmt)
+        if args.ground_truth is not None:
+            # the constraint lines are the graph file's: copy them instead of formatting twice
+            write_ground_truth(group.temp(args.ground_truth), graph, made.truth_rotations,
+                               made.truth_translations,
+                               graph_file=group.temp(args.output) if fmt == "g2o" else None)
+        if outliers_out is not None:
+            write_outliers(group.temp(outliers_out), graph, made.outliers)
+        group.commit()
+
+    rows = [(args.kind, f"{made.name}, seed {args.seed}"),
+            ("graph", f"{args.output} ({describe_graph(graph)}; {made.num_loop_edges} loop "
+                      "closures; vertices are dead reckoning)")]
+    if args.ground_truth is not None:
+        rows.append(("ground truth", args.ground_truth))
+    if outliers_out is not None:
+        k = made.outliers.num_outliers
+        near = int((made.outliers.kinds == 1).sum())
+        rows.append(("outliers", f"{outliers_out} ({k} false loop closures: {k - near} random, "
+                                 f"{near} near misses)"))
+    print_table(rows)
+    return 0
+
+
+def _graph_format(path: str) -> str:
+    """g2o, or TORO for a ``.graph`` name (iSAM cannot hold the vertices)."""
+    fmt = FORMAT_FROM_SUFFIX.get(os.path.splitext(path)[1].lower(), "g2o")
+    return "toro" if fmt == "toro" else "g2o"
+
+
+def _outlier_params(args: argparse.Namespace) -> dict[str, Any]:
+    out: dict[str, Any] = {"num_outliers": args.outliers}
+    if args.near_miss_fraction is not None:
+        out["near_miss_fraction"] = args.near_miss_fraction
+    return out
+
+
+def _city(args: argparse.Namespace) -> Any:
+    from ..generate import PRESETS, generate_city, scale_city
 
     if args.preset is not None and args.preset not in PRESETS:  # LazyChoices let it through
         raise HybridPGOError(f"unknown preset {args.preset!r}; choose one of "
                              + ", ".join(sorted(PRESETS)))
-    kwargs: dict[str, Any] = {"seed": args.seed}
+    kwargs = _outlier_params(args)
+    if args.poses is not None:
+        kwargs.update(scale_city(args.preset, args.poses))
     if args.gps_every is not None:
         kwargs["gps_every"] = args.gps_every
     try:
-        city = generate_city(args.preset, **kwargs)
+        return generate_city(args.preset, seed=args.seed, **kwargs)
     except ValueError as exc:
         raise HybridPGOError(f"cannot generate the city: {exc}") from exc
-    graph = city.graph
-    fmt = output_format(args.output, None, graph, allow_isam=False)
-    write_graph(graph, args.output, fmt)
-    write_ground_truth(args.ground_truth, graph, city.truth_rotations, city.truth_translations)
-    print_table([
-        ("city", f"{city.name}, seed {args.seed}"),
-        ("graph", f"{args.output} ({describe_graph(graph)}; {city.num_loop_edges} loop "
-                  "closures; vertices are dead reckoning)"),
-        ("ground truth", args.ground_truth),
-    ])
-    return 0
+
+
+def _grid(args: argparse.Namespace) -> Any:
+    from ..generate import GRID_PRESETS, generate_grid
+
+    if args.preset is not None and args.preset not in GRID_PRESETS:
+        raise HybridPGOError(f"unknown grid preset {args.preset!r}; choose one of "
+                             + ", ".join(GRID_PRESETS))
+    kwargs = _outlier_params(args)
+    for name, key in (("poses", "num_poses"), ("nx", "nx"), ("ny", "ny"), ("nz", "nz"),
+                      ("street_spacing", "street_spacing"), ("rot_sigma", "rot_sigma_rad"),
+                      ("trans_sigma", "trans_sigma_m"), ("p_loop", "p_loop"),
+                      ("loop_radius", "loop_radius_m")):
+        value = getattr(args, name)
+        if value is not None:
+            kwargs[key] = value
+    if args.three_d:
+        kwargs["dim"] = 3
+    try:
+        return generate_grid(args.preset, seed=args.seed, **kwargs)
+    except ValueError as exc:
+        raise HybridPGOError(f"cannot generate the grid: {exc}") from exc
+
+
+# =========================================================================== all-or-nothing
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+class OutputGroup:
+    """Several output files written all or nothing.
+
+    On entering, every path is checked (no two name the same file, none is a directory) and a
+    temporary file is created beside each, so an unwritable output fails before any work.
+    Write each output to :meth:`temp`, then call :meth:`commit` to rename them all into place;
+    leaving the ``with`` block without committing (or with an exception) removes the
+    temporaries and leaves existing files untouched.
+    """
+
+    def __init__(self, outputs: list[tuple[str, str]]) -> None:
+        self._outputs = outputs
+        self._temps: dict[str, str] = {}
+
+    def __enter__(self) -> OutputGroup:
+        seen: dict[str, tuple[str, str]] = {}
+        for label, path in self._outputs:
+            key = os.path.realpath(path)
+            for other_key, (other_label, other_path) in seen.items():
+                if key == other_key or _same_file(path, other_path):
+                    raise HybridPGOError(
+                        f"{path}: {other_label} and {label} name the same file; give each "
+                        "output its own file name")
+            seen[key] = (label, path)
+            if os.path.isdir(path):
+                raise HybridPGOError(f"{path}: cannot write {label}: it is a directory")
+        try:
+            for label, path in self._outputs:
+                directory = os.path.dirname(os.path.abspath(path))
+                try:
+                    fd, tmp = tempfile.mkstemp(dir=directory, suffix=".tmp",
+                                               prefix="." + os.path.basename(path) + ".")
+                except OSError as exc:
+                    why = exc.strerror or str(exc)
+                    if not os.path.isdir(directory):
+                        why = f"directory {directory} does not exist"
+                    raise HybridPGOError(f"{path}: cannot write {label}: {why}") from exc
+                os.close(fd)
+                self._temps[path] = tmp
+        except BaseException:
+            self._discard()
+            raise
+        return self
+
+    def temp(self, path: str) -> str:
+        """The temporary file to write ``path``'s content to."""
+        return self._temps[path]
+
+    def commit(self) -> None:
+        """Rename every temporary into place (keeping an existing file's permissions)."""
+        default_mode = 0o666 & ~_umask()
+        try:
+            for path, tmp in self._temps.items():
+                try:
+                    mode = os.stat(path).st_mode & 0o777
+                except OSError:
+                    mode = default_mode
+                os.chmod(tmp, mode)
+            for path, tmp in list(self._temps.items()):
+                os.replace(tmp, path)
+                del self._temps[path]
+        except OSError as exc:
+            raise HybridPGOError(f"cannot write the outputs: {exc}") from exc
+
+    def _discard(self) -> None:
+        for tmp in self._temps.values():
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+        self._temps.clear()
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self._discard()
+
+
+def _same_file(a: str, b: str) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import os
 
+from ..errors import HybridPGOError
 from ._common import describe_graph, log, output_format, read_input
 
 
@@ -11,6 +13,10 @@ def run(args: argparse.Namespace) -> int:
     from ..generate import noisify
     from ..io import write_graph
 
+    if os.path.realpath(args.output) == os.path.realpath(args.input) or _same_file(
+            args.input, args.output):
+        raise HybridPGOError(f"{args.output}: is the input file; noisify never overwrites its "
+                             "input: choose another output")
     graph = read_input(args.input, args.format)
     noisy = noisify(graph, yaw_sigma_deg=args.yaw_sigma_deg, seed=args.seed)
     fmt = output_format(args.output, args.out_format, graph, allow_isam=True)
@@ -21,3 +27,10 @@ def run(args: argparse.Namespace) -> int:
         log("hybridpgo: note: the vertex estimates are unchanged and no longer match the "
             "noisy edges; optimize from the tree initialization (--init tree, the default)")
     return 0
+
+
+def _same_file(a: str, b: str) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False

@@ -18,6 +18,8 @@ multiplies by ``P^-1`` (exact in binary floating point), so a round trip is exac
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 
 from ..errors import FormatError
@@ -262,38 +264,58 @@ def g2o_lines(graph: PoseGraph, name: str) -> list[str]:
     return _g2o_lines(graph)
 
 
-def _g2o_lines(graph: PoseGraph) -> list[str]:
+#: Rows formatted at a time by the writer: bounds its memory on graphs of millions of lines.
+_WRITE_CHUNK = 65536
+
+
+def _chunks(n: int) -> Iterator[slice]:
+    return (slice(i, min(i + _WRITE_CHUNK, n)) for i in range(0, n, _WRITE_CHUNK))
+
+
+def _g2o_lines(graph: PoseGraph) -> Iterator[str]:
+    """The file's text in blocks of up to ``_WRITE_CHUNK`` lines (each without its final
+    newline), so that a large graph is never formatted into memory all at once."""
     ids = graph.node_ids
-    out: list[str] = []
-    ea = ids[graph.edge_nodes[:, 0]].tolist()
-    eb = ids[graph.edge_nodes[:, 1]].tolist()
+    vertices = write_vertices_needed(graph)
+    fix = _fix_lines(graph)
+    ea_all, eb_all = ids[graph.edge_nodes[:, 0]], ids[graph.edge_nodes[:, 1]]
     if graph.is_2d:
-        if write_vertices_needed(graph):
-            t = graph.translations
-            rows = fmt_floats(np.column_stack([t[:, 0], t[:, 1], yaw_of(graph.rotations)]))
-            out += [f"VERTEX_SE2 {i} {r}" for i, r in zip(ids.tolist(), rows, strict=True)]
-        out += _fix_lines(graph)
-        et = graph.edge_translations
-        vals = np.column_stack([et[:, 0], et[:, 1], yaw_of(graph.edge_rotations),
-                                upper_from_sym(planar_information(graph.edge_information))])
-        out += [f"EDGE_SE2 {a} {b} {r}" for a, b, r in zip(ea, eb, fmt_floats(vals), strict=True)]
-        return out
-    if write_vertices_needed(graph):
-        rows = fmt_floats(np.column_stack([graph.translations,
-                                           matrix_to_quat_xyzw(graph.rotations)]))
-        out += [f"VERTEX_SE3:QUAT {i} {r}" for i, r in zip(ids.tolist(), rows, strict=True)]
-    out += _fix_lines(graph)
-    info_q = graph.edge_information * _P_INV[:, None] * _P_INV[None, :]
-    vals = np.column_stack([graph.edge_translations, matrix_to_quat_xyzw(graph.edge_rotations),
-                            upper_from_sym(info_q)])
-    out += [f"EDGE_SE3:QUAT {a} {b} {r}" for a, b, r in zip(ea, eb, fmt_floats(vals),
-                                                             strict=True)]
+        for s in _chunks(graph.num_nodes if vertices else 0):
+            t = graph.translations[s]
+            rows = fmt_floats(np.column_stack([t[:, 0], t[:, 1], yaw_of(graph.rotations[s])]))
+            yield "\n".join(f"VERTEX_SE2 {i} {r}" for i, r in zip(ids[s].tolist(), rows,
+                                                                   strict=True))
+        if fix:
+            yield "\n".join(fix)
+        for s in _chunks(graph.num_edges):
+            et = graph.edge_translations[s]
+            vals = np.column_stack([et[:, 0], et[:, 1], yaw_of(graph.edge_rotations[s]),
+                                    upper_from_sym(planar_information(graph.edge_information[s]))])
+            yield "\n".join(f"EDGE_SE2 {a} {b} {r}" for a, b, r in zip(
+                ea_all[s].tolist(), eb_all[s].tolist(), fmt_floats(vals), strict=True))
+        return
+    for s in _chunks(graph.num_nodes if vertices else 0):
+        rows = fmt_floats(np.column_stack([graph.translations[s],
+                                           matrix_to_quat_xyzw(graph.rotations[s])]))
+        yield "\n".join(f"VERTEX_SE3:QUAT {i} {r}" for i, r in zip(ids[s].tolist(), rows,
+                                                                     strict=True))
+    if fix:
+        yield "\n".join(fix)
+    for s in _chunks(graph.num_edges):
+        info_q = graph.edge_information[s] * _P_INV[:, None] * _P_INV[None, :]
+        vals = np.column_stack([graph.edge_translations[s],
+                                matrix_to_quat_xyzw(graph.edge_rotations[s]),
+                                upper_from_sym(info_q)])
+        yield "\n".join(f"EDGE_SE3:QUAT {a} {b} {r}" for a, b, r in zip(
+            ea_all[s].tolist(), eb_all[s].tolist(), fmt_floats(vals), strict=True))
     if graph.num_gps:
-        out.append("PARAMS_SE3OFFSET 0 0 0 0 0 0 0 1")
-        vals = np.column_stack([graph.gps_positions, upper_from_sym(graph.gps_information)])
-        out += [f"EDGE_SE3_XYZ_PRIOR {v} 0 {r}"
-                for v, r in zip(ids[graph.gps_nodes].tolist(), fmt_floats(vals), strict=True)]
-    return out
+        yield "PARAMS_SE3OFFSET 0 0 0 0 0 0 0 1"
+        gid = ids[graph.gps_nodes]
+        for s in _chunks(graph.num_gps):
+            vals = np.column_stack([graph.gps_positions[s],
+                                    upper_from_sym(graph.gps_information[s])])
+            yield "\n".join(f"EDGE_SE3_XYZ_PRIOR {v} 0 {r}" for v, r in zip(
+                gid[s].tolist(), fmt_floats(vals), strict=True))
 
 
 def _fix_lines(graph: PoseGraph) -> list[str]:

@@ -32,14 +32,20 @@ Frames and conventions
   pose (so with GPS the first pose sits at its true earth-frame pose).
 
 Randomness: ``seed`` feeds one :class:`numpy.random.SeedSequence` whose independent children
-drive the route, the odometry noise, the loop closures and the GPS noise.  So the same seed gives
-bit-identical output, and the graphs with and without GPS (``gps_every``) share the same route,
-odometry and loop closures: only the GPS constraints differ.
+drive the route, the odometry noise, the loop closures, the GPS noise and the outliers.  So the
+same seed gives bit-identical output, and the graphs with and without GPS (``gps_every``) or
+outliers (``num_outliers``) share the same route, odometry and loop closures: only the GPS
+constraints or the false edges differ.
+
+Size: :func:`scale_city` gives the parameters of a city of any number of poses shaped like a
+preset (the street grid grows with the drive, so the loop-closure density stays the preset's);
+generation is vectorized (a 1M-pose city: about 11 s of CPU time and 2 GB of memory).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import math
 from dataclasses import dataclass
@@ -49,23 +55,12 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
-from .geometry import se3
-from .graph import FloatArray, IntArray, PoseGraph
-from .io import write_graph
-from .io._lines import PathLike
+from ..geometry import se3
+from ..graph import FloatArray, IntArray, PoseGraph
+from ._common import chain, diag_information, online_order, perturb
+from .outliers import Outliers, add_outliers, no_outliers
 
-__all__ = [
-    "MIN_SIGMA",
-    "PRESETS",
-    "City",
-    "CityParams",
-    "generate_city",
-    "noisify",
-    "write_ground_truth",
-]
-
-#: Sigma (m or rad) used for the information of a measurement configured with sigma 0.
-MIN_SIGMA = 1e-6
+__all__ = ["PRESETS", "City", "CityParams", "generate_city", "scale_city"]
 
 #: Resolution (m) of the densely sampled street polyline that is smoothed into the route.
 _FINE_STEP_M = 0.25
@@ -114,6 +109,10 @@ class CityParams:
     """Odometry rotation noise about the vehicle's x and y axes, per step, degrees."""
     p_loop: float = 0.05
     """Probability that a pose with a loop-closure candidate gets a loop closure."""
+    loop_density: float | None = None
+    """Target number of loop closures per pose: when set, ``p_loop`` is replaced by the
+    probability that gives this many in expectation (the fraction of poses with a candidate is
+    estimated from up to 20 000 sampled poses), capped at 1.  :func:`scale_city` sets it."""
     loop_radius_m: float = 4.0
     """A candidate is an earlier pose within this horizontal distance ..."""
     loop_max_heading_deg: float = 20.0
@@ -131,6 +130,14 @@ class CityParams:
     """GPS horizontal noise (x and y), metres."""
     gps_sigma_v_m: float = 4.0
     """GPS vertical noise, metres."""
+    num_outliers: int = 0
+    """Number of false loop closures added (:mod:`hybridpgo.generate.outliers`)."""
+    near_miss_fraction: float = 0.5
+    """Fraction of the outliers that are near misses (the rest join random pose pairs)."""
+    near_miss_min_m: float = 6.0
+    """A near miss joins two poses at least this far apart (true 3D distance), metres ..."""
+    near_miss_max_m: float = 15.0
+    """... and at most this far apart."""
 
     def __post_init__(self) -> None:
         positive_int = ("nx", "ny", "num_poses")
@@ -157,6 +164,10 @@ class CityParams:
             raise ValueError(f"revisit_bias must be greater than -1, got {self.revisit_bias!r}")
         if not 0.0 <= self.p_loop <= 1.0:
             raise ValueError(f"p_loop must be in [0, 1], got {self.p_loop!r}")
+        if self.loop_density is not None and not (math.isfinite(self.loop_density)
+                                                  and self.loop_density >= 0.0):
+            raise ValueError(f"loop_density must be a number >= 0 or None, got "
+                             f"{self.loop_density!r}")
         if self.step_jitter >= 1.0:
             raise ValueError(f"step_jitter must be below 1, got {self.step_jitter!r}")
         if not 0.0 <= self.loop_max_heading_deg <= 90.0:
@@ -165,9 +176,20 @@ class CityParams:
         if self.loop_min_gap < 1:
             raise ValueError(f"loop_min_gap must be at least 1, got {self.loop_min_gap!r}")
         if self.gps_every is not None and (not isinstance(self.gps_every, int | np.integer)
-                                           or self.gps_every < 1):
-            raise ValueError(f"gps_every must be a positive integer or None, got "
+                                           or self.gps_every < 0):
+            raise ValueError(f"gps_every must be an integer >= 0 or None, got "
                              f"{self.gps_every!r}")
+        if self.gps_every == 0:  # 0 means no GPS, like None
+            object.__setattr__(self, "gps_every", None)
+        if not isinstance(self.num_outliers, int | np.integer) or self.num_outliers < 0:
+            raise ValueError(f"num_outliers must be an integer >= 0, got {self.num_outliers!r}")
+        if not 0.0 <= self.near_miss_fraction <= 1.0:
+            raise ValueError(f"near_miss_fraction must be in [0, 1], got "
+                             f"{self.near_miss_fraction!r}")
+        if not (math.isfinite(self.near_miss_max_m)
+                and 0.0 <= self.near_miss_min_m <= self.near_miss_max_m):
+            raise ValueError("need 0 <= near_miss_min_m <= near_miss_max_m, got "
+                             f"{self.near_miss_min_m!r}, {self.near_miss_max_m!r}")
         if 2.0 * self.lane_offset_m >= self.block_size_m:
             raise ValueError("lane_offset_m must be less than half of block_size_m")
 
@@ -208,11 +230,14 @@ class City:
     """The preset's name, or "city" for custom parameters."""
     params: CityParams
     """The parameters the city was generated with."""
+    outliers: Outliers = dataclasses.field(default_factory=no_outliers)
+    """Which edges of ``graph`` are false loop closures (none unless ``num_outliers``)."""
 
     @property
     def num_loop_edges(self) -> int:
-        """Number of loop closures (edges other than the N - 1 odometry edges)."""
-        return self.graph.num_edges - (self.graph.num_nodes - 1)
+        """Number of true loop closures (edges other than the N - 1 odometry edges and the
+        outliers)."""
+        return self.graph.num_edges - (self.graph.num_nodes - 1) - self.outliers.num_outliers
 
 
 def generate_city(preset: str | None = None, *, seed: int = 0, gps_every: int | None = None,
@@ -227,7 +252,8 @@ def generate_city(preset: str | None = None, *, seed: int = 0, gps_every: int | 
     seed : int
         Seed of all the randomness; the same seed gives bit-identical output.
     gps_every : int or None
-        A GPS reading on every ``gps_every``-th pose (the paper: 100); None: no GPS.
+        A GPS reading on every ``gps_every``-th pose (the paper: 100); 0: no GPS; None: the
+        preset's (no GPS).
     **params
         Any :class:`CityParams` field, overriding the preset.
 
@@ -255,8 +281,8 @@ def generate_city(preset: str | None = None, *, seed: int = 0, gps_every: int | 
         values["gps_every"] = gps_every
     p = CityParams(**values)
 
-    route_rng, odom_rng, loop_rng, gps_rng = (
-        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4))
+    route_rng, odom_rng, loop_rng, gps_rng, outlier_rng = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(5))
     rot, trans = _true_poses(p, route_rng)
     n = p.num_poses
 
@@ -268,7 +294,7 @@ def generate_city(preset: str | None = None, *, seed: int = 0, gps_every: int | 
     sig_y = math.radians(p.odom_yaw_sigma_deg)
     odom_sigma = np.column_stack([sig_t, sig_t, sig_t, np.full((n - 1, 2), sig_rp),
                                   np.full(n - 1, sig_y)])
-    zr, zt = _perturb(zr, zt, odom_sigma, odom_rng)
+    zr, zt = perturb(zr, zt, odom_sigma, odom_rng)
 
     # Loop closures (a = earlier pose, b = later pose).
     la, lb = _loop_pairs(p, rot, trans, loop_rng)
@@ -276,16 +302,16 @@ def generate_city(preset: str | None = None, *, seed: int = 0, gps_every: int | 
     sig_lt = p.loop_trans_sigma_m
     sig_lr = math.radians(p.loop_rot_sigma_deg)
     loop_sigma = np.tile([sig_lt] * 3 + [sig_lr] * 3, (la.shape[0], 1))
-    lr, lt = _perturb(lr, lt, loop_sigma, loop_rng)
+    lr, lt = perturb(lr, lt, loop_sigma, loop_rng)
 
     # Edges in the order they would arrive online: each closure right after its later pose.
     odo_nodes = np.column_stack([np.arange(n - 1), np.arange(1, n)])
     nodes = np.concatenate([odo_nodes, np.column_stack([la, lb])]).astype(np.int32)
-    order = np.argsort(np.concatenate([2 * np.arange(1, n), 2 * lb + 1]), kind="stable")
+    order = online_order(n, lb)
     sigma = np.concatenate([odom_sigma, loop_sigma])[order]
-    info = _diag_information(sigma)
+    info = diag_information(sigma)
 
-    dr_rot, dr_trans = _chain(rot[0], trans[0], zr, zt)
+    dr_rot, dr_trans = chain(rot[0], trans[0], zr, zt)
 
     gps_nodes = np.zeros(0, np.int32)
     gps_pos = np.zeros((0, 3))
@@ -294,7 +320,7 @@ def generate_city(preset: str | None = None, *, seed: int = 0, gps_every: int | 
         gps_nodes = np.arange(0, n, p.gps_every, dtype=np.int32)
         gps_sigma = np.array([p.gps_sigma_h_m, p.gps_sigma_h_m, p.gps_sigma_v_m])
         gps_pos = trans[gps_nodes] + gps_rng.normal(size=(gps_nodes.shape[0], 3)) * gps_sigma
-        gps_info = _diag_information(np.tile(gps_sigma, (gps_nodes.shape[0], 1)))
+        gps_info = diag_information(np.tile(gps_sigma, (gps_nodes.shape[0], 1)))
 
     graph = PoseGraph(
         node_ids=np.arange(n, dtype=np.int64), rotations=dr_rot, translations=dr_trans,
@@ -302,10 +328,50 @@ def generate_city(preset: str | None = None, *, seed: int = 0, gps_every: int | 
         edge_translations=np.concatenate([zt, lt])[order], edge_information=info,
         gps_nodes=gps_nodes, gps_positions=gps_pos, gps_information=gps_info,
     )
+    outliers = no_outliers()
+    if p.num_outliers:
+        graph, outliers = add_outliers(
+            graph, rot, trans, p.num_outliers, seed=outlier_rng,
+            near_miss_fraction=p.near_miss_fraction, near_miss_min_m=p.near_miss_min_m,
+            near_miss_max_m=p.near_miss_max_m, min_gap=p.loop_min_gap)
     rot.flags.writeable = False
     trans.flags.writeable = False
     return City(graph=graph, truth_rotations=rot, truth_translations=trans,
-                name=preset if preset is not None else "city", params=p)
+                name=preset if preset is not None else "city", params=p, outliers=outliers)
+
+
+def scale_city(preset: str | None, num_poses: int) -> dict[str, Any]:
+    """Parameters of a city of ``num_poses`` poses shaped like ``preset`` (None: the defaults).
+
+    The street grid is scaled by ``sqrt(num_poses / preset poses)`` along each axis (at least
+    one block), so the drive covers its streets about as often as the preset's does, and
+    ``loop_density`` is set to the preset's own (its seed-0 drive's loop closures per pose):
+    without it the density would creep up with the size, since a longer random drive in 2D
+    revisits a larger share of its streets.  Everything else (block size, noise, GPS spacing
+    when ``gps_every`` is given) is the preset's.  Pass the result to :func:`generate_city`::
+
+        city = generate_city("paris1", **scale_city("paris1", 1_000_000), gps_every=100)
+
+    Returns
+    -------
+    dict
+        ``{"num_poses": ..., "nx": ..., "ny": ..., "loop_density": ...}``.
+    """
+    if preset is not None and preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    if not isinstance(num_poses, int | np.integer) or num_poses < 2:
+        raise ValueError(f"num_poses must be an integer >= 2, got {num_poses!r}")
+    base = CityParams(**(PRESETS[preset] if preset is not None else {}))
+    f = math.sqrt(num_poses / base.num_poses)
+    return {"num_poses": int(num_poses), "nx": max(1, round(base.nx * f)),
+            "ny": max(1, round(base.ny * f)), "loop_density": _preset_loop_density(preset)}
+
+
+@functools.cache
+def _preset_loop_density(preset: str | None) -> float:
+    """Loop closures per pose of the preset's seed-0 drive (generated once, then cached)."""
+    city = generate_city(preset, seed=0)
+    return city.num_loop_edges / city.graph.num_nodes
 
 
 # =========================================================================== route
@@ -430,118 +496,62 @@ def _true_poses(p: CityParams, rng: np.random.Generator) -> tuple[FloatArray, Fl
     return rot, trans
 
 
-# =========================================================================== measurements
-def _perturb(r: FloatArray, t: FloatArray, sigma: FloatArray, rng: np.random.Generator
-             ) -> tuple[FloatArray, FloatArray]:
-    """``(R, t) Exp(xi)`` with ``xi ~ N(0, diag(sigma^2))`` per row, sigma (k, 6)."""
-    xi = rng.normal(size=sigma.shape) * sigma
-    nr, nt = se3.exp(xi)
-    return se3.compose(r, t, nr, nt)
-
-
-def _diag_information(sigma: FloatArray) -> FloatArray:
-    """(k, d, d) information ``diag(1 / max(sigma, MIN_SIGMA)^2)`` of (k, d) sigmas."""
-    inv = 1.0 / np.maximum(sigma, MIN_SIGMA) ** 2
-    k, d = sigma.shape
-    out = np.zeros((k, d, d))
-    out[:, np.arange(d), np.arange(d)] = inv
-    return out
-
-
-def _chain(r0: FloatArray, t0: FloatArray, zr: FloatArray, zt: FloatArray
-           ) -> tuple[FloatArray, FloatArray]:
-    """Dead reckoning ``X_0, X_0 Z_0, X_0 Z_0 Z_1, ...``: a log-depth prefix product in NumPy."""
-    r = np.concatenate([r0[None], zr])
-    t = np.concatenate([t0[None], zt])
-    shift = 1
-    while shift < r.shape[0]:  # Hillis-Steele scan: P[i] <- P[i - shift] P[i]
-        nr, nt = se3.compose(r[:-shift], t[:-shift], r[shift:], t[shift:])
-        r[shift:] = nr
-        t[shift:] = nt
-        shift *= 2
-    return r, t
-
-
+# =========================================================================== loop closures
 def _loop_pairs(p: CityParams, rot: FloatArray, trans: FloatArray, rng: np.random.Generator
                 ) -> tuple[IntArray, IntArray]:
-    """Loop closures (earlier a, later b): each pose b is drawn with probability ``p_loop``;
-    if it has candidates (the ``loop_*`` fields of :class:`CityParams`), one of them is chosen
-    uniformly at random."""
+    """Loop closures (earlier a, later b): each pose b is drawn with probability ``p_loop``
+    (or the one that gives ``loop_density``); if it has candidates (the ``loop_*`` fields of
+    :class:`CityParams`), one of them is chosen uniformly at random."""
     n = trans.shape[0]
-    drawn = np.flatnonzero(rng.random(size=(n,)) < p.p_loop)
+    xy = trans[:, :2]
+    tree = None
+    p_loop = p.p_loop
+    if p.loop_density is not None:
+        tree = cKDTree(xy)
+        p_loop = _p_loop_for_density(p, rot, xy, tree, rng)
+    drawn = np.flatnonzero(rng.random(size=(n,)) < p_loop)
     drawn = drawn[drawn >= p.loop_min_gap]
     empty = np.zeros(0, np.int32)
     if drawn.size == 0 or p.loop_radius_m == 0.0:
         return empty, empty
-    xy = trans[:, :2]
-    hits = cKDTree(xy).query_ball_point(xy[drawn], r=p.loop_radius_m)
-    counts = np.fromiter((len(h) for h in hits), np.int64, drawn.size)
-    cand = np.fromiter(itertools.chain.from_iterable(hits), np.int64, int(counts.sum()))
-    owner = np.repeat(drawn, counts)
-    heading = rot[:, :2, 0]  # horizontal part of the x axis
-    cos = np.einsum("ij,ij->i", heading[owner], heading[cand])
-    cos /= np.linalg.norm(heading[owner], axis=1) * np.linalg.norm(heading[cand], axis=1)
-    ok = (cand <= owner - p.loop_min_gap) & (np.abs(cos) >= math.cos(
-        math.radians(p.loop_max_heading_deg)))
-    owner, cand = owner[ok], cand[ok]
+    owner, cand = _candidates(p, rot, xy, cKDTree(xy) if tree is None else tree, drawn)
     order = np.lexsort((cand, owner))  # canonical order, then a random key per candidate
     owner, cand = owner[order], cand[order]
-    key = rng.random(owner.shape[0])
+    key = rng.random(size=(owner.shape[0],))
     pick = np.lexsort((key, owner))
     last = np.concatenate([owner[pick][1:] != owner[pick][:-1], [True]])
     chosen = pick[last] if owner.size else np.zeros(0, np.int64)
     return cand[chosen].astype(np.int32), owner[chosen].astype(np.int32)
 
 
-# =========================================================================== noisify & output
-def noisify(graph: PoseGraph, yaw_sigma_deg: float = 3.0, seed: int = 0) -> PoseGraph:
-    """Add rotation noise about the local up axis to every relative constraint (paper Fig. 8).
-
-    Each measured rotation becomes ``Z_rot Rz(angle)`` with ``angle ~ N(0, yaw_sigma_deg)``
-    (drawn from ``np.random.default_rng(seed)``, one per edge in edge order).  Translations,
-    information, GPS constraints and the vertex estimates are unchanged, so the file's vertices
-    no longer match the measurements: start solvers from the tree initialization
-    (``init="tree"``, the hybrid solver's default), which concatenates the noisified edges as
-    the paper does.
-
-    Parameters
-    ----------
-    graph : PoseGraph
-    yaw_sigma_deg : float
-        Standard deviation of the angle, degrees (the paper: 3).
-    seed : int
-
-    Returns
-    -------
-    PoseGraph
-    """
-    if not (math.isfinite(yaw_sigma_deg) and yaw_sigma_deg >= 0.0):
-        raise ValueError(f"yaw_sigma_deg must be a non-negative number, got {yaw_sigma_deg!r}")
-    ang = np.random.default_rng(seed).normal(size=graph.num_edges) * math.radians(yaw_sigma_deg)
-    c, s = np.cos(ang), np.sin(ang)
-    rz = np.zeros((graph.num_edges, 3, 3))
-    rz[:, 0, 0] = c
-    rz[:, 0, 1] = -s
-    rz[:, 1, 0] = s
-    rz[:, 1, 1] = c
-    rz[:, 2, 2] = 1.0
-    return dataclasses.replace(graph, edge_rotations=graph.edge_rotations @ rz)
+def _candidates(p: CityParams, rot: FloatArray, xy: FloatArray, tree: cKDTree,
+                owners: npt.NDArray[np.int64]) -> tuple[npt.NDArray[np.int64],
+                                                        npt.NDArray[np.int64]]:
+    """Every (owner, candidate) pair: an earlier pose within ``loop_radius_m``, at least
+    ``loop_min_gap`` poses back, driving along the same street (either direction)."""
+    hits = tree.query_ball_point(xy[owners], r=p.loop_radius_m)
+    counts = np.fromiter((len(h) for h in hits), np.int64, owners.size)
+    cand = np.fromiter(itertools.chain.from_iterable(hits), np.int64, int(counts.sum()))
+    owner = np.repeat(owners, counts)
+    heading = rot[:, :2, 0]  # horizontal part of the x axis
+    cos = np.einsum("ij,ij->i", heading[owner], heading[cand])
+    cos /= np.linalg.norm(heading[owner], axis=1) * np.linalg.norm(heading[cand], axis=1)
+    ok = (cand <= owner - p.loop_min_gap) & (np.abs(cos) >= math.cos(
+        math.radians(p.loop_max_heading_deg)))
+    return owner[ok], cand[ok]
 
 
-def write_ground_truth(path: PathLike, graph: PoseGraph, rotations: FloatArray,
-                       translations: FloatArray) -> None:
-    """Write the true poses as a g2o file (atomically) that :func:`hybridpgo.metrics.
-    read_ground_truth` and :func:`hybridpgo.io.read_graph` read back.
-
-    The file is the whole graph (same node ids, same constraints) with the true poses as its
-    vertices (``VERTEX_SE3:QUAT``, or ``VERTEX_SE2`` for a 2D graph), so it is also a valid
-    problem whose vertex estimates are the truth.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-    graph : PoseGraph
-    rotations, translations : (N, 3, 3), (N, 3) float64
-        True R_world_node and t_world_node in the graph's dense order.
-    """
-    write_graph(graph.with_poses(rotations, translations), path, format="g2o")
+def _p_loop_for_density(p: CityParams, rot: FloatArray, xy: FloatArray, tree: cKDTree,
+                        rng: np.random.Generator) -> float:
+    """The p_loop that gives ``loop_density`` closures per pose in expectation."""
+    assert p.loop_density is not None
+    n = xy.shape[0]
+    eligible = n - p.loop_min_gap
+    if eligible <= 0 or p.loop_radius_m == 0.0:
+        return 1.0
+    sample = p.loop_min_gap + rng.choice(eligible, size=min(eligible, 20000), replace=False)
+    owner, _ = _candidates(p, rot, xy, tree, np.sort(sample))
+    with_candidates = np.unique(owner).size / sample.size * eligible
+    if with_candidates == 0:
+        return 1.0
+    return min(1.0, p.loop_density * n / with_candidates)
