@@ -19,7 +19,7 @@ FloatArray = npt.NDArray[np.float64]
 
 
 # ============================================================================================
-# hybridpgo.geometry._kernels: SO(3) / SE(3)  (tests/test_geometry.py)
+# tests/ref_kernels.py (and hybridpgo.geometry): SO(3) / SE(3)  (tests/test_geometry.py)
 #
 # Conventions as in the kernels: tangent xi = (rho, phi), translation first; a pose is an
 # (R, t) pair; quaternions are (x, y, z, w); R = Rz(yaw) Ry(pitch) Rx(roll).

@@ -21,7 +21,7 @@ import math
 import numpy as np
 
 from ._numba import kernel
-from .geometry._fast import edge_error_into, jr_inv_blocks, skew_into
+from .geometry._kernels import edge_error_into, jr_inv_blocks, skew_into
 from .geometry._kernels import SMALL_ANGLE
 
 #: Scratch (3, 3) matrices :func:`residual_and_jr_inv` needs.

@@ -1,12 +1,14 @@
-"""Fixed-size SO(3)/SE(3) kernels compiled with Numba (DESIGN.md §1, §3).
+"""Allocation-free SE(3) kernels for the solvers' hot loops (used through :mod:`hybridpgo._cost`).
 
-Conventions: tangent vectors xi = (rho, phi) (translation first); ``Exp(xi)`` is the SE(3)
-exponential; poses are (R, t) pairs of a (3, 3) rotation and a (3,) translation.
+They write into caller-provided buffers, so a per-constraint update allocates nothing.  The
+thresholds of the small-angle series are defined here, once.  ``tests/ref_kernels.py`` holds
+allocating reference kernels with the same formulas; the tests check these against them and
+against the NumPy twins of ``tests/naive.py``.
 
 Small-angle handling: below ``SMALL_ANGLE`` (rad) every coefficient is evaluated with its Taylor
-series (terms listed beside each one), which are accurate to ~1e-16 there; the SE(3) coupling
-block Q uses longer series below ``Q_SERIES_ANGLE``.  Near pi the rotation logarithm switches to the
-symmetric-part formula (``NEAR_PI``).
+series, accurate to ~1e-16 there; the SE(3) coupling block Q uses longer series below
+``Q_SERIES_ANGLE``.  Near pi the rotation logarithm switches to the symmetric-part formula
+(``NEAR_PI``).
 """
 
 from __future__ import annotations
@@ -29,56 +31,47 @@ GIMBAL_LOCK_COS = 1e-14
 
 
 @kernel
-def skew(v: np.ndarray) -> np.ndarray:
-    """[v]x, the (3, 3) cross-product matrix."""
-    s = np.zeros((3, 3))
-    s[0, 1] = -v[2]
-    s[0, 2] = v[1]
-    s[1, 0] = v[2]
-    s[1, 2] = -v[0]
-    s[2, 0] = -v[1]
-    s[2, 1] = v[0]
-    return s
+def mm3(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """out = a @ b for (3, 3) arrays (out must not alias a or b)."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
 
 
 @kernel
-def so3_exp(phi: np.ndarray) -> np.ndarray:
-    """Rodrigues: R = I + sin(th)/th [phi]x + (1-cos th)/th^2 [phi]x^2."""
-    th2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
-    th = math.sqrt(th2)
-    if th < SMALL_ANGLE:
-        a = 1.0 - th2 / 6.0  # sin(th)/th = 1 - th^2/6 + th^4/120
-        b = 0.5 - th2 / 24.0  # (1-cos th)/th^2 = 1/2 - th^2/24 + th^4/720
-    else:
-        a = math.sin(th) / th
-        b = (1.0 - math.cos(th)) / th2
-    k = skew(phi)
-    out: np.ndarray = np.eye(3) + a * k + b * (k @ k)
-    return out
+def skew_into(v0: float, v1: float, v2: float, out: np.ndarray) -> None:
+    out[0, 0] = 0.0
+    out[0, 1] = -v2
+    out[0, 2] = v1
+    out[1, 0] = v2
+    out[1, 1] = 0.0
+    out[1, 2] = -v0
+    out[2, 0] = -v1
+    out[2, 1] = v0
+    out[2, 2] = 0.0
 
 
 @kernel
-def so3_log(r: np.ndarray) -> np.ndarray:
-    """Rotation vector phi with |phi| in [0, pi] and Exp(phi) = R."""
+def so3_log_into(r: np.ndarray, out: np.ndarray) -> None:
+    """out[3:6] = Log(R), exactly as geometry's ``so3_log`` (series / generic / near pi)."""
     vx = 0.5 * (r[2, 1] - r[1, 2])
     vy = 0.5 * (r[0, 2] - r[2, 0])
     vz = 0.5 * (r[1, 0] - r[0, 1])
     s = math.sqrt(vx * vx + vy * vy + vz * vz)  # sin(theta)
     c = 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0)  # cos(theta)
     th = math.atan2(s, c)
-    out = np.empty(3)
     if th < SMALL_ANGLE:
         f = 1.0 + th * th / 6.0  # th/sin(th) = 1 + th^2/6 + 7 th^4/360
-        out[0] = f * vx
-        out[1] = f * vy
-        out[2] = f * vz
-        return out
+        out[3] = f * vx
+        out[4] = f * vy
+        out[5] = f * vz
+        return
     if math.pi - th > NEAR_PI:
         f = th / s
-        out[0] = f * vx
-        out[1] = f * vy
-        out[2] = f * vz
-        return out
+        out[3] = f * vx
+        out[4] = f * vy
+        out[5] = f * vz
+        return
     # Near pi: R + R^T = 2 cos(th) I + 2 (1 - cos th) a a^T; take the largest diagonal column.
     d0 = r[0, 0] - c
     d1 = r[1, 1] - c
@@ -88,74 +81,72 @@ def so3_log(r: np.ndarray) -> np.ndarray:
         k = 1
     elif d2 > d0 and d2 > d1:
         k = 2
-    a = np.empty(3)
-    for i in range(3):
-        a[i] = 0.5 * (r[i, k] + r[k, i]) - (c if i == k else 0.0)
-    n = math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+    a0 = 0.5 * (r[0, k] + r[k, 0]) - (c if k == 0 else 0.0)
+    a1 = 0.5 * (r[1, k] + r[k, 1]) - (c if k == 1 else 0.0)
+    a2 = 0.5 * (r[2, k] + r[k, 2]) - (c if k == 2 else 0.0)
+    n = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
     sign = 1.0
-    if a[0] * vx + a[1] * vy + a[2] * vz < 0.0:
+    if a0 * vx + a1 * vy + a2 * vz < 0.0:
         sign = -1.0
+    out[3] = sign * th * a0 / n
+    out[4] = sign * th * a1 / n
+    out[5] = sign * th * a2 / n
+
+
+@kernel
+def jl_inv_coeff(th: float) -> float:
+    """c of J_l(phi)^-1 = I - 1/2 [phi]x + c [phi]x^2 (geometry's ``so3_left_jacobian_inv``)."""
+    if th < SMALL_ANGLE:
+        return 1.0 / 12.0 + th * th / 720.0  # + th^4/30240
+    return 1.0 / (th * th) - math.cos(0.5 * th) / (2.0 * th * math.sin(0.5 * th))
+
+
+@kernel
+def edge_error_into(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.ndarray,
+                    rz: np.ndarray, tz: np.ndarray, rab: np.ndarray, tab: np.ndarray,
+                    re: np.ndarray, e: np.ndarray) -> None:
+    """e = Log(Z^-1 X_a^-1 X_b) = (V(phi)^-1 t_e, phi); also X_a^-1 X_b -> (rab, tab).
+
+    ``re`` (3, 3) is scratch (it receives the rotation of Z^-1 X_a^-1 X_b).
+    """
+    d0 = tb[0] - ta[0]
+    d1 = tb[1] - ta[1]
+    d2 = tb[2] - ta[2]
     for i in range(3):
-        out[i] = sign * th * a[i] / n
-    return out
+        tab[i] = ra[0, i] * d0 + ra[1, i] * d1 + ra[2, i] * d2
+        for j in range(3):
+            rab[i, j] = ra[0, i] * rb[0, j] + ra[1, i] * rb[1, j] + ra[2, i] * rb[2, j]
+    u0 = tab[0] - tz[0]
+    u1 = tab[1] - tz[1]
+    u2 = tab[2] - tz[2]
+    for i in range(3):
+        for j in range(3):
+            re[i, j] = rz[0, i] * rab[0, j] + rz[1, i] * rab[1, j] + rz[2, i] * rab[2, j]
+    t0 = rz[0, 0] * u0 + rz[1, 0] * u1 + rz[2, 0] * u2
+    t1 = rz[0, 1] * u0 + rz[1, 1] * u1 + rz[2, 1] * u2
+    t2 = rz[0, 2] * u0 + rz[1, 2] * u1 + rz[2, 2] * u2
+    so3_log_into(re, e)
+    p0 = e[3]
+    p1 = e[4]
+    p2 = e[5]
+    c = jl_inv_coeff(math.sqrt(p0 * p0 + p1 * p1 + p2 * p2))
+    # rho = Jl^-1(phi) t = t - 1/2 phi x t + c phi x (phi x t)
+    x0 = p1 * t2 - p2 * t1
+    x1 = p2 * t0 - p0 * t2
+    x2 = p0 * t1 - p1 * t0
+    y0 = p1 * x2 - p2 * x1
+    y1 = p2 * x0 - p0 * x2
+    y2 = p0 * x1 - p1 * x0
+    e[0] = t0 - 0.5 * x0 + c * y0
+    e[1] = t1 - 0.5 * x1 + c * y1
+    e[2] = t2 - 0.5 * x2 + c * y2
 
 
 @kernel
-def _v_coeffs(th: float) -> tuple[float, float]:
-    """Coefficients of V(phi) = I + b [phi]x + c [phi]x^2."""
-    th2 = th * th
-    if th < SMALL_ANGLE:
-        return 0.5 - th2 / 24.0, 1.0 / 6.0 - th2 / 120.0
-    sh = math.sin(0.5 * th)  # 1 - cos th = 2 sin^2(th/2): no cancellation (b multiplies [phi]x)
-    return 2.0 * sh * sh / th2, (th - math.sin(th)) / (th2 * th)
-
-
-@kernel
-def so3_left_jacobian(phi: np.ndarray) -> np.ndarray:
-    """J_l(phi) = V(phi) of SO(3)."""
-    th = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
-    b, c = _v_coeffs(th)
-    k = skew(phi)
-    out: np.ndarray = np.eye(3) + b * k + c * (k @ k)
-    return out
-
-
-@kernel
-def so3_left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
-    """J_l(phi)^-1 = I - 1/2 [phi]x + (1/th^2 - cot(th/2)/(2 th)) [phi]x^2 (stable at pi)."""
-    th = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
-    if th < SMALL_ANGLE:
-        c = 1.0 / 12.0 + th * th / 720.0  # + th^4/30240
-    else:
-        c = 1.0 / (th * th) - math.cos(0.5 * th) / (2.0 * th * math.sin(0.5 * th))
-    k = skew(phi)
-    out: np.ndarray = np.eye(3) - 0.5 * k + c * (k @ k)
-    return out
-
-
-@kernel
-def se3_exp(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Exp(xi) for xi = (rho, phi): R = exp(phi), t = V(phi) rho."""
-    phi = xi[3:6].copy()
-    rho = xi[0:3].copy()
-    return so3_exp(phi), so3_left_jacobian(phi) @ rho
-
-
-@kernel
-def se3_log(r: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Log(R, t) = (V(phi)^-1 t, phi)."""
-    phi = so3_log(r)
-    rho = so3_left_jacobian_inv(phi) @ t
-    out = np.empty(6)
-    out[0:3] = rho
-    out[3:6] = phi
-    return out
-
-
-@kernel
-def _q_matrix(rho: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """Barfoot's Q(rho, phi), the off-diagonal block of the SE(3) left Jacobian (rho, phi order)."""
-    th2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
+def q_into(r0: float, r1: float, r2: float, p0: float, p1: float, p2: float,
+            w: np.ndarray, q: np.ndarray) -> None:
+    """Barfoot's Q(rho, phi) into q, exactly as geometry's ``_q_matrix``; w: >= 7 scratch."""
+    th2 = p0 * p0 + p1 * p1 + p2 * p2
     th = math.sqrt(th2)
     if th < Q_SERIES_ANGLE:
         # (th - sin th)/th^3 = 1/6 - th^2/120 + th^4/5040 - th^6/362880
@@ -170,162 +161,56 @@ def _q_matrix(rho: np.ndarray, phi: np.ndarray) -> np.ndarray:
         a1 = (th - s) / (th2 * th)
         a2 = (1.0 - 0.5 * th2 - c) / (th2 * th2)
         a3 = (th - s - th2 * th / 6.0) / (th2 * th2 * th)
-    rx = skew(rho)
-    px = skew(phi)
-    pr = px @ rx
-    rp = rx @ px
-    prp = pr @ px
-    out: np.ndarray = (0.5 * rx + a1 * (pr + rp + prp) - a2 * (px @ pr + rp @ px - 3.0 * prp)
-                       - 0.5 * (a2 - 3.0 * a3) * (prp @ px + px @ prp))
-    return out
+    rx = w[0]
+    px = w[1]
+    pr = w[2]
+    rp = w[3]
+    prp = w[4]
+    m1 = w[5]
+    m2 = w[6]
+    skew_into(r0, r1, r2, rx)
+    skew_into(p0, p1, p2, px)
+    mm3(px, rx, pr)
+    mm3(rx, px, rp)
+    mm3(pr, px, prp)
+    b4 = 0.5 * (a2 - 3.0 * a3)
+    for i in range(3):
+        for j in range(3):
+            q[i, j] = 0.5 * rx[i, j] + a1 * (pr[i, j] + rp[i, j] + prp[i, j]) + 3.0 * a2 * prp[i, j]
+    mm3(px, pr, m1)  # px pr
+    mm3(rp, px, m2)  # rp px
+    for i in range(3):
+        for j in range(3):
+            q[i, j] -= a2 * (m1[i, j] + m2[i, j])
+    mm3(prp, px, m1)
+    mm3(px, prp, m2)
+    for i in range(3):
+        for j in range(3):
+            q[i, j] -= b4 * (m1[i, j] + m2[i, j])
 
 
 @kernel
-def se3_left_jacobian_inv(xi: np.ndarray) -> np.ndarray:
-    """J_l(xi)^-1 of SE(3) in (rho, phi) order: [[Jl^-1, -Jl^-1 Q Jl^-1], [0, Jl^-1]]."""
-    rho = xi[0:3].copy()
-    phi = xi[3:6].copy()
-    ji = so3_left_jacobian_inv(phi)
-    q = _q_matrix(rho, phi)
-    out = np.zeros((6, 6))
-    out[0:3, 0:3] = ji
-    out[3:6, 3:6] = ji
-    out[0:3, 3:6] = -(ji @ q @ ji)
-    return out
+def jr_inv_blocks(e: np.ndarray, w: np.ndarray) -> None:
+    """Jr^-1(e) = Jl^-1(-e) = [[J, K], [0, J]]: J -> w[8], K -> w[9] (w[0:8] scratch).
 
-
-@kernel
-def se3_right_jacobian_inv(xi: np.ndarray) -> np.ndarray:
-    """J_r(xi)^-1 = J_l(-xi)^-1 (DESIGN §3's ``Jr^-1``)."""
-    return se3_left_jacobian_inv(-xi)
-
-
-@kernel
-def se3_adjoint(r: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Ad(T) = [[R, [t]x R], [0, R]] in (rho, phi) order."""
-    out = np.zeros((6, 6))
-    out[0:3, 0:3] = r
-    out[3:6, 3:6] = r
-    out[0:3, 3:6] = skew(t) @ r
-    return out
-
-
-@kernel
-def orthonormalize(r: np.ndarray) -> np.ndarray:
-    """Nearest rotation to a nearly orthonormal R: one Newton step R (3I - R^T R)/2, twice."""
-    out = r.copy()
-    for _ in range(2):
-        out = 0.5 * out @ (3.0 * np.eye(3) - out.T @ out)
-    return out
-
-
-@kernel
-def quat_xyzw_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of the quaternion (x, y, z, w); the quaternion is normalized first."""
-    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    x = q[0] / n
-    y = q[1] / n
-    z = q[2] / n
-    w = q[3] / n
-    r = np.empty((3, 3))
-    r[0, 0] = 1.0 - 2.0 * (y * y + z * z)
-    r[0, 1] = 2.0 * (x * y - z * w)
-    r[0, 2] = 2.0 * (x * z + y * w)
-    r[1, 0] = 2.0 * (x * y + z * w)
-    r[1, 1] = 1.0 - 2.0 * (x * x + z * z)
-    r[1, 2] = 2.0 * (y * z - x * w)
-    r[2, 0] = 2.0 * (x * z - y * w)
-    r[2, 1] = 2.0 * (y * z + x * w)
-    r[2, 2] = 1.0 - 2.0 * (x * x + y * y)
-    return r
-
-
-@kernel
-def matrix_to_quat_xyzw(r: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w), w >= 0, of a rotation matrix (Shepperd's method)."""
-    q = np.empty(4)
-    tr = r[0, 0] + r[1, 1] + r[2, 2]
-    if tr > 0.0:
-        s = 2.0 * math.sqrt(1.0 + tr)
-        q[3] = 0.25 * s
-        q[0] = (r[2, 1] - r[1, 2]) / s
-        q[1] = (r[0, 2] - r[2, 0]) / s
-        q[2] = (r[1, 0] - r[0, 1]) / s
-    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
-        q[3] = (r[2, 1] - r[1, 2]) / s
-        q[0] = 0.25 * s
-        q[1] = (r[0, 1] + r[1, 0]) / s
-        q[2] = (r[0, 2] + r[2, 0]) / s
-    elif r[1, 1] > r[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
-        q[3] = (r[0, 2] - r[2, 0]) / s
-        q[0] = (r[0, 1] + r[1, 0]) / s
-        q[1] = 0.25 * s
-        q[2] = (r[1, 2] + r[2, 1]) / s
-    else:
-        s = 2.0 * math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
-        q[3] = (r[1, 0] - r[0, 1]) / s
-        q[0] = (r[0, 2] + r[2, 0]) / s
-        q[1] = (r[1, 2] + r[2, 1]) / s
-        q[2] = 0.25 * s
-    if q[3] < 0.0:
-        q = -q
-    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    return q / n
-
-
-@kernel
-def euler_rpy_to_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """R = Rz(yaw) Ry(pitch) Rx(roll) (TORO/iSAM convention)."""
-    cr, sr = math.cos(roll), math.sin(roll)
-    cp, sp = math.cos(pitch), math.sin(pitch)
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    r = np.empty((3, 3))
-    r[0, 0] = cy * cp
-    r[0, 1] = cy * sp * sr - sy * cr
-    r[0, 2] = cy * sp * cr + sy * sr
-    r[1, 0] = sy * cp
-    r[1, 1] = sy * sp * sr + cy * cr
-    r[1, 2] = sy * sp * cr - cy * sr
-    r[2, 0] = -sp
-    r[2, 1] = cp * sr
-    r[2, 2] = cp * cr
-    return r
-
-
-@kernel
-def matrix_to_euler_rpy(r: np.ndarray) -> np.ndarray:
-    """(roll, pitch, yaw) with R = Rz(yaw) Ry(pitch) Rx(roll); pitch in [-pi/2, pi/2]."""
-    out = np.empty(3)
-    cp = math.sqrt(r[2, 1] * r[2, 1] + r[2, 2] * r[2, 2])  # |cos(pitch)|
-    out[1] = math.atan2(-r[2, 0], cp)  # atan2, not asin: accurate near +-pi/2
-    # Gimbal lock (cp ~ 0): roll is arbitrary, put everything in yaw.  Elsewhere take roll from
-    # row 2 and yaw from R Rx(roll)^T = Rz(yaw) Ry(pitch), whose column 1 is (-sin yaw, cos yaw, 0):
-    # exact for any roll, so R is reproduced to rounding even close to gimbal lock.
-    out[0] = math.atan2(r[2, 1], r[2, 2]) if cp > GIMBAL_LOCK_COS else 0.0
-    sr = math.sin(out[0])
-    cr = math.cos(out[0])
-    out[2] = math.atan2(sr * r[0, 2] - cr * r[0, 1], cr * r[1, 1] - sr * r[1, 2])
-    return out
-
-
-# --------------------------------------------------------------------------- pose algebra
-@kernel
-def compose(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray,
-            tb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(Ra, ta) * (Rb, tb)."""
-    return ra @ rb, ra @ tb + ta
-
-
-@kernel
-def between(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray,
-            tb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(Ra, ta)^-1 * (Rb, tb)."""
-    return ra.T @ rb, ra.T @ (tb - ta)
-
-
-@kernel
-def relative_error(rz: np.ndarray, tz: np.ndarray, rab: np.ndarray, tab: np.ndarray) -> np.ndarray:
-    """e = Log(Z^-1 X_ab) for measurement Z = (rz, tz) and X_ab = X_a^-1 X_b."""
-    return se3_log(rz.T @ rab, rz.T @ (tab - tz))
+    J = Jl^-1(-phi) = I + 1/2 [phi]x + c [phi]x^2, K = -J Q(-rho, -phi) J.
+    """
+    p0 = e[3]
+    p1 = e[4]
+    p2 = e[5]
+    c = jl_inv_coeff(math.sqrt(p0 * p0 + p1 * p1 + p2 * p2))
+    jm = w[8]
+    km = w[9]
+    q = w[7]
+    px = w[0]
+    skew_into(p0, p1, p2, px)
+    mm3(px, px, w[1])
+    for i in range(3):
+        for j in range(3):
+            jm[i, j] = (1.0 if i == j else 0.0) + 0.5 * px[i, j] + c * w[1][i, j]
+    q_into(-e[0], -e[1], -e[2], -p0, -p1, -p2, w, q)
+    mm3(q, jm, w[0])
+    mm3(jm, w[0], km)
+    for i in range(3):
+        for j in range(3):
+            km[i, j] = -km[i, j]

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from ._kernels import GIMBAL_LOCK_COS, NEAR_PI, SMALL_ANGLE
+from ._kernels import NEAR_PI, SMALL_ANGLE
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -36,6 +36,7 @@ __all__ = [
     "log",
     "matrix_to_euler_rpy",
     "matrix_to_quat_xyzw",
+    "normalize_quaternions",
     "orthonormalize",
     "quat_xyzw_to_matrix",
     "vee",
@@ -236,13 +237,30 @@ def orthonormalize(matrix: npt.ArrayLike) -> FloatArray:
     return np.asarray((u * d[..., None, :]) @ vt, dtype=np.float64)
 
 
-def quat_xyzw_to_matrix(quat_xyzw: npt.ArrayLike) -> FloatArray:
-    """Rotation matrices of quaternions (x, y, z, w); each quaternion is normalized first.
+def normalize_quaternions(quat_xyzw: npt.ArrayLike) -> FloatArray:
+    """Unit quaternions, exact for any finite non-zero input: each one is divided by its largest
+    magnitude before the norm is taken, so nothing over- or underflows (a component of 1e300
+    is fine).  Zero quaternions stay zero.
 
     Parameters
     ----------
     quat_xyzw : (..., 4) array_like
-        Scalar-last quaternions, any non-zero norm.
+    """
+    q = _vectors(quat_xyzw, 4, "quat_xyzw")
+    peak = np.abs(q).max(axis=-1, keepdims=True)
+    scaled = q / np.where(peak > 0.0, peak, 1.0)
+    norm = np.linalg.norm(scaled, axis=-1, keepdims=True)
+    return np.asarray(scaled / np.where(norm > 0.0, norm, 1.0), dtype=np.float64)
+
+
+def quat_xyzw_to_matrix(quat_xyzw: npt.ArrayLike) -> FloatArray:
+    """Rotation matrices of quaternions (x, y, z, w); each quaternion is normalized first
+    (:func:`normalize_quaternions`).
+
+    Parameters
+    ----------
+    quat_xyzw : (..., 4) array_like
+        Scalar-last quaternions, any finite non-zero norm.
 
     Returns
     -------
@@ -251,13 +269,13 @@ def quat_xyzw_to_matrix(quat_xyzw: npt.ArrayLike) -> FloatArray:
     Raises
     ------
     ValueError
-        A quaternion has zero norm or is not finite.
+        A quaternion is zero or not finite.
     """
     q = _vectors(quat_xyzw, 4, "quat_xyzw")
-    n = np.linalg.norm(q, axis=-1)
-    if not np.all(np.isfinite(n) & (n > 0.0)):
+    peak = np.abs(q).max(axis=-1)
+    if not np.all(np.isfinite(peak) & (peak > 0.0)):
         raise ValueError("every quaternion must be finite with a non-zero norm")
-    q = q / n[..., None]
+    q = normalize_quaternions(q)
     x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     out = np.empty((*q.shape[:-1], 3, 3))
     out[..., 0, 0] = 1.0 - 2.0 * (y * y + z * z)
@@ -273,7 +291,8 @@ def quat_xyzw_to_matrix(quat_xyzw: npt.ArrayLike) -> FloatArray:
 
 
 def matrix_to_quat_xyzw(rotation: npt.ArrayLike) -> FloatArray:
-    """Unit quaternions (x, y, z, w) with w >= 0 of rotation matrices (Shepperd's method).
+    """Unit quaternions (x, y, z, w) with w >= 0 of rotation matrices (Shepperd's method: the
+    divisor comes from the largest of the trace and the diagonal, so it is >= 1/2).
 
     Parameters
     ----------
@@ -283,31 +302,40 @@ def matrix_to_quat_xyzw(rotation: npt.ArrayLike) -> FloatArray:
     -------
     (..., 4) float64 array.
     """
-    r = _matrices(rotation, "rotation")
-    r00, r11, r22 = r[..., 0, 0], r[..., 1, 1], r[..., 2, 2]
-    tr = r00 + r11 + r22
-    # 4 q q^T in terms of R, rows/columns (x, y, z, w).  Divide the column of the largest
-    # component (the kernel's branch choice: w if tr > 0, else the largest diagonal, ties to the
-    # later axis) by 4 * that component.
-    m = np.empty((*r.shape[:-2], 4, 4))
-    m[..., 0, 0] = 1.0 + r00 - r11 - r22
-    m[..., 1, 1] = 1.0 - r00 + r11 - r22
-    m[..., 2, 2] = 1.0 - r00 - r11 + r22
-    m[..., 3, 3] = 1.0 + tr
-    m[..., 0, 1] = m[..., 1, 0] = r[..., 0, 1] + r[..., 1, 0]
-    m[..., 0, 2] = m[..., 2, 0] = r[..., 0, 2] + r[..., 2, 0]
-    m[..., 1, 2] = m[..., 2, 1] = r[..., 1, 2] + r[..., 2, 1]
-    m[..., 0, 3] = m[..., 3, 0] = r[..., 2, 1] - r[..., 1, 2]
-    m[..., 1, 3] = m[..., 3, 1] = r[..., 0, 2] - r[..., 2, 0]
-    m[..., 2, 3] = m[..., 3, 2] = r[..., 1, 0] - r[..., 0, 1]
-    diag = np.stack([r00, r11, r22], axis=-1)
-    axis = 2 - np.argmax(diag[..., ::-1], axis=-1)
-    k = np.where(tr > 0.0, 3, axis)
-    col = np.take_along_axis(m, k[..., None, None], axis=-1)[..., 0]
-    pivot = np.take_along_axis(col, k[..., None], axis=-1)
-    q = col / (2.0 * np.sqrt(np.maximum(pivot, np.finfo(np.float64).tiny)))
-    q = np.where(q[..., 3:4] < 0.0, -q, q)
-    return np.asarray(q / np.linalg.norm(q, axis=-1, keepdims=True), dtype=np.float64)
+    r_in = _matrices(rotation, "rotation")
+    lead = r_in.shape[:-2]
+    r = r_in.reshape(-1, 3, 3)
+    q = np.empty((r.shape[0], 4))
+    tr = r[:, 0, 0] + r[:, 1, 1] + r[:, 2, 2]
+    d = np.stack([r[:, 0, 0], r[:, 1, 1], r[:, 2, 2]], axis=1)
+    case = np.where(tr > d.max(axis=1), 3, d.argmax(axis=1))
+    m = case == 3
+    s = 2.0 * np.sqrt(1.0 + tr[m])
+    q[m, 3] = 0.25 * s
+    q[m, 0] = (r[m, 2, 1] - r[m, 1, 2]) / s
+    q[m, 1] = (r[m, 0, 2] - r[m, 2, 0]) / s
+    q[m, 2] = (r[m, 1, 0] - r[m, 0, 1]) / s
+    m = case == 0
+    s = 2.0 * np.sqrt(1.0 + r[m, 0, 0] - r[m, 1, 1] - r[m, 2, 2])
+    q[m, 3] = (r[m, 2, 1] - r[m, 1, 2]) / s
+    q[m, 0] = 0.25 * s
+    q[m, 1] = (r[m, 0, 1] + r[m, 1, 0]) / s
+    q[m, 2] = (r[m, 0, 2] + r[m, 2, 0]) / s
+    m = case == 1
+    s = 2.0 * np.sqrt(1.0 + r[m, 1, 1] - r[m, 0, 0] - r[m, 2, 2])
+    q[m, 3] = (r[m, 0, 2] - r[m, 2, 0]) / s
+    q[m, 0] = (r[m, 0, 1] + r[m, 1, 0]) / s
+    q[m, 1] = 0.25 * s
+    q[m, 2] = (r[m, 1, 2] + r[m, 2, 1]) / s
+    m = case == 2
+    s = 2.0 * np.sqrt(1.0 + r[m, 2, 2] - r[m, 0, 0] - r[m, 1, 1])
+    q[m, 3] = (r[m, 1, 0] - r[m, 0, 1]) / s
+    q[m, 0] = (r[m, 0, 2] + r[m, 2, 0]) / s
+    q[m, 1] = (r[m, 1, 2] + r[m, 2, 1]) / s
+    q[m, 2] = 0.25 * s
+    q[q[:, 3] < 0.0] *= -1.0
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return np.asarray(q.reshape(*lead, 4), dtype=np.float64)
 
 
 def euler_rpy_to_matrix(rpy: npt.ArrayLike) -> FloatArray:
@@ -342,9 +370,10 @@ def euler_rpy_to_matrix(rpy: npt.ArrayLike) -> FloatArray:
 def matrix_to_euler_rpy(rotation: npt.ArrayLike) -> FloatArray:
     """(roll, pitch, yaw) of rotation matrices, R = Rz(yaw) Ry(pitch) Rx(roll).
 
-    Pitch is in [-pi/2, pi/2], roll and yaw in [-pi, pi].  At gimbal lock (|cos pitch| below
-    ``GIMBAL_LOCK_COS``) roll is 0 and the whole rotation about z is in yaw.  Converting back
-    reproduces R to rounding everywhere, including close to gimbal lock.
+    Accurate to rounding everywhere, including near gimbal lock: roll is read from row 2, then
+    yaw and pitch from ``M = R Rx(roll)^T = Rz(yaw) Ry(pitch)`` (``M01 = -sin yaw``,
+    ``M11 = cos yaw``, ``M20 = -sin pitch``, ``M22 = cos pitch``).  Near the lock roll itself is
+    ill-determined, but any error in it is absorbed by yaw, so ``R`` is reproduced to ~1e-16.
 
     Parameters
     ----------
@@ -352,13 +381,15 @@ def matrix_to_euler_rpy(rotation: npt.ArrayLike) -> FloatArray:
 
     Returns
     -------
-    (..., 3) float64 array.
+    (..., 3) float64 array; pitch in [-pi/2, pi/2], roll and yaw in [-pi, pi].
     """
     r = _matrices(rotation, "rotation")
-    cp = np.hypot(r[..., 2, 1], r[..., 2, 2])
-    pitch = np.arctan2(-r[..., 2, 0], cp)
-    roll = np.where(cp > GIMBAL_LOCK_COS, np.arctan2(r[..., 2, 1], r[..., 2, 2]), 0.0)
-    sr, cr = np.sin(roll), np.cos(roll)
-    # Column 1 of R Rx(roll)^T = Rz(yaw) Ry(pitch) is (-sin yaw, cos yaw, 0), for any roll.
-    yaw = np.arctan2(sr * r[..., 0, 2] - cr * r[..., 0, 1], cr * r[..., 1, 1] - sr * r[..., 1, 2])
+    roll = np.arctan2(r[..., 2, 1], r[..., 2, 2])
+    cr, sr = np.cos(roll), np.sin(roll)
+    # M = R Rx(roll)^T; columns 1 and 2 mix, column 0 is unchanged.
+    m01 = r[..., 0, 1] * cr - r[..., 0, 2] * sr
+    m11 = r[..., 1, 1] * cr - r[..., 1, 2] * sr
+    m22 = r[..., 2, 1] * sr + r[..., 2, 2] * cr
+    yaw = np.arctan2(-m01, m11)
+    pitch = np.arctan2(-r[..., 2, 0], m22)
     return np.stack([roll, pitch, yaw], axis=-1)

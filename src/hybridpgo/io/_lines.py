@@ -7,9 +7,8 @@ line is split off in Python, the lines of each tag are joined and converted by o
 garbage collector).  Only when that fails is the group re-parsed line by line, to name the exact
 line and field (STYLE.md §5: errors read like a compiler's).
 
-Also here: the vectorised rotation conversions used at the I/O boundary (quaternions, Euler
-angles, SE(2) angles).  They are NumPy twins of the Numba kernels in ``geometry/_kernels.py``
-(which work on one matrix at a time).
+Also here: SE(2) angle helpers; the quaternion and Euler conversions are
+:mod:`hybridpgo.geometry.so3`'s (re-exported for the format modules).
 """
 
 from __future__ import annotations
@@ -28,6 +27,12 @@ from dataclasses import dataclass, field
 from typing import IO
 
 import numpy as np
+
+from ..geometry.so3 import euler_rpy_to_matrix as euler_rpy_to_matrix
+from ..geometry.so3 import matrix_to_euler_rpy as matrix_to_euler_rpy
+from ..geometry.so3 import matrix_to_quat_xyzw as matrix_to_quat_xyzw
+from ..geometry.so3 import normalize_quaternions as normalize_quaternions
+from ..geometry.so3 import quat_xyzw_to_matrix as quat_xyzw_to_matrix
 import numpy.typing as npt
 
 from ..errors import FormatError, GraphError, option_hint
@@ -526,107 +531,6 @@ def rot_z(theta: FloatArray) -> FloatArray:
 def yaw_of(r: FloatArray) -> FloatArray:
     """(k, 3, 3) planar rotations -> (k,) yaw angles in (-pi, pi]."""
     return np.arctan2(r[:, 1, 0], r[:, 0, 0])
-
-
-def normalize_quaternions(q: FloatArray) -> FloatArray:
-    """(k, 4) -> unit quaternions, exact for any finite non-zero input (no over/underflow: each
-    row is divided by its largest magnitude before the norm is taken).  Zero rows stay zero."""
-    peak = np.abs(q).max(axis=1, keepdims=True)
-    scaled = q / np.where(peak > 0.0, peak, 1.0)
-    norm = np.linalg.norm(scaled, axis=1, keepdims=True)
-    out: FloatArray = scaled / np.where(norm > 0.0, norm, 1.0)
-    return out
-
-
-def quat_xyzw_to_matrix(q: FloatArray) -> FloatArray:
-    """(k, 4) quaternions (x, y, z, w), normalized here -> (k, 3, 3); rows must be non-zero."""
-    q = normalize_quaternions(q)
-    x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    r = np.empty((q.shape[0], 3, 3))
-    r[:, 0, 0] = 1.0 - 2.0 * (y * y + z * z)
-    r[:, 0, 1] = 2.0 * (x * y - z * w)
-    r[:, 0, 2] = 2.0 * (x * z + y * w)
-    r[:, 1, 0] = 2.0 * (x * y + z * w)
-    r[:, 1, 1] = 1.0 - 2.0 * (x * x + z * z)
-    r[:, 1, 2] = 2.0 * (y * z - x * w)
-    r[:, 2, 0] = 2.0 * (x * z - y * w)
-    r[:, 2, 1] = 2.0 * (y * z + x * w)
-    r[:, 2, 2] = 1.0 - 2.0 * (x * x + y * y)
-    return r
-
-
-def matrix_to_quat_xyzw(r: FloatArray) -> FloatArray:
-    """(k, 3, 3) rotations -> (k, 4) unit quaternions (x, y, z, w) with w >= 0 (Shepperd)."""
-    k = r.shape[0]
-    q = np.empty((k, 4))
-    tr = r[:, 0, 0] + r[:, 1, 1] + r[:, 2, 2]
-    d = np.stack([r[:, 0, 0], r[:, 1, 1], r[:, 2, 2]], axis=1)
-    # Case 3 = trace largest, else the largest diagonal entry: keeps the divisor >= 1/2.
-    case = np.where(tr > d.max(axis=1), 3, d.argmax(axis=1))
-    m = case == 3
-    s = 2.0 * np.sqrt(1.0 + tr[m])
-    q[m, 3] = 0.25 * s
-    q[m, 0] = (r[m, 2, 1] - r[m, 1, 2]) / s
-    q[m, 1] = (r[m, 0, 2] - r[m, 2, 0]) / s
-    q[m, 2] = (r[m, 1, 0] - r[m, 0, 1]) / s
-    m = case == 0
-    s = 2.0 * np.sqrt(1.0 + r[m, 0, 0] - r[m, 1, 1] - r[m, 2, 2])
-    q[m, 3] = (r[m, 2, 1] - r[m, 1, 2]) / s
-    q[m, 0] = 0.25 * s
-    q[m, 1] = (r[m, 0, 1] + r[m, 1, 0]) / s
-    q[m, 2] = (r[m, 0, 2] + r[m, 2, 0]) / s
-    m = case == 1
-    s = 2.0 * np.sqrt(1.0 + r[m, 1, 1] - r[m, 0, 0] - r[m, 2, 2])
-    q[m, 3] = (r[m, 0, 2] - r[m, 2, 0]) / s
-    q[m, 0] = (r[m, 0, 1] + r[m, 1, 0]) / s
-    q[m, 1] = 0.25 * s
-    q[m, 2] = (r[m, 1, 2] + r[m, 2, 1]) / s
-    m = case == 2
-    s = 2.0 * np.sqrt(1.0 + r[m, 2, 2] - r[m, 0, 0] - r[m, 1, 1])
-    q[m, 3] = (r[m, 1, 0] - r[m, 0, 1]) / s
-    q[m, 0] = (r[m, 0, 2] + r[m, 2, 0]) / s
-    q[m, 1] = (r[m, 1, 2] + r[m, 2, 1]) / s
-    q[m, 2] = 0.25 * s
-    q[q[:, 3] < 0.0] *= -1.0
-    out: FloatArray = q / np.linalg.norm(q, axis=1, keepdims=True)
-    return out
-
-
-def euler_rpy_to_matrix(rpy: FloatArray) -> FloatArray:
-    """(k, 3) (roll, pitch, yaw) -> (k, 3, 3) R = Rz(yaw) Ry(pitch) Rx(roll) (TORO/iSAM)."""
-    cr, sr = np.cos(rpy[:, 0]), np.sin(rpy[:, 0])
-    cp, sp = np.cos(rpy[:, 1]), np.sin(rpy[:, 1])
-    cy, sy = np.cos(rpy[:, 2]), np.sin(rpy[:, 2])
-    r = np.empty((rpy.shape[0], 3, 3))
-    r[:, 0, 0] = cy * cp
-    r[:, 0, 1] = cy * sp * sr - sy * cr
-    r[:, 0, 2] = cy * sp * cr + sy * sr
-    r[:, 1, 0] = sy * cp
-    r[:, 1, 1] = sy * sp * sr + cy * cr
-    r[:, 1, 2] = sy * sp * cr - cy * sr
-    r[:, 2, 0] = -sp
-    r[:, 2, 1] = cp * sr
-    r[:, 2, 2] = cp * cr
-    return r
-
-
-def matrix_to_euler_rpy(r: FloatArray) -> FloatArray:
-    """(k, 3, 3) -> (k, 3) (roll, pitch, yaw), R = Rz(yaw) Ry(pitch) Rx(roll).
-
-    Accurate to rounding everywhere, including near gimbal lock: roll is read from row 2, then
-    yaw and pitch from ``M = R Rx(roll)^T = Rz(yaw) Ry(pitch)`` (``M01 = -sin yaw``,
-    ``M11 = cos yaw``, ``M20 = -sin pitch``, ``M22 = cos pitch``).  Near the lock roll itself is
-    ill-determined, but any error in it is absorbed by yaw, so ``R`` is reproduced to ~1e-16.
-    """
-    roll = np.arctan2(r[:, 2, 1], r[:, 2, 2])
-    cr, sr = np.cos(roll), np.sin(roll)
-    # M = R Rx(roll)^T; columns 1 and 2 mix, column 0 is unchanged.
-    m01 = r[:, 0, 1] * cr - r[:, 0, 2] * sr
-    m11 = r[:, 1, 1] * cr - r[:, 1, 2] * sr
-    m22 = r[:, 2, 1] * sr + r[:, 2, 2] * cr
-    yaw = np.arctan2(-m01, m11)
-    pitch = np.arctan2(-r[:, 2, 0], m22)
-    return np.stack([roll, pitch, yaw], axis=1)
 
 
 # =========================================================================== assembly

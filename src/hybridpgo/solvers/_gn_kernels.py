@@ -26,7 +26,7 @@ import numpy as np
 from .._cost import SCRATCH as _SCRATCH
 from .._cost import chi2, gps_chi2, residual_and_jr_inv, retract_into
 from .._numba import kernel
-from ..geometry._fast import mm3, skew_into
+from ..geometry._kernels import mm3, skew_into
 
 
 # --------------------------------------------------------------------------- inner kernels

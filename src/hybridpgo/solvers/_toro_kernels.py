@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from .._numba import cycle_counter, kernel
-from ..geometry._kernels import so3_log
+from ..geometry._kernels import so3_log_into
 
 # ----------------------------------------------------------------------------- tree building
 
@@ -297,7 +297,9 @@ def update_constraint(
                     acc += (qv1[r, 0] * re[0, u] + qv1[r, 1] * re[1, u]
                             + qv1[r, 2] * re[2, u]) * qv2[s, u]
                 tmp[r, s] = acc
-        phi = so3_log(tmp)
+        phi6 = np.empty(6)
+        so3_log_into(tmp, phi6)
+        phi = phi6[3:]
         theta = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
         if not math.isfinite(theta):
             return 1

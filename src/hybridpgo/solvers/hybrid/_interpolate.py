@@ -23,7 +23,7 @@ import numpy as np
 
 from ..._cost import SCRATCH, jr_inv_matrix, residual_and_jr_inv, retract_into
 from ..._numba import kernel
-from ...geometry._fast import so3_log_into
+from ...geometry._kernels import so3_log_into
 from ._dense import regularized_factor
 from ._linearize import (
     linearize,

@@ -1,0 +1,327 @@
+"""Reference SO(3)/SE(3) kernels (allocating, one element at a time), used only by the tests.
+
+They were the package's first kernels; the solvers now use the allocation-free kernels of
+:mod:`hybridpgo.geometry._kernels` (same formulas and thresholds), which the tests check
+against these and against the NumPy twins in ``naive.py``.
+
+Conventions: tangent vectors xi = (rho, phi) (translation first); ``Exp(xi)`` is the SE(3)
+exponential; poses are (R, t) pairs of a (3, 3) rotation and a (3,) translation.
+
+Small-angle handling: below ``SMALL_ANGLE`` (rad) every coefficient is evaluated with its Taylor
+series (terms listed beside each one), which are accurate to ~1e-16 there; the SE(3) coupling
+block Q uses longer series below ``Q_SERIES_ANGLE``.  Near pi the rotation logarithm switches to the
+symmetric-part formula (``NEAR_PI``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from hybridpgo._numba import kernel
+from hybridpgo.geometry._kernels import GIMBAL_LOCK_COS, NEAR_PI, Q_SERIES_ANGLE, SMALL_ANGLE
+
+
+
+@kernel
+def skew(v: np.ndarray) -> np.ndarray:
+    """[v]x, the (3, 3) cross-product matrix."""
+    s = np.zeros((3, 3))
+    s[0, 1] = -v[2]
+    s[0, 2] = v[1]
+    s[1, 0] = v[2]
+    s[1, 2] = -v[0]
+    s[2, 0] = -v[1]
+    s[2, 1] = v[0]
+    return s
+
+
+@kernel
+def so3_exp(phi: np.ndarray) -> np.ndarray:
+    """Rodrigues: R = I + sin(th)/th [phi]x + (1-cos th)/th^2 [phi]x^2."""
+    th2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
+    th = math.sqrt(th2)
+    if th < SMALL_ANGLE:
+        a = 1.0 - th2 / 6.0  # sin(th)/th = 1 - th^2/6 + th^4/120
+        b = 0.5 - th2 / 24.0  # (1-cos th)/th^2 = 1/2 - th^2/24 + th^4/720
+    else:
+        a = math.sin(th) / th
+        b = (1.0 - math.cos(th)) / th2
+    k = skew(phi)
+    out: np.ndarray = np.eye(3) + a * k + b * (k @ k)
+    return out
+
+
+@kernel
+def so3_log(r: np.ndarray) -> np.ndarray:
+    """Rotation vector phi with |phi| in [0, pi] and Exp(phi) = R."""
+    vx = 0.5 * (r[2, 1] - r[1, 2])
+    vy = 0.5 * (r[0, 2] - r[2, 0])
+    vz = 0.5 * (r[1, 0] - r[0, 1])
+    s = math.sqrt(vx * vx + vy * vy + vz * vz)  # sin(theta)
+    c = 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0)  # cos(theta)
+    th = math.atan2(s, c)
+    out = np.empty(3)
+    if th < SMALL_ANGLE:
+        f = 1.0 + th * th / 6.0  # th/sin(th) = 1 + th^2/6 + 7 th^4/360
+        out[0] = f * vx
+        out[1] = f * vy
+        out[2] = f * vz
+        return out
+    if math.pi - th > NEAR_PI:
+        f = th / s
+        out[0] = f * vx
+        out[1] = f * vy
+        out[2] = f * vz
+        return out
+    # Near pi: R + R^T = 2 cos(th) I + 2 (1 - cos th) a a^T; take the largest diagonal column.
+    d0 = r[0, 0] - c
+    d1 = r[1, 1] - c
+    d2 = r[2, 2] - c
+    k = 0
+    if d1 > d0 and d1 >= d2:
+        k = 1
+    elif d2 > d0 and d2 > d1:
+        k = 2
+    a = np.empty(3)
+    for i in range(3):
+        a[i] = 0.5 * (r[i, k] + r[k, i]) - (c if i == k else 0.0)
+    n = math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+    sign = 1.0
+    if a[0] * vx + a[1] * vy + a[2] * vz < 0.0:
+        sign = -1.0
+    for i in range(3):
+        out[i] = sign * th * a[i] / n
+    return out
+
+
+@kernel
+def _v_coeffs(th: float) -> tuple[float, float]:
+    """Coefficients of V(phi) = I + b [phi]x + c [phi]x^2."""
+    th2 = th * th
+    if th < SMALL_ANGLE:
+        return 0.5 - th2 / 24.0, 1.0 / 6.0 - th2 / 120.0
+    sh = math.sin(0.5 * th)  # 1 - cos th = 2 sin^2(th/2): no cancellation (b multiplies [phi]x)
+    return 2.0 * sh * sh / th2, (th - math.sin(th)) / (th2 * th)
+
+
+@kernel
+def so3_left_jacobian(phi: np.ndarray) -> np.ndarray:
+    """J_l(phi) = V(phi) of SO(3)."""
+    th = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
+    b, c = _v_coeffs(th)
+    k = skew(phi)
+    out: np.ndarray = np.eye(3) + b * k + c * (k @ k)
+    return out
+
+
+@kernel
+def so3_left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
+    """J_l(phi)^-1 = I - 1/2 [phi]x + (1/th^2 - cot(th/2)/(2 th)) [phi]x^2 (stable at pi)."""
+    th = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
+    if th < SMALL_ANGLE:
+        c = 1.0 / 12.0 + th * th / 720.0  # + th^4/30240
+    else:
+        c = 1.0 / (th * th) - math.cos(0.5 * th) / (2.0 * th * math.sin(0.5 * th))
+    k = skew(phi)
+    out: np.ndarray = np.eye(3) - 0.5 * k + c * (k @ k)
+    return out
+
+
+@kernel
+def se3_exp(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exp(xi) for xi = (rho, phi): R = exp(phi), t = V(phi) rho."""
+    phi = xi[3:6].copy()
+    rho = xi[0:3].copy()
+    return so3_exp(phi), so3_left_jacobian(phi) @ rho
+
+
+@kernel
+def se3_log(r: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Log(R, t) = (V(phi)^-1 t, phi)."""
+    phi = so3_log(r)
+    rho = so3_left_jacobian_inv(phi) @ t
+    out = np.empty(6)
+    out[0:3] = rho
+    out[3:6] = phi
+    return out
+
+
+@kernel
+def _q_matrix(rho: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """Barfoot's Q(rho, phi), the off-diagonal block of the SE(3) left Jacobian (rho, phi order)."""
+    th2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
+    th = math.sqrt(th2)
+    if th < Q_SERIES_ANGLE:
+        # (th - sin th)/th^3 = 1/6 - th^2/120 + th^4/5040 - th^6/362880
+        a1 = 1.0 / 6.0 - th2 / 120.0 * (1.0 - th2 / 42.0 * (1.0 - th2 / 72.0))
+        # (1 - th^2/2 - cos th)/th^4 = -1/24 + th^2/720 - th^4/40320 + th^6/3628800
+        a2 = -1.0 / 24.0 + th2 / 720.0 * (1.0 - th2 / 56.0 * (1.0 - th2 / 90.0))
+        # (th - sin th - th^3/6)/th^5 = -1/120 + th^2/5040 - th^4/362880 + th^6/39916800
+        a3 = -1.0 / 120.0 + th2 / 5040.0 * (1.0 - th2 / 72.0 * (1.0 - th2 / 110.0))
+    else:
+        s = math.sin(th)
+        c = math.cos(th)
+        a1 = (th - s) / (th2 * th)
+        a2 = (1.0 - 0.5 * th2 - c) / (th2 * th2)
+        a3 = (th - s - th2 * th / 6.0) / (th2 * th2 * th)
+    rx = skew(rho)
+    px = skew(phi)
+    pr = px @ rx
+    rp = rx @ px
+    prp = pr @ px
+    out: np.ndarray = (0.5 * rx + a1 * (pr + rp + prp) - a2 * (px @ pr + rp @ px - 3.0 * prp)
+                       - 0.5 * (a2 - 3.0 * a3) * (prp @ px + px @ prp))
+    return out
+
+
+@kernel
+def se3_left_jacobian_inv(xi: np.ndarray) -> np.ndarray:
+    """J_l(xi)^-1 of SE(3) in (rho, phi) order: [[Jl^-1, -Jl^-1 Q Jl^-1], [0, Jl^-1]]."""
+    rho = xi[0:3].copy()
+    phi = xi[3:6].copy()
+    ji = so3_left_jacobian_inv(phi)
+    q = _q_matrix(rho, phi)
+    out = np.zeros((6, 6))
+    out[0:3, 0:3] = ji
+    out[3:6, 3:6] = ji
+    out[0:3, 3:6] = -(ji @ q @ ji)
+    return out
+
+
+@kernel
+def se3_right_jacobian_inv(xi: np.ndarray) -> np.ndarray:
+    """J_r(xi)^-1 = J_l(-xi)^-1 (DESIGN §3's ``Jr^-1``)."""
+    return se3_left_jacobian_inv(-xi)
+
+
+@kernel
+def se3_adjoint(r: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Ad(T) = [[R, [t]x R], [0, R]] in (rho, phi) order."""
+    out = np.zeros((6, 6))
+    out[0:3, 0:3] = r
+    out[3:6, 3:6] = r
+    out[0:3, 3:6] = skew(t) @ r
+    return out
+
+
+@kernel
+def orthonormalize(r: np.ndarray) -> np.ndarray:
+    """Nearest rotation to a nearly orthonormal R: one Newton step R (3I - R^T R)/2, twice."""
+    out = r.copy()
+    for _ in range(2):
+        out = 0.5 * out @ (3.0 * np.eye(3) - out.T @ out)
+    return out
+
+
+@kernel
+def quat_xyzw_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the quaternion (x, y, z, w); the quaternion is normalized first."""
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    x = q[0] / n
+    y = q[1] / n
+    z = q[2] / n
+    w = q[3] / n
+    r = np.empty((3, 3))
+    r[0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    r[0, 1] = 2.0 * (x * y - z * w)
+    r[0, 2] = 2.0 * (x * z + y * w)
+    r[1, 0] = 2.0 * (x * y + z * w)
+    r[1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    r[1, 2] = 2.0 * (y * z - x * w)
+    r[2, 0] = 2.0 * (x * z - y * w)
+    r[2, 1] = 2.0 * (y * z + x * w)
+    r[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+    return r
+
+
+@kernel
+def matrix_to_quat_xyzw(r: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w), w >= 0, of a rotation matrix (Shepperd's method)."""
+    q = np.empty(4)
+    tr = r[0, 0] + r[1, 1] + r[2, 2]
+    if tr > 0.0:
+        s = 2.0 * math.sqrt(1.0 + tr)
+        q[3] = 0.25 * s
+        q[0] = (r[2, 1] - r[1, 2]) / s
+        q[1] = (r[0, 2] - r[2, 0]) / s
+        q[2] = (r[1, 0] - r[0, 1]) / s
+    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
+        q[3] = (r[2, 1] - r[1, 2]) / s
+        q[0] = 0.25 * s
+        q[1] = (r[0, 1] + r[1, 0]) / s
+        q[2] = (r[0, 2] + r[2, 0]) / s
+    elif r[1, 1] > r[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
+        q[3] = (r[0, 2] - r[2, 0]) / s
+        q[0] = (r[0, 1] + r[1, 0]) / s
+        q[1] = 0.25 * s
+        q[2] = (r[1, 2] + r[2, 1]) / s
+    else:
+        s = 2.0 * math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
+        q[3] = (r[1, 0] - r[0, 1]) / s
+        q[0] = (r[0, 2] + r[2, 0]) / s
+        q[1] = (r[1, 2] + r[2, 1]) / s
+        q[2] = 0.25 * s
+    if q[3] < 0.0:
+        q = -q
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return q / n
+
+
+@kernel
+def euler_rpy_to_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """R = Rz(yaw) Ry(pitch) Rx(roll) (TORO/iSAM convention)."""
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    r = np.empty((3, 3))
+    r[0, 0] = cy * cp
+    r[0, 1] = cy * sp * sr - sy * cr
+    r[0, 2] = cy * sp * cr + sy * sr
+    r[1, 0] = sy * cp
+    r[1, 1] = sy * sp * sr + cy * cr
+    r[1, 2] = sy * sp * cr - cy * sr
+    r[2, 0] = -sp
+    r[2, 1] = cp * sr
+    r[2, 2] = cp * cr
+    return r
+
+
+@kernel
+def matrix_to_euler_rpy(r: np.ndarray) -> np.ndarray:
+    """(roll, pitch, yaw) with R = Rz(yaw) Ry(pitch) Rx(roll); pitch in [-pi/2, pi/2]."""
+    out = np.empty(3)
+    cp = math.sqrt(r[2, 1] * r[2, 1] + r[2, 2] * r[2, 2])  # |cos(pitch)|
+    out[1] = math.atan2(-r[2, 0], cp)  # atan2, not asin: accurate near +-pi/2
+    # Gimbal lock (cp ~ 0): roll is arbitrary, put everything in yaw.  Elsewhere take roll from
+    # row 2 and yaw from R Rx(roll)^T = Rz(yaw) Ry(pitch), whose column 1 is (-sin yaw, cos yaw, 0):
+    # exact for any roll, so R is reproduced to rounding even close to gimbal lock.
+    out[0] = math.atan2(r[2, 1], r[2, 2]) if cp > GIMBAL_LOCK_COS else 0.0
+    sr = math.sin(out[0])
+    cr = math.cos(out[0])
+    out[2] = math.atan2(sr * r[0, 2] - cr * r[0, 1], cr * r[1, 1] - sr * r[1, 2])
+    return out
+
+
+# --------------------------------------------------------------------------- pose algebra
+@kernel
+def compose(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray,
+            tb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(Ra, ta) * (Rb, tb)."""
+    return ra @ rb, ra @ tb + ta
+
+
+@kernel
+def between(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray,
+            tb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(Ra, ta)^-1 * (Rb, tb)."""
+    return ra.T @ rb, ra.T @ (tb - ta)
+
+
+@kernel
+def relative_error(rz: np.ndarray, tz: np.ndarray, rab: np.ndarray, tab: np.ndarray) -> np.ndarray:
+    """e = Log(Z^-1 X_ab) for measurement Z = (rz, tz) and X_ab = X_a^-1 X_b."""
+    return se3_log(rz.T @ rab, rz.T @ (tab - tz))
