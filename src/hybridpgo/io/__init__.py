@@ -206,7 +206,7 @@ def graph_lines(graph: PoseGraph, format: str, name: str = "<memory>") -> list[s
         raise ValueError(f"format must be one of {', '.join(WRITE_FORMATS)} (or None), got "
                          f"{format!r}")
     if format == "g2o":
-        return _g2o_lines(graph, name)
+        return list(_g2o_lines(graph, name))  # the writer yields chunks
     if format == "toro":
         return _toro_lines(graph, name)
     if format == "isam":
