@@ -7,10 +7,10 @@ import dataclasses
 import numpy as np
 import pytest
 from graphs import random_graph
+from ref_kernels import se3_exp, se3_log
 
 from hybridpgo import _cost
 from hybridpgo.energy import energy
-from ref_kernels import se3_exp, se3_log
 from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver, solve_hybrid
 from hybridpgo.solvers.hybrid._dense import TINY
 from hybridpgo.tree import global_poses
