@@ -23,7 +23,6 @@ from hybridpgo._numba import kernel
 from hybridpgo.geometry._kernels import GIMBAL_LOCK_COS, NEAR_PI, Q_SERIES_ANGLE, SMALL_ANGLE
 
 
-
 @kernel
 def skew(v: np.ndarray) -> np.ndarray:
     """[v]x, the (3, 3) cross-product matrix."""

@@ -678,3 +678,26 @@ def test_toro_runs_its_sweeps_as_iterations(capsys: pytest.CaptureFixture[str], 
     assert out.exists()
     code, _, err = run_cli(capsys, "optimize", str(tiny), "-o", str(out), "--tree", "toro")
     assert code == 2 and "--tree toro: only for --solver toro" in err
+
+
+# =========================================================================== bounds (issue 9)
+def test_sweeps_and_tau0_bounds_match_the_library() -> None:
+    from hybridpgo.cli import _parser
+    from hybridpgo.solvers import config
+
+    assert _parser.MAX_SWEEPS == config.MAX_SWEEPS
+    assert _parser.MAX_TAU == config.MAX_TAU
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--sweeps", "99999999999999999999"], "--sweeps: must be an integer in 0..1000000"),
+    (["--tau0", "2.5"], "--tau0: must be a number in (0, 2)"),
+    (["--tau0", "2"], "--tau0: must be a number in (0, 2)"),
+])
+def test_runaway_sweeps_and_temperatures_are_refused(capsys: pytest.CaptureFixture[str],
+                                                     tiny: Path, tmp_path: Path,
+                                                     argv: list[str], message: str) -> None:
+    out = tmp_path / "out.g2o"
+    code, _, err = run_cli(capsys, "optimize", str(tiny), "-o", str(out), *argv)
+    assert code == 2 and message in err
+    assert not out.exists()

@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from graphs import random_graph
+from ref_kernels import se3_exp
 from tolerances import COVARIANCE_VS_GTSAM, FLOAT64_IDENTITY, SPARSE_VS_DENSE_GN
 
 from hybridpgo.covariance import marginal_covariances
 from hybridpgo.errors import SolverError
-from ref_kernels import se3_exp
 from hybridpgo.graph import PoseGraph
 from hybridpgo.io import read_graph
 from hybridpgo.solvers._linear import _cholmod_available

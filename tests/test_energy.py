@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from ref_kernels import se3_exp
 from tolerances import FLOAT64_IDENTITY
 
 from hybridpgo.energy import constraint_energies, energy
-from ref_kernels import se3_exp
 from hybridpgo.graph import PoseGraph, lift_information_2d
 
 #: Energy of a noise-free graph at its ground truth: errors are rounding (~1e-15), E ~ 1e-28.

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from ref_kernels import relative_error, se3_exp
 from tolerances import CENTRAL_DIFF, CENTRAL_DIFF_STEP, FLOAT64_IDENTITY, SPARSE_VS_DENSE_GN
 
 from hybridpgo import _cost
 from hybridpgo.energy import energy
 from hybridpgo.errors import GraphError, SolverError
-from ref_kernels import relative_error, se3_exp
 from hybridpgo.graph import PoseGraph
 from hybridpgo.solvers import _gn_kernels
 from hybridpgo.solvers.config import GaussNewtonConfig

@@ -14,13 +14,13 @@ from collections.abc import Callable
 import naive
 import numpy as np
 import pytest
+import ref_kernels as K
 import strategies as gs
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 from tolerances import CENTRAL_DIFF, CENTRAL_DIFF_STEP, FLOAT64_IDENTITY, ORTHONORMAL
 
-import ref_kernels as K
 from hybridpgo.geometry import se3, so3
 
 Pose = tuple[np.ndarray, np.ndarray]

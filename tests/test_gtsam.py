@@ -13,11 +13,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ref_kernels import se3_exp, se3_log
 from tolerances import FLOAT64_IDENTITY
 
 from hybridpgo.energy import constraint_energies, energy
 from hybridpgo.errors import GraphError, HybridPGOError
-from ref_kernels import se3_exp, se3_log
 from hybridpgo.graph import PoseGraph
 from hybridpgo.gtsam_bridge import TO_GTSAM_TANGENT, from_gtsam, gauge_prior, to_gtsam
 from hybridpgo.io import read_graph

@@ -7,10 +7,10 @@ import dataclasses
 import numpy as np
 import pytest
 from graphs import random_graph
+from ref_kernels import se3_exp, se3_log
 
 from hybridpgo import _cost
 from hybridpgo.energy import energy
-from ref_kernels import se3_exp, se3_log
 from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver, solve_hybrid
 from hybridpgo.solvers.hybrid._dense import TINY
 from hybridpgo.tree import global_poses
@@ -323,3 +323,33 @@ def test_segmented_woodbury_batch_matches_dense_hybrid_system(gps):
     for v, xi in zip(nodes, x, strict=True):
         got[pos[int(v)]] = xi
     np.testing.assert_allclose(got, x_ref, rtol=0, atol=SAME_EQUATION * np.abs(x_ref).max())
+
+
+@pytest.mark.parametrize("two", [False, True])
+def test_gps_only_graphs_are_solved(two):
+    """Issue 9: one pose with one GPS reading, or two poses each with one and no relative
+    edge, made every hybrid update non-finite (the batch system is singular in rotation)."""
+    from hybridpgo.graph import PoseGraph
+
+    n = 2 if two else 1
+    graph = PoseGraph(
+        node_ids=np.arange(n), rotations=np.tile(np.eye(3), (n, 1, 1)),
+        translations=np.zeros((n, 3)), edge_nodes=np.zeros((0, 2), np.int32),
+        edge_rotations=np.zeros((0, 3, 3)), edge_translations=np.zeros((0, 3)),
+        edge_information=np.zeros((0, 6, 6)), gps_nodes=np.arange(n, dtype=np.int32),
+        gps_positions=np.arange(3 * n, dtype=float).reshape(n, 3) + 1.0,
+        gps_information=np.tile(np.eye(3), (n, 1, 1)),
+    )
+    res = solve_hybrid(graph, HybridConfig(sweeps=5, init="file"))
+    assert res.stats["rejected_steps"] == 0
+    np.testing.assert_allclose(res.translations, graph.gps_positions, rtol=0, atol=1e-6)
+
+
+def test_sweeps_and_tau0_are_bounded():
+    from hybridpgo.solvers.config import MAX_SWEEPS, MAX_TAU
+
+    with pytest.raises(ValueError, match="sweeps"):
+        HybridConfig(sweeps=MAX_SWEEPS + 1)
+    with pytest.raises(ValueError, match="tau0"):
+        HybridConfig(tau0=MAX_TAU)
+    HybridConfig(sweeps=MAX_SWEEPS, tau0=1.99)

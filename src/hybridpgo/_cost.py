@@ -21,8 +21,7 @@ import math
 import numpy as np
 
 from ._numba import kernel
-from .geometry._kernels import edge_error_into, jr_inv_blocks, skew_into
-from .geometry._kernels import SMALL_ANGLE
+from .geometry._kernels import SMALL_ANGLE, edge_error_into, jr_inv_blocks, skew_into
 
 #: Scratch (3, 3) matrices :func:`residual_and_jr_inv` needs.
 SCRATCH = 12

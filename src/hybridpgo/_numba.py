@@ -6,6 +6,8 @@ and bit-reproducibility.
 
 from __future__ import annotations
 
+import functools
+import time
 from collections.abc import Callable
 from typing import Any, TypeVar
 
@@ -50,3 +52,19 @@ def _make_cycle_counter() -> Any:
 
 
 cycle_counter = _make_cycle_counter()
+
+
+@kernel
+def read_cycles() -> int:
+    """The cycle counter, read from Python."""
+    return cycle_counter()  # type: ignore[no-any-return]
+
+
+@functools.cache
+def cycles_per_second() -> float:
+    """Frequency of the cycle counter, calibrated once against ``time.perf_counter``."""
+    read_cycles()
+    c0, t0 = read_cycles(), time.perf_counter()
+    time.sleep(0.05)
+    c1, t1 = read_cycles(), time.perf_counter()
+    return float(c1 - c0) / (t1 - t0)

@@ -99,9 +99,14 @@ def _number(kind: Callable[[str], float | int], test: Callable[[float], bool],
 _nonneg_int = _number(int, lambda v: v >= 0, "an integer >= 0")
 _pos_int = _number(int, lambda v: v >= 1, "an integer >= 1")
 _any_int = _number(int, lambda v: True, "an integer")
-_pos_float = _number(float, lambda v: v > 0, "a number > 0")
 _nonneg_float = _number(float, lambda v: v >= 0, "a number >= 0")
 _decay = _number(float, lambda v: 0 < v <= 1, "a number in (0, 1]")
+#: --sweeps and --tau0 bounds: the library's (solvers.config.MAX_SWEEPS, MAX_TAU), repeated
+#: here to keep the parser light; tests/test_cli.py checks that they agree.
+MAX_SWEEPS = 1_000_000
+MAX_TAU = 2.0
+_sweeps = _number(int, lambda v: 0 <= v <= MAX_SWEEPS, f"an integer in 0..{MAX_SWEEPS}")
+_tau = _number(float, lambda v: 0 < v < MAX_TAU, f"a number in (0, {MAX_TAU:g})")
 #: Largest ``plot --dpi`` (the same as ``hybridpgo.plot.MAX_DPI``; not imported, to keep the
 #: parser light).  A 2x2-panel figure at 600 dpi is ~7800 x 7200 pixels (~225 MB to render).
 MAX_DPI = 600
@@ -222,10 +227,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "paper), 'file' uses the file's vertices, 'chordal' a chordal "
                         "relaxation (default: tree for hybrid; file for exact when the file has "
                         "vertices)")
-    p.add_argument("--sweeps", type=_nonneg_int, metavar="N",
+    p.add_argument("--sweeps", type=_sweeps, metavar="N",
                    help=f"hybrid: number of sweeps over all constraints (default {hy.sweeps})")
-    p.add_argument("--tau0", type=_pos_float, metavar="TAU",
-                   help=f"hybrid: initial temperature (default {hy.tau0:g})")
+    p.add_argument("--tau0", type=_tau, metavar="TAU",
+                   help=f"hybrid: initial temperature, below {MAX_TAU:g} (default {hy.tau0:g})")
     p.add_argument("--tau-decay", type=_decay, metavar="F",
                    help=f"hybrid: temperature factor per sweep (default {hy.tau_decay:g})")
     p.add_argument("--damping", type=_nonneg_float, metavar="MU",
@@ -318,7 +323,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "write the optimized graph and before/after/energy plots into DIR.")
     p.add_argument("-o", "--output-dir", default="hybridpgo-demo", metavar="DIR",
                    help="output directory (default: hybridpgo-demo)")
-    p.add_argument("--sweeps", type=_nonneg_int, default=hy.sweeps, metavar="N",
+    p.add_argument("--sweeps", type=_sweeps, default=hy.sweeps, metavar="N",
                    help=f"hybrid sweeps before the polish (default {hy.sweeps})")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     _add_progress(p)

@@ -27,15 +27,14 @@ from dataclasses import dataclass, field
 from typing import IO
 
 import numpy as np
+import numpy.typing as npt
 
+from ..errors import FormatError, GraphError, option_hint
 from ..geometry.so3 import euler_rpy_to_matrix as euler_rpy_to_matrix
 from ..geometry.so3 import matrix_to_euler_rpy as matrix_to_euler_rpy
 from ..geometry.so3 import matrix_to_quat_xyzw as matrix_to_quat_xyzw
 from ..geometry.so3 import normalize_quaternions as normalize_quaternions
 from ..geometry.so3 import quat_xyzw_to_matrix as quat_xyzw_to_matrix
-import numpy.typing as npt
-
-from ..errors import FormatError, GraphError, option_hint
 from ..graph import MAX_INFORMATION, PoseGraph, lift_information_2d
 
 FloatArray = npt.NDArray[np.float64]

@@ -95,6 +95,16 @@ def _edge_linearization(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.n
             jb[i + 3, j + 3] = jm[i, j]
 
 
+@kernel
+def _add_gradient(j: np.ndarray, oe: np.ndarray, grad: np.ndarray, v: int) -> None:
+    """grad[6v : 6v+6] += J^T (Omega e) for one (6, 6) Jacobian block."""
+    for p in range(6):
+        s = 0.0
+        for k in range(6):
+            s += j[k, p] * oe[k]
+        grad[6 * v + p] += s
+
+
 # --------------------------------------------------------------------------- drivers
 @kernel
 def edge_jacobians(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarray,
@@ -159,18 +169,10 @@ def assemble_normal_equations(
         vb = var_of_node[b]
         if va >= 0:
             _add_block_atb(ja, wa, data, edge_base[c, 0], edge_stride[c, 0])
-            for p in range(6):
-                s = 0.0
-                for k in range(6):
-                    s += ja[k, p] * oe[k]
-                grad[6 * va + p] += s
+            _add_gradient(ja, oe, grad, va)
         if vb >= 0:
             _add_block_atb(jb, wb, data, edge_base[c, 1], edge_stride[c, 1])
-            for p in range(6):
-                s = 0.0
-                for k in range(6):
-                    s += jb[k, p] * oe[k]
-                grad[6 * vb + p] += s
+            _add_gradient(jb, oe, grad, vb)
         if va >= 0 and vb >= 0:
             _add_block_atb(ja, wb, data, edge_base[c, 2], edge_stride[c, 2])
             _add_block_atb(jb, wa, data, edge_base[c, 3], edge_stride[c, 3])

@@ -116,14 +116,23 @@ class GaussNewtonConfig:
                              f"got {self.linear_solver!r}")
 
 
+#: Most sweeps one run may ask for (a sweep visits every constraint once; the paper runs 10).
+MAX_SWEEPS = 1_000_000
+#: The temperature must stay below this: a step scaled by tau >= 2 overshoots a quadratic
+#: model's minimum by at least as much as it corrects (over-relaxation), so the sweeps diverge
+#: (measured: intel with tau0 = 2.5 went from E = 501 to 2e11).
+MAX_TAU = 2.0
+
+
 @dataclass(frozen=True)
 class HybridConfig:
     """Options of the hybrid solver (paper Algorithm 1); every field is checked once here."""
 
     sweeps: int = 10
-    """Maximum number of sweeps over all constraints (the paper's experiments use 10)."""
+    """Maximum number of sweeps over all constraints (the paper's experiments use 10), at most
+    ``MAX_SWEEPS``."""
     tau0: float = 1.0
-    """Initial temperature tau (paper III-H)."""
+    """Initial temperature tau (paper III-H), in (0, 2) (``MAX_TAU``)."""
     tau_decay: float = 0.99
     """tau is multiplied by this after each sweep (paper III-H)."""
     damping: float = 1e-6
@@ -149,7 +158,12 @@ class HybridConfig:
 
     def __post_init__(self) -> None:
         _check_int("sweeps", self.sweeps, 0)
+        if self.sweeps > MAX_SWEEPS:
+            raise ValueError(f"sweeps must be at most {MAX_SWEEPS}, got {self.sweeps!r}")
         _check_float("tau0", self.tau0, positive=True)
+        if not self.tau0 < MAX_TAU:
+            raise ValueError(f"tau0 must be below {MAX_TAU:g} (a larger temperature "
+                             f"over-relaxes and the sweeps diverge), got {self.tau0!r}")
         if not (isinstance(self.tau_decay, (int, float)) and 0 < self.tau_decay <= 1):
             raise ValueError(f"tau_decay must be in (0, 1], got {self.tau_decay!r}")
         _check_float("damping", self.damping, positive=False)

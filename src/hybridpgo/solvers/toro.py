@@ -40,7 +40,6 @@ constraints is refused, as the original TORO would.
 
 from __future__ import annotations
 
-import functools
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -48,7 +47,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from .._numba import cycle_counter, kernel
+from .._numba import cycles_per_second
 from ..energy import energy
 from ..errors import GraphError, SolverError
 from ..graph import FloatArray, PoseGraph
@@ -410,21 +409,6 @@ class ToroState:
 
 
 # ----------------------------------------------------------------------------- timing
-@kernel
-def _read_cycles() -> int:
-    return cycle_counter()  # type: ignore[no-any-return]
-
-
-@functools.cache
-def _cycles_per_second() -> float:
-    """Frequency of the cycle counter, calibrated once against ``time.perf_counter``."""
-    _read_cycles()
-    c0, t0 = _read_cycles(), time.perf_counter()
-    time.sleep(0.05)
-    c1, t1 = _read_cycles(), time.perf_counter()
-    return float(c1 - c0) / (t1 - t0)
-
-
 def _ensure_compiled() -> float:
     """Compile (or load from Numba's cache) every kernel once; returns the seconds spent."""
     if getattr(tk.sweep, "signatures", None):
@@ -439,7 +423,7 @@ def _ensure_compiled() -> float:
         gps_information=np.eye(3)[None],
     )
     _solve(tiny, ToroConfig(iterations=1), None, compile_s=0.0)
-    _cycles_per_second()
+    cycles_per_second()
     return time.perf_counter() - t0
 
 
@@ -528,7 +512,7 @@ def _solve(graph: PoseGraph, cfg: ToroConfig, progress: ProgressCallback | None,
                 (prev - e) / prev < cfg.energy_tolerance):
             status = Status.CONVERGED
             break
-    freq = _cycles_per_second()
+    freq = cycles_per_second()
     rot, trans = state.poses()
     lengths = tree.path_lengths()
     stats: dict[str, Any] = {

@@ -78,6 +78,16 @@ def chain_end(d: int, na: int, keep: np.ndarray, nk: int, j: int) -> int:
     return side_end
 
 
+@kernel
+def chain_top(pr: np.ndarray, pt: np.ndarray, d: int, na: int, p: int, end: int,
+              eye: np.ndarray, zero: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pose of the chain's top parent a in the constraint root's frame: the kept node at
+    position ``end``, or the root itself (``eye``, ``zero``) when the chain reaches the top."""
+    if end < (na if p < na else d):
+        return pr[end], pt[end]
+    return eye, zero
+
+
 # --------------------------------------------------------------------------- eq. 31-33
 @kernel
 def _link_information(prob: Problem, node: int, om: np.ndarray) -> None:
@@ -200,12 +210,7 @@ def merged_blocks(prob: Problem, state: State, c: int, d: int, keep: np.ndarray,
             nodes[i] = prob.path_node[s + p + i]
         merged_constraint(prob, state, nodes, k, zr, zt, s_beta)
         # current merged transform T_{a,b} = P_a^-1 P_b (a: the chain's top parent)
-        if end < (na if p < na else d):
-            ra = pr[end]
-            ta = pt[end]
-        else:
-            ra = eye
-            ta = zero
+        ra, ta = chain_top(pr, pt, d, na, p, end, eye, zero)
         # J_β = L_β^T Jr^-1(e_β), e_β = Log(p_β^-1 T_{a,b}); J_β^T J_β = Jr^-T S_β Jr^-1
         residual_and_jr_inv(zr, zt, ra, ta, pr[p], pt[p], e, ws)
         jr_inv_matrix(ws, jri)
@@ -349,12 +354,7 @@ def distribute(prob: Problem, state: State, c: int, d: int, na: int, keep: np.nd
         k = end - p
         for i in range(k):
             nodes[i] = prob.path_node[s + p + i]
-        if end < (na if p < na else d):
-            ra = pr[end]
-            ta = pt[end]
-        else:
-            ra = eye
-            ta = zero
+        ra, ta = chain_top(pr, pt, d, na, p, end, eye, zero)
         # b's desired pose (root frame): P_b Exp(t x_b), as a full update would move it
         retract_into(pr[p], pt[p], x[j], t, rb, tb, er, tmp)
         if k == 1:  # nothing omitted: the plain update of b's local transform

@@ -10,14 +10,13 @@ chosen list of constraints within a time budget (the online mode stands on it).
 from __future__ import annotations
 
 import dataclasses
-import functools
 import time
 from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
-from ..._numba import cycle_counter, kernel
+from ..._numba import cycles_per_second, read_cycles
 from ...energy import energy
 from ...errors import SolverError
 from ...graph import FloatArray, PoseGraph
@@ -30,21 +29,6 @@ from .problem import NUM_COUNTS, Count, Problem, State, StepKind, new_workspace
 #: Step names of :class:`HybridConfig` -> kernel codes.
 STEP_KINDS = {"woodbury": StepKind.WOODBURY, "givens": StepKind.GIVENS}
 _U64_MAX = np.iinfo(np.uint64).max
-
-
-@kernel
-def _read_cycles() -> int:
-    return cycle_counter()  # type: ignore[no-any-return]
-
-
-@functools.cache
-def cycles_per_second() -> float:
-    """Frequency of the cycle counter, calibrated once against ``time.perf_counter``."""
-    _read_cycles()
-    c0, t0 = _read_cycles(), time.perf_counter()
-    time.sleep(0.05)
-    c1, t1 = _read_cycles(), time.perf_counter()
-    return float(c1 - c0) / (t1 - t0)
 
 
 class StepReport(NamedTuple):
@@ -168,7 +152,7 @@ class HybridSolver:
             raise ValueError(f"constraint indices must lie in 0..{self.num_constraints - 1}")
         deadline = _U64_MAX
         if budget_s is not None:
-            deadline = int(_read_cycles()) + int(budget_s * cycles_per_second())
+            deadline = int(read_cycles()) + int(budget_s * cycles_per_second())
         counts = np.zeros(NUM_COUNTS, np.int64)
         self._sweep(order, self.tau if tau is None else tau, min(deadline, _U64_MAX), counts)
         return StepReport(int(counts[Count.DONE]), int(counts[Count.CAPPED]),
