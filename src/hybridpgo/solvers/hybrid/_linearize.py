@@ -83,12 +83,13 @@ def endpoints(
 
 
 @kernel
-def _relative_blocks(prob: Problem, c: int, na: int, wk: Workspace, jac: np.ndarray) -> None:
-    """``jac[k] = s_k A Ad(M_k)`` with ``A = L^T Jr^-1(e0)``, ``M_k = X_b^-1 X_k = P_b^-1 P_k``."""
+def _relative_blocks(prob: Problem, c: int, rb: np.ndarray, tb: np.ndarray, wk: Workspace,
+                     jac: np.ndarray) -> None:
+    """``jac[k] = s_k A Ad(M_k)`` with ``A = L^T Jr^-1(e0)``, ``M_k = X_b^-1 X_k = P_b^-1 P_k``
+    (``rb, tb``: X_b in the constraint root's frame)."""
     s, d = domain(prob, c)
     pr = wk.path_rot
     pt = wk.path_trans
-    _ra, _ta, rb, tb = endpoints(pr, pt, na, d)
     a = wk.a
     rm = wk.ws[0]
     tx = wk.ws[1]
@@ -171,7 +172,7 @@ def linearize(prob: Problem, c: int, rot: np.ndarray, trans: np.ndarray, wk: Wor
         lt = prob.edge_lt[c]
         whiten_residual(lt, wk.e, 6, wk.r)
         whiten_rows(lt, wk.jri, 6, wk.a)
-        _relative_blocks(prob, c, na, wk, jac)
+        _relative_blocks(prob, c, rb, tb, wk, jac)
         return 6, na
     g = c - prob.num_edges
     gps_residual(wk.path_trans[0], prob.gps_pos[g], wk.e)  # the earth is the identity
