@@ -147,9 +147,9 @@ def test_lazy_choices_accept_anything_when_the_module_is_missing() -> None:
     (["--tau0", "0"], "--tau0: must be a number in (0, 2)"),
     (["--damping", "nan"], "--damping: must be a number >= 0"),
     (["--gps-batch-size", "0"], "--gps-batch-size: must be an integer >= 1"),
-    (["--dmax", "0"], "--dmax: must be an integer >= 1"),
-    (["--dmax", "-3"], "--dmax: must be an integer >= 1"),
-    (["--dmax", "2.5"], "--dmax: must be an integer >= 1"),
+    (["--dmax", "1"], "--dmax: must be an integer >= 2"),
+    (["--dmax", "-3"], "--dmax: must be an integer >= 2"),
+    (["--dmax", "2.5"], "--dmax: must be an integer >= 2"),
     (["--step", "cholesky"], "invalid choice: 'cholesky'"),
     (["--solver", "g2o"], "invalid choice: 'g2o'"),
 ])

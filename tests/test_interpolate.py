@@ -174,6 +174,6 @@ def test_subsampled_sweeps_converge_and_stay_orthonormal(gps: int) -> None:
 
 
 def test_dmax_is_validated() -> None:
-    for bad in (0, -3, 2.5, True):
+    for bad in (0, 1, -3, 2.5, True):
         with pytest.raises(ValueError, match="dmax"):
             HybridConfig(dmax=bad)  # type: ignore[arg-type]

@@ -245,7 +245,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "its smallest-id neighbour (--solver toro's default)")
     p.add_argument("--gps-batch-size", type=_pos_int, metavar="N",
                    help=f"hybrid: GPS constraints relaxed together (default {hy.gps_batch_size})")
-    p.add_argument("--dmax", type=_pos_int, metavar="N",
+    p.add_argument("--dmax", type=_number(int, lambda v: v >= 2, "an integer >= 2"), metavar="N",
                    help="hybrid: interpolated solving (paper III-E): solve each update for at "
                         "most N nodes of its path and distribute the rest (default: the whole "
                         "path)")

@@ -68,7 +68,7 @@ def _check_options(job: Job, graph: PoseGraph) -> str:
             raise HybridPGOError("--init chordal: --solver toro starts from 'tree' or 'file'")
         if job.solver == "toro" and opts.get("tree") == "mst":
             raise HybridPGOError("--tree mst: --solver toro grows a 'toro' or 'bfs' tree")
-    elif opts.get("tree") == "toro":
+    if job.solver != "toro" and opts.get("tree") == "toro":
         raise HybridPGOError("--tree toro: only for --solver toro")
     if job.solver == "hybrid" and "max_iterations" in opts and not opts.get("polish"):
         raise HybridPGOError("--max-iterations limits the exact solver or the polish: add "

@@ -36,7 +36,7 @@ def config_for(method: str, **options: Any) -> SolverConfig:
 
 
 def optimize(graph: PoseGraph, config: SolverConfig | str = "hybrid", *,
-             progress: Any = None, init: str | None = None, tree: str = "bfs",
+             progress: Any = None, init: str | None = None, tree: str | None = None,
              **options: Any) -> SolveResult:
     """Optimize a pose graph.
 
@@ -63,14 +63,15 @@ def optimize(graph: PoseGraph, config: SolverConfig | str = "hybrid", *,
         if config in ("hybrid", "toro"):
             if init is not None:
                 options["init"] = init
-            if config == "hybrid" or tree != "bfs":
-                options.setdefault("tree", tree)
+            if tree is not None:
+                options["tree"] = tree
         config = config_for(config, **options)
     elif options:
         raise TypeError("give either a config object or keyword options, not both")
-    elif (isinstance(config, (HybridConfig, ToroConfig)) and init is not None
-          and init != config.init):
-        raise ValueError("this solver's init is a field of its config")
+    elif isinstance(config, (HybridConfig, ToroConfig)) and (
+            (init is not None and init != config.init)
+            or (tree is not None and tree != config.tree)):
+        raise ValueError("this solver's init and tree are fields of its config")
     if isinstance(config, HybridConfig):
         return solve_hybrid(graph, config, progress=progress)
     if isinstance(config, ToroConfig):
@@ -85,6 +86,6 @@ def optimize(graph: PoseGraph, config: SolverConfig | str = "hybrid", *,
         start = "tree"
     rot = trans = None
     if start != "file":
-        t = build_tree(graph, tree)
+        t = build_tree(graph, tree or "bfs")
         rot, trans = global_poses(t, *initial_locals(graph, t, start))
     return solve_exact(graph, rot, trans, config, progress=progress)

@@ -14,7 +14,7 @@ array of a CSC matrix whose pattern was computed once (the "analyze" step in
 The error, ``Jr^-1``, χ², energy and retraction come from the cost layer
 (:mod:`hybridpgo._cost`), shared with the hybrid solver and :mod:`hybridpgo.energy`; they are
 allocation-free (STYLE.md §3).  The drivers allocate one scratch buffer per call.
-``tests/test_gauss_newton.py`` checks them against the geometry kernels to float64 rounding.
+``tests/test_gauss_newton.py`` checks them against ``tests/ref_kernels.py`` to float64 rounding.
 """
 
 from __future__ import annotations

@@ -150,7 +150,8 @@ class HybridConfig:
     """GPS constraints are relaxed together in batches of this size (paper: 30-50)."""
     dmax: int | None = None
     """Interpolated solving (paper III-E): a single update solves for at most this many nodes of
-    its domain and distributes the rest (TORO's way); None solves the whole domain."""
+    its domain (>= 2: each side's endpoint) and distributes the rest (TORO's way); None solves
+    the whole domain."""
     polish: bool = False
     """Finish with the exact Levenberg-Marquardt solver."""
     polish_iterations: int = 100
@@ -174,7 +175,7 @@ class HybridConfig:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {value!r}")
         _check_int("gps_batch_size", self.gps_batch_size, 1)
         if self.dmax is not None:
-            _check_int("dmax", self.dmax, 1)
+            _check_int("dmax", self.dmax, 2)  # one node per side of the path at least
         _check_float("energy_tolerance", self.energy_tolerance, positive=False)
         if not isinstance(self.polish, bool):
             raise ValueError(f"polish must be True or False, got {self.polish!r}")

@@ -4,9 +4,11 @@
 module                     paper
 =========================  ===================================================================
 ``problem``                named data: :class:`Problem`, :class:`State`, :class:`Workspace`
+``_dense``                 small dense Cholesky, the damped factor of a block of B (III-D)
 ``_linearize``             III-B: path products, whitened Jacobian blocks (eq. 17-22)
 ``_step``                  III-C/D/H: 𝔅(H) (eq. 23/24), damping, Woodbury, Givens (eq. 25-30),
                            the pi/8 cap and the retraction
+``_interpolate``           III-E: interpolated solving (D_max), merged chains (eq. 31-34)
 ``_batch``                 III-F/G: batch updates (eq. 35-37), GPS batches
 ``_sweep``                 Algorithm 1: sweeps in root-depth order, GPS buffering
 ``solver``                 :class:`HybridSolver` (built once, run or stepped), :func:`solve_hybrid`

@@ -26,9 +26,6 @@ from .problem import (
     new_workspace,
 )
 
-#: ``deadline`` value meaning "no deadline" (the largest uint64).
-NO_DEADLINE = np.uint64(np.iinfo(np.uint64).max)
-
 
 @kernel
 def max_domain(prob: Problem) -> int:

@@ -13,6 +13,7 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
+from ..._cost import SCRATCH
 from ..._numba import kernel
 
 FloatArray = npt.NDArray[np.float64]
@@ -108,7 +109,7 @@ def new_workspace(capacity: int) -> Workspace:
         np.empty((6, 6)),
         np.empty((6, 6)),
         np.empty((6, 6)),
-        np.empty((12, 3, 3)),
+        np.empty((SCRATCH, 3, 3)),
     )
 
 

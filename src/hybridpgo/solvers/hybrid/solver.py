@@ -91,8 +91,8 @@ class HybridSolver:
             np.bincount(tree.path_node, minlength=tree.num_tree_nodes).astype(np.int64),
             tree.parent, _link_constraints(tree, graph.num_edges), tree.link_forward,
         )  # fmt: skip
-        self.state = State(
-            np.ascontiguousarray(rot0, np.float64), np.ascontiguousarray(trans0, np.float64),
+        self.state = State(  # copies: the sweeps change them in place
+            np.array(rot0, np.float64, order="C"), np.array(trans0, np.float64, order="C"),
             np.zeros((tree.num_tree_nodes, 6, 6)), np.zeros((int(tree.path_ptr[-1]), 6, 6)),
         )
         lengths = tree.path_lengths()
@@ -147,9 +147,7 @@ class HybridSolver:
             Temperature of these updates (default: the solver's current ``tau``).
         """
         t0 = time.perf_counter()
-        order = np.ascontiguousarray(constraints, dtype=np.int32)
-        if order.size and (order.min() < 0 or order.max() >= self.num_constraints):
-            raise ValueError(f"constraint indices must lie in 0..{self.num_constraints - 1}")
+        order = self._checked(constraints).astype(np.int32)
         deadline = _U64_MAX
         if budget_s is not None:
             deadline = int(read_cycles()) + int(budget_s * cycles_per_second())
@@ -157,6 +155,16 @@ class HybridSolver:
         self._sweep(order, self.tau if tau is None else tau, min(deadline, _U64_MAX), counts)
         return StepReport(int(counts[Count.DONE]), int(counts[Count.CAPPED]),
                           int(counts[Count.REJECTED]), time.perf_counter() - t0)
+
+    def _checked(self, constraints: npt.ArrayLike, unique: bool = False) -> npt.NDArray[np.int64]:
+        """Constraint indices as int64, each in range (and distinct when ``unique``): the kernels
+        do not check bounds."""
+        cs = np.ascontiguousarray(constraints, dtype=np.int64).reshape(-1)
+        if cs.size and (cs.min() < 0 or cs.max() >= self.num_constraints):
+            raise ValueError(f"constraint indices must lie in 0..{self.num_constraints - 1}")
+        if unique and np.unique(cs).size != cs.size:
+            raise ValueError("a batch may not list a constraint twice")
+        return cs
 
     def batch_step(self, constraints: npt.ArrayLike, tau: float = 0.0,
                    damping: float | None = None) -> tuple[npt.NDArray[np.int64], FloatArray]:
@@ -166,7 +174,7 @@ class HybridSolver:
         the step is also applied (scaled by tau, capped at pi/8); 𝔅(H) is updated either way.
         ``damping`` overrides ``config.damping`` (0 with every constraint: the Gauss-Newton step).
         """
-        cs = np.ascontiguousarray(constraints, dtype=np.int64)
+        cs = self._checked(constraints, unique=True)
         nt = self.tree.num_tree_nodes
         x = np.zeros((nt, 6))
         nodes = np.zeros(nt, np.int64)
@@ -187,6 +195,7 @@ class HybridSolver:
 
         Returns ``(jac (d,6,6), r (6,), x (d,6))``: whitened Jacobian blocks, residual, step.
         """
+        c = int(self._checked([c])[0])
         d = int(self.tree.path_ptr[c + 1] - self.tree.path_ptr[c])
         wk = new_workspace(max(d, 1))
         kr, _na = _linearize.linearize(self.problem, c, self.state.rot, self.state.trans, wk,
@@ -311,7 +320,9 @@ def solve_hybrid(graph: PoseGraph, config: HybridConfig | None = None, *,
 
     t0 = time.perf_counter()
     polished = solve_exact(graph, result.rotations, result.translations,
-                           GaussNewtonConfig(method="lm", max_iterations=cfg.polish_iterations))
+                           GaussNewtonConfig(method="lm", max_iterations=cfg.polish_iterations),
+                           progress=None if progress is None else
+                           (lambda p: progress(p._replace(phase="polish"))))
     offset = result.times[-1]
     stats = dict(result.stats, polish_iterations=polished.iterations,
                  polish_status=polished.status.value)
