@@ -591,3 +591,7 @@ WORKLOADS["fuzz"] = _fuzz
 from .linear import run as _linear_run  # noqa: E402  (issue 11 item 4)
 
 WORKLOADS["linear"] = _linear_run
+
+from .paper import run as _paper_run  # noqa: E402  (issue 7 item 3)
+
+WORKLOADS["paper"] = _paper_run
