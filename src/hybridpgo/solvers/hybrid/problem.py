@@ -44,6 +44,10 @@ class Problem(NamedTuple):
     """(T,) how many constraint domains contain each tree node."""
     parent: npt.NDArray[np.int32]
     """(T,) parent of each tree node, -1 for the root."""
+    robust_kind: int = 0
+    """Robust kernel code (:data:`hybridpgo._cost.ROBUST_NAMES`; 0: none, DESIGN §10)."""
+    robust_scale: float = 1.0
+    """The robust kernel's delta."""
 
 
 class State(NamedTuple):
