@@ -580,3 +580,12 @@ def _toro(ctx: Context) -> Result:
 
 
 WORKLOADS["toro"] = _toro
+
+
+def _outliers(ctx: Context) -> Result:
+    from .outliers import run
+
+    return run(ctx)
+
+
+WORKLOADS["outliers"] = _outliers

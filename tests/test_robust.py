@@ -381,3 +381,49 @@ def test_robust_energy_is_twice_gtsam_error(name: str) -> None:
     assert s.max() > 10 * k * k  # the outliers are far out on the kernel
     assert e_rho < e_plain
     assert e_rho == pytest.approx(2.0 * fg.error(values), rel=1e-9)
+
+
+# --------------------------------------------------------------------------- CLI
+def _cli(capsys: pytest.CaptureFixture[str], *argv: object) -> tuple[int, str, str]:
+    from hybridpgo.cli import main
+
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_cli_robust_exact_reports_both_energies(capsys: pytest.CaptureFixture[str], data_dir,
+                                                tmp_path) -> None:
+    import json
+
+    from hybridpgo.io import read_graph
+
+    out = tmp_path / "o.g2o"
+    code, text, err = _cli(capsys, "optimize", data_dir / "tinyGrid3D.g2o", "-o", out,
+                           "--solver", "exact", "--robust", "cauchy:2", "--json", "-q")
+    assert code == 0, err
+    s = json.loads(text)
+    assert s["result"]["robust"] == "cauchy" and s["result"]["robust_scale"] == 2.0
+    g = read_graph(out)
+    e_rho, e_plain = robust_energy(g, robust="cauchy", scale=2.0)
+    assert s["energy_after"] == pytest.approx(e_rho, rel=1e-9)  # the file keeps 9 digits
+    assert s["result"]["plain_energy"] == pytest.approx(e_plain, rel=1e-9)
+    code, text, err = _cli(capsys, "optimize", data_dir / "tinyGrid3D.g2o", "-o", out,
+                           "--robust", "huber", "--polish", "--sweeps", "2", "-q")
+    assert code == 0, err
+    assert "robust kernel   huber, scale 1" in text and "plain energy" in text
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--robust", "tukey"], "kernel must be one of none, huber, cauchy, geman_mcclure"),
+    (["--robust", "huber:0"], "must be a number > 0, got '0'"),
+    (["--robust", "cauchy:x"], "must be a number > 0, got 'x'"),
+    (["--robust", "huber", "--solver", "toro"], "--robust: not an option of --solver toro"),
+])
+def test_cli_bad_robust_options(capsys: pytest.CaptureFixture[str], data_dir, tmp_path,
+                                argv: list[str], message: str) -> None:
+    out = tmp_path / "o.g2o"
+    code, _, err = _cli(capsys, "optimize", data_dir / "tinyGrid3D.g2o", "-o", out, *argv)
+    assert code == 2
+    assert message in err
+    assert not out.exists()
