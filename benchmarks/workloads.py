@@ -595,3 +595,12 @@ WORKLOADS["linear"] = _linear_run
 from .paper import run as _paper_run  # noqa: E402  (issue 7 item 3)
 
 WORKLOADS["paper"] = _paper_run
+
+
+def _outliers(ctx: Context) -> Result:
+    from .outliers import run
+
+    return run(ctx)
+
+
+WORKLOADS["outliers"] = _outliers

@@ -11,7 +11,9 @@ cannot drift apart:
 
 All kernels are allocation-free: the caller passes scratch buffers, so they can run in a
 per-constraint hot loop (STYLE.md §3).  A robust kernel (DESIGN §10) enters as a weight on the
-χ² (exact solver) or on the whitened rows (hybrid solver) computed here.
+χ² (exact solver) or on the whitened rows (hybrid solver), computed by :func:`robust_cost`
+only: ``E_rho = sum_c rho(s_c)`` with ``s_c`` the χ² of relative constraint c and the IRLS
+weight ``w_c = rho'(s_c)``.  Position (GPS) constraints keep the quadratic cost ``s_c``.
 """
 
 from __future__ import annotations
@@ -25,6 +27,71 @@ from .geometry._kernels import SMALL_ANGLE, edge_error_into, jr_inv_blocks, skew
 
 #: Scratch (3, 3) matrices :func:`residual_and_jr_inv` needs.
 SCRATCH = 12
+
+#: Robust kernels (DESIGN §10) by code: ``ROBUST_NAMES[code]`` is the name the configs accept.
+ROBUST_NAMES = ("none", "huber", "cauchy", "geman_mcclure")
+ROBUST_NONE = 0
+ROBUST_HUBER = 1
+ROBUST_CAUCHY = 2
+ROBUST_GEMAN_MCCLURE = 3
+
+
+def robust_kind(name: str, scale: float) -> int:
+    """The kernel code of a robust kernel's name; ValueError for a bad name or scale."""
+    if name not in ROBUST_NAMES:
+        raise ValueError(f"robust must be one of {', '.join(ROBUST_NAMES)}, got {name!r}")
+    if (isinstance(scale, bool) or not isinstance(scale, (int, float))
+            or not (math.isfinite(scale) and scale > 0)):
+        raise ValueError(f"robust_scale must be a finite number > 0, got {scale!r}")
+    return ROBUST_NAMES.index(name)
+
+
+@kernel
+def robust_cost(kind: int, delta: float, s: float) -> tuple[float, float]:
+    """``(rho(s), w = rho'(s))`` of robust kernel ``kind`` with scale ``delta`` (DESIGN §10).
+
+    ``s = e^T Omega e`` (no 1/2), g2o's conventions, ``d2 = delta^2``:
+
+    * none: ``rho = s``, ``w = 1``;
+    * Huber: ``rho = s`` for ``s <= d2``, else ``2 delta sqrt(s) - d2``;
+      ``w = min(1, delta / sqrt(s))``;
+    * Cauchy: ``rho = d2 log(1 + s/d2)``, ``w = d2 / (d2 + s)``;
+    * Geman-McClure: ``rho = d2 s / (d2 + s)``, ``w = (d2 / (d2 + s))^2``.
+
+    A non-finite s gives ``(s, 0)`` (the callers reject non-finite energies).
+    """
+    if kind == ROBUST_NONE:
+        return s, 1.0
+    if not math.isfinite(s):
+        return s, 0.0
+    d2 = delta * delta
+    if kind == ROBUST_HUBER:
+        if s <= d2:
+            return s, 1.0
+        r = math.sqrt(s)
+        return 2.0 * delta * r - d2, delta / r
+    if kind == ROBUST_CAUCHY:
+        return d2 * math.log1p(s / d2), d2 / (d2 + s)
+    q = d2 / (d2 + s)  # Geman-McClure
+    return s * q, q * q
+
+
+@kernel
+def robust_costs(kind: int, delta: float, s: np.ndarray, out_rho: np.ndarray,
+                 out_w: np.ndarray) -> None:
+    """:func:`robust_cost` of every entry of ``s`` (into ``out_rho``, ``out_w``)."""
+    for c in range(s.shape[0]):
+        out_rho[c], out_w[c] = robust_cost(kind, delta, s[c])
+
+
+@kernel
+def robust_whitening(kind: int, delta: float, r: np.ndarray, n: int) -> float:
+    """``sqrt(w)`` for a whitened residual ``r`` (n,): ``s = |r|^2 = e^T Omega e``, so the
+    whitening ``sqrt(w) L^T`` makes a step weigh the constraint as IRLS does (DESIGN §10)."""
+    s = 0.0
+    for i in range(n):
+        s += r[i] * r[i]
+    return math.sqrt(robust_cost(kind, delta, s)[1])
 
 
 @kernel
@@ -157,6 +224,34 @@ def total_energy(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarray,
     for c in range(gps_nodes.shape[0]):
         total += gps_chi2(trans[gps_nodes[c]], gps_pos[c], gps_info[c], e, oe)
     return total
+
+
+@kernel
+def robust_total_energy(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarray,
+                        edge_rot: np.ndarray, edge_trans: np.ndarray, edge_info: np.ndarray,
+                        gps_nodes: np.ndarray, gps_pos: np.ndarray, gps_info: np.ndarray,
+                        kind: int, delta: float) -> tuple[float, float]:
+    """``(E_rho, E)``: robust and plain energy at global poses (may be inf/nan), in order.
+
+    ``E_rho = sum_c rho(s_c)`` over relative constraints plus the plain χ² of GPS constraints.
+    """
+    ws = np.empty((3, 3, 3))
+    e = np.empty(6)
+    oe = np.empty(6)
+    total = 0.0
+    plain = 0.0
+    for c in range(edge_nodes.shape[0]):
+        a = edge_nodes[c, 0]
+        b = edge_nodes[c, 1]
+        s = relative_chi2(edge_rot[c], edge_trans[c], edge_info[c], rot[a], trans[a],
+                          rot[b], trans[b], e, oe, ws)
+        total += robust_cost(kind, delta, s)[0]
+        plain += s
+    for c in range(gps_nodes.shape[0]):
+        s = gps_chi2(trans[gps_nodes[c]], gps_pos[c], gps_info[c], e, oe)
+        total += s
+        plain += s
+    return total, plain
 
 
 @kernel

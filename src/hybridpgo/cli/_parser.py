@@ -100,6 +100,7 @@ _nonneg_int = _number(int, lambda v: v >= 0, "an integer >= 0")
 _pos_int = _number(int, lambda v: v >= 1, "an integer >= 1")
 _any_int = _number(int, lambda v: True, "an integer")
 _nonneg_float = _number(float, lambda v: v >= 0, "a number >= 0")
+_pos_float = _number(float, lambda v: v > 0, "a number > 0")
 _decay = _number(float, lambda v: 0 < v <= 1, "a number in (0, 1]")
 #: --sweeps and --tau0 bounds: the library's (solvers.config.MAX_SWEEPS, MAX_TAU), repeated
 #: here to keep the parser light; tests/test_cli.py checks that they agree.
@@ -121,6 +122,23 @@ OUTPUT_HELP = ("Outputs are checked before any work and written atomically (temp
 
 _probability = _number(float, lambda v: 0 <= v <= 1, "a number in [0, 1]")
 _at_least_2 = _number(int, lambda v: v >= 2, "an integer >= 2")
+
+
+def _robust(text: str) -> tuple[str, float | None]:
+    """``NAME[:SCALE]`` of ``--robust`` -> (kernel name, delta or None for the default)."""
+    from ..solvers.config import ROBUST_NAMES
+
+    name, sep, scale = text.partition(":")
+    if name not in ROBUST_NAMES:
+        raise argparse.ArgumentTypeError(
+            f"kernel must be one of {', '.join(ROBUST_NAMES)} (optionally NAME:SCALE), "
+            f"got {name!r}")
+    if not sep:
+        return name, None
+    return name, float(_pos_float(scale))
+
+
+_robust.__name__ = "NAME[:SCALE]"
 
 
 # --------------------------------------------------------------------------- parser
@@ -261,6 +279,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-iterations", type=_nonneg_int, metavar="N",
                    help=f"iteration limit of the exact solver (default {gn.max_iterations}) or of "
                         f"the polish (default {hy.polish_iterations})")
+    p.add_argument("--robust", type=_robust, metavar="NAME[:SCALE]",
+                   help="robust kernel on the relative constraints (hybrid, its polish and "
+                        "exact): none, huber, cauchy or geman_mcclure, with the scale delta in "
+                        "whitened units, e.g. cauchy:2 (default none; scale "
+                        f"{hy.robust_scale:g}); the energies shown are then the robust ones")
     p.add_argument("--plot", metavar="PREFIX",
                    help="also write PREFIX_before.png, PREFIX_after.png and PREFIX_energy.png "
                         "(needs matplotlib: pip install hybridpgo[plot])")

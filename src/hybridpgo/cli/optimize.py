@@ -60,6 +60,8 @@ def _check_options(job: Job, graph: PoseGraph) -> str:
             given.append("--polish")
         if job.solver == "toro" and "max_iterations" in opts:
             given.append("--max-iterations (toro runs --sweeps iterations)")
+        if job.solver == "toro" and "robust" in opts:
+            given.append("--robust")
         if given:
             where = ("only for the hybrid solver (--solver hybrid)" if job.solver == "exact"
                      else "not an option of --solver toro")
@@ -277,10 +279,16 @@ def print_summary(s: dict[str, Any]) -> None:
     if "energy_after_sweeps" in s:
         rows.append(("after sweeps", fmt_energy(s["energy_after_sweeps"], nc) + ", before the "
                                      "polish"))
+    if "robust" in r:
+        rows.append(("robust kernel", f"{r['robust']}, scale {r['robust_scale']:g}: the "
+                                      "energies are E_rho = sum rho(chi2)"))
     rows += [
         ("energy after", fmt_energy(s["energy_after"], nc)),
-        ("time", ", ".join(times)),
     ]
+    if "plain_energy" in r:
+        rows.append(("plain energy", fmt_energy(r["plain_energy"], nc) + " after (least "
+                                     "squares, no kernel)"))
+    rows.append(("time", ", ".join(times)))
     if "us_per_constraint_mean" in r:
         line = (f"{r['us_per_constraint_mean']:.3g} us mean, "
                 f"{r.get('us_per_constraint_max_steady', float('nan')):.4g} us steady max, "
@@ -308,6 +316,10 @@ def options_from_args(args: argparse.Namespace) -> dict[str, Any]:
         opts["energy_tolerance"] = args.tolerance
     if args.polish:
         opts["polish"] = True
+    if args.robust is not None:
+        opts["robust"], scale = args.robust
+        if scale is not None:
+            opts["robust_scale"] = scale
     return opts
 
 

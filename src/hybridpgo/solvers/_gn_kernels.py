@@ -6,10 +6,11 @@ Global parametrization, right perturbation ``X_i <- X_i Exp(delta_i)``, tangent 
   ``de/d delta_a = -Jr^-1(e) Ad(X_b^-1 X_a)``;
 * position constraint: ``e = p_n - g``, ``de/d delta_n = [R_n | 0]``.
 
-The normal equations ``H = J^T Omega J``, ``g = J^T Omega e`` are written straight into the value
-array of a CSC matrix whose pattern was computed once (the "analyze" step in
-:mod:`hybridpgo.solvers.gauss_newton`).  Each 6x6 block ``(row i, col j)`` of H is addressed by a
-*slot*: entry ``(p, q)`` of the block lives at ``data[base + q * stride + p]``.
+The normal equations ``H = J^T Omega J``, ``g = J^T Omega e`` (with a robust kernel
+``H = sum_c w_c J_c^T Omega_c J_c``, ``g = sum_c w_c J_c^T Omega_c e_c``, DESIGN §10) are
+written straight into the value array of a CSC matrix whose pattern was computed once (the
+"analyze" step in :mod:`hybridpgo.solvers.gauss_newton`).  Each 6x6 block ``(row i, col j)`` of
+H is addressed by a *slot*: entry ``(p, q)`` of the block lives at ``data[base + q * stride + p]``.
 
 The error, ``Jr^-1``, χ², energy and retraction come from the cost layer
 (:mod:`hybridpgo._cost`), shared with the hybrid solver and :mod:`hybridpgo.energy`; they are
@@ -23,8 +24,8 @@ import math
 
 import numpy as np
 
+from .._cost import ROBUST_NONE, chi2, gps_chi2, residual_and_jr_inv, retract_into, robust_cost
 from .._cost import SCRATCH as _SCRATCH
-from .._cost import chi2, gps_chi2, residual_and_jr_inv, retract_into
 from .._numba import kernel
 from ..geometry._kernels import mm3, skew_into
 
@@ -127,15 +128,20 @@ def assemble_normal_equations(
     gps_nodes: np.ndarray, gps_pos: np.ndarray, gps_info: np.ndarray,
     gps_base: np.ndarray, gps_stride: np.ndarray,
     var_of_node: np.ndarray, data: np.ndarray, grad: np.ndarray,
-) -> tuple[int, float]:
+    robust_kind: int, robust_delta: float,
+) -> tuple[int, float, float]:
     """Fill ``data`` (CSC values of H) and ``grad`` (g = J^T Omega e) in one pass; return energy.
+
+    With a robust kernel (``robust_kind``, ``robust_delta``: :func:`hybridpgo._cost.robust_cost`)
+    a relative constraint's terms are multiplied by its weight ``w = rho'(s)``.
 
     ``edge_base``/``edge_stride`` (M, 4): slots of the blocks (a, a), (b, b), (a, b), (b, a)
     (row, column), -1 where a node is fixed.  ``gps_base``/``gps_stride`` (G,): slot of (n, n).
     ``var_of_node`` (N,): variable index of each node, -1 when fixed.
 
-    Returns ``(status, energy)``: status -1 when every quantity is finite, else the index of
-    the first offending constraint (relative edges 0..M-1, then M + GPS index).
+    Returns ``(status, robust energy, plain energy)``: status -1 when every quantity is
+    finite, else the index of the first offending constraint (relative edges 0..M-1, then
+    M + GPS index).
     """
     data[:] = 0.0
     grad[:] = 0.0
@@ -148,6 +154,7 @@ def assemble_normal_equations(
     wa = np.empty((6, 6))
     wb = np.empty((6, 6))
     energy = 0.0
+    plain = 0.0
     for c in range(m):
         a = edge_nodes[c, 0]
         b = edge_nodes[c, 1]
@@ -161,10 +168,19 @@ def assemble_normal_equations(
                 if not (math.isfinite(ja[i, j]) and math.isfinite(jb[i, j])):
                     ok = False
         if not ok:
-            return c, energy
-        energy += ec
+            return c, energy, plain
+        plain += ec
         _matmul6(om, ja, wa)
         _matmul6(om, jb, wb)
+        if robust_kind != ROBUST_NONE:  # IRLS: H += w J^T Omega J, g += w J^T Omega e
+            rho, wc = robust_cost(robust_kind, robust_delta, ec)
+            ec = rho
+            for i in range(6):
+                oe[i] *= wc
+                for j in range(6):
+                    wa[i, j] *= wc
+                    wb[i, j] *= wc
+        energy += ec
         va = var_of_node[a]
         vb = var_of_node[b]
         if va >= 0:
@@ -182,8 +198,9 @@ def assemble_normal_equations(
         r = rot[n]
         ec = gps_chi2(trans[n], gps_pos[c], om, e, oe)
         if not math.isfinite(ec):
-            return m + c, energy
+            return m + c, energy, plain
         energy += ec
+        plain += ec
         vn = var_of_node[n]
         if vn < 0:
             continue
@@ -199,7 +216,7 @@ def assemble_normal_equations(
                 data[base + q * stride + p] += s
         for p in range(3):
             grad[6 * vn + p] += r[0, p] * oe[0] + r[1, p] * oe[1] + r[2, p] * oe[2]
-    return -1, energy
+    return -1, energy, plain
 
 
 @kernel

@@ -129,10 +129,14 @@ def _check_pivots(pivots: FloatArray, diagonal: FloatArray) -> None:
             "determined by its constraints; fix a pose, or use method='lm'")
 
 
+class NotPositiveDefinite(SolverError):
+    """The factorization met a non-positive pivot."""
+
+
 def _not_positive_definite(detail: str) -> SolverError:
-    return SolverError(f"the normal equations are not positive definite ({detail}): the gauge "
-                       "is not fixed, or some pose is not determined by its constraints; fix a "
-                       "pose, or use method='lm'")
+    return NotPositiveDefinite(
+        f"the normal equations are not positive definite ({detail}): the gauge is not fixed, "
+        "or some pose is not determined by its constraints; fix a pose, or use method='lm'")
 
 
 def _unit_batches(dim: int, block_index: Int64Array) -> Iterator[tuple[int, int]]:

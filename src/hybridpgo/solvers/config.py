@@ -11,12 +11,17 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal, NamedTuple, get_args
 
+from .._cost import ROBUST_NAMES as ROBUST_NAMES
+from .._cost import robust_kind
+
 if TYPE_CHECKING:
     from ..graph import PoseGraph
 
 StepName = Literal["woodbury", "givens"]
 TreeName = Literal["bfs", "mst"]
 InitName = Literal["tree", "file", "chordal"]
+#: Robust kernels (DESIGN §10); the same names as ``_cost.ROBUST_NAMES`` (tested).
+RobustName = Literal["none", "huber", "cauchy", "geman_mcclure"]
 #: The names a user may give for each choice (derived once from the Literal types).
 STEP_NAMES: tuple[str, ...] = get_args(StepName)
 TREE_NAMES: tuple[str, ...] = get_args(TreeName)
@@ -44,6 +49,7 @@ ProgressCallback = Callable[[Progress], None]
 #: Sparse linear solvers of the exact solver (``"auto"``: CHOLMOD via cvxopt if importable, else
 #: SuperLU; see :mod:`hybridpgo.solvers._linear`).
 LINEAR_SOLVERS = ("auto", "cholmod", "splu")
+
 
 
 def _check_int(name: str, value: object, minimum: int) -> None:
@@ -100,6 +106,11 @@ class GaussNewtonConfig:
     factorization per iteration), ``"splu"`` (SciPy's SuperLU in symmetric mode with diagonal
     pivots: an LU, 2-5x slower), or ``"auto"`` (CHOLMOD when cvxopt is importable, else
     SuperLU)."""
+    robust: RobustName = "none"
+    """Robust kernel (see ``HybridConfig.robust``); the LM acceptance test uses E_rho."""
+    robust_scale: float = 1.0
+    """The kernel's delta (> 0) in whitened units (sqrt of χ²): Huber is quadratic for
+    ``s <= delta^2``.  GTSAM's ``mEstimator.*(k)`` with ``k = delta`` is the same kernel."""
 
     def __post_init__(self) -> None:
         if self.method not in ("gn", "lm"):
@@ -114,6 +125,7 @@ class GaussNewtonConfig:
         if self.linear_solver not in LINEAR_SOLVERS:
             raise ValueError(f"linear_solver must be one of {', '.join(LINEAR_SOLVERS)}, "
                              f"got {self.linear_solver!r}")
+        robust_kind(self.robust, self.robust_scale)
 
 
 #: Most sweeps one run may ask for (a sweep visits every constraint once; the paper runs 10).
@@ -156,6 +168,15 @@ class HybridConfig:
     """Finish with the exact Levenberg-Marquardt solver."""
     polish_iterations: int = 100
     """Iteration limit of the polish."""
+    robust: RobustName = "none"
+    """Robust kernel on every relative constraint's χ² ``s = e^T Omega e`` (DESIGN §10):
+    ``"none"`` (least squares), ``"huber"``, ``"cauchy"`` or ``"geman_mcclure"`` (g2o's
+    conventions).  The solver minimizes ``E_rho = sum_c rho(s_c)`` (GPS constraints stay
+    quadratic) by iterative reweighting: each step whitens with ``sqrt(w_c) L^T``,
+    ``w_c = rho'(s_c)`` at the current poses.  ``energy_history`` is then E_rho and
+    ``stats["plain_energy_history"]`` the plain E.  The polish uses the same kernel."""
+    robust_scale: float = 1.0
+    """The kernel's delta (> 0) in whitened units (sqrt of χ²), as g2o's (default 1)."""
 
     def __post_init__(self) -> None:
         _check_int("sweeps", self.sweeps, 0)
@@ -180,6 +201,7 @@ class HybridConfig:
         if not isinstance(self.polish, bool):
             raise ValueError(f"polish must be True or False, got {self.polish!r}")
         _check_int("polish_iterations", self.polish_iterations, 0)
+        robust_kind(self.robust, self.robust_scale)
 
 
 def default_init(graph: PoseGraph, method: str) -> InitName:

@@ -34,8 +34,8 @@ from .. import _cost
 from ..errors import GraphError, SolverError
 from ..graph import FloatArray, PoseGraph
 from . import _gn_kernels as _k
+from ._linear import NotPositiveDefinite, _fill_reducing_order, _make_factorizer
 from ._linear import _cholmod_available as _cholmod_available  # re-exported for the tests
-from ._linear import _fill_reducing_order, _make_factorizer
 from .config import GaussNewtonConfig, Progress, ProgressCallback
 from .result import SolveResult, Status
 
@@ -236,21 +236,30 @@ def _is_planar(graph: PoseGraph, rot: FloatArray, trans: FloatArray) -> bool:
 
 # --------------------------------------------------------------------------- linearize
 def _assemble(graph: PoseGraph, pat: _Pattern, rot: FloatArray, trans: FloatArray,
-              data: FloatArray, grad: FloatArray) -> float:
-    status, e = _k.assemble_normal_equations(
+              data: FloatArray, grad: FloatArray, robust: tuple[int, float] = (0, 1.0)
+              ) -> tuple[float, float]:
+    """H and g into ``data``, ``grad``; returns ``(E_rho, E)`` (equal without a kernel)."""
+    status, e, plain = _k.assemble_normal_equations(
         rot, trans, graph.edge_nodes, graph.edge_rotations, graph.edge_translations,
         graph.edge_information, pat.edge_base, pat.edge_stride,
         graph.gps_nodes, graph.gps_positions, graph.gps_information, pat.gps_base,
-        pat.gps_stride, pat.var_of_node, data, grad,
+        pat.gps_stride, pat.var_of_node, data, grad, robust[0], robust[1],
     )
     if status >= 0:
         where = _describe_constraint(graph, status)
         raise SolverError(f"the linearization is not finite at {where}")
-    return float(e)
+    return float(e), float(plain)
 
 
-def _energy(graph: PoseGraph, rot: FloatArray, trans: FloatArray) -> float:
-    """E at trial poses (may be inf/nan: the callers reject such steps)."""
+def _energy(graph: PoseGraph, rot: FloatArray, trans: FloatArray,
+            robust: tuple[int, float] = (0, 1.0)) -> float:
+    """E (E_rho with a robust kernel) at trial poses (may be inf/nan: the callers reject such
+    steps)."""
+    if robust[0] != _cost.ROBUST_NONE:
+        return float(_cost.robust_total_energy(
+            rot, trans, graph.edge_nodes, graph.edge_rotations, graph.edge_translations,
+            graph.edge_information, graph.gps_nodes, graph.gps_positions,
+            graph.gps_information, robust[0], robust[1])[0])
     return float(_cost.total_energy(rot, trans, graph.edge_nodes, graph.edge_rotations,
                                  graph.edge_translations, graph.edge_information,
                                  graph.gps_nodes, graph.gps_positions, graph.gps_information))
@@ -272,18 +281,19 @@ class NormalEquations:
     """
 
     hessian: sp.csc_matrix
-    """(6F, 6F) H = J^T Omega J."""
+    """(6F, 6F) H = J^T Omega J (robust: sum_c w_c J_c^T Omega_c J_c)."""
     gradient: FloatArray
-    """(6F,) g = J^T Omega e (half the gradient of E, which has no 1/2)."""
+    """(6F,) g = J^T Omega e (half the gradient of E, which has no 1/2; robust: of E_rho)."""
     free_nodes: npt.NDArray[np.int64]
     """(F,) dense indices of the nodes that are variables."""
     energy: float
-    """E at the linearization point."""
+    """E at the linearization point (robust: E_rho)."""
 
 
 def normal_equations(graph: PoseGraph, rotations: FloatArray | None = None,
                      translations: FloatArray | None = None,
-                     fixed: npt.ArrayLike | None = None) -> NormalEquations:
+                     fixed: npt.ArrayLike | None = None, *, robust: str = "none",
+                     robust_scale: float = 1.0) -> NormalEquations:
     """Assemble the Gauss-Newton normal equations (free nodes in natural order).
 
     Parameters
@@ -293,13 +303,17 @@ def normal_equations(graph: PoseGraph, rotations: FloatArray | None = None,
         Linearization point (default: the graph's estimate).
     fixed : array_like of int, optional
         Dense indices held constant (default: :func:`default_fixed_nodes`).
+    robust, robust_scale : str, float
+        Robust kernel and its delta (DESIGN §10; as in :class:`GaussNewtonConfig`): each
+        relative constraint's terms are weighted by ``w_c = rho'(s_c)`` (IRLS).
     """
+    kind = _cost.robust_kind(robust, robust_scale)
     rot, trans = _initial_poses(graph, rotations, translations)
     fx = _fixed_array(graph, fixed)
     pat = _analyze(graph, fx, reorder=False)
     data = np.empty(pat.nnz)
     grad = np.empty(pat.dim)
-    e = _assemble(graph, pat, rot, trans, data, grad)
+    e, _plain = _assemble(graph, pat, rot, trans, data, grad, (kind, float(robust_scale)))
     h = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.dim, pat.dim))
     return NormalEquations(h, grad, np.flatnonzero(pat.var_of_node >= 0), e)
 
@@ -381,6 +395,7 @@ def _ensure_compiled() -> float:
     out_t = np.empty((2, 3))
     _k.retract(rot, trans, grad, pat.var_of_node, 1.0, out_r, out_t)
     _energy(g, out_r, out_t)
+    _energy(g, out_r, out_t, (_cost.ROBUST_HUBER, 1.0))
     _compiled = True
     return time.perf_counter() - t0
 
@@ -403,6 +418,10 @@ class _Run:
     new_trans: FloatArray
     planar: bool
     seconds: dict[str, float]
+    robust: tuple[int, float]
+    """(kernel code, delta) of the robust kernel (DESIGN §10)."""
+    plain: float = 0.0
+    """The plain E at the last assembly."""
 
     @classmethod
     def analyze(cls, graph: PoseGraph, rotations: FloatArray | None,
@@ -417,20 +436,26 @@ class _Run:
         return cls(graph, cfg, pat, system, _make_factorizer(system, cfg.linear_solver), rot,
                    trans, np.empty(pat.nnz), np.empty(pat.dim), np.empty_like(rot),
                    np.empty_like(trans), planar,
-                   {"assemble": 0.0, "factorize": 0.0, "energy": 0.0})
+                   {"assemble": 0.0, "factorize": 0.0, "energy": 0.0},
+                   (_cost.robust_kind(cfg.robust, cfg.robust_scale), float(cfg.robust_scale)))
 
     def assemble(self) -> float:
-        """H and g at the current poses; returns E there."""
+        """H and g at the current poses; returns E (E_rho) there, the plain E in ``plain``."""
         t0 = time.perf_counter()
-        e = _assemble(self.graph, self.pat, self.rot, self.trans, self.data, self.grad)
+        e, self.plain = _assemble(self.graph, self.pat, self.rot, self.trans, self.data,
+                                  self.grad, self.robust)
         self.seconds["assemble"] += time.perf_counter() - t0
         return e
 
-    def solve(self, mu: float, iteration: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+    def solve(self, mu: float,
+              iteration: int) -> tuple[FloatArray, FloatArray, FloatArray] | None:
         """The step: ``(H + mu D) delta = -g`` (LM) or ``H delta = -g`` (GN).
 
         Returns ``(h_values, step_sys, step)``: the undamped system values, the step over the
-        system's unknowns and over all of them.
+        system's unknowns and over all of them.  LM returns None when the damped system is
+        numerically not positive definite (H is only PSD: a robust kernel can weight every
+        constraint of a pose to ~0, and a small ``mu D`` then drowns in rounding); the caller
+        raises ``mu`` as for a rejected step.
         """
         t0 = time.perf_counter()
         system = self.system
@@ -440,7 +465,11 @@ class _Run:
             diag = h_values[system.diag_index]
             damped = h_values.copy()
             damped[system.diag_index] += mu * np.maximum(diag, _DIAG_FLOOR * diag.max())
-            step_sys = self.solver.solve(damped, -g_sys)
+            try:
+                step_sys = self.solver.solve(damped, -g_sys)
+            except NotPositiveDefinite:
+                self.seconds["factorize"] += time.perf_counter() - t0
+                return None
         else:
             step_sys = self.solver.solve(h_values, -g_sys, check=True)
         step = system.expand(step_sys, self.pat.dim)
@@ -460,7 +489,7 @@ class _Run:
         scale = 1.0
         _k.retract(self.rot, self.trans, step, self.pat.var_of_node, scale, self.new_rot,
                    self.new_trans)
-        e_new = _energy(self.graph, self.new_rot, self.new_trans)
+        e_new = _energy(self.graph, self.new_rot, self.new_trans, self.robust)
         tries = 0
         if self.cfg.method == "gn" and self.cfg.step_guard:
             while not (e_new <= e_cur) and tries < self.cfg.max_step_halvings:
@@ -468,7 +497,7 @@ class _Run:
                 tries += 1
                 _k.retract(self.rot, self.trans, step, self.pat.var_of_node, scale,
                            self.new_rot, self.new_trans)
-                e_new = _energy(self.graph, self.new_rot, self.new_trans)
+                e_new = _energy(self.graph, self.new_rot, self.new_trans, self.robust)
         self.seconds["energy"] += time.perf_counter() - t0
         return e_new, scale, tries
 
@@ -526,7 +555,8 @@ def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
     -------
     SolveResult
         ``method`` is ``"exact"``; ``stats["algorithm"]`` is ``"lm"`` or ``"gn"``.
-        ``energy_history[k]`` is E after iteration k (unchanged after a rejected LM trial).
+        ``energy_history[k]`` is E after iteration k (unchanged after a rejected LM trial);
+        with a robust kernel it is E_rho, and ``stats["plain_energy_history"]`` the plain E.
         ``stats``: accepted and rejected steps, step halvings, linear solver, final damping,
         nnz of H.
 
@@ -546,6 +576,7 @@ def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
 
     e_cur = run.assemble()
     history = [e_cur]
+    plain_history = [run.plain]
     times = [time.perf_counter() - t_start]
     if progress is not None:
         progress(Progress("exact", 0, cfg.max_iterations, e_cur))
@@ -558,7 +589,17 @@ def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
         status = Status.CONVERGED
     while status is Status.MAX_ITERATIONS and iteration < cfg.max_iterations:
         iteration += 1
-        h_values, step_sys, step = run.solve(mu, iteration)
+        solved = run.solve(mu, iteration)
+        if solved is None:  # LM: H + mu D not numerically SPD -> more damping, as a rejection
+            rejected += 1
+            mu, nu = mu * nu, nu * 2.0
+            if mu > _MAX_DAMPING:
+                status = Status.STALLED
+            history.append(e_cur)
+            plain_history.append(run.plain)
+            times.append(time.perf_counter() - t_start)
+            continue
+        h_values, step_sys, step = solved
         step_small = float(np.max(np.abs(step))) < cfg.step_tolerance * (
             1.0 + float(np.max(np.abs(run.trans))))
         e_new, scale, tries = run.trial(step, e_cur)
@@ -584,11 +625,17 @@ def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
             elif cfg.method == "gn" or mu > _MAX_DAMPING:
                 status = Status.STALLED
         history.append(e_cur)
+        plain_history.append(run.plain)
         times.append(time.perf_counter() - t_start)
         if progress is not None:
             progress(Progress("exact", iteration, cfg.max_iterations, e_cur))
 
     t_total = time.perf_counter() - t_start
+    robust_stats: dict[str, Any] = {}
+    if run.robust[0] != _cost.ROBUST_NONE:
+        robust_stats = {"robust": cfg.robust, "robust_scale": cfg.robust_scale,
+                        "plain_energy": plain_history[-1],
+                        "plain_energy_history": plain_history}
     return SolveResult(
         rotations=run.rot, translations=run.trans, status=status, iterations=iteration,
         energy_history=np.asarray(history), times=np.asarray(times), method="exact",
@@ -599,5 +646,6 @@ def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
                "step_halvings": halvings, "linear_solver": run.solver.name,
                "final_damping": mu if cfg.method == "lm" else 0.0,
                "num_variables": run.system.dim,
-               "hessian_nnz": int(run.system.indices.shape[0]), "planar": run.planar},
+               "hessian_nnz": int(run.system.indices.shape[0]), "planar": run.planar,
+               **robust_stats},
     )

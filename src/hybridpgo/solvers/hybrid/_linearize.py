@@ -8,14 +8,24 @@ whitened Jacobian block for domain node i is
 
 Both come from products of local transforms along the path only (no global pose is needed),
 so one linearization costs O(d).  The error, ``Jr^-1`` and the whitening come from the cost
-layer (:mod:`hybridpgo._cost`).
+layer (:mod:`hybridpgo._cost`).  With a robust kernel a relative constraint is whitened with
+``sqrt(w) L^T`` in place of ``L^T``, ``w = rho'(s)`` (DESIGN §10), so its ``J_c``, ``r_c`` and its
+contribution to 𝔅(H) all carry the weight.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..._cost import gps_residual, jr_inv_matrix, residual_and_jr_inv, whiten_residual, whiten_rows
+from ..._cost import (
+    ROBUST_NONE,
+    gps_residual,
+    jr_inv_matrix,
+    residual_and_jr_inv,
+    robust_whitening,
+    whiten_residual,
+    whiten_rows,
+)
 from ..._numba import kernel
 from .problem import Problem, Workspace, domain, is_gps
 
@@ -172,6 +182,12 @@ def linearize(prob: Problem, c: int, rot: np.ndarray, trans: np.ndarray, wk: Wor
         lt = prob.edge_lt[c]
         whiten_residual(lt, wk.e, 6, wk.r)
         whiten_rows(lt, wk.jri, 6, wk.a)
+        if prob.robust_kind != ROBUST_NONE:  # whiten with sqrt(w) L^T (DESIGN §10)
+            sw = robust_whitening(prob.robust_kind, prob.robust_scale, wk.r, 6)
+            for p in range(6):
+                wk.r[p] *= sw
+                for j in range(6):
+                    wk.a[p, j] *= sw
         _relative_blocks(prob, c, rb, tb, wk, jac)
         return 6, na
     g = c - prob.num_edges

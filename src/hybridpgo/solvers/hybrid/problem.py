@@ -50,6 +50,10 @@ class Problem(NamedTuple):
     a GPS link to the earth), -1 for the root (interpolated solving merges these links)."""
     link_forward: npt.NDArray[np.bool_]
     """(T,) True when the linking edge is stored as (parent, child)."""
+    robust_kind: int = 0
+    """Robust kernel code (:data:`hybridpgo._cost.ROBUST_NAMES`; 0: none, DESIGN §10)."""
+    robust_scale: float = 1.0
+    """The robust kernel's delta."""
 
 
 class State(NamedTuple):

@@ -16,8 +16,9 @@ from typing import Any, NamedTuple
 import numpy as np
 import numpy.typing as npt
 
+from ..._cost import robust_kind
 from ..._numba import cycles_per_second, read_cycles
-from ...energy import energy
+from ...energy import energy, robust_energy
 from ...errors import SolverError
 from ...graph import FloatArray, PoseGraph
 from ...tree import LINK_EDGE, LINK_GPS, PoseTree, build_tree, global_poses, initial_locals
@@ -90,6 +91,7 @@ class HybridSolver:
             graph.gps_positions, _whitening(graph.gps_information, 3),
             np.bincount(tree.path_node, minlength=tree.num_tree_nodes).astype(np.int64),
             tree.parent, _link_constraints(tree, graph.num_edges), tree.link_forward,
+            robust_kind(cfg.robust, cfg.robust_scale), float(cfg.robust_scale),
         )  # fmt: skip
         self.state = State(  # copies: the sweeps change them in place
             np.array(rot0, np.float64, order="C"), np.array(trans0, np.float64, order="C"),
@@ -120,8 +122,16 @@ class HybridSolver:
         return global_poses(self.tree, self.state.rot, self.state.trans)
 
     def energy(self) -> float:
-        """E of the current estimate."""
-        return energy(self.graph, *self.poses())
+        """E of the current estimate (E_rho with a robust kernel, DESIGN §10)."""
+        return self.energies()[0]
+
+    def energies(self) -> tuple[float, float]:
+        """``(E_rho, E)`` of the current estimate (equal without a robust kernel)."""
+        if self.problem.robust_kind == 0:
+            e = energy(self.graph, *self.poses())
+            return e, e
+        return robust_energy(self.graph, *self.poses(), self.config.robust,
+                             self.config.robust_scale)
 
     # ----------------------------------------------------------------- updates
     def _sweep(self, order: npt.NDArray[Any], tau: float, deadline: int,
@@ -224,6 +234,7 @@ class HybridSolver:
         sum_cycles = 0.0
         p999 = 0.0
         history = [self.energy()]
+        plain = [energy(self.graph, *self.poses())] if self.problem.robust_kind else []
         times = [0.0]
         if progress:
             progress(Progress("sweeps", 0, n_sweeps, history[0], self.tau))
@@ -244,8 +255,9 @@ class HybridSolver:
             np.minimum(batch_steady, self._batch_cycles, out=batch_steady)
             if nc:
                 p999 = max(p999, float(np.quantile(self._cycles, 0.999)))
-            e = self.energy()
+            e, e_plain = self.energies()
             history.append(e)
+            plain += [e_plain] if plain else []
             times.append(solve_time)
             self.tau *= cfg.tau_decay
             if progress:
@@ -280,6 +292,9 @@ class HybridSolver:
             "path_length_mean": float(tree.path_lengths().mean()) if nc else 0.0,
             "step": cfg.step,
         }
+        if plain:
+            stats.update(robust=cfg.robust, robust_scale=cfg.robust_scale,
+                         plain_energy=plain[-1], plain_energy_history=plain)
         return SolveResult(
             rotations=rot, translations=trans, status=status, iterations=done,
             energy_history=np.asarray(history), times=np.asarray(times), method="hybrid",
@@ -320,12 +335,16 @@ def solve_hybrid(graph: PoseGraph, config: HybridConfig | None = None, *,
 
     t0 = time.perf_counter()
     polished = solve_exact(graph, result.rotations, result.translations,
-                           GaussNewtonConfig(method="lm", max_iterations=cfg.polish_iterations),
+                           GaussNewtonConfig(method="lm", max_iterations=cfg.polish_iterations,
+                                             robust=cfg.robust, robust_scale=cfg.robust_scale),
                            progress=None if progress is None else
                            (lambda p: progress(p._replace(phase="polish"))))
     offset = result.times[-1]
     stats = dict(result.stats, polish_iterations=polished.iterations,
                  polish_status=polished.status.value)
+    if "plain_energy_history" in stats:
+        stats.update(plain_energy=polished.stats["plain_energy"], plain_energy_history=(
+            stats["plain_energy_history"] + polished.stats["plain_energy_history"][1:]))
     return dataclasses.replace(
         result, rotations=polished.rotations, translations=polished.translations,
         status=polished.status, method="hybrid+polish",
