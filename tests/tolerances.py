@@ -22,3 +22,10 @@ CENTRAL_DIFF_STEP = 1e-6
 
 #: Sparse vs dense Gauss-Newton solution (STYLE.md §7).
 SPARSE_VS_DENSE_GN = 1e-9
+
+#: Energy after OnlineSolver.refine (LM from the online estimate) vs the prefix optimum (LM from
+#: the odometry chain), relative: both stop at LM's energy tolerance 1e-10 on the same optimum.
+ONLINE_REFINED = 1e-6
+
+#: iSAM2 (relinearization threshold 0.1, its default) vs the batch optimum, relative energy.
+ISAM2_VS_OPTIMUM = 1e-3

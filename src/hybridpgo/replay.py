@@ -318,7 +318,8 @@ def _gtsam_pose(graph: PoseGraph, rot: FloatArray, trans: FloatArray) -> Any:
     return gtsam.Pose3(gtsam.Rot3(rot), trans)
 
 
-def replay_isam2(stream: Stream, *, checkpoints: Sequence[int] = (), relinearize_skip: int = 1,
+def replay_isam2(stream: Stream, *, checkpoints: Sequence[int] = (), extra_frames: int = 0,
+                 relinearize_skip: int = 1,
                  progress: Callable[[int, float], None] | None = None) -> ReplayResult:
     """The same stream through GTSAM's ISAM2, one ``update`` per frame.
 
@@ -326,7 +327,9 @@ def replay_isam2(stream: Stream, *, checkpoints: Sequence[int] = (), relinearize
     (rotation, translation)), so ``2 * error`` is our energy.  The first pose gets a tight prior
     when the graph has no GPS (the gauge our solver also fixes); with GPS it gets a weak prior
     (1e3 m, 1e3 rad), because GTSAM needs a gauge before the readings define one.  A frame's
-    latency is ``update`` plus ``calculateEstimate`` of the frame's pose.
+    latency is ``update`` plus ``calculateEstimate`` of the frame's pose.  ``extra_frames``:
+    after the stream, updates without new factors (each one more Gauss-Newton iteration on the
+    variables iSAM2 relinearizes), with the energy after each.
     """
     gtsam = _import_gtsam()
     g = stream.graph
@@ -401,20 +404,35 @@ def replay_isam2(stream: Stream, *, checkpoints: Sequence[int] = (), relinearize
         else:
             guess[p] = (est.rotation().matrix(), np.asarray(est.translation()))
         if k + 1 in marks or k + 1 == nf:
-            vals = isam.calculateEstimate()
-            keep = stream.order[: k + 1]
-            for q in keep.tolist():
-                if planar:
-                    ps = vals.atPose2(q)
-                    th = ps.theta()
-                    est_rot[q] = _rot_z(th)
-                    est_trans[q] = (ps.x(), ps.y(), 0.0)
-                else:
-                    ps = vals.atPose3(q)
-                    est_rot[q] = ps.rotation().matrix()
-                    est_trans[q] = ps.translation()
-            pg = stream.prefix(k + 1, est_rot[keep], est_trans[keep])
-            energies[k + 1] = energy(pg)
+            energies[k + 1] = _isam2_energy(stream, isam, k + 1, est_rot, est_trans)
             if progress:
                 progress(k + 1, energies[k + 1])
-    return ReplayResult("isam2", lat, cpu, energies, info={"relinearize_skip": relinearize_skip})
+    extra_e: list[float] = []
+    extra_l: list[float] = []
+    last = int(stream.order[nf - 1])
+    for _ in range(extra_frames):
+        t0 = time.perf_counter()
+        isam.update()
+        calc(last)
+        extra_l.append(time.perf_counter() - t0)
+        extra_e.append(_isam2_energy(stream, isam, nf, est_rot, est_trans))
+    return ReplayResult("isam2", lat, cpu, energies, extra_e, extra_l,
+                        {"relinearize_skip": relinearize_skip})
+
+
+def _isam2_energy(stream: Stream, isam: Any, frames: int, est_rot: FloatArray,
+                  est_trans: FloatArray) -> float:
+    """Our energy of iSAM2's full estimate over the prefix of ``frames`` frames."""
+    planar = stream.graph.is_2d
+    vals = isam.calculateEstimate()
+    keep = stream.order[:frames]
+    for q in keep.tolist():
+        if planar:
+            ps = vals.atPose2(q)
+            est_rot[q] = _rot_z(ps.theta())
+            est_trans[q] = (ps.x(), ps.y(), 0.0)
+        else:
+            ps = vals.atPose3(q)
+            est_rot[q] = ps.rotation().matrix()
+            est_trans[q] = ps.translation()
+    return energy(stream.prefix(frames, est_rot[keep], est_trans[keep]))

@@ -817,7 +817,7 @@ class OnlineSolver:
         """
         name = str(path)
         try:
-            with np.load(path, allow_pickle=False) as z:
+            with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
                 data = {k: z[k] for k in z.files}
         except FileNotFoundError as exc:
             raise FormatError("no such file", path=name) from exc
