@@ -378,3 +378,33 @@ def test_isam2_replay_reaches_the_optimum() -> None:
     assert r.checkpoints[15] == pytest.approx(opt[15], rel=ISAM2_VS_OPTIMUM)
     assert r.checkpoints[30] > r.extra_energy[-1]  # one GN step per update: not there yet
     assert r.extra_energy[-1] == pytest.approx(opt[30], rel=ISAM2_VS_OPTIMUM)
+
+
+# --------------------------------------------------------------------------- CLI
+def test_cli_replay_json(capsys: pytest.CaptureFixture[str], data_dir: Path) -> None:
+    import json
+
+    from hybridpgo.cli import main
+
+    rc = main(["replay", str(data_dir / "tinyGrid3D.g2o"), "--budget-ms", "5", "--every", "4",
+               "--extra-frames", "3", "--json", "--quiet"])
+    assert rc == 0
+    out = json.loads(capsys.readouterr().out)
+    r = out["solvers"]["hybridpgo"]
+    assert out["frames"] == r["frames"] == 9
+    assert set(out["optima"]) == {"4", "8", "9"}
+    assert len(r["extra_ratio"]) == 3 and r["latency_ms_max"] >= r["latency_ms_mean"] > 0
+
+
+def test_cli_replay_errors(capsys: pytest.CaptureFixture[str], tmp_path: Path,
+                           data_dir: Path) -> None:
+    from hybridpgo.cli import main
+
+    bad = tmp_path / "bad.g2o"
+    bad.write_text("VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 7 1 0 0 1 0 0 1 0 1\n")
+    assert main(["replay", str(bad)]) == 2
+    assert "bad.g2o" in capsys.readouterr().err
+    missing = tmp_path / "no" / "plots"
+    assert main(["replay", str(data_dir / "tinyGrid3D.g2o"), "--plot", str(missing)]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert main(["replay", str(data_dir / "tinyGrid3D.g2o"), "--budget-ms", "0"]) == 2
