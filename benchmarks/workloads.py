@@ -580,3 +580,12 @@ def _toro(ctx: Context) -> Result:
 
 
 WORKLOADS["toro"] = _toro
+
+
+def _online(ctx: Context) -> Result:
+    from .online import run
+
+    return run(ctx)
+
+
+WORKLOADS["online"] = _online

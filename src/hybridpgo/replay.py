@@ -253,11 +253,14 @@ class ReplayResult:
 
 def replay_online(stream: Stream, config: Any = None, budget_s: float | None = 5e-3, *,
                   checkpoints: Sequence[int] = (), extra_frames: int = 0,
+                  refine_every: int = 0, refine_offset: int = 0,
                   progress: Callable[[int, float], None] | None = None) -> ReplayResult:
     """Stream ``stream`` into an :class:`OnlineSolver`, one :meth:`update` per frame.
 
     A frame's latency is its ``update`` plus the estimate of the pose it brought (what the
     robot reads); the energy over the prefix is evaluated at ``checkpoints`` outside the timing.
+    With ``refine_every = K``, frames ``k`` with ``k % K == refine_offset`` (counting from 1)
+    also run :meth:`OnlineSolver.refine` (the whole-map exact solve), inside their latency.
     """
     from .solvers.online import OnlineSolver
 
@@ -274,6 +277,8 @@ def replay_online(stream: Stream, config: Any = None, budget_s: float | None = 5
         c0 = time.process_time()
         t0 = time.perf_counter()
         solver.update(budget_s)
+        if refine_every and (k + 1) % refine_every == refine_offset:
+            solver.refine()
         solver.pose(pid)
         lat[k] = time.perf_counter() - t0
         cpu[k] = time.process_time() - c0
@@ -291,7 +296,8 @@ def replay_online(stream: Stream, config: Any = None, budget_s: float | None = 5
         solver.pose(last)
         extra_l.append(time.perf_counter() - t0)
         extra_e.append(solver.energy())
-    return ReplayResult("hybridpgo", lat, cpu, energies, extra_e, extra_l,
+    name = f"hybridpgo+refine/{refine_every}" if refine_every else "hybridpgo"
+    return ReplayResult(name, lat, cpu, energies, extra_e, extra_l,
                         {**solver.stats(), "compile_s": solver.compile_seconds})
 
 
