@@ -408,3 +408,14 @@ def test_cli_replay_errors(capsys: pytest.CaptureFixture[str], tmp_path: Path,
     assert main(["replay", str(data_dir / "tinyGrid3D.g2o"), "--plot", str(missing)]) == 2
     assert "does not exist" in capsys.readouterr().err
     assert main(["replay", str(data_dir / "tinyGrid3D.g2o"), "--budget-ms", "0"]) == 2
+
+
+def test_isam2_replay_time_cap() -> None:
+    pytest.importorskip("gtsam")
+    from hybridpgo.replay import replay_isam2
+
+    st = make_stream(_graph(seed=10, n=20, extra=5))
+    r = replay_isam2(st, checkpoints=[10, 20], extra_frames=3, max_seconds=0.0)
+    assert r.latency_s.shape == (1,) and r.info["frames_reached"] == 1
+    assert "stopped at frame 1" in r.name and r.extra_energy == []
+    assert set(r.checkpoints) == {1}
