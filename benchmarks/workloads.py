@@ -604,3 +604,12 @@ def _outliers(ctx: Context) -> Result:
 
 
 WORKLOADS["outliers"] = _outliers
+
+
+def _online(ctx: Context) -> Result:
+    from .online import run
+
+    return run(ctx)
+
+
+WORKLOADS["online"] = _online

@@ -36,3 +36,10 @@ SAME_EQUATION = 1e-9
 #: Marginal covariance blocks vs GTSAM's Marginals (a different factorization and a 1e-6 sigma
 #: prior standing in for our fixed gauge pose): relative to the block's largest entry.
 COVARIANCE_VS_GTSAM = 1e-6
+
+#: Energy after OnlineSolver.refine (LM from the online estimate) vs the prefix optimum (LM from
+#: the odometry chain), relative: both stop at LM's energy tolerance 1e-10 on the same optimum.
+ONLINE_REFINED = 1e-6
+
+#: iSAM2 (relinearization threshold 0.1, its default) vs the batch optimum, relative energy.
+ISAM2_VS_OPTIMUM = 1e-3

@@ -34,6 +34,8 @@ _LAZY = {
     "SolveResult": ".solvers",
     "optimize": ".solvers",
     "build_tree": ".tree",
+    "OnlineSolver": ".solvers.online",
+    "OnlineConfig": ".solvers.online",
 }
 
 __all__ = ["FormatError", "GraphError", "HybridPGOError", "SolverError", *_LAZY]
@@ -64,6 +66,8 @@ if TYPE_CHECKING:
     from .solvers import HybridConfig as HybridConfig
     from .solvers import SolveResult as SolveResult
     from .solvers import optimize as optimize
+    from .solvers.online import OnlineConfig as OnlineConfig
+    from .solvers.online import OnlineSolver as OnlineSolver
     from .tree import build_tree as build_tree
 
 

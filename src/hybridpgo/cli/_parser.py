@@ -502,4 +502,40 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(p)
     p.set_defaults(command="batch")
 
+    # ---------------------------------------------------------------- replay
+    p = sub.add_parser(
+        "replay", help="stream a graph frame by frame through the online solver",
+        description="Replay a graph as a robot would have produced it (frames in increasing "
+                    "pose id: each pose with its odometry and loop closures to earlier poses, "
+                    "GPS with its pose), one online update per frame within the budget.  "
+                    "Reports the latency per frame (mean, p99, max, and the steady max: CPU "
+                    "time, not inflated by preemption) and the energy of the estimate over "
+                    "the prefix divided by the prefix's batch optimum (exact LM).")
+    p.add_argument("file", metavar="FILE", help="pose-graph file to replay")
+    _add_format(p)
+    p.add_argument("--budget-ms", type=_pos_float, default=5.0, metavar="B",
+                   help="time budget of one frame's update in milliseconds (default 5)")
+    p.add_argument("--every", type=_nonneg_int, default=500, metavar="K",
+                   help="measure the accuracy every K frames and at the end (default 500; "
+                        "0: only the latency, no batch optima)")
+    p.add_argument("--extra-frames", type=_nonneg_int, default=100, metavar="N",
+                   help="after the last frame, N more updates with the same budget and no new "
+                        "data (default 100)")
+    p.add_argument("--compare", choices=["isam2"],
+                   help="also run GTSAM's ISAM2 on the same stream (needs hybridpgo[gtsam])")
+    p.add_argument("--tree", choices=["oldest", "odometry"], default="oldest",
+                   help="parent of a new pose: the oldest pose it is constrained to in its "
+                        "frame (default) or its odometry parent")
+    p.add_argument("--tau-old", type=_pos_float, default=0.3, metavar="T",
+                   help="temperature of spare-time updates of older constraints (default 0.3)")
+    p.add_argument("--local-size", type=_nonneg_int, default=0, metavar="K",
+                   help="local solve: relax the K newest relative constraints together in every "
+                        "frame (default 0: off)")
+    p.add_argument("--plot", metavar="PREFIX",
+                   help="write PREFIX_latency.png and PREFIX_energy.png (needs matplotlib)")
+    p.add_argument("--json", action="store_true", help="print a JSON object instead of text")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    _add_common(p)
+    p.set_defaults(command="replay")
+
     return parser

@@ -1,0 +1,137 @@
+"""``hybridpgo replay FILE --budget-ms B``: the graph streamed frame by frame (DESIGN §11)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from typing import Any
+
+from ..errors import HybridPGOError
+from ._common import describe_graph, log, print_json, print_table, read_input
+
+
+def _check_outputs(prefix: str | None) -> None:
+    if prefix is None:
+        return
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        raise HybridPGOError("--plot needs matplotlib, which is not installed: "
+                             "pip install hybridpgo[plot]") from None
+    directory = os.path.dirname(os.path.abspath(prefix + "_latency.png"))
+    if not os.path.isdir(directory):
+        raise HybridPGOError(f"{prefix}: cannot write the plots: directory {directory} does "
+                             "not exist")
+
+
+def replay_file(args: argparse.Namespace) -> dict[str, Any]:
+    """Read, stream through the online solver (and iSAM2), measure; the JSON-friendly summary."""
+    from ..replay import checkpoint_frames, make_stream, prefix_optima, replay_isam2, replay_online
+    from ..solvers.online import OnlineConfig
+
+    _check_outputs(args.plot)
+    graph = read_input(args.file, args.format)
+    stream = make_stream(graph)
+    if args.compare == "isam2":
+        try:
+            import gtsam  # noqa: F401
+        except ImportError:
+            raise HybridPGOError("--compare isam2 needs GTSAM, which is not installed: "
+                                 "pip install hybridpgo[gtsam]") from None
+        if graph.is_2d and graph.num_gps:
+            raise HybridPGOError(f"{args.file}: --compare isam2: GPS readings on a 2D graph")
+    try:
+        config = OnlineConfig(tree=args.tree, tau_old=args.tau_old, local_size=args.local_size,
+                              reserve_poses=max(graph.num_nodes, 1))
+    except ValueError as exc:
+        raise HybridPGOError(f"invalid online option: {exc}") from exc
+    budget = args.budget_ms * 1e-3
+    frames = checkpoint_frames(stream.num_frames, args.every) if args.every else []
+    say = (lambda msg: None) if args.quiet else log
+    say(f"replay: {describe_graph(graph)}, {stream.num_frames} frames, budget {args.budget_ms} ms")
+    runs = [replay_online(stream, config, budget, checkpoints=frames,
+                          extra_frames=args.extra_frames)]
+    say(f"  hybridpgo: {runs[0].latency_s.sum():.1f} s in updates")
+    if args.compare == "isam2":
+        runs.append(replay_isam2(stream, checkpoints=frames, extra_frames=args.extra_frames))
+        say(f"  isam2: {runs[1].latency_s.sum():.1f} s in updates")
+    optima: dict[int, float] = {}
+    if frames:
+        say(f"  batch optima of {len(frames)} prefixes (exact LM)...")
+        optima = prefix_optima(stream, frames)
+    out: dict[str, Any] = {
+        "path": str(args.file), "graph": describe_graph(graph), "frames": stream.num_frames,
+        "budget_ms": args.budget_ms, "checkpoint_every": args.every,
+        "optima": {str(k): v for k, v in optima.items()},
+        "solvers": {r.name: {**r.summary(optima), "info": r.info} for r in runs},
+    }
+    if args.plot:
+        out["plots"] = _plots(runs, optima, args.plot, args.budget_ms, os.path.basename(args.file))
+    return out
+
+
+def _plots(runs: list[Any], optima: dict[int, float], prefix: str, budget_ms: float,
+           title: str) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..plot import save_figure
+
+    written = []
+    fig, ax = plt.subplots(figsize=(8, 4))
+    for r in runs:
+        ax.plot(r.latency_s * 1e3, lw=0.6, label=r.name)
+    ax.axhline(budget_ms, color="k", ls="--", lw=0.8, label="budget")
+    ax.set_yscale("log")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("latency (ms)")
+    ax.set_title(f"{title}: latency per frame")
+    ax.legend()
+    path = prefix + "_latency.png"
+    save_figure(fig, path)
+    plt.close(fig)
+    written.append(path)
+    if optima:
+        fig, ax = plt.subplots(figsize=(8, 4))
+        for r in runs:
+            f = sorted(k for k in r.checkpoints if k in optima)
+            ax.plot(f, [r.checkpoints[k] / optima[k] for k in f], marker="o", ms=3, label=r.name)
+        ax.axhline(1.05, color="k", ls="--", lw=0.8, label="optimum + 5%")
+        ax.set_yscale("log")
+        ax.set_xlabel("frame")
+        ax.set_ylabel("E / batch optimum of the prefix")
+        ax.set_title(f"{title}: accuracy over time")
+        ax.legend()
+        path = prefix + "_energy.png"
+        save_figure(fig, path)
+        plt.close(fig)
+        written.append(path)
+    return written
+
+
+def run(args: argparse.Namespace) -> int:
+    s = replay_file(args)
+    if args.json:
+        print_json(s)
+        return 0
+    rows = [("file", f"{s['path']} ({s['graph']})"), ("frames", str(s["frames"])),
+            ("budget", f"{s['budget_ms']} ms per frame")]
+    for name, r in s["solvers"].items():
+        line = (f"latency mean {r['latency_ms_mean']:.3f} ms, p99 {r['latency_ms_p99']:.3f}, "
+                f"max {r['latency_ms_max']:.3f}, steady max {r['latency_ms_steady_max']:.3f}; "
+                f"final E {r['final_energy']:.6g}")
+        if "energy_ratio_max" in r:
+            line += (f"; E/optimum: worst checkpoint {r['energy_ratio_max']:.4f}, "
+                     f"end {r['final_ratio']:.4f}")
+            if r.get("extra_ratio"):
+                hit = r["extra_frames_to_1pct"]
+                line += (f", after {len(r['extra_ratio'])} extra frames "
+                         f"{r['extra_ratio'][-1]:.4f} (within 1% after "
+                         f"{hit if hit is not None else 'never'})")
+        rows.append((name, line))
+    for path in s.get("plots", []):
+        rows.append(("plot", path))
+    print_table(rows)
+    return 0

@@ -1,0 +1,462 @@
+"""Replaying a pose graph as a robot would have produced it (DESIGN.md §11).
+
+Frames come in increasing pose id: frame k brings pose k with every relative constraint
+between k and an earlier pose (its odometry first, then the loop closures) and every GPS
+reading on k.  :func:`replay_online` feeds them to :class:`~hybridpgo.solvers.online.OnlineSolver`
+and :func:`replay_isam2` to GTSAM's ISAM2 (the optional ``gtsam`` extra), timing one update
+per frame; :func:`prefix_optima` computes the batch optimum of the prefixes the accuracy is
+measured against.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from .energy import energy
+from .errors import GraphError
+from .graph import FloatArray, PoseGraph
+
+IntArray = npt.NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class Stream:
+    """The frames of a graph (DESIGN §11), as index arrays into the graph's constraints."""
+
+    graph: PoseGraph
+    order: IntArray
+    """(N,) dense pose indices in increasing id: frame k brings pose ``order[k]``."""
+    odometry: IntArray
+    """(N,) the edge that brings each frame's pose (-1 for the first frame)."""
+    edge_ptr: IntArray
+    """(N+1,) CSR over frames of :attr:`edges`."""
+    edges: IntArray
+    """Edges of each frame: its odometry first, then its loop closures (by edge index)."""
+    gps_ptr: IntArray
+    """(N+1,) CSR over frames of :attr:`gps`."""
+    gps: IntArray
+    """GPS readings of each frame."""
+    frame_of: IntArray = field(repr=False)
+    """(N,) frame of each dense pose index."""
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.order.shape[0])
+
+    def prefix(self, frames: int, rotations: FloatArray | None = None,
+               translations: FloatArray | None = None) -> PoseGraph:
+        """The graph of the first ``frames`` frames (poses, their edges and GPS), at the given
+        poses of those frames' poses (default: the graph's own)."""
+        g = self.graph
+        keep = self.order[:frames]
+        remap = np.full(g.num_nodes, -1, np.int64)
+        remap[keep] = np.arange(frames)
+        e = np.sort(self.edges[: self.edge_ptr[frames]])
+        s = np.sort(self.gps[: self.gps_ptr[frames]])
+        rot = g.rotations[keep] if rotations is None else rotations
+        trans = g.translations[keep] if translations is None else translations
+        return PoseGraph(
+            node_ids=g.node_ids[keep], rotations=rot, translations=trans,
+            edge_nodes=remap[g.edge_nodes[e]].astype(np.int32), edge_rotations=g.edge_rotations[e],
+            edge_translations=g.edge_translations[e], edge_information=g.edge_information[e],
+            gps_nodes=remap[g.gps_nodes[s]].astype(np.int32), gps_positions=g.gps_positions[s],
+            gps_information=g.gps_information[s], is_2d=g.is_2d,
+        )  # fmt: skip
+
+
+def make_stream(graph: PoseGraph) -> Stream:
+    """Split ``graph`` into frames (DESIGN §11).
+
+    A pose's odometry is its edge to the latest earlier pose (normally the previous one).
+
+    Raises
+    ------
+    GraphError
+        A pose after the first has no relative constraint to an earlier pose, so it cannot
+        join the map when it arrives.
+    """
+    n = graph.num_nodes
+    order = np.argsort(graph.node_ids, kind="stable")
+    frame_of = np.empty(n, np.int64)
+    frame_of[order] = np.arange(n)
+    fa = frame_of[graph.edge_nodes[:, 0]]
+    fb = frame_of[graph.edge_nodes[:, 1]]
+    hi = np.maximum(fa, fb)
+    lo = np.minimum(fa, fb)
+    # the odometry of frame k: its edge to the latest earlier frame (first in file order)
+    srt = np.lexsort((np.arange(hi.shape[0]), -lo, hi))
+    first = np.ones(srt.shape[0], bool)
+    first[1:] = hi[srt[1:]] != hi[srt[:-1]]
+    odo = np.full(n, -1, np.int64)
+    odo[hi[srt[first]]] = srt[first]
+    self_loop = lo == hi
+    if np.any(self_loop):
+        c = int(np.nonzero(self_loop)[0][0])
+        raise GraphError(f"edge {c} joins pose id {int(graph.node_ids[graph.edge_nodes[c, 0]])} "
+                         "to itself")
+    missing = np.nonzero(odo[1:] < 0)[0]
+    if missing.size:
+        pid = int(graph.node_ids[order[missing[0] + 1]])
+        raise GraphError(f"pose id {pid} has no constraint to an earlier pose, so it cannot "
+                         "join the map when it arrives (frames come in increasing pose id)")
+    is_odo = np.zeros(hi.shape[0], bool)
+    is_odo[odo[1:]] = True
+    # edges by frame: odometry first, then the rest in file order
+    e_order = np.lexsort((np.arange(hi.shape[0]), ~is_odo, hi))
+    edge_ptr = np.zeros(n + 1, np.int64)
+    np.cumsum(np.bincount(hi, minlength=n), out=edge_ptr[1:])
+    fg = frame_of[graph.gps_nodes]
+    g_order = np.argsort(fg, kind="stable")
+    gps_ptr = np.zeros(n + 1, np.int64)
+    np.cumsum(np.bincount(fg, minlength=n), out=gps_ptr[1:])
+    return Stream(graph, order, odo, edge_ptr, e_order.astype(np.int64), gps_ptr,
+                  g_order.astype(np.int64), frame_of)
+
+
+def _inverse_edge(rot: FloatArray, trans: FloatArray, info: FloatArray
+                  ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The same constraint stored the other way round: ``Z^-1`` with
+    ``Omega' = Ad(Z^-1)^T Omega Ad(Z^-1)`` (since ``e' = -Ad(Z) e`` exactly, E is unchanged)."""
+    ri = rot.T
+    ti = -ri @ trans
+    ad = np.zeros((6, 6))
+    ad[:3, :3] = ri
+    ad[3:, 3:] = ri
+    tx = np.array([[0, -ti[2], ti[1]], [ti[2], 0, -ti[0]], [-ti[1], ti[0], 0]])
+    ad[:3, 3:] = tx @ ri
+    info2 = ad.T @ info @ ad
+    return ri, ti, 0.5 * (info2 + info2.T)
+
+
+def feed_frame(solver: Any, stream: Stream, k: int) -> None:
+    """Give frame k's pose, edges and GPS readings to an :class:`OnlineSolver`."""
+    g = stream.graph
+    ids = g.node_ids
+    p = int(stream.order[k])
+    e0, e1 = int(stream.edge_ptr[k]), int(stream.edge_ptr[k + 1])
+    if k == 0:
+        solver.add_pose(int(ids[p]))
+    else:
+        c = int(stream.odometry[k])
+        a, b = (int(v) for v in g.edge_nodes[c])
+        zr, zt, info = g.edge_rotations[c], g.edge_translations[c], g.edge_information[c]
+        if b != p:  # stored as (k, earlier): hand it over as (earlier, k)
+            zr, zt, info = _inverse_edge(zr, zt, info)
+            a = b
+        solver.add_pose(int(ids[p]), int(ids[a]), (zr, zt), info)
+        e0 += 1
+    for c in stream.edges[e0:e1].tolist():
+        a, b = g.edge_nodes[c]
+        solver.add_constraint(int(ids[a]), int(ids[b]), (g.edge_rotations[c],
+                              g.edge_translations[c]), g.edge_information[c])
+    for s in stream.gps[stream.gps_ptr[k]: stream.gps_ptr[k + 1]].tolist():
+        solver.add_gps(int(ids[g.gps_nodes[s]]), g.gps_positions[s], g.gps_information[s])
+
+
+def checkpoint_frames(num_frames: int, every: int) -> list[int]:
+    """Frame counts at which accuracy is measured: every ``every`` frames and the last."""
+    out = list(range(every, num_frames, every))
+    if not out or out[-1] != num_frames:
+        out.append(num_frames)
+    return out
+
+
+def prefix_optima(stream: Stream, frames: Sequence[int], max_iterations: int = 100,
+                  progress: Callable[[int, float], None] | None = None) -> dict[int, float]:
+    """Batch optimum (exact LM) of each prefix; each warm-starts from the previous optimum,
+    the new poses composed from their odometry (independent of any online solver)."""
+    from .solvers.config import GaussNewtonConfig
+    from .solvers.gauss_newton import solve_exact
+
+    g = stream.graph
+    out: dict[int, float] = {}
+    rot = np.empty((0, 3, 3))
+    trans = np.empty((0, 3))
+    for f in frames:
+        r = np.empty((f, 3, 3))
+        t = np.empty((f, 3))
+        k0 = rot.shape[0]
+        r[:k0] = rot
+        t[:k0] = trans
+        for k in range(k0, f):
+            if k == 0:
+                r[0] = np.eye(3)
+                t[0] = 0.0
+                continue
+            c = int(stream.odometry[k])
+            a, b = (int(v) for v in g.edge_nodes[c])
+            zr, zt = g.edge_rotations[c], g.edge_translations[c]
+            p = int(stream.order[k])
+            if b != p:
+                zr, zt = zr.T, -zr.T @ zt
+                a = b
+            ka = int(stream.frame_of[a])
+            r[k] = r[ka] @ zr
+            t[k] = r[ka] @ zt + t[ka]
+        pg = stream.prefix(f, r, t)
+        res = solve_exact(pg, r, t, GaussNewtonConfig(max_iterations=max_iterations))
+        rot, trans = res.rotations, res.translations
+        out[f] = float(res.final_energy)
+        if progress:
+            progress(f, out[f])
+    return out
+
+
+@dataclass
+class ReplayResult:
+    """Per-frame measurements of one replay."""
+
+    name: str
+    latency_s: FloatArray
+    """(F,) wall time of each frame's update plus the current pose's estimate."""
+    cpu_s: FloatArray
+    """(F,) process CPU time of the same (not inflated by preemption: the "steady" latency)."""
+    checkpoints: dict[int, float]
+    """Energy of the estimate over the prefix, at each checkpoint frame count."""
+    extra_energy: list[float] = dataclasses.field(default_factory=list)
+    """After the last frame: the energy after each extra frame (no new data, same budget)."""
+    extra_latency_s: list[float] = dataclasses.field(default_factory=list)
+    info: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    def summary(self, optima: dict[int, float] | None = None) -> dict[str, Any]:
+        lat = self.latency_s * 1e3
+        out: dict[str, Any] = {
+            "frames": int(lat.shape[0]),
+            "latency_ms_mean": float(lat.mean()),
+            "latency_ms_p99": float(np.quantile(lat, 0.99)),
+            "latency_ms_max": float(lat.max()),
+            "latency_ms_steady_max": float(self.cpu_s.max() * 1e3),
+            "final_energy": self.checkpoints[max(self.checkpoints)],
+        }
+        if optima:
+            ratios = {f: e / optima[f] for f, e in self.checkpoints.items() if f in optima}
+            out["energy_ratio"] = ratios
+            out["energy_ratio_max"] = max(ratios.values())
+            last = max(ratios)
+            out["final_ratio"] = ratios[last]
+            if self.extra_energy:
+                ex = [e / optima[last] for e in self.extra_energy]
+                out["extra_ratio"] = ex
+                hit = [i + 1 for i, r in enumerate(ex) if r <= 1.01]
+                out["extra_frames_to_1pct"] = hit[0] if hit else None
+                out["extra_latency_ms_max"] = float(np.max(self.extra_latency_s) * 1e3)
+        return out
+
+
+def replay_online(stream: Stream, config: Any = None, budget_s: float | None = 5e-3, *,
+                  checkpoints: Sequence[int] = (), extra_frames: int = 0,
+                  refine_every: int = 0, refine_offset: int = 0,
+                  progress: Callable[[int, float], None] | None = None) -> ReplayResult:
+    """Stream ``stream`` into an :class:`OnlineSolver`, one :meth:`update` per frame.
+
+    A frame's latency is its ``update`` plus the estimate of the pose it brought (what the
+    robot reads); the energy over the prefix is evaluated at ``checkpoints`` outside the timing.
+    With ``refine_every = K``, frames ``k`` with ``k % K == refine_offset`` (counting from 1)
+    also run :meth:`OnlineSolver.refine` (the whole-map exact solve), inside their latency.
+    """
+    from .solvers.online import OnlineSolver
+
+    solver = OnlineSolver(config)
+    nf = stream.num_frames
+    lat = np.empty(nf)
+    cpu = np.empty(nf)
+    marks = set(checkpoints)
+    energies: dict[int, float] = {}
+    ids = stream.graph.node_ids
+    for k in range(nf):
+        feed_frame(solver, stream, k)
+        pid = int(ids[stream.order[k]])
+        c0 = time.process_time()
+        t0 = time.perf_counter()
+        solver.update(budget_s)
+        if refine_every and (k + 1) % refine_every == refine_offset:
+            solver.refine()
+        solver.pose(pid)
+        lat[k] = time.perf_counter() - t0
+        cpu[k] = time.process_time() - c0
+        if k + 1 in marks:
+            energies[k + 1] = solver.energy()
+            if progress:
+                progress(k + 1, energies[k + 1])
+    energies[nf] = solver.energy()
+    extra_e: list[float] = []
+    extra_l: list[float] = []
+    last = int(ids[stream.order[nf - 1]])
+    for _ in range(extra_frames):
+        t0 = time.perf_counter()
+        solver.update(budget_s)
+        solver.pose(last)
+        extra_l.append(time.perf_counter() - t0)
+        extra_e.append(solver.energy())
+    name = f"hybridpgo+refine/{refine_every}" if refine_every else "hybridpgo"
+    return ReplayResult(name, lat, cpu, energies, extra_e, extra_l,
+                        {**solver.stats(), "compile_s": solver.compile_seconds})
+
+
+# --------------------------------------------------------------------------- iSAM2
+def _rot_z(theta: float) -> FloatArray:
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _import_gtsam() -> Any:
+    import importlib
+
+    try:
+        return importlib.import_module("gtsam")
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ImportError("the iSAM2 comparison needs GTSAM: pip install 'hybridpgo[gtsam]'"
+                          ) from exc
+
+
+def _gtsam_pose(graph: PoseGraph, rot: FloatArray, trans: FloatArray) -> Any:
+    gtsam = _import_gtsam()
+    if graph.is_2d:
+        return gtsam.Pose2(trans[0], trans[1], float(math.atan2(rot[1, 0], rot[0, 0])))
+    return gtsam.Pose3(gtsam.Rot3(rot), trans)
+
+
+def replay_isam2(stream: Stream, *, checkpoints: Sequence[int] = (), extra_frames: int = 0,
+                 relinearize_skip: int = 1, factorization: str = "QR",
+                 max_seconds: float | None = None,
+                 progress: Callable[[int, float], None] | None = None) -> ReplayResult:
+    """The same stream through GTSAM's ISAM2, one ``update`` per frame.
+
+    Factors are built from *our* information (DESIGN §1: the tangent order permuted to GTSAM's
+    (rotation, translation)), so ``2 * error`` is our energy.  The first pose gets a tight prior
+    when the graph has no GPS (the gauge our solver also fixes); with GPS it gets a weak prior
+    (1e3 m, 1e3 rad), because GTSAM needs a gauge before the readings define one.  A frame's
+    latency is ``update`` plus ``calculateEstimate`` of the frame's pose.  ``extra_frames``:
+    after the stream, updates without new factors (each one more Gauss-Newton iteration on the
+    variables iSAM2 relinearizes), with the energy after each.  ``factorization``: "QR" by
+    default, since "CHOLESKY" (GTSAM's default) reports an indeterminate system on the
+    generated cities (roll/pitch information 8e6 beside 2e3 on translation: valencia, frame
+    2893).  ``max_seconds``: stop feeding frames once the updates have taken this long in
+    all (the result then covers the frames reached; ``info["frames_reached"]``).
+    """
+    gtsam = _import_gtsam()
+    g = stream.graph
+    planar = g.is_2d
+    if planar and g.num_gps:
+        raise GraphError("GPS readings on a 2D graph")
+    perm = np.r_[3:6, 0:3]
+    idx2 = np.array([0, 1, 5])
+    params = gtsam.ISAM2Params()
+    params.relinearizeSkip = relinearize_skip
+    params.setFactorization(factorization)
+    isam = gtsam.ISAM2(params)
+    nf = stream.num_frames
+    lat = np.empty(nf)
+    cpu = np.empty(nf)
+    marks = set(checkpoints)
+    energies: dict[int, float] = {}
+    # our energy of the estimate over the prefix, via our own cost layer
+    est_rot = np.zeros((g.num_nodes, 3, 3))
+    est_trans = np.zeros((g.num_nodes, 3))
+    calc = isam.calculateEstimatePose2 if planar else isam.calculateEstimatePose3
+
+    def model(info: FloatArray) -> Any:
+        if planar:
+            return gtsam.noiseModel.Gaussian.Information(info[np.ix_(idx2, idx2)])
+        return gtsam.noiseModel.Gaussian.Information(info[np.ix_(perm, perm)])
+
+    def between(a: int, b: int, rot: FloatArray, trans: FloatArray, info: FloatArray) -> Any:
+        z = _gtsam_pose(g, rot, trans)
+        cls = gtsam.BetweenFactorPose2 if planar else gtsam.BetweenFactorPose3
+        return cls(a, b, z, model(info))
+
+    guess: dict[int, tuple[FloatArray, FloatArray]] = {}
+    spent = 0.0
+    reached = nf
+    for k in range(nf):
+        if max_seconds is not None and spent > max_seconds:
+            reached = k
+            break
+        p = int(stream.order[k])
+        factors = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        if k == 0:
+            r0, t0_ = np.eye(3), np.zeros(3)
+            sigma = 1e3 if g.num_gps else 1e-6
+            dim = 3 if planar else 6
+            prior = gtsam.PriorFactorPose2 if planar else gtsam.PriorFactorPose3
+            factors.add(prior(p, _gtsam_pose(g, r0, t0_),
+                              gtsam.noiseModel.Isotropic.Sigma(dim, sigma)))
+        else:
+            c = int(stream.odometry[k])
+            a, b = (int(v) for v in g.edge_nodes[c])
+            zr, zt = g.edge_rotations[c], g.edge_translations[c]
+            other = a if b == p else b
+            ra, ta = guess[other]
+            if b == p:
+                r0, t0_ = ra @ zr, ra @ zt + ta
+            else:
+                r0, t0_ = ra @ zr.T, ra @ (-zr.T @ zt) + ta
+        values.insert(p, _gtsam_pose(g, r0, t0_))
+        for c in stream.edges[stream.edge_ptr[k]: stream.edge_ptr[k + 1]].tolist():
+            a, b = (int(v) for v in g.edge_nodes[c])
+            factors.add(between(a, b, g.edge_rotations[c], g.edge_translations[c],
+                                g.edge_information[c]))
+        for s in stream.gps[stream.gps_ptr[k]: stream.gps_ptr[k + 1]].tolist():
+            factors.add(gtsam.GPSFactor(p, g.gps_positions[s],
+                                        gtsam.noiseModel.Gaussian.Information(
+                                            g.gps_information[s])))
+        c0 = time.process_time()
+        t0 = time.perf_counter()
+        isam.update(factors, values)
+        est = calc(p)
+        lat[k] = time.perf_counter() - t0
+        cpu[k] = time.process_time() - c0
+        spent += lat[k]
+        if planar:
+            th = est.theta()
+            guess[p] = (_rot_z(th), np.array([est.x(), est.y(), 0.0]))
+        else:
+            guess[p] = (est.rotation().matrix(), np.asarray(est.translation()))
+        if k + 1 in marks or k + 1 == nf:
+            energies[k + 1] = _isam2_energy(stream, isam, k + 1, est_rot, est_trans)
+            if progress:
+                progress(k + 1, energies[k + 1])
+    extra_e: list[float] = []
+    extra_l: list[float] = []
+    if reached < nf:
+        lat, cpu = lat[:reached], cpu[:reached]
+        energies.setdefault(reached, _isam2_energy(stream, isam, reached, est_rot, est_trans))
+        extra_frames = 0
+    last = int(stream.order[reached - 1])
+    for _ in range(extra_frames):
+        t0 = time.perf_counter()
+        isam.update()
+        calc(last)
+        extra_l.append(time.perf_counter() - t0)
+        extra_e.append(_isam2_energy(stream, isam, nf, est_rot, est_trans))
+    name = "isam2" if reached == nf else f"isam2 (stopped at frame {reached})"
+    return ReplayResult(name, lat, cpu, energies, extra_e, extra_l,
+                        {"relinearize_skip": relinearize_skip, "factorization": factorization,
+                         "frames_reached": reached, "seconds_in_updates": spent})
+
+
+def _isam2_energy(stream: Stream, isam: Any, frames: int, est_rot: FloatArray,
+                  est_trans: FloatArray) -> float:
+    """Our energy of iSAM2's full estimate over the prefix of ``frames`` frames."""
+    planar = stream.graph.is_2d
+    vals = isam.calculateEstimate()
+    keep = stream.order[:frames]
+    for q in keep.tolist():
+        if planar:
+            ps = vals.atPose2(q)
+            est_rot[q] = _rot_z(ps.theta())
+            est_trans[q] = (ps.x(), ps.y(), 0.0)
+        else:
+            ps = vals.atPose3(q)
+            est_rot[q] = ps.rotation().matrix()
+            est_trans[q] = ps.translation()
+    return energy(stream.prefix(frames, est_rot[keep], est_trans[keep]))

@@ -1,0 +1,382 @@
+"""Kernels of the online mode (DESIGN.md §11): growing paths, budgeted relaxation, estimates.
+
+The online solver keeps the arrays of :class:`~.hybrid.problem.Problem` and
+:class:`~.hybrid.problem.State` at a capacity that doubles, and relaxes constraints with the
+single-constraint step (:func:`~.hybrid._step.relax`) and the batch step
+(:mod:`~.hybrid._batch`) of the whole-graph solver.  What is new here:
+
+* :func:`path_lengths` / :func:`fill_paths`: a new constraint's domain (DESIGN §2) by a walk to
+  the lowest common ancestor on the depth array, O(d);
+* :func:`relax_list`: Algorithm 1's loop over a list of constraints that stops before an update
+  whose *predicted* cost would pass the deadline (a cost model per domain node, learnt from the
+  cycle counts of earlier updates), records every constraint's χ² before its update (the
+  priority of later frames), and reuses caller-owned buffers (no O(T) allocation per frame);
+* :func:`local_batch`: the batch update of a set of constraints (III-F/G) that always takes the
+  segmented Woodbury solve, whose cost is bounded by the set (never the dense normal
+  equations over the union of the domains);
+* :func:`candidates`: the bounded candidate set of spare-time updates, ordered by χ².
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._numba import cycle_counter, kernel
+from .hybrid._batch import (
+    _batch_blocks,
+    _entries_by_node,
+    _linearize_batch,
+    _union,
+    global_pose,
+    woodbury_segments,
+)
+from .hybrid._step import cap_and_apply, relax
+from .hybrid.problem import (
+    BATCH_REJECTED,
+    Problem,
+    State,
+    Update,
+    Workspace,
+    domain,
+    is_gps,
+    new_workspace,
+)
+
+#: Entries of the cost model array (cycles): base cost of an update, cost per domain node of a
+#: single update, cost per domain entry of a batch update.
+MODEL_BASE = 0
+MODEL_NODE = 1
+MODEL_BATCH = 2
+#: Weight of a new sample in the cost model's moving averages.
+MODEL_RATE = 1.0 / 32.0
+#: Predictions are the model times this margin (the model is a mean; updates vary around it).
+MODEL_MARGIN = 1.5
+#: Cycles per floating-point operation assumed for the dense factorization of a local batch.
+CYCLES_PER_FLOP = 1.0
+
+#: Positions in the ``counts`` array of :func:`relax_list`.
+C_DONE = 0
+C_CAPPED = 1
+C_REJECTED = 2
+C_BATCHES = 3
+C_SKIPPED = 4
+NUM_C = 5
+
+
+# --------------------------------------------------------------------------- paths
+@kernel
+def _lca(parent: np.ndarray, depth: np.ndarray, a: int, b: int) -> tuple[int, int]:
+    """``(lca, d)``: the lowest common ancestor of a and b and the length of the path."""
+    u = a
+    v = b
+    d = 0
+    while depth[u] > depth[v]:
+        u = parent[u]
+        d += 1
+    while depth[v] > depth[u]:
+        v = parent[v]
+        d += 1
+    while u != v:
+        u = parent[u]
+        v = parent[v]
+        d += 2
+    return u, d
+
+
+@kernel
+def path_lengths(parent: np.ndarray, depth: np.ndarray, ends: np.ndarray,
+                 out: np.ndarray) -> int:
+    """Domain size of each constraint ``ends[k] = (a, b)`` (tree nodes) into ``out``; the sum."""
+    total = 0
+    for k in range(ends.shape[0]):
+        out[k] = _lca(parent, depth, ends[k, 0], ends[k, 1])[1]
+        total += out[k]
+    return total
+
+
+@kernel
+def fill_paths(parent: np.ndarray, depth: np.ndarray, ends: np.ndarray, starts: np.ndarray,
+               path_node: np.ndarray, path_sign: np.ndarray, path_count: np.ndarray) -> None:
+    """Write each constraint's domain at ``path_node[starts[k]:]`` (tree.py's convention).
+
+    The a side from a upwards with sign -1, then the b side from b upwards with +1 (GPS:
+    ``a`` is the earth, so only n and its ancestors below the earth, +1); the root (lowest
+    common ancestor) is excluded.  ``path_count`` counts the domains through each node.
+    """
+    for k in range(ends.shape[0]):
+        a = ends[k, 0]
+        b = ends[k, 1]
+        r = _lca(parent, depth, a, b)[0]
+        j = starts[k]
+        u = a
+        while u != r:
+            path_node[j] = u
+            path_sign[j] = -1
+            path_count[u] += 1
+            j += 1
+            u = parent[u]
+        v = b
+        while v != r:
+            path_node[j] = v
+            path_sign[j] = 1
+            path_count[v] += 1
+            j += 1
+            v = parent[v]
+
+
+# --------------------------------------------------------------------------- estimates
+@kernel
+def node_pose(i: int, parent: np.ndarray, rot: np.ndarray, trans: np.ndarray,
+              ro: np.ndarray, to: np.ndarray) -> None:
+    """Global pose of tree node i (earth frame), O(depth)."""
+    global_pose(i, parent, rot, trans, ro, to)
+
+
+@kernel
+def all_poses(parent: np.ndarray, rot: np.ndarray, trans: np.ndarray, n: int,
+              grot: np.ndarray, gtr: np.ndarray) -> None:
+    """Global poses of tree nodes ``0..n-1``; every parent has a smaller index than its child."""
+    for i in range(n):
+        p = parent[i]
+        if p < 0:
+            grot[i] = rot[i]
+            gtr[i] = trans[i]
+            continue
+        for r in range(3):
+            for c in range(3):
+                grot[i, r, c] = (grot[p, r, 0] * rot[i, 0, c] + grot[p, r, 1] * rot[i, 1, c]
+                                 + grot[p, r, 2] * rot[i, 2, c])
+            gtr[i, r] = (grot[p, r, 0] * trans[i, 0] + grot[p, r, 1] * trans[i, 1]
+                         + grot[p, r, 2] * trans[i, 2] + gtr[p, r])
+
+
+@kernel
+def _gps_chi2(prob: Problem, state: State, c: int, ro: np.ndarray, to: np.ndarray) -> float:
+    g = c - prob.num_edges
+    node = prob.path_node[prob.path_ptr[c]]  # a GPS domain starts at its pose
+    global_pose(node, prob.parent, state.rot, state.trans, ro, to)
+    lt = prob.gps_lt[g]
+    s = 0.0
+    for p in range(3):
+        acc = 0.0
+        for q in range(p, 3):
+            acc += lt[p, q] * (to[q] - prob.gps_pos[g, q])
+        s += acc * acc
+    return s
+
+
+# --------------------------------------------------------------------------- cost model
+@kernel
+def _predict(model: np.ndarray, d: int, batch: bool) -> float:
+    per = model[MODEL_BATCH] if batch else model[MODEL_NODE]
+    return MODEL_MARGIN * (model[MODEL_BASE] + per * d)
+
+
+@kernel
+def _learn(model: np.ndarray, d: int, dc: float, batch: bool) -> None:
+    """Moving averages of the base cost (small domains) and of the cost per domain node."""
+    if d <= 4 and not batch:
+        sample = dc
+        cur = model[MODEL_BASE]
+        model[MODEL_BASE] = cur + MODEL_RATE * (min(sample, 4.0 * cur) - cur)
+        return
+    k = MODEL_BATCH if batch else MODEL_NODE
+    sample = max(dc - model[MODEL_BASE], 0.0) / d
+    cur = model[k]
+    model[k] = cur + MODEL_RATE * (min(sample, 4.0 * cur) - cur)
+
+
+# --------------------------------------------------------------------------- relaxation
+@kernel
+def _flush(prob: Problem, state: State, buf: np.ndarray, nbuf: int, tau: float, mu: float,
+           slot: np.ndarray, xb: np.ndarray, nodes: np.ndarray, model: np.ndarray,
+           counts: np.ndarray) -> bool:
+    """Relax the buffered GPS readings as one batch (III-G); True when it was rejected."""
+    t0 = cycle_counter()
+    nu = batch_relax_woodbury(prob, state, buf, nbuf, tau, mu, slot, xb, nodes)
+    dc = float(cycle_counter() - t0)
+    ne = 0
+    for q in range(nbuf):
+        ne += domain(prob, buf[q])[1]
+    _learn(model, max(ne, 1), dc, True)
+    counts[C_BATCHES] += 1
+    if nu == BATCH_REJECTED:
+        counts[C_REJECTED] += nbuf
+        return True
+    return False
+
+
+@kernel
+def relax_list(prob: Problem, state: State, wk: Workspace, order: np.ndarray, tau: float,
+               mu: float, step_kind: int, gps_batch_size: int, deadline: np.uint64,
+               max_updates: int, force_first: bool, skip: bool, chi2: np.ndarray,
+               last: np.ndarray, stamp: int, model: np.ndarray, slot: np.ndarray,
+               xb: np.ndarray, nodes: np.ndarray, counts: np.ndarray) -> int:
+    """Relax the constraints of ``order`` in turn (paper Algorithm 1, GPS batched).
+
+    An update is started only when ``cycle_counter() + predicted cost <= deadline`` (the first
+    one regardless when ``force_first``) and fewer than ``max_updates`` were started.  When an
+    update does not fit: ``skip`` moves on to the next (cheaper ones may fit), otherwise the
+    list stops there.  ``chi2[c]`` receives c's χ² before its update, ``last[c] = stamp``.
+    Returns the number of leading entries of ``order`` processed (all of them with ``skip``).
+    """
+    ro = np.empty((3, 3))
+    to = np.empty(3)
+    buf = np.empty(max(gps_batch_size, 1), np.int64)
+    nbuf = 0
+    buf_cost = 0.0
+    started = 0
+    n_order = order.shape[0]
+    stop_at = n_order
+    for idx in range(n_order + 1):
+        c = order[idx] if idx < n_order else -1
+        gps = False
+        if c >= 0:
+            gps = is_gps(prob, c)
+            d = domain(prob, c)[1]
+            if started >= max_updates:
+                c = -1
+                stop_at = idx
+            else:
+                pred = _predict(model, d, gps) + (buf_cost if gps else 0.0)
+                late = float(cycle_counter()) + pred > float(deadline)
+                if late and not (force_first and started == 0):
+                    counts[C_SKIPPED] += 1
+                    if skip:
+                        continue
+                    c = -1
+                    stop_at = idx
+        if nbuf > 0 and (c < 0 or not gps or nbuf >= gps_batch_size):
+            _flush(prob, state, buf, nbuf, tau, mu, slot, xb, nodes, model, counts)
+            nbuf = 0
+            buf_cost = 0.0
+        if c < 0:
+            break
+        started += 1
+        counts[C_DONE] += 1
+        last[c] = stamp
+        if gps:
+            chi2[c] = _gps_chi2(prob, state, c, ro, to)
+            buf[nbuf] = c
+            nbuf += 1
+            buf_cost += _predict(model, d, True)
+            continue
+        t0 = cycle_counter()
+        st = relax(prob, state, wk, c, tau, mu, step_kind, True)
+        dc = float(cycle_counter() - t0)
+        s = 0.0
+        for i in range(6):
+            s += wk.r[i] * wk.r[i]
+        chi2[c] = s
+        _learn(model, d, dc, False)
+        if st == Update.CAPPED:
+            counts[C_CAPPED] += 1
+        elif st == Update.REJECTED:
+            counts[C_REJECTED] += 1
+    return stop_at
+
+
+# --------------------------------------------------------------------------- batches
+@kernel
+def batch_relax_woodbury(prob: Problem, state: State, cs: np.ndarray, nb: int, tau: float,
+                         mu: float, slot: np.ndarray, x_out: np.ndarray,
+                         nodes_out: np.ndarray) -> int:
+    """:func:`~.hybrid._batch.batch_relax` with the segmented Woodbury solve always.
+
+    The whole-graph solver turns to the dense normal equations over the union of the domains
+    when a block of B_C vanishes (a node all of whose constraints are in the batch, e.g. the
+    newest pose in a local solve); that costs O((6|U|)^3) and would break a frame's budget.
+    Here such a block is damped like every other (DESIGN §4), so the cost stays
+    O(entries + (6|C|)^3).  Returns the number of union nodes or ``BATCH_REJECTED``.
+    """
+    e_off = np.empty(nb + 1, np.int64)
+    e_off[0] = 0
+    dmax = 1
+    for q in range(nb):
+        d = domain(prob, cs[q])[1]
+        e_off[q + 1] = e_off[q] + d
+        dmax = max(dmax, d)
+    ne = e_off[nb]
+    e_slot = np.empty(ne, np.int64)
+    e_q = np.empty(ne, np.int64)
+    nu = _union(prob, cs, nb, slot, nodes_out, e_off, e_slot, e_q)
+    cnt, by_slot = _entries_by_node(e_slot, nu)
+    wk = new_workspace(dmax)
+    jb = np.empty((ne, 6, 6))
+    r_off = np.empty(nb + 1, np.int64)
+    krs = np.empty(nb, np.int64)
+    rbuf = np.empty(6 * nb)
+    amat = np.zeros((nb, 6, 6))
+    yr = np.empty((nu, 3, 3))
+    yt = np.empty((nu, 3))
+    _linearize_batch(prob, state, cs, nb, wk, e_off, e_slot, jb, r_off, krs, rbuf, amat, yr, yt)
+    bc = np.zeros((nu, 6, 6))
+    _batch_blocks(prob, state, cs, jb, e_off, krs, e_q, cnt, by_slot, nodes_out, bc,
+                  np.zeros(nu))
+    ok = woodbury_segments(prob, cs, nb, mu, jb, e_off, r_off, krs, rbuf, e_slot, e_q, cnt,
+                           by_slot, bc, slot, nodes_out, amat, yr, yt, x_out)
+    for u in range(nu):
+        slot[nodes_out[u]] = -1
+    if not ok:
+        return BATCH_REJECTED
+    if cap_and_apply(nodes_out, 0, nu, x_out, tau, state, wk.ws) == Update.REJECTED:
+        return BATCH_REJECTED
+    return nu
+
+
+@kernel
+def local_batch(prob: Problem, state: State, cs: np.ndarray, tau: float, mu: float,
+                deadline: np.uint64, model: np.ndarray, slot: np.ndarray, xb: np.ndarray,
+                nodes: np.ndarray, counts: np.ndarray) -> int:
+    """The local solve (III-G): relax ``cs`` together when its predicted cost fits.
+
+    Returns the number of union nodes moved, 0 when the batch did not fit the deadline, or
+    ``BATCH_REJECTED``.
+    """
+    nb = cs.shape[0]
+    if nb == 0:
+        return 0
+    ne = 0
+    for q in range(nb):
+        ne += domain(prob, cs[q])[1]
+    # plus the dense factorization of the (6 nb)^2 capacitance matrix: (6 nb)^3 / 3 flops
+    pred = _predict(model, ne, True) + MODEL_MARGIN * CYCLES_PER_FLOP * 72.0 * nb * nb * nb
+    if float(cycle_counter()) + pred > float(deadline):
+        counts[C_SKIPPED] += 1
+        return 0
+    t0 = cycle_counter()
+    nu = batch_relax_woodbury(prob, state, cs, nb, tau, mu, slot, xb, nodes)
+    _learn(model, max(ne, 1), float(cycle_counter() - t0), True)
+    counts[C_BATCHES] += 1
+    if nu == BATCH_REJECTED:
+        counts[C_REJECTED] += nb
+    return nu
+
+
+# --------------------------------------------------------------------------- priority
+@kernel
+def candidates(chi2: np.ndarray, m: int, recent: int, window: int, cursor: int,
+               out: np.ndarray) -> int:
+    """The spare-time candidates of a frame, largest last χ² first (ties: newer first).
+
+    The set is the ``recent`` newest relative constraints (nearest the robot) and ``window``
+    constraints from ``cursor`` on, cyclically (every constraint is a candidate once every
+    ``m / window`` frames), without repeats.  Writes them to ``out`` and returns how many.
+    """
+    k = 0
+    lo = max(m - recent, 0)
+    for c in range(m - 1, lo - 1, -1):
+        out[k] = c
+        k += 1
+    w = min(window, lo)  # the window covers the older constraints 0..lo-1
+    for j in range(w):
+        out[k] = (cursor + j) % lo
+        k += 1
+    keys = np.empty(k)
+    for j in range(k):
+        keys[j] = -chi2[out[j]]
+    perm = np.argsort(keys, kind="mergesort")  # stable: among equal keys the newer first
+    tmp = out[:k].copy()
+    for j in range(k):
+        out[j] = tmp[perm[j]]
+    return k

@@ -1,0 +1,421 @@
+"""The online mode (DESIGN §11): paths, budget, accuracy, bad input, save/load."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from graphs import random_graph
+from tolerances import FLOAT64_IDENTITY, ISAM2_VS_OPTIMUM, ONLINE_REFINED
+
+from hybridpgo.energy import energy
+from hybridpgo.errors import FormatError, GraphError
+from hybridpgo.replay import feed_frame, make_stream, prefix_optima
+from hybridpgo.solvers import _online_kernels as ok
+from hybridpgo.solvers.config import GaussNewtonConfig
+from hybridpgo.solvers.gauss_newton import solve_exact
+from hybridpgo.solvers.hybrid import _batch
+from hybridpgo.solvers.online import OnlineConfig, OnlineSolver
+
+# the fixed budget of a deterministic frame (budget_s=None): runs do not depend on timing
+UPDATES = 12
+
+
+def _graph(seed: int = 0, n: int = 40, extra: int = 25, gps: int = 0):  # type: ignore[no-untyped-def]
+    g, _, _ = random_graph(np.random.default_rng(seed), n=n, extra=extra, gps=gps, noise=0.02)
+    return g
+
+
+def _stream(solver: OnlineSolver, graph, frames: range, updates: int | None = UPDATES
+            ) -> None:  # type: ignore[no-untyped-def]
+    st = make_stream(graph)
+    for k in frames:
+        feed_frame(solver, st, k)
+        solver.update(None, updates)
+
+
+def _state(s: OnlineSolver) -> dict[str, np.ndarray]:
+    """Every array and counter of the solver (to compare states exactly)."""
+    scratch = ("_xb", "_nodes_buf")  # buffers of the batch kernels, no state
+    out = {k: np.array(v, copy=True) for k, v in vars(s).items()
+           if isinstance(v, np.ndarray) and k not in scratch}
+    out.update({k: np.array(v) for k, v in vars(s).items() if isinstance(v, int)})
+    out["index"] = np.array(sorted(s._index.items()))
+    return out
+
+
+def _same(a: dict[str, np.ndarray], b: dict[str, np.ndarray], timing: bool = True) -> None:
+    """Exactly equal states; ``timing=False``: except the cost model, learnt from the clock."""
+    assert a.keys() == b.keys()
+    for k in a:
+        if k == "_model" and not timing:
+            continue
+        assert a[k].shape == b[k].shape and np.array_equal(a[k], b[k]), k
+
+
+# --------------------------------------------------------------------------- stream and paths
+def test_stream_frames_bring_each_edge_once_odometry_first() -> None:
+    g = _graph()
+    st = make_stream(g)
+    assert st.num_frames == g.num_nodes
+    assert sorted(st.edges.tolist()) == list(range(g.num_edges))
+    for k in range(1, st.num_frames):
+        first = st.edges[st.edge_ptr[k]]
+        assert first == st.odometry[k]
+        fa, fb = st.frame_of[g.edge_nodes[first]]
+        assert max(fa, fb) == k and min(fa, fb) == k - 1  # the chain's previous pose
+
+
+def test_paths_follow_tree_conventions() -> None:
+    """a side from a upward (-1), b side from b upward (+1), LCA excluded; GPS: n upward."""
+    g = _graph(gps=4)
+    s = OnlineSolver()
+    _stream(s, g, range(g.num_nodes))
+    parent = s._parent
+    cm = s._cap_m
+
+    def up(v: int) -> list[int]:
+        out = []
+        while v >= 0:
+            out.append(v)
+            v = int(parent[v])
+        return out
+
+    count = np.zeros(s._n + 1, np.int64)
+    for c in list(range(s.num_edges)) + [cm + q for q in range(s.num_gps)]:
+        if c < cm:
+            a, b = (int(v) + 1 for v in s._edge_ab[c])
+        else:
+            a, b = 0, int(s._gps_node[c - cm]) + 1
+        ua, ub = up(a), up(b)
+        root = next(v for v in ua if v in ub)
+        want = ua[: ua.index(root)] + ub[: ub.index(root)]
+        signs = [-1] * ua.index(root) + [1] * ub.index(root)
+        lo, hi = s._ptr[c], s._ptr[c + 1]
+        assert s._path_node[lo:hi].tolist() == want
+        assert s._path_sign[lo:hi].tolist() == signs
+        np.add.at(count, want, 1)
+    assert np.array_equal(count, s._path_count[: s._n + 1])
+    # the tree: parents come first, the first pose hangs from the earth
+    assert parent[0] == -1 and parent[1] == 0
+    assert np.all(parent[1: s._n + 1] < np.arange(1, s._n + 1))
+
+
+def test_oldest_tree_is_shallower_than_the_odometry_chain() -> None:
+    g = _graph(n=60, extra=40)
+    depth = {}
+    for tree in ("oldest", "odometry"):
+        s = OnlineSolver(OnlineConfig(tree=tree))
+        _stream(s, g, range(g.num_nodes))
+        depth[tree] = s.stats()["path_entries"]
+        # whatever the tree, the estimate explains the same constraints
+        assert np.isfinite(s.energy())
+    assert depth["oldest"] < depth["odometry"]
+
+
+# --------------------------------------------------------------------------- accuracy
+def test_estimate_approaches_the_batch_optimum() -> None:
+    """Hybrid updates alone: within a stated factor of the optimum; refine(): the optimum."""
+    g = _graph(seed=1)
+    st = make_stream(g)
+    opt = prefix_optima(st, [st.num_frames])[st.num_frames]
+    s = OnlineSolver()
+    _stream(s, g, range(g.num_nodes), updates=None)
+    for _ in range(50):
+        s.update(None, None)
+    e = s.energy()
+    start = energy(st.prefix(st.num_frames), *_odometry_start(st))
+    assert e < 1.5 * opt < start  # the stochastic updates' fixed point is near the optimum
+    s.refine(20)
+    assert abs(s.energy() - opt) <= ONLINE_REFINED * opt
+
+
+def _odometry_start(st):  # type: ignore[no-untyped-def]
+    s = OnlineSolver()
+    for k in range(st.num_frames):
+        feed_frame(s, st, k)
+    return s.estimate()
+
+
+def test_first_gps_reading_after_many_poses_moves_the_map() -> None:
+    """The earth is the root from the start: the first pose stays put until GPS arrives."""
+    g = _graph(seed=2, n=40, gps=0)
+    st = make_stream(g)
+    s = OnlineSolver()
+    _stream(s, g, range(30), updates=None)
+    r0, t0 = s.pose(int(g.node_ids[st.order[0]]))
+    assert np.array_equal(r0, np.eye(3)) and np.array_equal(t0, np.zeros(3))
+    # GPS readings far away in the earth frame, taken from a shifted and turned copy of the map
+    _rot, trans = s.estimate()
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    shift = np.array([500.0, -200.0, 10.0])
+    ids = s.pose_ids()
+    for p in range(0, 30, 3):
+        s.add_gps(int(ids[p]), turn @ trans[p] + shift, 100.0 * np.eye(3))
+    e_before = s.energy()
+    _stream(s, g, range(30, 40), updates=None)
+    for _ in range(200):
+        s.update(None, None)
+    graph = s.to_graph()
+    opt = solve_exact(graph, None, None, GaussNewtonConfig(max_iterations=50)).final_energy
+    assert s.energy() < 2.0 * opt < e_before
+    # the first pose has moved into the earth frame (to the turned, shifted origin)
+    r_first, t_first = s.pose(int(ids[0]))
+    assert np.linalg.norm(t_first - shift) < 1.0
+    assert np.linalg.norm(r_first - turn) < 0.1
+
+
+def test_local_batch_is_the_whole_graph_batch_step_without_zero_blocks() -> None:
+    """With no node whose constraints are all in the set, batch_relax takes the same segmented
+    Woodbury solve: the local batch kernel must give the same poses exactly."""
+    g = _graph(seed=3)
+    a = OnlineSolver()
+    _stream(a, g, range(g.num_nodes))
+    b = OnlineSolver.__new__(OnlineSolver)
+    b.__dict__.update({k: (v.copy() if isinstance(v, np.ndarray) else v)
+                       for k, v in a.__dict__.items()})
+    b._problem = None
+    cs = np.array([3, 9, 17, 21], np.int64)
+    pa, sa = a._prob_state()
+    pb, sb = b._prob_state()
+    counts = np.zeros(ok.NUM_C, np.int64)
+    nu = ok.local_batch(pa, sa, cs, 0.7, 1e-6, np.uint64(2**63), a._model, a._slot, a._xb,
+                        a._nodes_buf, counts)
+    nu2 = _batch.batch_relax(pb, sb, cs, cs.shape[0], 0.7, 1e-6, b._slot, b._xb, b._nodes_buf)
+    assert nu == nu2 > 0
+    assert np.array_equal(a._rot, b._rot) and np.array_equal(a._trans, b._trans)
+    assert np.array_equal(a._bdiag, b._bdiag)
+
+
+def test_local_solve_runs_and_keeps_the_estimate_finite() -> None:
+    g = _graph(seed=4)
+    s = OnlineSolver(OnlineConfig(local_size=6))
+    st = make_stream(g)
+    moved = 0
+    for k in range(st.num_frames):
+        feed_frame(s, st, k)
+        moved += s.update(None, None).local_nodes
+    assert moved > 0 and np.isfinite(s.energy())
+
+
+# --------------------------------------------------------------------------- budget
+def test_update_stops_early_on_a_backlog() -> None:
+    g = _graph(n=120, extra=60)
+    st = make_stream(g)
+    s = OnlineSolver()
+    for k in range(st.num_frames):
+        feed_frame(s, st, k)
+    total = s.backlog
+    assert total == g.num_edges
+    r = s.update(None, 10)
+    assert (r.new, r.backlog, r.old) == (10, total - 10, 0)
+    r = s.update(1e-9)  # a budget nothing fits in: the first new constraint only
+    assert (r.new, r.backlog) == (1, total - 11)
+    assert r.skipped >= 1
+    r = s.update(None, None)
+    assert r.backlog == 0 and r.new == total - 11 and r.old > 0
+
+
+def test_arrays_grow_without_changing_results() -> None:
+    """Capacity doubling (edges, GPS, paths, queue) gives bit-identical results."""
+    g = _graph(seed=5, n=50, extra=30, gps=6)
+    small = OnlineSolver(OnlineConfig(reserve_poses=1))
+    big = OnlineSolver(OnlineConfig(reserve_poses=4096))
+    for s in (small, big):
+        _stream(s, g, range(g.num_nodes))
+    assert small._cap_n < big._cap_n
+    ra, ta = small.estimate()
+    rb, tb = big.estimate()
+    assert np.array_equal(ra, rb) and np.array_equal(ta, tb)
+    assert np.array_equal(small._chi2[: small.num_edges], big._chi2[: big.num_edges])
+
+
+# --------------------------------------------------------------------------- bad input
+def test_rejected_calls_change_nothing() -> None:
+    g = _graph(seed=6, gps=3)
+    st = make_stream(g)
+    ref = OnlineSolver()
+    s = OnlineSolver()
+    _stream(ref, g, range(20))
+    _stream(s, g, range(20))
+    before = _state(s)
+    ids = s.pose_ids()
+    z = (np.eye(3), np.ones(3))
+    bad_rot = (np.diag([1.0, 1.0, -1.0]), np.ones(3))
+    nan = (np.eye(3), np.array([0.0, np.nan, 0.0]))
+    not_spd = np.diag([1.0, 1, 1, 1, 1, -1])
+    asym = np.eye(6)
+    asym[0, 1] = 0.5
+    calls = [
+        lambda: s.add_constraint(int(ids[0]), 999_999, z, np.eye(6)),  # unknown pose
+        lambda: s.add_constraint(int(ids[1]), int(ids[1]), z, np.eye(6)),  # self loop
+        lambda: s.add_constraint(int(ids[0]), int(ids[2]), nan, np.eye(6)),
+        lambda: s.add_constraint(int(ids[0]), int(ids[2]), bad_rot, np.eye(6)),
+        lambda: s.add_constraint(int(ids[0]), int(ids[2]), z, not_spd),
+        lambda: s.add_constraint(int(ids[0]), int(ids[2]), z, asym),
+        lambda: s.add_constraint(int(ids[0]), int(ids[2]), z, np.full((6, 6), np.inf)),
+        lambda: s.add_constraint(int(ids[0]), int(ids[2]), np.eye(3), np.eye(6)),  # shape
+        lambda: s.add_pose(int(ids[3]), int(ids[2]), z, np.eye(6)),  # duplicate id
+        lambda: s.add_pose(123_456, 999_999, z, np.eye(6)),  # unknown parent
+        lambda: s.add_pose(123_456, None),  # a second map start
+        lambda: s.add_pose(123_456, int(ids[2]), z, -np.eye(6)),
+        lambda: s.add_pose(1.5, int(ids[2]), z, np.eye(6)),  # type: ignore[arg-type]
+        lambda: s.add_gps(999_999, [1.0, 2.0, 3.0], np.eye(3)),
+        lambda: s.add_gps(int(ids[4]), [1.0, np.inf, 3.0], np.eye(3)),
+        lambda: s.add_gps(int(ids[4]), [1.0, 2.0], np.eye(3)),
+        lambda: s.add_gps(int(ids[4]), [1.0, 2.0, 3.0], np.zeros((3, 3))),
+    ]
+    for call in calls:
+        with pytest.raises(GraphError):
+            call()
+        _same(before, _state(s))
+    _stream(ref, g, range(20, st.num_frames))
+    _stream(s, g, range(20, st.num_frames))
+    _same(_state(ref), _state(s), timing=False)
+
+
+# --------------------------------------------------------------------------- save / load
+def test_save_load_continue_is_bit_identical(tmp_path: Path) -> None:
+    g = _graph(seed=7, n=60, extra=30, gps=5)
+    st = make_stream(g)
+    ref = OnlineSolver(OnlineConfig(local_size=3, reserve_poses=8))
+    s = OnlineSolver(OnlineConfig(local_size=3, reserve_poses=8))
+    _stream(ref, g, range(25))
+    _stream(s, g, range(25))
+    feed_frame(s, st, 25)  # pending input is saved too
+    feed_frame(ref, st, 25)
+    path = tmp_path / "state.npz"
+    s.save(path)
+    assert [p.name for p in tmp_path.iterdir()] == ["state.npz"]  # no temporary left
+    t = OnlineSolver.load(path)
+    assert t.config == s.config
+    t.update(None, UPDATES)
+    ref.update(None, UPDATES)
+    _stream(t, g, range(26, st.num_frames))
+    _stream(ref, g, range(26, st.num_frames))
+    ra, ta = ref.estimate()
+    rb, tb = t.estimate()
+    assert np.array_equal(ra, rb) and np.array_equal(ta, tb)
+    assert ref.energy() == t.energy()
+    _same(_state(ref), _state(t), timing=False)
+
+
+def test_save_is_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    s = OnlineSolver()
+    _stream(s, _graph(), range(10))
+    path = tmp_path / "state.npz"
+    s.save(path)
+    good = path.read_bytes()
+
+    def boom(*args: object, **kwargs: object) -> None:
+        raise OSError("disk full")
+
+    monkeypatch.setattr(np, "savez", boom)
+    with pytest.raises(OSError, match="disk full"):
+        s.save(path)
+    assert path.read_bytes() == good
+    assert [p.name for p in tmp_path.iterdir()] == ["state.npz"]
+
+
+def test_load_rejects_truncated_and_foreign_files(tmp_path: Path) -> None:
+    s = OnlineSolver()
+    _stream(s, _graph(), range(10))
+    path = tmp_path / "state.npz"
+    s.save(path)
+    data = path.read_bytes()
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes(data[: len(data) // 2])
+    foreign = tmp_path / "foreign.npz"
+    np.savez(foreign, x=np.arange(3))
+    text = tmp_path / "text.npz"
+    text.write_text("hello\n")
+    for bad in (cut, foreign, text, tmp_path / "missing.npz"):
+        with pytest.raises(FormatError, match=rf"{bad.name}"):
+            OnlineSolver.load(bad)
+    # a state whose sizes disagree is caught too
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["ids"] = arrays["ids"][:-1]
+    broken = tmp_path / "broken.npz"
+    np.savez(broken, **arrays)
+    with pytest.raises(FormatError, match=r"broken\.npz"):
+        OnlineSolver.load(broken)
+    assert os.path.exists(path)
+
+
+def test_config_is_checked() -> None:
+    for bad in ({"tree": "bfs"}, {"tau_new": 0.0}, {"window": -1}, {"local_size": 65},
+                {"reserve_poses": 0}, {"step": "lu"}):
+        with pytest.raises(ValueError):
+            OnlineConfig(**bad)  # type: ignore[arg-type]
+
+
+def test_pending_poses_have_an_estimate() -> None:
+    g = _graph(seed=8)
+    st = make_stream(g)
+    s = OnlineSolver()
+    for k in range(5):
+        feed_frame(s, st, k)
+    _rot, trans = s.estimate()  # nothing placed yet: the odometry chain from the identity
+    c = int(st.odometry[1])
+    assert np.allclose(trans[1], g.edge_translations[c], atol=FLOAT64_IDENTITY, rtol=0)
+    _r4, t4 = s.pose(int(g.node_ids[st.order[4]]))
+    assert np.array_equal(t4, trans[4])
+
+
+# --------------------------------------------------------------------------- iSAM2
+def test_isam2_replay_reaches_the_optimum() -> None:
+    pytest.importorskip("gtsam")
+    from hybridpgo.replay import replay_isam2
+
+    g, _, _ = random_graph(np.random.default_rng(9), n=30, extra=15, noise=0.2)
+    st = make_stream(g)
+    opt = prefix_optima(st, [15, 30])
+    r = replay_isam2(st, checkpoints=[15, 30], extra_frames=3)
+    assert r.latency_s.shape == (30,)
+    assert r.checkpoints[15] == pytest.approx(opt[15], rel=ISAM2_VS_OPTIMUM)
+    assert r.checkpoints[30] > r.extra_energy[-1]  # one GN step per update: not there yet
+    assert r.extra_energy[-1] == pytest.approx(opt[30], rel=ISAM2_VS_OPTIMUM)
+
+
+# --------------------------------------------------------------------------- CLI
+def test_cli_replay_json(capsys: pytest.CaptureFixture[str], data_dir: Path) -> None:
+    import json
+
+    from hybridpgo.cli import main
+
+    rc = main(["replay", str(data_dir / "tinyGrid3D.g2o"), "--budget-ms", "5", "--every", "4",
+               "--extra-frames", "3", "--json", "--quiet"])
+    assert rc == 0
+    out = json.loads(capsys.readouterr().out)
+    r = out["solvers"]["hybridpgo"]
+    assert out["frames"] == r["frames"] == 9
+    assert set(out["optima"]) == {"4", "8", "9"}
+    assert len(r["extra_ratio"]) == 3 and r["latency_ms_max"] >= r["latency_ms_mean"] > 0
+
+
+def test_cli_replay_errors(capsys: pytest.CaptureFixture[str], tmp_path: Path,
+                           data_dir: Path) -> None:
+    from hybridpgo.cli import main
+
+    bad = tmp_path / "bad.g2o"
+    bad.write_text("VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 7 1 0 0 1 0 0 1 0 1\n")
+    assert main(["replay", str(bad)]) == 2
+    assert "bad.g2o" in capsys.readouterr().err
+    missing = tmp_path / "no" / "plots"
+    assert main(["replay", str(data_dir / "tinyGrid3D.g2o"), "--plot", str(missing)]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert main(["replay", str(data_dir / "tinyGrid3D.g2o"), "--budget-ms", "0"]) == 2
+
+
+def test_isam2_replay_time_cap() -> None:
+    pytest.importorskip("gtsam")
+    from hybridpgo.replay import replay_isam2
+
+    st = make_stream(_graph(seed=10, n=20, extra=5))
+    r = replay_isam2(st, checkpoints=[10, 20], extra_frames=3, max_seconds=0.0)
+    assert r.latency_s.shape == (1,) and r.info["frames_reached"] == 1
+    assert "stopped at frame 1" in r.name and r.extra_energy == []
+    assert set(r.checkpoints) == {1}
