@@ -277,7 +277,7 @@ def _fmt_length(metres: float) -> str:
 
 def _scale_bar(ax: Axes, span: float) -> float:
     """A horizontal scale bar in the lower left; returns its length (metres)."""
-    from mpl_toolkits.axes_grid1.anchored_artists import (  # type: ignore[import-untyped]
+    from mpl_toolkits.axes_grid1.anchored_artists import (
         AnchoredSizeBar,
     )
 

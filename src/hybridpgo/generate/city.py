@@ -554,4 +554,4 @@ def _p_loop_for_density(p: CityParams, rot: FloatArray, xy: FloatArray, tree: cK
     with_candidates = np.unique(owner).size / sample.size * eligible
     if with_candidates == 0:
         return 1.0
-    return min(1.0, p.loop_density * n / with_candidates)
+    return min(1.0, float(p.loop_density * n / with_candidates))

@@ -252,7 +252,7 @@ def write_g2o(graph: PoseGraph, path: PathLike) -> None:
     write_atomic(path, lambda: g2o_lines(graph, name))
 
 
-def g2o_lines(graph: PoseGraph, name: str) -> list[str]:
+def g2o_lines(graph: PoseGraph, name: str) -> Iterator[str]:
     """The lines :func:`write_g2o` writes (``name`` is used in messages)."""
     if graph.is_2d:
         if graph.num_gps:
