@@ -17,12 +17,12 @@ module                     paper
 
 from __future__ import annotations
 
+from ..._numba import cycles_per_second as cycles_per_second
 from ..config import HybridConfig as HybridConfig
 from .problem import StepKind as StepKind
 from .solver import STEP_KINDS as STEP_KINDS
 from .solver import HybridSolver as HybridSolver
 from .solver import StepReport as StepReport
-from ..._numba import cycles_per_second as cycles_per_second
 from .solver import solve_hybrid as solve_hybrid
 
 __all__ = ["STEP_KINDS", "HybridConfig", "HybridSolver", "StepKind", "StepReport",
