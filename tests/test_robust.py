@@ -411,7 +411,7 @@ def test_cli_robust_exact_reports_both_energies(capsys: pytest.CaptureFixture[st
     code, text, err = _cli(capsys, "optimize", data_dir / "tinyGrid3D.g2o", "-o", out,
                            "--robust", "huber", "--polish", "--sweeps", "2", "-q")
     assert code == 0, err
-    assert "robust kernel   huber, scale 1" in text and "plain energy" in text
+    assert "robust kernel   huber, scale 3" in text and "plain energy" in text  # its default
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -427,3 +427,20 @@ def test_cli_bad_robust_options(capsys: pytest.CaptureFixture[str], data_dir, tm
     assert code == 2
     assert message in err
     assert not out.exists()
+
+
+def test_default_scale_is_the_kernels() -> None:
+    """robust_scale=None means the kernel's documented default, in both configs and energy()."""
+    from hybridpgo._cost import ROBUST_DEFAULT_SCALE
+
+    rng = np.random.default_rng(21)
+    graph, _, _ = random_graph(rng, n=8, extra=4, gps=0, rot_scale=0.3)
+    for name in ("huber", "cauchy", "geman_mcclure"):
+        delta = ROBUST_DEFAULT_SCALE[name]
+        assert HybridConfig(robust=name).robust_delta == delta  # type: ignore[arg-type]
+        assert GaussNewtonConfig(robust=name).robust_delta == delta  # type: ignore[arg-type]
+        assert HybridConfig(robust=name, robust_scale=0.5).robust_delta == 0.5  # type: ignore[arg-type]
+        assert robust_energy(graph, robust=name) == robust_energy(graph, robust=name, scale=delta)
+        assert robust_energy(graph, robust=name) != robust_energy(graph, robust=name, scale=0.5)
+    res = solve_exact(graph, config=GaussNewtonConfig(robust="geman_mcclure", max_iterations=2))
+    assert res.stats["robust_scale"] == ROBUST_DEFAULT_SCALE["geman_mcclure"]

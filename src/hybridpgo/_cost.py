@@ -36,6 +36,22 @@ ROBUST_CAUCHY = 2
 ROBUST_GEMAN_MCCLURE = 3
 
 
+#: Default delta of each kernel (whitened units).  An inlier's χ² over 6 degrees of freedom is
+#: below 16.8 (delta ~ 4.1) 99% of the time; measured on M3500 with 0-1000 false loop closures
+#: (benchmarks/results/2026-11-23-outliers.md): Geman-McClure needs delta ~ 10 (delta 3 down-
+#: weights true loop closures: 1.12-1.18x the outlier-free position error even with no
+#: outliers; delta 10: 1.006-1.021x); Huber and Cauchy were measured at 3.
+ROBUST_DEFAULT_SCALE: dict[str, float] = {"none": 1.0, "huber": 3.0, "cauchy": 3.0,
+                                          "geman_mcclure": 10.0}
+
+
+def default_robust_scale(robust: str, scale: float | None) -> float:
+    """``scale``, or the default delta of the kernel ``robust`` when None."""
+    if scale is not None:
+        return scale
+    return ROBUST_DEFAULT_SCALE.get(robust, 1.0)  # an unknown name fails in robust_kind
+
+
 def robust_kind(name: str, scale: float) -> int:
     """The kernel code of a robust kernel's name; ValueError for a bad name or scale."""
     if name not in ROBUST_NAMES:

@@ -51,7 +51,7 @@ def energy(graph: PoseGraph, rotations: FloatArray | None = None,
 
 def robust_energy(graph: PoseGraph, rotations: FloatArray | None = None,
                   translations: FloatArray | None = None, robust: str = "none",
-                  scale: float = 1.0) -> tuple[float, float]:
+                  scale: float | None = None) -> tuple[float, float]:
     """``(E_rho, E)``: the robust and the plain energy at the given poses (DESIGN §10).
 
     Parameters
@@ -62,9 +62,11 @@ def robust_energy(graph: PoseGraph, rotations: FloatArray | None = None,
     robust : {"none", "huber", "cauchy", "geman_mcclure"}
         The kernel applied to each relative constraint's χ² ``s``; GPS constraints stay
         quadratic.  ``E_rho`` equals 2 x GTSAM's ``graph.error`` with the same kernel, k = scale.
-    scale : float
-        The kernel's delta (> 0), in units of the whitened error (sqrt of χ²).
+    scale : float, optional
+        The kernel's delta (> 0), in units of the whitened error (sqrt of χ²); default: the
+        kernel's (``hybridpgo._cost.ROBUST_DEFAULT_SCALE``).
     """
+    scale = _cost.default_robust_scale(robust, scale)
     kind = _cost.robust_kind(robust, scale)
     s, s_gps = constraint_energies(graph, rotations, translations)
     rho = np.empty_like(s)
@@ -75,11 +77,12 @@ def robust_energy(graph: PoseGraph, rotations: FloatArray | None = None,
 
 def robust_weights(graph: PoseGraph, rotations: FloatArray | None = None,
                    translations: FloatArray | None = None, robust: str = "none",
-                   scale: float = 1.0) -> tuple[FloatArray, FloatArray]:
+                   scale: float | None = None) -> tuple[FloatArray, FloatArray]:
     """``(rho (M,), w (M,))`` of every relative constraint: its robust cost ``rho(s_c)`` and
     IRLS weight ``w_c = rho'(s_c)`` at the given poses (1 for an inlier of Huber; a weight near
     0 marks a constraint the kernel treats as an outlier).  Parameters as :func:`robust_energy`.
     """
+    scale = _cost.default_robust_scale(robust, scale)
     kind = _cost.robust_kind(robust, scale)
     s, _ = constraint_energies(graph, rotations, translations)
     rho = np.empty_like(s)

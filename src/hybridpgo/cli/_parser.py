@@ -279,11 +279,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-iterations", type=_nonneg_int, metavar="N",
                    help=f"iteration limit of the exact solver (default {gn.max_iterations}) or of "
                         f"the polish (default {hy.polish_iterations})")
+    from ..solvers.config import ROBUST_DEFAULT_SCALE
+
     p.add_argument("--robust", type=_robust, metavar="NAME[:SCALE]",
                    help="robust kernel on the relative constraints (hybrid, its polish and "
                         "exact): none, huber, cauchy or geman_mcclure, with the scale delta in "
-                        "whitened units, e.g. cauchy:2 (default none; scale "
-                        f"{hy.robust_scale:g}); the energies shown are then the robust ones")
+                        "whitened units, e.g. cauchy:2 (default none; default scales: "
+                        + ", ".join(f"{k} {v:g}" for k, v in ROBUST_DEFAULT_SCALE.items()
+                                    if k != "none")
+                        + "); the energies shown are then the robust ones")
     p.add_argument("--plot", metavar="PREFIX",
                    help="also write PREFIX_before.png, PREFIX_after.png and PREFIX_energy.png "
                         "(needs matplotlib: pip install hybridpgo[plot])")

@@ -11,8 +11,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal, NamedTuple, get_args
 
+from .._cost import ROBUST_DEFAULT_SCALE as ROBUST_DEFAULT_SCALE
 from .._cost import ROBUST_NAMES as ROBUST_NAMES
-from .._cost import robust_kind
+from .._cost import default_robust_scale, robust_kind
 
 if TYPE_CHECKING:
     from ..graph import PoseGraph
@@ -108,9 +109,16 @@ class GaussNewtonConfig:
     SuperLU)."""
     robust: RobustName = "none"
     """Robust kernel (see ``HybridConfig.robust``); the LM acceptance test uses E_rho."""
-    robust_scale: float = 1.0
+    robust_scale: float | None = None
     """The kernel's delta (> 0) in whitened units (sqrt of χ²): Huber is quadratic for
-    ``s <= delta^2``.  GTSAM's ``mEstimator.*(k)`` with ``k = delta`` is the same kernel."""
+    ``s <= delta^2``.  GTSAM's ``mEstimator.*(k)`` with ``k = delta`` is the same kernel.
+    None: the kernel's default (:data:`ROBUST_DEFAULT_SCALE`); the value used is
+    :attr:`robust_delta`."""
+
+    @property
+    def robust_delta(self) -> float:
+        """The robust kernel's delta: ``robust_scale``, or the kernel's default."""
+        return default_robust_scale(self.robust, self.robust_scale)
 
     def __post_init__(self) -> None:
         if self.method not in ("gn", "lm"):
@@ -125,7 +133,7 @@ class GaussNewtonConfig:
         if self.linear_solver not in LINEAR_SOLVERS:
             raise ValueError(f"linear_solver must be one of {', '.join(LINEAR_SOLVERS)}, "
                              f"got {self.linear_solver!r}")
-        robust_kind(self.robust, self.robust_scale)
+        robust_kind(self.robust, self.robust_delta)
 
 
 #: Most sweeps one run may ask for (a sweep visits every constraint once; the paper runs 10).
@@ -175,8 +183,14 @@ class HybridConfig:
     quadratic) by iterative reweighting: each step whitens with ``sqrt(w_c) L^T``,
     ``w_c = rho'(s_c)`` at the current poses.  ``energy_history`` is then E_rho and
     ``stats["plain_energy_history"]`` the plain E.  The polish uses the same kernel."""
-    robust_scale: float = 1.0
-    """The kernel's delta (> 0) in whitened units (sqrt of χ²), as g2o's (default 1)."""
+    robust_scale: float | None = None
+    """The kernel's delta (> 0) in whitened units (sqrt of χ²); None: the kernel's default
+    (:data:`ROBUST_DEFAULT_SCALE`).  The value used is :attr:`robust_delta`."""
+
+    @property
+    def robust_delta(self) -> float:
+        """The robust kernel's delta: ``robust_scale``, or the kernel's default."""
+        return default_robust_scale(self.robust, self.robust_scale)
 
     def __post_init__(self) -> None:
         _check_int("sweeps", self.sweeps, 0)
@@ -201,7 +215,7 @@ class HybridConfig:
         if not isinstance(self.polish, bool):
             raise ValueError(f"polish must be True or False, got {self.polish!r}")
         _check_int("polish_iterations", self.polish_iterations, 0)
-        robust_kind(self.robust, self.robust_scale)
+        robust_kind(self.robust, self.robust_delta)
 
 
 def default_init(graph: PoseGraph, method: str) -> InitName:

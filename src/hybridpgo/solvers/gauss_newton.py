@@ -437,7 +437,7 @@ class _Run:
                    trans, np.empty(pat.nnz), np.empty(pat.dim), np.empty_like(rot),
                    np.empty_like(trans), planar,
                    {"assemble": 0.0, "factorize": 0.0, "energy": 0.0},
-                   (_cost.robust_kind(cfg.robust, cfg.robust_scale), float(cfg.robust_scale)))
+                   (_cost.robust_kind(cfg.robust, cfg.robust_delta), float(cfg.robust_delta)))
 
     def assemble(self) -> float:
         """H and g at the current poses; returns E (E_rho) there, the plain E in ``plain``."""
@@ -633,7 +633,7 @@ def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
     t_total = time.perf_counter() - t_start
     robust_stats: dict[str, Any] = {}
     if run.robust[0] != _cost.ROBUST_NONE:
-        robust_stats = {"robust": cfg.robust, "robust_scale": cfg.robust_scale,
+        robust_stats = {"robust": cfg.robust, "robust_scale": cfg.robust_delta,
                         "plain_energy": plain_history[-1],
                         "plain_energy_history": plain_history}
     return SolveResult(

@@ -91,7 +91,7 @@ class HybridSolver:
             graph.gps_positions, _whitening(graph.gps_information, 3),
             np.bincount(tree.path_node, minlength=tree.num_tree_nodes).astype(np.int64),
             tree.parent, _link_constraints(tree, graph.num_edges), tree.link_forward,
-            robust_kind(cfg.robust, cfg.robust_scale), float(cfg.robust_scale),
+            robust_kind(cfg.robust, cfg.robust_delta), float(cfg.robust_delta),
         )  # fmt: skip
         self.state = State(  # copies: the sweeps change them in place
             np.array(rot0, np.float64, order="C"), np.array(trans0, np.float64, order="C"),
@@ -131,7 +131,7 @@ class HybridSolver:
             e = energy(self.graph, *self.poses())
             return e, e
         return robust_energy(self.graph, *self.poses(), self.config.robust,
-                             self.config.robust_scale)
+                             self.config.robust_delta)
 
     # ----------------------------------------------------------------- updates
     def _sweep(self, order: npt.NDArray[Any], tau: float, deadline: int,
@@ -293,7 +293,7 @@ class HybridSolver:
             "step": cfg.step,
         }
         if plain:
-            stats.update(robust=cfg.robust, robust_scale=cfg.robust_scale,
+            stats.update(robust=cfg.robust, robust_scale=cfg.robust_delta,
                          plain_energy=plain[-1], plain_energy_history=plain)
         return SolveResult(
             rotations=rot, translations=trans, status=status, iterations=done,
