@@ -74,7 +74,7 @@ def _doc(obj: Any) -> str:
     doc = inspect.getdoc(obj)
     if not doc or not doc.strip():
         return "*(no docstring)*"
-    head, sep, rest = doc.strip().partition("\n\n")
+    head, _, rest = doc.strip().partition("\n\n")
     if head.lstrip().startswith(">>>"):  # the docstring opens with an example
         head, rest = "", doc.strip()
     out = " ".join(head.split())
