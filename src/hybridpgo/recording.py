@@ -58,12 +58,13 @@ def rerun_available() -> bool:
 def residual_colors(chi2: FloatArray) -> npt.NDArray[np.uint8]:
     """(k, 3) uint8 colours of χ² values on their own log scale (brown low, red high)."""
     k = chi2.shape[0]
-    if k == 0:
-        return np.zeros((0, 3), np.uint8)
-    logs = np.log10(np.maximum(np.where(np.isfinite(chi2), chi2, np.finfo(float).max), 1e-300))
-    hi = float(logs.max())
-    lo = max(float(np.min(logs)), hi - 6.0)  # six decades at most, as a readable scale
-    level = np.clip((logs - lo) / (hi - lo), 0.0, 1.0) if hi > lo else np.ones(k)
+    finite = np.isfinite(chi2)
+    level = np.ones(k)  # a non-finite chi2 is drawn at the top of the scale
+    if finite.any():
+        logs = np.log10(np.maximum(chi2[finite], 1e-300))
+        hi = float(logs.max())
+        lo = max(float(logs.min()), hi - 6.0)  # six decades at most, as a readable scale
+        level[finite] = np.clip((logs - lo) / (hi - lo), 0.0, 1.0) if hi > lo else 1.0
     rgb = _LOW[None, :] + level[:, None] * (_HIGH - _LOW)[None, :]
     return np.asarray(np.rint(rgb), np.uint8)
 
