@@ -91,6 +91,22 @@ def test_info_residuals_with_gps_to_stdout(capsys: pytest.CaptureFixture[str],
     assert "worst chi2" in err  # the report went to stderr, the CSV to stdout
 
 
+def test_info_residuals_of_a_file_without_vertices(capsys: pytest.CaptureFixture[str],
+                                                  tiny: Path, tmp_path: Path) -> None:
+    from hybridpgo.tree import build_tree, global_poses, initial_locals
+
+    isam = tmp_path / "tiny.txt"
+    assert run_cli(capsys, "convert", tiny, isam)[0] == 0
+    code, out, err = run_cli(capsys, "info", isam, "--json")
+    assert code == 0, err
+    info = json.loads(out)
+    graph = read_graph(isam)
+    tree = build_tree(graph, "bfs")
+    res = residuals(graph, *global_poses(tree, *initial_locals(graph, tree, "tree")))
+    assert info["residuals_at"] == "tree"
+    assert info["worst"][0]["chi2"] == float(res.edge_chi2.max())
+
+
 def test_info_residuals_may_not_overwrite_the_input(capsys: pytest.CaptureFixture[str],
                                                     tiny: Path) -> None:
     code, _, err = run_cli(capsys, "info", tiny, "--residuals", tiny)
