@@ -8,13 +8,14 @@
 
 The public names load lazily, so ``import hybridpgo`` (and ``hybridpgo --help``) stays fast;
 Numba and SciPy load when a solver or reader is first used.
+
+``hybridpgo.energy`` is the module :mod:`hybridpgo.energy` (``residuals``, ``robust_energy``,
+...); calling it, ``hybridpgo.energy(graph)``, returns the energy :func:`hybridpgo.energy.energy`.
 """
 
 from __future__ import annotations
 
 import importlib
-import sys
-import types
 from typing import TYPE_CHECKING, Any
 
 from .errors import FormatError as FormatError
@@ -24,8 +25,9 @@ from .errors import SolverError as SolverError
 
 __version__ = "0.1.0"
 
+#: Submodules that are public names themselves (loaded lazily like the functions).
+_MODULES = {"energy": ".energy"}
 _LAZY = {
-    "energy": ".energy",
     "PoseGraph": ".graph",
     "read_graph": ".io",
     "write_graph": ".io",
@@ -38,27 +40,11 @@ _LAZY = {
     "OnlineConfig": ".solvers.online",
 }
 
-__all__ = ["FormatError", "GraphError", "HybridPGOError", "SolverError", *_LAZY]
+__all__ = ["FormatError", "GraphError", "HybridPGOError", "SolverError", *_MODULES, *_LAZY]
 
-
-class _Package(types.ModuleType):
-    """``energy`` names both a submodule and the function: when the submodule is imported the
-    import system binds it as ``hybridpgo.energy``; keep the lazily loaded function instead.
-
-    Loading the function lazily keeps ``import hybridpgo`` free of Numba, so the command line
-    enters its error boundary (Ctrl-C -> "interrupted", exit 130) before any heavy import.
-    """
-
-    def __setattr__(self, name: str, value: Any) -> None:
-        if name in _LAZY and isinstance(value, types.ModuleType):
-            return
-        super().__setattr__(name, value)
-
-
-sys.modules[__name__].__class__ = _Package
 
 if TYPE_CHECKING:
-    from .energy import energy as energy
+    from . import energy as energy
     from .graph import PoseGraph as PoseGraph
     from .io import read_graph as read_graph
     from .io import write_graph as write_graph
@@ -72,6 +58,8 @@ if TYPE_CHECKING:
 
 
 def __getattr__(name: str) -> Any:
+    if name in _MODULES:  # the import system binds the submodule as an attribute itself
+        return importlib.import_module(_MODULES[name], __name__)
     if name in _LAZY:
         value = getattr(importlib.import_module(_LAZY[name], __name__), name)
         globals()[name] = value

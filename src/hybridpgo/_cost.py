@@ -224,6 +224,22 @@ def constraint_energies(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarr
 
 
 @kernel
+def constraint_errors(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarray,
+                      edge_rot: np.ndarray, edge_trans: np.ndarray, gps_nodes: np.ndarray,
+                      gps_pos: np.ndarray, out_rel: np.ndarray, out_gps: np.ndarray) -> None:
+    """Error vectors of every relative (M, 6) and position (G, 3) constraint at global poses:
+    the ``e`` whose χ² :func:`constraint_energies` sums (not a hot path: reporting only)."""
+    ws = np.empty((3, 3, 3))
+    for c in range(edge_nodes.shape[0]):
+        a = edge_nodes[c, 0]
+        b = edge_nodes[c, 1]
+        relative_residual(edge_rot[c], edge_trans[c], rot[a], trans[a], rot[b], trans[b],
+                          out_rel[c], ws)
+    for c in range(gps_nodes.shape[0]):
+        gps_residual(trans[gps_nodes[c]], gps_pos[c], out_gps[c])
+
+
+@kernel
 def total_energy(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarray,
                  edge_rot: np.ndarray, edge_trans: np.ndarray, edge_info: np.ndarray,
                  gps_nodes: np.ndarray, gps_pos: np.ndarray, gps_info: np.ndarray) -> float:

@@ -17,14 +17,24 @@ Cost: one sparse Cholesky factorization of H (as one exact-solver iteration), th
 pose one triangular solve with 6 unit right-hand sides (``~12 nnz(L)`` flops; CHOLMOD:
 ``Y = L^-1 P E_i``, block ``= Y^T Y``) -- the inverse is never formed.  Suited to a selection of
 poses; all N blocks would cost N such solves.
+
+:func:`save_covariances` writes them as ``.npz`` (the layout of ``optimize --covariance``).
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
+import stat
+import tempfile
+from typing import IO
+
 import numpy as np
 import numpy.typing as npt
 
+from .errors import FormatError
 from .graph import FloatArray, PoseGraph
+from .io._lines import _UMASK
 from .solvers._linear import _make_factorizer
 from .solvers.gauss_newton import (
     _analyze,
@@ -35,7 +45,11 @@ from .solvers.gauss_newton import (
     default_fixed_nodes,
 )
 
-__all__ = ["marginal_covariances"]
+__all__ = ["TANGENT_LABELS", "marginal_covariances", "save_covariances"]
+
+#: The tangent order of every 6x6 covariance: translation (rho: x, y, z in metres), then rotation
+#: (phi: x, y, z in radians), of the right perturbation ``X Exp(delta)`` in the pose's own frame.
+TANGENT_LABELS = ("tx", "ty", "tz", "rx", "ry", "rz")
 
 
 def marginal_covariances(graph: PoseGraph, rotations: FloatArray | None,
@@ -95,3 +109,64 @@ def marginal_covariances(graph: PoseGraph, rotations: FloatArray | None,
     index = 6 * var[free][:, None] + np.arange(6, dtype=np.int64)[None, :]
     out[free] = factorizer.inverse_blocks(index)
     return out
+
+
+def save_covariances(path: str | os.PathLike[str], ids: npt.ArrayLike,
+                     covariances: npt.ArrayLike, *, fixed_ids: npt.ArrayLike = ()) -> None:
+    """Write covariances as an ``.npz`` archive, atomically (temporary file, then rename).
+
+    The archive holds ``ids`` (k,) int64 file ids of the poses; ``cov`` (k, 6, 6) float64, the
+    covariance of ``delta`` in ``X Exp(delta)`` in tangent order ``tangent`` (``TANGENT_LABELS``:
+    tx ty tz rx ry rz, metres and radians); ``fixed_ids`` (f,) int64, the poses the gauge
+    holds fixed (their covariance is 0; empty when GPS anchors the earth frame).  Read it with
+    ``numpy.load(path)`` (no pickle needed).
+
+    Raises
+    ------
+    ValueError
+        Shapes that do not match.
+    FormatError
+        The file cannot be written (nothing is left behind).
+    """
+    ids_arr = np.asarray(ids, np.int64)
+    cov = np.asarray(covariances, np.float64)
+    if ids_arr.ndim != 1 or cov.shape != (ids_arr.shape[0], 6, 6):
+        raise ValueError(f"need ids (k,) and covariances (k, 6, 6), got {ids_arr.shape} and "
+                         f"{cov.shape}")
+    name = os.fspath(path)
+    fixed = np.asarray(fixed_ids, np.int64).reshape(-1)
+
+    def dump(fh: IO[bytes]) -> None:
+        np.savez(fh, ids=ids_arr, cov=cov, tangent=np.array(TANGENT_LABELS), fixed_ids=fixed)
+
+    target = os.path.realpath(name)  # a symbolic link is written through, as the graph writers
+    try:
+        mode: int | None = os.stat(target).st_mode
+    except FileNotFoundError:
+        mode = None
+    except OSError as exc:
+        raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
+    try:
+        if mode is not None and (stat.S_ISFIFO(mode) or stat.S_ISCHR(mode)):
+            with open(target, "wb") as fh:  # a pipe or /dev/null: cannot be replaced
+                dump(fh)
+            return
+        if mode is not None and not stat.S_ISREG(mode):
+            raise FormatError("cannot write the file: not a regular file, FIFO or device", name)
+    except OSError as exc:
+        raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
+    tmp = ""
+    try:
+        fd, tmp = tempfile.mkstemp(dir=os.path.dirname(target) or ".", prefix=".hybridpgo-",
+                                   suffix=".npz")
+        with os.fdopen(fd, "wb") as fh:
+            dump(fh)
+        os.chmod(tmp, stat.S_IMODE(mode) if mode is not None else 0o666 & ~_UMASK)
+        os.replace(tmp, target)
+        tmp = ""
+    except OSError as exc:
+        raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
+    finally:
+        if tmp:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)

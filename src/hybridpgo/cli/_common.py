@@ -224,12 +224,17 @@ def command_files(args: Any) -> tuple[list[str], list[Output]]:
     :func:`check_outputs`).  ``generate`` and ``demo`` check their own outputs."""
     cmd = args.command
     if cmd == "info":
-        return [args.file], []
+        res = getattr(args, "residuals", None)
+        return [args.file], ([] if res is None else [Output(res, "--residuals", stdout_ok=True)])
     if cmd == "optimize":
         outs = [Output(args.output, "-o/--output", stdout_ok=True)]
         if args.plot is not None:
             outs += [Output(f"{args.plot}_{k}.png", "--plot") for k in ("before", "after",
                                                                         "energy")]
+        if getattr(args, "covariance", None) is not None:
+            outs.append(Output(args.covariance, "--covariance"))
+        if getattr(args, "rerun", None) is not None:
+            outs.append(Output(args.rerun, "--rerun"))
         return [args.file], outs
     if cmd in ("convert", "noisify"):
         option = "OUT" if cmd == "convert" else "-o/--output"

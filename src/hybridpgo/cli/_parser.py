@@ -113,11 +113,39 @@ _tau = _number(float, lambda v: 0 < v < MAX_TAU, f"a number in (0, {MAX_TAU:g})"
 MAX_DPI = 600
 _dpi = _number(int, lambda v: 1 <= v <= MAX_DPI, f"an integer in 1..{MAX_DPI}")
 
+#: Largest graph whose every pose ``optimize --covariance`` computes by default; larger graphs
+#: need --covariance-poses.  Each pose costs one triangular solve with 6 right-hand sides, so
+#: all N grow faster than N: measured (CHOLMOD, a loaded 2-core machine) 24 s for all 3500
+#: poses of an M3500-like grid, 144 s for a 10 000-pose city, 1-1.5 s for 100 poses of either.
+COVARIANCE_ALL_MAX = 2000
+
 #: How outputs are written, for the help of every command that writes a file.
 OUTPUT_HELP = ("Outputs are checked before any work and written atomically (temporary file, then "
                "rename), so a command writes all its files or none; an output may not be one of "
                "the inputs.  A symbolic link is written through (its target is replaced, the "
                "link kept); a FIFO or character device (/dev/null) is written directly.")
+
+
+def _pose_ids(text: str) -> tuple[int, ...] | str:
+    """``--covariance-poses``: ``all``, or ids and inclusive ranges ``A..B``, comma-separated."""
+    if text.strip() == "all":
+        return "all"
+    ids: list[int] = []
+    for part in text.split(","):
+        lo, sep, hi = part.strip().partition("..")
+        try:
+            first = int(lo)
+            last = int(hi) if sep else first
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"must be 'all' or pose ids and ranges like 0,5,10..20, got {text!r}") from None
+        if last < first or last - first >= 100_000_000:
+            raise argparse.ArgumentTypeError(f"bad range {part.strip()!r} in {text!r}")
+        ids.extend(range(first, last + 1))
+    return tuple(dict.fromkeys(ids))
+
+
+_pose_ids.__name__ = "IDS"
 
 
 _probability = _number(float, lambda v: 0 <= v <= 1, "a number in [0, 1]")
@@ -209,8 +237,10 @@ def build_parser() -> argparse.ArgumentParser:
     # ---------------------------------------------------------------- info
     p = sub.add_parser("info", help="counts, tree statistics and energies of a graph file",
                        description="Counts by constraint type, dimension, pose-tree depth and "
-                                   "constraint path lengths, and the energy at the file's "
-                                   "vertices and at the tree initialization.")
+                                   "constraint path lengths, the energy at the file's "
+                                   "vertices and at the tree initialization, and the "
+                                   "five constraints with the largest chi2.",
+                       epilog=OUTPUT_HELP)
     p.add_argument("file", help="pose-graph file (g2o, TORO or iSAM; '-': standard input)")
     _add_format(p)
     p.add_argument("--tree", choices=LazyChoices(_trees), default="bfs",
@@ -218,6 +248,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--skip-unknown", action="store_true",
                    help="skip lines with unsupported tags (one warning) instead of failing")
     p.add_argument("--json", action="store_true", help="print a JSON object instead of text")
+    p.add_argument("--residuals", metavar="CSV",
+                   help="write every constraint's error to CSV (at the file's vertices, or the "
+                        "tree initialization when it has none): columns kind (edge or gps), "
+                        "index (among that kind, in file order; lines dropped while reading "
+                        "are not counted), id_a, id_b, chi2, the error e_tx e_ty e_tz e_rx "
+                        "e_ry e_rz (tangent order translation, rotation; metres, radians) and "
+                        "the whitened error w1..w6 (L^T e with Omega = L L^T); '-': standard "
+                        "output")
     _add_common(p)
     p.set_defaults(command="info")
 
@@ -291,6 +329,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plot", metavar="PREFIX",
                    help="also write PREFIX_before.png, PREFIX_after.png and PREFIX_energy.png "
                         "(needs matplotlib: pip install hybridpgo[plot])")
+    p.add_argument("--covariance", metavar="NPZ",
+                   help="also write the marginal covariances of the poses at the solution "
+                        "(Laplace approximation, from a sparse Cholesky factor; the gauge as "
+                        "the exact solver's; a robust kernel's weights are not applied) to NPZ: "
+                        "ids (k,), cov (k, 6, 6) in tangent order tx ty tz rx ry rz (metres, "
+                        "radians; the right perturbation in the pose's frame), fixed_ids")
+    p.add_argument("--covariance-poses", type=_pose_ids, metavar="IDS",
+                   help="the poses of --covariance: 'all', or ids and ranges like 0,5,10..20 "
+                        f"(default: all when the graph has at most {COVARIANCE_ALL_MAX} poses)")
+    p.add_argument("--rerun", metavar="RRD",
+                   help="record the poses and residuals after every sweep and polish (or exact) "
+                        "iteration to RRD, to scrub through in the Rerun viewer ('rerun RRD'; "
+                        "needs: pip install hybridpgo[rerun]; not for --solver toro)")
     p.add_argument("--skip-unknown", action="store_true",
                    help="skip lines with unsupported tags (one warning) instead of failing")
     p.add_argument("--json", action="store_true",

@@ -46,6 +46,47 @@ class Job:
     """When matplotlib is missing: skip the plots with a note instead of failing (demo)."""
     skip_unknown: bool = False
     quiet: bool = False
+    covariance: str | None = None
+    """``--covariance``: where to write the poses' marginal covariances (.npz)."""
+    covariance_poses: tuple[int, ...] | str | None = None
+    """``--covariance-poses``: file ids, ``"all"``, or None (all up to COVARIANCE_ALL_MAX)."""
+    rerun: str | None = None
+    """``--rerun``: where to record the run for the Rerun viewer (.rrd)."""
+
+
+def _covariance_nodes(job: Job, graph: PoseGraph) -> Any:
+    """Dense indices of the poses of ``--covariance`` (checked before the solve), or None."""
+    import numpy as np
+
+    from ._parser import COVARIANCE_ALL_MAX
+
+    if job.covariance is None:
+        if job.covariance_poses is not None:
+            raise HybridPGOError("--covariance-poses: give --covariance NPZ too")
+        return None
+    sel = job.covariance_poses
+    if sel is None and graph.num_nodes > COVARIANCE_ALL_MAX:
+        raise HybridPGOError(f"--covariance: {job.input} has {graph.num_nodes} poses (more than "
+                             f"{COVARIANCE_ALL_MAX}): choose them with --covariance-poses "
+                             "(e.g. 0,100..200, or all)")
+    if sel is None or isinstance(sel, str):  # None or "all"
+        return np.arange(graph.num_nodes)
+    index = graph.index_from_id()
+    missing = [i for i in sel if i not in index]
+    if missing:
+        raise HybridPGOError(f"--covariance-poses {missing[0]}: {job.input} has no pose with id "
+                             f"{missing[0]} (ids {int(graph.node_ids[0])}.."
+                             f"{int(graph.node_ids[-1])})")
+    return np.array([index[i] for i in sel], np.int64)
+
+
+def _covariances(job: Job, graph: PoseGraph, result: SolveResult, nodes: Any) -> Any:
+    """The marginal covariances of ``nodes`` at the solution, under a visible phase."""
+    from ..covariance import marginal_covariances
+    from ._progress import phase
+
+    with phase(f"covariances of {len(nodes)} poses", enabled=not job.quiet):
+        return marginal_covariances(graph, result.rotations, result.translations, nodes)
 
 
 def _check_options(job: Job, graph: PoseGraph) -> str:
@@ -139,7 +180,46 @@ def _compile_kernels(job: Job) -> None:
             ensure_exact()
 
 
-def _solve(job: Job, graph: PoseGraph, config: SolverConfig, init: str) -> SolveResult:
+def _recorder(job: Job, graph: PoseGraph) -> Any:
+    """The ``--rerun`` recorder (checked before the solve), or None."""
+    if job.rerun is None:
+        return None
+    if job.solver == "toro":
+        raise HybridPGOError("--rerun: records the hybrid and exact solvers, not --solver toro")
+    from ..recording import RerunRecorder, rerun_available
+
+    if not rerun_available():
+        raise HybridPGOError("--rerun needs rerun-sdk, which is not installed: "
+                             "pip install hybridpgo[rerun]")
+    return RerunRecorder(graph, job.rerun, name=os.path.basename(job.input))
+
+
+def _optimize(graph: PoseGraph, config: SolverConfig, progress: Any, init: str | None,
+              tree: str | None, iterate: Any) -> SolveResult:
+    """:func:`hybridpgo.optimize`, or with ``iterate`` (``--rerun``) the solver it would run."""
+    from ..solvers import HybridConfig, optimize, solve_hybrid
+
+    if iterate is None:
+        return optimize(graph, config, progress=progress, init=init, tree=tree)
+    if isinstance(config, HybridConfig):
+        return solve_hybrid(graph, config, progress=progress, iterate=iterate)
+    from ..solvers import GaussNewtonConfig, default_init
+    from ..solvers.gauss_newton import solve_exact
+    from ..tree import build_tree, global_poses, initial_locals
+
+    assert isinstance(config, GaussNewtonConfig)  # --rerun refuses --solver toro
+    start = init or default_init(graph, "exact")  # the start optimize() gives the exact solver
+    if start == "file" and not graph.has_estimates:
+        start = "tree"
+    rot = trans = None
+    if start != "file":
+        t = build_tree(graph, tree or "bfs")
+        rot, trans = global_poses(t, *initial_locals(graph, t, start))
+    return solve_exact(graph, rot, trans, config, progress=progress, iterate=iterate)
+
+
+def _solve(job: Job, graph: PoseGraph, config: SolverConfig, init: str,
+           recorder: Any = None) -> SolveResult:
     from ..solvers import HybridConfig, Progress, ToroConfig, optimize
 
     nc = graph.num_constraints
@@ -159,13 +239,13 @@ def _solve(job: Job, graph: PoseGraph, config: SolverConfig, init: str) -> Solve
                 bar.update(p.iteration, p.energy, p.tau, note)
 
         try:
-            return optimize(graph, config, progress=report)
+            return _optimize(graph, config, report, None, None, recorder)
         finally:
             bar.close()
     bar = ProgressBar("exact LM", config.max_iterations, nc, enabled=not job.quiet)
     try:
-        return optimize(graph, config, progress=lambda p: bar.update(p.iteration, p.energy),
-                        init=init, tree=job.options.get("tree") or "bfs")
+        return _optimize(graph, config, lambda p: bar.update(p.iteration, p.energy), init,
+                         job.options.get("tree") or "bfs", recorder)
     finally:
         bar.close()
 
@@ -182,17 +262,34 @@ def run_job(job: Job) -> dict[str, Any]:
         raise HybridPGOError(f"{job.output}: the TORO format cannot store GPS constraints; "
                              "write g2o (--out-format g2o)")
     _check_writable(job.output)
+    cov_nodes = _covariance_nodes(job, graph)
     plots = _plots_possible(job)
     if not job.quiet:
         log(f"read {job.input} ({describe_graph(graph)}) in {t_read:.2f} s")
     _compile_kernels(job)
 
-    result = _solve(job, graph, config, init)
+    recorder = _recorder(job, graph)
+    try:
+        result = _solve(job, graph, config, init, recorder)
+        cov = None if cov_nodes is None else _covariances(job, graph, result, cov_nodes)
+    except BaseException:
+        if recorder is not None:
+            recorder.abort()
+        raise
 
     from ..io import write_graph
 
     t0 = time.perf_counter()
     write_graph(graph.with_poses(result.rotations, result.translations), job.output, out_fmt)
+    if recorder is not None:
+        recorder.close()
+    if cov is not None:
+        from ..covariance import save_covariances
+        from ..solvers.gauss_newton import default_fixed_nodes
+
+        assert job.covariance is not None
+        save_covariances(job.covariance, graph.node_ids[cov_nodes], cov,
+                         fixed_ids=graph.node_ids[default_fixed_nodes(graph)])
     t_write = time.perf_counter() - t0
     written_plots: list[str] = []
     if plots:
@@ -220,6 +317,10 @@ def run_job(job: Job) -> dict[str, Any]:
         "time_read": t_read,
         "time_write": t_write,
         "plots": written_plots,
+        "covariance": None if cov is None else {"path": job.covariance,
+                                                "poses": int(cov.shape[0])},
+        "rerun": None if recorder is None else {"path": job.rerun,
+                                                "iterations": recorder.frames},
         "result": summary,
     }
 
@@ -301,6 +402,12 @@ def print_summary(s: dict[str, Any]) -> None:
     rows.append(("output", f"{s['output']['path']} ({s['output']['format']})"))
     for path in s["plots"]:
         rows.append(("plot", path))
+    if s.get("rerun"):
+        rows.append(("rerun", f"{s['rerun']['path']} ({s['rerun']['iterations']} iterations "
+                              "recorded; open with: rerun FILE)"))
+    if s.get("covariance"):
+        rows.append(("covariance", f"{s['covariance']['path']} ({s['covariance']['poses']} "
+                                   "poses, 6x6 each, tangent order tx ty tz rx ry rz)"))
     print_table(rows)
 
 
@@ -326,7 +433,9 @@ def options_from_args(args: argparse.Namespace) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> int:
     job = Job(input=args.file, output=args.output, solver=args.solver,
               options=options_from_args(args), fmt=args.format, out_format=args.out_format,
-              plot_prefix=args.plot, skip_unknown=args.skip_unknown, quiet=args.quiet)
+              plot_prefix=args.plot, skip_unknown=args.skip_unknown, quiet=args.quiet,
+              covariance=args.covariance, covariance_poses=args.covariance_poses,
+              rerun=args.rerun)
     summary = run_job(job)
     if args.json:
         print_json(summary)

@@ -23,6 +23,7 @@ iteration.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,6 +39,11 @@ from ._linear import NotPositiveDefinite, _fill_reducing_order, _make_factorizer
 from ._linear import _cholmod_available as _cholmod_available  # re-exported for the tests
 from .config import GaussNewtonConfig, Progress, ProgressCallback
 from .result import SolveResult, Status
+
+#: ``iterate(Progress, rotations, translations)``: the current global poses after every
+#: iteration, right after the progress callback (for recorders such as ``optimize --rerun``;
+#: the arrays may be the solver's own: copy what you keep, never modify them).
+IterateCallback = Callable[[Progress, FloatArray, FloatArray], None]
 
 __all__ = ["NormalEquations", "default_fixed_nodes", "gn_step", "normal_equations", "solve_exact"]
 
@@ -537,7 +543,8 @@ def _gn_accept(cfg: GaussNewtonConfig, e_cur: float, e_new: float, iteration: in
 def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
                 translations: FloatArray | None = None,
                 config: GaussNewtonConfig | None = None, *,
-                progress: ProgressCallback | None = None) -> SolveResult:
+                progress: ProgressCallback | None = None,
+                iterate: IterateCallback | None = None) -> SolveResult:
     """Minimize E with sparse Gauss-Newton or Levenberg-Marquardt (DESIGN §7).
 
     Parameters
@@ -550,6 +557,9 @@ def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
     progress : callable, optional
         ``progress(Progress("exact", iteration, max_iterations, energy))`` after every
         iteration (iteration 0: the start).
+    iterate : callable, optional
+        ``iterate(Progress, rotations, translations)`` with the current poses, at the same
+        points as ``progress`` (:data:`IterateCallback`).
 
     Returns
     -------
@@ -580,6 +590,8 @@ def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
     times = [time.perf_counter() - t_start]
     if progress is not None:
         progress(Progress("exact", 0, cfg.max_iterations, e_cur))
+    if iterate is not None:
+        iterate(Progress("exact", 0, cfg.max_iterations, e_cur), run.rot, run.trans)
     mu = cfg.initial_damping
     nu = 2.0
     accepted = rejected = halvings = 0
@@ -629,6 +641,8 @@ def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
         times.append(time.perf_counter() - t_start)
         if progress is not None:
             progress(Progress("exact", iteration, cfg.max_iterations, e_cur))
+        if iterate is not None:
+            iterate(Progress("exact", iteration, cfg.max_iterations, e_cur), run.rot, run.trans)
 
     t_total = time.perf_counter() - t_start
     robust_stats: dict[str, Any] = {}

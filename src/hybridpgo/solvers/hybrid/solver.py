@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -26,6 +26,9 @@ from ..config import HybridConfig, Progress, ProgressCallback
 from ..result import SolveResult, Status
 from . import _batch, _linearize, _step, _sweep
 from .problem import NUM_COUNTS, Count, Problem, State, StepKind, new_workspace
+
+if TYPE_CHECKING:
+    from ..gauss_newton import IterateCallback
 
 #: Step names of :class:`HybridConfig` -> kernel codes.
 STEP_KINDS = {"woodbury": StepKind.WOODBURY, "givens": StepKind.GIVENS}
@@ -217,11 +220,14 @@ class HybridSolver:
 
     # ----------------------------------------------------------------- sweeps
     def run(self, sweeps: int | None = None,
-            progress: ProgressCallback | None = None) -> SolveResult:
+            progress: ProgressCallback | None = None,
+            iterate: IterateCallback | None = None) -> SolveResult:
         """Run sweeps (default: ``config.sweeps``) from the current state, no polish.
 
         Stops early when ``config.energy_tolerance`` is met.  The temperature continues from
         earlier calls.  ``stats`` holds per-constraint update times and step counts.
+        ``iterate(Progress, rotations, translations)``, if given, receives the global poses
+        wherever ``progress`` is called.
         """
         cfg = self.config
         n_sweeps = cfg.sweeps if sweeps is None else sweeps
@@ -238,6 +244,8 @@ class HybridSolver:
         times = [0.0]
         if progress:
             progress(Progress("sweeps", 0, n_sweeps, history[0], self.tau))
+        if iterate:
+            iterate(Progress("sweeps", 0, n_sweeps, history[0], self.tau), *self.poses())
         status = Status.MAX_ITERATIONS
         solve_time = 0.0
         first_bad = -1
@@ -262,6 +270,8 @@ class HybridSolver:
             self.tau *= cfg.tau_decay
             if progress:
                 progress(Progress("sweeps", k + 1, n_sweeps, e, self.tau))
+            if iterate:
+                iterate(Progress("sweeps", k + 1, n_sweeps, e, self.tau), *self.poses())
             if not np.isfinite(e):
                 raise SolverError(f"the energy became non-finite in sweep {k + 1}")
             if (cfg.energy_tolerance > 0 and history[-2] > 0
@@ -307,7 +317,8 @@ class HybridSolver:
 
 def solve_hybrid(graph: PoseGraph, config: HybridConfig | None = None, *,
                  tree: PoseTree | None = None, progress: ProgressCallback | None = None,
-                 locals0: tuple[FloatArray, FloatArray] | None = None) -> SolveResult:
+                 locals0: tuple[FloatArray, FloatArray] | None = None,
+                 iterate: IterateCallback | None = None) -> SolveResult:
     """Optimize ``graph`` with the hybrid Hessian method (sweeps, then the optional polish).
 
     Parameters
@@ -320,6 +331,9 @@ def solve_hybrid(graph: PoseGraph, config: HybridConfig | None = None, *,
         ``progress(Progress)`` after every sweep and polish iteration.
     locals0 : (rot, trans), optional
         Initial local transforms of the tree nodes (else from ``config.init``).
+    iterate : callable, optional
+        ``iterate(Progress, rotations, translations)``: the global poses at the same points
+        as ``progress`` (phase ``"sweeps"``, then ``"polish"``).
 
     Raises
     ------
@@ -327,7 +341,8 @@ def solve_hybrid(graph: PoseGraph, config: HybridConfig | None = None, *,
         When every update of a sweep was rejected as non-finite.
     """
     cfg = config or HybridConfig()
-    result = HybridSolver(graph, cfg, tree=tree, locals0=locals0).run(progress=progress)
+    result = HybridSolver(graph, cfg, tree=tree, locals0=locals0).run(progress=progress,
+                                                                       iterate=iterate)
     if not cfg.polish:
         return result
     from ..config import GaussNewtonConfig
@@ -338,7 +353,9 @@ def solve_hybrid(graph: PoseGraph, config: HybridConfig | None = None, *,
                            GaussNewtonConfig(method="lm", max_iterations=cfg.polish_iterations,
                                              robust=cfg.robust, robust_scale=cfg.robust_scale),
                            progress=None if progress is None else
-                           (lambda p: progress(p._replace(phase="polish"))))
+                           (lambda p: progress(p._replace(phase="polish"))),
+                           iterate=None if iterate is None else
+                           (lambda p, r, t: iterate(p._replace(phase="polish"), r, t)))
     offset = result.times[-1]
     stats = dict(result.stats, polish_iterations=polished.iterations,
                  polish_status=polished.status.value)
