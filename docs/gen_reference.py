@@ -33,6 +33,8 @@ MODULES: tuple[tuple[str, str], ...] = (
                                        "solver"),
     ("hybridpgo.solvers.hybrid", "the hybrid Hessian solver (the paper's method)"),
     ("hybridpgo.solvers.toro", "the TORO-style baseline"),
+    ("hybridpgo.solvers.online", "the online (real-time) solver"),
+    ("hybridpgo.replay", "replaying a graph as a stream of frames, beside iSAM2"),
     ("hybridpgo.tree", "the pose tree and the initializations"),
     ("hybridpgo.energy", "energies and per-constraint residuals"),
     ("hybridpgo.covariance", "marginal covariances of poses"),
