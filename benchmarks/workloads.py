@@ -593,8 +593,10 @@ from .linear import run as _linear_run  # noqa: E402  (issue 11 item 4)
 WORKLOADS["linear"] = _linear_run
 
 from .paper import run as _paper_run  # noqa: E402  (issue 7 item 3)
+from .paper import run_table_one as _paper_table1_run  # noqa: E402
 
 WORKLOADS["paper"] = _paper_run
+WORKLOADS["paper_table1"] = _paper_table1_run
 
 
 def _outliers(ctx: Context) -> Result:
@@ -613,3 +615,8 @@ def _online(ctx: Context) -> Result:
 
 
 WORKLOADS["online"] = _online
+
+
+from .interp import run as _interp_run  # noqa: E402  (issue 7: interpolated update times)
+
+WORKLOADS["interp"] = _interp_run

@@ -10,7 +10,7 @@ from tolerances import FLOAT64_IDENTITY
 
 from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver, solve_hybrid
 from hybridpgo.solvers.hybrid import _interpolate as ip
-from hybridpgo.solvers.hybrid.problem import State
+from hybridpgo.solvers.hybrid.problem import State, new_workspace
 
 
 def _chain_graph(rng: np.random.Generator, n: int = 40, gps: int = 0):
@@ -75,7 +75,8 @@ def test_merged_constraint_composes_its_chain() -> None:
         chain.append(int(tree.parent[chain[-1]]))
     nodes = np.array(chain, np.int64)  # b ... top
     zr, zt, s_beta = np.empty((3, 3)), np.empty(3), np.empty((6, 6))
-    ip.merged_constraint(solver.problem, solver.state, nodes, len(chain), zr, zt, s_beta)
+    ip.merged_constraint(solver.problem, solver.state, nodes, 0, len(chain), zr, zt, s_beta,
+                         np.empty((5, 3, 3)), np.empty((6, 6)))
     r_acc, t_acc = np.eye(3), np.zeros(3)
     frames = []
     for node in chain[::-1]:
@@ -140,7 +141,8 @@ def test_distribution_matches_a_numpy_twin(seed: int) -> None:
     rb_new = Rotation.random(random_state=seed + 20).as_matrix()
     tb_new = rng.normal(size=3) * 3
     state = State(rot.copy(), trans.copy(), bdiag, np.zeros((1, 6, 6)))
-    ip.distribute_chain(state, nodes, k, ra, ta, rb_new, tb_new)
+    ip.distribute_chain(state, np.concatenate([[0, 8], nodes]), 2, k, ra, ta, rb_new, tb_new,
+                        new_workspace(k))  # the chain starts at an offset, as in a path
     want_r, want_t = _distribute_twin(rot, trans, bdiag, nodes, ra, ta, rb_new, tb_new)
     np.testing.assert_allclose(state.rot, want_r, rtol=0, atol=1e-12)
     np.testing.assert_allclose(state.trans, want_t, rtol=0, atol=1e-11)

@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..._cost import whiten_rows
+from ..._cost import retract_into, whiten_rows
 from ..._numba import kernel
 from ._dense import TINY, chol_inplace, chol_solve_cols, regularized_factor, solve_lt
+from ._interpolate import distribute_chain, merged_block
 from ._linearize import endpoints, linearize, mul_pose_into, num_a_side
-from ._step import cap_and_apply
+from ._step import cap_and_apply, step_temperature
 from .problem import (
     BATCH_REJECTED,
     Problem,
@@ -234,6 +235,7 @@ def _dense_solve(nb: int, jb: np.ndarray, e_off: np.ndarray, e_slot: np.ndarray,
                  scale: np.ndarray, mu: float, damped: bool, x_out: np.ndarray) -> bool:
     """``(sum_c J_c^T J_c + B_C) x = sum_c J_c^T r_c`` densely over the union (6|U| unknowns).
 
+    An entry whose ``e_slot`` is negative is left out (interpolated batches).
     ``damped``: every block of B_C gets the damping of DESIGN §4 (``mu tr(B)/6 + TINY scale``),
     which keeps the system SPD where the batch alone leaves a direction free (e.g. the rotation
     of a subtree about a single GPS reading).
@@ -256,6 +258,8 @@ def _dense_solve(nb: int, jb: np.ndarray, e_off: np.ndarray, e_slot: np.ndarray,
         kr = krs[q]
         for e in range(e_off[q], e_off[q + 1]):
             ue = e_slot[e]
+            if ue < 0:  # a node omitted by interpolated solving
+                continue
             for p in range(6):
                 acc = 0.0
                 for w in range(kr):
@@ -263,6 +267,8 @@ def _dense_solve(nb: int, jb: np.ndarray, e_off: np.ndarray, e_slot: np.ndarray,
                 g[6 * ue + p] += acc
             for f in range(e_off[q], e_off[q + 1]):
                 uf = e_slot[f]
+                if uf < 0:
+                    continue
                 for p in range(6):
                     for q2 in range(6):
                         acc = 0.0
@@ -475,15 +481,206 @@ def woodbury_segments(prob: Problem, cs: np.ndarray, nb: int, mu: float, jb: np.
     return True
 
 
+# --------------------------------------------------------------------------- 5. interpolated
+@kernel
+def kept_union_nodes(prob: Problem, nu: int, d_max: int, seg: np.ndarray, nseg: int,
+                     slot: np.ndarray, nodes_out: np.ndarray, kept: np.ndarray) -> int:
+    """The union nodes an interpolated batch solves for (``kept[u]``); returns how many.
+
+    Every segment's lowest node is kept (so every constraint endpoint and every branch point),
+    and the union parent of every segment's top: a merged chain then never leaves a segment,
+    i.e. every constraint of the batch passes through all of a chain or none of it.  The rest
+    of the budget ``d_max`` is spread over the segments in proportion to their length, uniformly
+    along each (top included).  More than ``d_max`` nodes are kept only when the forced ones
+    alone exceed it.
+    """
+    parent = prob.parent
+    pu = np.empty(nu, np.int64)
+    same_child = np.zeros(nu, np.bool_)
+    for u in range(nu):
+        p = parent[nodes_out[u]]
+        pu[u] = slot[p] if p >= 0 else -1
+        if pu[u] >= 0 and seg[pu[u]] == seg[u]:
+            same_child[pu[u]] = True
+    seg_len = np.zeros(nseg, np.int64)
+    seg_bottom = np.zeros(nseg, np.int64)
+    kept[:nu] = False
+    for u in range(nu):
+        seg_len[seg[u]] += 1
+        if not same_child[u]:
+            kept[u] = True
+            seg_bottom[seg[u]] = u
+        if pu[u] >= 0 and seg[pu[u]] != seg[u]:
+            kept[pu[u]] = True
+    nk = 0
+    for u in range(nu):
+        if kept[u]:
+            nk += 1
+    extra = d_max - nk
+    total = nu - nseg  # sum over segments of (length - 1)
+    if extra > 0 and total > 0:
+        for sg in range(nseg):
+            n_len = seg_len[sg]
+            ks = 1 + (extra * (n_len - 1)) // total
+            if ks < 2:
+                continue
+            u = seg_bottom[sg]
+            pos = 0
+            j = 1
+            while u >= 0 and j < ks:
+                if pos == (j * (n_len - 1) + (ks - 1) // 2) // (ks - 1):
+                    kept[u] = True
+                    j += 1
+                    continue
+                u = pu[u]
+                pos += 1
+        nk = 0
+        for u in range(nu):
+            if kept[u]:
+                nk += 1
+    return nk
+
+
+@kernel
+def _reduced_batch(prob: Problem, state: State, cs: np.ndarray, nb: int, tau: float, mu: float,
+                   d_max: int, wk: Workspace, jb: np.ndarray, e_off: np.ndarray,
+                   e_slot: np.ndarray, e_q: np.ndarray, r_off: np.ndarray, krs: np.ndarray,
+                   rbuf: np.ndarray, cnt: np.ndarray, by_slot: np.ndarray, bc: np.ndarray,
+                   scale: np.ndarray, slot: np.ndarray, nodes_out: np.ndarray,
+                   amat: np.ndarray, yr: np.ndarray, yt: np.ndarray,
+                   x_out: np.ndarray) -> int:
+    """Interpolated batch update (paper III-E with III-G): solve the batch for the kept union
+    nodes only (:func:`kept_union_nodes`), chains between them merged (eq. 31-33, the same
+    kernels as single updates), then distribute each kept node's change over its chain.
+
+    Runs after :func:`_batch_blocks` (𝔅(H) is updated over the whole union).  On return the
+    slots are cleared, ``nodes_out[:nk]`` / ``x_out[:nk]`` hold the kept nodes and their steps;
+    returns nk or ``BATCH_REJECTED``.
+    """
+    nu = bc.shape[0]
+    seg = np.empty(nu, np.int64)
+    seg_rep = np.empty(nu, np.int64)
+    nseg = _segments(prob, cs, nb, e_off, e_slot, cnt, slot, nodes_out, seg, seg_rep)
+    kept = np.empty(nu, np.bool_)
+    nk = kept_union_nodes(prob, nu, d_max, seg, nseg, slot, nodes_out, kept)
+    kidx = np.full(nu, -1, np.int64)
+    ku = np.empty(nk, np.int64)
+    j = 0
+    for u in range(nu):
+        if kept[u]:
+            kidx[u] = j
+            ku[j] = u
+            j += 1
+    # reduced blocks, poses, segments and entry lists; the merged chains (eq. 31)
+    bck = np.empty((nk, 6, 6))
+    scalek = np.empty(nk)
+    yrk = np.empty((nk, 3, 3))
+    ytk = np.empty((nk, 3))
+    segk = np.empty(nk, np.int64)
+    cntk = np.zeros(nk + 1, np.int64)
+    chain_nodes = np.empty(nu, np.int64)
+    chain_start = np.empty(nk, np.int64)
+    chain_len = np.empty(nk, np.int64)
+    ra = np.empty((nk, 3, 3))
+    ta = np.empty((nk, 3))
+    zero_block = False
+    pos = 0
+    for j in range(nk):
+        u = ku[j]
+        bck[j] = bc[u]
+        scalek[j] = scale[u]
+        yrk[j] = yr[u]
+        ytk[j] = yt[u]
+        segk[j] = seg[u]
+        cntk[j + 1] = cntk[j] + cnt[u + 1] - cnt[u]
+        if cnt[u + 1] - cnt[u] == prob.path_count[nodes_out[u]]:
+            zero_block = True  # B_C is 0 there (every constraint on the node is in C)
+        chain_start[j] = pos
+        v = nodes_out[u]
+        chain_nodes[pos] = v
+        pos += 1
+        p = prob.parent[v]
+        while p >= 0 and slot[p] >= 0 and not kept[slot[p]]:
+            chain_nodes[pos] = p
+            pos += 1
+            p = prob.parent[p]
+        chain_len[j] = pos - chain_start[j]
+        if chain_len[j] > 1:  # the chain's top parent a: kept, or outside the union
+            if p >= 0 and slot[p] >= 0:
+                ra[j] = yr[slot[p]]
+                ta[j] = yt[slot[p]]
+            else:
+                global_pose(p, prob.parent, state.rot, state.trans, ra[j], ta[j])
+            merged_block(prob, state, chain_nodes, chain_start[j], chain_len[j], ra[j], ta[j],
+                         yr[u], yt[u], bck[j], wk)
+    by_slotk = np.empty(cntk[nk], np.int64)
+    for j in range(nk):
+        u = ku[j]
+        for t in range(cnt[u + 1] - cnt[u]):
+            by_slotk[cntk[j] + t] = by_slot[cnt[u] + t]
+    xk = np.empty((nk, 6))
+    if zero_block and nk <= MAX_DENSE_NODES:
+        e_slotk = np.empty(e_slot.shape[0], np.int64)
+        for e in range(e_slot.shape[0]):
+            e_slotk[e] = kidx[e_slot[e]]
+        ok = _dense_solve(nb, jb, e_off, e_slotk, r_off, krs, rbuf, bck, scalek, mu, False, xk)
+        if not ok:
+            ok = _dense_solve(nb, jb, e_off, e_slotk, r_off, krs, rbuf, bck, scalek, mu, True,
+                              xk)
+    else:
+        lf = np.empty((nk, 6, 6))
+        vv = np.empty((nk, 6, 6))
+        mseg = _segment_moments(jb, krs, e_q, cntk, by_slotk, bck, mu, yrk, ytk, segk, nseg,
+                                lf, vv)
+        k_rows = r_off[nb]
+        smat = _capacitance(prob, cs, e_off, e_q, r_off, krs, cnt, by_slot, amat, mseg,
+                            seg_rep, k_rows)
+        sym = 0.5 * (smat + smat.T)
+        ok = chol_inplace(sym, k_rows)
+        if ok:
+            zz = rbuf[:k_rows].reshape((k_rows, 1)).copy()
+            chol_solve_cols(sym, k_rows, zz, 1)
+            _back_substitute(prob, cs, e_off, e_q, r_off, krs, cnt, by_slot, amat, zz, segk,
+                             seg_rep, nseg, lf, vv, xk)
+    for u in range(nu):
+        slot[nodes_out[u]] = -1
+    for j in range(nk):
+        nodes_out[j] = chain_nodes[chain_start[j]]
+        x_out[j] = xk[j]
+    if not ok:
+        return BATCH_REJECTED
+    temp, status = step_temperature(xk, nk, tau)
+    if status == Update.REJECTED:
+        return BATCH_REJECTED
+    rb = np.empty((3, 3))
+    tb = np.empty(3)
+    for j in range(nk):
+        i = nodes_out[j]
+        if chain_len[j] == 1:  # nothing omitted above: the plain update of the local
+            retract_into(state.rot[i], state.trans[i], xk[j], temp, state.rot[i],
+                         state.trans[i], wk.ws[0], wk.ws[1])
+            continue
+        # b's desired global pose Y_b Exp(t x_b), spread over its chain (TORO's way)
+        retract_into(yrk[j], ytk[j], xk[j], temp, rb, tb, wk.ws[0], wk.ws[1])
+        distribute_chain(state, chain_nodes, chain_start[j], chain_len[j], ra[j], ta[j], rb, tb,
+                         wk)
+    return nk
+
+
 # --------------------------------------------------------------------------- the batch update
 @kernel
 def batch_relax(prob: Problem, state: State, cs: np.ndarray, nb: int, tau: float, mu: float,
-                slot: np.ndarray, x_out: np.ndarray, nodes_out: np.ndarray) -> int:
+                slot: np.ndarray, x_out: np.ndarray, nodes_out: np.ndarray,
+                d_max: int = 0) -> int:
     """Relax the constraints ``cs[:nb]`` together (paper eq. 35-37, DESIGN §5).
 
     ``slot`` (T,) must be -1 on entry and is -1 again on exit.  The step of union node
     ``nodes_out[u]`` is written to ``x_out[u]``.  Returns the number of union nodes, or
     ``BATCH_REJECTED`` when the step was not finite (nothing applied).
+
+    With ``0 < d_max <`` the union's size the batch is solved by interpolation
+    (:func:`_reduced_batch`, paper III-E/III-G): ``nodes_out`` / ``x_out`` then hold the kept
+    nodes and the return value is their number.
     """
     e_off = np.empty(nb + 1, np.int64)
     e_off[0] = 0
@@ -510,6 +707,10 @@ def batch_relax(prob: Problem, state: State, cs: np.ndarray, nb: int, tau: float
     scale = np.zeros(nu)
     zero_block = _batch_blocks(prob, state, cs, jb, e_off, krs, e_q, cnt, by_slot, nodes_out,
                                bc, scale)
+    if 0 < d_max < nu:
+        return _reduced_batch(prob, state, cs, nb, tau, mu, d_max, wk, jb, e_off, e_slot, e_q,
+                              r_off, krs, rbuf, cnt, by_slot, bc, scale, slot, nodes_out, amat,
+                              yr, yt, x_out)
     if zero_block and nu <= MAX_DENSE_NODES:
         # the exact step (eq. 37; the GN step when C is every constraint) when it is defined;
         # damped when the batch alone leaves a direction free (DESIGN §4)

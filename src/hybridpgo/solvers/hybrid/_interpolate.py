@@ -13,6 +13,12 @@ first; the translation linearly on the re-bent chain after.  The weights are
 ``1 / min diag`` of each node's rotational and translational 3x3 block of 𝔅(H).
 𝔅(H) itself is still updated over the whole domain (eq. 24), which needs the O(d)
 linearization; only the solve is reduced.
+
+Cost: besides the linearization and the 𝔅(H) update, the merged constraints cost O(1) scalar
+work per omitted node (a 3x3 product and a rotated 6x6 information, eq. 32-33), the
+distribution a rotation interpolation and a translation per node; nothing allocates (the
+scratch lives in the :class:`~.problem.Workspace`).  Batches (III-G) use the same kernels
+through :mod:`._batch`.
 """
 
 from __future__ import annotations
@@ -21,14 +27,11 @@ import math
 
 import numpy as np
 
-from ..._cost import SCRATCH, jr_inv_matrix, residual_and_jr_inv, retract_into
+from ..._cost import jr_inv_matrix, residual_and_jr_inv, retract_into
 from ..._numba import kernel
 from ...geometry._kernels import so3_log_into
 from ._dense import regularized_factor
-from ._linearize import (
-    linearize,
-    mul_pose_into,
-)
+from ._linearize import linearize
 from ._step import accumulate_blocks, solve_single, step_temperature
 from .problem import Problem, State, Update, Workspace, domain
 
@@ -74,7 +77,7 @@ def chain_end(d: int, na: int, keep: np.ndarray, nk: int, j: int) -> int:
     side (its closest kept ancestor), or the end of the side (the chain reaches the root)."""
     side_end = na if keep[j] < na else d
     if j + 1 < nk and keep[j + 1] < side_end:
-        return keep[j + 1]
+        return int(keep[j + 1])
     return side_end
 
 
@@ -88,136 +91,153 @@ def chain_top(pr: np.ndarray, pt: np.ndarray, d: int, na: int, p: int, end: int,
     return eye, zero
 
 
+
+
 # --------------------------------------------------------------------------- eq. 31-33
+# The kernels below never allocate and take a chain as ``nodes[start + n]``, n = 0 (b) ...
+# k-1 (the top, a's child): a slice of a constraint's path (single updates) or nodes collected
+# by walking up the tree (batches).
 @kernel
-def _link_information(prob: Problem, node: int, om: np.ndarray) -> None:
-    """Information of the tree link of ``node`` (6x6; a GPS link is translation-only)."""
-    c = prob.link_constraint[node]
-    om[:, :] = 0.0
-    if c < prob.num_edges:
-        lt = prob.edge_lt[c]
-        n = 6
-    else:
-        lt = prob.gps_lt[c - prob.num_edges]
-        n = 3
-    for i in range(n):
-        for j in range(n):
-            acc = 0.0
-            for q in range(n):
-                acc += lt[q, i] * lt[q, j]  # Omega = L L^T = (L^T)^T (L^T)
-            om[i, j] = acc
-
-
-@kernel
-def _link_measurement(prob: Problem, state: State, node: int, zr: np.ndarray,
-                      zt: np.ndarray) -> None:
-    """The desired local transform of ``node``'s tree link, oriented parent -> child.
-
-    A GPS link (a child of the earth) prescribes only a position: its rotation is the current
-    local rotation.
-    """
-    c = prob.link_constraint[node]
-    if c >= prob.num_edges:
-        zr[:, :] = state.rot[node]
-        zt[:] = prob.gps_pos[c - prob.num_edges]
-        return
-    r = prob.edge_rot[c]
-    t = prob.edge_trans[c]
-    if prob.link_forward[node]:
-        zr[:, :] = r
-        zt[:] = t
-        return
-    for i in range(3):
-        zt[i] = -(r[0, i] * t[0] + r[1, i] * t[1] + r[2, i] * t[2])
-        for j in range(3):
-            zr[i, j] = r[j, i]
-
-
-@kernel
-def merged_constraint(prob: Problem, state: State, nodes: np.ndarray, k: int,
-                      zr: np.ndarray, zt: np.ndarray, s_beta: np.ndarray) -> None:
-    """The constraint β replacing the chain ``nodes[k-1] -> ... -> nodes[0]`` (top to b).
+def merged_constraint(prob: Problem, state: State, nodes: np.ndarray, start: int, k: int,
+                      zr: np.ndarray, zt: np.ndarray, s_beta: np.ndarray, ws: np.ndarray,
+                      m: np.ndarray) -> None:
+    """The constraint β replacing the chain ``nodes[start]`` (= b) ... ``nodes[start+k-1]``.
 
     ``(zr, zt) = p_β``, the product of the links' desired transforms from the chain's top
-    parent a down to b (eq. 32); ``s_beta`` the stiffness Σ R_{b,i} S_i R_{b,i}^T in b's frame
-    (eq. 33), ``R_{b,i}`` the desired rotation from link i's error frame to b (an error lives
-    in the child's frame for a forward link, in the parent's for a reversed one).
+    parent a down to b (eq. 32; a link is oriented parent -> child; a GPS link, which
+    prescribes only a position, with the current local rotation); ``s_beta`` the stiffness
+    Σ R_{b,i} S_i R_{b,i}^T in b's frame (eq. 33), ``R_{b,i}`` the desired rotation from link
+    i's error frame to b (an error lives in the child's frame for a forward link, in the
+    parent's for a reversed or GPS link).  Each term is added as ``M^T M``, ``M = L_i^T
+    blockdiag(R, R)^T``.  One pass from b upwards, O(1) scalar work per node; the loop body is
+    written out because calls that pass the problem's arrays cost more than the arithmetic.
+    ``ws`` (>= 5, 3, 3), ``m`` (6, 6) scratch.
     """
-    r_acc = np.eye(3)
-    t_acc = np.zeros(3)
-    lr = np.empty((3, 3))
-    lt_ = np.empty(3)
-    tr = np.empty((3, 3))
-    tt = np.empty(3)
-    # rotations of the link frames from the top: rot_from_top[i] = R_{a, node i}
-    for i in range(k - 1, -1, -1):
-        _link_measurement(prob, state, nodes[i], lr, lt_)
-        mul_pose_into(r_acc, t_acc, lr, lt_, tr, tt)
-        r_acc[:, :] = tr
-        t_acc[:] = tt
-    zr[:, :] = r_acc
-    zt[:] = t_acc
-    # second pass: R_{a,frame_i}, then R_{b,frame_i} = R_{a,b}^T R_{a,frame_i}
-    s_beta[:, :] = 0.0
-    r_top = np.eye(3)  # R_{a, parent of node i}
-    om = np.empty((6, 6))
-    rot6 = np.zeros((6, 6))
-    tmp = np.empty((6, 6))
-    for i in range(k - 1, -1, -1):
-        node = nodes[i]
-        _link_measurement(prob, state, node, lr, lt_)
-        r_child = r_top @ lr
-        # a forward link's error lives in the child's frame; a reversed link's in the
-        # parent's; a GPS link's in the earth's (= the top's parent, r_top = I there)
-        gps_link = prob.link_constraint[node] >= prob.num_edges
-        frame = r_child if (prob.link_forward[node] and not gps_link) else r_top
-        r_bf = r_acc.T @ frame
-        for p in range(3):
-            for q in range(3):
-                rot6[p, q] = r_bf[p, q]
-                rot6[3 + p, 3 + q] = r_bf[p, q]
-        _link_information(prob, node, om)
-        tmp[:, :] = rot6 @ om
-        s_beta += tmp @ rot6.T
-        r_top = r_child
+    link_c = prob.link_constraint
+    link_fwd = prob.link_forward
+    edge_rot = prob.edge_rot
+    edge_trans = prob.edge_trans
+    edge_lt = prob.edge_lt
+    gps_pos = prob.gps_pos
+    gps_lt = prob.gps_lt
+    num_edges = prob.num_edges
+    rot = state.rot
+    cur = ws[0]  # R_{b, node}
+    nxt = ws[1]  # R_{b, parent of node}
+    lr = ws[2]  # desired local transform of the link (lr, lt_)
+    lt_ = ws[3][0]
+    tmp = ws[4]
+    for i in range(3):
+        zt[i] = 0.0
+        for j in range(3):
+            cur[i, j] = 1.0 if i == j else 0.0
+            zr[i, j] = 1.0 if i == j else 0.0
+    for i in range(6):
+        for j in range(6):
+            s_beta[i, j] = 0.0
+    for n in range(k):
+        node = nodes[start + n]
+        c = link_c[node]
+        gps = c >= num_edges
+        forward = link_fwd[node] and not gps
+        if gps:
+            for i in range(3):
+                lt_[i] = gps_pos[c - num_edges, i]
+                for j in range(3):
+                    lr[i, j] = rot[node, i, j]
+        elif forward:
+            for i in range(3):
+                lt_[i] = edge_trans[c, i]
+                for j in range(3):
+                    lr[i, j] = edge_rot[c, i, j]
+        else:
+            for i in range(3):
+                lt_[i] = -(edge_rot[c, 0, i] * edge_trans[c, 0] + edge_rot[c, 1, i]
+                           * edge_trans[c, 1] + edge_rot[c, 2, i] * edge_trans[c, 2])
+                for j in range(3):
+                    lr[i, j] = edge_rot[c, j, i]
+        for i in range(3):
+            for j in range(3):
+                nxt[i, j] = cur[i, 0] * lr[j, 0] + cur[i, 1] * lr[j, 1] + cur[i, 2] * lr[j, 2]
+        f = cur if forward else nxt
+        # M = L^T blockdiag(F, F)^T (a GPS link: 3 rows, translation only)
+        rows = 3 if gps else 6
+        for q in range(rows):
+            for j in range(3):
+                if gps:
+                    l0 = gps_lt[c - num_edges, q, 0]
+                    l1 = gps_lt[c - num_edges, q, 1]
+                    l2 = gps_lt[c - num_edges, q, 2]
+                    m[q, 3 + j] = 0.0
+                else:
+                    l0 = edge_lt[c, q, 0]
+                    l1 = edge_lt[c, q, 1]
+                    l2 = edge_lt[c, q, 2]
+                    m[q, 3 + j] = (edge_lt[c, q, 3] * f[j, 0] + edge_lt[c, q, 4] * f[j, 1]
+                                   + edge_lt[c, q, 5] * f[j, 2])
+                m[q, j] = l0 * f[j, 0] + l1 * f[j, 1] + l2 * f[j, 2]
+        for i in range(6):
+            for j in range(i, 6):
+                v = 0.0
+                for q in range(rows):
+                    v += m[q, i] * m[q, j]
+                s_beta[i, j] += v
+        # p_β from b upwards: (zr, zt) <- (lr, lt) (zr, zt)
+        for i in range(3):
+            for j in range(3):
+                tmp[i, j] = lr[i, 0] * zr[0, j] + lr[i, 1] * zr[1, j] + lr[i, 2] * zr[2, j]
+        t0 = lr[0, 0] * zt[0] + lr[0, 1] * zt[1] + lr[0, 2] * zt[2] + lt_[0]
+        t1 = lr[1, 0] * zt[0] + lr[1, 1] * zt[1] + lr[1, 2] * zt[2] + lt_[1]
+        t2 = lr[2, 0] * zt[0] + lr[2, 1] * zt[1] + lr[2, 2] * zt[2] + lt_[2]
+        zt[0] = t0
+        zt[1] = t1
+        zt[2] = t2
+        for i in range(3):
+            for j in range(3):
+                zr[i, j] = tmp[i, j]
+                cur[i, j] = nxt[i, j]
+    for i in range(6):
+        for j in range(i):
+            s_beta[i, j] = s_beta[j, i]
 
 
 @kernel
-def merged_blocks(prob: Problem, state: State, c: int, d: int, keep: np.ndarray, nk: int,
-                  na: int, pr: np.ndarray, pt: np.ndarray, bc: np.ndarray) -> None:
-    """Eq. 31 on the kept nodes' blocks ``bc[j]`` (B_c restricted to S_c): for every kept node
-    whose parent is omitted, ``- J_α^T J_α + J_β^T J_β``."""
-    s = prob.path_ptr[c]
-    nodes = np.empty(d, np.int64)
-    zr = np.empty((3, 3))
-    zt = np.empty(3)
-    s_beta = np.empty((6, 6))
-    ws = np.empty((SCRATCH, 3, 3))
-    e = np.empty(6)
-    jri = np.empty((6, 6))
-    eye = np.eye(3)
-    zero = np.zeros(3)
-    for j in range(nk):
-        p = keep[j]
-        end = chain_end(d, na, keep, nk, j)
-        k = end - p
-        if k <= 1:
-            continue  # b's parent is kept: β = α
-        b = prob.path_node[s + p]
-        alpha = prob.link_constraint[b]
-        old = state.contrib[prob.path_ptr[alpha]]  # α's domain is {b}
-        for i in range(k):
-            nodes[i] = prob.path_node[s + p + i]
-        merged_constraint(prob, state, nodes, k, zr, zt, s_beta)
-        # current merged transform T_{a,b} = P_a^-1 P_b (a: the chain's top parent)
-        ra, ta = chain_top(pr, pt, d, na, p, end, eye, zero)
-        # J_β = L_β^T Jr^-1(e_β), e_β = Log(p_β^-1 T_{a,b}); J_β^T J_β = Jr^-T S_β Jr^-1
-        residual_and_jr_inv(zr, zt, ra, ta, pr[p], pt[p], e, ws)
-        jr_inv_matrix(ws, jri)
-        jtj = jri.T @ s_beta @ jri
-        for q1 in range(6):
-            for q2 in range(6):
-                bc[j, q1, q2] += 0.5 * (jtj[q1, q2] + jtj[q2, q1]) - old[q1, q2]
+def merged_block(prob: Problem, state: State, nodes: np.ndarray, start: int, k: int,
+                 ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.ndarray,
+                 out: np.ndarray, wk: Workspace) -> None:
+    """Eq. 31 for kept node b = ``nodes[start]`` whose chain of k links is merged:
+    ``out += J_β^T J_β - J_α^T J_α`` (α: b's tree link, whose last contribution is removed).
+
+    ``(ra, ta)``, ``(rb, tb)``: current poses of the chain's top parent a and of b in a common
+    frame.  ``J_β = L_β^T Jr^-1(e_β)``, ``e_β = Log(p_β^-1 T_{a,b})``, so
+    ``J_β^T J_β = Jr^-T S_β Jr^-1``.  Scratch: ``wk.iws[0:7]``, ``wk.iws6``, ``wk.ws``.
+    """
+    ws = wk.iws
+    zr = ws[5]
+    zt = ws[6][0]
+    s_beta = wk.iws6[0]
+    jri = wk.iws6[1]
+    tm = wk.iws6[2]
+    e = wk.iws6[3][0]
+    merged_constraint(prob, state, nodes, start, k, zr, zt, s_beta, ws, tm)
+    residual_and_jr_inv(zr, zt, ra, ta, rb, tb, e, wk.ws)
+    jr_inv_matrix(wk.ws, jri)
+    for p in range(6):  # tm = S_β Jr^-1 (Jr^-1 is block upper triangular)
+        for q in range(6):
+            v = 0.0
+            for m in range(6):
+                v += s_beta[p, m] * jri[m, q]
+            tm[p, q] = v
+    b = nodes[start]
+    old = state.contrib[prob.path_ptr[prob.link_constraint[b]]]  # α's domain is {b}
+    for p in range(6):
+        for q in range(p, 6):
+            v = 0.0
+            for m in range(6):
+                v += jri[m, p] * tm[m, q]
+            out[p, q] += v - old[p, q]
+            if q != p:
+                out[q, p] += v - old[q, p]
 
 
 @kernel
@@ -226,16 +246,32 @@ def reduced_factors(prob: Problem, state: State, c: int, d: int, na: int, kr: in
                     sub: Workspace) -> None:
     """B̃ (eq. 31) on the kept nodes, damped and factored into ``sub.lfac``; ``sub.jac`` gets
     the kept nodes' Jacobian blocks.  Must run right after ``accumulate_blocks`` (which updated
-    𝔅(H) and c's contributions): ``B_c = 𝔅(H) - contribution of c`` at each kept node."""
+    𝔅(H) and c's contributions): ``B_c = 𝔅(H) - contribution of c`` at each kept node.
+    ``sub.w`` holds B̃ until the solve overwrites it."""
     s = prob.path_ptr[c]
     jac = wk.jac
-    bc = np.empty((nk, 6, 6))
+    pr = wk.path_rot
+    pt = wk.path_trans
+    bc = sub.w
+    eye = wk.iws[14]
+    zero = wk.iws[15][0]
+    for i in range(3):
+        zero[i] = 0.0
+        for j in range(3):
+            eye[i, j] = 1.0 if i == j else 0.0
     for j in range(nk):
         p = keep[j]
         i = prob.path_node[s + p]
-        bc[j] = state.bdiag[i] - state.contrib[s + p]
-        sub.jac[j] = jac[p]
-    merged_blocks(prob, state, c, d, keep, nk, na, wk.path_rot, wk.path_trans, bc)
+        old = state.contrib[s + p]
+        for q1 in range(6):
+            for q2 in range(6):
+                bc[j, q1, q2] = state.bdiag[i, q1, q2] - old[q1, q2]
+                sub.jac[j, q1, q2] = jac[p, q1, q2]
+        end = chain_end(d, na, keep, nk, j)
+        if end - p > 1:  # b's parent is omitted: β replaces α
+            ra, ta = chain_top(pr, pt, d, na, p, end, eye, zero)
+            merged_block(prob, state, prob.path_node, s + p, end - p, ra, ta, pr[p], pt[p],
+                         bc[j], wk)
     for j in range(nk):
         scale = 0.0
         for q in range(6):
@@ -248,26 +284,6 @@ def reduced_factors(prob: Problem, state: State, c: int, d: int, na: int, kr: in
 
 # --------------------------------------------------------------------------- distribution
 @kernel
-def _rotation_exp(phi: np.ndarray, f: float, out: np.ndarray) -> None:
-    """``out = Exp(f phi)`` (Rodrigues)."""
-    x, y, z = f * phi[0], f * phi[1], f * phi[2]
-    th = math.sqrt(x * x + y * y + z * z)
-    if th < 1e-12:
-        a = 1.0
-        b = 0.5
-    else:
-        a = math.sin(th) / th
-        b = (1.0 - math.cos(th)) / (th * th)
-    k = ((0.0, -z, y), (z, 0.0, -x), (-y, x, 0.0))
-    for i in range(3):
-        for j in range(3):
-            k2 = 0.0
-            for m in range(3):
-                k2 += k[i][m] * k[m][j]
-            out[i, j] = (1.0 if i == j else 0.0) + a * k[i][j] + b * k2
-
-
-@kernel
 def distribution_weights(bdiag_block: np.ndarray) -> tuple[float, float]:
     """TORO's weights of a node: 1 / the smallest diagonal entry of the rotational and of the
     translational 3x3 block of 𝔅(H) (a tiny floor keeps a free node finite)."""
@@ -277,92 +293,161 @@ def distribution_weights(bdiag_block: np.ndarray) -> tuple[float, float]:
 
 
 @kernel
-def distribute_chain(state: State, nodes: np.ndarray, k: int, ra: np.ndarray, ta: np.ndarray,
-                     rb_new: np.ndarray, tb_new: np.ndarray) -> None:
-    """Move the chain ``nodes[k-1] (top) ... nodes[0] (= b)`` so that b reaches its desired
-    pose relative to the chain's top parent a, TORO's way (DESIGN §6).
+def distribute_chain(state: State, nodes: np.ndarray, start: int, k: int, ra: np.ndarray,
+                     ta: np.ndarray, rb_new: np.ndarray, tb_new: np.ndarray,
+                     wk: Workspace) -> None:
+    """Move the chain ``nodes[start]`` (= b) ... ``nodes[start+k-1]`` (the top) so that b
+    reaches its desired pose relative to the chain's top parent a, TORO's way (DESIGN §6).
 
-    ``(ra, ta)``, ``(rb_new, tb_new)``: poses of a and b's desired pose in any common frame.
-    The locals of the chain nodes are rewritten; everything hanging below rides along.
+    ``(ra, ta)``: a's pose, ``(rb_new, tb_new)``: b's desired pose, in any common frame.  The
+    locals of the chain nodes are rewritten; everything hanging below rides along.  In a's
+    frame, with cumulative weight fractions ``f_j`` (rotation) and ``g_j`` (translation) from
+    the top: ``R''_j = Exp(f_j phi) Q_j`` (``Exp(phi) = R_b^new Q_b^-1``, the end exact), the
+    chain re-bent with the old local translations, then node j shifted by ``g_j`` times b's
+    remaining position error.  So the new locals are ``R''_{j-1}^T R''_j`` (one Newton step
+    towards orthonormal) and ``t_j + (g_j - g_{j-1}) R''_{j-1}^T dpos``.  O(k) scalar work, no
+    allocation: ``wk.chain_rot``, ``wk.chain_w``, ``wk.iws[0:7]``, ``wk.iws6[3]``.
     """
     rot = state.rot
     trans = state.trans
-    # current poses of the chain nodes relative to a: q[j] for j = 1..k (q[0] = identity = a)
-    qr = np.empty((k + 1, 3, 3))
-    qt = np.empty((k + 1, 3))
-    qr[0] = np.eye(3)
-    qt[0] = 0.0
+    qr = wk.chain_rot
+    cw = wk.chain_w
+    ws = wk.iws
+    dr = ws[0]
+    dt = ws[1][0]
+    kx = ws[2]
+    k2 = ws[3]
+    ex = ws[4]
+    mm = ws[5]
+    gg = ws[6]
+    phi6 = wk.iws6[3][0]
+    # 0. current rotations relative to a, Q_j (top down), and the cumulative weights
+    for i in range(3):
+        for j in range(3):
+            qr[0, i, j] = 1.0 if i == j else 0.0
+    cw[0, 0] = 0.0
+    cw[0, 1] = 0.0
     for j in range(1, k + 1):
-        i = nodes[k - j]
-        mul_pose_into(qr[j - 1], qt[j - 1], rot[i], trans[i], qr[j], qt[j])
+        i = nodes[start + k - j]
+        r = rot[i]
+        for p in range(3):
+            for q in range(3):
+                qr[j, p, q] = (qr[j - 1, p, 0] * r[0, q] + qr[j - 1, p, 1] * r[1, q]
+                               + qr[j - 1, p, 2] * r[2, q])
+        wr, wt = distribution_weights(state.bdiag[i])
+        cw[j, 0] = cw[j - 1, 0] + wr
+        cw[j, 1] = cw[j - 1, 1] + wt
     # b's desired pose relative to a
-    dr = ra.T @ rb_new
-    dt = ra.T @ (tb_new - ta)
-    # rotation change of b in a's frame: dR = R'_b R_b^T = Exp(phi)
-    delta = dr @ qr[k].T
-    phi6 = np.zeros(6)
-    so3_log_into(delta, phi6)
-    phi = phi6[3:]
-    w_rot = np.empty(k + 1)
-    w_tr = np.empty(k + 1)
-    w_rot[0] = 0.0
-    w_tr[0] = 0.0
+    for p in range(3):
+        dt[p] = (ra[0, p] * (tb_new[0] - ta[0]) + ra[1, p] * (tb_new[1] - ta[1])
+                 + ra[2, p] * (tb_new[2] - ta[2]))
+        for q in range(3):
+            dr[p, q] = ra[0, p] * rb_new[0, q] + ra[1, p] * rb_new[1, q] + ra[2, p] * rb_new[2, q]
+    # rotation change of b in a's frame: Exp(phi) = R'_b Q_b^T
+    for p in range(3):
+        for q in range(3):
+            mm[p, q] = dr[p, 0] * qr[k, q, 0] + dr[p, 1] * qr[k, q, 1] + dr[p, 2] * qr[k, q, 2]
+    so3_log_into(mm, phi6)
+    px, py, pz = phi6[3], phi6[4], phi6[5]
+    th = math.sqrt(px * px + py * py + pz * pz)
+    kx[0, 0], kx[0, 1], kx[0, 2] = 0.0, -pz, py
+    kx[1, 0], kx[1, 1], kx[1, 2] = pz, 0.0, -px
+    kx[2, 0], kx[2, 1], kx[2, 2] = -py, px, 0.0
+    for p in range(3):
+        for q in range(3):
+            k2[p, q] = kx[p, 0] * kx[0, q] + kx[p, 1] * kx[1, q] + kx[p, 2] * kx[2, q]
+    # 1. rotations first: R''_j = Exp(f_j phi) Q_j (Rodrigues about the one axis); positions
+    # re-bent with the old locals: t''_k = sum_j R''_{j-1} t_j
+    w_r = cw[k, 0]
+    t0 = 0.0
+    t1 = 0.0
+    t2 = 0.0
     for j in range(1, k + 1):
-        wr, wt = distribution_weights(state.bdiag[nodes[k - j]])
-        w_rot[j] = w_rot[j - 1] + wr
-        w_tr[j] = w_tr[j - 1] + wt
-    # 1. rotations first: R''_j = Exp(f_j phi) R_j; positions recomputed with the old locals
-    nr = np.empty((k + 1, 3, 3))
-    nt = np.empty((k + 1, 3))
-    nr[0] = np.eye(3)
-    nt[0] = 0.0
-    rexp = np.empty((3, 3))
+        i = nodes[start + k - j]
+        tl = trans[i]
+        t0 += qr[j - 1, 0, 0] * tl[0] + qr[j - 1, 0, 1] * tl[1] + qr[j - 1, 0, 2] * tl[2]
+        t1 += qr[j - 1, 1, 0] * tl[0] + qr[j - 1, 1, 1] * tl[1] + qr[j - 1, 1, 2] * tl[2]
+        t2 += qr[j - 1, 2, 0] * tl[0] + qr[j - 1, 2, 1] * tl[1] + qr[j - 1, 2, 2] * tl[2]
+        if j == k:  # the end reaches its desired rotation exactly
+            for p in range(3):
+                for q in range(3):
+                    qr[k, p, q] = dr[p, q]
+            break
+        f = cw[j, 0] / w_r
+        a_th = f * th
+        if a_th < 1e-12:
+            ca = f
+            cb = 0.5 * f * f
+        else:
+            sh = math.sin(0.5 * a_th)
+            ca = math.sin(a_th) / th
+            cb = 2.0 * sh * sh / (th * th)
+        for p in range(3):
+            for q in range(3):
+                ex[p, q] = (1.0 if p == q else 0.0) + ca * kx[p, q] + cb * k2[p, q]
+        for q in range(3):
+            c0 = qr[j, 0, q]
+            c1 = qr[j, 1, q]
+            c2 = qr[j, 2, q]
+            for p in range(3):
+                qr[j, p, q] = ex[p, 0] * c0 + ex[p, 1] * c1 + ex[p, 2] * c2
+    # 2. then translations, linearly along the re-bent chain; new locals
+    e0 = dt[0] - t0
+    e1 = dt[1] - t1
+    e2 = dt[2] - t2
+    w_t = cw[k, 1]
     for j in range(1, k + 1):
-        _rotation_exp(phi, w_rot[j] / w_rot[k], rexp)
-        nr[j] = rexp @ qr[j]
-        nt[j] = nt[j - 1] + nr[j - 1] @ trans[nodes[k - j]]
-    nr[k] = dr  # the end reaches its desired rotation exactly
-    # 2. then translations, linearly along the re-bent chain
-    dpos = dt - nt[k]
-    for j in range(1, k + 1):
-        nt[j] = nt[j] + (w_tr[j] / w_tr[k]) * dpos
-    # 3. new locals, each re-orthonormalized (one Newton step towards the polar factor, as
-    # the retraction does): products along long chains would otherwise let rounding grow
-    for j in range(1, k + 1):
-        i = nodes[k - j]
-        m = nr[j - 1].T @ nr[j]
-        rot[i] = 0.5 * (m @ (3.0 * np.eye(3) - m.T @ m))
-        trans[i] = nr[j - 1].T @ (nt[j] - nt[j - 1])
+        i = nodes[start + k - j]
+        g = (cw[j, 1] - cw[j - 1, 1]) / w_t
+        r0 = qr[j - 1]
+        r1 = qr[j]
+        for p in range(3):
+            trans[i, p] += g * (r0[0, p] * e0 + r0[1, p] * e1 + r0[2, p] * e2)
+            for q in range(3):
+                mm[p, q] = r0[0, p] * r1[0, q] + r0[1, p] * r1[1, q] + r0[2, p] * r1[2, q]
+        # one Newton step towards the polar factor (as the retraction does): products along
+        # long chains would otherwise let rounding grow
+        for p in range(3):
+            for q in range(3):
+                gg[p, q] = mm[0, p] * mm[0, q] + mm[1, p] * mm[1, q] + mm[2, p] * mm[2, q]
+        for p in range(3):
+            for q in range(3):
+                rot[i, p, q] = 0.5 * (3.0 * mm[p, q] - (mm[p, 0] * gg[0, q] + mm[p, 1] * gg[1, q]
+                                                        + mm[p, 2] * gg[2, q]))
 
 
 @kernel
 def distribute(prob: Problem, state: State, c: int, d: int, na: int, keep: np.ndarray,
-               nk: int, x: np.ndarray, t: float, pr: np.ndarray, pt: np.ndarray) -> None:
+               nk: int, x: np.ndarray, t: float, wk: Workspace) -> None:
     """Apply the reduced step ``t x`` (kept node j: ``x[j]``) by distributing each kept node's
-    desired pose change over its chain (path products ``pr, pt`` from before the step)."""
+    desired pose change over its chain (path products ``wk.path_rot/trans`` from before the
+    step)."""
     s = prob.path_ptr[c]
-    nodes = np.empty(d, np.int64)
-    rb = np.empty((3, 3))
-    tb = np.empty(3)
-    er = np.empty((3, 3))
-    tmp = np.empty((3, 3))
-    eye = np.eye(3)
-    zero = np.zeros(3)
+    pr = wk.path_rot
+    pt = wk.path_trans
+    rb = wk.iws[7]
+    tb = wk.iws[8][0]
+    er = wk.iws[9]
+    tmp = wk.iws[10]
+    eye = wk.iws[14]
+    zero = wk.iws[15][0]
+    for i in range(3):
+        zero[i] = 0.0
+        for j in range(3):
+            eye[i, j] = 1.0 if i == j else 0.0
     for j in range(nk):
         p = keep[j]
         end = chain_end(d, na, keep, nk, j)
         k = end - p
-        for i in range(k):
-            nodes[i] = prob.path_node[s + p + i]
+        if k == 1:  # nothing omitted: the plain update of b's local transform
+            i = prob.path_node[s + p]
+            retract_into(state.rot[i], state.trans[i], x[j], t, state.rot[i], state.trans[i],
+                         er, tmp)
+            continue
         ra, ta = chain_top(pr, pt, d, na, p, end, eye, zero)
         # b's desired pose (root frame): P_b Exp(t x_b), as a full update would move it
         retract_into(pr[p], pt[p], x[j], t, rb, tb, er, tmp)
-        if k == 1:  # nothing omitted: the plain update of b's local transform
-            i = nodes[0]
-            retract_into(state.rot[i], state.trans[i], x[j], t, state.rot[i], state.trans[i],
-                         er, tmp)
-        else:
-            distribute_chain(state, nodes, k, ra, ta, rb, tb)
+        distribute_chain(state, prob.path_node, s + p, k, ra, ta, rb, tb, wk)
 
 
 # --------------------------------------------------------------------------- the update
@@ -373,7 +458,7 @@ def relax_interpolated(prob: Problem, state: State, wk: Workspace, sub: Workspac
     """Relax constraint c solving for at most ``d_max`` of its domain nodes (paper III-E).
 
     ``wk`` must hold the whole domain, ``sub`` and ``keep`` ``d_max`` nodes.  Returns an
-    ``Update`` like :func:`~._step.relax`.
+    ``Update`` like :func:`~._step.relax`.  Allocation-free apart from the solve's 6x6 scratch.
     """
     _s, d = domain(prob, c)
     kr, na = linearize(prob, c, state.rot, state.trans, wk, wk.jac)
@@ -386,5 +471,5 @@ def relax_interpolated(prob: Problem, state: State, wk: Workspace, sub: Workspac
     t, status = step_temperature(sub.x, nk, tau)
     if status == Update.REJECTED:
         return status
-    distribute(prob, state, c, d, na, keep, nk, sub.x, t, wk.path_rot, wk.path_trans)
+    distribute(prob, state, c, d, na, keep, nk, sub.x, t, wk)
     return status

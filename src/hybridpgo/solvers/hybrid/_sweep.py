@@ -51,10 +51,11 @@ def init_blocks(prob: Problem, state: State, dmax: int) -> None:
 @kernel
 def _flush(prob: Problem, state: State, buf: np.ndarray, nbuf: int, tau: float, mu: float,
            slot: np.ndarray, xb: np.ndarray, nodes: np.ndarray, cycles: np.ndarray,
-           batch_cycles: np.ndarray, counts: np.ndarray) -> bool:
-    """Relax the buffered GPS readings as one batch; True when the batch was rejected."""
+           batch_cycles: np.ndarray, counts: np.ndarray, d_max: int = 0) -> bool:
+    """Relax the buffered GPS readings as one batch (interpolated when ``d_max`` > 0 is below
+    the union's size, III-G); True when the batch was rejected."""
     t0 = cycle_counter()
-    nu = batch_relax(prob, state, buf, nbuf, tau, mu, slot, xb, nodes)
+    nu = batch_relax(prob, state, buf, nbuf, tau, mu, slot, xb, nodes, d_max)
     dc = cycle_counter() - t0
     if dc > counts[Count.MAX_CYCLES]:
         counts[Count.MAX_CYCLES] = dc
@@ -75,7 +76,8 @@ def sweep(prob: Problem, state: State, order: np.ndarray, tau: float, mu: float,
     """One pass over the constraints in ``order`` (paper Algorithm 1).
 
     ``dmax`` is the largest domain (workspace capacity); ``d_max`` > 0 solves single updates of
-    longer domains for at most ``d_max`` nodes (interpolated solving, III-E), 0 never.
+    longer domains, and GPS batches of larger unions, for about ``d_max`` nodes (interpolated
+    solving, III-E, III-G), 0 never.
 
     ``cycles[c]`` receives the cycle count of constraint c's update (a batch's count is shared
     among its members, and ``batch_cycles[first member]`` gets the whole batch's count);
@@ -102,7 +104,7 @@ def sweep(prob: Problem, state: State, order: np.ndarray, tau: float, mu: float,
         gps = c >= 0 and is_gps(prob, c)
         if nbuf > 0 and (not gps or nbuf >= gps_batch_size):
             if _flush(prob, state, buf, nbuf, tau, mu, slot, xb, nodes, cycles, batch_cycles,
-                      counts) and first_bad < 0:
+                      counts, d_max) and first_bad < 0:
                 first_bad = buf[0]
             nbuf = 0
         if c < 0:

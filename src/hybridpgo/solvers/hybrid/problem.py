@@ -96,6 +96,14 @@ class Workspace(NamedTuple):
     """(6, 6) one block of ``B_c`` before damping."""
     ws: FloatArray
     """(12, 3, 3) scratch of the cost layer."""
+    chain_rot: FloatArray
+    """(d + 1, 3, 3) rotations along a merged chain (interpolated solving, III-E)."""
+    chain_w: FloatArray
+    """(d + 1, 2) cumulative rotational / translational distribution weights along a chain."""
+    iws: FloatArray
+    """(16, 3, 3) scratch of interpolated solving."""
+    iws6: FloatArray
+    """(4, 6, 6) scratch of interpolated solving."""
 
 
 @kernel
@@ -114,6 +122,10 @@ def new_workspace(capacity: int) -> Workspace:
         np.empty((6, 6)),
         np.empty((6, 6)),
         np.empty((SCRATCH, 3, 3)),
+        np.empty((capacity + 1, 3, 3)),
+        np.empty((capacity + 1, 2)),
+        np.empty((16, 3, 3)),
+        np.empty((4, 6, 6)),
     )
 
 
