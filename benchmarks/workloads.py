@@ -604,3 +604,7 @@ def _outliers(ctx: Context) -> Result:
 
 
 WORKLOADS["outliers"] = _outliers
+
+from .sag import run as _sag_run  # noqa: E402  (issue 11 item 3)
+
+WORKLOADS["sag"] = _sag_run

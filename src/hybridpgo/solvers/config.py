@@ -183,9 +183,9 @@ class HybridConfig:
     remembered force, balanced per node, is subtracted), so a settled optimum is a fixed point of
     the sweeps (:mod:`hybridpgo.solvers.hybrid._aggregate`); GPS batches stay the paper's.
     Needs ``step="woodbury"`` and no ``dmax``."""
-    memory_rate: float = 0.1
+    memory_rate: float = 0.03
     """``update="saga"``: the memory moves this fraction of the way to each fresh contribution,
-    in (0, 1] (1: SAGA itself, which diverges on M3500_isam)."""
+    in (0, 1] (1: SAGA itself, which diverges on M3500_isam; 0.1 diverges on intel)."""
 
     def __post_init__(self) -> None:
         if self.update not in ("paper", "saga"):
