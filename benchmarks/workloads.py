@@ -620,3 +620,7 @@ WORKLOADS["online"] = _online
 from .interp import run as _interp_run  # noqa: E402  (issue 7: interpolated update times)
 
 WORKLOADS["interp"] = _interp_run
+
+from .sag import run as _sag_run  # noqa: E402  (issue 11 item 3)
+
+WORKLOADS["sag"] = _sag_run

@@ -409,3 +409,21 @@ def apply_step(rot: FloatArray, trans: FloatArray, nodes: npt.NDArray[np.integer
 def chi2(info: FloatArray, e: FloatArray) -> float:
     """``e^T Omega e`` (no 1/2)."""
     return float(e @ info @ e)
+
+
+def aggregated_step(jac_blocks: FloatArray, r: FloatArray, bdiag_minus_old: FloatArray,
+                    scale: FloatArray, mu: float, tiny: float, memory: FloatArray,
+                    memory_sum: FloatArray, count: npt.NDArray[np.integer], rate: float
+                    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``update="saga"``: ``(J^T J + B_c + damping) x = b`` with ``b_k = g_k - m_k + M_k / n_k``,
+    ``g_k = J_k^T r``; returns ``(x (d, 6), new memory (d, 6), new memory sums (d, 6))``."""
+    d = jac_blocks.shape[0]
+    g = np.stack([jk.T @ r for jk in jac_blocks])
+    b = g - memory + memory_sum / np.asarray(count, np.float64)[:, None]
+    jd = np.hstack(list(jac_blocks))
+    bd = scipy.linalg.block_diag(*[
+        damped_block(bdiag_minus_old[k], float(scale[k]), mu, tiny) for k in range(d)
+    ])
+    x = np.linalg.solve(jd.T @ jd + bd, b.reshape(-1)).reshape(d, 6)
+    dm = rate * (g - memory)
+    return np.asarray(x, np.float64), memory + dm, memory_sum + dm

@@ -187,12 +187,30 @@ class HybridConfig:
     """The kernel's delta (> 0) in whitened units (sqrt of χ²); None: the kernel's default
     (:data:`ROBUST_DEFAULT_SCALE`).  The value used is :attr:`robust_delta`."""
 
+    update: Literal["paper", "saga"] = "paper"
+    """``"paper"``: each relative constraint's step solves ``H_c x = J_c^T r_c`` (eq. 25).
+    ``"saga"``: the same hybrid system with an aggregated right-hand side (each constraint's
+    remembered force, balanced per node, is subtracted), so a settled optimum is a fixed point of
+    the sweeps (:mod:`hybridpgo.solvers.hybrid._aggregate`); GPS batches stay the paper's.
+    Needs ``step="woodbury"`` and no ``dmax``.  Experimental: it diverges on a generated city
+    with GPS (``benchmarks/sag.py``)."""
+    memory_rate: float = 0.03
+    """``update="saga"``: the memory moves this fraction of the way to each fresh contribution,
+    in (0, 1] (1: SAGA itself, which diverges on M3500_isam; 0.1 diverges on intel)."""
+
     @property
     def robust_delta(self) -> float:
         """The robust kernel's delta: ``robust_scale``, or the kernel's default."""
         return default_robust_scale(self.robust, self.robust_scale)
 
     def __post_init__(self) -> None:
+        if self.update not in ("paper", "saga"):
+            raise ValueError(f"update must be 'paper' or 'saga', got {self.update!r}")
+        rate = self.memory_rate
+        if not (isinstance(rate, (int, float)) and not isinstance(rate, bool) and 0 < rate <= 1):
+            raise ValueError(f"memory_rate must be in (0, 1], got {self.memory_rate!r}")
+        if self.update == "saga" and (self.step != "woodbury" or self.dmax is not None):
+            raise ValueError("update='saga' needs step='woodbury' and dmax=None")
         _check_int("sweeps", self.sweeps, 0)
         if self.sweeps > MAX_SWEEPS:
             raise ValueError(f"sweeps must be at most {MAX_SWEEPS}, got {self.sweeps!r}")

@@ -24,7 +24,7 @@ from ...graph import FloatArray, PoseGraph
 from ...tree import LINK_EDGE, LINK_GPS, PoseTree, build_tree, global_poses, initial_locals
 from ..config import HybridConfig, Progress, ProgressCallback
 from ..result import SolveResult, Status
-from . import _batch, _linearize, _step, _sweep
+from . import _aggregate, _batch, _linearize, _step, _sweep
 from .problem import NUM_COUNTS, Count, Problem, State, StepKind, new_workspace
 
 if TYPE_CHECKING:
@@ -83,6 +83,11 @@ class HybridSolver:
                  tree: PoseTree | None = None,
                  locals0: tuple[FloatArray, FloatArray] | None = None) -> None:
         self.config = cfg = config or HybridConfig()
+        if cfg.update == "saga" and graph.num_gps:
+            # measured: diverges on a generated city with GPS (benchmarks/sag.py); the GPS
+            # batches carry no memory, so the optimum is not a fixed point there either
+            raise ValueError("update='saga' (experimental) does not support GPS constraints; "
+                             "use update='paper'")
         self.compile_seconds = ensure_compiled()
         t0 = time.perf_counter()
         self.graph = graph
@@ -103,6 +108,9 @@ class HybridSolver:
         lengths = tree.path_lengths()
         self.dmax = max(int(lengths.max()) if lengths.size else 1, 1)
         self.rebuild_blocks()
+        self.memory = _aggregate.new_memory(int(tree.path_ptr[-1]) if cfg.update == "saga" else 0,
+                                            tree.num_tree_nodes if cfg.update == "saga" else 0)
+        """Remembered forces of ``update="saga"`` (zero: the first visits are the paper's)."""
         self.tau = cfg.tau0
         """The temperature of the next sweep."""
         self.sweeps_done = 0
@@ -119,6 +127,13 @@ class HybridSolver:
     def rebuild_blocks(self) -> None:
         """Recompute 𝔅(H) and all contributions from scratch at the current poses."""
         _sweep.init_blocks(self.problem, self.state, self.dmax)
+
+    def init_memory(self) -> None:
+        """``update="saga"``: remember every constraint's force at the current poses (a warm
+        restart from a settled estimate; a settled optimum is then a fixed point)."""
+        if self.config.update != "saga":
+            raise ValueError("init_memory needs update='saga'")
+        _aggregate.init_memory(self.problem, self.state, self.memory, self.dmax)
 
     def poses(self) -> tuple[FloatArray, FloatArray]:
         """Global poses ``(R (N,3,3), t (N,3))`` of the current estimate."""
@@ -140,6 +155,11 @@ class HybridSolver:
     def _sweep(self, order: npt.NDArray[Any], tau: float, deadline: int,
                counts: npt.NDArray[np.int64]) -> int:
         cfg = self.config
+        if cfg.update == "saga":
+            return int(_aggregate.sweep_aggregated(
+                self.problem, self.state, self.memory, cfg.memory_rate, order, tau, cfg.damping,
+                cfg.gps_batch_size, self.dmax, np.uint64(deadline), self._cycles,
+                self._batch_cycles, counts))
         return int(_sweep.sweep(self.problem, self.state, order, tau, cfg.damping,
                                 STEP_KINDS[cfg.step], cfg.gps_batch_size, self.dmax,
                                 cfg.dmax or 0, np.uint64(deadline), self._cycles,
