@@ -96,7 +96,8 @@ def _install_cache_stamp() -> bool:
     base = getattr(caching, "_CacheLocator", None)
     if not isinstance(classes, list) or base is None:  # pragma: no cover
         return False
-    if any(getattr(c, "_hybridpgo", False) for c in classes):
+    locators: list[Any] = classes
+    if any(getattr(c, "_hybridpgo", False) for c in locators):
         return True
 
     class PackageStampLocator(base):  # type: ignore[misc, valid-type]
@@ -125,7 +126,7 @@ def _install_cache_stamp() -> bool:
             root = _stamp_root(py_file)
             if root is None:
                 return None
-            for other in classes:
+            for other in locators:
                 if other is cls:
                     continue
                 inner = other.from_function(py_func, py_file)
@@ -133,7 +134,7 @@ def _install_cache_stamp() -> bool:
                     return cls(inner, root)
             return None
 
-    classes.insert(0, PackageStampLocator)
+    locators.insert(0, PackageStampLocator)
     return True
 
 
