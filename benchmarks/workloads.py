@@ -604,3 +604,12 @@ def _outliers(ctx: Context) -> Result:
 
 
 WORKLOADS["outliers"] = _outliers
+
+
+def _scale(ctx: Context) -> Result:
+    from .scale import run  # issue 11 item 6
+
+    return run(ctx)
+
+
+WORKLOADS["scale"] = _scale
