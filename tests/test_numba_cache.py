@@ -54,3 +54,28 @@ def test_package_kernels_carry_the_package_stamp() -> None:
     locator = read_cycles._cache._impl._locator
     assert getattr(locator, "_hybridpgo", False)
     assert isinstance(locator.get_source_stamp(), tuple)
+
+
+def test_constants_passed_between_kernels_do_not_multiply_specializations() -> None:
+    """``g(x, True)`` and ``g(x, False)`` from another kernel share one compiled version."""
+    from hybridpgo._numba import _widen_literals
+
+    import numba
+
+    def g(x: float, flag: bool, k: int) -> float:
+        return x * k if flag else -x
+
+    g_kernel = _widen_literals(numba.njit(cache=False)(g))
+
+    def f(x: float) -> float:
+        n = 0
+        total = 0.0
+        for _ in range(2):
+            total += g_kernel(x, True, 3) + g_kernel(x, False, n)
+            n += 1
+        return total
+
+    assert numba.njit(cache=False)(f)(1.0) == 2 * (3.0 - 1.0)
+    assert len(g_kernel.signatures) == 1
+    [sig] = g_kernel.signatures
+    assert [str(t) for t in sig] == ["float64", "bool", "int64"]

@@ -36,8 +36,28 @@ _OPTIONS: dict[str, Any] = {"cache": True, "nogil": True, "fastmath": False, "er
 
 
 def kernel(fn: F) -> F:
-    """Compile ``fn`` with the project's Numba options (typed once here for mypy)."""
-    return numba.njit(**_OPTIONS)(fn)  # type: ignore[no-any-return]
+    """Compile ``fn`` with the project's Numba options (typed once here for mypy).
+
+    A call from another kernel compiles ``fn`` for its arguments' types with literal constants
+    widened (``relax(..., False)`` and ``relax(..., True)`` share one ``boolean`` version):
+    Numba would otherwise compile one version per constant, and type inference even compiles
+    throw-away versions for the constant a variable starts with (``nbuf = 0``), each with its
+    whole call tree.  LLVM still sees the constant after inlining, so the runtime is the same.
+    """
+    return _widen_literals(numba.njit(**_OPTIONS)(fn))  # type: ignore[no-any-return]
+
+
+def _widen_literals(dispatcher: Any) -> Any:
+    from numba.core import types
+
+    typed = dispatcher.get_call_template
+
+    def get_call_template(args: Any, kws: Any) -> Any:
+        return typed(tuple(types.unliteral(a) for a in args),
+                     {k: types.unliteral(v) for k, v in kws.items()})
+
+    dispatcher.get_call_template = get_call_template
+    return dispatcher
 
 
 # --------------------------------------------------------------------------- cache freshness
