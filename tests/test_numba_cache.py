@@ -58,9 +58,9 @@ def test_package_kernels_carry_the_package_stamp() -> None:
 
 def test_constants_passed_between_kernels_do_not_multiply_specializations() -> None:
     """``g(x, True)`` and ``g(x, False)`` from another kernel share one compiled version."""
-    from hybridpgo._numba import _widen_literals
-
     import numba
+
+    from hybridpgo._numba import _widen_literals
 
     def g(x: float, flag: bool, k: int) -> float:
         return x * k if flag else -x
