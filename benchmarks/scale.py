@@ -97,6 +97,8 @@ def solve_case(path: pathlib.Path, pipeline: bool = True) -> dict[str, Any]:
     res = optimize(graph, HybridConfig(sweeps=1))
     phase("sweep", t)
     out["sweep_parts"] = {k: float(v) for k, v in res.timings.items()}
+    out["tree"] = {k: float(res.stats[k]) for k in ("tree_max_depth", "path_length_max",
+                                                     "path_length_mean")}
     out["energy_start"] = float(res.energy_history[0])
     out["energy_sweep"] = float(res.energy_history[-1])
     final = res
@@ -141,20 +143,29 @@ def _subprocess_case(poses: int, gps_every: int, pipeline: bool) -> dict[str, An
     return out
 
 
+def _cases(quick: bool) -> tuple[tuple[int, int], ...]:
+    """``HYBRIDPGO_SCALE_CASES="100000:0,1000000:100"`` (poses:gps_every) overrides the list."""
+    spec = os.environ.get("HYBRIDPGO_SCALE_CASES")
+    if spec:
+        return tuple((int(a), int(b)) for a, b in (c.split(":") for c in spec.split(",")))
+    return QUICK_CASES if quick else CASES
+
+
 def run(ctx: Any) -> tuple[list[Metric], list[str]]:
-    cases = QUICK_CASES if ctx.quick else CASES
+    cases = _cases(ctx.quick)
     metrics: list[Metric] = []
     rows = []
     for poses, gps in cases:
         r = _subprocess_case(poses, gps, pipeline=True)
         key = f"scale.{poses // 1000}k.{'gps' if gps else 'nogps'}"
         if "error" in r:
-            rows.append([f"{poses:,}", "yes" if gps else "no", r["error"]] + [""] * 8)
+            rows.append([f"{poses:,}", "yes" if gps else "no", r["error"]] + [""] * 9)
             continue
         tm, pk = r["times"], r["peak_gb"]
         for name, value in tm.items():
             metrics.append(timing(f"{key}.{name}_s", value))
         metrics.append(Metric(f"{key}.peak_gb", max(pk.values()), "GB", "lower", rel_tol=0.25))
+        metrics.append(info(f"{key}.path_length_mean", r["tree"]["path_length_mean"]))
         metrics.append(info(f"{key}.energy_sweep_per_constraint",
                             r["energy_sweep"] / r["constraints"]))
         if "energy_pipeline" in r:
@@ -167,13 +178,14 @@ def run(ctx: Any) -> tuple[list[Metric], list[str]]:
         rows.append([
             f"{poses:,}", "yes" if gps else "no", f"{r['constraints']:,} + {r['gps']:,} GPS",
             f"{gen['times']['generate']:.0f} / {gen['peak_gb']:.2f}",
+            f"{r['tree']['tree_max_depth']:.0f} / {r['tree']['path_length_mean']:.1f}",
             f"{tm['read']:.1f}", f"{tm['sweep']:.1f} ({sweep_solve:.1f})",
             f"{tm.get('pipeline', float('nan')):.0f}",
             f"{r.get('polish_iterations', '')}", f"{tm['write']:.1f}",
             f"{max(pk.values()):.2f}", f"{r['energy_sweep'] / r['constraints']:.3g} / "
             f"{r.get('energy_pipeline', float('nan')) / r['constraints']:.4g}",
         ])
-    header = ["poses", "GPS", "constraints", "generate s / GB", "read s", "1 sweep s (solve)",
+    header = ["poses", "GPS", "constraints", "generate s / GB", "tree depth / mean path", "read s", "1 sweep s (solve)",
               "pipeline s", "polish its", "write s", "peak GB", "E/c sweep / pipeline"]
     table = markdown_table("Scale: generated cities", header, rows)
     note = (f"Targets at 1M poses: one sweep <= {TARGET_SWEEP_S:.0f} s, pipeline (10 sweeps + "
