@@ -186,7 +186,8 @@ def run(ctx: Any) -> tuple[list[Metric], list[str]]:
             f"{r.get('energy_pipeline', float('nan')) / r['constraints']:.4g}",
         ])
     header = ["poses", "GPS", "constraints", "generate s / GB", "tree depth / mean path",
-              "read s", "1 sweep s (solve)", "pipeline s", "polish its", "write s", "peak GB", "E/c sweep / pipeline"]
+              "read s", "1 sweep s (solve)", "pipeline s", "polish its", "write s", "peak GB",
+              "E/c sweep / pipeline"]
     table = markdown_table("Scale: generated cities", header, rows)
     note = (f"Targets at 1M poses: one sweep <= {TARGET_SWEEP_S:.0f} s, pipeline (10 sweeps + "
             f"polish) <= {TARGET_PIPELINE_S:.0f} s, peak <= {TARGET_PEAK_GB:.0f} GB.  Each case "
