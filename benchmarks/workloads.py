@@ -611,6 +611,9 @@ WORKLOADS["outliers"] = _outliers
 def _online(ctx: Context) -> Result:
     from .online import run
 
+def _scale(ctx: Context) -> Result:
+    from .scale import run  # issue 11 item 6
+
     return run(ctx)
 
 
@@ -624,3 +627,5 @@ WORKLOADS["interp"] = _interp_run
 from .sag import run as _sag_run  # noqa: E402  (issue 11 item 3)
 
 WORKLOADS["sag"] = _sag_run
+
+WORKLOADS["scale"] = _scale

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import sysconfig
@@ -25,7 +26,7 @@ from hybridpgo.solvers.hybrid import STEP_KINDS
 from hybridpgo.tree import InitKind, TreeKind
 
 COMMANDS = ("info", "optimize", "convert", "plot", "demo", "generate", "noisify", "evaluate",
-            "batch")
+            "batch", "warmup")
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
@@ -524,6 +525,15 @@ def test_plot_bad_extension(capsys: pytest.CaptureFixture[str], tiny: Path,
 
 
 # =========================================================================== demo
+def test_warmup(capsys: pytest.CaptureFixture[str]) -> None:
+    """Compiles (or loads) the kernels and says which; --quiet prints nothing."""
+    code, out, err = run_cli(capsys, "warmup", "--solver", "exact")
+    assert code == 0 and out == ""
+    assert re.search(r"hybridpgo warmup: exact: (compiled \d+ kernels|all kernels were already "
+                     r"compiled \(loaded from the cache\)) in \d+\.\d s", err)
+    assert run_cli(capsys, "warmup", "--solver", "exact", "-q") == (0, "", "")
+
+
 def test_demo(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     """The README's main job: M3500, hybrid sweeps + exact polish, graph and plots written."""
     out_dir = tmp_path / "demo"

@@ -135,3 +135,47 @@ def test_a_failing_block_still_ends_the_phase() -> None:
     with pytest.raises(RuntimeError), phase("solving", stream=stream):
         raise RuntimeError("boom")
     assert _progress._display["progress"] is None
+
+
+def _fresh_kernel() -> object:
+    """A new (uncached) Numba function: calling it compiles."""
+    import numba
+
+    def twice(x: float) -> float:
+        return 2.0 * x
+
+    return numba.njit(cache=False)(twice)
+
+
+def test_compilation_inside_a_phase_is_announced_off_a_terminal() -> None:
+    import hybridpgo._numba  # noqa: F401  (a kernel module is imported: compiles are watched)
+
+    stream = io.StringIO()
+    with phase("solving", stream=stream):
+        pass  # nothing compiles: nothing printed
+    assert stream.getvalue() == ""
+    fn = _fresh_kernel()
+    with phase("solving", stream=stream):
+        assert fn(2.0) == 4.0  # type: ignore[operator]
+    lines = stream.getvalue().splitlines()
+    assert lines[0] == _progress.COMPILE_NOTICE
+    assert re.fullmatch(r"hybridpgo: compiled [1-9]\d* kernels in \d+\.\d s \(cached for later "
+                        r"runs\)", lines[1])
+    assert len(lines) == 2
+    stream = io.StringIO()
+    with phase("solving", stream=stream, enabled=False):  # --quiet: nothing
+        assert _fresh_kernel()(1.0) == 2.0  # type: ignore[operator]
+    assert stream.getvalue() == ""
+
+
+def test_compilation_inside_a_phase_is_counted_on_a_terminal(monkeypatch: pytest.MonkeyPatch
+                                                             ) -> None:
+    import hybridpgo._numba  # noqa: F401
+
+    monkeypatch.setattr(_progress, "PHASE_REPORT_S", 0.0)
+    stream = Terminal()
+    fn = _fresh_kernel()
+    with phase("compiling kernels (first run only)", stream=stream):
+        assert fn(1.0) == 2.0  # type: ignore[operator]
+    assert re.search(r"compiling kernels \(first run only\): \d+\.\d s \([1-9]\d* kernels "
+                     r"compiled, cached for later runs\)", " ".join(text(stream).split()))

@@ -2,14 +2,31 @@
 
 ``kernel`` is the decorator every hot loop uses.  ``fastmath`` stays off: it breaks NaN checks
 and bit-reproducibility.
+
+Two more things live here because they concern every kernel:
+
+* **Cache freshness.**  Numba's on-disk cache (``cache=True``) keys a kernel on the hash of the
+  one file that defines it, but a compiled kernel contains the machine code of every kernel it
+  calls.  Editing ``_step.py`` would leave ``_sweep.py``'s cached ``sweep`` running the old
+  step.  :func:`_install_cache_stamp` makes the stamp of every hybridpgo kernel also depend on
+  the hash of all the package's kernel-side sources (everything but ``cli/``), so any edit there
+  recompiles, and a stale cache can never be loaded.
+* **Compile watching.**  :func:`compile_status` tells how many kernels this process has
+  compiled (cache misses) and which one is compiling now, for the command line's
+  "compiling kernels (first run only)" display; :func:`on_first_compile` lets a caller
+  announce compilation only when it actually happens.
 """
 
 from __future__ import annotations
 
 import functools
+import hashlib
+import pathlib
+import threading
 import time
-from collections.abc import Callable
-from typing import Any, TypeVar
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any, NamedTuple, TypeVar
 
 import numba
 
@@ -19,10 +36,214 @@ _OPTIONS: dict[str, Any] = {"cache": True, "nogil": True, "fastmath": False, "er
 
 
 def kernel(fn: F) -> F:
-    """Compile ``fn`` with the project's Numba options (typed once here for mypy)."""
-    return numba.njit(**_OPTIONS)(fn)  # type: ignore[no-any-return]
+    """Compile ``fn`` with the project's Numba options (typed once here for mypy).
+
+    A call from another kernel compiles ``fn`` for its arguments' types with literal constants
+    widened (``relax(..., False)`` and ``relax(..., True)`` share one ``boolean`` version):
+    Numba would otherwise compile one version per constant, and type inference even compiles
+    throw-away versions for the constant a variable starts with (``nbuf = 0``), each with its
+    whole call tree.  LLVM still sees the constant after inlining, so the runtime is the same.
+    """
+    return _widen_literals(numba.njit(**_OPTIONS)(fn))  # type: ignore[no-any-return]
 
 
+def _widen_literals(dispatcher: Any) -> Any:
+    from numba.core import types
+
+    typed = dispatcher.get_call_template
+
+    def get_call_template(args: Any, kws: Any) -> Any:
+        return typed(tuple(types.unliteral(a) for a in args),
+                     {k: types.unliteral(v) for k, v in kws.items()})
+
+    dispatcher.get_call_template = get_call_template
+    return dispatcher
+
+
+# --------------------------------------------------------------------------- cache freshness
+#: Source trees whose kernels get the package-wide stamp (tests may add one).
+STAMP_ROOTS: list[pathlib.Path] = [pathlib.Path(__file__).resolve().parent]
+#: Sub-directories of a root that no kernel depends on (the command line).
+_UNSTAMPED_DIRS = ("cli",)
+
+
+def _tree_files(root: pathlib.Path) -> list[pathlib.Path]:
+    return sorted(p for p in root.rglob("*.py")
+                  if not (set(p.relative_to(root).parts[:-1]) & set(_UNSTAMPED_DIRS)))
+
+
+def _tree_stamp(root: pathlib.Path) -> str:
+    """SHA-256 over the names and contents of the kernel-side sources under ``root``.
+
+    Memoized on every file's (mtime, size), like Numba's own per-file stamp, so a process that
+    edits a file and recompiles sees the change.
+    """
+    files = _tree_files(root)
+    key = tuple((str(p), p.stat().st_mtime_ns, p.stat().st_size) for p in files)
+    return _hash_files(key)
+
+
+@functools.lru_cache(maxsize=8)
+def _hash_files(key: tuple[tuple[str, int, int], ...]) -> str:
+    h = hashlib.sha256()
+    for name, _, _ in key:
+        h.update(name.encode())
+        h.update(pathlib.Path(name).read_bytes())
+    return h.hexdigest()
+
+
+def _stamp_root(py_file: str) -> pathlib.Path | None:
+    try:
+        path = pathlib.Path(py_file).resolve()
+    except OSError:
+        return None
+    for root in STAMP_ROOTS:
+        if path.is_relative_to(root):
+            rel = path.relative_to(root).parts[:-1]
+            return None if set(rel) & set(_UNSTAMPED_DIRS) else root
+    return None
+
+
+def _install_cache_stamp() -> bool:
+    """Put a locator in front of Numba's that adds the package stamp; False if Numba's private
+    cache API is not as expected (then Numba's per-file stamp is used unchanged)."""
+    try:
+        from numba.core import caching
+    except ImportError:  # pragma: no cover - a Numba without the module
+        return False
+    impl = getattr(caching, "CacheImpl", None) or getattr(caching, "_CacheImpl", None)
+    classes = getattr(impl, "_locator_classes", None)
+    base = getattr(caching, "_CacheLocator", None)
+    if not isinstance(classes, list) or base is None:  # pragma: no cover
+        return False
+    locators: list[Any] = classes
+    if any(getattr(c, "_hybridpgo", False) for c in locators):
+        return True
+
+    class PackageStampLocator(base):  # type: ignore[misc, valid-type]
+        """Numba's locator for the file, with the package stamp added to the source stamp."""
+
+        _hybridpgo = True
+
+        def __init__(self, inner: Any, root: pathlib.Path) -> None:
+            self._inner = inner
+            self._root = root
+
+        def ensure_cache_path(self) -> None:
+            self._inner.ensure_cache_path()
+
+        def get_cache_path(self) -> Any:
+            return self._inner.get_cache_path()
+
+        def get_source_stamp(self) -> Any:
+            return (self._inner.get_source_stamp(), _tree_stamp(self._root))
+
+        def get_disambiguator(self) -> Any:
+            return self._inner.get_disambiguator()
+
+        @classmethod
+        def from_function(cls, py_func: Any, py_file: str) -> Any:
+            root = _stamp_root(py_file)
+            if root is None:
+                return None
+            for other in locators:
+                if other is cls:
+                    continue
+                inner = other.from_function(py_func, py_file)
+                if inner is not None:
+                    return cls(inner, root)
+            return None
+
+    locators.insert(0, PackageStampLocator)
+    return True
+
+
+_install_cache_stamp()
+
+
+# --------------------------------------------------------------------------- compile watching
+class CompileStatus(NamedTuple):
+    """What Numba has compiled in this process (cache loads do not count)."""
+
+    compiled: int
+    """Kernels (signatures) compiled so far, Numba's own helpers included."""
+    current: str | None
+    """Name of the kernel compiling now (the innermost one), or None."""
+    seconds: float
+    """Wall time spent compiling (outermost compilations only)."""
+
+
+class _Watch:
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.compiled = 0
+        self.stack: list[str] = []
+        self.t_start = 0.0
+        self.seconds = 0.0
+        self.callbacks: list[Callable[[], None]] = []
+
+    def start(self, name: str) -> None:
+        with self.lock:
+            if not self.stack:
+                self.t_start = time.perf_counter()
+            self.stack.append(name)
+            callbacks, self.callbacks = self.callbacks, []
+        for cb in callbacks:
+            cb()
+
+    def end(self) -> None:
+        with self.lock:
+            if self.stack:
+                self.stack.pop()
+            self.compiled += 1
+            if not self.stack:
+                self.seconds += time.perf_counter() - self.t_start
+
+
+_WATCH = _Watch()
+
+
+def _install_watch() -> None:
+    from numba.core import event
+
+    class Listener(event.Listener):  # type: ignore[misc]
+        def on_start(self, ev: Any) -> None:
+            disp = (ev.data or {}).get("dispatcher")
+            fn = getattr(disp, "py_func", None)
+            _WATCH.start(getattr(fn, "__name__", "?"))
+
+        def on_end(self, ev: Any) -> None:
+            _WATCH.end()
+
+    event.register("numba:compile", Listener())
+
+
+_install_watch()
+
+
+def compile_status() -> CompileStatus:
+    """Kernels compiled so far in this process and the one compiling now."""
+    with _WATCH.lock:
+        current = _WATCH.stack[-1] if _WATCH.stack else None
+        seconds = _WATCH.seconds + (time.perf_counter() - _WATCH.t_start if current else 0.0)
+        return CompileStatus(_WATCH.compiled, current, seconds)
+
+
+@contextmanager
+def on_first_compile(callback: Callable[[], None]) -> Iterator[None]:
+    """Call ``callback`` once when Numba starts compiling inside the ``with`` block (a cache
+    load is not a compilation); not at all if everything comes from the cache."""
+    with _WATCH.lock:
+        _WATCH.callbacks.append(callback)
+    try:
+        yield
+    finally:
+        with _WATCH.lock:
+            if callback in _WATCH.callbacks:
+                _WATCH.callbacks.remove(callback)
+
+
+# --------------------------------------------------------------------------- cycle counter
 def _make_cycle_counter() -> Any:
     """``cycle_counter()`` -> uint64: the CPU's cycle counter (``llvm.readcyclecounter``).
 
@@ -68,3 +289,4 @@ def cycles_per_second() -> float:
     time.sleep(0.05)
     c1, t1 = read_cycles(), time.perf_counter()
     return float(c1 - c0) / (t1 - t0)
+

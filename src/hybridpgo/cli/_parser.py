@@ -408,6 +408,20 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(p)
     p.set_defaults(command="demo")
 
+    # ---------------------------------------------------------------- warmup
+    p = sub.add_parser(
+        "warmup", help="compile the solvers' Numba kernels now (first run only; then cached)",
+        description="Compile every Numba kernel of the solvers now, or load them from the "
+                    "on-disk cache if they already are: the first solve of a fresh install "
+                    "otherwise spends a minute or two compiling (once; later runs load the "
+                    "cache in about a second).  Useful in an image build or after pip install.")
+    p.add_argument("--solver", choices=["all", "hybrid", "exact", "toro"], default="all",
+                   help="which solver's kernels (default: all)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress and no summary")
+    _add_progress(p)
+    _add_common(p)
+    p.set_defaults(command="warmup")
+
     # ---------------------------------------------------------------- generate
     p = sub.add_parser(
         "generate", help="generate a synthetic graph with ground truth",

@@ -24,10 +24,13 @@ from typing import IO, TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from rich.progress import Progress, TaskID
 
-__all__ = ["PHASE_REPORT_S", "ProgressBar", "configure", "is_live", "phase"]
+__all__ = ["COMPILE_NOTICE", "PHASE_REPORT_S", "ProgressBar", "configure", "is_live", "phase"]
 
 #: A phase that took at least this long leaves a line with its duration (seconds).
 PHASE_REPORT_S = 1.0
+#: Off a terminal: the line printed when Numba starts compiling inside a phase.
+COMPILE_NOTICE = ("hybridpgo: compiling kernels (first run only; about a minute or two on a "
+                  "slow machine, cached for later runs)...")
 
 _force = False
 #: The live display every bar and phase draws into, and how many rows use it.
@@ -155,6 +158,17 @@ class ProgressBar:
         self.close()
 
 
+def _compile_status() -> Any:
+    """``hybridpgo._numba.compile_status()`` if a kernel module was imported (importing Numba
+    just to learn that nothing compiled would slow light commands down)."""
+    numba_side = sys.modules.get("hybridpgo._numba")
+    if numba_side is None:
+        from types import SimpleNamespace
+
+        return SimpleNamespace(compiled=0, current=None, seconds=0.0)
+    return numba_side.compile_status()
+
+
 @contextmanager
 def phase(text: str, *, enabled: bool = True, stream: IO[str] | None = None) -> Iterator[None]:
     """A spinner with elapsed time while the ``with`` block runs, e.g.
@@ -162,13 +176,41 @@ def phase(text: str, *, enabled: bool = True, stream: IO[str] | None = None) -> 
 
     Off a terminal (unless forced) or with ``enabled=False`` it draws nothing.  On a terminal, a
     phase of at least :data:`PHASE_REPORT_S` leaves the line ``text: 12.3 s``.
+
+    Numba compiling inside the block (a cold cache: the first run, or after an upgrade) is
+    shown: on a terminal the row says how many kernels are compiled and which one is compiling
+    now; off a terminal (``enabled`` still True) one line announces it when it starts and one
+    says how long it took.  Loading kernels from the cache shows nothing more.
     """
     out = stream or sys.stderr
+    base = _compile_status()
     if not is_live(out, enabled):
-        yield
+        numba_side = sys.modules.get("hybridpgo._numba")
+        if not enabled or numba_side is None:  # no kernel module imported: nothing to watch
+            yield
+            return
+
+        def announce() -> None:
+            print(COMPILE_NOTICE, file=out, flush=True)
+
+        with numba_side.on_first_compile(announce):
+            yield
+        done = _compile_status()
+        if done.compiled > base.compiled:
+            print(f"hybridpgo: compiled {done.compiled - base.compiled} kernels in "
+                  f"{done.seconds - base.seconds:.1f} s (cached for later runs)", file=out,
+                  flush=True)
         return
+
+    def note() -> str:
+        now = _compile_status()
+        if now.compiled == base.compiled and now.current is None:
+            return ""
+        current = f", now {now.current}" if now.current else ""
+        return f"numba: {now.compiled - base.compiled} kernels compiled{current}"
+
     progress = _acquire(out)
-    task = progress.add_task(text, total=None, stats="", note="", unit="")
+    task = progress.add_task(text, total=None, stats="", note=note, unit="")
     t0 = time.perf_counter()
     try:
         yield
@@ -178,5 +220,7 @@ def phase(text: str, *, enabled: bool = True, stream: IO[str] | None = None) -> 
         if elapsed >= PHASE_REPORT_S:
             from rich.text import Text
 
-            progress.console.print(Text(f"{text}: {elapsed:.1f} s"))
+            n = _compile_status().compiled - base.compiled
+            extra = f" ({n} kernels compiled, cached for later runs)" if n else ""
+            progress.console.print(Text(f"{text}: {elapsed:.1f} s{extra}"))
         _release(progress)

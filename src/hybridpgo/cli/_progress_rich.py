@@ -28,7 +28,8 @@ class _Spinner(SpinnerColumn):
 
 
 class _Field(ProgressColumn):
-    """A task's description or one of its fields, as plain text (no markup)."""
+    """A task's description or one of its fields, as plain text (no markup); a callable field
+    is called at every redraw (a phase's note follows Numba's compilation)."""
 
     def __init__(self, name: str) -> None:
         super().__init__(table_column=Column(no_wrap=True))
@@ -37,7 +38,8 @@ class _Field(ProgressColumn):
     def render(self, task: Any) -> Text:
         if self.name == "description":
             return Text(str(task.description))
-        return Text(str(task.fields.get(self.name, "")))
+        value = task.fields.get(self.name, "")
+        return Text(str(value() if callable(value) else value))
 
 
 class _Count(ProgressColumn):

@@ -1,0 +1,205 @@
+"""Scale: generated cities of 100k and 1M poses, with and without GPS (issue 11 item 6).
+
+Each case is generated in one process (``python -m benchmarks.scale generate N GPS PATH``) and
+solved in another (``python -m benchmarks.scale solve PATH``), so the solver's peak memory is
+that process's ``ru_maxrss`` (numpy's buffers included, which tracemalloc misses).
+Phases, timed separately, in order:
+
+* ``generate`` (its own process, its own peak): ``generate_city(**scale_city(None, N))`` and
+  the g2o file written (the input a user would have);
+* ``read``: ``read_graph`` of that file;
+* ``sweep``: one hybrid sweep from the tree initialization (``HybridConfig(sweeps=1)``), with
+  its ``analyze`` (tree, problem set-up) and ``solve`` parts;
+* ``pipeline``: the default-like pipeline of the demo: 10 sweeps, then the exact polish (LM)
+  to convergence (``HybridConfig(sweeps=10, polish=True)``), skipped with ``--no-pipeline``;
+* ``write``: the optimized graph written as g2o.
+
+Kernels are compiled (or loaded) before the clock starts.  The peak memory after each phase is
+recorded (it only grows).  Targets (issue 11): one sweep <= 10 s, pipeline <= 5 min, peak
+<= 4 GB at 1M poses.
+
+Run: ``PYTHONPATH=src python -m benchmarks --only scale --run <name>`` (``--quick``: 20k
+poses only).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from typing import Any
+
+from .metrics import Metric, info, markdown_table, timing
+
+#: (poses, gps_every) of the full run; --quick runs the first two sizes only.
+CASES = ((100_000, 0), (100_000, 100), (1_000_000, 0), (1_000_000, 100))
+QUICK_CASES = ((20_000, 0), (20_000, 100))
+#: A case that has not finished after this many seconds is reported as timed out.
+TIMEOUT_S = 3600.0
+#: Targets at 1M poses (issue 11 item 6).
+TARGET_SWEEP_S, TARGET_PIPELINE_S, TARGET_PEAK_GB = 10.0, 300.0, 4.0
+
+
+def _peak_gb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB on Linux
+
+
+def generate_case(poses: int, gps_every: int, path: pathlib.Path) -> dict[str, Any]:
+    """Generate the city and write it as g2o (in its own process: the generator's memory is not
+    the solver's)."""
+    from hybridpgo.generate import generate_city
+    from hybridpgo.generate.city import scale_city
+    from hybridpgo.io import write_graph
+
+    out: dict[str, Any] = {"times": {}}
+    t = time.perf_counter()
+    city = generate_city(seed=0, gps_every=gps_every, **scale_city(None, poses))
+    out["times"]["generate"] = time.perf_counter() - t
+    t = time.perf_counter()
+    write_graph(city.graph, path)
+    out["times"]["write_input"] = time.perf_counter() - t
+    out["peak_gb"] = _peak_gb()
+    out["file_mb"] = path.stat().st_size / 2**20
+    return out
+
+
+def solve_case(path: pathlib.Path, pipeline: bool = True) -> dict[str, Any]:
+    """Read, one sweep, the pipeline, write: the phase times (s) and the peak (GB) after each."""
+    from hybridpgo.io import read_graph, write_graph
+    from hybridpgo.solvers import HybridConfig, optimize
+    from hybridpgo.solvers.gauss_newton import _ensure_compiled
+    from hybridpgo.solvers.hybrid.solver import ensure_compiled
+
+    out: dict[str, Any] = {"times": {}, "peak_gb": {}}
+    t0 = time.perf_counter()
+    ensure_compiled()
+    _ensure_compiled()
+    out["compile_or_load_s"] = time.perf_counter() - t0
+    out["peak_gb"]["start"] = _peak_gb()
+
+    def phase(name: str, t_start: float) -> None:
+        out["times"][name] = time.perf_counter() - t_start
+        out["peak_gb"][name] = _peak_gb()
+        print(f"  {path.name}: {name} {out['times'][name]:.2f} s, peak "
+              f"{out['peak_gb'][name]:.2f} GB", file=sys.stderr, flush=True)
+
+    t = time.perf_counter()
+    graph = read_graph(path)
+    phase("read", t)
+    out["constraints"] = graph.num_constraints
+    out["gps"] = graph.num_gps
+    t = time.perf_counter()
+    res = optimize(graph, HybridConfig(sweeps=1))
+    phase("sweep", t)
+    out["sweep_parts"] = {k: float(v) for k, v in res.timings.items()}
+    out["tree"] = {k: float(res.stats[k]) for k in ("tree_max_depth", "path_length_max",
+                                                     "path_length_mean")}
+    out["energy_start"] = float(res.energy_history[0])
+    out["energy_sweep"] = float(res.energy_history[-1])
+    final = res
+    if pipeline:
+        del res
+        t = time.perf_counter()
+        final = optimize(graph, HybridConfig(sweeps=10, polish=True))
+        phase("pipeline", t)
+        out["pipeline_parts"] = {k: float(v) for k, v in final.timings.items()}
+        out["energy_pipeline"] = float(final.energy_history[-1])
+        out["pipeline_status"] = final.status.value
+        out["polish_iterations"] = int(final.stats.get("polish_iterations", -1))
+    t = time.perf_counter()
+    write_graph(graph.with_poses(final.rotations, final.translations),
+                path.with_name(path.stem + "_out.g2o"))
+    phase("write", t)
+    return out
+
+
+def _child(args: list[str]) -> dict[str, Any]:
+    """Run ``python -m benchmarks.scale ARGS``; its last stdout line is JSON."""
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.scale", *args], capture_output=True,
+                          text=True, timeout=TIMEOUT_S, env=dict(os.environ))
+    sys.stderr.write(proc.stderr)
+    if proc.returncode != 0:
+        last = (proc.stderr.strip().splitlines() or ["?"])[-1]
+        raise RuntimeError(f"exit {proc.returncode}: {last}")
+    result: dict[str, Any] = json.loads(proc.stdout.strip().splitlines()[-1])
+    return result
+
+
+def _subprocess_case(poses: int, gps_every: int, pipeline: bool) -> dict[str, Any]:
+    out: dict[str, Any] = {"poses": poses, "gps_every": gps_every}
+    with tempfile.TemporaryDirectory(prefix="hybridpgo-scale-") as tmp:
+        path = pathlib.Path(tmp) / f"city{poses}_gps{gps_every}.g2o"
+        try:
+            gen = _child(["generate", str(poses), str(gps_every), str(path)])
+            out["generate"] = gen
+            out.update(_child(["solve", str(path)] + ([] if pipeline else ["--no-pipeline"])))
+        except (RuntimeError, subprocess.TimeoutExpired) as exc:
+            out["error"] = str(exc)
+    return out
+
+
+def _cases(quick: bool) -> tuple[tuple[int, int], ...]:
+    """``HYBRIDPGO_SCALE_CASES="100000:0,1000000:100"`` (poses:gps_every) overrides the list."""
+    spec = os.environ.get("HYBRIDPGO_SCALE_CASES")
+    if spec:
+        return tuple((int(a), int(b)) for a, b in (c.split(":") for c in spec.split(",")))
+    return QUICK_CASES if quick else CASES
+
+
+def run(ctx: Any) -> tuple[list[Metric], list[str]]:
+    cases = _cases(ctx.quick)
+    metrics: list[Metric] = []
+    rows = []
+    for poses, gps in cases:
+        r = _subprocess_case(poses, gps, pipeline=True)
+        key = f"scale.{poses // 1000}k.{'gps' if gps else 'nogps'}"
+        if "error" in r:
+            rows.append([f"{poses:,}", "yes" if gps else "no", r["error"]] + [""] * 9)
+            continue
+        tm, pk = r["times"], r["peak_gb"]
+        for name, value in tm.items():
+            metrics.append(timing(f"{key}.{name}_s", value))
+        metrics.append(Metric(f"{key}.peak_gb", max(pk.values()), "GB", "lower", rel_tol=0.25))
+        metrics.append(info(f"{key}.path_length_mean", r["tree"]["path_length_mean"]))
+        metrics.append(info(f"{key}.energy_sweep_per_constraint",
+                            r["energy_sweep"] / r["constraints"]))
+        if "energy_pipeline" in r:
+            metrics.append(info(f"{key}.energy_pipeline_per_constraint",
+                                r["energy_pipeline"] / r["constraints"]))
+        sweep_solve = r["sweep_parts"].get("solve", float("nan"))
+        gen = r["generate"]
+        metrics.append(info(f"{key}.generate_s", gen["times"]["generate"], "s"))
+        metrics.append(info(f"{key}.generate_peak_gb", gen["peak_gb"], "GB"))
+        rows.append([
+            f"{poses:,}", "yes" if gps else "no", f"{r['constraints']:,} + {r['gps']:,} GPS",
+            f"{gen['times']['generate']:.0f} / {gen['peak_gb']:.2f}",
+            f"{r['tree']['tree_max_depth']:.0f} / {r['tree']['path_length_mean']:.1f}",
+            f"{tm['read']:.1f}", f"{tm['sweep']:.1f} ({sweep_solve:.1f})",
+            f"{tm.get('pipeline', float('nan')):.0f}",
+            f"{r.get('polish_iterations', '')}", f"{tm['write']:.1f}",
+            f"{max(pk.values()):.2f}", f"{r['energy_sweep'] / r['constraints']:.3g} / "
+            f"{r.get('energy_pipeline', float('nan')) / r['constraints']:.4g}",
+        ])
+    header = ["poses", "GPS", "constraints", "generate s / GB", "tree depth / mean path",
+              "read s", "1 sweep s (solve)", "pipeline s", "polish its", "write s", "peak GB",
+              "E/c sweep / pipeline"]
+    table = markdown_table("Scale: generated cities", header, rows)
+    note = (f"Targets at 1M poses: one sweep <= {TARGET_SWEEP_S:.0f} s, pipeline (10 sweeps + "
+            f"polish) <= {TARGET_PIPELINE_S:.0f} s, peak <= {TARGET_PEAK_GB:.0f} GB.  Each case "
+            "solved in its own process (generated and written by another); peak = ru_maxrss of the "
+            "solving process.  1 sweep = analyze (tree, set-up) + solve.")
+    return metrics, [table + "\n" + note + "\n"]
+
+
+if __name__ == "__main__":
+    argv = [a for a in sys.argv[1:] if not a.startswith("--")]
+    if argv[0] == "generate":
+        result = generate_case(int(argv[1]), int(argv[2]), pathlib.Path(argv[3]))
+    else:
+        result = solve_case(pathlib.Path(argv[1]), pipeline="--no-pipeline" not in sys.argv)
+    print(json.dumps(result))
