@@ -225,26 +225,34 @@ def build_parser() -> argparse.ArgumentParser:
     hy, gn = _solver_defaults()
     p = sub.add_parser(
         "optimize", help="optimize a graph and write the result",
-        description="Optimize a pose graph with the hybrid Hessian solver (default) or the exact "
-                    "sparse Levenberg-Marquardt solver, and write the optimized graph.",
+        description="Optimize a pose graph and write the optimized graph.  The default "
+                    "(--solver auto) chooses the start (chordal, tree or the file's vertices), "
+                    "runs hybrid sweeps while they lower the energy by 5% or more per sweep, "
+                    "and polishes with Levenberg-Marquardt to convergence from the two best "
+                    "starts, keeping the better.  --solver hybrid is the paper's method alone, "
+                    "--solver exact sparse LM from one start.",
         epilog="Hybrid-only options: --sweeps --tau0 --tau-decay --damping --step "
                "--gps-batch-size --polish.  --max-iterations limits the exact solver, or the "
-               "polish with --polish.  --solver toro (the TORO-style baseline) takes --sweeps "
-               "(its iterations, default 100), --tolerance, --init tree|file and --tree "
+               "polish with --polish.  --solver auto takes the hybrid options except --polish "
+               "(it always polishes): --init is then the only start tried, --sweeps the most "
+               "sweeps per start (default 30), --max-iterations and --tolerance limit each "
+               "polish (default 200 and 1e-10).  --solver toro (the TORO-style baseline) "
+               "takes --sweeps (its iterations, default 100), --tolerance, --init tree|file and --tree "
                "toro|bfs.  " + OUTPUT_HELP)
     p.add_argument("file", help="pose-graph file (g2o, TORO or iSAM; '-': standard input)")
     p.add_argument("-o", "--output", required=True, metavar="OUT",
                    help="where to write the optimized graph ('-': standard output, the summary "
                         "then goes to stderr)")
     _add_format(p, out=True)
-    p.add_argument("--solver", choices=LazyChoices(_methods), default="hybrid",
-                   help="solver: 'hybrid' (the paper's), 'exact' (sparse LM), 'toro' (the "
-                        "TORO-style baseline) (default: hybrid)")
+    p.add_argument("--solver", choices=LazyChoices(_methods), default="auto",
+                   help="solver: 'auto' (start, sweeps while they pay, LM polish to "
+                        "convergence), 'hybrid' (the paper's sweeps alone), 'exact' (sparse "
+                        "LM), 'toro' (the TORO-style baseline) (default: auto)")
     p.add_argument("--init", choices=LazyChoices(_inits),
                    help="initial poses: 'tree' concatenates the tree edges' measurements (the "
                         "paper), 'file' uses the file's vertices, 'chordal' a chordal "
-                        "relaxation (default: tree for hybrid; file for exact when the file has "
-                        "vertices)")
+                        "relaxation (default: auto tries all and keeps the best; tree for hybrid; "
+                        "file for exact when the file has vertices)")
     p.add_argument("--sweeps", type=_sweeps, metavar="N",
                    help=f"hybrid: number of sweeps over all constraints (default {hy.sweeps})")
     p.add_argument("--tau0", type=_tau, metavar="TAU",
