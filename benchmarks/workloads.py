@@ -604,3 +604,12 @@ def _outliers(ctx: Context) -> Result:
 
 
 WORKLOADS["outliers"] = _outliers
+
+
+def _auto(ctx: Context) -> Result:
+    from .auto import run
+
+    return run(ctx)
+
+
+WORKLOADS["auto"] = _auto  # issue 11 items 1-2: the default pipeline and local minima

@@ -176,8 +176,8 @@ def test_hybrid_by_name_is_still_the_papers_method(data_dir: Path) -> None:
 
 def test_hybrid_options_without_a_method_name_the_fix(data_dir: Path) -> None:
     graph = read_graph(data_dir / "tinyGrid3D.g2o")
-    with pytest.raises(TypeError, match="sweeps: not an option of the default pipeline.*"
-                                        "optimize\\(graph, 'hybrid'"):
+    with pytest.raises(TypeError, match=r"sweeps: not an option of the default pipeline.*"
+                                        r"optimize\(graph, 'hybrid'"):
         optimize(graph, sweeps=10)
     with pytest.raises(ValueError, match="fields of its config"):
         optimize(graph, AutoConfig(), init="tree")
@@ -240,3 +240,34 @@ def test_cli_progress_shows_each_phase(capsys, data_dir: Path, tmp_path: Path) -
     _, err = capsys.readouterr()
     assert code == 0
     assert "auto: start tree" in err and "tree sweeps" in err and "tree polish (LM)" in err
+
+
+def test_a_runner_up_polish_stops_at_its_budget(data_dir: Path,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    import hybridpgo.solvers.auto as auto
+
+    graph = read_graph(data_dir / "smallGrid3D.g2o")
+    monkeypatch.setattr(auto, "MIN_FINALIST_ITERATIONS", 1)
+    cfg = AutoConfig(inits=("tree", "chordal"), max_sweeps=0, finalist_budget=0.01)
+    result = solve_auto(graph, cfg)
+    s = result.stats
+    assert s["finalists"] == ["chordal", "tree"]  # chordal starts far lower (E0 1189 vs 52044)
+    tree = s["candidates"]["tree"]
+    assert tree["polish_iterations"] == 1 and tree["polish_cut_at_budget"] is True
+    assert tree["final_energy"] > result.final_energy
+    assert s["init"] == "chordal" and "stopped at its budget" in s["reason"]
+    assert result.status is Status.CONVERGED
+
+
+def test_a_continued_polish_is_one_trajectory(data_dir: Path) -> None:
+    from hybridpgo.solvers.auto import _continue
+
+    graph = read_graph(data_dir / "smallGrid3D.g2o")
+    first = solve_exact(graph, None, None, GaussNewtonConfig(max_iterations=2))
+    second = solve_exact(graph, first.rotations, first.translations, GaussNewtonConfig())
+    both = _continue(first, second)
+    assert both.iterations == first.iterations + second.iterations
+    np.testing.assert_array_equal(both.energy_history, np.concatenate(
+        [first.energy_history, second.energy_history[1:]]))
+    assert len(both.times) == len(both.energy_history) and np.all(np.diff(both.times) >= 0)
+    assert both.final_energy == second.final_energy and both.status is second.status

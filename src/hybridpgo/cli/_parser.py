@@ -247,8 +247,8 @@ def build_parser() -> argparse.ArgumentParser:
                f"sweeps per start (default {au.max_sweeps}), --max-iterations and "
                f"--tolerance limit each polish (default {au.polish_iterations} and "
                f"{au.energy_tolerance:g}).  --solver toro (the TORO-style baseline) "
-               "takes --sweeps (its iterations, default 100), --tolerance, --init tree|file and --tree "
-               "toro|bfs.  " + OUTPUT_HELP)
+               "takes --sweeps (its iterations, default 100), --tolerance, --init tree|file "
+               "and --tree toro|bfs.  " + OUTPUT_HELP)
     p.add_argument("file", help="pose-graph file (g2o, TORO or iSAM; '-': standard input)")
     p.add_argument("-o", "--output", required=True, metavar="OUT",
                    help="where to write the optimized graph ('-': standard output, the summary "

@@ -2,7 +2,8 @@
 
 Reads ``M3500_isam.txt`` (Olson's Manhattan world as the paper used it, shipped in the package),
 runs what ``hybridpgo optimize`` runs by default (``--solver auto``: the best start, hybrid
-sweeps while they pay, an exact polish; ``--sweeps`` caps the sweeps per start), and writes ``DIR/M3500_optimized.g2o`` plus ``DIR/M3500_before.png``,
+sweeps while they pay, an exact polish; ``--sweeps`` caps the sweeps per start), and writes
+``DIR/M3500_optimized.g2o`` plus ``DIR/M3500_before.png``,
 ``DIR/M3500_after.png`` and ``DIR/M3500_energy.png`` (the plots need matplotlib; without it the
 demo says so and writes the graph only).
 """

@@ -13,9 +13,12 @@ solver is named (``--solver auto``).  The paper's pure method stays ``--solver h
    the sweeps) keeps its own poses.
 3. **Polish.**  The ``finalists`` starts with the lowest energy after their sweeps are polished
    with Levenberg-Marquardt to convergence (``energy_tolerance``); the lowest polished energy
-   wins (ties: the order of ``inits``).  Polishing more than one start is the guard against
-   local minima: on ``sphere_bignoise`` the tree start's sweeps and polish end 14% above the
-   minimum the chordal start reaches (benchmarks/auto.py measures every case).
+   wins (ties: the earlier finalist).  Polishing more than one start is the guard against
+   local minima (benchmarks/auto.py measures every case: on ``sphere_bignoise`` the tree
+   start's sweeps and polish end 13% above the minimum the chordal start reaches).  Cost
+   guard: a runner-up's polish gets at most ``finalist_budget`` times the iterations the best
+   polish took (at least :data:`MIN_FINALIST_ITERATIONS`); it goes on to convergence only if
+   it is then below the best, else it is reported as cut.
 
 The result's ``status`` is the winning polish's; ``stats`` name the start (``init``), the
 sweeps and polish iterations it took (``sweeps``, ``polish_iterations``, ``polish_status``),
@@ -24,6 +27,8 @@ every candidate's energies (``candidates``) and a one-line ``reason``.
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import time
 from typing import Any
 
@@ -35,9 +40,14 @@ from ..tree import build_tree, initial_locals
 from .config import AutoConfig, Progress, ProgressCallback
 from .gauss_newton import solve_exact
 from .hybrid.solver import HybridSolver
-from .result import SolveResult
+from .result import SolveResult, Status
 
-__all__ = ["solve_auto"]
+__all__ = ["MIN_FINALIST_ITERATIONS", "solve_auto"]
+
+#: Polished energies within this fraction are the same minimum: the earlier finalist stays.
+_TIE = 1e-9
+#: A runner-up's polish may always take this many iterations (``AutoConfig.finalist_budget``).
+MIN_FINALIST_ITERATIONS = 20
 
 
 class _Candidate:
@@ -56,6 +66,8 @@ class _Candidate:
         self.capped = 0
         self.rejected = 0
         self.polished: SolveResult | None = None
+        self.cut = False
+        """A runner-up whose polish stopped at its budget, above the best."""
         self.error = ""
 
     @property
@@ -77,7 +89,8 @@ class _Candidate:
             out.update(final_energy=self.polished.final_energy,
                        polish_iterations=self.polished.iterations,
                        polish_status=self.polished.status.value,
-                       polish_seconds=float(self.polished.timings.get("total", 0.0)))
+                       polish_seconds=float(self.polished.timings.get("total", 0.0)),
+                       polish_cut_at_budget=self.cut)
         if self.error:
             out["error"] = self.error
         return out
@@ -125,14 +138,29 @@ def _sweep_candidate(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate, tree: 
 
 
 def _polish(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate,
-            progress: ProgressCallback | None) -> None:
+            progress: ProgressCallback | None, limit: int) -> None:
+    """LM from the candidate's kept poses, at most ``limit`` iterations (more when it is
+    continued: :func:`_continue`)."""
     report = None if progress is None else (
         lambda p: progress(p._replace(phase="polish", detail=cand.init)))
+    done = cand.polished
+    rot, trans = (cand.rot, cand.trans) if done is None else (done.rotations, done.translations)
+    config = dataclasses.replace(cfg.polish_config(), max_iterations=limit)
     try:
-        cand.polished = solve_exact(graph, cand.rot, cand.trans, cfg.polish_config(),
-                                    progress=report)
+        more = solve_exact(graph, rot, trans, config, progress=report)
     except SolverError as exc:
         cand.error = f"polish: {exc}"
+        return
+    cand.polished = more if done is None else _continue(done, more)
+
+
+def _continue(first: SolveResult, second: SolveResult) -> SolveResult:
+    """One polish from two LM runs, the second started where the first stopped."""
+    return dataclasses.replace(
+        second, iterations=first.iterations + second.iterations,
+        energy_history=np.concatenate([first.energy_history, second.energy_history[1:]]),
+        times=np.concatenate([first.times, first.times[-1] + np.asarray(second.times[1:])]),
+        timings={k: first.timings.get(k, 0.0) + v for k, v in second.timings.items()})
 
 
 def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
@@ -190,10 +218,26 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
                           + "; ".join(f"{c.init}: {c.error}" for c in cands))
     ranked = sorted(usable, key=lambda c: c.energy)  # stable: ties keep the order of inits
     t_polish = time.perf_counter()
+    best: _Candidate | None = None
     for cand in ranked[:cfg.finalists]:
-        _polish(graph, cfg, cand, progress)
+        if best is None or best.polished is None:
+            _polish(graph, cfg, cand, progress, cfg.polish_iterations)
+        else:  # a runner-up: a bounded polish, continued only if it is then the lowest
+            budget = min(cfg.polish_iterations, max(
+                math.ceil(cfg.finalist_budget * best.polished.iterations),
+                MIN_FINALIST_ITERATIONS))
+            _polish(graph, cfg, cand, progress, budget)
+            pol = cand.polished
+            if (pol is not None and pol.status is Status.MAX_ITERATIONS
+                    and pol.final_energy < best.energy and budget < cfg.polish_iterations):
+                _polish(graph, cfg, cand, progress, cfg.polish_iterations - budget)
+            elif pol is not None and pol.status is Status.MAX_ITERATIONS:
+                cand.cut = budget < cfg.polish_iterations
+        if cand.polished is not None and (best is None or cand.energy < best.energy * (
+                1.0 - _TIE)):
+            best = cand
     polish_s = time.perf_counter() - t_polish
-    polished = [c for c in ranked[:cfg.finalists] if c.polished is not None]
+    polished = [c for c in ranked[:cfg.finalists] if c.polished is not None and not c.cut]
     if not polished:
         raise SolverError("the polish failed from every start: "
                           + "; ".join(f"{c.init}: {c.error}" for c in ranked[:cfg.finalists]))
@@ -204,10 +248,14 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     history = np.concatenate([win.history, pol.energy_history[1:]])
     times = np.concatenate([win.times, offset + np.asarray(pol.times[1:])])
     others = ", ".join(f"{c.init} {c.energy:.6g}" for c in polished if c is not win)
+    cut = [c.init for c in ranked[:cfg.finalists] if c.cut]
     reason = (f"start {win.init}: {win.sweeps} sweep(s) kept of {win.sweeps_run} run, then "
               f"{pol.iterations} LM iteration(s), {pol.status.value}")
     if others:
         reason += f"; other polished start(s): {others}"
+    if cut:
+        reason += (f"; polish of {', '.join(cut)} stopped at its budget above the best "
+                   f"({', '.join(f'{c.energy:.6g}' for c in ranked if c.cut)})")
     stats: dict[str, Any] = {
         "init": win.init,
         "sweeps": win.sweeps,

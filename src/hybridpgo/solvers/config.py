@@ -221,7 +221,7 @@ class AutoConfig:
     sweeps while they pay (each sweep must lower the energy by at least ``sweep_tolerance``,
     relative; the best poses seen are kept, so a sweep that raises E is undone), then the
     ``finalists`` starts with the lowest energy are polished with Levenberg-Marquardt to
-    convergence and the lowest final energy wins.  The result's ``stats`` say which start won,
+    convergence (a runner-up within ``finalist_budget``) and the lowest final energy wins.  The result's ``stats`` say which start won,
     how many sweeps and polish iterations it took, and every candidate's energies.
     """
 
@@ -232,6 +232,10 @@ class AutoConfig:
     finalists: int = 2
     """How many candidates (lowest energy after their sweeps first) are polished; the lowest
     polished energy wins.  1: polish only the best start; ``len(inits)``: polish every start."""
+    finalist_budget: float = 2.0
+    """Cost guard: a finalist after the first polished one gets at most ``finalist_budget``
+    times the best polish's iterations (at least 20) and is polished on to convergence only if
+    it is then below the best; else it is reported as cut (``polish_cut_at_budget``)."""
     max_sweeps: int = 30
     """Most sweeps from one start (0: no sweeps, LM straight from the start)."""
     sweep_tolerance: float = 0.05
@@ -269,6 +273,7 @@ class AutoConfig:
             raise ValueError(f"inits must be a non-empty tuple of distinct names from "
                              f"{', '.join(INIT_NAMES)}, got {self.inits!r}")
         _check_int("finalists", self.finalists, 1)
+        _check_float("finalist_budget", self.finalist_budget, positive=True)
         _check_int("max_sweeps", self.max_sweeps, 0)
         if self.max_sweeps > MAX_SWEEPS:
             raise ValueError(f"max_sweeps must be at most {MAX_SWEEPS}, got {self.max_sweeps!r}")
