@@ -221,8 +221,9 @@ class AutoConfig:
     sweeps while they pay (each sweep must lower the energy by at least ``sweep_tolerance``,
     relative; the best poses seen are kept, so a sweep that raises E is undone), then the
     ``finalists`` starts with the lowest energy are polished with Levenberg-Marquardt to
-    convergence (a runner-up within ``finalist_budget``) and the lowest final energy wins.  The result's ``stats`` say which start won,
-    how many sweeps and polish iterations it took, and every candidate's energies.
+    convergence (a runner-up within ``finalist_budget``) and the lowest final energy wins.
+    The result's ``stats`` say which start won, how many sweeps and polish iterations it took,
+    and every candidate's energies.
     """
 
     inits: tuple[InitName, ...] = AUTO_INITS
