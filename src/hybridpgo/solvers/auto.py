@@ -100,6 +100,7 @@ def _sweep_candidate(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate, tree: 
                      locals0: tuple[FloatArray, FloatArray], t_origin: float,
                      progress: ProgressCallback | None) -> None:
     """Sweeps from one start while they pay; keeps the best poses in ``cand``."""
+    t0 = time.perf_counter()
     solver = HybridSolver(graph, cfg.hybrid_config(cand.init, cfg.max_sweeps), tree=tree,
                           locals0=locals0)
     e0 = solver.energy()
@@ -111,7 +112,6 @@ def _sweep_candidate(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate, tree: 
         if cfg.max_sweeps:
             progress(Progress("sweeps", 0, cfg.max_sweeps, e0, solver.tau, cand.init))
     best = e0
-    t0 = time.perf_counter()
     for k in range(cfg.max_sweeps):
         if not np.isfinite(best) or best == 0.0:
             break
