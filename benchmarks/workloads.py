@@ -612,7 +612,10 @@ def _online(ctx: Context) -> Result:
     pass
 
 def _scale(ctx: Context) -> Result:
-    from .scale import run  # issue 11 item 6
+    pass  # issue 11 item 6
+
+def _auto(ctx: Context) -> Result:
+    from .auto import run
 
     return run(ctx)
 
@@ -629,3 +632,5 @@ from .sag import run as _sag_run  # noqa: E402  (issue 11 item 3)
 WORKLOADS["sag"] = _sag_run
 
 WORKLOADS["scale"] = _scale
+
+WORKLOADS["auto"] = _auto  # issue 11 items 1-2: the default pipeline and local minima

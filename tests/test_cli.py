@@ -234,7 +234,7 @@ def test_skip_unknown(capsys: pytest.CaptureFixture[str], tiny: Path, tmp_path: 
 def test_optimize_hybrid_writes_the_result(capsys: pytest.CaptureFixture[str], small: Path,
                                            tmp_path: Path) -> None:
     out = tmp_path / "out.g2o"
-    code, text, err = run_cli(capsys, "optimize", small, "-o", out)
+    code, text, err = run_cli(capsys, "optimize", small, "-o", out, "--solver", "hybrid")
     assert code == 0, err
     for label in ("energy before", "energy after", "per constraint", "analyze", "solve"):
         assert label in text
@@ -318,7 +318,8 @@ def test_optimize_isam_input_writes_g2o(capsys: pytest.CaptureFixture[str], tiny
 @pytest.mark.parametrize("argv, message", [
     (["--solver", "exact", "--sweeps", "3"], "--sweeps: only for the hybrid solver"),
     (["--solver", "exact", "--step", "givens", "--polish"], "--step, --polish: only for the"),
-    (["--max-iterations", "3"], "--max-iterations limits the exact solver or the polish"),
+    (["--solver", "hybrid", "--max-iterations", "3"],
+     "--max-iterations limits the exact solver or the polish"),
 ])
 def test_options_for_the_other_solver_are_refused(capsys: pytest.CaptureFixture[str],
                                                   tiny: Path, tmp_path: Path, argv: list[str],
@@ -434,7 +435,7 @@ def test_closed_stdout_pipe_exits_quietly(capsys: pytest.CaptureFixture[str],
 def test_progress_flag_draws_off_a_terminal(capsys: pytest.CaptureFixture[str], tiny: Path,
                                             tmp_path: Path) -> None:
     code, _, err = run_cli(capsys, "optimize", tiny, "-o", tmp_path / "o.g2o", "--progress",
-                           "--sweeps", "3")
+                           "--solver", "hybrid", "--sweeps", "3")
     assert code == 0
     assert "hybrid" in err and "3/3" in err and "E/c" in err
     code, _, err = run_cli(capsys, "optimize", tiny, "-o", tmp_path / "o.g2o", "--progress",
@@ -535,7 +536,8 @@ def test_warmup(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_demo(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
-    """The README's main job: M3500, hybrid sweeps + exact polish, graph and plots written."""
+    """The README's main job: M3500, the default pipeline (sweeps + exact polish), graph and
+    plots written."""
     out_dir = tmp_path / "demo"
     code, out, err = run_cli(capsys, "demo", "-o", out_dir, "--sweeps", "3")
     assert code == 0, err

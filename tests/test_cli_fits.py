@@ -226,9 +226,12 @@ def test_optimize_rerun_refusals(capsys: pytest.CaptureFixture[str], tiny: Path,
     out, rrd = tmp_path / "o.g2o", tmp_path / "run.rrd"
     code, _, err = run_cli(capsys, "optimize", tiny, "-o", out, "--solver", "toro",
                            "--rerun", rrd)
-    assert code == 2 and "--rerun: records the hybrid and exact solvers" in err
+    assert code == 2 and "--rerun records --solver hybrid or exact, not --solver toro" in err
+    code, _, err = run_cli(capsys, "optimize", tiny, "-o", out, "--rerun", rrd)  # default auto
+    assert code == 2 and "not --solver auto" in err
     monkeypatch.setattr("hybridpgo.recording.rerun_available", lambda: False)
-    code, _, err = run_cli(capsys, "optimize", tiny, "-o", out, "--rerun", rrd)
+    code, _, err = run_cli(capsys, "optimize", tiny, "-o", out, "--solver", "exact",
+                           "--rerun", rrd)
     assert code == 2
     assert err.strip().splitlines()[-1] == ("hybridpgo: error: --rerun needs rerun-sdk, which "
                                             "is not installed: pip install hybridpgo[rerun]")

@@ -409,7 +409,8 @@ def test_cli_robust_exact_reports_both_energies(capsys: pytest.CaptureFixture[st
     assert s["energy_after"] == pytest.approx(e_rho, rel=1e-9)  # the file keeps 9 digits
     assert s["result"]["plain_energy"] == pytest.approx(e_plain, rel=1e-9)
     code, text, err = _cli(capsys, "optimize", data_dir / "tinyGrid3D.g2o", "-o", out,
-                           "--robust", "huber", "--polish", "--sweeps", "2", "-q")
+                           "--solver", "hybrid", "--robust", "huber", "--polish", "--sweeps", "2",
+                           "-q")
     assert code == 0, err
     assert "robust kernel   huber, scale 3" in text and "plain energy" in text  # its default
 

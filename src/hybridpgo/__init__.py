@@ -2,7 +2,7 @@
 
 >>> import hybridpgo
 >>> graph = hybridpgo.read_graph("input.g2o")               # doctest: +SKIP
->>> result = hybridpgo.optimize(graph, sweeps=10, polish=True)  # doctest: +SKIP
+>>> result = hybridpgo.optimize(graph)  # default pipeline: start, sweeps, LM  # doctest: +SKIP
 >>> hybridpgo.write_graph(graph.with_poses(result.rotations, result.translations), "out.g2o")
 ... # doctest: +SKIP
 
@@ -31,6 +31,7 @@ _LAZY = {
     "PoseGraph": ".graph",
     "read_graph": ".io",
     "write_graph": ".io",
+    "AutoConfig": ".solvers",
     "GaussNewtonConfig": ".solvers",
     "HybridConfig": ".solvers",
     "SolveResult": ".solvers",
@@ -48,6 +49,7 @@ if TYPE_CHECKING:
     from .graph import PoseGraph as PoseGraph
     from .io import read_graph as read_graph
     from .io import write_graph as write_graph
+    from .solvers import AutoConfig as AutoConfig
     from .solvers import GaussNewtonConfig as GaussNewtonConfig
     from .solvers import HybridConfig as HybridConfig
     from .solvers import SolveResult as SolveResult

@@ -80,6 +80,13 @@ def _solver_defaults() -> tuple[Any, Any]:
     return HybridConfig(), GaussNewtonConfig()
 
 
+def _auto_defaults() -> Any:
+    """The default pipeline's config, so that --help shows its real defaults."""
+    from ..solvers import AutoConfig
+
+    return AutoConfig()
+
+
 # --------------------------------------------------------------------------- value checks
 def _number(kind: Callable[[str], float | int], test: Callable[[float], bool],
             what: str) -> Callable[[str], float | int]:
@@ -261,28 +268,39 @@ def build_parser() -> argparse.ArgumentParser:
 
     # ---------------------------------------------------------------- optimize
     hy, gn = _solver_defaults()
+    au = _auto_defaults()
     p = sub.add_parser(
         "optimize", help="optimize a graph and write the result",
-        description="Optimize a pose graph with the hybrid Hessian solver (default) or the exact "
-                    "sparse Levenberg-Marquardt solver, and write the optimized graph.",
+        description="Optimize a pose graph and write the optimized graph.  The default "
+                    "(--solver auto) chooses the start (chordal, tree or the file's vertices), "
+                    "runs hybrid sweeps while they lower the energy by "
+                    f"{au.sweep_tolerance:.0%} or more per sweep, and polishes with "
+                    f"Levenberg-Marquardt to convergence from the {au.finalists} best starts, "
+                    "keeping the best.  --solver hybrid is the paper's method alone, "
+                    "--solver exact sparse LM from one start.",
         epilog="Hybrid-only options: --sweeps --tau0 --tau-decay --damping --step "
                "--gps-batch-size --polish.  --max-iterations limits the exact solver, or the "
-               "polish with --polish.  --solver toro (the TORO-style baseline) takes --sweeps "
-               "(its iterations, default 100), --tolerance, --init tree|file and --tree "
-               "toro|bfs.  " + OUTPUT_HELP)
+               "polish with --polish.  --solver auto takes the hybrid options except --polish "
+               "(it always polishes): --init is then the only start tried, --sweeps the most "
+               f"sweeps per start (default {au.max_sweeps}), --max-iterations and "
+               f"--tolerance limit each polish (default {au.polish_iterations} and "
+               f"{au.energy_tolerance:g}).  --solver toro (the TORO-style baseline) "
+               "takes --sweeps (its iterations, default 100), --tolerance, --init tree|file "
+               "and --tree toro|bfs.  " + OUTPUT_HELP)
     p.add_argument("file", help="pose-graph file (g2o, TORO or iSAM; '-': standard input)")
     p.add_argument("-o", "--output", required=True, metavar="OUT",
                    help="where to write the optimized graph ('-': standard output, the summary "
                         "then goes to stderr)")
     _add_format(p, out=True)
-    p.add_argument("--solver", choices=LazyChoices(_methods), default="hybrid",
-                   help="solver: 'hybrid' (the paper's), 'exact' (sparse LM), 'toro' (the "
-                        "TORO-style baseline) (default: hybrid)")
+    p.add_argument("--solver", choices=LazyChoices(_methods), default="auto",
+                   help="solver: 'auto' (start, sweeps while they pay, LM polish to "
+                        "convergence), 'hybrid' (the paper's sweeps alone), 'exact' (sparse "
+                        "LM), 'toro' (the TORO-style baseline) (default: auto)")
     p.add_argument("--init", choices=LazyChoices(_inits),
                    help="initial poses: 'tree' concatenates the tree edges' measurements (the "
                         "paper), 'file' uses the file's vertices, 'chordal' a chordal "
-                        "relaxation (default: tree for hybrid; file for exact when the file has "
-                        "vertices)")
+                        "relaxation (default: auto tries all and keeps the best; tree for hybrid; "
+                        "file for exact when the file has vertices)")
     p.add_argument("--sweeps", type=_sweeps, metavar="N",
                    help=f"hybrid: number of sweeps over all constraints (default {hy.sweeps})")
     p.add_argument("--tau0", type=_tau, metavar="TAU",
@@ -396,13 +414,15 @@ def build_parser() -> argparse.ArgumentParser:
     # ---------------------------------------------------------------- demo
     p = sub.add_parser(
         "demo", help="optimize the bundled Manhattan graph (M3500) and write plots",
-        description="Run the hybrid solver (10 sweeps, then an exact polish) on the bundled "
-                    "M3500_isam.txt, the paper's Manhattan graph, from the tree initialization; "
-                    "write the optimized graph and before/after/energy plots into DIR.")
+        description="Run the default pipeline (as 'hybridpgo optimize' does: the best start, "
+                    "hybrid sweeps while they pay, an exact polish) on the bundled "
+                    "M3500_isam.txt, the paper's Manhattan graph; write the optimized graph and "
+                    "before/after/energy plots into DIR.")
     p.add_argument("-o", "--output-dir", default="hybridpgo-demo", metavar="DIR",
                    help="output directory (default: hybridpgo-demo)")
-    p.add_argument("--sweeps", type=_sweeps, default=hy.sweeps, metavar="N",
-                   help=f"hybrid sweeps before the polish (default {hy.sweeps})")
+    p.add_argument("--sweeps", type=_sweeps, metavar="N",
+                   help="most hybrid sweeps from each start before the polish (default "
+                        f"{au.max_sweeps}; fewer when a sweep stops paying)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     _add_progress(p)
     _add_common(p)

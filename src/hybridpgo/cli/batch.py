@@ -94,8 +94,10 @@ def _value(text: str) -> Any:
 
 
 def _option_fields(method: str) -> list[str]:
-    from ..solvers import GaussNewtonConfig, HybridConfig
+    from ..solvers import AutoConfig, GaussNewtonConfig, HybridConfig
 
+    if method == "auto":
+        return [f.name for f in fields(AutoConfig)]
     if method == "hybrid":
         return [f.name for f in fields(HybridConfig)]
     # GaussNewtonConfig.method ("gn"/"lm") cannot pass through optimize(graph, method, **opts),
@@ -115,7 +117,7 @@ def parse_grid(specs: Sequence[str], method: str) -> list[dict[str, Any]]:
     HybridPGOError
         A malformed item, an unknown or repeated key, or a value the solver rejects.
     """
-    from ..solvers import GaussNewtonConfig, HybridConfig
+    from ..solvers import GaussNewtonConfig, HybridConfig, config_for
 
     allowed = _option_fields(method)
     axes: dict[str, list[Any]] = {}
@@ -136,7 +138,9 @@ def parse_grid(specs: Sequence[str], method: str) -> list[dict[str, Any]]:
     combos = [dict(zip(axes, values, strict=True)) for values in itertools.product(*axes.values())]
     for opts in combos:
         try:
-            if method == "hybrid":
+            if method == "auto":
+                config_for("auto", **opts)
+            elif method == "hybrid":
                 HybridConfig(**opts)
             else:
                 GaussNewtonConfig(**{k: v for k, v in opts.items() if k not in ("init", "tree")})

@@ -36,7 +36,7 @@ class Job:
 
     input: str
     output: str
-    solver: str = "hybrid"
+    solver: str = "auto"
     options: dict[str, Any] = field(default_factory=dict)
     """Solver options by config field name (only those given)."""
     fmt: str | None = None
@@ -94,6 +94,8 @@ def _check_options(job: Job, graph: PoseGraph) -> str:
     from ..solvers import default_init
 
     opts = job.options
+    if job.solver == "auto":
+        return _check_auto_options(job, graph)
     if job.solver in ("exact", "toro"):
         skip = {"sweeps"} if job.solver == "toro" else set()
         given = [flag for key, flag in HYBRID_ONLY.items() if key in opts and key not in skip]
@@ -123,12 +125,42 @@ def _check_options(job: Job, graph: PoseGraph) -> str:
     return init
 
 
+def _check_auto_options(job: Job, graph: PoseGraph) -> str:
+    """The default pipeline: --polish is implied; --init restricts the starts.  Returns the
+    start ('auto' when the pipeline chooses)."""
+    opts = job.options
+    if opts.get("polish"):
+        raise HybridPGOError("--polish: --solver auto (the default) always polishes; "
+                             "--polish is for --solver hybrid")
+    if opts.get("tree") == "toro":
+        raise HybridPGOError("--tree toro: only for --solver toro")
+    init: str = opts.get("init") or "auto"
+    if init == "file" and not graph.has_estimates:
+        raise HybridPGOError(f"{job.input}: --init file needs vertex estimates, but the file has "
+                             "none (iSAM files list only constraints); use --init tree")
+    return init
+
+
+def _auto_options(opts: dict[str, Any]) -> dict[str, Any]:
+    """CLI options -> AutoConfig fields: --init is the only start, --sweeps the most sweeps per
+    start, --max-iterations and --tolerance limit the polish."""
+    out = dict(opts)
+    if "init" in out:
+        out["inits"] = (out.pop("init"),)
+    for cli_key, field_name in (("sweeps", "max_sweeps"), ("max_iterations", "polish_iterations")):
+        if cli_key in out:
+            out[field_name] = out.pop(cli_key)
+    return out
+
+
 def _make_config(job: Job, init: str) -> SolverConfig:
     """The solver's typed options object, built once from the CLI options."""
     from ..solvers import config_for
 
     opts = dict(job.options)
-    if job.solver == "hybrid":
+    if job.solver == "auto":
+        opts = _auto_options(opts)
+    elif job.solver == "hybrid":
         opts["init"] = init
         if "max_iterations" in opts:
             opts["polish_iterations"] = opts.pop("max_iterations")
@@ -174,9 +206,9 @@ def _compile_kernels(job: Job) -> None:
     from ._progress import phase
 
     with phase("compiling kernels (first run only)", enabled=not job.quiet):
-        if job.solver == "hybrid":
+        if job.solver in ("hybrid", "auto"):
             ensure_hybrid()
-        if job.solver == "exact" or job.options.get("polish"):
+        if job.solver in ("exact", "auto") or job.options.get("polish"):
             ensure_exact()
 
 
@@ -184,8 +216,9 @@ def _recorder(job: Job, graph: PoseGraph) -> Any:
     """The ``--rerun`` recorder (checked before the solve), or None."""
     if job.rerun is None:
         return None
-    if job.solver == "toro":
-        raise HybridPGOError("--rerun: records the hybrid and exact solvers, not --solver toro")
+    if job.solver in ("toro", "auto"):
+        raise HybridPGOError(f"--rerun records --solver hybrid or exact, not --solver {job.solver} "
+                             "(e.g. --solver hybrid --polish)")
     from ..recording import RerunRecorder, rerun_available
 
     if not rerun_available():
@@ -220,9 +253,11 @@ def _optimize(graph: PoseGraph, config: SolverConfig, progress: Any, init: str |
 
 def _solve(job: Job, graph: PoseGraph, config: SolverConfig, init: str,
            recorder: Any = None) -> SolveResult:
-    from ..solvers import HybridConfig, Progress, ToroConfig, optimize
+    from ..solvers import AutoConfig, HybridConfig, Progress, ToroConfig, optimize
 
     nc = graph.num_constraints
+    if isinstance(config, AutoConfig):
+        return _solve_auto(job, graph, config)
     if isinstance(config, ToroConfig):
         tbar = ProgressBar("toro", config.iterations, nc, enabled=not job.quiet)
         try:
@@ -250,6 +285,37 @@ def _solve(job: Job, graph: PoseGraph, config: SolverConfig, init: str,
         bar.close()
 
 
+def _solve_auto(job: Job, graph: PoseGraph, config: Any) -> SolveResult:
+    """The default pipeline, with one progress bar per start's sweeps and per polish."""
+    from ..solvers import Progress, optimize
+
+    nc = graph.num_constraints
+    current: list[Any] = [None, None]  # (phase, detail), its bar
+
+    def report(p: Progress) -> None:
+        if p.phase == "start":
+            if current[1] is not None:
+                current[1].close()
+                current[:] = [None, None]
+            if not job.quiet:
+                log(f"auto: start {p.detail}: E/c {p.energy / max(nc, 1):.4g}")
+            return
+        if current[0] != (p.phase, p.detail):
+            if current[1] is not None:
+                current[1].close()
+            label = f"{p.detail} {'sweeps' if p.phase == 'sweeps' else 'polish (LM)'}"
+            current[0] = (p.phase, p.detail)
+            current[1] = ProgressBar(label, p.total, nc, enabled=not job.quiet,
+                                     unit="sweep" if p.phase == "sweeps" else "it")
+        current[1].update(p.iteration, p.energy, p.tau)
+
+    try:
+        return optimize(graph, config, progress=report)
+    finally:
+        if current[1] is not None:
+            current[1].close()
+
+
 def run_job(job: Job) -> dict[str, Any]:
     """Read, optimize, write (and plot); return the JSON-friendly summary."""
     t0 = time.perf_counter()
@@ -271,6 +337,8 @@ def run_job(job: Job) -> dict[str, Any]:
     recorder = _recorder(job, graph)
     try:
         result = _solve(job, graph, config, init, recorder)
+        if job.solver == "auto":
+            init = str(result.stats["init"])  # the start the pipeline chose
         cov = None if cov_nodes is None else _covariances(job, graph, result, cov_nodes)
     except BaseException:
         if recorder is not None:
@@ -300,6 +368,8 @@ def run_job(job: Job) -> dict[str, Any]:
     nc = graph.num_constraints
     summary = result.summary()
     extra: dict[str, Any] = {}
+    if job.solver == "auto":
+        extra["reason"] = result.stats["reason"]
     if "polish_iterations" in result.stats:
         extra["energy_after_sweeps"] = float(result.energy_history[result.iterations])
     return {
@@ -356,6 +426,21 @@ def write_plots(graph: PoseGraph, result: SolveResult, init: str, tree_kind: str
     return paths
 
 
+def _describe_starts(cands: dict[str, Any]) -> str:
+    """``chordal 8219.7 -> 6532.84 (polished), tree 3.3e+06 -> 1.1e+04 (0 sweeps)``."""
+    parts = []
+    for name, c in cands.items():
+        if c.get("initial_energy") is None:
+            parts.append(f"{name} failed ({c.get('error', '')})")
+            continue
+        text = f"{name} {c['initial_energy']:.6g} -> {c['energy_after_sweeps']:.6g} " \
+               f"({c['sweeps']} sweeps)"
+        if "final_energy" in c:
+            text += f" -> {c['final_energy']:.6g} (polished)"
+        parts.append(text)
+    return ", ".join(parts)
+
+
 def print_summary(s: dict[str, Any]) -> None:
     """The human-readable summary on stdout."""
     r = s["result"]
@@ -366,17 +451,20 @@ def print_summary(s: dict[str, Any]) -> None:
     times += [f"{k} {timings[k]:.2f} s" for k in ("compile", "analyze", "solve", "polish")
               if k in timings]
     times.append(f"write {s['time_write']:.2f} s")
-    iters = f"{r['iterations']} {'sweeps' if s['solver'] == 'hybrid' else 'iterations'}"
+    iters = f"{r['iterations']} {'sweeps' if s['solver'] in ('hybrid', 'auto') else 'iterations'}"
     if "polish_iterations" in r:
         iters += f" + {r['polish_iterations']} polish iterations"
     rows = [
         ("input", f"{inp['path']} ({inp['format']}, {inp['dimension']}, {inp['poses']} poses, "
                   f"{inp['relative_edges']} relative constraints, {inp['gps']} GPS)"),
         ("solver", f"{r['method']}, init {s['init']}"
-                   + (f", {r['step']} step" if "step" in r else "")),
+                   + (f", {r['step']} step" if "step" in r else "")
+                   + (" (chosen by the pipeline)" if s["solver"] == "auto" else "")),
         ("iterations", f"{iters}: {r['message']}"),
         ("energy before", fmt_energy(s["energy_before"], nc)),
     ]
+    if "reason" in s:
+        rows.append(("starts", _describe_starts(r.get("candidates", {}))))
     if "energy_after_sweeps" in s:
         rows.append(("after sweeps", fmt_energy(s["energy_after_sweeps"], nc) + ", before the "
                                      "polish"))

@@ -1,4 +1,5 @@
-"""Solvers: the hybrid Hessian method (default) and the exact sparse GN/LM solver."""
+"""Solvers: the default pipeline (auto), the hybrid Hessian method, the exact sparse GN/LM
+solver and the TORO-style baseline."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ from typing import Any
 
 from ..graph import PoseGraph
 from .config import TREE_NAMES
+from .config import AutoConfig as AutoConfig
 from .config import GaussNewtonConfig as GaussNewtonConfig
 from .config import HybridConfig as HybridConfig
 from .config import Progress as Progress
@@ -17,15 +19,26 @@ from .result import Status as Status
 from .toro import TREES as _TORO_TREES
 from .toro import ToroConfig as ToroConfig
 
-METHODS = ("hybrid", "exact", "toro")
+#: Solver names; the first is the default of :func:`optimize` and ``hybridpgo optimize``.
+METHODS = ("auto", "hybrid", "exact", "toro")
 #: Every tree name some solver accepts (the CLI's --tree choices).
 TREES: tuple[str, ...] = tuple(dict.fromkeys(TREE_NAMES + _TORO_TREES))
 
-SolverConfig = HybridConfig | GaussNewtonConfig | ToroConfig
+SolverConfig = AutoConfig | HybridConfig | GaussNewtonConfig | ToroConfig
 
 
 def config_for(method: str, **options: Any) -> SolverConfig:
     """The typed options object of ``method`` built from keyword options (ValueError if bad)."""
+    if method == "auto":
+        inits = options.get("inits")
+        if isinstance(inits, (list, str)):  # one name (a CLI --init, a batch grid) or a list
+            options["inits"] = (inits,) if isinstance(inits, str) else tuple(inits)
+        unknown = sorted(set(options) - set(AutoConfig.__dataclass_fields__))
+        if unknown:
+            raise TypeError(f"{', '.join(unknown)}: not an option of the default pipeline "
+                            "(AutoConfig); for the paper's method alone name it: "
+                            "optimize(graph, 'hybrid', ...)")
+        return AutoConfig(**options)
     if method == "hybrid":
         return HybridConfig(**options)
     if method == "exact":
@@ -35,7 +48,7 @@ def config_for(method: str, **options: Any) -> SolverConfig:
     raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
 
 
-def optimize(graph: PoseGraph, config: SolverConfig | str = "hybrid", *,
+def optimize(graph: PoseGraph, config: SolverConfig | str = "auto", *,
              progress: Any = None, init: str | None = None, tree: str | None = None,
              **options: Any) -> SolveResult:
     """Optimize a pose graph.
@@ -43,24 +56,33 @@ def optimize(graph: PoseGraph, config: SolverConfig | str = "hybrid", *,
     Parameters
     ----------
     graph : PoseGraph
-    config : HybridConfig, GaussNewtonConfig, ToroConfig, or {"hybrid", "exact", "toro"}
-        The solver's typed options, or a method name whose options are then given as keywords
-        (the fields of :class:`HybridConfig` or :class:`GaussNewtonConfig`).  ``"hybrid"``: the
-        paper's stochastic hybrid Hessian sweeps; ``"exact"``: sparse Levenberg-Marquardt or
-        Gauss-Newton; ``"toro"``: the TORO-style baseline (:mod:`hybridpgo.solvers.toro`).
+    config : AutoConfig, HybridConfig, GaussNewtonConfig, ToroConfig, or a method name
+        The solver's typed options, or a method name (``"auto"``, ``"hybrid"``, ``"exact"``,
+        ``"toro"``) whose options are then given as keywords (the fields of its config).
+        ``"auto"`` (default): the pipeline of :mod:`hybridpgo.solvers.auto` (chooses the
+        start among chordal, tree and file, sweeps while they pay, polishes with LM to
+        convergence); ``"hybrid"``: the paper's stochastic hybrid Hessian sweeps alone;
+        ``"exact"``: sparse Levenberg-Marquardt or Gauss-Newton; ``"toro"``: the TORO-style
+        baseline (:mod:`hybridpgo.solvers.toro`).
     progress : callable, optional
         ``progress(Progress)`` after every iteration (sweep, polish or exact iteration).
     init, tree : str, optional
         Exact solver only: the starting point (``"file"``, ``"tree"``, ``"chordal"``; default
         :func:`default_init`) and the tree the tree/chordal starts are grown on.  The hybrid
-        solver takes them as fields of :class:`HybridConfig`.
+        solver takes them as fields of :class:`HybridConfig`; ``"auto"`` takes ``init`` as the
+        only start to try (``inits=(init,)``) and ``tree`` as its tree.
 
     Returns
     -------
     SolveResult
     """
     if isinstance(config, str):
-        if config in ("hybrid", "toro"):
+        if config == "auto":
+            if init is not None:
+                options["inits"] = (init,)
+            if tree is not None:
+                options["tree"] = tree
+        elif config in ("hybrid", "toro"):
             if init is not None:
                 options["init"] = init
             if tree is not None:
@@ -68,10 +90,18 @@ def optimize(graph: PoseGraph, config: SolverConfig | str = "hybrid", *,
         config = config_for(config, **options)
     elif options:
         raise TypeError("give either a config object or keyword options, not both")
+    elif isinstance(config, AutoConfig) and (
+            (init is not None and (init,) != config.inits)
+            or (tree is not None and tree != config.tree)):
+        raise ValueError("the default pipeline's starts and tree are fields of its config")
     elif isinstance(config, (HybridConfig, ToroConfig)) and (
             (init is not None and init != config.init)
             or (tree is not None and tree != config.tree)):
         raise ValueError("this solver's init and tree are fields of its config")
+    if isinstance(config, AutoConfig):
+        from .auto import solve_auto
+
+        return solve_auto(graph, config, progress=progress)
     if isinstance(config, HybridConfig):
         return solve_hybrid(graph, config, progress=progress)
     if isinstance(config, ToroConfig):

@@ -33,7 +33,8 @@ class Progress(NamedTuple):
     """What every solver reports after each iteration (one callback shape for all solvers)."""
 
     phase: str
-    """``"sweeps"`` (hybrid), ``"polish"`` (exact LM after the sweeps) or ``"exact"``."""
+    """``"sweeps"`` (hybrid), ``"polish"`` (exact LM after the sweeps), ``"exact"``, or
+    ``"start"`` (the default pipeline computed a start: iteration 0, its energy)."""
     iteration: int
     """Iterations (sweeps) done in this phase; 0 is the phase's starting point."""
     total: int
@@ -42,6 +43,9 @@ class Progress(NamedTuple):
     """E at this point."""
     tau: float | None = None
     """The temperature of the next sweep (hybrid only)."""
+    detail: str = ""
+    """What the phase works on: the start (``"chordal"``, ``"tree"``, ``"file"``) whose sweeps
+    or polish these are, for the default pipeline (:class:`AutoConfig`); else empty."""
 
 
 #: Progress callback: ``progress(Progress(...))`` after every iteration.
@@ -234,6 +238,97 @@ class HybridConfig:
             raise ValueError(f"polish must be True or False, got {self.polish!r}")
         _check_int("polish_iterations", self.polish_iterations, 0)
         robust_kind(self.robust, self.robust_delta)
+
+
+#: The starts :class:`AutoConfig` tries by default, in this order (``"file"`` only when the
+#: file has vertices).
+AUTO_INITS: tuple[InitName, ...] = ("chordal", "tree", "file")
+
+
+@dataclass(frozen=True)
+class AutoConfig:
+    """Options of the default pipeline :func:`hybridpgo.solvers.auto.solve_auto`.
+
+    For every start in ``inits`` (``"file"`` skipped when the file has no vertices): hybrid
+    sweeps while they pay (each sweep must lower the energy by at least ``sweep_tolerance``,
+    relative; the best poses seen are kept, so a sweep that raises E is undone), then the
+    ``finalists`` starts with the lowest energy are polished with Levenberg-Marquardt to
+    convergence (a runner-up within ``finalist_budget``) and the lowest final energy wins.
+    The result's ``stats`` say which start won, how many sweeps and polish iterations it took,
+    and every candidate's energies.
+    """
+
+    inits: tuple[InitName, ...] = AUTO_INITS
+    """Candidate starts, in order of preference on ties: ``"chordal"`` (chordal rotation
+    relaxation, then positions), ``"tree"`` (the paper's concatenation of tree-edge
+    measurements), ``"file"`` (the file's vertices).  At least one, no repeats."""
+    finalists: int = 2
+    """How many candidates (lowest energy after their sweeps first) are polished; the lowest
+    polished energy wins.  1: polish only the best start; ``len(inits)``: polish every start."""
+    finalist_budget: float = 2.0
+    """Cost guard: a finalist after the first polished one gets at most ``finalist_budget``
+    times the best polish's iterations (at least 20) and is polished on to convergence only if
+    it is then below the best; else it is reported as cut (``polish_cut_at_budget``)."""
+    max_sweeps: int = 30
+    """Most sweeps from one start (0: no sweeps, LM straight from the start)."""
+    sweep_tolerance: float = 0.05
+    """Stop sweeping from a start when a sweep lowers E by less than this fraction (or raises
+    it).  Sweeps pay far from the optimum (a tree start: E falls 10-100x in a few sweeps) and
+    stop paying near it (the optimum is not a fixed point of the sweeps)."""
+    polish_iterations: int = 200
+    """Iteration limit of each Levenberg-Marquardt polish."""
+    energy_tolerance: float = 1e-10
+    """The polish converges when an accepted step changes E by less than this fraction
+    (``GaussNewtonConfig.energy_tolerance``)."""
+    tree: TreeName = "bfs"
+    """The spanning tree of the sweeps and of the tree/chordal starts (``HybridConfig.tree``)."""
+    tau0: float = 1.0
+    """Initial temperature of the sweeps (``HybridConfig.tau0``)."""
+    tau_decay: float = 0.99
+    """Temperature factor per sweep (``HybridConfig.tau_decay``)."""
+    damping: float = 1e-6
+    """Relative damping of the hybrid Hessian blocks (``HybridConfig.damping``)."""
+    step: StepName = "woodbury"
+    """Single-update solver of the sweeps (``HybridConfig.step``)."""
+    gps_batch_size: int = 40
+    """GPS constraints relaxed together (``HybridConfig.gps_batch_size``)."""
+    dmax: int | None = None
+    """Interpolated solving in the sweeps (``HybridConfig.dmax``)."""
+    robust: RobustName = "none"
+    """Robust kernel of the sweeps and the polish (``HybridConfig.robust``)."""
+    robust_scale: float = 1.0
+    """The kernel's delta (``HybridConfig.robust_scale``)."""
+
+    def __post_init__(self) -> None:
+        if (not isinstance(self.inits, tuple) or not self.inits
+                or any(i not in INIT_NAMES for i in self.inits)
+                or len(set(self.inits)) != len(self.inits)):
+            raise ValueError(f"inits must be a non-empty tuple of distinct names from "
+                             f"{', '.join(INIT_NAMES)}, got {self.inits!r}")
+        _check_int("finalists", self.finalists, 1)
+        _check_float("finalist_budget", self.finalist_budget, positive=True)
+        _check_int("max_sweeps", self.max_sweeps, 0)
+        if self.max_sweeps > MAX_SWEEPS:
+            raise ValueError(f"max_sweeps must be at most {MAX_SWEEPS}, got {self.max_sweeps!r}")
+        _check_float("sweep_tolerance", self.sweep_tolerance, positive=False)
+        _check_int("polish_iterations", self.polish_iterations, 0)
+        _check_float("energy_tolerance", self.energy_tolerance, positive=False)
+        # the sweep options are checked by the HybridConfig they build (same messages)
+        self.hybrid_config("tree", 0)
+
+    def hybrid_config(self, init: str, sweeps: int) -> HybridConfig:
+        """The options of one start's sweeps (no polish: the pipeline polishes itself)."""
+        return HybridConfig(sweeps=sweeps, tau0=self.tau0, tau_decay=self.tau_decay,
+                            damping=self.damping, step=self.step, tree=self.tree,
+                            init=init,  # type: ignore[arg-type]
+                            gps_batch_size=self.gps_batch_size, dmax=self.dmax,
+                            robust=self.robust, robust_scale=self.robust_scale)
+
+    def polish_config(self) -> GaussNewtonConfig:
+        """The options of the Levenberg-Marquardt polish."""
+        return GaussNewtonConfig(method="lm", max_iterations=self.polish_iterations,
+                                 energy_tolerance=self.energy_tolerance, robust=self.robust,
+                                 robust_scale=self.robust_scale)
 
 
 def default_init(graph: PoseGraph, method: str) -> InitName:

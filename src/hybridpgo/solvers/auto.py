@@ -1,0 +1,286 @@
+"""The default pipeline: choose a start, sweep while it pays, polish to convergence.
+
+:func:`solve_auto` is what ``hybridpgo optimize`` and :func:`hybridpgo.optimize` run when no
+solver is named (``--solver auto``).  The paper's pure method stays ``--solver hybrid``.
+
+1. **Starts.**  Every start of ``AutoConfig.inits`` that applies is computed: the chordal
+   relaxation (one sparse factorization for the rotations, one for the positions), the tree
+   concatenation (the paper's, free) and the file's vertices (when the file has them).
+2. **Sweeps while they pay.**  From each start, hybrid sweeps (paper Algorithm 1, the paper's
+   temperature schedule) until one lowers the energy by less than ``sweep_tolerance``
+   (relative) or raises it, at most ``max_sweeps``.  The best poses seen are kept, so a start
+   the sweeps cannot improve (typically the chordal one: the optimum is not a fixed point of
+   the sweeps) keeps its own poses.
+3. **Polish.**  The ``finalists`` starts with the lowest energy after their sweeps are polished
+   with Levenberg-Marquardt to convergence (``energy_tolerance``); the lowest polished energy
+   wins (ties: the earlier finalist).  Polishing more than one start is the guard against
+   local minima (benchmarks/auto.py measures every case: on ``sphere_bignoise`` the tree
+   start's sweeps and polish end 13% above the minimum the chordal start reaches).  Cost
+   guard: a runner-up's polish gets at most ``finalist_budget`` times the iterations the best
+   polish took (at least :data:`MIN_FINALIST_ITERATIONS`); it goes on to convergence only if
+   it is then below the best, else it is reported as cut.
+
+The result's ``status`` is the winning polish's; ``stats`` name the start (``init``), the
+sweeps and polish iterations it took (``sweeps``, ``polish_iterations``, ``polish_status``),
+every candidate's energies (``candidates``) and a one-line ``reason``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+from ..errors import HybridPGOError, SolverError
+from ..graph import FloatArray, PoseGraph
+from ..tree import build_tree, initial_locals
+from .config import AutoConfig, Progress, ProgressCallback
+from .gauss_newton import solve_exact
+from .hybrid.solver import HybridSolver
+from .result import SolveResult, Status
+
+__all__ = ["MIN_FINALIST_ITERATIONS", "solve_auto"]
+
+#: Polished energies within this fraction are the same minimum: the earlier finalist stays.
+_TIE = 1e-9
+#: A runner-up's polish may always take this many iterations (``AutoConfig.finalist_budget``).
+MIN_FINALIST_ITERATIONS = 20
+
+
+class _Candidate:
+    """One start's trajectory: its energies, sweeps and (maybe) polish."""
+
+    def __init__(self, init: str) -> None:
+        self.init = init
+        self.history: list[float] = []
+        self.times: list[float] = []
+        self.rot: FloatArray | None = None
+        self.trans: FloatArray | None = None
+        self.sweeps = 0
+        self.sweeps_run = 0
+        self.start_seconds = 0.0
+        self.sweep_seconds = 0.0
+        self.capped = 0
+        self.rejected = 0
+        self.polished: SolveResult | None = None
+        self.cut = False
+        """A runner-up whose polish stopped at its budget, above the best."""
+        self.error = ""
+
+    @property
+    def energy(self) -> float:
+        """Energy of the kept poses (after the sweeps, or polished)."""
+        if self.polished is not None:
+            return self.polished.final_energy
+        return min(self.history) if self.history else float("inf")
+
+    def summary(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "initial_energy": self.history[0] if self.history else None,
+            "sweeps": self.sweeps, "sweeps_run": self.sweeps_run,
+            "energy_after_sweeps": min(self.history) if self.history else None,
+            "start_seconds": self.start_seconds, "sweep_seconds": self.sweep_seconds,
+            "capped_steps": self.capped, "rejected_steps": self.rejected,
+        }
+        if self.polished is not None:
+            out.update(final_energy=self.polished.final_energy,
+                       polish_iterations=self.polished.iterations,
+                       polish_status=self.polished.status.value,
+                       polish_seconds=float(self.polished.timings.get("total", 0.0)),
+                       polish_cut_at_budget=self.cut)
+        if self.error:
+            out["error"] = self.error
+        return out
+
+
+def _sweep_candidate(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate, tree: Any,
+                     locals0: tuple[FloatArray, FloatArray], t_origin: float,
+                     progress: ProgressCallback | None) -> None:
+    """Sweeps from one start while they pay; keeps the best poses in ``cand``."""
+    t0 = time.perf_counter()
+    solver = HybridSolver(graph, cfg.hybrid_config(cand.init, cfg.max_sweeps), tree=tree,
+                          locals0=locals0)
+    e0 = solver.energy()
+    cand.rot, cand.trans = solver.poses()
+    cand.history.append(e0)
+    cand.times.append(time.perf_counter() - t_origin)
+    if progress is not None:
+        progress(Progress("start", 0, 0, e0, detail=cand.init))
+        if cfg.max_sweeps:
+            progress(Progress("sweeps", 0, cfg.max_sweeps, e0, solver.tau, cand.init))
+    best = e0
+    for k in range(cfg.max_sweeps):
+        if not np.isfinite(best) or best == 0.0:
+            break
+        try:
+            res = solver.run(1)
+        except SolverError as exc:  # every update non-finite / E non-finite: keep the best
+            cand.error = f"sweep {k + 1}: {exc}"
+            break
+        cand.sweeps_run += 1
+        e = res.final_energy
+        cand.capped += int(res.stats["capped_steps"])
+        cand.rejected += int(res.stats["rejected_steps"])
+        if progress is not None:
+            progress(Progress("sweeps", k + 1, cfg.max_sweeps, e, solver.tau, cand.init))
+        if e < best:
+            cand.rot, cand.trans = res.rotations, res.translations
+            cand.sweeps = cand.sweeps_run
+            cand.history.append(e)
+            cand.times.append(time.perf_counter() - t_origin)
+        if not e <= best * (1.0 - cfg.sweep_tolerance):
+            break
+        best = e
+    cand.sweep_seconds = time.perf_counter() - t0
+
+
+def _polish(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate,
+            progress: ProgressCallback | None, limit: int) -> None:
+    """LM from the candidate's kept poses, at most ``limit`` iterations (more when it is
+    continued: :func:`_continue`)."""
+    report = None if progress is None else (
+        lambda p: progress(p._replace(phase="polish", detail=cand.init)))
+    done = cand.polished
+    rot, trans = (cand.rot, cand.trans) if done is None else (done.rotations, done.translations)
+    config = dataclasses.replace(cfg.polish_config(), max_iterations=limit)
+    try:
+        more = solve_exact(graph, rot, trans, config, progress=report)
+    except SolverError as exc:
+        cand.error = f"polish: {exc}"
+        return
+    cand.polished = more if done is None else _continue(done, more)
+
+
+def _continue(first: SolveResult, second: SolveResult) -> SolveResult:
+    """One polish from two LM runs, the second started where the first stopped."""
+    return dataclasses.replace(
+        second, iterations=first.iterations + second.iterations,
+        energy_history=np.concatenate([first.energy_history, second.energy_history[1:]]),
+        times=np.concatenate([first.times, first.times[-1] + np.asarray(second.times[1:])]),
+        timings={k: first.timings.get(k, 0.0) + v for k, v in second.timings.items()})
+
+
+def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
+               progress: ProgressCallback | None = None) -> SolveResult:
+    """Optimize ``graph`` with the default pipeline (module docstring).
+
+    Parameters
+    ----------
+    graph : PoseGraph
+    config : AutoConfig, optional
+    progress : callable, optional
+        ``progress(Progress)``: ``phase`` ``"start"`` (a start computed), ``"sweeps"`` and
+        ``"polish"``, with ``detail`` naming the start.
+
+    Returns
+    -------
+    SolveResult
+        ``method`` ``"auto"``; ``energy_history``: the winning start, its kept sweeps, its
+        polish (``iterations`` is the number of kept sweeps); ``status``: the polish's.
+
+    Raises
+    ------
+    SolverError
+        When no start could be computed and polished.
+    """
+    cfg = config or AutoConfig()
+    from .gauss_newton import _ensure_compiled as ensure_exact
+    from .hybrid.solver import ensure_compiled as ensure_hybrid
+
+    compile_s = ensure_hybrid() + ensure_exact()
+    t_origin = time.perf_counter()
+    tree = build_tree(graph, cfg.tree)
+    t_analyze = time.perf_counter() - t_origin
+    inits = [i for i in cfg.inits if i != "file" or graph.has_estimates]
+    skipped = [i for i in cfg.inits if i not in inits]
+    if not inits:
+        raise SolverError("no start applies: the file has no vertices; add 'tree' or 'chordal' "
+                          "to the starts")
+    cands: list[_Candidate] = []
+    for init in inits:
+        cand = _Candidate(init)
+        t0 = time.perf_counter()
+        try:
+            locals0 = initial_locals(graph, tree, init)
+        except (HybridPGOError, ValueError, np.linalg.LinAlgError, RuntimeError) as exc:
+            cand.error = f"start: {exc}"
+            cands.append(cand)
+            continue
+        cand.start_seconds = time.perf_counter() - t0
+        _sweep_candidate(graph, cfg, cand, tree, locals0, t_origin, progress)
+        cands.append(cand)
+    usable = [c for c in cands if c.rot is not None and np.isfinite(c.energy)]
+    if not usable:
+        raise SolverError("no start gave finite poses: "
+                          + "; ".join(f"{c.init}: {c.error}" for c in cands))
+    ranked = sorted(usable, key=lambda c: c.energy)  # stable: ties keep the order of inits
+    t_polish = time.perf_counter()
+    best: _Candidate | None = None
+    for cand in ranked[:cfg.finalists]:
+        if best is None or best.polished is None:
+            _polish(graph, cfg, cand, progress, cfg.polish_iterations)
+        else:  # a runner-up: a bounded polish, continued only if it is then the lowest
+            budget = min(cfg.polish_iterations, max(
+                math.ceil(cfg.finalist_budget * best.polished.iterations),
+                MIN_FINALIST_ITERATIONS))
+            _polish(graph, cfg, cand, progress, budget)
+            pol = cand.polished
+            if (pol is not None and pol.status is Status.MAX_ITERATIONS
+                    and pol.final_energy < best.energy and budget < cfg.polish_iterations):
+                _polish(graph, cfg, cand, progress, cfg.polish_iterations - budget)
+            elif pol is not None and pol.status is Status.MAX_ITERATIONS:
+                cand.cut = budget < cfg.polish_iterations
+        if cand.polished is not None and (best is None or cand.energy < best.energy * (
+                1.0 - _TIE)):
+            best = cand
+    polish_s = time.perf_counter() - t_polish
+    polished = [c for c in ranked[:cfg.finalists] if c.polished is not None and not c.cut]
+    if not polished:
+        raise SolverError("the polish failed from every start: "
+                          + "; ".join(f"{c.init}: {c.error}" for c in ranked[:cfg.finalists]))
+    win = min(polished, key=lambda c: c.energy)
+    assert win.polished is not None
+    pol = win.polished
+    offset = win.times[-1]
+    history = np.concatenate([win.history, pol.energy_history[1:]])
+    times = np.concatenate([win.times, offset + np.asarray(pol.times[1:])])
+    others = ", ".join(f"{c.init} {c.energy:.6g}" for c in polished if c is not win)
+    cut = [c.init for c in ranked[:cfg.finalists] if c.cut]
+    reason = (f"start {win.init}: {win.sweeps} sweep(s) kept of {win.sweeps_run} run, then "
+              f"{pol.iterations} LM iteration(s), {pol.status.value}")
+    if others:
+        reason += f"; other polished start(s): {others}"
+    if cut:
+        reason += (f"; polish of {', '.join(cut)} stopped at its budget above the best "
+                   f"({', '.join(f'{c.energy:.6g}' for c in ranked if c.cut)})")
+    stats: dict[str, Any] = {
+        "init": win.init,
+        "sweeps": win.sweeps,
+        "polish_iterations": pol.iterations,
+        "polish_status": pol.status.value,
+        "energy_after_sweeps": min(win.history),
+        "reason": reason,
+        "candidates": {c.init: c.summary() for c in cands},
+        "skipped_inits": skipped,
+        "finalists": [c.init for c in ranked[:cfg.finalists]],
+        "linear_solver": pol.stats.get("linear_solver"),
+        "capped_steps": win.capped,
+        "rejected_steps": win.rejected,
+    }
+    for key in ("robust", "robust_scale", "plain_energy"):
+        if key in pol.stats:
+            stats[key] = pol.stats[key]
+    return SolveResult(
+        rotations=pol.rotations, translations=pol.translations, status=pol.status,
+        iterations=win.sweeps, energy_history=history, times=times, method="auto",
+        num_constraints=graph.num_constraints,
+        timings={"compile": compile_s, "analyze": t_analyze,
+                 "start": sum(c.start_seconds for c in cands),
+                 "sweeps": sum(c.sweep_seconds for c in cands), "polish": polish_s,
+                 "solve": time.perf_counter() - t_origin - t_analyze},
+        stats=stats,
+    )
+

@@ -1,0 +1,273 @@
+"""The default pipeline (``--solver auto``, :mod:`hybridpgo.solvers.auto`): it reaches the LM
+optimum, its status and stats say what happened, and it is the default of the library and CLI."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from graphs import random_graph
+from tolerances import FLOAT64_IDENTITY, OPTIMUM_RELATIVE
+
+import hybridpgo
+from hybridpgo import read_graph
+from hybridpgo.cli import main
+from hybridpgo.energy import energy
+from hybridpgo.solvers import AutoConfig, GaussNewtonConfig, Status, optimize
+from hybridpgo.solvers.auto import solve_auto
+from hybridpgo.solvers.gauss_newton import solve_exact
+from hybridpgo.tree import build_tree, global_poses, initial_locals
+
+#: LM that runs to convergence: the reference optimum's solver.
+TIGHT_LM = GaussNewtonConfig(max_iterations=300, energy_tolerance=1e-14)
+
+
+def best_known(graph, truth=None) -> float:
+    """Lowest LM energy over the starts truth (when known), file, chordal and tree."""
+    starts = [truth] if truth is not None else []
+    if graph.has_estimates:
+        starts.append((graph.rotations, graph.translations))
+    tree = build_tree(graph, "bfs")
+    starts += [global_poses(tree, *initial_locals(graph, tree, k)) for k in ("chordal", "tree")]
+    return min(solve_exact(graph, r, t, TIGHT_LM).final_energy for r, t in starts)
+
+
+# ------------------------------------------------------------------------- config
+@pytest.mark.parametrize("options, message", [
+    ({"inits": ()}, "inits must be a non-empty tuple"),
+    ({"inits": ("tree", "tree")}, "inits must be a non-empty tuple of distinct"),
+    ({"inits": ("gps",)}, "inits must be a non-empty tuple"),
+    ({"inits": ["tree"]}, "inits must be a non-empty tuple"),
+    ({"finalists": 0}, "finalists must be an integer >= 1"),
+    ({"max_sweeps": -1}, "max_sweeps must be an integer >= 0"),
+    ({"sweep_tolerance": float("nan")}, "sweep_tolerance must be a finite number >= 0"),
+    ({"polish_iterations": 1.5}, "polish_iterations must be an integer >= 0"),
+    ({"tau0": 2.0}, "tau0 must be below 2"),
+    ({"step": "cholesky"}, "step must be one of woodbury, givens"),
+    ({"robust": "tukey"}, "robust must be one of none, huber"),
+])
+def test_auto_config_rejects_bad_values(options, message) -> None:
+    with pytest.raises(ValueError, match=message.replace("(", r"\(")):
+        AutoConfig(**options)
+
+
+def test_auto_config_builds_the_sweep_and_polish_configs() -> None:
+    cfg = AutoConfig(tau0=0.5, step="givens", tree="mst", robust="huber", robust_scale=2.0,
+                     polish_iterations=7, energy_tolerance=1e-9)
+    hy = cfg.hybrid_config("chordal", 4)
+    assert (hy.init, hy.sweeps, hy.tau0, hy.step, hy.tree, hy.robust, hy.robust_scale,
+            hy.polish) == ("chordal", 4, 0.5, "givens", "mst", "huber", 2.0, False)
+    lm = cfg.polish_config()
+    assert (lm.method, lm.max_iterations, lm.energy_tolerance, lm.robust) == (
+        "lm", 7, 1e-9, "huber")
+
+
+# ------------------------------------------------------------------------- the optimum
+@pytest.mark.parametrize("seed, gps", [(0, 0), (1, 0), (2, 3), (3, 0)])
+def test_default_reaches_the_optimum_on_random_graphs(seed: int, gps: int) -> None:
+    graph, rot, trans = random_graph(np.random.default_rng(seed), n=30, extra=25, gps=gps,
+                                     rot_scale=0.5, noise=0.1)
+    result = optimize(graph)  # no method: the default pipeline
+    assert result.method == "auto"
+    assert result.status is Status.CONVERGED
+    ref = best_known(graph, (rot, trans))
+    assert result.final_energy <= ref * (1 + OPTIMUM_RELATIVE)
+    assert result.final_energy == pytest.approx(energy(graph, result.rotations,
+                                                       result.translations),
+                                                rel=FLOAT64_IDENTITY)
+
+
+@pytest.mark.parametrize("name", ["tinyGrid3D.g2o", "smallGrid3D.g2o", "w100_toro.graph"])
+def test_default_reaches_the_optimum_on_the_test_files(data_dir: Path, name: str) -> None:
+    if name.endswith(".graph"):
+        with pytest.warns(UserWarning, match="EQUIV"):
+            graph = read_graph(data_dir / name)
+    else:
+        graph = read_graph(data_dir / name)
+    result = hybridpgo.optimize(graph)
+    assert result.status is Status.CONVERGED
+    assert result.final_energy <= best_known(graph) * (1 + OPTIMUM_RELATIVE)
+
+
+# ------------------------------------------------------------------------- what it says
+def test_status_and_stats_describe_the_run(data_dir: Path) -> None:
+    graph = read_graph(data_dir / "smallGrid3D.g2o")
+    result = solve_auto(graph, AutoConfig())
+    s = result.stats
+    cands = s["candidates"]
+    assert list(cands) == ["chordal", "tree", "file"]
+    assert s["init"] in cands and s["finalists"][0] == min(
+        cands, key=lambda k: cands[k]["energy_after_sweeps"])
+    polished = [k for k, c in cands.items() if "final_energy" in c]
+    assert sorted(polished) == sorted(s["finalists"]) and len(polished) == 2
+    # the winner is the lowest polished energy, and the result is its trajectory
+    assert s["init"] == min(polished, key=lambda k: cands[k]["final_energy"])
+    win = cands[s["init"]]
+    assert result.final_energy == win["final_energy"]
+    assert result.iterations == s["sweeps"] == win["sweeps"]
+    assert result.energy_history[0] == win["initial_energy"]
+    assert result.energy_history[result.iterations] == s["energy_after_sweeps"]
+    assert len(result.energy_history) == 1 + s["sweeps"] + s["polish_iterations"]
+    assert len(result.times) == len(result.energy_history)
+    assert s["polish_status"] == result.status.value == "converged"
+    # sweeps that raise E are undone and the polish accepts only decreases
+    assert np.all(np.diff(result.energy_history) <= 0)
+    for c in cands.values():
+        assert c["sweeps"] <= c["sweeps_run"] <= AutoConfig().max_sweeps
+        assert c["energy_after_sweeps"] <= c["initial_energy"]
+    assert s["init"] in s["reason"] and "converged" in s["reason"]
+    json.dumps(result.summary())  # every stat is JSON-friendly
+
+
+def test_no_file_start_without_vertices(tmp_path: Path, data_dir: Path) -> None:
+    graph = read_graph(data_dir / "tinyGrid3D.g2o")
+    isam = tmp_path / "tiny.txt"
+    hybridpgo.write_graph(graph, isam, "isam")
+    result = optimize(read_graph(isam))
+    assert result.stats["skipped_inits"] == ["file"]
+    assert list(result.stats["candidates"]) == ["chordal", "tree"]
+
+
+def test_without_sweeps_the_pipeline_is_lm_from_the_start(data_dir: Path) -> None:
+    graph = read_graph(data_dir / "smallGrid3D.g2o")
+    result = optimize(graph, "auto", max_sweeps=0, init="tree")
+    direct = optimize(graph, "exact", init="tree")
+    assert result.stats["init"] == "tree" and result.iterations == 0
+    assert list(result.stats["candidates"]) == ["tree"]
+    assert result.final_energy == pytest.approx(direct.final_energy, rel=FLOAT64_IDENTITY)
+    np.testing.assert_allclose(result.translations, direct.translations, rtol=0,
+                               atol=FLOAT64_IDENTITY * 10)
+
+
+def test_sweeps_stop_when_they_stop_paying(data_dir: Path) -> None:
+    graph = read_graph(data_dir / "smallGrid3D.g2o")
+    cfg = AutoConfig(inits=("tree",), sweep_tolerance=0.2, max_sweeps=50)
+    c = solve_auto(graph, cfg).stats["candidates"]["tree"]
+    hist = optimize(graph, "hybrid", init="tree", sweeps=c["sweeps_run"]).energy_history
+    drops = 1 - hist[1:] / hist[:-1]
+    # every sweep but the last lowered E by >= 20%; the last by less (or raised it)
+    assert np.all(drops[:-1] >= 0.2) and drops[-1] < 0.2
+    assert c["sweeps_run"] < 50
+
+
+def test_one_finalist_polishes_one_start(data_dir: Path) -> None:
+    graph = read_graph(data_dir / "smallGrid3D.g2o")
+    s = optimize(graph, "auto", finalists=1).stats
+    assert [k for k, c in s["candidates"].items() if "final_energy" in c] == [s["init"]]
+
+
+def test_an_iteration_limit_shows_in_the_status(data_dir: Path) -> None:
+    graph = read_graph(data_dir / "smallGrid3D.g2o")
+    result = optimize(graph, "auto", polish_iterations=1, max_sweeps=0)
+    assert result.status is Status.MAX_ITERATIONS
+    assert result.stats["polish_status"] == "max_iterations"
+    assert "max_iterations" in result.stats["reason"]
+
+
+# ------------------------------------------------------------------------- the API
+def test_hybrid_by_name_is_still_the_papers_method(data_dir: Path) -> None:
+    graph = read_graph(data_dir / "tinyGrid3D.g2o")
+    result = optimize(graph, "hybrid")
+    assert result.method == "hybrid" and result.iterations == 10
+    assert "candidates" not in result.stats
+
+
+def test_hybrid_options_without_a_method_name_the_fix(data_dir: Path) -> None:
+    graph = read_graph(data_dir / "tinyGrid3D.g2o")
+    with pytest.raises(TypeError, match=r"sweeps: not an option of the default pipeline.*"
+                                        r"optimize\(graph, 'hybrid'"):
+        optimize(graph, sweeps=10)
+    with pytest.raises(ValueError, match="fields of its config"):
+        optimize(graph, AutoConfig(), init="tree")
+
+
+# ------------------------------------------------------------------------- the CLI
+def _cli_json(capsys, *argv) -> dict:
+    code = main([str(a) for a in argv] + ["--json", "-q"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    return json.loads(out)
+
+
+def test_cli_default_is_auto_and_matches_the_library(capsys, data_dir: Path,
+                                                     tmp_path: Path) -> None:
+    src = data_dir / "smallGrid3D.g2o"
+    out = tmp_path / "o.g2o"
+    s = _cli_json(capsys, "optimize", src, "-o", out)
+    r = s["result"]
+    lib = optimize(read_graph(src))
+    assert s["solver"] == "auto" and r["method"] == "auto" and r["status"] == "converged"
+    assert s["init"] == r["init"] == lib.stats["init"]
+    assert s["energy_after"] == pytest.approx(lib.final_energy, rel=FLOAT64_IDENTITY)
+    assert energy(read_graph(out)) == pytest.approx(lib.final_energy, rel=1e-8)  # 9 digits
+    assert s["energy_after_sweeps"] == r["energy_after_sweeps"]
+    assert s["reason"] == r["reason"]
+
+
+def test_cli_auto_options(capsys, data_dir: Path, tmp_path: Path) -> None:
+    src = data_dir / "smallGrid3D.g2o"
+    s = _cli_json(capsys, "optimize", src, "-o", tmp_path / "o.g2o", "--init", "tree",
+                  "--sweeps", "2", "--max-iterations", "3", "--tau0", "0.5")
+    r = s["result"]
+    assert list(r["candidates"]) == ["tree"] and s["init"] == "tree"
+    assert r["candidates"]["tree"]["sweeps_run"] <= 2 and r["polish_iterations"] <= 3
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--polish"], "--polish: --solver auto (the default) always polishes"),
+    (["--tree", "toro"], "--tree toro: only for --solver toro"),
+])
+def test_cli_auto_refuses(capsys, data_dir: Path, tmp_path: Path, argv, message) -> None:
+    out = tmp_path / "o.g2o"
+    code = main(["optimize", str(data_dir / "tinyGrid3D.g2o"), "-o", str(out), *argv])
+    _, err = capsys.readouterr()
+    assert code == 2 and message in err and not out.exists()
+
+
+def test_cli_text_summary_names_the_starts(capsys, data_dir: Path, tmp_path: Path) -> None:
+    code = main(["optimize", str(data_dir / "tinyGrid3D.g2o"), "-o", str(tmp_path / "o.g2o")])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert "(chosen by the pipeline)" in out and "starts " in out and "(polished)" in out
+    assert "auto: start chordal" in err
+
+
+def test_cli_progress_shows_each_phase(capsys, data_dir: Path, tmp_path: Path) -> None:
+    code = main(["optimize", str(data_dir / "tinyGrid3D.g2o"), "-o", str(tmp_path / "o.g2o"),
+                 "--progress", "--init", "tree", "--sweeps", "2"])
+    _, err = capsys.readouterr()
+    assert code == 0
+    assert "auto: start tree" in err and "tree sweeps" in err and "tree polish (LM)" in err
+
+
+def test_a_runner_up_polish_stops_at_its_budget(data_dir: Path,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    import hybridpgo.solvers.auto as auto
+
+    graph = read_graph(data_dir / "smallGrid3D.g2o")
+    monkeypatch.setattr(auto, "MIN_FINALIST_ITERATIONS", 1)
+    cfg = AutoConfig(inits=("tree", "chordal"), max_sweeps=0, finalist_budget=0.01)
+    result = solve_auto(graph, cfg)
+    s = result.stats
+    assert s["finalists"] == ["chordal", "tree"]  # chordal starts far lower (E0 1189 vs 52044)
+    tree = s["candidates"]["tree"]
+    assert tree["polish_iterations"] == 1 and tree["polish_cut_at_budget"] is True
+    assert tree["final_energy"] > result.final_energy
+    assert s["init"] == "chordal" and "stopped at its budget" in s["reason"]
+    assert result.status is Status.CONVERGED
+
+
+def test_a_continued_polish_is_one_trajectory(data_dir: Path) -> None:
+    from hybridpgo.solvers.auto import _continue
+
+    graph = read_graph(data_dir / "smallGrid3D.g2o")
+    first = solve_exact(graph, None, None, GaussNewtonConfig(max_iterations=2))
+    second = solve_exact(graph, first.rotations, first.translations, GaussNewtonConfig())
+    both = _continue(first, second)
+    assert both.iterations == first.iterations + second.iterations
+    np.testing.assert_array_equal(both.energy_history, np.concatenate(
+        [first.energy_history, second.energy_history[1:]]))
+    assert len(both.times) == len(both.energy_history) and np.all(np.diff(both.times) >= 0)
+    assert both.final_energy == second.final_energy and both.status is second.status
