@@ -7,10 +7,11 @@ from the previous prefix's optimum) every 500 frames and at the end.  Latency: w
 update plus the estimate of the frame's pose; "steady" is the CPU time of the same (not
 inflated by preemption on a shared machine).  iSAM2 runs on the same stream in the same process
 (relinearizeSkip 1, default threshold, QR factorization), 10 extra frames, stopped after
-600 s in updates (the row then names the frame reached; its ratios cover the frames reached).
-"hybridpgo+refine/500" adds the whole-map exact solve (:meth:`OnlineSolver.refine`, 10 LM
-iterations at most) every 500 frames, half-way between checkpoints, inside that frame's
-latency.
+ISAM2_MAX_S in updates (the row then names the frame reached; its ratios cover the frames
+reached).  "hybridpgo+background" is ``OnlineConfig(background_refine=True)``: the exact LM solve
+of the whole map runs over and over in a worker process (asynchronous: results depend on
+timing) and each result is adopted in the next frame; on a 2-core machine the worker competes
+with the frames (and with whatever else runs) for the CPU.
 
 Targets (issue 8): steady max latency <= B + 1 ms every frame; E / optimum <= 1.05 at every
 checkpoint; <= 1.01 at the end after at most 100 extra frames.
@@ -38,8 +39,9 @@ BUDGET_S = 5e-3
 EVERY = 500
 EXTRA = 100
 ISAM2_EXTRA = 10
-#: iSAM2 stops once its updates have taken this long (paris2: over an hour otherwise).
-ISAM2_MAX_S = 600.0
+#: iSAM2 stops once its updates have taken this long (paris2: over an hour otherwise; cut from
+#: 600 s to 300 s for the 2026-11-23-online run on a loaded 2-core machine).
+ISAM2_MAX_S = 300.0
 
 
 def _graphs(ctx: Context) -> list[tuple[str, Any]]:
@@ -99,10 +101,10 @@ def run(ctx: Context) -> Result:
         t_opt = time.perf_counter() - t0
         config = OnlineConfig(reserve_poses=graph.num_nodes)
         runs = [replay_online(stream, config, BUDGET_S, checkpoints=frames, extra_frames=EXTRA)]
-        # the periodic whole-map exact solve, half-way between checkpoints: what the hybrid
-        # updates keep of an optimum over the next EVERY/2 frames, and what the solve costs
-        runs.append(replay_online(stream, config, BUDGET_S, checkpoints=frames, extra_frames=0,
-                                  refine_every=EVERY, refine_offset=EVERY // 2))
+        print(f"    {name}: plain done", flush=True)
+        bg = OnlineConfig(reserve_poses=graph.num_nodes, background_refine=True)
+        runs.append(replay_online(stream, bg, BUDGET_S, checkpoints=frames, extra_frames=EXTRA))
+        print(f"    {name}: background done", flush=True)
         if gtsam_available() and not (graph.is_2d and graph.num_gps):
             try:
                 runs.append(replay_isam2(stream, checkpoints=frames, extra_frames=ISAM2_EXTRA,
@@ -110,7 +112,7 @@ def run(ctx: Context) -> Result:
             except RuntimeError as exc:  # GTSAM's exceptions arrive as RuntimeError
                 msg = str(exc).strip().splitlines()[0]
                 rows.append([name, graph.num_nodes, graph.num_edges, graph.num_gps, "isam2",
-                             f"failed: {msg}", *["-"] * 7])
+                             f"failed: {msg}", *["-"] * 8])
         _figure(ctx, name, runs, optima)
         for r in runs:
             s = r.summary(optima)
@@ -126,6 +128,13 @@ def run(ctx: Context) -> Result:
                      else float("nan")),
             ]
             hit = s.get("extra_frames_to_1pct")
+            bgi = r.info.get("background")
+            if bgi:
+                metrics += [
+                    info(f"{key}.results_adopted", bgi["results_adopted"]),
+                    info(f"{key}.lag_frames_max", bgi["lag_frames_max"]),
+                    timing(f"{key}.adopt_ms_max", bgi["adopt_ms_max"], "ms"),
+                ]
             rows.append([
                 name, graph.num_nodes, graph.num_edges, graph.num_gps, r.name,
                 f"{s['latency_ms_mean']:.2f}", f"{s['latency_ms_p99']:.2f}",
@@ -134,6 +143,8 @@ def run(ctx: Context) -> Result:
                 (f"{s['extra_ratio'][-1]:.4g} ({len(s['extra_ratio'])})"
                  if s.get("extra_ratio") else "-"),
                 hit if hit is not None else "never",
+                (f"{bgi['results_adopted']} / {bgi['lag_frames_max']} / "
+                 f"{bgi['adopt_ms_max']:.2f}" if bgi else "-"),
             ])
         metrics.append(info(f"online.{name}.optima_seconds", t_opt, "s"))
         print(f"  online {name}: {time.perf_counter() - t0:.1f} s", flush=True)
@@ -146,7 +157,8 @@ def run(ctx: Context) -> Result:
             f"N more frames with no new data).  Targets: steady max <= "
             f"{BUDGET_S * 1e3 + 1:.0f} ms, worst ratio <= 1.05, within 1.01 after <= 100 extra",
             ["graph", "poses", "edges", "GPS", "solver", "mean", "p99", "max", "steady max",
-             "worst E/opt", "end E/opt", "extra E/opt (N)", "extra frames to 1%"],
+             "worst E/opt", "end E/opt", "extra E/opt (N)", "extra frames to 1%",
+             "background: results / lag max (frames) / adopt max (ms)"],
             rows,
         )
     ]

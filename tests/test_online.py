@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from graphs import random_graph
-from tolerances import FLOAT64_IDENTITY, ISAM2_VS_OPTIMUM, ONLINE_REFINED
+from tolerances import FLOAT64_IDENTITY, ISAM2_VS_OPTIMUM, ONLINE_REFINED, REFINE_REPEATED
 
 from hybridpgo.energy import energy
 from hybridpgo.errors import FormatError, GraphError
@@ -419,3 +419,140 @@ def test_isam2_replay_time_cap() -> None:
     assert r.latency_s.shape == (1,) and r.info["frames_reached"] == 1
     assert "stopped at frame 1" in r.name and r.extra_energy == []
     assert set(r.checkpoints) == {1}
+
+
+# --------------------------------------------------------------------------- background refine
+def _bg(**kw: object) -> OnlineConfig:
+    return OnlineConfig(background_refine=True, background_join=4, **kw)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("gps", [0, 6])
+def test_background_refine_reaches_the_batch_optimum(gps: int) -> None:
+    """After the stream, join_refine() adopts the worker's optimum of the whole map, and the
+    frames that follow keep it (no constraint is left outside the optimum, so no spare-time
+    update perturbs it; the joins re-adopt the same optimum)."""
+    g = _graph(seed=11, n=50, extra=30, gps=gps)
+    st = make_stream(g)
+    opt = prefix_optima(st, [st.num_frames])[st.num_frames]
+    with OnlineSolver(_bg()) as s:
+        _stream(s, g, range(g.num_nodes))
+        assert s.stats()["background"]["results_adopted"] > 0  # adopted along the way
+        assert s.join_refine(timeout=120.0)
+        e = s.energy()
+        assert abs(e - opt) <= ONLINE_REFINED * opt
+        for _ in range(10):
+            s.update(None, UPDATES)
+        assert abs(s.energy() - e) <= REFINE_REPEATED * e
+        assert s.stats()["background"]["error"] is None
+
+
+def test_background_join_is_reproducible() -> None:
+    g = _graph(seed=12, n=40, extra=25, gps=3)
+    out = []
+    for _ in range(2):
+        with OnlineSolver(_bg()) as s:
+            _stream(s, g, range(g.num_nodes))
+            out.append(s.estimate())
+    assert np.array_equal(out[0][0], out[1][0]) and np.array_equal(out[0][1], out[1][1])
+
+
+def test_adoption_keeps_newer_poses_relative_to_their_parents() -> None:
+    """Naive check of _adopt: the result's poses take its local transforms; every pose added
+    after its snapshot keeps its pose relative to its tree parent."""
+    from hybridpgo.solvers._background import Refined
+
+    g = _graph(seed=13, n=40, extra=20)
+    s = OnlineSolver(OnlineConfig(background_rebase=False))
+    _stream(s, g, range(g.num_nodes))
+    rot0, trans0 = s.estimate()
+    parent = s._parent[1: s._n + 1] - 1  # pose index of each pose's tree parent (-1: earth)
+    n = 25
+    rng = np.random.default_rng(0)
+    lrot = np.empty((n, 3, 3))
+    for i in range(n):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        lrot[i] = q * np.sign(np.linalg.det(q))
+    ltrans = rng.normal(size=(n, 3))
+    s._adopt(Refined(n, 30, 0, 0, lrot, ltrans, 0.0, 1, "converged", 0.0))
+    rot1, trans1 = s.estimate()
+    for p in range(s._n):
+        a = int(parent[p])
+        if p < n:  # naive composition of the adopted local transforms
+            pr, pt = (np.eye(3), np.zeros(3)) if a < 0 else (rot1[a], trans1[a])
+            assert np.allclose(rot1[p], pr @ lrot[p], atol=FLOAT64_IDENTITY)
+            assert np.allclose(trans1[p], pr @ ltrans[p] + pt, atol=FLOAT64_IDENTITY)
+        else:  # the same pose relative to the parent as before
+            assert a >= 0
+            before = (rot0[a].T @ rot0[p], rot0[a].T @ (trans0[p] - trans0[a]))
+            after = (rot1[a].T @ rot1[p], rot1[a].T @ (trans1[p] - trans1[a]))
+            assert np.allclose(before[0], after[0], atol=FLOAT64_IDENTITY)
+            assert np.allclose(before[1], after[1], atol=FLOAT64_IDENTITY * 100)
+    assert (s._refined_m, s._refined_g) == (30, 0)
+
+
+def test_adoption_with_rebase_queues_the_tail_once() -> None:
+    from hybridpgo.solvers._background import Refined
+
+    g = _graph(seed=14, n=30, extra=10)
+    s = OnlineSolver()
+    _stream(s, g, range(g.num_nodes))
+    rot, trans = s._rot[1:11].copy(), s._trans[1:11].copy()
+    s._push(s._m - 1)  # a queued constraint that is also in the tail
+    s._adopt(Refined(10, 12, 0, 0, rot, trans, 0.0, 1, "converged", 0.0))
+    assert s._queue[s._q_head: s._q_tail].tolist() == list(range(12, s._m_laid))
+
+
+def test_background_rejected_calls_change_nothing() -> None:
+    g = _graph(seed=15, gps=3)
+    with OnlineSolver(_bg()) as s:
+        _stream(s, g, range(20))
+        before = _state(s)
+        ids = s.pose_ids()
+        with pytest.raises(GraphError):
+            s.add_constraint(int(ids[0]), 999_999, (np.eye(3), np.ones(3)), np.eye(6))
+        with pytest.raises(GraphError):
+            s.add_gps(int(ids[4]), [1.0, np.inf, 3.0], np.eye(3))
+        with pytest.raises(GraphError):
+            s.add_pose(int(ids[3]), int(ids[2]), (np.eye(3), np.ones(3)), np.eye(6))
+        _same(before, _state(s))
+
+
+def test_background_worker_stops_cleanly() -> None:
+    import gc
+
+    g = _graph(seed=16, n=20, extra=5)
+    with OnlineSolver(_bg()) as s:
+        _stream(s, g, range(g.num_nodes))
+        ref = s._refiner
+        assert ref is not None
+        proc = ref._proc
+        assert proc is not None and proc.poll() is None
+    assert proc.poll() is not None and not ref._sender.is_alive()
+    assert not ref._receiver.is_alive()
+    s.close()  # idempotent
+    with pytest.raises(ValueError):
+        s.join_refine()
+    s.update(None, UPDATES)  # still usable, without the worker
+    # dropped without close(): the finalizer stops the worker
+    t = OnlineSolver(_bg())
+    ref = t._refiner
+    assert ref is not None
+    proc = ref._proc
+    del t
+    gc.collect()
+    assert proc is not None and proc.poll() is not None
+
+
+def test_background_state_survives_save_load(tmp_path: Path) -> None:
+    g = _graph(seed=17, n=40, extra=20, gps=4)
+    st = make_stream(g)
+    opt = prefix_optima(st, [st.num_frames])[st.num_frames]
+    path = tmp_path / "bg.npz"
+    with OnlineSolver(_bg()) as s:
+        _stream(s, g, range(25))
+        s.save(path)
+    with OnlineSolver.load(path) as t:  # a new worker gets the whole map
+        assert t.config.background_refine
+        _stream(t, g, range(25, st.num_frames))
+        assert t.join_refine(timeout=120.0)
+        assert abs(t.energy() - opt) <= ONLINE_REFINED * opt

@@ -41,6 +41,10 @@ COVARIANCE_VS_GTSAM = 1e-6
 #: the odometry chain), relative: both stop at LM's energy tolerance 1e-10 on the same optimum.
 ONLINE_REFINED = 1e-6
 
+#: Relative change of E when an exact solve is repeated from its own optimum and adopted again
+#: (LM stops at its energy tolerance 1e-10; the adopted local transforms round at 1e-16).
+REFINE_REPEATED = 1e-10
+
 #: iSAM2 (relinearization threshold 0.1, its default) vs the batch optimum, relative energy.
 ISAM2_VS_OPTIMUM = 1e-3
 

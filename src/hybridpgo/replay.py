@@ -265,6 +265,17 @@ def replay_online(stream: Stream, config: Any = None, budget_s: float | None = 5
     from .solvers.online import OnlineSolver
 
     solver = OnlineSolver(config)
+    try:
+        return _replay_online(solver, stream, budget_s, checkpoints, extra_frames,
+                              refine_every, refine_offset, progress)
+    finally:
+        solver.close()
+
+
+def _replay_online(solver: Any, stream: Stream, budget_s: float | None,
+                   checkpoints: Sequence[int], extra_frames: int, refine_every: int,
+                   refine_offset: int, progress: Callable[[int, float], None] | None
+                   ) -> ReplayResult:
     nf = stream.num_frames
     lat = np.empty(nf)
     cpu = np.empty(nf)
@@ -297,6 +308,8 @@ def replay_online(stream: Stream, config: Any = None, budget_s: float | None = 5
         extra_l.append(time.perf_counter() - t0)
         extra_e.append(solver.energy())
     name = f"hybridpgo+refine/{refine_every}" if refine_every else "hybridpgo"
+    if solver.config.background_refine:
+        name += "+background"
     return ReplayResult(name, lat, cpu, energies, extra_e, extra_l,
                         {**solver.stats(), "compile_s": solver.compile_seconds})
 

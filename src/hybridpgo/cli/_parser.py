@@ -620,6 +620,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--local-size", type=_nonneg_int, default=0, metavar="K",
                    help="local solve: relax the K newest relative constraints together in every "
                         "frame (default 0: off)")
+    p.add_argument("--background-refine", action=argparse.BooleanOptionalAction,
+                   default=False,
+                   help="run the exact whole-map solve over and over in a worker process and "
+                        "adopt each result in the next frame (default: off)")
     p.add_argument("--plot", metavar="PREFIX",
                    help="write PREFIX_latency.png and PREFIX_energy.png (needs matplotlib)")
     p.add_argument("--json", action="store_true", help="print a JSON object instead of text")

@@ -42,7 +42,8 @@ def replay_file(args: argparse.Namespace) -> dict[str, Any]:
             raise HybridPGOError(f"{args.file}: --compare isam2: GPS readings on a 2D graph")
     try:
         config = OnlineConfig(tree=args.tree, tau_old=args.tau_old, local_size=args.local_size,
-                              reserve_poses=max(graph.num_nodes, 1))
+                              reserve_poses=max(graph.num_nodes, 1),
+                              background_refine=args.background_refine)
     except ValueError as exc:
         raise HybridPGOError(f"invalid online option: {exc}") from exc
     budget = args.budget_ms * 1e-3

@@ -355,22 +355,25 @@ def local_batch(prob: Problem, state: State, cs: np.ndarray, tau: float, mu: flo
 
 # --------------------------------------------------------------------------- priority
 @kernel
-def candidates(chi2: np.ndarray, m: int, recent: int, window: int, cursor: int,
+def candidates(chi2: np.ndarray, first: int, m: int, recent: int, window: int, cursor: int,
                out: np.ndarray) -> int:
-    """The spare-time candidates of a frame, largest last χ² first (ties: newer first).
+    """The spare-time candidates of a frame among constraints ``first..m-1``, largest last χ²
+    first (ties: newer first).
 
     The set is the ``recent`` newest relative constraints (nearest the robot) and ``window``
-    constraints from ``cursor`` on, cyclically (every constraint is a candidate once every
-    ``m / window`` frames), without repeats.  Writes them to ``out`` and returns how many.
+    constraints from ``first + cursor`` on, cyclically (every constraint is a candidate once
+    every ``(m - first) / window`` frames), without repeats.  Writes them to ``out`` and returns
+    how many.
     """
     k = 0
-    lo = max(m - recent, 0)
+    lo = max(m - recent, first)
     for c in range(m - 1, lo - 1, -1):
         out[k] = c
         k += 1
-    w = min(window, lo)  # the window covers the older constraints 0..lo-1
+    span = lo - first
+    w = min(window, span)  # the window covers the older constraints first..lo-1
     for j in range(w):
-        out[k] = (cursor + j) % lo
+        out[k] = first + (cursor + j) % span
         k += 1
     keys = np.empty(k)
     for j in range(k):

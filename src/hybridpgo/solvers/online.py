@@ -34,6 +34,7 @@ import os
 import pathlib
 import tempfile
 import time
+import weakref
 import zipfile
 from dataclasses import asdict, dataclass
 from typing import Any, Literal, NamedTuple
@@ -46,6 +47,7 @@ from .._numba import cycles_per_second, read_cycles
 from ..errors import FormatError, GraphError
 from ..graph import SYMMETRY_RTOL, FloatArray, PoseGraph
 from . import _online_kernels as ok
+from ._background import BackgroundRefiner, Refined
 from .config import STEP_NAMES, _check_float, _check_int
 from .hybrid.problem import Problem, State, Workspace, new_workspace
 from .hybrid.solver import STEP_KINDS, ensure_compiled
@@ -96,6 +98,28 @@ class OnlineConfig:
     """Local solve (III-G): relax the newest ``local_size`` relative constraints together as
     one batch in every frame (0: off).  Bounded: the batch costs O(entries + (6 local_size)^3)."""
 
+    background_refine: bool = False
+    """Staying accurate: run the exact whole-map solve (Levenberg-Marquardt, DESIGN §7) over
+    and over in a worker *process* on everything shipped to it, and adopt each result in the
+    next :meth:`OnlineSolver.update` (:mod:`._background`).  The frames pay only for shipping
+    the new data and one copy of the map's local transforms per result; the worker takes a
+    CPU core of its own.  Results then depend on timing (see ``background_join``)."""
+    background_join: int = 0
+    """With ``background_refine``: 0 adopts whatever result is ready (asynchronous, results
+    depend on timing); K > 0 is the deterministic mode: every K-th update ships the map and
+    asks for its optimum, and the update K frames later waits for that answer (however long
+    the solve takes) and adopts it, so runs are reproducible."""
+    background_tail_only: bool = True
+    """With ``background_refine``: once a result has been adopted, spare-time updates go only
+    to the constraints added after its snapshot (the adopted optimum is not perturbed by the
+    single-constraint steps, whose fixed point is not the optimum)."""
+    background_rebase: bool = True
+    """With ``background_refine``: when a result is adopted, the constraints added after its
+    snapshot are queued to be relaxed again as new ones (on top of the optimum, in arrival
+    order), so what the frames had made of them is redone rather than left inconsistent."""
+    background_iterations: int = 20
+    """Most LM iterations of one background solve (an unconverged solve is continued)."""
+
     def __post_init__(self) -> None:
         _check_float("damping", self.damping, positive=False)
         if self.step not in STEP_NAMES:
@@ -109,6 +133,8 @@ class OnlineConfig:
         _check_int("window", self.window, 0)
         _check_int("local_size", self.local_size, 0)
         _check_int("reserve_poses", self.reserve_poses, 1)
+        _check_int("background_join", self.background_join, 0)
+        _check_int("background_iterations", self.background_iterations, 1)
         if self.local_size > 64:
             raise ValueError(f"local_size must be at most 64 (its dense system is "
                              f"(6 local_size)^2), got {self.local_size}")
@@ -247,6 +273,35 @@ class OnlineSolver:
         self._dmax = 1
         self._problem: Problem | None = None
         self._wk: Workspace | None = None
+        # the background refine (module _background): what was shipped, what was adopted
+        self._sent_n = self._sent_m = self._sent_g = 0
+        self._join_req = -1
+        self._adopted = 0
+        self._refined_m = self._refined_g = 0  # constraints covered by the adopted optimum
+        self._adopt_s_max = 0.0
+        self._lag_max = 0
+        self._ship_frames: dict[int, int] = {}
+        self._refiner: BackgroundRefiner | None = None
+        self._finalizer: weakref.finalize[Any, Any] | None = None
+        if self.config.background_refine:
+            self._refiner = BackgroundRefiner(self.config.background_iterations)
+            # stops the worker when the solver is collected or at exit, whatever comes first
+            self._finalizer = weakref.finalize(self, self._refiner.close)
+
+    # ----------------------------------------------------------------- life cycle
+    def close(self) -> None:
+        """Stop the background worker (if any); idempotent.  The solver stays usable, without
+        background refinement."""
+        if self._finalizer is not None:
+            self._finalizer()
+        self._refiner = None
+        self._finalizer = None
+
+    def __enter__(self) -> OnlineSolver:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     # ----------------------------------------------------------------- storage
     def _alloc(self, nodes: int, edges: int, gps: int, pool_e: int, pool_g: int,
@@ -610,6 +665,8 @@ class OnlineSolver:
             deadline = np.uint64(c0 + int(spare * cycles_per_second()))
         limit = (1 << 62) if max_updates is None else max_updates
         self._integrate()
+        if self._refiner is not None:
+            self._background_step()
         prob, state = self._prob_state()
         wk = self._workspace()
         mu = cfg.damping
@@ -638,17 +695,20 @@ class OnlineSolver:
                 limit -= 1
         # 3. spare time: older constraints, largest last chi2 first
         old = 0
-        if limit > 0 and self.backlog == 0 and self._m_laid > 1:
+        # with an adopted background optimum, only the constraints it did not cover
+        fm, fg = ((self._refined_m, self._refined_g) if cfg.background_tail_only
+                  else (0, 0))
+        if limit > 0 and self.backlog == 0 and self._m_laid - fm > 1:
             cand = np.empty(cfg.recent + cfg.window, np.int64)
-            k = int(ok.candidates(self._chi2, self._m_laid, cfg.recent, cfg.window,
+            k = int(ok.candidates(self._chi2, fm, self._m_laid, cfg.recent, cfg.window,
                                   self._cursor, cand))
-            lo = max(self._m_laid - cfg.recent, 1)
-            self._cursor = (self._cursor + cfg.window) % lo
+            span = max(self._m_laid - cfg.recent - fm, 1)
+            self._cursor = (self._cursor + cfg.window) % span
             cand = cand[:k]
-            if self._g_laid:  # a cyclic window of GPS readings first, as one batch
-                kg = min(cfg.gps_batch_size, self._g_laid)
-                gw = (self._gps_cursor + np.arange(kg)) % self._g_laid
-                self._gps_cursor = int((self._gps_cursor + kg) % self._g_laid)
+            if self._g_laid > fg:  # a cyclic window of GPS readings first, as one batch
+                kg = min(cfg.gps_batch_size, self._g_laid - fg)
+                gw = fg + (self._gps_cursor + np.arange(kg)) % (self._g_laid - fg)
+                self._gps_cursor = int((self._gps_cursor + kg) % (self._g_laid - fg))
                 cand = np.concatenate([self._cap_m + gw, cand])
             done0 = int(counts[ok.C_DONE])
             ok.relax_list(prob, state, wk, cand, cfg.tau_old, mu, kind, cfg.gps_batch_size,
@@ -659,6 +719,107 @@ class OnlineSolver:
         return FrameReport(n_new, self.backlog, old, local_nodes, int(counts[ok.C_CAPPED]),
                            int(counts[ok.C_REJECTED]), int(counts[ok.C_SKIPPED]),
                            time.perf_counter() - t0)
+
+    # ----------------------------------------------------------------- background refine
+    def _background_step(self) -> None:
+        """Adopt a ready result and ship the new data (``background_join``: only every K-th
+        frame, waiting for the answer to the previous request)."""
+        ref = self._refiner
+        assert ref is not None
+        k = self.config.background_join
+        if k == 0:  # asynchronous: one request at a time, adopted when its answer is there
+            if self._join_req >= 0:
+                if not ref.answered(self._join_req):
+                    return
+                res = ref.take()
+                if res is not None:
+                    self._adopt(res)
+            self._request()
+        elif self.frame % k == 0:
+            if self._join_req >= 0:
+                res = ref.wait(self._join_req)
+                if res is not None:
+                    self._adopt(res)
+            self._request()
+
+    def _request(self) -> None:
+        """Ship the new data and ask for the optimum of everything shipped."""
+        assert self._refiner is not None
+        self._ship()
+        self._join_req = self._refiner.request()
+
+    def _ship(self) -> None:
+        """Send the poses placed, edges and GPS laid since the last call (O(new))."""
+        ref = self._refiner
+        assert ref is not None
+        sn, sm, sg = self._sent_n, self._sent_m, self._sent_g
+        n, m, g = self._placed, self._m_laid, self._g_laid
+        if (sn, sm, sg) == (n, m, g):
+            return
+        ref.ship({"type": "data"}, {
+            "parent": self._parent[sn + 1: n + 1], "rot": self._rot[sn + 1: n + 1],
+            "trans": self._trans[sn + 1: n + 1],
+            "edge_ab": self._edge_ab[sm:m], "edge_rot": self._edge_rot[sm:m],
+            "edge_trans": self._edge_trans[sm:m], "edge_info": self._edge_info[sm:m],
+            "gps_node": self._gps_node[sg:g], "gps_pos": self._gps_pos[sg:g],
+            "gps_info": self._gps_info[sg:g],
+        })  # fmt: skip
+        self._sent_n, self._sent_m, self._sent_g = n, m, g
+        self._ship_frames[n] = self.frame
+
+    def _adopt(self, res: Refined) -> None:
+        """Replace the local transforms of the result's poses (the poses added after its
+        snapshot keep theirs, so they move along with their parents): one copy, O(n)."""
+        t0 = time.perf_counter()
+        n = res.n
+        if n > self._placed:  # cannot happen: only placed poses are shipped
+            return
+        self._rot[1: n + 1] = res.rotations
+        self._trans[1: n + 1] = res.translations
+        self._refined_m, self._refined_g = res.m, res.g
+        if self.config.background_rebase:
+            # the tail: constraints the solve did not see, relaxed again first, in arrival
+            # order, on top of the optimum (as when they arrived); the queue's others after
+            tail = np.concatenate([np.arange(res.m, self._m_laid, dtype=np.int64),
+                                   -1 - np.arange(res.g, self._g_laid, dtype=np.int64)])
+            live = self._queue[self._q_head: self._q_tail]
+            rest = live[~np.isin(live, tail)]
+            self._q_head = self._q_tail = 0
+            self._ensure_queue(tail.shape[0] + rest.shape[0])
+            self._queue[: tail.shape[0]] = tail
+            self._queue[tail.shape[0]: tail.shape[0] + rest.shape[0]] = rest
+            self._q_tail = tail.shape[0] + rest.shape[0]
+        self._adopted += 1
+        self._adopt_s_max = max(self._adopt_s_max, time.perf_counter() - t0)
+        shipped = self._ship_frames.get(n)
+        if shipped is not None:
+            self._lag_max = max(self._lag_max, self.frame - shipped)
+        for key in [k for k in self._ship_frames if k < n]:
+            del self._ship_frames[key]
+
+    def join_refine(self, timeout: float | None = None) -> bool:
+        """Ship everything added so far, wait for the worker's optimum of it and adopt it.
+
+        For the end of a stream (or a pause), and for reproducible runs.  Returns True when
+        the answer came (False: ``timeout`` passed, or the worker reported an error:
+        :meth:`stats` ``["background"]["error"]``).
+
+        Raises
+        ------
+        ValueError
+            ``background_refine`` is off.
+        """
+        ref = self._refiner
+        if ref is None:
+            raise ValueError("join_refine needs OnlineConfig(background_refine=True) and a "
+                             "solver that is not closed")
+        self._integrate()
+        self._request()
+        req = self._join_req
+        res = ref.wait(req, timeout)
+        if res is not None:
+            self._adopt(res)
+        return res is not None and res.req >= req
 
     # ----------------------------------------------------------------- estimates
     def pose(self, pose_id: int) -> tuple[FloatArray, FloatArray]:
@@ -761,11 +922,19 @@ class OnlineSolver:
             "path_entries": int(self._ptr[self._m_laid])
             + int(self._ptr[self._cap_m + self._g_laid] - self._cap_pe),
             "model_us": (self._model / cycles_per_second() * 1e6).tolist(),
-        }
+            **({"background": {
+                "results_adopted": self._adopted,
+                "adopt_ms_max": self._adopt_s_max * 1e3,
+                "lag_frames_max": self._lag_max,
+                "results_received": self._refiner.results,
+                "error": self._refiner.error,
+            }} if self._refiner is not None else {}),
+        }  # fmt: skip
 
     # ----------------------------------------------------------------- save / load
     _SCALARS = ("frame", "_n", "_placed", "_m", "_m_laid", "_g", "_g_laid", "_cursor",
-                "_gps_cursor", "_dmax", "_cap_n", "_cap_m", "_cap_g", "_cap_pe", "_cap_pg")
+                "_gps_cursor", "_dmax", "_cap_n", "_cap_m", "_cap_g", "_cap_pe", "_cap_pg",
+                "_refined_m", "_refined_g")
 
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the whole state to ``path`` (NumPy ``.npz``), atomically (temp file + rename).
@@ -837,7 +1006,13 @@ class OnlineSolver:
                 raise ValueError(f"version {meta.get('version')!r}, this hybridpgo reads "
                                  f"{VERSION}")
             self = cls(OnlineConfig(**meta["config"]))
-            self._restore(meta, data)
+            try:
+                self._restore(meta, data)
+            except BaseException:
+                self.close()
+                raise
+            if self._refiner is not None:  # the new worker gets the whole map now
+                self._ship()
         except FormatError:
             raise
         except (KeyError, ValueError, TypeError, IndexError, UnicodeDecodeError) as exc:
@@ -845,7 +1020,8 @@ class OnlineSolver:
         return self
 
     def _restore(self, meta: dict[str, Any], d: dict[str, np.ndarray]) -> None:
-        sc = {k: int(meta[k]) for k in self._SCALARS}
+        optional = ("_refined_m", "_refined_g")  # absent from the first files of VERSION 1
+        sc = {k: int(meta[k] if k not in optional else meta.get(k, 0)) for k in self._SCALARS}
         self._alloc(nodes=sc["_cap_n"], edges=sc["_cap_m"], gps=sc["_cap_g"],
                     pool_e=sc["_cap_pe"], pool_g=sc["_cap_pg"],
                     queue=max(int(d["queue"].shape[0]), 64))

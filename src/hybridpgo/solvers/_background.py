@@ -1,0 +1,447 @@
+"""The online solver's spare-time exact solve, in a worker process (issue 8, "staying accurate").
+
+:class:`~.online.OnlineSolver` with ``OnlineConfig(background_refine=True)`` ships every pose,
+constraint and GPS reading to a worker process as they are integrated; the worker keeps its own
+copy of the map and runs the exact Levenberg-Marquardt solve (:func:`.gauss_newton.solve_exact`)
+on the newest prefix it has, warm-started from its previous optimum (the poses added since are
+composed onto it with the tree-local transforms the online solver gave them).  Each result comes
+back as *tree-local* transforms (each pose relative to its parent in the online solver's tree,
+which never changes once a pose is placed), so the next :meth:`~.online.OnlineSolver.update`
+adopts it by one copy of ``(n, 3, 3)`` and ``(n, 3)`` arrays, and the poses added after the
+snapshot move along with their parents.
+
+Why a process and not a thread: CHOLMOD (cvxopt) and AMD (cvxopt) hold the GIL for the whole
+factorization (their extension modules never release it: no ``PyEval_SaveThread`` import), and so
+does every stretch of Python between the Numba kernels.  Measured on M3500_isam with a 5 ms budget
+per frame: a thread running the exact solve beside the frames raised the frame latency max to
+44.6 ms with CHOLMOD and 25.6 ms with SuperLU (which releases the GIL but still needs AMD), against
+9.7 ms without it.  A process shares no GIL; the frames only pay for shipping the new data
+(O(new)) and for adopting a result (one memcpy of the map's local transforms).
+
+Protocol (both directions, binary on the worker's stdin and stdout): an 8-byte little-endian
+length of a JSON header, the header (``{"type": ..., "arrays": [[name, dtype, shape], ...], ...}``)
+and the arrays' raw bytes in order.  Main -> worker: ``data`` (new tree nodes with their parent
+and local transform, new edges, new GPS readings), ``solve`` (answer request ``req`` with the
+optimum of everything shipped so far), EOF to stop.  Worker -> main: ``result`` (``n`` tree
+nodes below the earth, their local transforms, the iterations, energy and status) or ``error``.
+
+The worker solves only on request.  The asynchronous mode keeps one request outstanding and
+makes the next as soon as the answer is adopted, so which prefix each answer covers depends on
+timing; the synchronous mode (``OnlineConfig.background_join = K``) requests every K frames and
+waits K frames later, so runs are reproducible.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import struct
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from typing import IO, Any
+
+import numpy as np
+
+#: Niceness added to the worker process (the frames get the CPU first on a busy machine).
+WORKER_NICE = 5
+#: Seconds :meth:`BackgroundRefiner.close` waits for the worker to exit before killing it.
+STOP_TIMEOUT_S = 5.0
+_HEADER = struct.Struct("<Q")
+#: Largest JSON header accepted (a corrupted stream otherwise asks for huge buffers).
+_MAX_HEADER = 1 << 20
+
+Arrays = dict[str, np.ndarray]
+
+
+# --------------------------------------------------------------------------- framing
+def encode(meta: dict[str, Any], arrays: Arrays) -> bytes:
+    """One message: header length, JSON header (with the arrays' layout), raw array bytes."""
+    parts = [np.ascontiguousarray(a) for a in arrays.values()]
+    head = dict(meta, arrays=[[k, a.dtype.str, list(a.shape)]
+                              for k, a in zip(arrays, parts, strict=True)])
+    hb = json.dumps(head).encode()
+    return b"".join([_HEADER.pack(len(hb)), hb, *(a.tobytes() for a in parts)])
+
+
+def write_all(fh: IO[bytes], data: bytes) -> None:
+    """Write all of ``data`` to a raw (unbuffered) file, which may accept less per call."""
+    view = memoryview(data)
+    while view:
+        k = fh.write(view)
+        if k is None:  # pragma: no cover - only non-blocking files return None
+            raise OSError("write would block")
+        view = view[k:]
+
+
+def _read_exact(fh: IO[bytes], buf: memoryview) -> bool:
+    """Fill ``buf`` from ``fh`` (raw, may return short reads); False at a clean EOF."""
+    got = 0
+    while got < len(buf):
+        k = fh.readinto(buf[got:])  # type: ignore[attr-defined]
+        if not k:
+            if got == 0:
+                return False
+            raise EOFError("truncated message")
+        got += k
+    return True
+
+
+def read_message(fh: IO[bytes]) -> tuple[dict[str, Any], Arrays] | None:
+    """The next message from ``fh``, or None at EOF.  Arrays are read straight into fresh
+    NumPy buffers (no copy with the GIL held beyond each ``read`` call)."""
+    hbuf = bytearray(_HEADER.size)
+    if not _read_exact(fh, memoryview(hbuf)):
+        return None
+    (size,) = _HEADER.unpack(hbuf)
+    if size > _MAX_HEADER:
+        raise ValueError(f"message header of {size} bytes")
+    head = bytearray(size)
+    if not _read_exact(fh, memoryview(head)):
+        raise EOFError("truncated message")
+    meta: dict[str, Any] = json.loads(head.decode())
+    arrays: Arrays = {}
+    for name, dtype, shape in meta.pop("arrays"):
+        arr = np.empty(shape, np.dtype(dtype))
+        if arr.nbytes and not _read_exact(fh, arr.reshape(-1).view(np.uint8).data):
+            raise EOFError("truncated message")
+        arrays[name] = arr
+    return meta, arrays
+
+
+# --------------------------------------------------------------------------- main side
+@dataclass
+class Refined:
+    """A result of the worker: the local transforms of tree nodes ``1..n``."""
+
+    n: int
+    """Tree nodes below the earth covered (= poses of the prefix)."""
+    m: int
+    g: int
+    req: int
+    """The highest solve request answered (-1: none)."""
+    rotations: np.ndarray
+    """(n, 3, 3) local rotations of tree nodes 1..n."""
+    translations: np.ndarray
+    """(n, 3) local translations."""
+    energy: float
+    iterations: int
+    status: str
+    seconds: float
+    """Wall time of the worker's solve."""
+
+
+class BackgroundRefiner:
+    """The main process's end: a worker process, a sender and a receiver thread.
+
+    :meth:`ship` never blocks (the sender thread writes); :meth:`take` returns the newest result
+    without waiting; :meth:`wait` blocks for the answer to a request.  :meth:`close` stops
+    everything and is idempotent.
+    """
+
+    def __init__(self, max_iterations: int) -> None:
+        import hybridpgo
+
+        root = os.path.dirname(os.path.dirname(os.path.abspath(hybridpgo.__file__)))
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
+        self._proc: subprocess.Popen[bytes] | None = subprocess.Popen(
+            [sys.executable, "-m", "hybridpgo.solvers._background", str(max_iterations)],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, bufsize=0, env=env)
+        self._outbox: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
+        self._cond = threading.Condition()
+        self._latest: Refined | None = None
+        self._answered = -1
+        self.error: str | None = None
+        """The last error the worker reported (or why it stopped), None while all is well."""
+        self.results = 0
+        """Results received."""
+        self._alive = True
+        self._req = -1
+        self._sender = threading.Thread(target=self._send_loop, name="hybridpgo-refine-send",
+                                        daemon=True)
+        self._receiver = threading.Thread(target=self._recv_loop,
+                                          name="hybridpgo-refine-recv", daemon=True)
+        self._sender.start()
+        self._receiver.start()
+
+    # ----------------------------------------------------------------- threads
+    def _send_loop(self) -> None:
+        proc = self._proc
+        assert proc is not None and proc.stdin is not None
+        try:
+            while True:
+                msg = self._outbox.get()
+                if msg is None:
+                    break
+                write_all(proc.stdin, msg)
+        except (BrokenPipeError, OSError, ValueError) as exc:
+            self._fail(f"the worker stopped reading ({exc})")
+        finally:
+            try:
+                proc.stdin.close()
+            except OSError:
+                pass
+
+    def _recv_loop(self) -> None:
+        proc = self._proc
+        assert proc is not None and proc.stdout is not None
+        try:
+            while True:
+                msg = read_message(proc.stdout)
+                if msg is None:
+                    break
+                meta, arrays = msg
+                with self._cond:
+                    if meta["type"] == "result":
+                        self._latest = Refined(
+                            int(meta["n"]), int(meta["m"]), int(meta["g"]), int(meta["req"]),
+                            arrays["rot"], arrays["trans"], float(meta["energy"]),
+                            int(meta["iterations"]), str(meta["status"]),
+                            float(meta["seconds"]))
+                        self.results += 1
+                        self._answered = max(self._answered, int(meta["req"]))
+                    else:
+                        self.error = str(meta.get("message", meta))
+                        self._answered = max(self._answered, int(meta.get("req", -1)))
+                    self._cond.notify_all()
+        except (OSError, ValueError, EOFError, KeyError) as exc:
+            self._fail(f"bad message from the worker ({exc})")
+        finally:
+            with self._cond:
+                self._alive = False
+                if self.error is None and self._proc is not None:
+                    self.error = "the worker exited"
+                self._cond.notify_all()
+
+    def _fail(self, message: str) -> None:
+        with self._cond:
+            self.error = message
+            self._cond.notify_all()
+
+    # ----------------------------------------------------------------- API
+    @property
+    def alive(self) -> bool:
+        return self._alive
+
+    def ship(self, meta: dict[str, Any], arrays: Arrays) -> None:
+        """Queue a message for the worker (the sender thread writes it)."""
+        if self._alive:
+            self._outbox.put(encode(meta, arrays))
+
+    def request(self) -> int:
+        """Ask for the optimum of everything shipped so far; the request's id."""
+        self._req += 1
+        self.ship({"type": "solve", "req": self._req}, {})
+        return self._req
+
+    def answered(self, req: int) -> bool:
+        """True once request ``req`` has been answered (or the worker is gone)."""
+        with self._cond:
+            return self._answered >= req or not self._alive
+
+    def take(self) -> Refined | None:
+        """The newest result not taken yet, or None (never waits)."""
+        with self._cond:
+            out, self._latest = self._latest, None
+        return out
+
+    def wait(self, req: int, timeout: float | None = None) -> Refined | None:
+        """Block until request ``req`` is answered (or the worker died, or ``timeout``);
+        then the newest result not taken yet."""
+        end = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            while self._answered < req and self._alive:
+                left = None if end is None else end - time.monotonic()
+                if left is not None and left <= 0:
+                    break
+                self._cond.wait(left)
+            out, self._latest = self._latest, None
+        return out
+
+    def close(self) -> None:
+        """Stop the worker (EOF on its input, then kill after a timeout) and the threads."""
+        proc = self._proc
+        if proc is None:
+            return
+        self._proc = None
+        self._outbox.put(None)
+        self._sender.join(STOP_TIMEOUT_S)
+        try:
+            proc.wait(STOP_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        self._receiver.join(STOP_TIMEOUT_S)
+        for fh in (proc.stdin, proc.stdout):
+            if fh is not None:
+                try:
+                    fh.close()
+                except OSError:
+                    pass
+        with self._cond:
+            self._alive = False
+            self._cond.notify_all()
+
+
+# --------------------------------------------------------------------------- worker side
+class _Map:
+    """The worker's copy of the map, in arrays that grow by doubling."""
+
+    def __init__(self) -> None:
+        self.n = self.m = self.g = 0
+        self.parent = np.full(1, -1, np.int64)  # tree nodes, 0 = the earth
+        self.grot = np.eye(3)[None].copy()  # global poses of tree nodes (the estimate)
+        self.gtr = np.zeros((1, 3))
+        self.edge_ab = np.zeros((0, 2), np.int32)
+        self.edge_rot = np.zeros((0, 3, 3))
+        self.edge_trans = np.zeros((0, 3))
+        self.edge_info = np.zeros((0, 6, 6))
+        self.gps_node = np.zeros(0, np.int32)
+        self.gps_pos = np.zeros((0, 3))
+        self.gps_info = np.zeros((0, 3, 3))
+
+    @staticmethod
+    def _append(arr: np.ndarray, used: int, new: np.ndarray) -> np.ndarray:
+        need = used + new.shape[0]
+        if need > arr.shape[0]:
+            grown = np.zeros((max(need, 2 * arr.shape[0]), *arr.shape[1:]), arr.dtype)
+            grown[:used] = arr[:used]
+            arr = grown
+        arr[used:need] = new
+        return arr
+
+    def add(self, d: Arrays) -> None:
+        k = d["parent"].shape[0]
+        t0 = self.n + 1
+        self.parent = self._append(self.parent, t0, d["parent"].astype(np.int64))
+        self.grot = self._append(self.grot, t0, d["rot"])
+        self.gtr = self._append(self.gtr, t0, d["trans"])
+        for t in range(t0, t0 + k):  # local -> global, parents first (a parent is older)
+            p = self.parent[t]
+            lr, lt = self.grot[t].copy(), self.gtr[t].copy()
+            self.grot[t] = self.grot[p] @ lr
+            self.gtr[t] = self.grot[p] @ lt + self.gtr[p]
+        self.n += k
+        ke = d["edge_ab"].shape[0]
+        for name in ("edge_ab", "edge_rot", "edge_trans", "edge_info"):
+            setattr(self, name, self._append(getattr(self, name), self.m, d[name]))
+        self.m += ke
+        kg = d["gps_node"].shape[0]
+        for name in ("gps_node", "gps_pos", "gps_info"):
+            setattr(self, name, self._append(getattr(self, name), self.g, d[name]))
+        self.g += kg
+
+    def solve(self, max_iterations: int) -> tuple[Arrays, dict[str, Any]]:
+        """Exact LM over the map from the current estimate; the locals of nodes 1..n."""
+        from ..graph import PoseGraph
+        from ..tree import _locals_from_globals
+        from .config import GaussNewtonConfig
+        from .gauss_newton import solve_exact
+
+        n, m, g = self.n, self.m, self.g
+        if n == 0:
+            return {"rot": np.empty((0, 3, 3)), "trans": np.empty((0, 3))}, {
+                "type": "result", "n": 0, "m": m, "g": g, "energy": 0.0, "iterations": 0,
+                "status": "converged", "seconds": 0.0}
+        # the gauge: the first pose until three GPS readings can hold the map (DESIGN §2)
+        fixed = np.zeros(1 if g < 3 else 0, np.int32)
+        graph = PoseGraph(
+            node_ids=np.arange(n, dtype=np.int64), rotations=self.grot[1: n + 1],
+            translations=self.gtr[1: n + 1], edge_nodes=self.edge_ab[:m],
+            edge_rotations=self.edge_rot[:m], edge_translations=self.edge_trans[:m],
+            edge_information=self.edge_info[:m], gps_nodes=self.gps_node[:g],
+            gps_positions=self.gps_pos[:g], gps_information=self.gps_info[:g],
+            fixed_nodes=fixed)  # fmt: skip
+        t0 = time.perf_counter()
+        energy, iterations, status = 0.0, 0, "converged"
+        if n >= 2:
+            res = solve_exact(graph, None, None, GaussNewtonConfig(max_iterations=max_iterations))
+            self.grot[1: n + 1] = res.rotations
+            self.gtr[1: n + 1] = res.translations
+            energy, iterations, status = (float(res.final_energy), int(res.iterations),
+                                          res.status.value)
+        seconds = time.perf_counter() - t0
+        lrot = np.empty((n + 1, 3, 3))
+        ltr = np.empty((n + 1, 3))
+        _locals_from_globals(self.parent[: n + 1], self.grot[: n + 1], self.gtr[: n + 1],
+                             lrot, ltr)
+        meta = {"type": "result", "n": n, "m": m, "g": g, "energy": energy,
+                "iterations": iterations, "status": status, "seconds": seconds}
+        return {"rot": lrot[1:], "trans": ltr[1:]}, meta
+
+
+def _worker(max_iterations: int) -> int:
+    """The worker process: read messages on stdin, answer on stdout (see the module doc)."""
+    inp = os.fdopen(os.dup(0), "rb", buffering=0)
+    out = os.fdopen(os.dup(1), "wb", buffering=0)
+    os.dup2(2, 1)  # stray prints go to stderr, never into the protocol
+    try:
+        os.nice(WORKER_NICE)
+    except OSError:  # pragma: no cover - not permitted on this system
+        pass
+    inbox: list[tuple[dict[str, Any], Arrays] | None] = []
+    cond = threading.Condition()
+
+    def reader() -> None:
+        try:
+            while True:
+                msg = read_message(inp)
+                with cond:
+                    inbox.append(msg)
+                    cond.notify()
+                if msg is None:
+                    return
+        except (OSError, ValueError, EOFError):
+            with cond:
+                inbox.append(None)
+                cond.notify()
+
+    threading.Thread(target=reader, daemon=True).start()
+    from .gauss_newton import _ensure_compiled
+
+    _ensure_compiled()  # load the exact solver's kernels while the first frames arrive
+    mp = _Map()
+    pending = -1  # highest request received
+    answered = -1
+    stop = False
+    while not stop:
+        with cond:
+            while not inbox and pending <= answered:
+                cond.wait()
+            batch = inbox[:]
+            inbox.clear()
+        for msg in batch:
+            if msg is None or msg[0]["type"] == "stop":
+                stop = True
+                break
+            meta, arrays = msg
+            if meta["type"] == "data":
+                mp.add(arrays)
+            elif meta["type"] == "solve":
+                pending = max(pending, int(meta["req"]))
+        if stop:
+            break
+        if pending <= answered:
+            continue
+        try:
+            arrays, meta = mp.solve(max_iterations)
+        except Exception as exc:  # report it; the frames go on without refinement
+            write_all(out, encode({"type": "error", "req": pending,
+                                   "message": f"{type(exc).__name__}: {exc}"}, {}))
+            answered = pending
+            continue
+        meta["req"] = pending
+        answered = pending
+        try:
+            write_all(out, encode(meta, arrays))
+        except (BrokenPipeError, OSError):
+            break
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover - run as a subprocess
+    sys.exit(_worker(int(sys.argv[1])))
