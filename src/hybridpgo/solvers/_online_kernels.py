@@ -169,7 +169,7 @@ def _gps_chi2(prob: Problem, state: State, c: int, ro: np.ndarray, to: np.ndarra
 @kernel
 def _predict(model: np.ndarray, d: int, batch: bool) -> float:
     per = model[MODEL_BATCH] if batch else model[MODEL_NODE]
-    return MODEL_MARGIN * (model[MODEL_BASE] + per * d)
+    return float(MODEL_MARGIN * (model[MODEL_BASE] + per * d))
 
 
 @kernel
@@ -273,7 +273,7 @@ def relax_list(prob: Problem, state: State, wk: Workspace, order: np.ndarray, ta
             counts[C_CAPPED] += 1
         elif st == Update.REJECTED:
             counts[C_REJECTED] += 1
-    return stop_at
+    return int(stop_at)
 
 
 # --------------------------------------------------------------------------- batches
