@@ -120,12 +120,12 @@ def solve_case(path: pathlib.Path, pipeline: bool = True) -> dict[str, Any]:
 
 def _child(args: list[str]) -> dict[str, Any]:
     """Run ``python -m benchmarks.scale ARGS``; its last stdout line is JSON."""
-    proc = subprocess.run([sys.executable, "-m", "benchmarks.scale", *args], capture_output=True,
-                          text=True, timeout=TIMEOUT_S, env=dict(os.environ))
-    sys.stderr.write(proc.stderr)
+    # stderr is inherited: the phase lines show up as they happen (a killed case keeps them)
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.scale", *args],
+                          stdout=subprocess.PIPE, text=True, timeout=TIMEOUT_S,
+                          env=dict(os.environ))
     if proc.returncode != 0:
-        last = (proc.stderr.strip().splitlines() or ["?"])[-1]
-        raise RuntimeError(f"exit {proc.returncode}: {last}")
+        raise RuntimeError(f"exit {proc.returncode} (its stderr is above)")
     result: dict[str, Any] = json.loads(proc.stdout.strip().splitlines()[-1])
     return result
 
