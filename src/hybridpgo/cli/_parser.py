@@ -275,9 +275,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "(--solver auto) chooses the start (chordal, tree or the file's vertices), "
                     "runs hybrid sweeps while they lower the energy by "
                     f"{au.sweep_tolerance:.0%} or more per sweep, and polishes with "
-                    f"Levenberg-Marquardt to convergence from the {au.finalists} best starts, "
-                    "keeping the best.  --solver hybrid is the paper's method alone, "
-                    "--solver exact sparse LM from one start.",
+                    "Levenberg-Marquardt to convergence from each (and from each swept start's "
+                    "own poses; all but the best within a budget), keeping the lowest.  "
+                    "--solver hybrid is the paper's method alone, --solver exact sparse LM "
+                    "from one start.",
         epilog="Hybrid-only options: --sweeps --tau0 --tau-decay --damping --step "
                "--gps-batch-size --polish.  --max-iterations limits the exact solver, or the "
                "polish with --polish.  --solver auto takes the hybrid options except --polish "

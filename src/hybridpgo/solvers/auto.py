@@ -11,11 +11,15 @@ solver is named (``--solver auto``).  The paper's pure method stays ``--solver h
    (relative) or raises it, at most ``max_sweeps``.  The best poses seen are kept, so a start
    the sweeps cannot improve (typically the chordal one: the optimum is not a fixed point of
    the sweeps) keeps its own poses.
-3. **Polish.**  The ``finalists`` starts with the lowest energy after their sweeps are polished
+3. **Polish.**  The candidates are ranked: the starts after their sweeps (lowest energy
+   first), then each swept start as it was (``polish_unswept``: sweeps that pay can still carry
+   a start out of the optimum's basin).  The first ``finalists`` (default: all) are polished
    with Levenberg-Marquardt to convergence (``energy_tolerance``); the lowest polished energy
-   wins (ties: the earlier finalist).  Polishing more than one start is the guard against
+   wins (ties: the earlier candidate).  Polishing more than one start is the guard against
    local minima (benchmarks/auto.py measures every case: on ``sphere_bignoise`` the tree
-   start's sweeps and polish end 13% above the minimum the chordal start reaches).  Cost
+   start's sweeps and polish end 13% above the minimum the chordal start reaches; on M3500
+   with 20 degrees of added yaw noise only LM from the file's own vertices reaches the
+   optimum).  Cost
    guard: a runner-up's polish gets at most ``finalist_budget`` times the iterations the best
    polish took (at least :data:`MIN_FINALIST_ITERATIONS`); it goes on to convergence only if
    it is then below the best, else it is reported as cut.
@@ -53,8 +57,10 @@ MIN_FINALIST_ITERATIONS = 20
 class _Candidate:
     """One start's trajectory: its energies, sweeps and (maybe) polish."""
 
-    def __init__(self, init: str) -> None:
+    def __init__(self, init: str, label: str | None = None) -> None:
         self.init = init
+        self.label = label or init
+        """Key in ``stats["candidates"]``: the start, or ``"<start>, no sweeps"``."""
         self.history: list[float] = []
         self.times: list[float] = []
         self.rot: FloatArray | None = None
@@ -65,6 +71,8 @@ class _Candidate:
         self.sweep_seconds = 0.0
         self.capped = 0
         self.rejected = 0
+        self.start: tuple[FloatArray, FloatArray] = (np.zeros((0, 3, 3)), np.zeros((0, 3)))
+        """The start's poses (before any sweep)."""
         self.polished: SolveResult | None = None
         self.cut = False
         """A runner-up whose polish stopped at its budget, above the best."""
@@ -104,7 +112,7 @@ def _sweep_candidate(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate, tree: 
     solver = HybridSolver(graph, cfg.hybrid_config(cand.init, cfg.max_sweeps), tree=tree,
                           locals0=locals0)
     e0 = solver.energy()
-    cand.rot, cand.trans = solver.poses()
+    cand.rot, cand.trans = cand.start = solver.poses()
     cand.history.append(e0)
     cand.times.append(time.perf_counter() - t_origin)
     if progress is not None:
@@ -142,7 +150,7 @@ def _polish(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate,
     """LM from the candidate's kept poses, at most ``limit`` iterations (more when it is
     continued: :func:`_continue`)."""
     report = None if progress is None else (
-        lambda p: progress(p._replace(phase="polish", detail=cand.init)))
+        lambda p: progress(p._replace(phase="polish", detail=cand.label)))
     done = cand.polished
     rot, trans = (cand.rot, cand.trans) if done is None else (done.rotations, done.translations)
     config = dataclasses.replace(cfg.polish_config(), max_iterations=limit)
@@ -152,6 +160,15 @@ def _polish(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate,
         cand.error = f"polish: {exc}"
         return
     cand.polished = more if done is None else _continue(done, more)
+
+
+def _unswept(cand: _Candidate) -> _Candidate:
+    """The start of a swept candidate, as a candidate of its own (no sweeps)."""
+    raw = _Candidate(cand.init, f"{cand.init}, no sweeps")
+    raw.history, raw.times = cand.history[:1], cand.times[:1]
+    raw.rot, raw.trans = cand.start
+    raw.start_seconds = cand.start_seconds
+    return raw
 
 
 def _continue(first: SolveResult, second: SolveResult) -> SolveResult:
@@ -217,9 +234,12 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
         raise SolverError("no start gave finite poses: "
                           + "; ".join(f"{c.init}: {c.error}" for c in cands))
     ranked = sorted(usable, key=lambda c: c.energy)  # stable: ties keep the order of inits
+    if cfg.polish_unswept:  # each swept start also as it was: the sweeps may leave its basin
+        ranked += sorted((_unswept(c) for c in ranked if c.sweeps), key=lambda c: c.energy)
+    finalists = ranked[:cfg.finalists] if cfg.finalists is not None else ranked
     t_polish = time.perf_counter()
     best: _Candidate | None = None
-    for cand in ranked[:cfg.finalists]:
+    for cand in finalists:
         if best is None or best.polished is None:
             _polish(graph, cfg, cand, progress, cfg.polish_iterations)
         else:  # a runner-up: a bounded polish, continued only if it is then the lowest
@@ -237,19 +257,21 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
                 1.0 - _TIE)):
             best = cand
     polish_s = time.perf_counter() - t_polish
-    polished = [c for c in ranked[:cfg.finalists] if c.polished is not None and not c.cut]
+    polished = [c for c in finalists if c.polished is not None and not c.cut]
     if not polished:
         raise SolverError("the polish failed from every start: "
-                          + "; ".join(f"{c.init}: {c.error}" for c in ranked[:cfg.finalists]))
+                          + "; ".join(f"{c.label}: {c.error}" for c in finalists))
     win = min(polished, key=lambda c: c.energy)
     assert win.polished is not None
     pol = win.polished
     offset = win.times[-1]
     history = np.concatenate([win.history, pol.energy_history[1:]])
     times = np.concatenate([win.times, offset + np.asarray(pol.times[1:])])
-    others = ", ".join(f"{c.init} {c.energy:.6g}" for c in polished if c is not win)
-    cut = [c.init for c in ranked[:cfg.finalists] if c.cut]
-    reason = (f"start {win.init}: {win.sweeps} sweep(s) kept of {win.sweeps_run} run, then "
+    others = ", ".join(f"{c.label} {c.energy:.6g}" for c in polished if c is not win)
+    cut = [c.label for c in finalists if c.cut]
+    swept = (f"{win.sweeps} sweep(s) kept of {win.sweeps_run} run" if win.label == win.init
+             else "its own poses, no sweeps")
+    reason = (f"start {win.init}: {swept}, then "
               f"{pol.iterations} LM iteration(s), {pol.status.value}")
     if others:
         reason += f"; other polished start(s): {others}"
@@ -258,14 +280,15 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
                    f"({', '.join(f'{c.energy:.6g}' for c in ranked if c.cut)})")
     stats: dict[str, Any] = {
         "init": win.init,
+        "start": win.label,
         "sweeps": win.sweeps,
         "polish_iterations": pol.iterations,
         "polish_status": pol.status.value,
         "energy_after_sweeps": min(win.history),
         "reason": reason,
-        "candidates": {c.init: c.summary() for c in cands},
+        "candidates": {c.label: c.summary() for c in cands + ranked[len(usable):]},
         "skipped_inits": skipped,
-        "finalists": [c.init for c in ranked[:cfg.finalists]],
+        "finalists": [c.label for c in finalists],
         "linear_solver": pol.stats.get("linear_solver"),
         "capped_steps": win.capped,
         "rejected_steps": win.rejected,
