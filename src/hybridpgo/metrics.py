@@ -39,7 +39,7 @@ from .errors import FormatError, GraphError
 from .geometry import se3, so3
 from .io import read_graph_source
 from .io._lines import PathLike, Source, fmt_floats, load_source, parse_float, write_atomic
-from .io.tum import read_tum as _io_read_tum
+from .io.tum import read_tum as read_tum  # re-exported: one TUM reader
 from .io.tum import read_tum_source
 
 __all__ = [
@@ -294,23 +294,6 @@ def read_ground_truth(path: PathLike, *, fix_information: str | None = None,
     if not graph.has_estimates:
         raise FormatError("the file has no vertex lines, so no poses to compare with", src.path)
     return (np.array(graph.rotations), np.array(graph.translations), np.array(graph.node_ids))
-
-
-def read_tum(path: PathLike) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Read a TUM trajectory: lines ``timestamp tx ty tz qx qy qz qw`` (``#`` comments).
-
-    Returns
-    -------
-    timestamps : (N,) float64
-    rotations : (N, 3, 3) float64
-    translations : (N, 3) float64
-
-    Raises
-    ------
-    FormatError
-        Naming the line of the first malformed row.
-    """
-    return _io_read_tum(path)
 
 
 def write_tum(path: PathLike, rotations: npt.ArrayLike, translations: npt.ArrayLike,

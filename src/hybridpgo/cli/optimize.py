@@ -236,19 +236,12 @@ def _optimize(graph: PoseGraph, config: SolverConfig, progress: Any, init: str |
         return optimize(graph, config, progress=progress, init=init, tree=tree)
     if isinstance(config, HybridConfig):
         return solve_hybrid(graph, config, progress=progress, iterate=iterate)
-    from ..solvers import GaussNewtonConfig, default_init
+    from ..solvers import GaussNewtonConfig, exact_start
     from ..solvers.gauss_newton import solve_exact
-    from ..tree import build_tree, global_poses, initial_locals
 
-    assert isinstance(config, GaussNewtonConfig)  # --rerun refuses --solver toro
-    start = init or default_init(graph, "exact")  # the start optimize() gives the exact solver
-    if start == "file" and not graph.has_estimates:
-        start = "tree"
-    rot = trans = None
-    if start != "file":
-        t = build_tree(graph, tree or "bfs")
-        rot, trans = global_poses(t, *initial_locals(graph, t, start))
-    return solve_exact(graph, rot, trans, config, progress=progress, iterate=iterate)
+    assert isinstance(config, GaussNewtonConfig)  # --rerun refuses --solver toro and auto
+    return solve_exact(graph, *exact_start(graph, init, tree), config, progress=progress,
+                       iterate=iterate)
 
 
 def _solve(job: Job, graph: PoseGraph, config: SolverConfig, init: str,

@@ -108,14 +108,22 @@ def optimize(graph: PoseGraph, config: SolverConfig | str = "auto", *,
         from .toro import solve_toro
 
         return solve_toro(graph, config, progress=progress)
-    from ..tree import build_tree, global_poses, initial_locals
     from .gauss_newton import solve_exact
+
+    return solve_exact(graph, *exact_start(graph, init, tree), config, progress=progress)
+
+
+def exact_start(graph: PoseGraph, init: str | None = None,
+                tree: str | None = None) -> tuple[Any, Any]:
+    """The exact solver's starting poses ``(R, t)`` for ``init`` (default
+    :func:`default_init`), grown on ``tree`` (default ``"bfs"``); ``(None, None)`` for the
+    file's own poses (``"file"`` falls back to ``"tree"`` when the file has none)."""
+    from ..tree import build_tree, global_poses, initial_locals
 
     start = init or default_init(graph, "exact")
     if start == "file" and not graph.has_estimates:
         start = "tree"
-    rot = trans = None
-    if start != "file":
-        t = build_tree(graph, tree or "bfs")
-        rot, trans = global_poses(t, *initial_locals(graph, t, start))
-    return solve_exact(graph, rot, trans, config, progress=progress)
+    if start == "file":
+        return None, None
+    t = build_tree(graph, tree or "bfs")
+    return global_poses(t, *initial_locals(graph, t, start))

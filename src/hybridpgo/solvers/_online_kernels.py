@@ -22,15 +22,8 @@ from __future__ import annotations
 import numpy as np
 
 from .._numba import cycle_counter, kernel
-from .hybrid._batch import (
-    _batch_blocks,
-    _entries_by_node,
-    _linearize_batch,
-    _union,
-    global_pose,
-    woodbury_segments,
-)
-from .hybrid._step import cap_and_apply, relax
+from .hybrid._batch import batch_relax, global_pose
+from .hybrid._step import relax
 from .hybrid.problem import (
     BATCH_REJECTED,
     Problem,
@@ -39,7 +32,6 @@ from .hybrid.problem import (
     Workspace,
     domain,
     is_gps,
-    new_workspace,
 )
 
 #: Entries of the cost model array (cycles): base cost of an update, cost per domain node of a
@@ -193,7 +185,7 @@ def _flush(prob: Problem, state: State, buf: np.ndarray, nbuf: int, tau: float, 
            counts: np.ndarray) -> bool:
     """Relax the buffered GPS readings as one batch (III-G); True when it was rejected."""
     t0 = cycle_counter()
-    nu = batch_relax_woodbury(prob, state, buf, nbuf, tau, mu, slot, xb, nodes)
+    nu = batch_relax(prob, state, buf, nbuf, tau, mu, slot, xb, nodes, 0, False)
     dc = float(cycle_counter() - t0)
     ne = 0
     for q in range(nbuf):
@@ -278,53 +270,6 @@ def relax_list(prob: Problem, state: State, wk: Workspace, order: np.ndarray, ta
 
 # --------------------------------------------------------------------------- batches
 @kernel
-def batch_relax_woodbury(prob: Problem, state: State, cs: np.ndarray, nb: int, tau: float,
-                         mu: float, slot: np.ndarray, x_out: np.ndarray,
-                         nodes_out: np.ndarray) -> int:
-    """:func:`~.hybrid._batch.batch_relax` with the segmented Woodbury solve always.
-
-    The whole-graph solver turns to the dense normal equations over the union of the domains
-    when a block of B_C vanishes (a node all of whose constraints are in the batch, e.g. the
-    newest pose in a local solve); that costs O((6|U|)^3) and would break a frame's budget.
-    Here such a block is damped like every other (DESIGN §4), so the cost stays
-    O(entries + (6|C|)^3).  Returns the number of union nodes or ``BATCH_REJECTED``.
-    """
-    e_off = np.empty(nb + 1, np.int64)
-    e_off[0] = 0
-    dmax = 1
-    for q in range(nb):
-        d = domain(prob, cs[q])[1]
-        e_off[q + 1] = e_off[q] + d
-        dmax = max(dmax, d)
-    ne = e_off[nb]
-    e_slot = np.empty(ne, np.int64)
-    e_q = np.empty(ne, np.int64)
-    nu = _union(prob, cs, nb, slot, nodes_out, e_off, e_slot, e_q)
-    cnt, by_slot = _entries_by_node(e_slot, nu)
-    wk = new_workspace(dmax)
-    jb = np.empty((ne, 6, 6))
-    r_off = np.empty(nb + 1, np.int64)
-    krs = np.empty(nb, np.int64)
-    rbuf = np.empty(6 * nb)
-    amat = np.zeros((nb, 6, 6))
-    yr = np.empty((nu, 3, 3))
-    yt = np.empty((nu, 3))
-    _linearize_batch(prob, state, cs, nb, wk, e_off, e_slot, jb, r_off, krs, rbuf, amat, yr, yt)
-    bc = np.zeros((nu, 6, 6))
-    _batch_blocks(prob, state, cs, jb, e_off, krs, e_q, cnt, by_slot, nodes_out, bc,
-                  np.zeros(nu))
-    ok = woodbury_segments(prob, cs, nb, mu, jb, e_off, r_off, krs, rbuf, e_slot, e_q, cnt,
-                           by_slot, bc, slot, nodes_out, amat, yr, yt, x_out)
-    for u in range(nu):
-        slot[nodes_out[u]] = -1
-    if not ok:
-        return BATCH_REJECTED
-    if cap_and_apply(nodes_out, 0, nu, x_out, tau, state, wk.ws) == Update.REJECTED:
-        return BATCH_REJECTED
-    return nu
-
-
-@kernel
 def local_batch(prob: Problem, state: State, cs: np.ndarray, tau: float, mu: float,
                 deadline: np.uint64, model: np.ndarray, slot: np.ndarray, xb: np.ndarray,
                 nodes: np.ndarray, counts: np.ndarray) -> int:
@@ -345,7 +290,7 @@ def local_batch(prob: Problem, state: State, cs: np.ndarray, tau: float, mu: flo
         counts[C_SKIPPED] += 1
         return 0
     t0 = cycle_counter()
-    nu = batch_relax_woodbury(prob, state, cs, nb, tau, mu, slot, xb, nodes)
+    nu = batch_relax(prob, state, cs, nb, tau, mu, slot, xb, nodes, 0, False)
     _learn(model, max(ne, 1), float(cycle_counter() - t0), True)
     counts[C_BATCHES] += 1
     if nu == BATCH_REJECTED:

@@ -671,7 +671,7 @@ def _reduced_batch(prob: Problem, state: State, cs: np.ndarray, nb: int, tau: fl
 @kernel
 def batch_relax(prob: Problem, state: State, cs: np.ndarray, nb: int, tau: float, mu: float,
                 slot: np.ndarray, x_out: np.ndarray, nodes_out: np.ndarray,
-                d_max: int = 0) -> int:
+                d_max: int = 0, dense: bool = True) -> int:
     """Relax the constraints ``cs[:nb]`` together (paper eq. 35-37, DESIGN §5).
 
     ``slot`` (T,) must be -1 on entry and is -1 again on exit.  The step of union node
@@ -681,6 +681,11 @@ def batch_relax(prob: Problem, state: State, cs: np.ndarray, nb: int, tau: float
     With ``0 < d_max <`` the union's size the batch is solved by interpolation
     (:func:`_reduced_batch`, paper III-E/III-G): ``nodes_out`` / ``x_out`` then hold the kept
     nodes and the return value is their number.
+
+    ``dense=False`` keeps the segmented Woodbury solve even when a block of B_C vanishes (a
+    node all of whose constraints are in the batch): such a block is then damped like every
+    other (DESIGN §4) and the cost stays O(entries + (6|C|)^3) instead of the dense
+    O((6|U|)^3) -- what a time budget per frame needs (the online solver).
     """
     e_off = np.empty(nb + 1, np.int64)
     e_off[0] = 0
@@ -711,7 +716,7 @@ def batch_relax(prob: Problem, state: State, cs: np.ndarray, nb: int, tau: float
         return _reduced_batch(prob, state, cs, nb, tau, mu, d_max, wk, jb, e_off, e_slot, e_q,
                               r_off, krs, rbuf, cnt, by_slot, bc, scale, slot, nodes_out, amat,
                               yr, yt, x_out)
-    if zero_block and nu <= MAX_DENSE_NODES:
+    if dense and zero_block and nu <= MAX_DENSE_NODES:
         # the exact step (eq. 37; the GN step when C is every constraint) when it is defined;
         # damped when the batch alone leaves a direction free (DESIGN §4)
         ok = _dense_solve(nb, jb, e_off, e_slot, r_off, krs, rbuf, bc, scale, mu, False, x_out)
