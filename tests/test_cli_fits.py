@@ -67,7 +67,36 @@ def test_info_lists_the_worst_constraints(capsys: pytest.CaptureFixture[str],
     worst = int(np.argmax(res.edge_chi2))
     a, b = res.edge_ids[worst]
     first = out.split("worst chi2")[1].splitlines()[0]
-    assert f"edge {worst} ({a} -> {b})  (at the file vertices)" in first
+    edge_lines = [k for k, text in enumerate(tiny.read_text().splitlines(), 1)
+                  if text.startswith("EDGE")]
+    assert f"edge {worst} ({a} -> {b}, line {edge_lines[worst]})  (at the file vertices)" in first
+
+
+def test_graph_keeps_the_file_line_of_each_constraint(tmp_path: Path) -> None:
+    path = tmp_path / "g.g2o"
+    info = "1 0 0 0 0 0 1 0 0 0 0 1 0 0 0 1 0 0 1 0 1"
+    bad = "1 0 0 0 0 0 1 0 0 0 0 1 0 0 0 1 0 0 1 0 -1"  # not SPD: dropped by 'skip'
+    path.write_text("# a comment\nVERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\n"
+                    "VERTEX_SE3:QUAT 1 1 0 0 0 0 0 1\nVERTEX_SE3:QUAT 2 2 0 0 0 0 0 1\n"
+                    f"EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 {info}\n\n"
+                    f"EDGE_SE3:QUAT 1 2 1 0 0 0 0 0 1 {bad}\n"
+                    f"EDGE_SE3:QUAT 0 2 2 0 0 0 0 0 1 {info}\n"
+                    "PARAMS_SE3OFFSET 0 0 0 0 0 0 0 1\n"
+                    "EDGE_SE3_XYZ_PRIOR 2 0 2 0 0 1 0 0 1 0 1\n")
+    with pytest.warns(UserWarning, match="line 7"):
+        graph = read_graph(path, fix_information="skip")
+    assert graph.edge_lines is not None and graph.edge_lines.tolist() == [5, 8]
+    assert graph.gps_lines is not None and graph.gps_lines.tolist() == [10]
+    moved = graph.with_poses(graph.rotations, graph.translations + 1.0)
+    assert moved.edge_lines is not None and moved.edge_lines.tolist() == [5, 8]
+    from hybridpgo.graph import PoseGraph
+
+    built = PoseGraph(node_ids=graph.node_ids, rotations=graph.rotations,
+                      translations=graph.translations, edge_nodes=graph.edge_nodes,
+                      edge_rotations=graph.edge_rotations,
+                      edge_translations=graph.edge_translations,
+                      edge_information=graph.edge_information, edge_lines=[1, 2, 3])
+    assert built.edge_lines is None  # not one per edge: dropped, never misattributed
 
 
 def test_info_residuals_with_gps_to_stdout(capsys: pytest.CaptureFixture[str],

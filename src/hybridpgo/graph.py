@@ -83,6 +83,11 @@ class PoseGraph:
     """False when the file had no vertex lines (iSAM): rotations/translations are then identity."""
     source_format: str = ""
     """Format the graph was read from ('g2o', 'toro', 'isam'), or '' when built in code."""
+    edge_lines: npt.NDArray[np.int64] | None = field(default=None, compare=False, repr=False)
+    """(M,) int64: the file line of each relative constraint, when read from a file (None
+    otherwise, or when it does not have one entry per edge).  Informative only: for messages."""
+    gps_lines: npt.NDArray[np.int64] | None = field(default=None, compare=False, repr=False)
+    """(G,) int64: the file line of each GPS constraint, as :attr:`edge_lines`."""
 
     def __post_init__(self) -> None:
         ids = np.ascontiguousarray(self.node_ids, dtype=np.int64)
@@ -152,6 +157,12 @@ class PoseGraph:
             raise GraphError(f"edge {c} is a self-loop on node {int(ids[en[c, 0]])}")
         check_information(self.edge_information, "edge")
         check_information(self.gps_information, "GPS constraint")
+        for name, count in (("edge_lines", m), ("gps_lines", g)):
+            lines = getattr(self, name)
+            if lines is not None:
+                line_nos = np.array(lines, dtype=np.int64).reshape(-1)
+                line_nos.flags.writeable = False
+                object.__setattr__(self, name, line_nos if line_nos.shape[0] == count else None)
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -191,6 +202,8 @@ class PoseGraph:
             is_2d=self.is_2d,
             has_estimates=True,
             source_format=self.source_format,
+            edge_lines=self.edge_lines,
+            gps_lines=self.gps_lines,
         )
 
     def add_gps(

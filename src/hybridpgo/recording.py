@@ -12,9 +12,13 @@ exact iteration it logs, on the timeline ``iteration`` (0 = the start, counted a
 * ``energy/total``, ``energy/per_constraint``, ``residuals/chi2_max``,
   ``residuals/chi2_median`` (Scalars) and a TextLog line ``log`` naming the phase.
 
-Open the file with ``rerun FILE.rrd`` and scrub the ``iteration`` timeline.  The recording is
-written to a temporary file beside the target and renamed into place by :meth:`close`, so a
-failed run leaves nothing behind.
+An online run (``hybridpgo replay --rerun``) is logged by :meth:`RerunRecorder.frame` on the
+timeline ``frame`` instead: every frame the newest pose (``robot``) and the update's time
+(``latency_ms``), and at chosen frames the map received so far, as above.
+
+Open the file with ``rerun FILE.rrd`` and scrub the ``iteration`` (or ``frame``) timeline.
+The recording is written to a temporary file beside the target and renamed into place by
+:meth:`close`, so a failed run leaves nothing behind.
 """
 
 from __future__ import annotations
@@ -44,6 +48,7 @@ _LOW = np.array([0x3B, 0x1D, 0x0E], np.float64)
 _HIGH = np.array([0xFF, 0x1A, 0x1A], np.float64)
 _GPS = np.array([0x1F, 0x5F, 0xD0], np.uint8)
 _TRAJECTORY = np.array([0x80, 0x80, 0x80], np.uint8)
+_ROBOT = np.array([0x10, 0xA0, 0x30], np.uint8)
 
 
 def rerun_available() -> bool:
@@ -53,6 +58,17 @@ def rerun_available() -> bool:
     except ImportError:
         return False
     return True
+
+
+def _trajectory_edges(graph: PoseGraph) -> npt.NDArray[np.int32]:
+    """The edges drawn as the trajectory: between poses adjacent in id order (as
+    :mod:`hybridpgo.plot`), or every edge when there is none."""
+    a = graph.edge_nodes[:, 0]
+    b = graph.edge_nodes[:, 1]
+    consecutive = np.abs(a - b) == 1  # dense index = rank of the id
+    if not consecutive.any():
+        consecutive = np.ones_like(consecutive)
+    return np.asarray(graph.edge_nodes[consecutive], np.int32)
 
 
 def residual_colors(chi2: FloatArray) -> npt.NDArray[np.uint8]:
@@ -106,27 +122,53 @@ class RerunRecorder:
         self._rec = rr.RecordingStream("hybridpgo")
         self._rec.save(self._tmp)
         self._rec.send_recording_name(name or os.path.basename(self.path))
-        a = graph.edge_nodes[:, 0]
-        b = graph.edge_nodes[:, 1]
-        consecutive = np.abs(a - b) == 1  # neighbours in id order (as hybridpgo.plot)
-        if not consecutive.any():
-            consecutive = np.ones_like(consecutive)
-        self._traj = graph.edge_nodes[consecutive]
+        self._traj = _trajectory_edges(graph)
 
     def __call__(self, progress: Progress, rotations: FloatArray,
                  translations: FloatArray) -> None:
         """Log one iteration (the solvers' ``iterate`` callback)."""
+        self._rec.set_time("iteration", sequence=self.frames)
+        self._log_map(self.graph, rotations, translations, self._traj)
+        tau = "" if progress.tau is None else f", tau {progress.tau:.4g}"
+        self._rec.log("log", self._rr.TextLog(
+            f"{progress.phase} {progress.iteration}/{progress.total}: "
+            f"E {progress.energy:.6g}{tau}"))
+        self.frames += 1
+
+    def frame(self, frame: int, robot: FloatArray, latency_ms: float,
+              prefix: PoseGraph | None = None, note: str = "") -> None:
+        """Log one frame of an online run (``hybridpgo replay``) on the timeline ``frame``.
+
+        ``robot`` is the newest pose's position and ``latency_ms`` the frame's update time;
+        ``prefix``, when given, is the map so far at the current estimate (the graph of the
+        poses and constraints received up to this frame), logged like an iteration of
+        :meth:`__call__` — poses, trajectory, residuals and energy over the prefix.
+        """
         rr = self._rr
         rec = self._rec
-        g = self.graph
-        rec.set_time("iteration", sequence=self.frames)
+        rec.set_time("frame", sequence=frame)
+        rec.log("robot", rr.Points3D(np.asarray(robot, np.float64).reshape(1, 3),
+                                     colors=_ROBOT, radii=rr.Radius.ui_points(6.0)))
+        rec.log("latency_ms", rr.Scalars(float(latency_ms)))
+        if prefix is not None:
+            e = self._log_map(prefix, prefix.rotations, prefix.translations,
+                              _trajectory_edges(prefix))
+            rec.log("log", rr.TextLog(f"frame {frame}: {prefix.num_nodes} poses, "
+                                      f"E {e:.6g}{note}"))
+        self.frames += 1
+
+    def _log_map(self, g: PoseGraph, rotations: FloatArray, translations: FloatArray,
+                 traj: npt.NDArray[np.int32]) -> float:
+        """Log the poses, trajectory, residuals and energies of ``g`` at the given poses; E."""
+        rr = self._rr
+        rec = self._rec
         t = np.asarray(translations, np.float64)
         s_rel, s_gps = constraint_energies(g, rotations, translations)
         a = g.edge_nodes[:, 0]
         desired = np.einsum("nij,nj->ni", rotations[a], g.edge_translations) + t[a]
         rec.log("graph/poses", rr.Points3D(t, radii=rr.Radius.ui_points(2.0)))
         rec.log("graph/trajectory", rr.LineStrips3D(
-            np.stack([t[self._traj[:, 0]], t[self._traj[:, 1]]], axis=1), colors=_TRAJECTORY,
+            np.stack([t[traj[:, 0]], t[traj[:, 1]]], axis=1), colors=_TRAJECTORY,
             radii=rr.Radius.ui_points(1.0)))
         rec.log("graph/residuals", rr.LineStrips3D(
             np.stack([desired, t[g.edge_nodes[:, 1]]], axis=1), colors=residual_colors(s_rel),
@@ -142,10 +184,7 @@ class RerunRecorder:
         if all_s.shape[0]:
             rec.log("residuals/chi2_max", rr.Scalars(float(all_s.max())))
             rec.log("residuals/chi2_median", rr.Scalars(float(np.median(all_s))))
-        tau = "" if progress.tau is None else f", tau {progress.tau:.4g}"
-        rec.log("log", rr.TextLog(f"{progress.phase} {progress.iteration}/{progress.total}: "
-                                  f"E {progress.energy:.6g}{tau}"))
-        self.frames += 1
+        return e
 
     def close(self) -> None:
         """Finish the file and move it into place (a FIFO or device is written into)."""

@@ -25,6 +25,8 @@ from .errors import GraphError
 from .graph import FloatArray, PoseGraph
 
 IntArray = npt.NDArray[np.int64]
+#: ``on_frame(k, solver, latency_s)`` of :func:`replay_online`: frame k (from 1) is done.
+FrameCallback = Callable[[int, Any, float], None]
 
 
 @dataclass(frozen=True)
@@ -254,28 +256,31 @@ class ReplayResult:
 def replay_online(stream: Stream, config: Any = None, budget_s: float | None = 5e-3, *,
                   checkpoints: Sequence[int] = (), extra_frames: int = 0,
                   refine_every: int = 0, refine_offset: int = 0,
-                  progress: Callable[[int, float], None] | None = None) -> ReplayResult:
+                  progress: Callable[[int, float], None] | None = None,
+                  on_frame: FrameCallback | None = None) -> ReplayResult:
     """Stream ``stream`` into an :class:`OnlineSolver`, one :meth:`update` per frame.
 
     A frame's latency is its ``update`` plus the estimate of the pose it brought (what the
     robot reads); the energy over the prefix is evaluated at ``checkpoints`` outside the timing.
     With ``refine_every = K``, frames ``k`` with ``k % K == refine_offset`` (counting from 1)
     also run :meth:`OnlineSolver.refine` (the whole-map exact solve), inside their latency.
+    ``on_frame(k, solver, latency_s)`` is called after every frame ``k`` (counting from 1, the
+    extra frames continuing the count), outside the timing (e.g. to record the run).
     """
     from .solvers.online import OnlineSolver
 
     solver = OnlineSolver(config)
     try:
         return _replay_online(solver, stream, budget_s, checkpoints, extra_frames,
-                              refine_every, refine_offset, progress)
+                              refine_every, refine_offset, progress, on_frame)
     finally:
         solver.close()
 
 
 def _replay_online(solver: Any, stream: Stream, budget_s: float | None,
                    checkpoints: Sequence[int], extra_frames: int, refine_every: int,
-                   refine_offset: int, progress: Callable[[int, float], None] | None
-                   ) -> ReplayResult:
+                   refine_offset: int, progress: Callable[[int, float], None] | None,
+                   on_frame: FrameCallback | None = None) -> ReplayResult:
     nf = stream.num_frames
     lat = np.empty(nf)
     cpu = np.empty(nf)
@@ -293,6 +298,8 @@ def _replay_online(solver: Any, stream: Stream, budget_s: float | None,
         solver.pose(pid)
         lat[k] = time.perf_counter() - t0
         cpu[k] = time.process_time() - c0
+        if on_frame is not None:
+            on_frame(k + 1, solver, float(lat[k]))
         if k + 1 in marks:
             energies[k + 1] = solver.energy()
             if progress:
@@ -301,11 +308,13 @@ def _replay_online(solver: Any, stream: Stream, budget_s: float | None,
     extra_e: list[float] = []
     extra_l: list[float] = []
     last = int(ids[stream.order[nf - 1]])
-    for _ in range(extra_frames):
+    for j in range(extra_frames):
         t0 = time.perf_counter()
         solver.update(budget_s)
         solver.pose(last)
         extra_l.append(time.perf_counter() - t0)
+        if on_frame is not None:
+            on_frame(nf + j + 1, solver, extra_l[-1])
         extra_e.append(solver.energy())
     name = f"hybridpgo+refine/{refine_every}" if refine_every else "hybridpgo"
     if solver.config.background_refine:

@@ -236,6 +236,13 @@ def command_files(args: Any) -> tuple[list[str], list[Output]]:
         if getattr(args, "rerun", None) is not None:
             outs.append(Output(args.rerun, "--rerun"))
         return [args.file], outs
+    if cmd == "replay":
+        outs = []
+        if args.plot is not None:
+            outs += [Output(f"{args.plot}_{k}.png", "--plot") for k in ("latency", "energy")]
+        if getattr(args, "rerun", None) is not None:
+            outs.append(Output(args.rerun, "--rerun"))
+        return [args.file], outs
     if cmd in ("convert", "noisify"):
         option = "OUT" if cmd == "convert" else "-o/--output"
         return [args.input], [Output(args.output, option, stdout_ok=True)]

@@ -627,6 +627,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "adopt each result in the next frame (default: off)")
     p.add_argument("--plot", metavar="PREFIX",
                    help="write PREFIX_latency.png and PREFIX_energy.png (needs matplotlib)")
+    p.add_argument("--rerun", metavar="RRD",
+                   help="record the online run to RRD for the Rerun viewer ('rerun RRD', "
+                        "timeline 'frame'): every frame the newest pose and the update's "
+                        "latency, and the map so far (poses, residuals, energy) every "
+                        "--rerun-every frames and at the last one; recorded outside the "
+                        "timing; needs: pip install hybridpgo[rerun]")
+    p.add_argument("--rerun-every", type=_nonneg_int, default=0, metavar="K",
+                   help="with --rerun: the map every K frames (default 0: about 300 maps over "
+                        "the run, every frame for runs of at most 300 frames)")
     p.add_argument("--json", action="store_true", help="print a JSON object instead of text")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     _add_common(p)

@@ -10,6 +10,7 @@ from ._common import describe_graph, fmt_energy, print_json, print_table, read_i
 
 if TYPE_CHECKING:
     from ..energy import Residuals
+    from ..graph import PoseGraph
 
 #: How many of the largest-χ² constraints ``info`` lists.
 NUM_WORST = 5
@@ -40,16 +41,22 @@ def residual_csv_lines(res: Residuals) -> list[str]:
     return lines
 
 
-def worst_constraints(res: Residuals, k: int = NUM_WORST) -> list[dict[str, Any]]:
-    """The ``k`` constraints with the largest χ², JSON-friendly, largest first."""
+def worst_constraints(res: Residuals, k: int = NUM_WORST,
+                      graph: PoseGraph | None = None) -> list[dict[str, Any]]:
+    """The ``k`` constraints with the largest χ², JSON-friendly, largest first; ``line`` is the
+    constraint's line in the file when ``graph`` was read from one (else None)."""
     out: list[dict[str, Any]] = []
+    edge_lines = None if graph is None else graph.edge_lines
+    gps_lines = None if graph is None else graph.gps_lines
     for kind, i, s in res.worst(k):
         if kind == "edge":
             a, b = res.edge_ids[i].tolist()
-            out.append({"kind": kind, "index": i, "id_a": a, "id_b": b, "chi2": s})
+            line = None if edge_lines is None else int(edge_lines[i])
+            out.append({"kind": kind, "index": i, "id_a": a, "id_b": b, "chi2": s, "line": line})
         else:
+            line = None if gps_lines is None else int(gps_lines[i])
             out.append({"kind": kind, "index": i, "id_a": int(res.gps_ids[i]), "id_b": None,
-                        "chi2": s})
+                        "chi2": s, "line": line})
     return out
 
 
@@ -113,7 +120,7 @@ def graph_info(path: str, fmt: str | None = None, *, tree_kind: str = "bfs",
         "energy_tree_init": e_tree,
         "energy_tree_init_per_constraint": e_tree / max(nc, 1),
         "residuals_at": "file" if graph.has_estimates else "tree",
-        "worst": worst_constraints(res),
+        "worst": worst_constraints(res, graph=graph),
         "residuals": residuals_out,
         "_summary": describe_graph(graph),
     }
@@ -146,8 +153,9 @@ def run(args: argparse.Namespace) -> int:
     ]
     where = "file vertices" if info["residuals_at"] == "file" else "tree initialization"
     for k, w in enumerate(info["worst"]):
-        what = (f"edge {w['index']} ({w['id_a']} -> {w['id_b']})" if w["kind"] == "edge"
-                else f"GPS {w['index']} (pose {w['id_a']})")
+        at = "" if w["line"] is None else f", line {w['line']}"
+        what = (f"edge {w['index']} ({w['id_a']} -> {w['id_b']}{at})" if w["kind"] == "edge"
+                else f"GPS {w['index']} (pose {w['id_a']}{at})")
         rows.append(("worst chi2" if k == 0 else "",
                      f"{w['chi2']:.6g}  {what}" + (f"  (at the {where})" if k == 0 else "")))
     if info["residuals"] is not None:

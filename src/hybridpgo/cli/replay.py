@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import os
 from typing import Any
 
@@ -11,6 +12,7 @@ from ._common import describe_graph, log, print_json, print_table, read_input
 
 
 def _check_outputs(prefix: str | None) -> None:
+    """--plot needs matplotlib (the files themselves are checked by ``check_outputs``)."""
     if prefix is None:
         return
     try:
@@ -18,15 +20,47 @@ def _check_outputs(prefix: str | None) -> None:
     except ImportError:
         raise HybridPGOError("--plot needs matplotlib, which is not installed: "
                              "pip install hybridpgo[plot]") from None
-    directory = os.path.dirname(os.path.abspath(prefix + "_latency.png"))
-    if not os.path.isdir(directory):
-        raise HybridPGOError(f"{prefix}: cannot write the plots: directory {directory} does "
-                             "not exist")
+
+
+#: ``--rerun-every 0``: about this many maps over the run.
+RERUN_MAPS = 300
+
+
+def _recorder(args: argparse.Namespace, graph: Any) -> Any:
+    """The ``--rerun`` recorder (checked before the run), or None."""
+    if getattr(args, "rerun", None) is None:
+        return None
+    from ..recording import RerunRecorder, rerun_available
+
+    if not rerun_available():
+        raise HybridPGOError("--rerun needs rerun-sdk, which is not installed: "
+                             "pip install hybridpgo[rerun]")
+    return RerunRecorder(graph, args.rerun, name=os.path.basename(args.file))
+
+
+def _frame_recorder(recorder: Any, stream: Any, every: int, extra: int) -> Any:
+    """``on_frame`` of :func:`~hybridpgo.replay.replay_online` logging to ``recorder``."""
+    nf = stream.num_frames
+    total = nf + extra
+    every = every or max(1, math.ceil(total / RERUN_MAPS))
+    ids = stream.graph.node_ids
+
+    def on_frame(k: int, solver: Any, latency_s: float) -> None:
+        kk = min(k, nf)
+        _, robot = solver.pose(int(ids[stream.order[kk - 1]]))
+        prefix = None
+        if k % every == 0 or k in (nf, total):
+            rot, trans = solver.estimate()
+            prefix = stream.prefix(kk, rot, trans)
+        recorder.frame(k, robot, latency_s * 1e3, prefix,
+                       note=f" (extra frame {k - nf})" if k > nf else "")
+
+    return on_frame
 
 
 def replay_file(args: argparse.Namespace) -> dict[str, Any]:
     """Read, stream through the online solver (and iSAM2), measure; the JSON-friendly summary."""
-    from ..replay import checkpoint_frames, make_stream, prefix_optima, replay_isam2, replay_online
+    from ..replay import checkpoint_frames, make_stream
     from ..solvers.online import OnlineConfig
 
     _check_outputs(args.plot)
@@ -46,12 +80,31 @@ def replay_file(args: argparse.Namespace) -> dict[str, Any]:
                               background_refine=args.background_refine)
     except ValueError as exc:
         raise HybridPGOError(f"invalid online option: {exc}") from exc
-    budget = args.budget_ms * 1e-3
     frames = checkpoint_frames(stream.num_frames, args.every) if args.every else []
     say = (lambda msg: None) if args.quiet else log
     say(f"replay: {describe_graph(graph)}, {stream.num_frames} frames, budget {args.budget_ms} ms")
+    recorder = _recorder(args, graph)
+    try:
+        out = _run(args, graph, stream, config, frames, recorder, say)
+    except BaseException:
+        if recorder is not None:
+            recorder.abort()
+        raise
+    if recorder is not None:
+        recorder.close()
+        out["rerun"] = {"path": args.rerun, "frames": recorder.frames}
+    return out
+
+
+def _run(args: argparse.Namespace, graph: Any, stream: Any, config: Any, frames: list[int],
+         recorder: Any, say: Any) -> dict[str, Any]:
+    from ..replay import prefix_optima, replay_isam2, replay_online
+
+    budget = args.budget_ms * 1e-3
+    on_frame = (None if recorder is None else
+                _frame_recorder(recorder, stream, args.rerun_every, args.extra_frames))
     runs = [replay_online(stream, config, budget, checkpoints=frames,
-                          extra_frames=args.extra_frames)]
+                          extra_frames=args.extra_frames, on_frame=on_frame)]
     say(f"  hybridpgo: {runs[0].latency_s.sum():.1f} s in updates")
     if args.compare == "isam2":
         runs.append(replay_isam2(stream, checkpoints=frames, extra_frames=args.extra_frames))
@@ -134,5 +187,8 @@ def run(args: argparse.Namespace) -> int:
         rows.append((name, line))
     for path in s.get("plots", []):
         rows.append(("plot", path))
+    if s.get("rerun"):
+        rows.append(("rerun", f"{s['rerun']['path']} ({s['rerun']['frames']} frames recorded; "
+                              "open with: rerun FILE)"))
     print_table(rows)
     return 0

@@ -655,6 +655,7 @@ def assemble(src: Source, fmt: str, parts: Parts, check_connected: bool) -> Pose
             gps_positions=p.gps_positions, gps_information=p.gps_information,
             fixed_nodes=np.searchsorted(node_ids, fix_ids).astype(np.int32),
             is_2d=p.is_2d, has_estimates=has_vertices, source_format=fmt,
+            edge_lines=p.edge_lines, gps_lines=p.gps_lines,
         )
         if check_connected:
             graph.check_connected(source="the graph")

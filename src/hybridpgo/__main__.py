@@ -1,0 +1,5 @@
+"""``python -m hybridpgo``: the same as the ``hybridpgo`` console script."""
+
+from .cli import main
+
+raise SystemExit(main())
