@@ -14,3 +14,9 @@ DATA_DIR = Path(__file__).parent / "data"
 def data_dir() -> Path:
     """Directory of the committed test graphs."""
     return DATA_DIR
+
+
+@pytest.fixture
+def tiny(data_dir: Path) -> Path:
+    """The smallest committed 3D graph (9 poses)."""
+    return data_dir / "tinyGrid3D.g2o"

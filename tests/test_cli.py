@@ -14,10 +14,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import run_cli
 from tolerances import FLOAT64_IDENTITY
 
 from hybridpgo import energy, read_graph
-from hybridpgo.cli import main
 from hybridpgo.cli._common import LazyChoices, output_format
 from hybridpgo.cli._parser import build_parser
 from hybridpgo.io import FORMATS, WRITE_FORMATS
@@ -30,22 +30,10 @@ COMMANDS = ("info", "optimize", "convert", "plot", "demo", "generate", "noisify"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
-def run_cli(capsys: pytest.CaptureFixture[str], *argv: object) -> tuple[int, str, str]:
-    """``main(argv)`` with the captured (stdout, stderr)."""
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
 def run_json(capsys: pytest.CaptureFixture[str], *argv: object) -> dict:
     code, out, err = run_cli(capsys, *argv, "--json")
     assert code == 0, err
     return json.loads(out)
-
-
-@pytest.fixture
-def tiny(data_dir: Path) -> Path:
-    return data_dir / "tinyGrid3D.g2o"
 
 
 @pytest.fixture

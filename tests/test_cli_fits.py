@@ -9,23 +9,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import run_cli
 from tolerances import FLOAT64_IDENTITY, SPARSE_VS_DENSE_GN
 
-from hybridpgo.cli import main
 from hybridpgo.energy import residuals
 from hybridpgo.io import read_graph
 from hybridpgo.solvers.gauss_newton import normal_equations
-
-
-def run_cli(capsys: pytest.CaptureFixture[str], *argv: object) -> tuple[int, str, str]:
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-@pytest.fixture
-def tiny(data_dir: Path) -> Path:
-    return data_dir / "tinyGrid3D.g2o"
 
 
 # =========================================================================== info --residuals

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import run_cli
 
 from hybridpgo import read_graph
-from hybridpgo.cli import main
 from hybridpgo.io import read_tum
 
 V2 = ("VERTEX_SE2 0 0 0 0", "VERTEX_SE2 1 1 0 0", "VERTEX_SE2 2 2 0.1 0")
@@ -25,20 +25,9 @@ E2 = ("EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1", "EDGE_SE2 1 2 1 0.1 0 1 0 0 1 0 1",
       "EDGE_SE2 0 2 2 0 0 1 0 0 1 0 1")
 
 
-def run_cli(capsys: pytest.CaptureFixture[str], *argv: object) -> tuple[int, str, str]:
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
 def write(path: Path, *lines: str) -> Path:
     path.write_text("\n".join(lines) + "\n")
     return path
-
-
-@pytest.fixture
-def tiny(data_dir: Path) -> Path:
-    return data_dir / "tinyGrid3D.g2o"
 
 
 @pytest.fixture

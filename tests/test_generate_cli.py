@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import run_cli
 
 from hybridpgo import energy, read_graph
-from hybridpgo.cli import main
 from hybridpgo.errors import FormatError
 from hybridpgo.generate import GridParams
 from hybridpgo.generate import grid as grid_module
@@ -19,12 +19,6 @@ from hybridpgo.generate import grid as grid_module
 #: Options that keep the CLI runs small (milliseconds each).
 SMALL_GRID = ("--poses", "300")
 SMALL_CITY = ("--poses", "1500")
-
-
-def run_cli(capsys: pytest.CaptureFixture[str], *argv: object) -> tuple[int, str, str]:
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def _files(directory: Path) -> list[str]:

@@ -7,23 +7,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import run_cli
 from tolerances import FLOAT64_IDENTITY
 
-from hybridpgo.cli import main
 from hybridpgo.energy import energy
 from hybridpgo.io import read_graph
 from hybridpgo.replay import make_stream, replay_online
-
-
-def run_cli(capsys: pytest.CaptureFixture[str], *argv: object) -> tuple[int, str, str]:
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-@pytest.fixture
-def tiny(data_dir: Path) -> Path:
-    return data_dir / "tinyGrid3D.g2o"
 
 
 class _Calls:
