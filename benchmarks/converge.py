@@ -13,6 +13,8 @@ correction) of
   truncated Gauss-Newton by CG in the tree parametrization);
 * ``paper + pcg K``: the paper's sweep, then one correction of K CG iterations
   (``correction="pcg"``; lever d);
+* ``paper + pcg K monotone``: the same, a sweep that raises the energy undone
+  (``monotone=True``): every iteration lowers E and the optimum is a fixed point;
 * ``svrg + pcg K``: the variance-reduced sweep (``update="svrg"``, an anchor per sweep; lever b),
   then the correction; the optimum is a fixed point (no GPS).
 
@@ -68,6 +70,8 @@ def _methods(stem: str, gps: bool) -> list[tuple[str, dict[str, Any], str]]:
     for k in iterations:
         rows.append((f"pcg only {k}", {"correction_iterations": k}, "pcg_only"))
         rows.append((f"paper + pcg {k}", {"correction": "pcg", "correction_iterations": k}, "run"))
+        rows.append((f"paper + pcg {k} monotone", {"correction": "pcg", "monotone": True,
+                                                   "correction_iterations": k}, "run"))
         if not gps:
             rows.append((f"svrg + pcg {k}", {"update": "svrg", "correction": "pcg",
                                              "correction_iterations": k}, "run"))

@@ -6,6 +6,7 @@ the energy test, the fixed point at the optimum, and the options."""
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import naive
 import numpy as np
@@ -185,16 +186,29 @@ def _moved(graph: PoseGraph, **options: object) -> float:
     return abs(solver.run(1).energy_history[-1] - e0) / e0
 
 
-def test_the_optimum_is_a_fixed_point_of_svrg_with_the_correction() -> None:
+@pytest.mark.parametrize("options", [{"correction": "pcg", "monotone": True},
+                                     {"update": "svrg", "correction": "pcg"}])
+def test_the_optimum_is_a_fixed_point(options: dict[str, object]) -> None:
+    assert _moved(_graph(11), **options) <= FIXED_POINT
+
+
+def test_the_optimum_is_no_fixed_point_of_the_paper_sweeps() -> None:
+    """Not of the paper's sweep, nor of the paper's sweep followed by the correction."""
     graph = _graph(11)
-    assert _moved(graph, update="svrg", correction="pcg") <= FIXED_POINT
-    # neither the paper's sweep nor the paper's sweep followed by the correction is one
     assert _moved(graph) > 1e3 * FIXED_POINT
     assert _moved(graph, correction="pcg") > FIXED_POINT
 
 
+def test_monotone_iterations_never_raise_the_energy() -> None:
+    graph = _graph(8, gps=2)
+    res = HybridSolver(graph, HybridConfig(init="tree", correction="pcg", monotone=True)).run(8)
+    assert np.all(np.diff(res.energy_history) <= 0.0)
+    assert 0 <= res.stats["sweeps_undone"] <= 8
+
+
 @pytest.mark.parametrize("options", [{"update": "svrg", "correction": "pcg"},
-                                     {"correction": "pcg"}])
+                                     {"correction": "pcg"},
+                                     {"correction": "pcg", "monotone": True}])
 def test_corrected_sweeps_end_closer_to_the_optimum(options: dict[str, object]) -> None:
     graph = _graph(5)
     opt = solve_exact(graph).final_energy
@@ -215,6 +229,7 @@ def test_the_correction_supports_gps() -> None:
     {"correction": "cg"}, {"correction_iterations": 0}, {"correction_iterations": 2.0},
     {"update": "svrg"}, {"update": "svrg", "correction": "pcg", "dmax": 4},
     {"update": "svrg", "correction": "pcg", "step": "givens"},
+    {"monotone": True}, {"correction": "pcg", "monotone": 1},
 ])
 def test_bad_correction_options_are_refused(options: dict[str, object]) -> None:
     with pytest.raises(ValueError):
@@ -224,3 +239,46 @@ def test_bad_correction_options_are_refused(options: dict[str, object]) -> None:
 def test_svrg_refuses_gps() -> None:
     with pytest.raises(ValueError, match="does not support GPS"):
         HybridSolver(_graph(3, gps=2), HybridConfig(update="svrg", correction="pcg"))
+
+
+# --------------------------------------------------------------------------- command line
+def _cli(capsys: pytest.CaptureFixture[str], *argv: object) -> tuple[int, str]:
+    from hybridpgo.cli import main
+
+    code = main([str(a) for a in argv])
+    return code, capsys.readouterr().err
+
+
+def test_the_cli_runs_corrected_sweeps(capsys: pytest.CaptureFixture[str], data_dir: Path,
+                                       tmp_path: Path) -> None:
+    from hybridpgo import energy, read_graph
+
+    src = data_dir / "tinyGrid3D.g2o"
+    outs = {}
+    for extra in ([], ["--correction", "pcg", "--correction-iterations", "10"]):
+        out = tmp_path / f"out{len(extra)}.g2o"
+        code, err = _cli(capsys, "optimize", src, "-o", out, "--solver", "hybrid", "--init",
+                         "tree", "--sweeps", "3", "--quiet", *extra)
+        assert code == 0, err
+        g = read_graph(out)
+        outs[len(extra)] = energy(g, g.rotations, g.translations)
+    assert outs[4] < outs[0]
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--solver", "exact", "--correction", "pcg"], "--correction: only for the hybrid solver"),
+    (["--solver", "hybrid", "--correction-iterations", "0"],
+     "--correction-iterations: must be"),
+    (["--solver", "hybrid", "--correction", "cg"], "invalid choice"),
+])
+def test_the_cli_refuses_bad_correction_options(capsys: pytest.CaptureFixture[str],
+                                                data_dir: Path, tmp_path: Path,
+                                                argv: list[str], message: str) -> None:
+    out = tmp_path / "out.g2o"
+    try:
+        code, err = _cli(capsys, "optimize", data_dir / "tinyGrid3D.g2o", "-o", out, *argv)
+    except SystemExit as exc:  # argparse's own errors
+        code, err = int(exc.code or 0), capsys.readouterr().err
+    assert code == 2
+    assert message in err
+    assert not out.exists()

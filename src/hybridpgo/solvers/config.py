@@ -199,9 +199,10 @@ class HybridConfig:
     Needs ``step="woodbury"`` and no ``dmax``.  Experimental: it diverges on a generated city
     with GPS (``benchmarks/sag.py``).
     ``"svrg"``: the same with every force remembered at once at the start of each sweep (an
-    anchor, as in SVRG) and kept for the sweep: the optimum is a fixed point.  Needs
-    ``correction="pcg"`` (alone it diverges on M3500_isam, ``benchmarks/converge.py``), no GPS,
-    ``step="woodbury"`` and no ``dmax``."""
+    anchor, as in SVRG) and kept for the sweep: the optimum is a fixed point.  Experimental: alone
+    it diverges, and even followed by ``correction="pcg"`` it diverges from the tree start on
+    M3500_isam, sphere2500 and a generated city (``benchmarks/converge.py``).  Needs
+    ``correction="pcg"``, no GPS, ``step="woodbury"`` and no ``dmax``."""
     memory_rate: float = 0.03
     """``update="saga"``: the memory moves this fraction of the way to each fresh contribution,
     in (0, 1] (1: SAGA itself, which diverges on M3500_isam; 0.1 diverges on intel)."""
@@ -213,6 +214,10 @@ class HybridConfig:
     ``"none"``: the paper's sweeps."""
     correction_iterations: int = 30
     """CG iterations of one ``correction="pcg"`` step (>= 1)."""
+    monotone: bool = False
+    """With ``correction="pcg"``: a sweep that raises the energy is undone (the correction
+    still follows), so every iteration lowers E and a stationary point is a fixed point of the
+    iterations (the paper's sweeps near the optimum raise E: it is not one of theirs)."""
 
     @property
     def robust_delta(self) -> float:
@@ -227,6 +232,11 @@ class HybridConfig:
         _check_int("correction_iterations", self.correction_iterations, 1)
         if self.update == "svrg" and self.correction == "none":
             raise ValueError("update='svrg' needs correction='pcg' (its sweeps alone diverge)")
+        if not isinstance(self.monotone, bool):
+            raise ValueError(f"monotone must be True or False, got {self.monotone!r}")
+        if self.monotone and self.correction == "none":
+            raise ValueError("monotone=True needs correction='pcg' (an undone sweep alone would "
+                             "repeat itself)")
         rate = self.memory_rate
         if not (isinstance(rate, (int, float)) and not isinstance(rate, bool) and 0 < rate <= 1):
             raise ValueError(f"memory_rate must be in (0, 1], got {self.memory_rate!r}")

@@ -288,13 +288,22 @@ class HybridSolver:
         first_bad = -1
         done = 0
         corrections: list[float] = []
+        undone = 0
         for k in range(n_sweeps):
             t0 = time.perf_counter()
             if cfg.update == "svrg":
                 self.init_memory()  # the sweep's anchor
+            saved = (self.state.rot.copy(), self.state.trans.copy()) if cfg.monotone else None
             bad = self._sweep(tree.sweep_order, self.tau, _U64_MAX, counts)
             if cfg.correction != "none":
-                corrections.append(self.correct().scale)
+                e_swept = None
+                if saved is not None:
+                    e_swept = self.energy()
+                    if e_swept > history[-1]:  # undo a sweep that raised E (config.monotone)
+                        self.state.rot[:], self.state.trans[:] = saved
+                        e_swept = history[-1]
+                        undone += 1
+                corrections.append(self.correct(energy_before=e_swept).scale)
             solve_time += time.perf_counter() - t0
             done += 1
             self.sweeps_done += 1
@@ -345,7 +354,8 @@ class HybridSolver:
             "step": cfg.step,
         }
         if cfg.correction != "none":
-            stats.update(correction=cfg.correction, correction_scales=corrections)
+            stats.update(correction=cfg.correction, correction_scales=corrections,
+                         sweeps_undone=undone)
         if plain:
             stats.update(robust=cfg.robust, robust_scale=cfg.robust_delta,
                          plain_energy=plain[-1], plain_energy_history=plain)
