@@ -255,14 +255,15 @@ def test_the_cli_runs_corrected_sweeps(capsys: pytest.CaptureFixture[str], data_
 
     src = data_dir / "tinyGrid3D.g2o"
     outs = {}
-    for extra in ([], ["--correction", "pcg", "--correction-iterations", "10"]):
+    for extra in ([], ["--correction", "pcg", "--correction-iterations", "10"],
+                  ["--correction", "pcg", "--monotone"]):
         out = tmp_path / f"out{len(extra)}.g2o"
         code, err = _cli(capsys, "optimize", src, "-o", out, "--solver", "hybrid", "--init",
                          "tree", "--sweeps", "3", "--quiet", *extra)
         assert code == 0, err
         g = read_graph(out)
         outs[len(extra)] = energy(g, g.rotations, g.translations)
-    assert outs[4] < outs[0]
+    assert outs[4] < outs[0] and outs[3] < outs[0]
 
 
 @pytest.mark.parametrize(("argv", "message"), [
@@ -270,6 +271,8 @@ def test_the_cli_runs_corrected_sweeps(capsys: pytest.CaptureFixture[str], data_
     (["--solver", "hybrid", "--correction-iterations", "0"],
      "--correction-iterations: must be"),
     (["--solver", "hybrid", "--correction", "cg"], "invalid choice"),
+    (["--solver", "hybrid", "--monotone"], "monotone=True needs correction='pcg'"),
+    (["--solver", "toro", "--monotone"], "--monotone: not an option of --solver toro"),
 ])
 def test_the_cli_refuses_bad_correction_options(capsys: pytest.CaptureFixture[str],
                                                 data_dir: Path, tmp_path: Path,

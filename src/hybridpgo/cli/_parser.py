@@ -280,7 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "--solver hybrid is the paper's method alone, --solver exact sparse LM "
                     "from one start.",
         epilog="Hybrid-only options: --sweeps --tau0 --tau-decay --damping --step "
-               "--gps-batch-size --correction --correction-iterations --polish.  "
+               "--gps-batch-size --correction --correction-iterations --monotone --polish.  "
                "--max-iterations limits the exact solver, or the "
                "polish with --polish.  --solver auto takes the hybrid options except --polish "
                "(it always polishes): --init is then the only start tried, --sweeps the most "
@@ -333,6 +333,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--correction-iterations", type=_pos_int, metavar="N",
                    help="hybrid: CG iterations of one --correction pcg step "
                         f"(default {hy.correction_iterations})")
+    p.add_argument("--monotone", action="store_true",
+                   help="hybrid with --correction pcg: undo a sweep that raises the energy, so "
+                        "every iteration lowers it and the optimum is a fixed point")
     p.add_argument("--tolerance", type=_nonneg_float, metavar="TOL",
                    help="stop when an iteration lowers the energy by less than this fraction "
                         f"(hybrid default {hy.energy_tolerance:g}, where 0 runs all sweeps; "

@@ -28,7 +28,7 @@ if TYPE_CHECKING:
 HYBRID_ONLY = {"sweeps": "--sweeps", "tau0": "--tau0", "tau_decay": "--tau-decay",
                "damping": "--damping", "step": "--step", "gps_batch_size": "--gps-batch-size",
                "dmax": "--dmax", "correction": "--correction",
-               "correction_iterations": "--correction-iterations"}
+               "correction_iterations": "--correction-iterations", "monotone": "--monotone"}
 
 
 @dataclass
@@ -505,6 +505,8 @@ def options_from_args(args: argparse.Namespace) -> dict[str, Any]:
         opts["energy_tolerance"] = args.tolerance
     if args.polish:
         opts["polish"] = True
+    if getattr(args, "monotone", False):
+        opts["monotone"] = True
     if args.robust is not None:
         opts["robust"], scale = args.robust
         if scale is not None:
