@@ -634,3 +634,7 @@ WORKLOADS["sag"] = _sag_run
 WORKLOADS["scale"] = _scale
 
 WORKLOADS["auto"] = _auto  # issue 11 items 1-2: the default pipeline and local minima
+
+from .converge import run as _converge_run  # noqa: E402  (issue 11 item 3: levers)
+
+WORKLOADS["converge"] = _converge_run

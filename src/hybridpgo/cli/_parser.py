@@ -280,7 +280,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "--solver hybrid is the paper's method alone, --solver exact sparse LM "
                     "from one start.",
         epilog="Hybrid-only options: --sweeps --tau0 --tau-decay --damping --step "
-               "--gps-batch-size --polish.  --max-iterations limits the exact solver, or the "
+               "--gps-batch-size --correction --correction-iterations --monotone --polish.  "
+               "--max-iterations limits the exact solver, or the "
                "polish with --polish.  --solver auto takes the hybrid options except --polish "
                "(it always polishes): --init is then the only start tried, --sweeps the most "
                f"sweeps per start (default {au.max_sweeps}), --max-iterations and "
@@ -324,6 +325,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="hybrid: interpolated solving (paper III-E): solve each update for at "
                         "most N nodes of its path and distribute the rest (default: the whole "
                         "path)")
+    p.add_argument("--correction", choices=("none", "pcg"),
+                   help="hybrid: after every sweep one global step, a truncated Gauss-Newton step "
+                        "by conjugate gradients preconditioned by the hybrid Hessian's block "
+                        "diagonal, taken when it lowers the energy ('pcg'), or none (the "
+                        f"paper's sweeps alone; default {hy.correction})")
+    p.add_argument("--correction-iterations", type=_pos_int, metavar="N",
+                   help="hybrid: CG iterations of one --correction pcg step "
+                        f"(default {hy.correction_iterations})")
+    p.add_argument("--monotone", action="store_true",
+                   help="hybrid with --correction pcg: undo a sweep that raises the energy, so "
+                        "every iteration lowers it and the optimum is a fixed point")
     p.add_argument("--tolerance", type=_nonneg_float, metavar="TOL",
                    help="stop when an iteration lowers the energy by less than this fraction "
                         f"(hybrid default {hy.energy_tolerance:g}, where 0 runs all sweeps; "

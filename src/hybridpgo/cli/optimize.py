@@ -27,7 +27,8 @@ if TYPE_CHECKING:
 #: CLI option -> HybridConfig field, for the options only the hybrid solver takes.
 HYBRID_ONLY = {"sweeps": "--sweeps", "tau0": "--tau0", "tau_decay": "--tau-decay",
                "damping": "--damping", "step": "--step", "gps_batch_size": "--gps-batch-size",
-               "dmax": "--dmax"}
+               "dmax": "--dmax", "correction": "--correction",
+               "correction_iterations": "--correction-iterations", "monotone": "--monotone"}
 
 
 @dataclass
@@ -496,7 +497,7 @@ def options_from_args(args: argparse.Namespace) -> dict[str, Any]:
     """Solver options the user gave (config field names), leaving the rest to the defaults."""
     opts: dict[str, Any] = {}
     for key in ("sweeps", "tau0", "tau_decay", "damping", "step", "tree", "gps_batch_size",
-                "max_iterations", "init", "dmax"):
+                "max_iterations", "init", "dmax", "correction", "correction_iterations"):
         value = getattr(args, key)
         if value is not None:
             opts[key] = value
@@ -504,6 +505,8 @@ def options_from_args(args: argparse.Namespace) -> dict[str, Any]:
         opts["energy_tolerance"] = args.tolerance
     if args.polish:
         opts["polish"] = True
+    if getattr(args, "monotone", False):
+        opts["monotone"] = True
     if args.robust is not None:
         opts["robust"], scale = args.robust
         if scale is not None:

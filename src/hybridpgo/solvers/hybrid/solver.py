@@ -24,7 +24,7 @@ from ...graph import FloatArray, PoseGraph
 from ...tree import LINK_EDGE, LINK_GPS, PoseTree, build_tree, global_poses, initial_locals
 from ..config import HybridConfig, Progress, ProgressCallback
 from ..result import SolveResult, Status
-from . import _aggregate, _batch, _linearize, _step, _sweep
+from . import _aggregate, _batch, _correction, _linearize, _step, _sweep
 from .problem import NUM_COUNTS, Count, Problem, State, StepKind, new_workspace
 
 if TYPE_CHECKING:
@@ -83,11 +83,11 @@ class HybridSolver:
                  tree: PoseTree | None = None,
                  locals0: tuple[FloatArray, FloatArray] | None = None) -> None:
         self.config = cfg = config or HybridConfig()
-        if cfg.update == "saga" and graph.num_gps:
+        if cfg.update != "paper" and graph.num_gps:
             # measured: diverges on a generated city with GPS (benchmarks/sag.py); the GPS
             # batches carry no memory, so the optimum is not a fixed point there either
-            raise ValueError("update='saga' (experimental) does not support GPS constraints; "
-                             "use update='paper'")
+            raise ValueError(f"update={cfg.update!r} (experimental) does not support GPS "
+                             "constraints; use update='paper'")
         self.compile_seconds = ensure_compiled()
         t0 = time.perf_counter()
         self.graph = graph
@@ -108,9 +108,13 @@ class HybridSolver:
         lengths = tree.path_lengths()
         self.dmax = max(int(lengths.max()) if lengths.size else 1, 1)
         self.rebuild_blocks()
-        self.memory = _aggregate.new_memory(int(tree.path_ptr[-1]) if cfg.update == "saga" else 0,
-                                            tree.num_tree_nodes if cfg.update == "saga" else 0)
-        """Remembered forces of ``update="saga"`` (zero: the first visits are the paper's)."""
+        aggregated = cfg.update != "paper"
+        self.memory = _aggregate.new_memory(int(tree.path_ptr[-1]) if aggregated else 0,
+                                            tree.num_tree_nodes if aggregated else 0)
+        """Remembered forces of ``update="saga"`` / ``"svrg"`` (zero: the first visits are the
+        paper's)."""
+        self.topology = _correction.topology(graph, tree)
+        """Tree arrays of :meth:`correct`."""
         self.tau = cfg.tau0
         """The temperature of the next sweep."""
         self.sweeps_done = 0
@@ -131,8 +135,8 @@ class HybridSolver:
     def init_memory(self) -> None:
         """``update="saga"``: remember every constraint's force at the current poses (a warm
         restart from a settled estimate; a settled optimum is then a fixed point)."""
-        if self.config.update != "saga":
-            raise ValueError("init_memory needs update='saga'")
+        if self.config.update == "paper":
+            raise ValueError("init_memory needs update='saga' or 'svrg'")
         _aggregate.init_memory(self.problem, self.state, self.memory, self.dmax)
 
     def poses(self) -> tuple[FloatArray, FloatArray]:
@@ -155,9 +159,10 @@ class HybridSolver:
     def _sweep(self, order: npt.NDArray[Any], tau: float, deadline: int,
                counts: npt.NDArray[np.int64]) -> int:
         cfg = self.config
-        if cfg.update == "saga":
+        if cfg.update != "paper":  # svrg: the anchor's memory stays for the sweep (rate 0)
+            rate = cfg.memory_rate if cfg.update == "saga" else 0.0
             return int(_aggregate.sweep_aggregated(
-                self.problem, self.state, self.memory, cfg.memory_rate, order, tau, cfg.damping,
+                self.problem, self.state, self.memory, rate, order, tau, cfg.damping,
                 cfg.gps_batch_size, self.dmax, np.uint64(deadline), self._cycles,
                 self._batch_cycles, counts))
         return int(_sweep.sweep(self.problem, self.state, order, tau, cfg.damping,
@@ -238,6 +243,18 @@ class HybridSolver:
         _step.solve_single(d, kr, STEP_KINDS[step or self.config.step], wk)
         return wk.jac[:d].copy(), wk.r.copy(), wk.x[:d].copy()
 
+    def correct(self, iterations: int | None = None,
+                energy_before: float | None = None) -> _correction.Report:
+        """One global correction (:mod:`._correction`): a truncated Gauss-Newton step by
+        ``iterations`` (default ``config.correction_iterations``) CG iterations preconditioned
+        by 𝔅(H), taken only if it lowers the energy.  The sweeps' 𝔅(H) is left as it was (each
+        constraint's contribution is refreshed when it is next relaxed, eq. 24)."""
+        cfg = self.config
+        return _correction.correct(
+            self.problem, self.state, self.topology,
+            cfg.correction_iterations if iterations is None else iterations, cfg.damping,
+            self.energy, energy_before)
+
     # ----------------------------------------------------------------- sweeps
     def run(self, sweeps: int | None = None,
             progress: ProgressCallback | None = None,
@@ -270,9 +287,23 @@ class HybridSolver:
         solve_time = 0.0
         first_bad = -1
         done = 0
+        corrections: list[float] = []
+        undone = 0
         for k in range(n_sweeps):
             t0 = time.perf_counter()
+            if cfg.update == "svrg":
+                self.init_memory()  # the sweep's anchor
+            saved = (self.state.rot.copy(), self.state.trans.copy()) if cfg.monotone else None
             bad = self._sweep(tree.sweep_order, self.tau, _U64_MAX, counts)
+            if cfg.correction != "none":
+                e_swept = None
+                if saved is not None:
+                    e_swept = self.energy()
+                    if e_swept > history[-1]:  # undo a sweep that raised E (config.monotone)
+                        self.state.rot[:], self.state.trans[:] = saved
+                        e_swept = history[-1]
+                        undone += 1
+                corrections.append(self.correct(energy_before=e_swept).scale)
             solve_time += time.perf_counter() - t0
             done += 1
             self.sweeps_done += 1
@@ -322,6 +353,9 @@ class HybridSolver:
             "path_length_mean": float(tree.path_lengths().mean()) if nc else 0.0,
             "step": cfg.step,
         }
+        if cfg.correction != "none":
+            stats.update(correction=cfg.correction, correction_scales=corrections,
+                         sweeps_undone=undone)
         if plain:
             stats.update(robust=cfg.robust, robust_scale=cfg.robust_delta,
                          plain_energy=plain[-1], plain_energy_history=plain)
