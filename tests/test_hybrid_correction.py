@@ -1,4 +1,4 @@
-"""``correction="pcg"`` and ``update="svrg"`` (:mod:`hybridpgo.solvers.hybrid._correction`):
+"""``correction="pcg"`` and ``monotone`` (:mod:`hybridpgo.solvers.hybrid._correction`):
 the O(N + M) products with J, J^T and 𝔅(H) against the dense twin, the gradient against finite
 differences, CG against the exact Gauss-Newton step (and the batch of every constraint, III-F),
 the energy test, the fixed point at the optimum, and the options."""
@@ -186,10 +186,8 @@ def _moved(graph: PoseGraph, **options: object) -> float:
     return abs(solver.run(1).energy_history[-1] - e0) / e0
 
 
-@pytest.mark.parametrize("options", [{"correction": "pcg", "monotone": True},
-                                     {"update": "svrg", "correction": "pcg"}])
-def test_the_optimum_is_a_fixed_point(options: dict[str, object]) -> None:
-    assert _moved(_graph(11), **options) <= FIXED_POINT
+def test_the_optimum_is_a_fixed_point_of_monotone_iterations() -> None:
+    assert _moved(_graph(11), correction="pcg", monotone=True) <= FIXED_POINT
 
 
 def test_the_optimum_is_no_fixed_point_of_the_paper_sweeps() -> None:
@@ -206,8 +204,7 @@ def test_monotone_iterations_never_raise_the_energy() -> None:
     assert 0 <= res.stats["sweeps_undone"] <= 8
 
 
-@pytest.mark.parametrize("options", [{"update": "svrg", "correction": "pcg"},
-                                     {"correction": "pcg"},
+@pytest.mark.parametrize("options", [{"correction": "pcg"},
                                      {"correction": "pcg", "monotone": True}])
 def test_corrected_sweeps_end_closer_to_the_optimum(options: dict[str, object]) -> None:
     graph = _graph(5)
@@ -227,18 +224,12 @@ def test_the_correction_supports_gps() -> None:
 
 @pytest.mark.parametrize("options", [
     {"correction": "cg"}, {"correction_iterations": 0}, {"correction_iterations": 2.0},
-    {"update": "svrg"}, {"update": "svrg", "correction": "pcg", "dmax": 4},
-    {"update": "svrg", "correction": "pcg", "step": "givens"},
+    {"update": "svrg"},
     {"monotone": True}, {"correction": "pcg", "monotone": 1},
 ])
 def test_bad_correction_options_are_refused(options: dict[str, object]) -> None:
     with pytest.raises(ValueError):
         HybridConfig(**options)  # type: ignore[arg-type]
-
-
-def test_svrg_refuses_gps() -> None:
-    with pytest.raises(ValueError, match="does not support GPS"):
-        HybridSolver(_graph(3, gps=2), HybridConfig(update="svrg", correction="pcg"))
 
 
 # --------------------------------------------------------------------------- command line

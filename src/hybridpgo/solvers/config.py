@@ -191,18 +191,13 @@ class HybridConfig:
     """The kernel's delta (> 0) in whitened units (sqrt of χ²); None: the kernel's default
     (:data:`ROBUST_DEFAULT_SCALE`).  The value used is :attr:`robust_delta`."""
 
-    update: Literal["paper", "saga", "svrg"] = "paper"
+    update: Literal["paper", "saga"] = "paper"
     """``"paper"``: each relative constraint's step solves ``H_c x = J_c^T r_c`` (eq. 25).
     ``"saga"``: the same hybrid system with an aggregated right-hand side (each constraint's
     remembered force, balanced per node, is subtracted), so a settled optimum is a fixed point of
     the sweeps (:mod:`hybridpgo.solvers.hybrid._aggregate`); GPS batches stay the paper's.
     Needs ``step="woodbury"`` and no ``dmax``.  Experimental: it diverges on a generated city
-    with GPS (``benchmarks/sag.py``).
-    ``"svrg"``: the same with every force remembered at once at the start of each sweep (an
-    anchor, as in SVRG) and kept for the sweep: the optimum is a fixed point.  Experimental: alone
-    it diverges, and even followed by ``correction="pcg"`` it diverges from the tree start on
-    M3500_isam, sphere2500 and a generated city (``benchmarks/converge.py``).  Needs
-    ``correction="pcg"``, no GPS, ``step="woodbury"`` and no ``dmax``."""
+    with GPS (``benchmarks/sag.py``).  For sweeps that converge use ``correction="pcg"``."""
     memory_rate: float = 0.03
     """``update="saga"``: the memory moves this fraction of the way to each fresh contribution,
     in (0, 1] (1: SAGA itself, which diverges on M3500_isam; 0.1 diverges on intel)."""
@@ -225,13 +220,11 @@ class HybridConfig:
         return default_robust_scale(self.robust, self.robust_scale)
 
     def __post_init__(self) -> None:
-        if self.update not in ("paper", "saga", "svrg"):
-            raise ValueError(f"update must be 'paper', 'saga' or 'svrg', got {self.update!r}")
+        if self.update not in ("paper", "saga"):
+            raise ValueError(f"update must be 'paper' or 'saga', got {self.update!r}")
         if self.correction not in ("none", "pcg"):
             raise ValueError(f"correction must be 'none' or 'pcg', got {self.correction!r}")
         _check_int("correction_iterations", self.correction_iterations, 1)
-        if self.update == "svrg" and self.correction == "none":
-            raise ValueError("update='svrg' needs correction='pcg' (its sweeps alone diverge)")
         if not isinstance(self.monotone, bool):
             raise ValueError(f"monotone must be True or False, got {self.monotone!r}")
         if self.monotone and self.correction == "none":

@@ -111,10 +111,8 @@ class HybridSolver:
         aggregated = cfg.update != "paper"
         self.memory = _aggregate.new_memory(int(tree.path_ptr[-1]) if aggregated else 0,
                                             tree.num_tree_nodes if aggregated else 0)
-        """Remembered forces of ``update="saga"`` / ``"svrg"`` (zero: the first visits are the
-        paper's)."""
-        self.topology = _correction.topology(graph, tree)
-        """Tree arrays of :meth:`correct`."""
+        """Remembered forces of ``update="saga"`` (zero: the first visits are the paper's)."""
+        self._topology: _correction.Topology | None = None
         self.tau = cfg.tau0
         """The temperature of the next sweep."""
         self.sweeps_done = 0
@@ -135,8 +133,8 @@ class HybridSolver:
     def init_memory(self) -> None:
         """``update="saga"``: remember every constraint's force at the current poses (a warm
         restart from a settled estimate; a settled optimum is then a fixed point)."""
-        if self.config.update == "paper":
-            raise ValueError("init_memory needs update='saga' or 'svrg'")
+        if self.config.update != "saga":
+            raise ValueError("init_memory needs update='saga'")
         _aggregate.init_memory(self.problem, self.state, self.memory, self.dmax)
 
     def poses(self) -> tuple[FloatArray, FloatArray]:
@@ -159,10 +157,9 @@ class HybridSolver:
     def _sweep(self, order: npt.NDArray[Any], tau: float, deadline: int,
                counts: npt.NDArray[np.int64]) -> int:
         cfg = self.config
-        if cfg.update != "paper":  # svrg: the anchor's memory stays for the sweep (rate 0)
-            rate = cfg.memory_rate if cfg.update == "saga" else 0.0
+        if cfg.update == "saga":
             return int(_aggregate.sweep_aggregated(
-                self.problem, self.state, self.memory, rate, order, tau, cfg.damping,
+                self.problem, self.state, self.memory, cfg.memory_rate, order, tau, cfg.damping,
                 cfg.gps_batch_size, self.dmax, np.uint64(deadline), self._cycles,
                 self._batch_cycles, counts))
         return int(_sweep.sweep(self.problem, self.state, order, tau, cfg.damping,
@@ -243,6 +240,13 @@ class HybridSolver:
         _step.solve_single(d, kr, STEP_KINDS[step or self.config.step], wk)
         return wk.jac[:d].copy(), wk.r.copy(), wk.x[:d].copy()
 
+    @property
+    def topology(self) -> _correction.Topology:
+        """Tree arrays of :meth:`correct` (built on first use: most runs never correct)."""
+        if self._topology is None:
+            self._topology = _correction.topology(self.graph, self.tree)
+        return self._topology
+
     def correct(self, iterations: int | None = None,
                 energy_before: float | None = None) -> _correction.Report:
         """One global correction (:mod:`._correction`): a truncated Gauss-Newton step by
@@ -291,8 +295,6 @@ class HybridSolver:
         undone = 0
         for k in range(n_sweeps):
             t0 = time.perf_counter()
-            if cfg.update == "svrg":
-                self.init_memory()  # the sweep's anchor
             saved = (self.state.rot.copy(), self.state.trans.copy()) if cfg.monotone else None
             bad = self._sweep(tree.sweep_order, self.tau, _U64_MAX, counts)
             if cfg.correction != "none":
