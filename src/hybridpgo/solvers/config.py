@@ -196,8 +196,9 @@ class HybridConfig:
     ``"saga"``: the same hybrid system with an aggregated right-hand side (each constraint's
     remembered force, balanced per node, is subtracted), so a settled optimum is a fixed point of
     the sweeps (:mod:`hybridpgo.solvers.hybrid._aggregate`); GPS batches stay the paper's.
-    Needs ``step="woodbury"`` and no ``dmax``.  Experimental: it diverges on a generated city
-    with GPS (``benchmarks/sag.py``).  For sweeps that converge use ``correction="pcg"``."""
+    Needs ``step="woodbury"`` and no ``dmax``.  Experimental: it diverges on generated cities
+    with and without GPS (``benchmarks/sag.py``, ``benchmarks/converge.py``) and is no better
+    than the paper's on M3500_isam.  For sweeps that converge use ``correction="pcg"``."""
     memory_rate: float = 0.03
     """``update="saga"``: the memory moves this fraction of the way to each fresh contribution,
     in (0, 1] (1: SAGA itself, which diverges on M3500_isam; 0.1 diverges on intel)."""
