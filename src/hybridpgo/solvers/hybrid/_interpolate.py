@@ -140,7 +140,9 @@ def chain_measurement(link_c: np.ndarray, link_fwd: np.ndarray, edge_rot: np.nda
                 ws[1, i, j] = (ws[0, i, 0] * ws[2, j, 0] + ws[0, i, 1] * ws[2, j, 1]
                                + ws[0, i, 2] * ws[2, j, 2])
         f = 0 if forward else 1  # ws[f]: F
-        # M = L^T blockdiag(F, F)^T (a GPS link: 3 rows, translation only)
+        # M = L^T blockdiag(F, F)^T (a GPS link: 3 rows, translation only).  L^T is upper
+        # triangular, so rows 3..5 of a relative link are zero in columns 0..2: those entries
+        # are neither computed nor summed (their products are exact zeros)
         rows = 3 if gps else 6
         for q in range(rows):
             for j in range(3):
@@ -149,18 +151,19 @@ def chain_measurement(link_c: np.ndarray, link_fwd: np.ndarray, edge_rot: np.nda
                     l1 = gps_lt[c - num_edges, q, 1]
                     l2 = gps_lt[c - num_edges, q, 2]
                     m[q, 3 + j] = 0.0
-                else:
-                    l0 = edge_lt[c, q, 0]
-                    l1 = edge_lt[c, q, 1]
-                    l2 = edge_lt[c, q, 2]
-                    m[q, 3 + j] = (edge_lt[c, q, 3] * ws[f, j, 0]
-                                   + edge_lt[c, q, 4] * ws[f, j, 1]
-                                   + edge_lt[c, q, 5] * ws[f, j, 2])
-                m[q, j] = l0 * ws[f, j, 0] + l1 * ws[f, j, 1] + l2 * ws[f, j, 2]
+                    m[q, j] = l0 * ws[f, j, 0] + l1 * ws[f, j, 1] + l2 * ws[f, j, 2]
+                    continue
+                m[q, 3 + j] = (edge_lt[c, q, 3] * ws[f, j, 0]
+                               + edge_lt[c, q, 4] * ws[f, j, 1]
+                               + edge_lt[c, q, 5] * ws[f, j, 2])
+                if q < 3:
+                    m[q, j] = (edge_lt[c, q, 0] * ws[f, j, 0] + edge_lt[c, q, 1] * ws[f, j, 1]
+                               + edge_lt[c, q, 2] * ws[f, j, 2])
         for i in range(6):
+            qmax = rows if i >= 3 else min(rows, 3)
             for j in range(i, 6):
                 v = 0.0
-                for q in range(rows):
+                for q in range(qmax):
                     v += m[q, i] * m[q, j]
                 s_beta[i, j] += v
         # p_β from b upwards: (zr, zt) <- (lr, lt) (zr, zt)

@@ -50,8 +50,9 @@ def accumulate_path(path_node: np.ndarray, s: int, d: int, kr: int, jac: np.ndar
                 bdiag[i, q, p] = v
                 contrib[e, p, q] = acc
                 contrib[e, q, p] = acc
-                bc[p, q] = b_old - old
-                bc[q, p] = b_old - old
+                if factor:
+                    bc[p, q] = b_old - old
+                    bc[q, p] = b_old - old
             scale += contrib[e, p, p]
         if factor:
             regularized_factor(bc, scale, mu, lfac[k])
