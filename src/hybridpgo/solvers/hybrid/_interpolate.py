@@ -81,17 +81,6 @@ def chain_end(d: int, na: int, keep: np.ndarray, nk: int, j: int) -> int:
     return side_end
 
 
-@kernel
-def chain_top(pr: np.ndarray, pt: np.ndarray, d: int, na: int, p: int, end: int,
-              eye: np.ndarray, zero: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pose of the chain's top parent a in the constraint root's frame: the kept node at
-    position ``end``, or the root itself (``eye``, ``zero``) when the chain reaches the top."""
-    if end < (na if p < na else d):
-        return pr[end], pt[end]
-    return eye, zero
-
-
-
 
 # --------------------------------------------------------------------------- eq. 31-33
 # The kernels below never allocate and take a chain as ``nodes[start + n]``, n = 0 (b) ...
@@ -208,41 +197,53 @@ def merged_constraint(prob: Problem, state: State, nodes: np.ndarray, start: int
 
 
 @kernel
-def merged_block_core(link_c: np.ndarray, link_fwd: np.ndarray, edge_rot: np.ndarray,
-                      edge_trans: np.ndarray, edge_lt: np.ndarray, gps_pos: np.ndarray,
-                      gps_lt: np.ndarray, num_edges: int, rot: np.ndarray, contrib: np.ndarray,
-                      path_ptr: np.ndarray, nodes: np.ndarray, start: int, k: int,
-                      ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.ndarray,
-                      out: np.ndarray, iws: np.ndarray, iws6: np.ndarray,
-                      ws: np.ndarray) -> None:
-    """:func:`merged_block` with the arrays passed one by one (``iws``, ``iws6``, ``ws``: a
-    workspace's fields of those names)."""
+def merged_blocks(link_c: np.ndarray, link_fwd: np.ndarray, edge_rot: np.ndarray,
+                  edge_trans: np.ndarray, edge_lt: np.ndarray, gps_pos: np.ndarray,
+                  gps_lt: np.ndarray, num_edges: int, rot: np.ndarray, contrib: np.ndarray,
+                  path_ptr: np.ndarray, nodes: np.ndarray, chains: np.ndarray, nch: int,
+                  apr: np.ndarray, apt: np.ndarray, bpr: np.ndarray, bpt: np.ndarray,
+                  out: np.ndarray, iws: np.ndarray, iws6: np.ndarray, ws: np.ndarray) -> None:
+    """:func:`merged_block` for ``nch`` chains at once, with the arrays passed one by one
+    (one call per update: every call costs a reference-count pair per array argument).
+
+    Chain j is ``chains[j] = (start, k, ia, ib, io)``: nodes ``nodes[start:start + k]``, a's
+    pose ``(apr[ia], apt[ia])`` (the identity when ``ia < 0``), b's ``(bpr[ib], bpt[ib])``,
+    added into ``out[io]``.  ``iws``, ``iws6``, ``ws``: a workspace's fields of those names.
+    """
     zr = iws[5]
     zt = iws[6][0]
     s_beta = iws6[0]
     jri = iws6[1]
     tm = iws6[2]
     e = iws6[3][0]
-    chain_measurement(link_c, link_fwd, edge_rot, edge_trans, edge_lt, gps_pos, gps_lt,
-                      num_edges, rot, nodes, start, k, zr, zt, s_beta, iws, tm)
-    residual_and_jr_inv(zr, zt, ra, ta, rb, tb, e, ws)
-    jr_inv_matrix(ws, jri)
-    for p in range(6):  # tm = S_β Jr^-1 (Jr^-1 is block upper triangular)
-        for q in range(6):
-            v = 0.0
-            for m in range(6):
-                v += s_beta[p, m] * jri[m, q]
-            tm[p, q] = v
-    b = nodes[start]
-    ob = path_ptr[link_c[b]]  # α's domain is {b}: its contribution is contrib[ob]
-    for p in range(6):
-        for q in range(p, 6):
-            v = 0.0
-            for m in range(6):
-                v += jri[m, p] * tm[m, q]
-            out[p, q] += v - contrib[ob, p, q]
-            if q != p:
-                out[q, p] += v - contrib[ob, q, p]
+    for j in range(nch):
+        start = chains[j, 0]
+        k = chains[j, 1]
+        ia = chains[j, 2]
+        ib = chains[j, 3]
+        io = chains[j, 4]
+        chain_measurement(link_c, link_fwd, edge_rot, edge_trans, edge_lt, gps_pos, gps_lt,
+                          num_edges, rot, nodes, start, k, zr, zt, s_beta, iws, tm)
+        ra = iws[EYE] if ia < 0 else apr[ia]
+        ta = iws[ZERO][0] if ia < 0 else apt[ia]
+        residual_and_jr_inv(zr, zt, ra, ta, bpr[ib], bpt[ib], e, ws)
+        jr_inv_matrix(ws, jri)
+        for p in range(6):  # tm = S_β Jr^-1 (Jr^-1 is block upper triangular)
+            for q in range(6):
+                v = 0.0
+                for m in range(6):
+                    v += s_beta[p, m] * jri[m, q]
+                tm[p, q] = v
+        b = nodes[start]
+        ob = path_ptr[link_c[b]]  # α's domain is {b}: its contribution is contrib[ob]
+        for p in range(6):
+            for q in range(p, 6):
+                v = 0.0
+                for m in range(6):
+                    v += jri[m, p] * tm[m, q]
+                out[io, p, q] += v - contrib[ob, p, q]
+                if q != p:
+                    out[io, q, p] += v - contrib[ob, q, p]
 
 
 @kernel
@@ -256,10 +257,15 @@ def merged_block(prob: Problem, state: State, nodes: np.ndarray, start: int, k: 
     frame.  ``J_β = L_β^T Jr^-1(e_β)``, ``e_β = Log(p_β^-1 T_{a,b})``, so
     ``J_β^T J_β = Jr^-T S_β Jr^-1``.  Scratch: ``wk.iws[0:7]``, ``wk.iws6``, ``wk.ws``.
     """
-    merged_block_core(prob.link_constraint, prob.link_forward, prob.edge_rot, prob.edge_trans,
-                      prob.edge_lt, prob.gps_pos, prob.gps_lt, prob.num_edges, state.rot,
-                      state.contrib, prob.path_ptr, nodes, start, k, ra, ta, rb, tb, out,
-                      wk.iws, wk.iws6, wk.ws)
+    chains = np.empty((1, 5), np.int64)
+    chains[0, 0] = start
+    chains[0, 1] = k
+    chains[0, 2:] = 0
+    merged_blocks(prob.link_constraint, prob.link_forward, prob.edge_rot, prob.edge_trans,
+                  prob.edge_lt, prob.gps_pos, prob.gps_lt, prob.num_edges, state.rot,
+                  state.contrib, prob.path_ptr, nodes, chains, 1, ra.reshape((1, 3, 3)),
+                  ta.reshape((1, 3)), rb.reshape((1, 3, 3)), tb.reshape((1, 3)),
+                  out.reshape((1, 6, 6)), wk.iws, wk.iws6, wk.ws)
 
 
 @kernel
@@ -279,21 +285,8 @@ def reduced_factors(prob: Problem, state: State, c: int, d: int, na: int, kr: in
     bdiag = state.bdiag
     contrib = state.contrib
     path_node = prob.path_node
-    iws = wk.iws
-    iws6 = wk.iws6
-    ws = wk.ws
-    eye = iws[EYE]
-    zero = iws[ZERO][0]
-    link_c = prob.link_constraint
-    link_fwd = prob.link_forward
-    edge_rot = prob.edge_rot
-    edge_trans = prob.edge_trans
-    edge_lt = prob.edge_lt
-    gps_pos = prob.gps_pos
-    gps_lt = prob.gps_lt
-    num_edges = prob.num_edges
-    rot = state.rot
-    path_ptr = prob.path_ptr
+    chains = np.empty((nk, 5), np.int64)
+    nch = 0
     for j in range(nk):
         p = keep[j]
         i = path_node[s + p]
@@ -303,10 +296,16 @@ def reduced_factors(prob: Problem, state: State, c: int, d: int, na: int, kr: in
                 sjac[j, q1, q2] = jac[p, q1, q2]
         end = chain_end(d, na, keep, nk, j)
         if end - p > 1:  # b's parent is omitted: β replaces α
-            ra, ta = chain_top(pr, pt, d, na, p, end, eye, zero)
-            merged_block_core(link_c, link_fwd, edge_rot, edge_trans, edge_lt, gps_pos, gps_lt,
-                              num_edges, rot, contrib, path_ptr, path_node, s + p, end - p, ra,
-                              ta, pr[p], pt[p], bc[j], iws, iws6, ws)
+            chains[nch, 0] = s + p
+            chains[nch, 1] = end - p
+            chains[nch, 2] = end if end < (na if p < na else d) else -1  # a: kept, or the root
+            chains[nch, 3] = p
+            chains[nch, 4] = j
+            nch += 1
+    merged_blocks(prob.link_constraint, prob.link_forward, prob.edge_rot, prob.edge_trans,
+                  prob.edge_lt, prob.gps_pos, prob.gps_lt, prob.num_edges, state.rot, contrib,
+                  prob.path_ptr, path_node, chains, nch, pr, pt, pr, pt, bc, wk.iws, wk.iws6,
+                  wk.ws)
     for j in range(nk):
         scale = 0.0
         for q in range(6):
@@ -336,13 +335,18 @@ def node_weights(bdiag: np.ndarray, i: int) -> tuple[float, float]:
 
 
 @kernel
-def distribute_chain_core(rot: np.ndarray, trans: np.ndarray, bdiag: np.ndarray,
-                          nodes: np.ndarray, start: int, k: int, ra: np.ndarray,
-                          ta: np.ndarray, rb_new: np.ndarray, tb_new: np.ndarray,
-                          qr: np.ndarray, cw: np.ndarray, ws: np.ndarray,
-                          ws6: np.ndarray) -> None:
-    """:func:`distribute_chain` with the arrays passed one by one (``qr``, ``cw``, ``ws``,
-    ``ws6``: a workspace's ``chain_rot``, ``chain_w``, ``iws``, ``iws6``); no view per node."""
+def distribute_chains(rot: np.ndarray, trans: np.ndarray, bdiag: np.ndarray,
+                      nodes: np.ndarray, chains: np.ndarray, nch: int, apr: np.ndarray,
+                      apt: np.ndarray, bpr: np.ndarray, bpt: np.ndarray, qr: np.ndarray,
+                      cw: np.ndarray, ws: np.ndarray, ws6: np.ndarray) -> None:
+    """:func:`distribute_chain` for ``nch`` chains at once (one call per update), the arrays
+    passed one by one; no view per node.
+
+    Chain j is ``chains[j] = (start, k, ia, ib)``: nodes ``nodes[start:start + k]``, a's pose
+    ``(apr[ia], apt[ia])`` (the identity when ``ia < 0``), b's desired pose
+    ``(bpr[ib], bpt[ib])``.  ``qr``, ``cw``, ``ws``, ``ws6``: a workspace's ``chain_rot``,
+    ``chain_w``, ``iws``, ``iws6``.
+    """
     dr = ws[0]
     dt = ws[1][0]
     kx = ws[2]
@@ -351,101 +355,111 @@ def distribute_chain_core(rot: np.ndarray, trans: np.ndarray, bdiag: np.ndarray,
     mm = ws[5]
     gg = ws[6]
     phi6 = ws6[3][0]
-    # 0. current rotations relative to a, Q_j (top down), and the cumulative weights
-    for i in range(3):
-        for j in range(3):
-            qr[0, i, j] = 1.0 if i == j else 0.0
-    cw[0, 0] = 0.0
-    cw[0, 1] = 0.0
-    for j in range(1, k + 1):
-        i = nodes[start + k - j]
-        for p in range(3):
-            for q in range(3):
-                qr[j, p, q] = (qr[j - 1, p, 0] * rot[i, 0, q] + qr[j - 1, p, 1] * rot[i, 1, q]
-                               + qr[j - 1, p, 2] * rot[i, 2, q])
-        wr, wt = node_weights(bdiag, i)
-        cw[j, 0] = cw[j - 1, 0] + wr
-        cw[j, 1] = cw[j - 1, 1] + wt
-    # b's desired pose relative to a
-    for p in range(3):
-        dt[p] = (ra[0, p] * (tb_new[0] - ta[0]) + ra[1, p] * (tb_new[1] - ta[1])
-                 + ra[2, p] * (tb_new[2] - ta[2]))
-        for q in range(3):
-            dr[p, q] = ra[0, p] * rb_new[0, q] + ra[1, p] * rb_new[1, q] + ra[2, p] * rb_new[2, q]
-    # rotation change of b in a's frame: Exp(phi) = R'_b Q_b^T
-    for p in range(3):
-        for q in range(3):
-            mm[p, q] = dr[p, 0] * qr[k, q, 0] + dr[p, 1] * qr[k, q, 1] + dr[p, 2] * qr[k, q, 2]
-    so3_log_into(mm, phi6)
-    px, py, pz = phi6[3], phi6[4], phi6[5]
-    th = math.sqrt(px * px + py * py + pz * pz)
-    kx[0, 0], kx[0, 1], kx[0, 2] = 0.0, -pz, py
-    kx[1, 0], kx[1, 1], kx[1, 2] = pz, 0.0, -px
-    kx[2, 0], kx[2, 1], kx[2, 2] = -py, px, 0.0
-    for p in range(3):
-        for q in range(3):
-            k2[p, q] = kx[p, 0] * kx[0, q] + kx[p, 1] * kx[1, q] + kx[p, 2] * kx[2, q]
-    # 1. rotations first: R''_j = Exp(f_j phi) Q_j (Rodrigues about the one axis); positions
-    # re-bent with the old locals: t''_k = sum_j R''_{j-1} t_j
-    w_r = cw[k, 0]
-    t0 = 0.0
-    t1 = 0.0
-    t2 = 0.0
-    for j in range(1, k + 1):
-        i = nodes[start + k - j]
-        t0 += (qr[j - 1, 0, 0] * trans[i, 0] + qr[j - 1, 0, 1] * trans[i, 1]
-               + qr[j - 1, 0, 2] * trans[i, 2])
-        t1 += (qr[j - 1, 1, 0] * trans[i, 0] + qr[j - 1, 1, 1] * trans[i, 1]
-               + qr[j - 1, 1, 2] * trans[i, 2])
-        t2 += (qr[j - 1, 2, 0] * trans[i, 0] + qr[j - 1, 2, 1] * trans[i, 1]
-               + qr[j - 1, 2, 2] * trans[i, 2])
-        if j == k:  # the end reaches its desired rotation exactly
+    for jc in range(nch):
+        start = chains[jc, 0]
+        k = chains[jc, 1]
+        ia = chains[jc, 2]
+        ib = chains[jc, 3]
+        ra = ws[EYE] if ia < 0 else apr[ia]
+        ta = ws[ZERO][0] if ia < 0 else apt[ia]
+        rb_new = bpr[ib]
+        tb_new = bpt[ib]
+        # 0. current rotations relative to a, Q_j (top down), and the cumulative weights
+        for i in range(3):
+            for j in range(3):
+                qr[0, i, j] = 1.0 if i == j else 0.0
+        cw[0, 0] = 0.0
+        cw[0, 1] = 0.0
+        for j in range(1, k + 1):
+            i = nodes[start + k - j]
             for p in range(3):
                 for q in range(3):
-                    qr[k, p, q] = dr[p, q]
-            break
-        f = cw[j, 0] / w_r
-        a_th = f * th
-        if a_th < 1e-12:
-            ca = f
-            cb = 0.5 * f * f
-        else:
-            sh = math.sin(0.5 * a_th)
-            ca = math.sin(a_th) / th
-            cb = 2.0 * sh * sh / (th * th)
+                    qr[j, p, q] = (qr[j - 1, p, 0] * rot[i, 0, q] + qr[j - 1, p, 1] * rot[i, 1, q]
+                                   + qr[j - 1, p, 2] * rot[i, 2, q])
+            wr, wt = node_weights(bdiag, i)
+            cw[j, 0] = cw[j - 1, 0] + wr
+            cw[j, 1] = cw[j - 1, 1] + wt
+        # b's desired pose relative to a
+        for p in range(3):
+            dt[p] = (ra[0, p] * (tb_new[0] - ta[0]) + ra[1, p] * (tb_new[1] - ta[1])
+                     + ra[2, p] * (tb_new[2] - ta[2]))
+            for q in range(3):
+                dr[p, q] = (ra[0, p] * rb_new[0, q] + ra[1, p] * rb_new[1, q]
+                            + ra[2, p] * rb_new[2, q])
+        # rotation change of b in a's frame: Exp(phi) = R'_b Q_b^T
         for p in range(3):
             for q in range(3):
-                ex[p, q] = (1.0 if p == q else 0.0) + ca * kx[p, q] + cb * k2[p, q]
-        for q in range(3):
-            c0 = qr[j, 0, q]
-            c1 = qr[j, 1, q]
-            c2 = qr[j, 2, q]
+                mm[p, q] = dr[p, 0] * qr[k, q, 0] + dr[p, 1] * qr[k, q, 1] + dr[p, 2] * qr[k, q, 2]
+        so3_log_into(mm, phi6)
+        px, py, pz = phi6[3], phi6[4], phi6[5]
+        th = math.sqrt(px * px + py * py + pz * pz)
+        kx[0, 0], kx[0, 1], kx[0, 2] = 0.0, -pz, py
+        kx[1, 0], kx[1, 1], kx[1, 2] = pz, 0.0, -px
+        kx[2, 0], kx[2, 1], kx[2, 2] = -py, px, 0.0
+        for p in range(3):
+            for q in range(3):
+                k2[p, q] = kx[p, 0] * kx[0, q] + kx[p, 1] * kx[1, q] + kx[p, 2] * kx[2, q]
+        # 1. rotations first: R''_j = Exp(f_j phi) Q_j (Rodrigues about the one axis); positions
+        # re-bent with the old locals: t''_k = sum_j R''_{j-1} t_j
+        w_r = cw[k, 0]
+        t0 = 0.0
+        t1 = 0.0
+        t2 = 0.0
+        for j in range(1, k + 1):
+            i = nodes[start + k - j]
+            t0 += (qr[j - 1, 0, 0] * trans[i, 0] + qr[j - 1, 0, 1] * trans[i, 1]
+                   + qr[j - 1, 0, 2] * trans[i, 2])
+            t1 += (qr[j - 1, 1, 0] * trans[i, 0] + qr[j - 1, 1, 1] * trans[i, 1]
+                   + qr[j - 1, 1, 2] * trans[i, 2])
+            t2 += (qr[j - 1, 2, 0] * trans[i, 0] + qr[j - 1, 2, 1] * trans[i, 1]
+                   + qr[j - 1, 2, 2] * trans[i, 2])
+            if j == k:  # the end reaches its desired rotation exactly
+                for p in range(3):
+                    for q in range(3):
+                        qr[k, p, q] = dr[p, q]
+                break
+            f = cw[j, 0] / w_r
+            a_th = f * th
+            if a_th < 1e-12:
+                ca = f
+                cb = 0.5 * f * f
+            else:
+                sh = math.sin(0.5 * a_th)
+                ca = math.sin(a_th) / th
+                cb = 2.0 * sh * sh / (th * th)
             for p in range(3):
-                qr[j, p, q] = ex[p, 0] * c0 + ex[p, 1] * c1 + ex[p, 2] * c2
-    # 2. then translations, linearly along the re-bent chain; new locals
-    e0 = dt[0] - t0
-    e1 = dt[1] - t1
-    e2 = dt[2] - t2
-    w_t = cw[k, 1]
-    for j in range(1, k + 1):
-        i = nodes[start + k - j]
-        g = (cw[j, 1] - cw[j - 1, 1]) / w_t
-        for p in range(3):
-            trans[i, p] += g * (qr[j - 1, 0, p] * e0 + qr[j - 1, 1, p] * e1
-                                + qr[j - 1, 2, p] * e2)
+                for q in range(3):
+                    ex[p, q] = (1.0 if p == q else 0.0) + ca * kx[p, q] + cb * k2[p, q]
             for q in range(3):
-                mm[p, q] = (qr[j - 1, 0, p] * qr[j, 0, q] + qr[j - 1, 1, p] * qr[j, 1, q]
-                            + qr[j - 1, 2, p] * qr[j, 2, q])
-        # one Newton step towards the polar factor (as the retraction does): products along
-        # long chains would otherwise let rounding grow
-        for p in range(3):
-            for q in range(3):
-                gg[p, q] = mm[0, p] * mm[0, q] + mm[1, p] * mm[1, q] + mm[2, p] * mm[2, q]
-        for p in range(3):
-            for q in range(3):
-                rot[i, p, q] = 0.5 * (3.0 * mm[p, q] - (mm[p, 0] * gg[0, q] + mm[p, 1] * gg[1, q]
-                                                        + mm[p, 2] * gg[2, q]))
-
+                c0 = qr[j, 0, q]
+                c1 = qr[j, 1, q]
+                c2 = qr[j, 2, q]
+                for p in range(3):
+                    qr[j, p, q] = ex[p, 0] * c0 + ex[p, 1] * c1 + ex[p, 2] * c2
+        # 2. then translations, linearly along the re-bent chain; new locals
+        e0 = dt[0] - t0
+        e1 = dt[1] - t1
+        e2 = dt[2] - t2
+        w_t = cw[k, 1]
+        for j in range(1, k + 1):
+            i = nodes[start + k - j]
+            g = (cw[j, 1] - cw[j - 1, 1]) / w_t
+            for p in range(3):
+                trans[i, p] += g * (qr[j - 1, 0, p] * e0 + qr[j - 1, 1, p] * e1
+                                    + qr[j - 1, 2, p] * e2)
+                for q in range(3):
+                    mm[p, q] = (qr[j - 1, 0, p] * qr[j, 0, q] + qr[j - 1, 1, p] * qr[j, 1, q]
+                                + qr[j - 1, 2, p] * qr[j, 2, q])
+            # one Newton step towards the polar factor (as the retraction does): products along
+            # long chains would otherwise let rounding grow
+            for p in range(3):
+                for q in range(3):
+                    gg[p, q] = mm[0, p] * mm[0, q] + mm[1, p] * mm[1, q] + mm[2, p] * mm[2, q]
+            for p in range(3):
+                for q in range(3):
+                    rot[i, p, q] = 0.5 * (3.0 * mm[p, q] - (mm[p, 0] * gg[0, q]
+                                                            + mm[p, 1] * gg[1, q]
+                                                            + mm[p, 2] * gg[2, q]))
 
 
 @kernel
@@ -464,8 +478,13 @@ def distribute_chain(state: State, nodes: np.ndarray, start: int, k: int, ra: np
     towards orthonormal) and ``t_j + (g_j - g_{j-1}) R''_{j-1}^T dpos``.  O(k) scalar work, no
     allocation: ``wk.chain_rot``, ``wk.chain_w``, ``wk.iws[0:7]``, ``wk.iws6[3]``.
     """
-    distribute_chain_core(state.rot, state.trans, state.bdiag, nodes, start, k, ra, ta, rb_new,
-                          tb_new, wk.chain_rot, wk.chain_w, wk.iws, wk.iws6)
+    chains = np.empty((1, 4), np.int64)
+    chains[0, 0] = start
+    chains[0, 1] = k
+    chains[0, 2:] = 0
+    distribute_chains(state.rot, state.trans, state.bdiag, nodes, chains, 1,
+                      ra.reshape((1, 3, 3)), ta.reshape((1, 3)), rb_new.reshape((1, 3, 3)),
+                      tb_new.reshape((1, 3)), wk.chain_rot, wk.chain_w, wk.iws, wk.iws6)
 
 
 @kernel
@@ -473,24 +492,20 @@ def distribute(prob: Problem, state: State, c: int, d: int, na: int, keep: np.nd
                nk: int, x: np.ndarray, t: float, wk: Workspace) -> None:
     """Apply the reduced step ``t x`` (kept node j: ``x[j]``) by distributing each kept node's
     desired pose change over its chain (path products ``wk.path_rot/trans`` from before the
-    step)."""
+    step; the chains are disjoint, so they are moved one after the other)."""
     s = prob.path_ptr[c]
     pr = wk.path_rot
     pt = wk.path_trans
     iws = wk.iws
-    rb = iws[7]
-    tb = iws[8][0]
     er = iws[9]
     tmp = iws[10]
-    eye = iws[EYE]
-    zero = iws[ZERO][0]
     path_node = prob.path_node
     rot = state.rot
     trans = state.trans
-    bdiag = state.bdiag
-    qr = wk.chain_rot
-    cw = wk.chain_w
-    iws6 = wk.iws6
+    chains = np.empty((nk, 4), np.int64)
+    bnr = np.empty((nk, 3, 3))
+    bnt = np.empty((nk, 3))
+    nch = 0
     for j in range(nk):
         p = keep[j]
         end = chain_end(d, na, keep, nk, j)
@@ -499,11 +514,15 @@ def distribute(prob: Problem, state: State, c: int, d: int, na: int, keep: np.nd
             i = path_node[s + p]
             retract_into(rot[i], trans[i], x[j], t, rot[i], trans[i], er, tmp)
             continue
-        ra, ta = chain_top(pr, pt, d, na, p, end, eye, zero)
         # b's desired pose (root frame): P_b Exp(t x_b), as a full update would move it
-        retract_into(pr[p], pt[p], x[j], t, rb, tb, er, tmp)
-        distribute_chain_core(rot, trans, bdiag, path_node, s + p, k, ra, ta, rb, tb, qr, cw,
-                              iws, iws6)
+        retract_into(pr[p], pt[p], x[j], t, bnr[nch], bnt[nch], er, tmp)
+        chains[nch, 0] = s + p
+        chains[nch, 1] = k
+        chains[nch, 2] = end if end < (na if p < na else d) else -1  # a: kept, or the root
+        chains[nch, 3] = nch
+        nch += 1
+    distribute_chains(rot, trans, state.bdiag, path_node, chains, nch, pr, pt, bnr, bnt,
+                      wk.chain_rot, wk.chain_w, iws, wk.iws6)
 
 
 # --------------------------------------------------------------------------- the update
