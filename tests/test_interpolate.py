@@ -8,7 +8,8 @@ from graphs import random_graph
 from scipy.spatial.transform import Rotation
 from tolerances import FLOAT64_IDENTITY
 
-from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver, solve_hybrid
+from hybridpgo._cost import retract_into
+from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver, _linearize, _step, solve_hybrid
 from hybridpgo.solvers.hybrid import _interpolate as ip
 from hybridpgo.solvers.hybrid.problem import State, new_workspace
 
@@ -157,6 +158,61 @@ def test_distribution_matches_a_numpy_twin(seed: int) -> None:
     np.testing.assert_allclose(g[:3, 3], tb_new, rtol=0, atol=1e-11)
     gram = np.einsum("kji,kjl->kil", state.rot, state.rot)
     np.testing.assert_allclose(gram, np.broadcast_to(np.eye(3), gram.shape), rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("d_max", [2, 5])
+def test_all_chains_at_once_equal_chain_by_chain(d_max: int) -> None:
+    """reduced_factors and distribute treat every merged chain of an update in one call; the
+    result is merged_block / distribute_chain applied chain by chain, bit for bit (d_max = 2:
+    both sides keep only their endpoint, whose chain reaches the root)."""
+    rng = np.random.default_rng(4)
+    solver = HybridSolver(_chain_graph(rng, n=60))
+    prob, state, tree = solver.problem, solver.state, solver.tree
+    lengths = tree.path_lengths()
+    c = int(np.argmax(lengths))
+    d = int(lengths[c])
+    s = int(prob.path_ptr[c])
+    wk, sub, keep = new_workspace(solver.dmax), new_workspace(d_max), np.empty(d_max, np.int64)
+    kr, na = _linearize.linearize(prob, c, state.rot, state.trans, wk, wk.jac)
+    assert 0 < na < d
+    _step.accumulate_blocks(prob, state, c, kr, wk.jac, 0.1, wk.lfac, wk.bc, False)
+    nk = ip.kept_positions(d, na, d_max, keep)
+    ip.reduced_factors(prob, state, c, d, na, kr, wk, keep, nk, 0.1, sub)
+    pr, pt = wk.path_rot.copy(), wk.path_trans.copy()
+    x = rng.normal(size=(nk, 6)) * 0.05
+    chains = []
+    roots = 0  # merged chains whose top parent is the root
+    for j in range(nk):
+        p = int(keep[j])
+        end = int(ip.chain_end(d, na, keep, nk, j))
+        if end < (na if p < na else d):
+            ra, ta = pr[end], pt[end]
+        else:  # the chain reaches the constraint's root
+            ra, ta = np.eye(3), np.zeros(3)
+        roots += end - p > 1 and not end < (na if p < na else d)
+        want = state.bdiag[prob.path_node[s + p]] - state.contrib[s + p]
+        if end - p > 1:
+            ip.merged_block(prob, state, prob.path_node, s + p, end - p, ra, ta, pr[p].copy(),
+                            pt[p].copy(), want, new_workspace(1))
+        assert np.array_equal(sub.w[j], want)
+        chains.append((p, end - p, ra, ta))
+    assert any(k > 1 for _, k, _, _ in chains)
+    assert roots >= 1 or d_max != 2
+    rot0, trans0 = state.rot.copy(), state.trans.copy()
+    before = state.trans.copy()
+    ip.distribute(prob, state, c, d, na, keep, nk, x, 0.7, wk)
+    twin = State(rot0, trans0, state.bdiag, state.contrib)
+    er, tmp = np.empty((3, 3)), np.empty((3, 3))
+    for j, (p, k, ra, ta) in enumerate(chains):
+        i = prob.path_node[s + p]
+        if k == 1:
+            retract_into(rot0[i], trans0[i], x[j], 0.7, rot0[i], trans0[i], er, tmp)
+            continue
+        rb, tb = np.empty((3, 3)), np.empty(3)
+        retract_into(pr[p], pt[p], x[j], 0.7, rb, tb, er, tmp)
+        ip.distribute_chain(twin, prob.path_node, s + p, k, ra, ta, rb, tb, new_workspace(d))
+    assert np.array_equal(state.rot, rot0) and np.array_equal(state.trans, trans0)
+    assert not np.array_equal(state.trans, before)  # the test can fail
 
 
 @pytest.mark.parametrize("gps", [0, 4])

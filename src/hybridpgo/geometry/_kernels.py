@@ -142,10 +142,37 @@ def edge_error_into(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.ndarr
     e[2] = t2 - 0.5 * x2 + c * y2
 
 
+# 3x3 matrices as row-major 9-tuples of floats: kept in registers, so the products below cost
+# no array views (each view or array argument of a Numba call costs an atomic reference-count
+# pair, more than the arithmetic).  ``_mul3`` sums in the order of :func:`mm3`: same results.
+M3 = tuple[float, float, float, float, float, float, float, float, float]
+
+
 @kernel
-def q_into(r0: float, r1: float, r2: float, p0: float, p1: float, p2: float,
-            w: np.ndarray, q: np.ndarray) -> None:
-    """Barfoot's Q(rho, phi) into q, exactly as geometry's ``_q_matrix``; w: >= 7 scratch."""
+def _mul3(a: M3, b: M3) -> M3:
+    """a @ b for row-major 9-tuples, summed as :func:`mm3` does."""
+    return (
+        a[0] * b[0] + a[1] * b[3] + a[2] * b[6],
+        a[0] * b[1] + a[1] * b[4] + a[2] * b[7],
+        a[0] * b[2] + a[1] * b[5] + a[2] * b[8],
+        a[3] * b[0] + a[4] * b[3] + a[5] * b[6],
+        a[3] * b[1] + a[4] * b[4] + a[5] * b[7],
+        a[3] * b[2] + a[4] * b[5] + a[5] * b[8],
+        a[6] * b[0] + a[7] * b[3] + a[8] * b[6],
+        a[6] * b[1] + a[7] * b[4] + a[8] * b[7],
+        a[6] * b[2] + a[7] * b[5] + a[8] * b[8],
+    )
+
+
+@kernel
+def _skew3(v0: float, v1: float, v2: float) -> M3:
+    """[v]x as a row-major 9-tuple (the entries of :func:`skew_into`)."""
+    return (0.0, -v2, v1, v2, 0.0, -v0, -v1, v0, 0.0)
+
+
+@kernel
+def _q_matrix3(r0: float, r1: float, r2: float, p0: float, p1: float, p2: float) -> M3:
+    """Barfoot's Q(rho, phi) as a row-major 9-tuple (see :func:`q_into`)."""
     th2 = p0 * p0 + p1 * p1 + p2 * p2
     th = math.sqrt(th2)
     if th < Q_SERIES_ANGLE:
@@ -161,32 +188,48 @@ def q_into(r0: float, r1: float, r2: float, p0: float, p1: float, p2: float,
         a1 = (th - s) / (th2 * th)
         a2 = (1.0 - 0.5 * th2 - c) / (th2 * th2)
         a3 = (th - s - th2 * th / 6.0) / (th2 * th2 * th)
-    rx = w[0]
-    px = w[1]
-    pr = w[2]
-    rp = w[3]
-    prp = w[4]
-    m1 = w[5]
-    m2 = w[6]
-    skew_into(r0, r1, r2, rx)
-    skew_into(p0, p1, p2, px)
-    mm3(px, rx, pr)
-    mm3(rx, px, rp)
-    mm3(pr, px, prp)
+    rx = _skew3(r0, r1, r2)
+    px = _skew3(p0, p1, p2)
+    pr = _mul3(px, rx)
+    rp = _mul3(rx, px)
+    prp = _mul3(pr, px)
     b4 = 0.5 * (a2 - 3.0 * a3)
+    m1 = _mul3(px, pr)
+    m2 = _mul3(rp, px)
+    m3 = _mul3(prp, px)
+    m4 = _mul3(px, prp)
+    return (
+        _q_entry(0, rx, pr, rp, prp, m1, m2, m3, m4, a1, a2, b4),
+        _q_entry(1, rx, pr, rp, prp, m1, m2, m3, m4, a1, a2, b4),
+        _q_entry(2, rx, pr, rp, prp, m1, m2, m3, m4, a1, a2, b4),
+        _q_entry(3, rx, pr, rp, prp, m1, m2, m3, m4, a1, a2, b4),
+        _q_entry(4, rx, pr, rp, prp, m1, m2, m3, m4, a1, a2, b4),
+        _q_entry(5, rx, pr, rp, prp, m1, m2, m3, m4, a1, a2, b4),
+        _q_entry(6, rx, pr, rp, prp, m1, m2, m3, m4, a1, a2, b4),
+        _q_entry(7, rx, pr, rp, prp, m1, m2, m3, m4, a1, a2, b4),
+        _q_entry(8, rx, pr, rp, prp, m1, m2, m3, m4, a1, a2, b4),
+    )
+
+
+@kernel
+def _q_entry(n: int, rx: M3, pr: M3, rp: M3, prp: M3, m1: M3, m2: M3, m3: M3, m4: M3,
+             a1: float, a2: float, b4: float) -> float:
+    """Entry n of Q, with the operations (and rounding) of the former array version."""
+    v = 0.5 * rx[n] + a1 * (pr[n] + rp[n] + prp[n]) + 3.0 * a2 * prp[n]
+    v -= a2 * (m1[n] + m2[n])
+    v -= b4 * (m3[n] + m4[n])
+    return v
+
+
+@kernel
+def q_into(r0: float, r1: float, r2: float, p0: float, p1: float, p2: float,
+           w: np.ndarray, q: np.ndarray) -> None:
+    """Barfoot's Q(rho, phi) into q, exactly as geometry's ``_q_matrix``; ``w`` is unused
+    (kept for the signature)."""
+    m = _q_matrix3(r0, r1, r2, p0, p1, p2)
     for i in range(3):
         for j in range(3):
-            q[i, j] = 0.5 * rx[i, j] + a1 * (pr[i, j] + rp[i, j] + prp[i, j]) + 3.0 * a2 * prp[i, j]
-    mm3(px, pr, m1)  # px pr
-    mm3(rp, px, m2)  # rp px
-    for i in range(3):
-        for j in range(3):
-            q[i, j] -= a2 * (m1[i, j] + m2[i, j])
-    mm3(prp, px, m1)
-    mm3(px, prp, m2)
-    for i in range(3):
-        for j in range(3):
-            q[i, j] -= b4 * (m1[i, j] + m2[i, j])
+            q[i, j] = m[3 * i + j]
 
 
 @kernel
@@ -199,18 +242,18 @@ def jr_inv_blocks(e: np.ndarray, w: np.ndarray) -> None:
     p1 = e[4]
     p2 = e[5]
     c = jl_inv_coeff(math.sqrt(p0 * p0 + p1 * p1 + p2 * p2))
-    jm = w[8]
-    km = w[9]
-    q = w[7]
-    px = w[0]
-    skew_into(p0, p1, p2, px)
-    mm3(px, px, w[1])
+    px = _skew3(p0, p1, p2)
+    px2 = _mul3(px, px)
+    jm = (
+        1.0 + 0.5 * px[0] + c * px2[0], 0.0 + 0.5 * px[1] + c * px2[1],
+        0.0 + 0.5 * px[2] + c * px2[2], 0.0 + 0.5 * px[3] + c * px2[3],
+        1.0 + 0.5 * px[4] + c * px2[4], 0.0 + 0.5 * px[5] + c * px2[5],
+        0.0 + 0.5 * px[6] + c * px2[6], 0.0 + 0.5 * px[7] + c * px2[7],
+        1.0 + 0.5 * px[8] + c * px2[8],
+    )
+    q = _q_matrix3(-e[0], -e[1], -e[2], -p0, -p1, -p2)
+    km = _mul3(jm, _mul3(q, jm))
     for i in range(3):
         for j in range(3):
-            jm[i, j] = (1.0 if i == j else 0.0) + 0.5 * px[i, j] + c * w[1][i, j]
-    q_into(-e[0], -e[1], -e[2], -p0, -p1, -p2, w, q)
-    mm3(q, jm, w[0])
-    mm3(jm, w[0], km)
-    for i in range(3):
-        for j in range(3):
-            km[i, j] = -km[i, j]
+            w[8, i, j] = jm[3 * i + j]
+            w[9, i, j] = -km[3 * i + j]

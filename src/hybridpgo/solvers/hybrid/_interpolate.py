@@ -31,9 +31,9 @@ from ..._cost import jr_inv_matrix, residual_and_jr_inv, retract_into
 from ..._numba import kernel
 from ...geometry._kernels import so3_log_into
 from ._dense import regularized_factor
-from ._linearize import linearize
-from ._step import accumulate_blocks, solve_single, step_temperature
-from .problem import Problem, State, Update, Workspace, domain
+from ._linearize import linearize, relative_linearization
+from ._step import accumulate_path, solve_single, step_temperature
+from .problem import EYE, ZERO, Problem, State, Update, Workspace, domain, is_gps
 
 
 # --------------------------------------------------------------------------- S_c
@@ -81,22 +81,100 @@ def chain_end(d: int, na: int, keep: np.ndarray, nk: int, j: int) -> int:
     return side_end
 
 
-@kernel
-def chain_top(pr: np.ndarray, pt: np.ndarray, d: int, na: int, p: int, end: int,
-              eye: np.ndarray, zero: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pose of the chain's top parent a in the constraint root's frame: the kept node at
-    position ``end``, or the root itself (``eye``, ``zero``) when the chain reaches the top."""
-    if end < (na if p < na else d):
-        return pr[end], pt[end]
-    return eye, zero
-
-
-
 
 # --------------------------------------------------------------------------- eq. 31-33
 # The kernels below never allocate and take a chain as ``nodes[start + n]``, n = 0 (b) ...
 # k-1 (the top, a's child): a slice of a constraint's path (single updates) or nodes collected
 # by walking up the tree (batches).
+@kernel
+def chain_measurement(link_c: np.ndarray, link_fwd: np.ndarray, edge_rot: np.ndarray,
+                      edge_trans: np.ndarray, edge_lt: np.ndarray, gps_pos: np.ndarray,
+                      gps_lt: np.ndarray, num_edges: int, rot: np.ndarray, nodes: np.ndarray,
+                      start: int, k: int, zr: np.ndarray, zt: np.ndarray, s_beta: np.ndarray,
+                      ws: np.ndarray, m: np.ndarray) -> None:
+    """:func:`merged_constraint` with the problem's arrays passed one by one."""
+    # ws[0]: R_{b, node}; ws[1]: R_{b, parent of node}; (ws[2], ws[3, 0]): the link's desired
+    # local transform; ws[4]: scratch (scalar indexing only: no view per node)
+    for i in range(3):
+        zt[i] = 0.0
+        for j in range(3):
+            ws[0, i, j] = 1.0 if i == j else 0.0
+            zr[i, j] = 1.0 if i == j else 0.0
+    for i in range(6):
+        for j in range(6):
+            s_beta[i, j] = 0.0
+    for n in range(k):
+        node = nodes[start + n]
+        c = link_c[node]
+        gps = c >= num_edges
+        forward = link_fwd[node] and not gps
+        if gps:
+            for i in range(3):
+                ws[3, 0, i] = gps_pos[c - num_edges, i]
+                for j in range(3):
+                    ws[2, i, j] = rot[node, i, j]
+        elif forward:
+            for i in range(3):
+                ws[3, 0, i] = edge_trans[c, i]
+                for j in range(3):
+                    ws[2, i, j] = edge_rot[c, i, j]
+        else:
+            for i in range(3):
+                ws[3, 0, i] = -(edge_rot[c, 0, i] * edge_trans[c, 0] + edge_rot[c, 1, i]
+                                * edge_trans[c, 1] + edge_rot[c, 2, i] * edge_trans[c, 2])
+                for j in range(3):
+                    ws[2, i, j] = edge_rot[c, j, i]
+        for i in range(3):
+            for j in range(3):
+                ws[1, i, j] = (ws[0, i, 0] * ws[2, j, 0] + ws[0, i, 1] * ws[2, j, 1]
+                               + ws[0, i, 2] * ws[2, j, 2])
+        f = 0 if forward else 1  # ws[f]: F
+        # M = L^T blockdiag(F, F)^T (a GPS link: 3 rows, translation only).  L^T is upper
+        # triangular, so rows 3..5 of a relative link are zero in columns 0..2: those entries
+        # are neither computed nor summed (their products are exact zeros)
+        rows = 3 if gps else 6
+        for q in range(rows):
+            for j in range(3):
+                if gps:
+                    l0 = gps_lt[c - num_edges, q, 0]
+                    l1 = gps_lt[c - num_edges, q, 1]
+                    l2 = gps_lt[c - num_edges, q, 2]
+                    m[q, 3 + j] = 0.0
+                    m[q, j] = l0 * ws[f, j, 0] + l1 * ws[f, j, 1] + l2 * ws[f, j, 2]
+                    continue
+                m[q, 3 + j] = (edge_lt[c, q, 3] * ws[f, j, 0]
+                               + edge_lt[c, q, 4] * ws[f, j, 1]
+                               + edge_lt[c, q, 5] * ws[f, j, 2])
+                if q < 3:
+                    m[q, j] = (edge_lt[c, q, 0] * ws[f, j, 0] + edge_lt[c, q, 1] * ws[f, j, 1]
+                               + edge_lt[c, q, 2] * ws[f, j, 2])
+        for i in range(6):
+            qmax = rows if i >= 3 else min(rows, 3)
+            for j in range(i, 6):
+                v = 0.0
+                for q in range(qmax):
+                    v += m[q, i] * m[q, j]
+                s_beta[i, j] += v
+        # p_β from b upwards: (zr, zt) <- (lr, lt) (zr, zt)
+        for i in range(3):
+            for j in range(3):
+                ws[4, i, j] = (ws[2, i, 0] * zr[0, j] + ws[2, i, 1] * zr[1, j]
+                               + ws[2, i, 2] * zr[2, j])
+        t0 = ws[2, 0, 0] * zt[0] + ws[2, 0, 1] * zt[1] + ws[2, 0, 2] * zt[2] + ws[3, 0, 0]
+        t1 = ws[2, 1, 0] * zt[0] + ws[2, 1, 1] * zt[1] + ws[2, 1, 2] * zt[2] + ws[3, 0, 1]
+        t2 = ws[2, 2, 0] * zt[0] + ws[2, 2, 1] * zt[1] + ws[2, 2, 2] * zt[2] + ws[3, 0, 2]
+        zt[0] = t0
+        zt[1] = t1
+        zt[2] = t2
+        for i in range(3):
+            for j in range(3):
+                zr[i, j] = ws[4, i, j]
+                ws[0, i, j] = ws[1, i, j]
+    for i in range(6):
+        for j in range(i):
+            s_beta[i, j] = s_beta[j, i]
+
+
 @kernel
 def merged_constraint(prob: Problem, state: State, nodes: np.ndarray, start: int, k: int,
                       zr: np.ndarray, zt: np.ndarray, s_beta: np.ndarray, ws: np.ndarray,
@@ -113,92 +191,59 @@ def merged_constraint(prob: Problem, state: State, nodes: np.ndarray, start: int
     written out because calls that pass the problem's arrays cost more than the arithmetic.
     ``ws`` (>= 5, 3, 3), ``m`` (6, 6) scratch.
     """
-    link_c = prob.link_constraint
-    link_fwd = prob.link_forward
-    edge_rot = prob.edge_rot
-    edge_trans = prob.edge_trans
-    edge_lt = prob.edge_lt
-    gps_pos = prob.gps_pos
-    gps_lt = prob.gps_lt
-    num_edges = prob.num_edges
-    rot = state.rot
-    cur = ws[0]  # R_{b, node}
-    nxt = ws[1]  # R_{b, parent of node}
-    lr = ws[2]  # desired local transform of the link (lr, lt_)
-    lt_ = ws[3][0]
-    tmp = ws[4]
-    for i in range(3):
-        zt[i] = 0.0
-        for j in range(3):
-            cur[i, j] = 1.0 if i == j else 0.0
-            zr[i, j] = 1.0 if i == j else 0.0
-    for i in range(6):
-        for j in range(6):
-            s_beta[i, j] = 0.0
-    for n in range(k):
-        node = nodes[start + n]
-        c = link_c[node]
-        gps = c >= num_edges
-        forward = link_fwd[node] and not gps
-        if gps:
-            for i in range(3):
-                lt_[i] = gps_pos[c - num_edges, i]
-                for j in range(3):
-                    lr[i, j] = rot[node, i, j]
-        elif forward:
-            for i in range(3):
-                lt_[i] = edge_trans[c, i]
-                for j in range(3):
-                    lr[i, j] = edge_rot[c, i, j]
-        else:
-            for i in range(3):
-                lt_[i] = -(edge_rot[c, 0, i] * edge_trans[c, 0] + edge_rot[c, 1, i]
-                           * edge_trans[c, 1] + edge_rot[c, 2, i] * edge_trans[c, 2])
-                for j in range(3):
-                    lr[i, j] = edge_rot[c, j, i]
-        for i in range(3):
-            for j in range(3):
-                nxt[i, j] = cur[i, 0] * lr[j, 0] + cur[i, 1] * lr[j, 1] + cur[i, 2] * lr[j, 2]
-        f = cur if forward else nxt
-        # M = L^T blockdiag(F, F)^T (a GPS link: 3 rows, translation only)
-        rows = 3 if gps else 6
-        for q in range(rows):
-            for j in range(3):
-                if gps:
-                    l0 = gps_lt[c - num_edges, q, 0]
-                    l1 = gps_lt[c - num_edges, q, 1]
-                    l2 = gps_lt[c - num_edges, q, 2]
-                    m[q, 3 + j] = 0.0
-                else:
-                    l0 = edge_lt[c, q, 0]
-                    l1 = edge_lt[c, q, 1]
-                    l2 = edge_lt[c, q, 2]
-                    m[q, 3 + j] = (edge_lt[c, q, 3] * f[j, 0] + edge_lt[c, q, 4] * f[j, 1]
-                                   + edge_lt[c, q, 5] * f[j, 2])
-                m[q, j] = l0 * f[j, 0] + l1 * f[j, 1] + l2 * f[j, 2]
-        for i in range(6):
-            for j in range(i, 6):
+    chain_measurement(prob.link_constraint, prob.link_forward, prob.edge_rot, prob.edge_trans,
+                      prob.edge_lt, prob.gps_pos, prob.gps_lt, prob.num_edges, state.rot, nodes,
+                      start, k, zr, zt, s_beta, ws, m)
+
+
+@kernel
+def merged_blocks(link_c: np.ndarray, link_fwd: np.ndarray, edge_rot: np.ndarray,
+                  edge_trans: np.ndarray, edge_lt: np.ndarray, gps_pos: np.ndarray,
+                  gps_lt: np.ndarray, num_edges: int, rot: np.ndarray, contrib: np.ndarray,
+                  path_ptr: np.ndarray, nodes: np.ndarray, chains: np.ndarray, nch: int,
+                  apr: np.ndarray, apt: np.ndarray, bpr: np.ndarray, bpt: np.ndarray,
+                  out: np.ndarray, iws: np.ndarray, iws6: np.ndarray, ws: np.ndarray) -> None:
+    """:func:`merged_block` for ``nch`` chains at once, with the arrays passed one by one
+    (one call per update: every call costs a reference-count pair per array argument).
+
+    Chain j is ``chains[j] = (start, k, ia, ib, io)``: nodes ``nodes[start:start + k]``, a's
+    pose ``(apr[ia], apt[ia])`` (the identity when ``ia < 0``), b's ``(bpr[ib], bpt[ib])``,
+    added into ``out[io]``.  ``iws``, ``iws6``, ``ws``: a workspace's fields of those names.
+    """
+    zr = iws[5]
+    zt = iws[6][0]
+    s_beta = iws6[0]
+    jri = iws6[1]
+    tm = iws6[2]
+    e = iws6[3][0]
+    for j in range(nch):
+        start = chains[j, 0]
+        k = chains[j, 1]
+        ia = chains[j, 2]
+        ib = chains[j, 3]
+        io = chains[j, 4]
+        chain_measurement(link_c, link_fwd, edge_rot, edge_trans, edge_lt, gps_pos, gps_lt,
+                          num_edges, rot, nodes, start, k, zr, zt, s_beta, iws, tm)
+        ra = iws[EYE] if ia < 0 else apr[ia]
+        ta = iws[ZERO][0] if ia < 0 else apt[ia]
+        residual_and_jr_inv(zr, zt, ra, ta, bpr[ib], bpt[ib], e, ws)
+        jr_inv_matrix(ws, jri)
+        for p in range(6):  # tm = S_β Jr^-1 (Jr^-1 is block upper triangular)
+            for q in range(6):
                 v = 0.0
-                for q in range(rows):
-                    v += m[q, i] * m[q, j]
-                s_beta[i, j] += v
-        # p_β from b upwards: (zr, zt) <- (lr, lt) (zr, zt)
-        for i in range(3):
-            for j in range(3):
-                tmp[i, j] = lr[i, 0] * zr[0, j] + lr[i, 1] * zr[1, j] + lr[i, 2] * zr[2, j]
-        t0 = lr[0, 0] * zt[0] + lr[0, 1] * zt[1] + lr[0, 2] * zt[2] + lt_[0]
-        t1 = lr[1, 0] * zt[0] + lr[1, 1] * zt[1] + lr[1, 2] * zt[2] + lt_[1]
-        t2 = lr[2, 0] * zt[0] + lr[2, 1] * zt[1] + lr[2, 2] * zt[2] + lt_[2]
-        zt[0] = t0
-        zt[1] = t1
-        zt[2] = t2
-        for i in range(3):
-            for j in range(3):
-                zr[i, j] = tmp[i, j]
-                cur[i, j] = nxt[i, j]
-    for i in range(6):
-        for j in range(i):
-            s_beta[i, j] = s_beta[j, i]
+                for m in range(6):
+                    v += s_beta[p, m] * jri[m, q]
+                tm[p, q] = v
+        b = nodes[start]
+        ob = path_ptr[link_c[b]]  # α's domain is {b}: its contribution is contrib[ob]
+        for p in range(6):
+            for q in range(p, 6):
+                v = 0.0
+                for m in range(6):
+                    v += jri[m, p] * tm[m, q]
+                out[io, p, q] += v - contrib[ob, p, q]
+                if q != p:
+                    out[io, q, p] += v - contrib[ob, q, p]
 
 
 @kernel
@@ -212,32 +257,15 @@ def merged_block(prob: Problem, state: State, nodes: np.ndarray, start: int, k: 
     frame.  ``J_β = L_β^T Jr^-1(e_β)``, ``e_β = Log(p_β^-1 T_{a,b})``, so
     ``J_β^T J_β = Jr^-T S_β Jr^-1``.  Scratch: ``wk.iws[0:7]``, ``wk.iws6``, ``wk.ws``.
     """
-    ws = wk.iws
-    zr = ws[5]
-    zt = ws[6][0]
-    s_beta = wk.iws6[0]
-    jri = wk.iws6[1]
-    tm = wk.iws6[2]
-    e = wk.iws6[3][0]
-    merged_constraint(prob, state, nodes, start, k, zr, zt, s_beta, ws, tm)
-    residual_and_jr_inv(zr, zt, ra, ta, rb, tb, e, wk.ws)
-    jr_inv_matrix(wk.ws, jri)
-    for p in range(6):  # tm = S_β Jr^-1 (Jr^-1 is block upper triangular)
-        for q in range(6):
-            v = 0.0
-            for m in range(6):
-                v += s_beta[p, m] * jri[m, q]
-            tm[p, q] = v
-    b = nodes[start]
-    old = state.contrib[prob.path_ptr[prob.link_constraint[b]]]  # α's domain is {b}
-    for p in range(6):
-        for q in range(p, 6):
-            v = 0.0
-            for m in range(6):
-                v += jri[m, p] * tm[m, q]
-            out[p, q] += v - old[p, q]
-            if q != p:
-                out[q, p] += v - old[q, p]
+    chains = np.empty((1, 5), np.int64)
+    chains[0, 0] = start
+    chains[0, 1] = k
+    chains[0, 2:] = 0
+    merged_blocks(prob.link_constraint, prob.link_forward, prob.edge_rot, prob.edge_trans,
+                  prob.edge_lt, prob.gps_pos, prob.gps_lt, prob.num_edges, state.rot,
+                  state.contrib, prob.path_ptr, nodes, chains, 1, ra.reshape((1, 3, 3)),
+                  ta.reshape((1, 3)), rb.reshape((1, 3, 3)), tb.reshape((1, 3)),
+                  out.reshape((1, 6, 6)), wk.iws, wk.iws6, wk.ws)
 
 
 @kernel
@@ -253,25 +281,31 @@ def reduced_factors(prob: Problem, state: State, c: int, d: int, na: int, kr: in
     pr = wk.path_rot
     pt = wk.path_trans
     bc = sub.w
-    eye = wk.iws[14]
-    zero = wk.iws[15][0]
-    for i in range(3):
-        zero[i] = 0.0
-        for j in range(3):
-            eye[i, j] = 1.0 if i == j else 0.0
+    sjac = sub.jac
+    bdiag = state.bdiag
+    contrib = state.contrib
+    path_node = prob.path_node
+    chains = np.empty((nk, 5), np.int64)
+    nch = 0
     for j in range(nk):
         p = keep[j]
-        i = prob.path_node[s + p]
-        old = state.contrib[s + p]
+        i = path_node[s + p]
         for q1 in range(6):
             for q2 in range(6):
-                bc[j, q1, q2] = state.bdiag[i, q1, q2] - old[q1, q2]
-                sub.jac[j, q1, q2] = jac[p, q1, q2]
+                bc[j, q1, q2] = bdiag[i, q1, q2] - contrib[s + p, q1, q2]
+                sjac[j, q1, q2] = jac[p, q1, q2]
         end = chain_end(d, na, keep, nk, j)
         if end - p > 1:  # b's parent is omitted: β replaces α
-            ra, ta = chain_top(pr, pt, d, na, p, end, eye, zero)
-            merged_block(prob, state, prob.path_node, s + p, end - p, ra, ta, pr[p], pt[p],
-                         bc[j], wk)
+            chains[nch, 0] = s + p
+            chains[nch, 1] = end - p
+            chains[nch, 2] = end if end < (na if p < na else d) else -1  # a: kept, or the root
+            chains[nch, 3] = p
+            chains[nch, 4] = j
+            nch += 1
+    merged_blocks(prob.link_constraint, prob.link_forward, prob.edge_rot, prob.edge_trans,
+                  prob.edge_lt, prob.gps_pos, prob.gps_lt, prob.num_edges, state.rot, contrib,
+                  prob.path_ptr, path_node, chains, nch, pr, pt, pr, pt, bc, wk.iws, wk.iws6,
+                  wk.ws)
     for j in range(nk):
         scale = 0.0
         for q in range(6):
@@ -293,6 +327,142 @@ def distribution_weights(bdiag_block: np.ndarray) -> tuple[float, float]:
 
 
 @kernel
+def node_weights(bdiag: np.ndarray, i: int) -> tuple[float, float]:
+    """:func:`distribution_weights` of node i's block of 𝔅(H) (no view)."""
+    wr = min(bdiag[i, 3, 3], bdiag[i, 4, 4], bdiag[i, 5, 5])
+    wt = min(bdiag[i, 0, 0], bdiag[i, 1, 1], bdiag[i, 2, 2])
+    return 1.0 / max(wr, 1e-300), 1.0 / max(wt, 1e-300)
+
+
+@kernel
+def distribute_chains(rot: np.ndarray, trans: np.ndarray, bdiag: np.ndarray,
+                      nodes: np.ndarray, chains: np.ndarray, nch: int, apr: np.ndarray,
+                      apt: np.ndarray, bpr: np.ndarray, bpt: np.ndarray, qr: np.ndarray,
+                      cw: np.ndarray, ws: np.ndarray, ws6: np.ndarray) -> None:
+    """:func:`distribute_chain` for ``nch`` chains at once (one call per update), the arrays
+    passed one by one; no view per node.
+
+    Chain j is ``chains[j] = (start, k, ia, ib)``: nodes ``nodes[start:start + k]``, a's pose
+    ``(apr[ia], apt[ia])`` (the identity when ``ia < 0``), b's desired pose
+    ``(bpr[ib], bpt[ib])``.  ``qr``, ``cw``, ``ws``, ``ws6``: a workspace's ``chain_rot``,
+    ``chain_w``, ``iws``, ``iws6``.
+    """
+    dr = ws[0]
+    dt = ws[1][0]
+    kx = ws[2]
+    k2 = ws[3]
+    ex = ws[4]
+    mm = ws[5]
+    gg = ws[6]
+    phi6 = ws6[3][0]
+    for jc in range(nch):
+        start = chains[jc, 0]
+        k = chains[jc, 1]
+        ia = chains[jc, 2]
+        ib = chains[jc, 3]
+        ra = ws[EYE] if ia < 0 else apr[ia]
+        ta = ws[ZERO][0] if ia < 0 else apt[ia]
+        rb_new = bpr[ib]
+        tb_new = bpt[ib]
+        # 0. current rotations relative to a, Q_j (top down), and the cumulative weights
+        for i in range(3):
+            for j in range(3):
+                qr[0, i, j] = 1.0 if i == j else 0.0
+        cw[0, 0] = 0.0
+        cw[0, 1] = 0.0
+        for j in range(1, k + 1):
+            i = nodes[start + k - j]
+            for p in range(3):
+                for q in range(3):
+                    qr[j, p, q] = (qr[j - 1, p, 0] * rot[i, 0, q] + qr[j - 1, p, 1] * rot[i, 1, q]
+                                   + qr[j - 1, p, 2] * rot[i, 2, q])
+            wr, wt = node_weights(bdiag, i)
+            cw[j, 0] = cw[j - 1, 0] + wr
+            cw[j, 1] = cw[j - 1, 1] + wt
+        # b's desired pose relative to a
+        for p in range(3):
+            dt[p] = (ra[0, p] * (tb_new[0] - ta[0]) + ra[1, p] * (tb_new[1] - ta[1])
+                     + ra[2, p] * (tb_new[2] - ta[2]))
+            for q in range(3):
+                dr[p, q] = (ra[0, p] * rb_new[0, q] + ra[1, p] * rb_new[1, q]
+                            + ra[2, p] * rb_new[2, q])
+        # rotation change of b in a's frame: Exp(phi) = R'_b Q_b^T
+        for p in range(3):
+            for q in range(3):
+                mm[p, q] = dr[p, 0] * qr[k, q, 0] + dr[p, 1] * qr[k, q, 1] + dr[p, 2] * qr[k, q, 2]
+        so3_log_into(mm, phi6)
+        px, py, pz = phi6[3], phi6[4], phi6[5]
+        th = math.sqrt(px * px + py * py + pz * pz)
+        kx[0, 0], kx[0, 1], kx[0, 2] = 0.0, -pz, py
+        kx[1, 0], kx[1, 1], kx[1, 2] = pz, 0.0, -px
+        kx[2, 0], kx[2, 1], kx[2, 2] = -py, px, 0.0
+        for p in range(3):
+            for q in range(3):
+                k2[p, q] = kx[p, 0] * kx[0, q] + kx[p, 1] * kx[1, q] + kx[p, 2] * kx[2, q]
+        # 1. rotations first: R''_j = Exp(f_j phi) Q_j (Rodrigues about the one axis); positions
+        # re-bent with the old locals: t''_k = sum_j R''_{j-1} t_j
+        w_r = cw[k, 0]
+        t0 = 0.0
+        t1 = 0.0
+        t2 = 0.0
+        for j in range(1, k + 1):
+            i = nodes[start + k - j]
+            t0 += (qr[j - 1, 0, 0] * trans[i, 0] + qr[j - 1, 0, 1] * trans[i, 1]
+                   + qr[j - 1, 0, 2] * trans[i, 2])
+            t1 += (qr[j - 1, 1, 0] * trans[i, 0] + qr[j - 1, 1, 1] * trans[i, 1]
+                   + qr[j - 1, 1, 2] * trans[i, 2])
+            t2 += (qr[j - 1, 2, 0] * trans[i, 0] + qr[j - 1, 2, 1] * trans[i, 1]
+                   + qr[j - 1, 2, 2] * trans[i, 2])
+            if j == k:  # the end reaches its desired rotation exactly
+                for p in range(3):
+                    for q in range(3):
+                        qr[k, p, q] = dr[p, q]
+                break
+            f = cw[j, 0] / w_r
+            a_th = f * th
+            if a_th < 1e-12:
+                ca = f
+                cb = 0.5 * f * f
+            else:
+                sh = math.sin(0.5 * a_th)
+                ca = math.sin(a_th) / th
+                cb = 2.0 * sh * sh / (th * th)
+            for p in range(3):
+                for q in range(3):
+                    ex[p, q] = (1.0 if p == q else 0.0) + ca * kx[p, q] + cb * k2[p, q]
+            for q in range(3):
+                c0 = qr[j, 0, q]
+                c1 = qr[j, 1, q]
+                c2 = qr[j, 2, q]
+                for p in range(3):
+                    qr[j, p, q] = ex[p, 0] * c0 + ex[p, 1] * c1 + ex[p, 2] * c2
+        # 2. then translations, linearly along the re-bent chain; new locals
+        e0 = dt[0] - t0
+        e1 = dt[1] - t1
+        e2 = dt[2] - t2
+        w_t = cw[k, 1]
+        for j in range(1, k + 1):
+            i = nodes[start + k - j]
+            g = (cw[j, 1] - cw[j - 1, 1]) / w_t
+            for p in range(3):
+                trans[i, p] += g * (qr[j - 1, 0, p] * e0 + qr[j - 1, 1, p] * e1
+                                    + qr[j - 1, 2, p] * e2)
+                for q in range(3):
+                    mm[p, q] = (qr[j - 1, 0, p] * qr[j, 0, q] + qr[j - 1, 1, p] * qr[j, 1, q]
+                                + qr[j - 1, 2, p] * qr[j, 2, q])
+            # one Newton step towards the polar factor (as the retraction does): products along
+            # long chains would otherwise let rounding grow
+            for p in range(3):
+                for q in range(3):
+                    gg[p, q] = mm[0, p] * mm[0, q] + mm[1, p] * mm[1, q] + mm[2, p] * mm[2, q]
+            for p in range(3):
+                for q in range(3):
+                    rot[i, p, q] = 0.5 * (3.0 * mm[p, q] - (mm[p, 0] * gg[0, q]
+                                                            + mm[p, 1] * gg[1, q]
+                                                            + mm[p, 2] * gg[2, q]))
+
+
+@kernel
 def distribute_chain(state: State, nodes: np.ndarray, start: int, k: int, ra: np.ndarray,
                      ta: np.ndarray, rb_new: np.ndarray, tb_new: np.ndarray,
                      wk: Workspace) -> None:
@@ -308,112 +478,13 @@ def distribute_chain(state: State, nodes: np.ndarray, start: int, k: int, ra: np
     towards orthonormal) and ``t_j + (g_j - g_{j-1}) R''_{j-1}^T dpos``.  O(k) scalar work, no
     allocation: ``wk.chain_rot``, ``wk.chain_w``, ``wk.iws[0:7]``, ``wk.iws6[3]``.
     """
-    rot = state.rot
-    trans = state.trans
-    qr = wk.chain_rot
-    cw = wk.chain_w
-    ws = wk.iws
-    dr = ws[0]
-    dt = ws[1][0]
-    kx = ws[2]
-    k2 = ws[3]
-    ex = ws[4]
-    mm = ws[5]
-    gg = ws[6]
-    phi6 = wk.iws6[3][0]
-    # 0. current rotations relative to a, Q_j (top down), and the cumulative weights
-    for i in range(3):
-        for j in range(3):
-            qr[0, i, j] = 1.0 if i == j else 0.0
-    cw[0, 0] = 0.0
-    cw[0, 1] = 0.0
-    for j in range(1, k + 1):
-        i = nodes[start + k - j]
-        r = rot[i]
-        for p in range(3):
-            for q in range(3):
-                qr[j, p, q] = (qr[j - 1, p, 0] * r[0, q] + qr[j - 1, p, 1] * r[1, q]
-                               + qr[j - 1, p, 2] * r[2, q])
-        wr, wt = distribution_weights(state.bdiag[i])
-        cw[j, 0] = cw[j - 1, 0] + wr
-        cw[j, 1] = cw[j - 1, 1] + wt
-    # b's desired pose relative to a
-    for p in range(3):
-        dt[p] = (ra[0, p] * (tb_new[0] - ta[0]) + ra[1, p] * (tb_new[1] - ta[1])
-                 + ra[2, p] * (tb_new[2] - ta[2]))
-        for q in range(3):
-            dr[p, q] = ra[0, p] * rb_new[0, q] + ra[1, p] * rb_new[1, q] + ra[2, p] * rb_new[2, q]
-    # rotation change of b in a's frame: Exp(phi) = R'_b Q_b^T
-    for p in range(3):
-        for q in range(3):
-            mm[p, q] = dr[p, 0] * qr[k, q, 0] + dr[p, 1] * qr[k, q, 1] + dr[p, 2] * qr[k, q, 2]
-    so3_log_into(mm, phi6)
-    px, py, pz = phi6[3], phi6[4], phi6[5]
-    th = math.sqrt(px * px + py * py + pz * pz)
-    kx[0, 0], kx[0, 1], kx[0, 2] = 0.0, -pz, py
-    kx[1, 0], kx[1, 1], kx[1, 2] = pz, 0.0, -px
-    kx[2, 0], kx[2, 1], kx[2, 2] = -py, px, 0.0
-    for p in range(3):
-        for q in range(3):
-            k2[p, q] = kx[p, 0] * kx[0, q] + kx[p, 1] * kx[1, q] + kx[p, 2] * kx[2, q]
-    # 1. rotations first: R''_j = Exp(f_j phi) Q_j (Rodrigues about the one axis); positions
-    # re-bent with the old locals: t''_k = sum_j R''_{j-1} t_j
-    w_r = cw[k, 0]
-    t0 = 0.0
-    t1 = 0.0
-    t2 = 0.0
-    for j in range(1, k + 1):
-        i = nodes[start + k - j]
-        tl = trans[i]
-        t0 += qr[j - 1, 0, 0] * tl[0] + qr[j - 1, 0, 1] * tl[1] + qr[j - 1, 0, 2] * tl[2]
-        t1 += qr[j - 1, 1, 0] * tl[0] + qr[j - 1, 1, 1] * tl[1] + qr[j - 1, 1, 2] * tl[2]
-        t2 += qr[j - 1, 2, 0] * tl[0] + qr[j - 1, 2, 1] * tl[1] + qr[j - 1, 2, 2] * tl[2]
-        if j == k:  # the end reaches its desired rotation exactly
-            for p in range(3):
-                for q in range(3):
-                    qr[k, p, q] = dr[p, q]
-            break
-        f = cw[j, 0] / w_r
-        a_th = f * th
-        if a_th < 1e-12:
-            ca = f
-            cb = 0.5 * f * f
-        else:
-            sh = math.sin(0.5 * a_th)
-            ca = math.sin(a_th) / th
-            cb = 2.0 * sh * sh / (th * th)
-        for p in range(3):
-            for q in range(3):
-                ex[p, q] = (1.0 if p == q else 0.0) + ca * kx[p, q] + cb * k2[p, q]
-        for q in range(3):
-            c0 = qr[j, 0, q]
-            c1 = qr[j, 1, q]
-            c2 = qr[j, 2, q]
-            for p in range(3):
-                qr[j, p, q] = ex[p, 0] * c0 + ex[p, 1] * c1 + ex[p, 2] * c2
-    # 2. then translations, linearly along the re-bent chain; new locals
-    e0 = dt[0] - t0
-    e1 = dt[1] - t1
-    e2 = dt[2] - t2
-    w_t = cw[k, 1]
-    for j in range(1, k + 1):
-        i = nodes[start + k - j]
-        g = (cw[j, 1] - cw[j - 1, 1]) / w_t
-        r0 = qr[j - 1]
-        r1 = qr[j]
-        for p in range(3):
-            trans[i, p] += g * (r0[0, p] * e0 + r0[1, p] * e1 + r0[2, p] * e2)
-            for q in range(3):
-                mm[p, q] = r0[0, p] * r1[0, q] + r0[1, p] * r1[1, q] + r0[2, p] * r1[2, q]
-        # one Newton step towards the polar factor (as the retraction does): products along
-        # long chains would otherwise let rounding grow
-        for p in range(3):
-            for q in range(3):
-                gg[p, q] = mm[0, p] * mm[0, q] + mm[1, p] * mm[1, q] + mm[2, p] * mm[2, q]
-        for p in range(3):
-            for q in range(3):
-                rot[i, p, q] = 0.5 * (3.0 * mm[p, q] - (mm[p, 0] * gg[0, q] + mm[p, 1] * gg[1, q]
-                                                        + mm[p, 2] * gg[2, q]))
+    chains = np.empty((1, 4), np.int64)
+    chains[0, 0] = start
+    chains[0, 1] = k
+    chains[0, 2:] = 0
+    distribute_chains(state.rot, state.trans, state.bdiag, nodes, chains, 1,
+                      ra.reshape((1, 3, 3)), ta.reshape((1, 3)), rb_new.reshape((1, 3, 3)),
+                      tb_new.reshape((1, 3)), wk.chain_rot, wk.chain_w, wk.iws, wk.iws6)
 
 
 @kernel
@@ -421,33 +492,37 @@ def distribute(prob: Problem, state: State, c: int, d: int, na: int, keep: np.nd
                nk: int, x: np.ndarray, t: float, wk: Workspace) -> None:
     """Apply the reduced step ``t x`` (kept node j: ``x[j]``) by distributing each kept node's
     desired pose change over its chain (path products ``wk.path_rot/trans`` from before the
-    step)."""
+    step; the chains are disjoint, so they are moved one after the other)."""
     s = prob.path_ptr[c]
     pr = wk.path_rot
     pt = wk.path_trans
-    rb = wk.iws[7]
-    tb = wk.iws[8][0]
-    er = wk.iws[9]
-    tmp = wk.iws[10]
-    eye = wk.iws[14]
-    zero = wk.iws[15][0]
-    for i in range(3):
-        zero[i] = 0.0
-        for j in range(3):
-            eye[i, j] = 1.0 if i == j else 0.0
+    iws = wk.iws
+    er = iws[9]
+    tmp = iws[10]
+    path_node = prob.path_node
+    rot = state.rot
+    trans = state.trans
+    chains = np.empty((nk, 4), np.int64)
+    bnr = np.empty((nk, 3, 3))
+    bnt = np.empty((nk, 3))
+    nch = 0
     for j in range(nk):
         p = keep[j]
         end = chain_end(d, na, keep, nk, j)
         k = end - p
         if k == 1:  # nothing omitted: the plain update of b's local transform
-            i = prob.path_node[s + p]
-            retract_into(state.rot[i], state.trans[i], x[j], t, state.rot[i], state.trans[i],
-                         er, tmp)
+            i = path_node[s + p]
+            retract_into(rot[i], trans[i], x[j], t, rot[i], trans[i], er, tmp)
             continue
-        ra, ta = chain_top(pr, pt, d, na, p, end, eye, zero)
         # b's desired pose (root frame): P_b Exp(t x_b), as a full update would move it
-        retract_into(pr[p], pt[p], x[j], t, rb, tb, er, tmp)
-        distribute_chain(state, prob.path_node, s + p, k, ra, ta, rb, tb, wk)
+        retract_into(pr[p], pt[p], x[j], t, bnr[nch], bnt[nch], er, tmp)
+        chains[nch, 0] = s + p
+        chains[nch, 1] = k
+        chains[nch, 2] = end if end < (na if p < na else d) else -1  # a: kept, or the root
+        chains[nch, 3] = nch
+        nch += 1
+    distribute_chains(rot, trans, state.bdiag, path_node, chains, nch, pr, pt, bnr, bnt,
+                      wk.chain_rot, wk.chain_w, iws, wk.iws6)
 
 
 # --------------------------------------------------------------------------- the update
@@ -460,9 +535,18 @@ def relax_interpolated(prob: Problem, state: State, wk: Workspace, sub: Workspac
     ``wk`` must hold the whole domain, ``sub`` and ``keep`` ``d_max`` nodes.  Returns an
     ``Update`` like :func:`~._step.relax`.  Allocation-free apart from the solve's 6x6 scratch.
     """
-    _s, d = domain(prob, c)
-    kr, na = linearize(prob, c, state.rot, state.trans, wk, wk.jac)
-    accumulate_blocks(prob, state, c, kr, wk.jac, mu, wk.lfac, wk.bc, False)
+    s, d = domain(prob, c)
+    if is_gps(prob, c):
+        kr, na = linearize(prob, c, state.rot, state.trans, wk, wk.jac)
+    else:
+        kr = 6
+        na = relative_linearization(prob.path_node, prob.path_sign, s, d, prob.edge_rot[c],
+                                    prob.edge_trans[c], prob.edge_lt[c], prob.robust_kind,
+                                    prob.robust_scale, state.rot, state.trans, wk.path_rot,
+                                    wk.path_trans, wk.iws, wk.ws, wk.e, wk.r, wk.jri, wk.a,
+                                    wk.jac)
+    accumulate_path(prob.path_node, s, d, kr, wk.jac, state.bdiag, state.contrib, mu, wk.lfac,
+                    wk.bc, False)
     nk = kept_positions(d, na, d_max, keep)
     reduced_factors(prob, state, c, d, na, kr, wk, keep, nk, mu, sub)
     for i in range(6):

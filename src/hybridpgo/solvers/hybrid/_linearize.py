@@ -27,7 +27,7 @@ from ..._cost import (
     whiten_rows,
 )
 from ..._numba import kernel
-from .problem import Problem, Workspace, domain, is_gps
+from .problem import EYE, ZERO, Problem, Workspace, domain, is_gps
 
 
 @kernel
@@ -52,6 +52,30 @@ def num_a_side(prob: Problem, c: int) -> int:
 
 
 @kernel
+def chain_products(path_node: np.ndarray, s: int, lo: int, hi: int, rot: np.ndarray,
+                   trans: np.ndarray, pr: np.ndarray, pt: np.ndarray) -> None:
+    """``P_k = P_{k+1} X_{path[k]}`` for ``k = hi-1 .. lo`` (``P_{hi-1}`` its local transform).
+
+    Scalar indexing only: a view or an array argument per node costs a reference-count pair
+    (an atomic operation), more than the 3x3 product itself.
+    """
+    for k in range(hi - 1, lo - 1, -1):
+        i = path_node[s + k]
+        if k == hi - 1:
+            for p in range(3):
+                pt[k, p] = trans[i, p]
+                for q in range(3):
+                    pr[k, p, q] = rot[i, p, q]
+            continue
+        for p in range(3):
+            for q in range(3):
+                pr[k, p, q] = (pr[k + 1, p, 0] * rot[i, 0, q] + pr[k + 1, p, 1] * rot[i, 1, q]
+                               + pr[k + 1, p, 2] * rot[i, 2, q])
+            pt[k, p] = (pr[k + 1, p, 0] * trans[i, 0] + pr[k + 1, p, 1] * trans[i, 1]
+                        + pr[k + 1, p, 2] * trans[i, 2] + pt[k + 1, p])
+
+
+@kernel
 def path_products(prob: Problem, c: int, rot: np.ndarray, trans: np.ndarray,
                   pr: np.ndarray, pt: np.ndarray) -> int:
     """P_k = X_root^-1 X_{path[k]} for every domain node k (into ``pr``, ``pt``); returns n_a.
@@ -60,14 +84,8 @@ def path_products(prob: Problem, c: int, rot: np.ndarray, trans: np.ndarray,
     """
     s, d = domain(prob, c)
     na = num_a_side(prob, c)
-    for lo, hi in ((0, na), (na, d)):  # the a side (top at na-1), then the b side (top at d-1)
-        for k in range(hi - 1, lo - 1, -1):
-            i = prob.path_node[s + k]
-            if k == hi - 1:
-                pr[k] = rot[i]
-                pt[k] = trans[i]
-            else:
-                mul_pose_into(pr[k + 1], pt[k + 1], rot[i], trans[i], pr[k], pt[k])
+    chain_products(prob.path_node, s, 0, na, rot, trans, pr, pt)  # the a side (top at na-1)
+    chain_products(prob.path_node, s, na, d, rot, trans, pr, pt)  # the b side (top at d-1)
     return na
 
 
@@ -93,42 +111,38 @@ def endpoints(
 
 
 @kernel
-def _relative_blocks(prob: Problem, c: int, rb: np.ndarray, tb: np.ndarray, wk: Workspace,
-                     jac: np.ndarray) -> None:
+def relative_blocks(path_sign: np.ndarray, s: int, d: int, rb: np.ndarray, tb: np.ndarray,
+                    pr: np.ndarray, pt: np.ndarray, a: np.ndarray, sc: np.ndarray,
+                    jac: np.ndarray) -> None:
     """``jac[k] = s_k A Ad(M_k)`` with ``A = L^T Jr^-1(e0)``, ``M_k = X_b^-1 X_k = P_b^-1 P_k``
-    (``rb, tb``: X_b in the constraint root's frame)."""
-    s, d = domain(prob, c)
-    pr = wk.path_rot
-    pt = wk.path_trans
-    a = wk.a
-    rm = wk.ws[0]
-    tx = wk.ws[1]
-    tm = wk.ws[2][0]
+    (``rb, tb``: X_b in the constraint root's frame; ``sc`` (>= 3, 3, 3) scratch).  Scalar
+    indexing only (no view per node)."""
     for k in range(d):
-        # Ad(M_k) = [[R, [t]x R], [0, R]]
+        # Ad(M_k) = [[R, [t]x R], [0, R]]: R -> sc[0], [t]x R -> sc[1], t -> sc[2, 0]
         for i in range(3):
-            tm[i] = (
+            sc[2, 0, i] = (
                 rb[0, i] * (pt[k, 0] - tb[0])
                 + rb[1, i] * (pt[k, 1] - tb[1])
                 + rb[2, i] * (pt[k, 2] - tb[2])
             )
             for j in range(3):
-                rm[i, j] = rb[0, i] * pr[k, 0, j] + rb[1, i] * pr[k, 1, j] + rb[2, i] * pr[k, 2, j]
-        for j in range(3):  # tx = [tm]x rm
-            tx[0, j] = tm[1] * rm[2, j] - tm[2] * rm[1, j]
-            tx[1, j] = tm[2] * rm[0, j] - tm[0] * rm[2, j]
-            tx[2, j] = tm[0] * rm[1, j] - tm[1] * rm[0, j]
-        sg = float(prob.path_sign[s + k])
+                sc[0, i, j] = (rb[0, i] * pr[k, 0, j] + rb[1, i] * pr[k, 1, j]
+                               + rb[2, i] * pr[k, 2, j])
+        for j in range(3):  # [tm]x rm
+            sc[1, 0, j] = sc[2, 0, 1] * sc[0, 2, j] - sc[2, 0, 2] * sc[0, 1, j]
+            sc[1, 1, j] = sc[2, 0, 2] * sc[0, 0, j] - sc[2, 0, 0] * sc[0, 2, j]
+            sc[1, 2, j] = sc[2, 0, 0] * sc[0, 1, j] - sc[2, 0, 1] * sc[0, 0, j]
+        sg = float(path_sign[s + k])
         for p in range(6):
             for j in range(3):
-                v0 = a[p, 0] * rm[0, j] + a[p, 1] * rm[1, j] + a[p, 2] * rm[2, j]
+                v0 = a[p, 0] * sc[0, 0, j] + a[p, 1] * sc[0, 1, j] + a[p, 2] * sc[0, 2, j]
                 v1 = (
-                    a[p, 0] * tx[0, j]
-                    + a[p, 1] * tx[1, j]
-                    + a[p, 2] * tx[2, j]
-                    + a[p, 3] * rm[0, j]
-                    + a[p, 4] * rm[1, j]
-                    + a[p, 5] * rm[2, j]
+                    a[p, 0] * sc[1, 0, j]
+                    + a[p, 1] * sc[1, 1, j]
+                    + a[p, 2] * sc[1, 2, j]
+                    + a[p, 3] * sc[0, 0, j]
+                    + a[p, 4] * sc[0, 1, j]
+                    + a[p, 5] * sc[0, 2, j]
                 )
                 jac[k, p, j] = sg * v0
                 jac[k, p, 3 + j] = sg * v1
@@ -165,6 +179,51 @@ def _gps_blocks(prob: Problem, c: int, wk: Workspace, jac: np.ndarray) -> None:
 
 
 @kernel
+def relative_linearization(path_node: np.ndarray, path_sign: np.ndarray, s: int, d: int,
+                           zr: np.ndarray, zt: np.ndarray, lt: np.ndarray, robust_kind: int,
+                           robust_scale: float, rot: np.ndarray, trans: np.ndarray,
+                           pr: np.ndarray, pt: np.ndarray, iws: np.ndarray, ws: np.ndarray,
+                           e: np.ndarray, r: np.ndarray, jri: np.ndarray, a: np.ndarray,
+                           jac: np.ndarray) -> int:
+    """:func:`linearize` of a relative constraint (measurement ``zr, zt``, whitening ``lt``)
+    whose domain is ``path_node[s:s + d]``, with a :class:`~.problem.Workspace`'s fields
+    passed one by one (``iws[EYE]``, ``iws[ZERO][0]``: the identity); returns n_a.
+
+    The update kernels call this instead of :func:`linearize`: every array a Numba call
+    receives (each field of a NamedTuple included) costs an atomic reference-count pair, so
+    the hot path passes only the arrays it needs.
+    """
+    na = 0
+    while na < d and path_sign[s + na] < 0:
+        na += 1
+    chain_products(path_node, s, 0, na, rot, trans, pr, pt)  # the a side (top at na-1)
+    chain_products(path_node, s, na, d, rot, trans, pr, pt)  # the b side (top at d-1)
+    # endpoints in the root's frame: an empty side is the root itself (the identity)
+    ra = iws[EYE]
+    ta = iws[ZERO][0]
+    if na > 0:
+        ra = pr[0]
+        ta = pt[0]
+    rb = iws[EYE]
+    tb = iws[ZERO][0]
+    if na < d:
+        rb = pr[na]
+        tb = pt[na]
+    residual_and_jr_inv(zr, zt, ra, ta, rb, tb, e, ws)
+    jr_inv_matrix(ws, jri)
+    whiten_residual(lt, e, 6, r)
+    whiten_rows(lt, jri, 6, a)
+    if robust_kind != ROBUST_NONE:  # whiten with sqrt(w) L^T (DESIGN §10)
+        sw = robust_whitening(robust_kind, robust_scale, r, 6)
+        for p in range(6):
+            r[p] *= sw
+            for j in range(6):
+                a[p, j] *= sw
+    relative_blocks(path_sign, s, d, rb, tb, pr, pt, a, ws, jac)
+    return na
+
+
+@kernel
 def linearize(prob: Problem, c: int, rot: np.ndarray, trans: np.ndarray, wk: Workspace,
               jac: np.ndarray) -> tuple[int, int]:
     """Whitened Jacobian blocks ``jac[k, :kr, :]`` and residual ``wk.r[:kr]`` (= -L^T e0).
@@ -173,23 +232,14 @@ def linearize(prob: Problem, c: int, rot: np.ndarray, trans: np.ndarray, wk: Wor
     Leaves the path products in ``wk.path_rot/path_trans``; for a relative constraint also
     ``e0`` in ``wk.e``, ``Jr^-1(e0)`` in ``wk.jri`` and ``L^T Jr^-1(e0)`` in ``wk.a``.
     """
-    _s, d = domain(prob, c)
-    na = path_products(prob, c, rot, trans, wk.path_rot, wk.path_trans)
+    s, d = domain(prob, c)
     if not is_gps(prob, c):
-        ra, ta, rb, tb = endpoints(wk.path_rot, wk.path_trans, na, d)
-        residual_and_jr_inv(prob.edge_rot[c], prob.edge_trans[c], ra, ta, rb, tb, wk.e, wk.ws)
-        jr_inv_matrix(wk.ws, wk.jri)
-        lt = prob.edge_lt[c]
-        whiten_residual(lt, wk.e, 6, wk.r)
-        whiten_rows(lt, wk.jri, 6, wk.a)
-        if prob.robust_kind != ROBUST_NONE:  # whiten with sqrt(w) L^T (DESIGN §10)
-            sw = robust_whitening(prob.robust_kind, prob.robust_scale, wk.r, 6)
-            for p in range(6):
-                wk.r[p] *= sw
-                for j in range(6):
-                    wk.a[p, j] *= sw
-        _relative_blocks(prob, c, rb, tb, wk, jac)
+        na = relative_linearization(prob.path_node, prob.path_sign, s, d, prob.edge_rot[c],
+                                    prob.edge_trans[c], prob.edge_lt[c], prob.robust_kind,
+                                    prob.robust_scale, rot, trans, wk.path_rot,
+                                    wk.path_trans, wk.iws, wk.ws, wk.e, wk.r, wk.jri, wk.a, jac)
         return 6, na
+    na = path_products(prob, c, rot, trans, wk.path_rot, wk.path_trans)
     g = c - prob.num_edges
     gps_residual(wk.path_trans[0], prob.gps_pos[g], wk.e)  # the earth is the identity
     whiten_residual(prob.gps_lt[g], wk.e, 3, wk.r)

@@ -101,14 +101,27 @@ class Workspace(NamedTuple):
     chain_w: FloatArray
     """(d + 1, 2) cumulative rotational / translational distribution weights along a chain."""
     iws: FloatArray
-    """(16, 3, 3) scratch of interpolated solving."""
+    """(16, 3, 3) scratch of interpolated solving; ``iws[EYE]`` is the identity and
+    ``iws[ZERO]`` zero, constant (never written after :func:`new_workspace`)."""
     iws6: FloatArray
     """(4, 6, 6) scratch of interpolated solving."""
+    sv: FloatArray
+    """(2, 6) vectors of the Woodbury solve."""
+
+
+#: Constant slots of ``Workspace.iws``: the (3, 3) identity and a (3, 3) zero.
+EYE = 14
+ZERO = 15
 
 
 @kernel
 def new_workspace(capacity: int) -> Workspace:
     """A workspace for domains of up to ``capacity`` nodes."""
+    iws = np.empty((16, 3, 3))
+    iws[ZERO] = 0.0
+    iws[EYE] = 0.0
+    for i in range(3):
+        iws[EYE, i, i] = 1.0
     return Workspace(
         np.empty((capacity, 3, 3)),
         np.empty((capacity, 3)),
@@ -124,8 +137,9 @@ def new_workspace(capacity: int) -> Workspace:
         np.empty((SCRATCH, 3, 3)),
         np.empty((capacity + 1, 3, 3)),
         np.empty((capacity + 1, 2)),
-        np.empty((16, 3, 3)),
+        iws,
         np.empty((4, 6, 6)),
+        np.empty((2, 6)),
     )
 
 
