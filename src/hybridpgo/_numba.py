@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import os
 import pathlib
 import threading
 import time
@@ -44,7 +45,32 @@ def kernel(fn: F) -> F:
     throw-away versions for the constant a variable starts with (``nbuf = 0``), each with its
     whole call tree.  LLVM still sees the constant after inlining, so the runtime is the same.
     """
-    return _widen_literals(numba.njit(**_OPTIONS)(fn))  # type: ignore[no-any-return]
+    return _at_opt_level(_widen_literals(numba.njit(**_OPTIONS)(fn)))  # type: ignore[no-any-return]
+
+
+#: LLVM optimization level of the package's kernels (Numba's default is 3).
+OPT_LEVEL = int(os.environ.get("HYBRIDPGO_OPT", "1"))
+
+
+def _at_opt_level(dispatcher: Any) -> Any:
+    """Compile ``dispatcher`` (and what it compiles in turn) at LLVM ``-O{OPT_LEVEL}``, unless
+    the user set ``NUMBA_OPT``."""
+    compile_sig = dispatcher.compile
+
+    def compile(sig: Any) -> Any:
+        from numba.core import config
+
+        saved = getattr(config, "OPT", None)
+        if saved is None or "NUMBA_OPT" in os.environ or int(saved) == OPT_LEVEL:
+            return compile_sig(sig)
+        setattr(config, "OPT", type(saved)(OPT_LEVEL))  # noqa: B010 (Numba's _OptLevel, an int)
+        try:
+            return compile_sig(sig)
+        finally:
+            setattr(config, "OPT", saved)  # noqa: B010
+
+    dispatcher.compile = compile
+    return dispatcher
 
 
 def _widen_literals(dispatcher: Any) -> Any:

@@ -160,8 +160,9 @@ def sweep(prob: Problem, state: State, order: np.ndarray, tau: float, mu: float,
 
 
 def _run(kern: Any, prob: Problem, state: State, order: np.ndarray, tau: float, mu: float,
-         step_kind: int, gps_batch_size: int, dmax: int, d_max: int, deadline: np.uint64,
-         cycles: np.ndarray, batch_cycles: np.ndarray, counts: np.ndarray, apply: bool) -> int:
+         step_kind: int, gps_batch_size: int, dmax: int, d_max: int,
+         deadline: int | np.uint64, cycles: np.ndarray, batch_cycles: np.ndarray,
+         counts: np.ndarray, apply: bool) -> int:
     """Call a sweep kernel with normalized argument types, so each variant is compiled for one
     signature only: a writable ``order`` (``step``) and the tree's read-only one (``run``), an
     IntEnum step kind or a NumPy integer would each compile the whole sweep again."""
