@@ -16,7 +16,6 @@ import subprocess
 import sys
 
 import numpy as np
-import pytest
 
 import hybridpgo
 
@@ -28,46 +27,60 @@ import json, sys
 import numpy as np
 sys.path.insert(0, sys.argv[1])
 from graphs import random_graph
-from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver
-from hybridpgo.solvers.hybrid import _batch, _interpolate, _sweep
+from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver, _sweep
 
-graph = random_graph(np.random.default_rng(0), 12, 8, gps=int(sys.argv[2]))[0]
-solver = HybridSolver(graph, HybridConfig(sweeps=2))
-solver.run()
-solver.step(np.arange(solver.num_constraints)[::-1].copy())  # a writable order, numpy ints
-solver.rebuild_blocks()
-print(json.dumps({
-    "gps": int(graph.num_gps),
-    "sweeps": {f"{g:d}{i:d}": len(k.signatures) for (g, i), k in _sweep.SWEEPS.items()},
-    "flush": len(_sweep._flush.signatures),
-    "batch_relax": len(_batch.batch_relax.signatures),
-    "relax_interpolated": len(_interpolate.relax_interpolated.signatures),
-}))
+def signatures():
+    return {f"{g:d}{i:d}": len(k.signatures) for (g, i), k in _sweep.SWEEPS.items()}
+
+out = []
+for gps in (0, 3):
+    graph = random_graph(np.random.default_rng(0), 12, 8, gps=gps)[0]
+    solver = HybridSolver(graph, HybridConfig(sweeps=2))
+    solver.run()
+    solver.step(np.arange(solver.num_constraints)[::-1].copy())  # a writable order
+    solver.rebuild_blocks()
+    out.append(signatures())
+print(json.dumps(out))
 """
 
 
-def _compiled(gps: int) -> dict[str, object]:
+def _referenced_globals(kern: object) -> set[str]:
+    """Globals a kernel's reachable code uses after Numba's dead-branch pruning (the pass that
+    runs before typing: a callee named only in a pruned branch is never compiled)."""
+    from numba.core import analysis, compiler, ir, types
+
+    fir = compiler.run_frontend(kern.py_func)  # type: ignore[attr-defined]
+    analysis.dead_branch_prune(fir, [types.unknown] * fir.arg_count)
+    dead = set(analysis.compute_cfg_from_blocks(fir.blocks).dead_nodes())
+    return {stmt.value.name for label, blk in fir.blocks.items() if label not in dead
+            for stmt in blk.find_insts(ir.Assign)
+            if isinstance(stmt.value, ir.Global | ir.FreeVar)}
+
+
+def test_each_sweep_variant_calls_only_what_it_needs() -> None:
+    """The plain sweep never reaches the GPS batches (``_flush`` -> ``batch_relax``) or
+    ``relax_interpolated``, together about two thirds of the hybrid compile time."""
+    from hybridpgo.solvers.hybrid import _sweep
+
+    heavy = {"_flush", "relax_interpolated"}
+    for (gps, interp), kern in _sweep.SWEEPS.items():
+        used = _referenced_globals(kern)
+        assert "relax" in used
+        expected = {name for name, on in (("_flush", gps), ("relax_interpolated", interp)) if on}
+        assert used & heavy == expected, (gps, interp)
+
+
+def test_a_solve_compiles_only_the_sweep_variant_it_uses() -> None:
+    """Checked in a fresh interpreter (this one may have compiled every variant): a graph
+    without GPS runs one plain sweep kernel with one signature for run(), step() and
+    rebuild_blocks(); a GPS graph adds the GPS variant; neither the interpolating ones."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(SRC), os.environ.get("PYTHONPATH", "")]))
     env.pop("NUMBA_DISABLE_JIT", None)
-    out = subprocess.run([sys.executable, "-c", SCRIPT, str(TESTS), str(gps)], env=env,
-                         check=True, capture_output=True, text=True).stdout
-    result: dict[str, object] = json.loads(out.strip().splitlines()[-1])
-    return result
-
-
-@pytest.mark.parametrize("gps", [0, 3])
-def test_a_solve_compiles_only_the_sweep_variant_it_uses(gps: int) -> None:
-    got = _compiled(gps)
-    assert got["gps"] == gps
-    if gps:
-        # the plain variant builds the blocks, the GPS variant sweeps; no interpolation
-        assert got["sweeps"] == {"00": 1, "01": 0, "10": 1, "11": 0}
-        assert got["flush"] == 1 and got["batch_relax"] == 1
-    else:
-        # one plain sweep kernel for run(), step() and rebuild_blocks(): one signature only
-        assert got["sweeps"] == {"00": 1, "01": 0, "10": 0, "11": 0}
-        assert got["flush"] == 0 and got["batch_relax"] == 0
-    assert got["relax_interpolated"] == 0
+    out = subprocess.run([sys.executable, "-c", SCRIPT, str(TESTS)], env=env, check=True,
+                         capture_output=True, text=True).stdout
+    no_gps, with_gps = json.loads(out.strip().splitlines()[-1])
+    assert no_gps == {"00": 1, "01": 0, "10": 0, "11": 0}
+    assert with_gps == {"00": 1, "01": 0, "10": 1, "11": 0}
 
 
 def test_every_sweep_variant_gives_the_plain_sweeps_result_without_gps_and_dmax() -> None:
