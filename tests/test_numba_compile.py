@@ -58,16 +58,21 @@ def _referenced_globals(kern: object) -> set[str]:
 
 
 def test_each_sweep_variant_calls_only_what_it_needs() -> None:
-    """The plain sweep never reaches the GPS batches (``_flush`` -> ``batch_relax``) or
-    ``relax_interpolated``, together about two thirds of the hybrid compile time."""
-    from hybridpgo.solvers.hybrid import _sweep
+    """The plain sweep never reaches the GPS batches (``_flush*`` -> ``batch_relax*``) or
+    ``relax_interpolated``, together about two thirds of the hybrid compile time; a GPS sweep
+    without ``d_max`` never the interpolated batch (``_reduced_batch``)."""
+    from hybridpgo.solvers.hybrid import _batch, _sweep
 
-    heavy = {"_flush", "relax_interpolated"}
+    heavy = {"_flush", "_flush_exact", "relax_interpolated"}
     for (gps, interp), kern in _sweep.SWEEPS.items():
         used = _referenced_globals(kern)
         assert "relax" in used
-        expected = {name for name, on in (("_flush", gps), ("relax_interpolated", interp)) if on}
+        flush = ("_flush" if interp else "_flush_exact") if gps else None
+        expected = {name for name in (flush, "relax_interpolated" if interp else None) if name}
         assert used & heavy == expected, (gps, interp)
+    assert "batch_relax_exact" in _referenced_globals(_sweep._flush_exact)
+    assert "_reduced_batch" not in _referenced_globals(_batch.batch_relax_exact)
+    assert "_reduced_batch" in _referenced_globals(_batch.batch_relax)
 
 
 def test_a_solve_compiles_only_the_sweep_variant_it_uses() -> None:
@@ -85,7 +90,8 @@ def test_a_solve_compiles_only_the_sweep_variant_it_uses() -> None:
 
 def test_every_sweep_variant_gives_the_plain_sweeps_result_without_gps_and_dmax() -> None:
     """Pruning a variant's branches changes no arithmetic: on a graph without GPS and with
-    ``d_max`` = 0 the plain and the interpolating variant give bit-identical poses."""
+    ``d_max`` = 0 the plain and the interpolating variant give bit-identical poses (the GPS
+    variants against each other: tests/test_interpolate_batch.py, d_max >= the union)."""
     from graphs import random_graph
 
     from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver, _sweep

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from ..._numba import cycle_counter, kernel
-from ._batch import batch_relax
+from ._batch import batch_relax, batch_relax_exact
 from ._interpolate import relax_interpolated
 from ._step import relax
 from .problem import (
@@ -62,11 +62,33 @@ def _flush(prob: Problem, state: State, buf: np.ndarray, nbuf: int, tau: float, 
     return False
 
 
+
+@kernel
+def _flush_exact(prob: Problem, state: State, buf: np.ndarray, nbuf: int, tau: float, mu: float,
+                 slot: np.ndarray, xb: np.ndarray, nodes: np.ndarray, cycles: np.ndarray,
+                 batch_cycles: np.ndarray, counts: np.ndarray) -> bool:
+    """:func:`_flush` without interpolated solving (``batch_relax_exact``: compiles less)."""
+    t0 = cycle_counter()
+    nu = batch_relax_exact(prob, state, buf, nbuf, tau, mu, slot, xb, nodes)
+    dc = cycle_counter() - t0
+    if dc > counts[Count.MAX_CYCLES]:
+        counts[Count.MAX_CYCLES] = dc
+    counts[Count.BATCHES] += 1
+    for q in range(nbuf):
+        cycles[buf[q]] = dc // nbuf
+    batch_cycles[buf[0]] = dc
+    if nu == BATCH_REJECTED:
+        counts[Count.REJECTED] += nbuf
+        return True
+    return False
+
+
 def _make_sweep(with_gps: bool, with_interpolation: bool) -> Any:
     """The sweep kernel of one variant: GPS batches and interpolated solving are compiled in
     only when the flag says so (a constant of the closure: Numba prunes the dead branch before
-    typing it, so a plain sweep never compiles :func:`_flush`, ``batch_relax`` or
-    ``relax_interpolated``, about two thirds of the hybrid solver's compile time)."""
+    typing it, so a plain sweep never compiles the GPS batches (:func:`_flush_exact`,
+    ``batch_relax``) or ``relax_interpolated``, about two thirds of the hybrid solver's compile
+    time, and a sweep without ``d_max`` never the interpolated batch)."""
 
     def sweep_variant(prob: Problem, state: State, order: np.ndarray, tau: float, mu: float,
                       step_kind: int, gps_batch_size: int, dmax: int, d_max: int,
@@ -92,8 +114,13 @@ def _make_sweep(with_gps: bool, with_interpolation: bool) -> Any:
             if with_gps:
                 gps = c >= 0 and apply and is_gps(prob, c)
                 if nbuf > 0 and (not gps or nbuf >= gps_batch_size):
-                    if _flush(prob, state, buf, nbuf, tau, mu, slot, xb, nodes, cycles,
-                              batch_cycles, counts, d_max) and first_bad < 0:
+                    if with_interpolation:
+                        bad = _flush(prob, state, buf, nbuf, tau, mu, slot, xb, nodes, cycles,
+                                     batch_cycles, counts, d_max)
+                    else:
+                        bad = _flush_exact(prob, state, buf, nbuf, tau, mu, slot, xb, nodes,
+                                           cycles, batch_cycles, counts)
+                    if bad and first_bad < 0:
                         first_bad = buf[0]
                     nbuf = 0
                 if gps:

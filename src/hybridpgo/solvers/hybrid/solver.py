@@ -216,8 +216,8 @@ class HybridSolver:
             state = State(state.rot.copy(), state.trans.copy(), state.bdiag, state.contrib)
         slot = np.full(nt, -1, np.int64)
         mu = self.config.damping if damping is None else damping
-        nu = _batch.batch_relax(self.problem, state, cs, cs.shape[0], max(tau, 1e-300), mu,
-                                slot, x, nodes)
+        nu = _batch.batch_relax_exact(self.problem, state, cs, cs.shape[0], max(tau, 1e-300),
+                                      mu, slot, x, nodes)
         if nu < 0:
             raise SolverError("the batch step was not finite")
         return nodes[:nu].copy(), x[:nu].copy()
