@@ -200,15 +200,16 @@ def _plots_possible(job: Job) -> bool:
     return True
 
 
-def _compile_kernels(job: Job) -> None:
-    """Compile (or load from Numba's cache) the solver's kernels under a visible phase."""
+def _compile_kernels(job: Job, graph: PoseGraph) -> None:
+    """Compile (or load from Numba's cache) the kernels this solve uses under a visible phase
+    (the GPS batches and interpolated solving only when the graph and options use them)."""
     from ..solvers.gauss_newton import _ensure_compiled as ensure_exact
     from ..solvers.hybrid.solver import ensure_compiled as ensure_hybrid
     from ._progress import phase
 
     with phase("compiling kernels (first run only)", enabled=not job.quiet):
         if job.solver in ("hybrid", "auto"):
-            ensure_hybrid()
+            ensure_hybrid(graph.num_gps > 0, bool(job.options.get("dmax")))
         if job.solver in ("exact", "auto") or job.options.get("polish"):
             ensure_exact()
 
@@ -326,7 +327,7 @@ def run_job(job: Job) -> dict[str, Any]:
     plots = _plots_possible(job)
     if not job.quiet:
         log(f"read {job.input} ({describe_graph(graph)}) in {t_read:.2f} s")
-    _compile_kernels(job)
+    _compile_kernels(job, graph)
 
     recorder = _recorder(job, graph)
     try:

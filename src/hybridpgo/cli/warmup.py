@@ -1,8 +1,9 @@
 """``hybridpgo warmup``: compile every Numba kernel now (or load it from the cache).
 
-The first run of a solver compiles its kernels (a minute or two on a slow machine) and caches
-them on disk (Numba's ``__pycache__`` beside the sources, or ``NUMBA_CACHE_DIR``); later runs
-load them in about a second.  ``warmup`` does that compilation up front, e.g. in a Docker image
+The first run of a solver compiles the kernels it uses (the hybrid sweeps with the GPS batches
+or interpolated solving only when the graph and options need them) and caches them on disk
+(Numba's ``__pycache__`` beside the sources, or ``NUMBA_CACHE_DIR``); later runs load them in
+about a second.  ``warmup`` does that compilation up front, e.g. in a Docker image
 build or after ``pip install``, with the same "compiling kernels" display as the first solve.
 """
 
@@ -18,10 +19,11 @@ TARGETS = ("hybrid", "exact", "toro")
 
 
 def _compile(target: str) -> float:
-    if target == "hybrid":
+    if target == "hybrid":  # every sweep variant: with and without GPS, with interpolation
         from ..solvers.hybrid.solver import ensure_compiled
 
-        return ensure_compiled()
+        return sum(ensure_compiled(gps, interp) for gps in (False, True)
+                   for interp in (False, True))
     if target == "exact":
         from ..solvers.gauss_newton import _ensure_compiled
 

@@ -14,6 +14,8 @@ equations over U.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from ..._cost import retract_into, whiten_rows
@@ -668,68 +670,85 @@ def _reduced_batch(prob: Problem, state: State, cs: np.ndarray, nb: int, tau: fl
 
 
 # --------------------------------------------------------------------------- the batch update
-@kernel
-def batch_relax(prob: Problem, state: State, cs: np.ndarray, nb: int, tau: float, mu: float,
-                slot: np.ndarray, x_out: np.ndarray, nodes_out: np.ndarray,
-                d_max: int = 0, dense: bool = True) -> int:
-    """Relax the constraints ``cs[:nb]`` together (paper eq. 35-37, DESIGN §5).
+def _make_batch_relax(with_interpolation: bool) -> Callable[..., int]:
+    """:func:`batch_relax`, or without ``with_interpolation`` :data:`batch_relax_exact`, which
+    ignores ``d_max`` and never compiles the interpolated batch (:func:`_reduced_batch` and its
+    callees, about a third of the GPS batches' compile time; the closure's constant is pruned
+    before typing)."""
 
-    ``slot`` (T,) must be -1 on entry and is -1 again on exit.  The step of union node
-    ``nodes_out[u]`` is written to ``x_out[u]``.  Returns the number of union nodes, or
-    ``BATCH_REJECTED`` when the step was not finite (nothing applied).
+    def batch_relax(prob: Problem, state: State, cs: np.ndarray, nb: int, tau: float, mu: float,
+                    slot: np.ndarray, x_out: np.ndarray, nodes_out: np.ndarray,
+                    d_max: int = 0, dense: bool = True) -> int:
+        """Relax the constraints ``cs[:nb]`` together (paper eq. 35-37, DESIGN §5).
 
-    With ``0 < d_max <`` the union's size the batch is solved by interpolation
-    (:func:`_reduced_batch`, paper III-E/III-G): ``nodes_out`` / ``x_out`` then hold the kept
-    nodes and the return value is their number.
+        ``slot`` (T,) must be -1 on entry and is -1 again on exit.  The step of union node
+        ``nodes_out[u]`` is written to ``x_out[u]``.  Returns the number of union nodes, or
+        ``BATCH_REJECTED`` when the step was not finite (nothing applied).
 
-    ``dense=False`` keeps the segmented Woodbury solve even when a block of B_C vanishes (a
-    node all of whose constraints are in the batch): such a block is then damped like every
-    other (DESIGN §4) and the cost stays O(entries + (6|C|)^3) instead of the dense
-    O((6|U|)^3) -- what a time budget per frame needs (the online solver).
-    """
-    e_off = np.empty(nb + 1, np.int64)
-    e_off[0] = 0
-    dmax = 1
-    for q in range(nb):
-        d = domain(prob, cs[q])[1]
-        e_off[q + 1] = e_off[q] + d
-        dmax = max(dmax, d)
-    ne = e_off[nb]
-    e_slot = np.empty(ne, np.int64)
-    e_q = np.empty(ne, np.int64)
-    nu = _union(prob, cs, nb, slot, nodes_out, e_off, e_slot, e_q)
-    cnt, by_slot = _entries_by_node(e_slot, nu)
-    wk = new_workspace(dmax)
-    jb = np.empty((ne, 6, 6))
-    r_off = np.empty(nb + 1, np.int64)
-    krs = np.empty(nb, np.int64)
-    rbuf = np.empty(6 * nb)
-    amat = np.zeros((nb, 6, 6))
-    yr = np.empty((nu, 3, 3))
-    yt = np.empty((nu, 3))
-    _linearize_batch(prob, state, cs, nb, wk, e_off, e_slot, jb, r_off, krs, rbuf, amat, yr, yt)
-    bc = np.zeros((nu, 6, 6))
-    scale = np.zeros(nu)
-    zero_block = _batch_blocks(prob, state, cs, jb, e_off, krs, e_q, cnt, by_slot, nodes_out,
-                               bc, scale)
-    if 0 < d_max < nu:
-        return _reduced_batch(prob, state, cs, nb, tau, mu, d_max, wk, jb, e_off, e_slot, e_q,
-                              r_off, krs, rbuf, cnt, by_slot, bc, scale, slot, nodes_out, amat,
-                              yr, yt, x_out)
-    if dense and zero_block and nu <= MAX_DENSE_NODES:
-        # the exact step (eq. 37; the GN step when C is every constraint) when it is defined;
-        # damped when the batch alone leaves a direction free (DESIGN §4)
-        ok = _dense_solve(nb, jb, e_off, e_slot, r_off, krs, rbuf, bc, scale, mu, False, x_out)
-        if not ok:
-            ok = _dense_solve(nb, jb, e_off, e_slot, r_off, krs, rbuf, bc, scale, mu, True,
+        With ``0 < d_max <`` the union's size the batch is solved by interpolation
+        (:func:`_reduced_batch`, paper III-E/III-G): ``nodes_out`` / ``x_out`` then hold the kept
+        nodes and the return value is their number.
+
+        ``dense=False`` keeps the segmented Woodbury solve even when a block of B_C vanishes (a
+        node all of whose constraints are in the batch): such a block is then damped like every
+        other (DESIGN §4) and the cost stays O(entries + (6|C|)^3) instead of the dense
+        O((6|U|)^3) -- what a time budget per frame needs (the online solver).
+        """
+        e_off = np.empty(nb + 1, np.int64)
+        e_off[0] = 0
+        dmax = 1
+        for q in range(nb):
+            d = domain(prob, cs[q])[1]
+            e_off[q + 1] = e_off[q] + d
+            dmax = max(dmax, d)
+        ne = e_off[nb]
+        e_slot = np.empty(ne, np.int64)
+        e_q = np.empty(ne, np.int64)
+        nu = _union(prob, cs, nb, slot, nodes_out, e_off, e_slot, e_q)
+        cnt, by_slot = _entries_by_node(e_slot, nu)
+        wk = new_workspace(dmax)
+        jb = np.empty((ne, 6, 6))
+        r_off = np.empty(nb + 1, np.int64)
+        krs = np.empty(nb, np.int64)
+        rbuf = np.empty(6 * nb)
+        amat = np.zeros((nb, 6, 6))
+        yr = np.empty((nu, 3, 3))
+        yt = np.empty((nu, 3))
+        _linearize_batch(prob, state, cs, nb, wk, e_off, e_slot, jb, r_off, krs, rbuf, amat, yr,
+                         yt)
+        bc = np.zeros((nu, 6, 6))
+        scale = np.zeros(nu)
+        zero_block = _batch_blocks(prob, state, cs, jb, e_off, krs, e_q, cnt, by_slot,
+                                   nodes_out, bc, scale)
+        if with_interpolation and 0 < d_max < nu:
+            return _reduced_batch(prob, state, cs, nb, tau, mu, d_max, wk, jb, e_off, e_slot,
+                                  e_q, r_off, krs, rbuf, cnt, by_slot, bc, scale, slot,
+                                  nodes_out, amat, yr, yt, x_out)
+        if dense and zero_block and nu <= MAX_DENSE_NODES:
+            # the exact step (eq. 37; the GN step when C is every constraint) when it is defined;
+            # damped when the batch alone leaves a direction free (DESIGN §4)
+            ok = _dense_solve(nb, jb, e_off, e_slot, r_off, krs, rbuf, bc, scale, mu, False,
                               x_out)
-    else:
-        ok = woodbury_segments(prob, cs, nb, mu, jb, e_off, r_off, krs, rbuf, e_slot, e_q, cnt,
-                               by_slot, bc, slot, nodes_out, amat, yr, yt, x_out)
-    for u in range(nu):
-        slot[nodes_out[u]] = -1
-    if not ok:
-        return BATCH_REJECTED
-    if cap_and_apply(nodes_out, 0, nu, x_out, tau, state, wk.ws) == Update.REJECTED:
-        return BATCH_REJECTED
-    return nu
+            if not ok:
+                ok = _dense_solve(nb, jb, e_off, e_slot, r_off, krs, rbuf, bc, scale, mu, True,
+                                  x_out)
+        else:
+            ok = woodbury_segments(prob, cs, nb, mu, jb, e_off, r_off, krs, rbuf, e_slot, e_q,
+                                   cnt, by_slot, bc, slot, nodes_out, amat, yr, yt, x_out)
+        for u in range(nu):
+            slot[nodes_out[u]] = -1
+        if not ok:
+            return BATCH_REJECTED
+        if cap_and_apply(nodes_out, 0, nu, x_out, tau, state, wk.ws) == Update.REJECTED:
+            return BATCH_REJECTED
+        return nu
+
+    batch_relax.__qualname__ = batch_relax.__name__ = (
+        "batch_relax" if with_interpolation else "batch_relax_exact")
+    return kernel(batch_relax)
+
+
+batch_relax = _make_batch_relax(True)
+#: :func:`batch_relax` without interpolated solving (``d_max`` is ignored): what a sweep
+#: without ``d_max`` and the online mode need, at about two thirds of the compile time.
+batch_relax_exact = _make_batch_relax(False)

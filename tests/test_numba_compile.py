@@ -1,0 +1,115 @@
+"""A solve compiles only the kernels it uses, each for one signature (issue 11: the first run).
+
+The sweep of a graph without GPS readings and without interpolated solving must not compile the
+GPS batches (``_flush`` -> ``batch_relax``) or ``relax_interpolated``: together they were about
+two thirds of the hybrid solver's compile time.  Checked in a fresh interpreter, since this
+test process may have compiled every variant already (a kernel loaded from the on-disk cache
+counts as well: its signature is listed, its callees are not loaded).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import subprocess
+import sys
+
+import numpy as np
+
+import hybridpgo
+
+SRC = pathlib.Path(hybridpgo.__file__).resolve().parent.parent
+TESTS = pathlib.Path(__file__).resolve().parent
+
+SCRIPT = """
+import json, sys
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+from graphs import random_graph
+from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver, _sweep
+
+def signatures():
+    return {f"{g:d}{i:d}": len(k.signatures) for (g, i), k in _sweep.SWEEPS.items()}
+
+out = []
+for gps in (0, 3):
+    graph = random_graph(np.random.default_rng(0), 12, 8, gps=gps)[0]
+    solver = HybridSolver(graph, HybridConfig(sweeps=2))
+    solver.run()
+    solver.step(np.arange(solver.num_constraints)[::-1].copy())  # a writable order
+    solver.rebuild_blocks()
+    out.append(signatures())
+print(json.dumps(out))
+"""
+
+
+def _referenced_globals(kern: object) -> set[str]:
+    """Globals a kernel's reachable code uses after Numba's dead-branch pruning (the pass that
+    runs before typing: a callee named only in a pruned branch is never compiled)."""
+    from numba.core import analysis, compiler, ir, types
+
+    fir = compiler.run_frontend(kern.py_func)  # type: ignore[attr-defined]
+    analysis.dead_branch_prune(fir, [types.unknown] * fir.arg_count)
+    dead = set(analysis.compute_cfg_from_blocks(fir.blocks).dead_nodes())
+    return {stmt.value.name for label, blk in fir.blocks.items() if label not in dead
+            for stmt in blk.find_insts(ir.Assign)
+            if isinstance(stmt.value, ir.Global | ir.FreeVar)}
+
+
+def test_each_sweep_variant_calls_only_what_it_needs() -> None:
+    """The plain sweep never reaches the GPS batches (``_flush*`` -> ``batch_relax*``) or
+    ``relax_interpolated``, together about two thirds of the hybrid compile time; a GPS sweep
+    without ``d_max`` never the interpolated batch (``_reduced_batch``)."""
+    from hybridpgo.solvers.hybrid import _batch, _sweep
+
+    heavy = {"_flush", "_flush_exact", "relax_interpolated"}
+    for (gps, interp), kern in _sweep.SWEEPS.items():
+        used = _referenced_globals(kern)
+        assert "relax" in used
+        flush = ("_flush" if interp else "_flush_exact") if gps else None
+        expected = {name for name in (flush, "relax_interpolated" if interp else None) if name}
+        assert used & heavy == expected, (gps, interp)
+    assert "batch_relax_exact" in _referenced_globals(_sweep._flush_exact)
+    assert "_reduced_batch" not in _referenced_globals(_batch.batch_relax_exact)
+    assert "_reduced_batch" in _referenced_globals(_batch.batch_relax)
+
+
+def test_a_solve_compiles_only_the_sweep_variant_it_uses() -> None:
+    """Checked in a fresh interpreter (this one may have compiled every variant): a graph
+    without GPS runs one plain sweep kernel with one signature for run(), step() and
+    rebuild_blocks(); a GPS graph adds the GPS variant; neither the interpolating ones."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(SRC), os.environ.get("PYTHONPATH", "")]))
+    env.pop("NUMBA_DISABLE_JIT", None)
+    out = subprocess.run([sys.executable, "-c", SCRIPT, str(TESTS)], env=env, check=True,
+                         capture_output=True, text=True).stdout
+    no_gps, with_gps = json.loads(out.strip().splitlines()[-1])
+    assert no_gps == {"00": 1, "01": 0, "10": 0, "11": 0}
+    assert with_gps == {"00": 1, "01": 0, "10": 1, "11": 0}
+
+
+def test_every_sweep_variant_gives_the_plain_sweeps_result_without_gps_and_dmax() -> None:
+    """Pruning a variant's branches changes no arithmetic: on a graph without GPS and with
+    ``d_max`` = 0 the plain and the interpolating variant give bit-identical poses (the GPS
+    variants against each other: tests/test_interpolate_batch.py, d_max >= the union)."""
+    from graphs import random_graph
+
+    from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver, _sweep
+    from hybridpgo.solvers.hybrid.problem import NUM_COUNTS
+
+    graph = random_graph(np.random.default_rng(1), 12, 8)[0]
+    assert graph.num_gps == 0
+    results = []
+    for variant in ((False, False), (False, True)):
+        solver = HybridSolver(graph, HybridConfig())
+        nc = solver.num_constraints
+        counts = np.zeros(NUM_COUNTS, np.int64)
+        for _ in range(3):
+            _sweep._run(_sweep.sweep_kernel(*variant), solver.problem, solver.state,
+                        solver.tree.sweep_order, 0.5, 1e-4, 0, 1, solver.dmax, 0,
+                        np.iinfo(np.uint64).max, np.zeros(nc, np.uint64),
+                        np.zeros(nc, np.uint64), counts, True)
+        results.append((solver.state.rot.copy(), solver.state.trans.copy(),
+                        solver.state.bdiag.copy()))
+    for a, b in zip(results[0], results[1], strict=True):
+        assert np.array_equal(a, b)
