@@ -10,8 +10,12 @@ Phases, timed separately, in order:
 * ``read``: ``read_graph`` of that file;
 * ``sweep``: one hybrid sweep from the tree initialization (``HybridConfig(sweeps=1)``), with
   its ``analyze`` (tree, problem set-up) and ``solve`` parts;
-* ``pipeline``: the default-like pipeline of the demo: 10 sweeps, then the exact polish (LM)
-  to convergence (``HybridConfig(sweeps=10, polish=True)``), skipped with ``--no-pipeline``;
+* ``pipeline``: the default pipeline, ``optimize(graph)`` (``--solver auto``, AutoConfig()):
+  the full policy below ``AutoConfig.large_poses`` poses, the large-graph policy (one start,
+  at most ``large_max_sweeps`` sweeps, one polish) from there on; skipped with
+  ``--no-pipeline``;
+* ``pipeline_other`` (cases below ``large_poses`` only, ``--compare``): the large-graph policy
+  forced on the same graph, to measure what it costs in energy against the full one;
 * ``write``: the optimized graph written as g2o.
 
 Kernels are compiled (or loaded) before the clock starts.  The peak memory after each phase is
@@ -68,10 +72,11 @@ def generate_case(poses: int, gps_every: int, path: pathlib.Path) -> dict[str, A
     return out
 
 
-def solve_case(path: pathlib.Path, pipeline: bool = True) -> dict[str, Any]:
+def solve_case(path: pathlib.Path, pipeline: bool = True,
+               compare: bool = True) -> dict[str, Any]:
     """Read, one sweep, the pipeline, write: the phase times (s) and the peak (GB) after each."""
     from hybridpgo.io import read_graph, write_graph
-    from hybridpgo.solvers import HybridConfig, optimize
+    from hybridpgo.solvers import AutoConfig, HybridConfig, optimize
     from hybridpgo.solvers.gauss_newton import _ensure_compiled
     from hybridpgo.solvers.hybrid.solver import ensure_compiled
 
@@ -101,21 +106,44 @@ def solve_case(path: pathlib.Path, pipeline: bool = True) -> dict[str, Any]:
                                                      "path_length_mean")}
     out["energy_start"] = float(res.energy_history[0])
     out["energy_sweep"] = float(res.energy_history[-1])
-    final = res
+    rot, trans = res.rotations, res.translations
     if pipeline:
         del res
         t = time.perf_counter()
-        final = optimize(graph, HybridConfig(sweeps=10, polish=True))
+        final = optimize(graph)  # the default: --solver auto
         phase("pipeline", t)
-        out["pipeline_parts"] = {k: float(v) for k, v in final.timings.items()}
-        out["energy_pipeline"] = float(final.energy_history[-1])
-        out["pipeline_status"] = final.status.value
-        out["polish_iterations"] = int(final.stats.get("polish_iterations", -1))
+        out.update(_pipeline_summary(final, "pipeline"))
+        rot, trans = final.rotations, final.translations
+        del final
+        if compare and not AutoConfig().is_large(graph.num_nodes):
+            t = time.perf_counter()
+            other = optimize(graph, AutoConfig(large_poses=2))
+            phase("pipeline_other", t)
+            out.update(_pipeline_summary(other, "pipeline_other"))
+            del other
     t = time.perf_counter()
-    write_graph(graph.with_poses(final.rotations, final.translations),
-                path.with_name(path.stem + "_out.g2o"))
+    write_graph(graph.with_poses(rot, trans), path.with_name(path.stem + "_out.g2o"))
     phase("write", t)
     return out
+
+
+def _pipeline_summary(res: Any, key: str) -> dict[str, Any]:
+    """What a pipeline run did: policy, start, sweeps, polish, energies, time per part."""
+    return {
+        f"{key}_parts": {k: float(v) for k, v in res.timings.items()},
+        f"energy_{key}": float(res.energy_history[-1]),
+        f"{key}_status": res.status.value,
+        f"{key}_policy": res.stats.get("policy", ""),
+        f"{key}_init": res.stats.get("init", ""),
+        f"{key}_sweeps": int(res.stats.get("sweeps", 0)),
+        f"{key}_polish_iterations": int(res.stats.get("polish_iterations", -1)),
+        f"{key}_reason": res.stats.get("reason", ""),
+        f"{key}_candidates": {
+            label: {k: c.get(k) for k in ("initial_energy", "energy_after_sweeps",
+                                           "final_energy", "sweeps", "polish_iterations",
+                                           "start_seconds", "sweep_seconds", "polish_seconds")}
+            for label, c in res.stats.get("candidates", {}).items()},
+    }
 
 
 def _child(args: list[str]) -> dict[str, Any]:
@@ -155,11 +183,12 @@ def run(ctx: Any) -> tuple[list[Metric], list[str]]:
     cases = _cases(ctx.quick)
     metrics: list[Metric] = []
     rows = []
+    compare_rows: list[list[str]] = []
     for poses, gps in cases:
         r = _subprocess_case(poses, gps, pipeline=True)
         key = f"scale.{poses // 1000}k.{'gps' if gps else 'nogps'}"
         if "error" in r:
-            rows.append([f"{poses:,}", "yes" if gps else "no", r["error"]] + [""] * 9)
+            rows.append([f"{poses:,}", "yes" if gps else "no", r["error"]] + [""] * 10)
             continue
         tm, pk = r["times"], r["peak_gb"]
         for name, value in tm.items():
@@ -171,6 +200,18 @@ def run(ctx: Any) -> tuple[list[Metric], list[str]]:
         if "energy_pipeline" in r:
             metrics.append(info(f"{key}.energy_pipeline_per_constraint",
                                 r["energy_pipeline"] / r["constraints"]))
+        if "energy_pipeline_other" in r:
+            ratio = r["energy_pipeline_other"] / r["energy_pipeline"]
+            metrics.append(info(f"{key}.large_policy_energy_ratio", ratio))
+            compare_rows.append([
+                f"{poses:,}", "yes" if gps else "no",
+                f"{tm['pipeline']:.0f} ({r['pipeline_init']}, {r['pipeline_sweeps']} sweeps, "
+                f"{r['pipeline_polish_iterations']} LM)",
+                f"{tm['pipeline_other']:.0f} ({r['pipeline_other_init']}, "
+                f"{r['pipeline_other_sweeps']} sweeps, {r['pipeline_other_polish_iterations']} "
+                "LM)",
+                f"{r['energy_pipeline'] / r['constraints']:.10g}",
+                f"{r['energy_pipeline_other'] / r['constraints']:.10g}", f"{ratio - 1.0:+.2e}"])
         sweep_solve = r["sweep_parts"].get("solve", float("nan"))
         gen = r["generate"]
         metrics.append(info(f"{key}.generate_s", gen["times"]["generate"], "s"))
@@ -181,19 +222,28 @@ def run(ctx: Any) -> tuple[list[Metric], list[str]]:
             f"{r['tree']['tree_max_depth']:.0f} / {r['tree']['path_length_mean']:.1f}",
             f"{tm['read']:.1f}", f"{tm['sweep']:.1f} ({sweep_solve:.1f})",
             f"{tm.get('pipeline', float('nan')):.0f}",
-            f"{r.get('polish_iterations', '')}", f"{tm['write']:.1f}",
+            f"{r.get('pipeline_policy', '')}: {r.get('pipeline_init', '')}, "
+            f"{r.get('pipeline_sweeps', '')} sweeps, {r.get('pipeline_polish_iterations', '')} LM",
+            f"{tm['write']:.1f}",
             f"{max(pk.values()):.2f}", f"{r['energy_sweep'] / r['constraints']:.3g} / "
             f"{r.get('energy_pipeline', float('nan')) / r['constraints']:.4g}",
         ])
     header = ["poses", "GPS", "constraints", "generate s / GB", "tree depth / mean path",
-              "read s", "1 sweep s (solve)", "pipeline s", "polish its", "write s", "peak GB",
-              "E/c sweep / pipeline"]
+              "read s", "1 sweep s (solve)", "pipeline s", "pipeline: policy, start, sweeps, LM",
+              "write s", "peak GB", "E/c sweep / pipeline"]
     table = markdown_table("Scale: generated cities", header, rows)
-    note = (f"Targets at 1M poses: one sweep <= {TARGET_SWEEP_S:.0f} s, pipeline (10 sweeps + "
-            f"polish) <= {TARGET_PIPELINE_S:.0f} s, peak <= {TARGET_PEAK_GB:.0f} GB.  Each case "
-            "solved in its own process (generated and written by another); peak = ru_maxrss of the "
-            "solving process.  1 sweep = analyze (tree, set-up) + solve.")
-    return metrics, [table + "\n" + note + "\n"]
+    note = (f"Targets at 1M poses: one sweep <= {TARGET_SWEEP_S:.0f} s, default pipeline "
+            f"(`optimize(graph)`, --solver auto) <= {TARGET_PIPELINE_S:.0f} s, peak <= "
+            f"{TARGET_PEAK_GB:.0f} GB.  Each case solved in its own process (generated and written "
+            "by another); peak = ru_maxrss of the solving process.  1 sweep = analyze (tree, "
+            "set-up) + solve.")
+    out = [table + "\n" + note + "\n"]
+    if compare_rows:
+        out.append(markdown_table(
+            "Large-graph policy vs the full one (below AutoConfig.large_poses)",
+            ["poses", "GPS", "full policy s", "large policy forced s", "E/c full",
+             "E/c large", "E large / E full - 1"], compare_rows))
+    return metrics, out
 
 
 if __name__ == "__main__":
@@ -201,5 +251,6 @@ if __name__ == "__main__":
     if argv[0] == "generate":
         result = generate_case(int(argv[1]), int(argv[2]), pathlib.Path(argv[3]))
     else:
-        result = solve_case(pathlib.Path(argv[1]), pipeline="--no-pipeline" not in sys.argv)
+        result = solve_case(pathlib.Path(argv[1]), pipeline="--no-pipeline" not in sys.argv,
+                            compare="--no-compare" not in sys.argv)
     print(json.dumps(result))

@@ -8,7 +8,9 @@ the lever for reaching the global optimum).  Two linear least-squares problems:
 2. translations: with those rotations fixed, minimize
    sum_c ||t_b - t_a - R_a t_c||^2_{W_c} (+ GPS terms) over the positions.
 
-Both are sparse and solved with one factorization each.  ``kappa_c`` is the mean of the
+Both are sparse and solved with one factorization each (:func:`._linear.solve_spd`: a
+fill-reducing ordering of the pose graph, then CHOLMOD; the three rows of the rotations share
+one factorization).  ``kappa_c`` is the mean of the
 rotation block's diagonal of the information; ``W_c`` is ``R_a Omega_tt R_a^T``.
 """
 
@@ -16,9 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
-from .errors import GraphError
+from .errors import GraphError, SolverError
 from .graph import FloatArray, PoseGraph
 
 
@@ -31,9 +32,13 @@ def _project_to_so3(m: FloatArray) -> FloatArray:
 
 
 def _solve_spd(a: sp.spmatrix, b: FloatArray) -> FloatArray:
-    lu = spla.splu(sp.csc_matrix(a), permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
-    out: FloatArray = lu.solve(b)
-    return out
+    """``a^-1 b`` for the SPD normal matrix of 3-vectors per pose; RuntimeError when singular."""
+    from .solvers._linear import solve_spd
+
+    try:
+        return solve_spd(a, b, block=3)
+    except SolverError as exc:
+        raise RuntimeError(str(exc)) from exc
 
 
 def chordal_initialization(
@@ -82,12 +87,12 @@ def chordal_initialization(
     a_fix = amat[:, ~free]
     normal = (a_free.T @ a_free).tocsc()
     rot = np.empty((n, 3, 3))
-    try:
+    try:  # the three rows k of the rotations: one matrix, three right-hand sides
+        rhs = -(a_fix @ r_gauge.T)  # column k: -(a_fix @ r_gauge[k])
+        x = _solve_spd(normal, np.asarray(a_free.T @ rhs))
         for k in range(3):
-            rhs = -(a_fix @ r_gauge[k])
-            x = _solve_spd(normal, a_free.T @ rhs)
             full = np.empty(3 * n)
-            full[free] = x
+            full[free] = x[:, k]
             full[~free] = r_gauge[k]
             rot[:, k, :] = full.reshape(n, 3)
     except RuntimeError as exc:  # singular: a part of the graph has no path to the gauge

@@ -363,3 +363,50 @@ def _make_factorizer(pattern: SymmetricPattern, backend: str) -> _SuperLU | _Cho
                               "wheels bundle SuiteSparse's CHOLMOD)")
         return _Cholmod(pattern)
     return _SuperLU(pattern)
+
+
+class _CscPattern:
+    """A lower-triangle pattern (:class:`SymmetricPattern`) from a SciPy CSC matrix."""
+
+    def __init__(self, low: sp.csc_matrix) -> None:
+        self.indptr: Int64Array = low.indptr.astype(np.int64)
+        self.indices: Int64Array = low.indices.astype(np.int64)
+        self.dim = int(low.shape[0])
+
+    @property
+    def diag_index(self) -> Int64Array:
+        return self.indptr[:-1]
+
+
+def solve_spd(a: sp.spmatrix, rhs: FloatArray, block: int = 1) -> FloatArray:
+    """Solve ``A x = rhs`` once for a sparse SPD ``A`` (rhs: (dim,) or (dim, k)).
+
+    The unknowns come in blocks of ``block`` (a pose's 3 or 6 entries): they are permuted by a
+    fill-reducing ordering of the block graph (:func:`_fill_reducing_order`), then factored by
+    CHOLMOD when cvxopt is available (else SuperLU), one factorization for every right-hand side.
+
+    Raises
+    ------
+    SolverError
+        ``A`` is not positive definite, or singular to rounding.
+    """
+    csc = sp.csc_matrix(a)
+    dim = int(csc.shape[0])
+    if dim == 0:
+        return np.zeros_like(rhs, dtype=np.float64)
+    coo = csc.tocoo()
+    nb = dim // block
+    new_block = _fill_reducing_order(nb, (coo.row // block).astype(np.int64),
+                                     (coo.col // block).astype(np.int64))
+    del coo
+    new_pos = (block * new_block[:, None] + np.arange(block, dtype=np.int64)[None, :]).ravel()
+    old_at = np.empty(dim, np.int64)
+    old_at[new_pos] = np.arange(dim)
+    low = sp.tril(csc[old_at][:, old_at], format="csc")
+    del csc
+    low.sort_indices()
+    pattern = _CscPattern(low)
+    factorizer = _make_factorizer(pattern, "auto")
+    x = factorizer.solve(np.asarray(low.data, np.float64), np.asarray(rhs, np.float64)[old_at],
+                         check=True)
+    return np.asarray(x[new_pos], np.float64)

@@ -303,8 +303,30 @@ class AutoConfig:
     """Robust kernel of the sweeps and the polish (``HybridConfig.robust``)."""
     robust_scale: float = 1.0
     """The kernel's delta (``HybridConfig.robust_scale``)."""
+    large_poses: int | None = 200_000
+    """Graphs with at least this many poses get the *large-graph policy* (None: never), since
+    every start, sweep and polish costs seconds to minutes there (a 1M-pose city: one sweep
+    ~10 s, one LM iteration ~30 s): only the first applicable start of ``large_inits``, at most
+    ``large_max_sweeps`` sweeps, one polish (``finalists=1``, no ``polish_unswept``).  The
+    result's ``stats["policy"]`` and its ``reason`` say which policy ran."""
+    large_inits: tuple[InitName, ...] = ("chordal", "file", "tree")
+    """Starts of the large-graph policy, in order of preference: the first that applies (and
+    can be computed) is the only one swept and polished."""
+    large_max_sweeps: int = 5
+    """Most sweeps from the start under the large-graph policy."""
 
     def __post_init__(self) -> None:
+        if self.large_poses is not None:
+            _check_int("large_poses", self.large_poses, 2)
+        if (not isinstance(self.large_inits, tuple) or not self.large_inits
+                or any(i not in INIT_NAMES for i in self.large_inits)
+                or len(set(self.large_inits)) != len(self.large_inits)):
+            raise ValueError(f"large_inits must be a non-empty tuple of distinct names from "
+                             f"{', '.join(INIT_NAMES)}, got {self.large_inits!r}")
+        _check_int("large_max_sweeps", self.large_max_sweeps, 0)
+        if self.large_max_sweeps > MAX_SWEEPS:
+            raise ValueError(f"large_max_sweeps must be at most {MAX_SWEEPS}, got "
+                             f"{self.large_max_sweeps!r}")
         if (not isinstance(self.inits, tuple) or not self.inits
                 or any(i not in INIT_NAMES for i in self.inits)
                 or len(set(self.inits)) != len(self.inits)):
@@ -323,6 +345,10 @@ class AutoConfig:
         _check_float("energy_tolerance", self.energy_tolerance, positive=False)
         # the sweep options are checked by the HybridConfig they build (same messages)
         self.hybrid_config("tree", 0)
+
+    def is_large(self, num_poses: int) -> bool:
+        """True when a graph of ``num_poses`` poses gets the large-graph policy."""
+        return self.large_poses is not None and num_poses >= self.large_poses
 
     def hybrid_config(self, init: str, sweeps: int) -> HybridConfig:
         """The options of one start's sweeps (no polish: the pipeline polishes itself)."""
