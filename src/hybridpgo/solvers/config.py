@@ -110,7 +110,9 @@ class GaussNewtonConfig:
     runtime dependency: supernodal Cholesky, symbolic analysis once per solve, numeric
     factorization per iteration), ``"splu"`` (SciPy's SuperLU in symmetric mode with diagonal
     pivots: an LU, 2-5x slower), or ``"auto"`` (CHOLMOD when cvxopt is importable, else
-    SuperLU)."""
+    SuperLU; except that a 3D system whose factor stays sparse, as on city-like graphs, uses
+    the block Cholesky of :mod:`hybridpgo.solvers._block_cholesky`: 3x faster than CHOLMOD
+    there and ~4x less memory, which keeps a 1M-pose polish within 4 GB)."""
     robust: RobustName = "none"
     """Robust kernel (see ``HybridConfig.robust``); the LM acceptance test uses E_rho."""
     robust_scale: float | None = None
