@@ -46,7 +46,7 @@ import numpy as np
 
 from ..errors import HybridPGOError, SolverError
 from ..graph import FloatArray, PoseGraph
-from ..tree import build_tree, initial_locals
+from ..tree import build_tree, global_poses, initial_locals
 from .config import AutoConfig, Progress, ProgressCallback
 from .gauss_newton import solve_exact
 from .hybrid.solver import HybridSolver
@@ -115,6 +115,18 @@ def _sweep_candidate(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate, tree: 
                      progress: ProgressCallback | None) -> None:
     """Sweeps from one start while they pay; keeps the best poses in ``cand``."""
     t0 = time.perf_counter()
+    if cfg.max_sweeps == 0:  # no hybrid solver (its per-path blocks cost memory): poses, E
+        from ..energy import robust_energy
+
+        cand.rot, cand.trans = cand.start = global_poses(tree, *locals0)
+        e0 = robust_energy(graph, cand.rot, cand.trans, cfg.robust,
+                           cfg.hybrid_config(cand.init, 0).robust_delta)[0]
+        cand.history.append(e0)
+        cand.times.append(time.perf_counter() - t_origin)
+        if progress is not None:
+            progress(Progress("start", 0, 0, e0, detail=cand.init))
+        cand.sweep_seconds = time.perf_counter() - t0
+        return
     solver = HybridSolver(graph, cfg.hybrid_config(cand.init, cfg.max_sweeps), tree=tree,
                           locals0=locals0)
     e0 = solver.energy()

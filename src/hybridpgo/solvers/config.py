@@ -308,14 +308,18 @@ class AutoConfig:
     large_poses: int | None = 200_000
     """Graphs with at least this many poses get the *large-graph policy* (None: never), since
     every start, sweep and polish costs seconds to minutes there (a 1M-pose city: one sweep
-    ~10 s, one LM iteration ~30 s): only the first applicable start of ``large_inits``, at most
-    ``large_max_sweeps`` sweeps, one polish (``finalists=1``, no ``polish_unswept``).  The
+    20-40 s, one LM iteration ~10 s): only the first applicable start of ``large_inits``, at
+    most ``large_max_sweeps`` sweeps, one polish (``finalists=1``, no ``polish_unswept``).  The
     result's ``stats["policy"]`` and its ``reason`` say which policy ran."""
     large_inits: tuple[InitName, ...] = ("chordal", "file", "tree")
     """Starts of the large-graph policy, in order of preference: the first that applies (and
     can be computed) is the only one swept and polished."""
-    large_max_sweeps: int = 5
-    """Most sweeps from the start under the large-graph policy."""
+    large_max_sweeps: int = 0
+    """Most sweeps from the start under the large-graph policy.  0 (default): none, and no
+    hybrid solver is built (its per-path 6x6 blocks alone take 1 GB at 1M poses without GPS,
+    ~6 GB with GPS).  Measured on a 100k-pose city (benchmarks/scale.py): from the chordal start
+    the first sweep raises E (it is undone) and LM converges in 12 iterations either way; from
+    the tree start 13 sweeps (26 s) leave LM 14 iterations where it needs 12 without them."""
 
     def __post_init__(self) -> None:
         if self.large_poses is not None:
