@@ -271,7 +271,8 @@ def run(ctx: Any) -> tuple[list[Metric], list[str]]:
             + ("" if "sweep" in tm else f" skipped: {r['sweep_block_gb']:.0f} GB of blocks"),
             f"{tm.get('pipeline', float('nan')):.0f}",
             f"{r.get('pipeline_policy', '')}: {r.get('pipeline_init', '')}, "
-            f"{r.get('pipeline_sweeps', '')} sweeps, {r.get('pipeline_polish_iterations', '')} LM",
+            f"{r.get('pipeline_sweeps', '')} sweeps, {r.get('pipeline_polish_iterations', '')} LM "
+            f"{r.get('pipeline_status', '')}",
             f"{tm['write']:.1f}",
             f"{pk['read']:.2f} / {pk.get('pipeline', float('nan')):.2f} / "
             f"{pk.get('sweep', float('nan')):.2f} / {pk['write']:.2f}",
