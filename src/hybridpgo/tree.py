@@ -422,14 +422,9 @@ def _locals_from_globals(
         if p < 0:
             rot[i] = grot[i]
             trans[i] = gtr[i]
-            continue
-        for r in range(3):  # R_p^T R_i and R_p^T (t_i - t_p), without temporaries
-            for c in range(3):
-                rot[i, r, c] = (grot[p, 0, r] * grot[i, 0, c] + grot[p, 1, r] * grot[i, 1, c]
-                                + grot[p, 2, r] * grot[i, 2, c])
-            trans[i, r] = (grot[p, 0, r] * (gtr[i, 0] - gtr[p, 0])
-                           + grot[p, 1, r] * (gtr[i, 1] - gtr[p, 1])
-                           + grot[p, 2, r] * (gtr[i, 2] - gtr[p, 2]))
+        else:
+            rot[i] = grot[p].T @ grot[i]
+            trans[i] = grot[p].T @ (gtr[i] - gtr[p])
 
 
 @kernel
@@ -447,13 +442,9 @@ def _globals_from_locals(
         if p < 0:
             grot[i] = rot[i]
             gtr[i] = trans[i]
-            continue
-        for r in range(3):  # R_p R_i and R_p t_i + t_p, without temporaries
-            for c in range(3):
-                grot[i, r, c] = (grot[p, r, 0] * rot[i, 0, c] + grot[p, r, 1] * rot[i, 1, c]
-                                 + grot[p, r, 2] * rot[i, 2, c])
-            gtr[i, r] = (grot[p, r, 0] * trans[i, 0] + grot[p, r, 1] * trans[i, 1]
-                         + grot[p, r, 2] * trans[i, 2] + gtr[p, r])
+        else:
+            grot[i] = grot[p] @ rot[i]
+            gtr[i] = grot[p] @ trans[i] + gtr[p]
 
 
 def global_poses(
