@@ -611,8 +611,10 @@ WORKLOADS["outliers"] = _outliers
 def _online(ctx: Context) -> Result:
     pass
 
-def _scale(ctx: Context) -> Result:
-    pass  # issue 11 item 6
+def _scale(ctx: Context) -> Result:  # issue 11 item 6
+    from .scale import run
+
+    return run(ctx)
 
 def _auto(ctx: Context) -> Result:
     from .auto import run

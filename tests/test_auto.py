@@ -3,6 +3,7 @@ optimum, its status and stats say what happened, and it is the default of the li
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -47,6 +48,10 @@ def best_known(graph, truth=None) -> float:
     ({"tau0": 2.0}, "tau0 must be below 2"),
     ({"step": "cholesky"}, "step must be one of woodbury, givens"),
     ({"robust": "tukey"}, "robust must be one of none, huber"),
+    ({"large_poses": 1}, "large_poses must be an integer >= 2"),
+    ({"large_inits": ()}, "large_inits must be a non-empty tuple"),
+    ({"large_inits": ("chordal", "chordal")}, "large_inits must be a non-empty tuple of distinct"),
+    ({"large_max_sweeps": -1}, "large_max_sweeps must be an integer >= 0"),
 ])
 def test_auto_config_rejects_bad_values(options, message) -> None:
     with pytest.raises(ValueError, match=message.replace("(", r"\(")):
@@ -291,3 +296,39 @@ def test_a_swept_start_is_also_polished_from_its_own_poses(data_dir: Path) -> No
     assert raw["polish_iterations"] == direct.iterations
     off = solve_auto(graph, AutoConfig(inits=("tree",), max_sweeps=3, polish_unswept=False))
     assert list(off.stats["candidates"]) == ["tree"]
+
+
+# ------------------------------------------------------------------------- large graphs
+@pytest.mark.parametrize("gps", [0, 3])
+def test_large_graph_policy_one_start_no_sweeps_one_polish(gps: int) -> None:
+    graph, rot, trans = random_graph(np.random.default_rng(7 + gps), n=30, extra=25, gps=gps,
+                                     rot_scale=0.5, noise=0.1)
+    assert AutoConfig().is_large(10**6) and not AutoConfig().is_large(graph.num_nodes)
+    assert not AutoConfig(large_poses=None).is_large(10**9)
+    full = optimize(graph)
+    assert full.stats["policy"] == "full"
+    large = optimize(graph, AutoConfig(large_poses=graph.num_nodes))
+    assert large.stats["policy"] == "large"
+    assert large.stats["reason"].startswith("large-graph policy")
+    assert list(large.stats["candidates"]) == ["chordal"]  # the first of large_inits
+    assert large.stats["sweeps"] == 0 and large.stats["finalists"] == ["chordal"]
+    assert large.status is Status.CONVERGED
+    ref = best_known(graph, (rot, trans))
+    assert large.final_energy <= ref * (1 + OPTIMUM_RELATIVE)
+    # its start is the chordal relaxation's poses (no hybrid solver): E as the energy module's
+    tree = build_tree(graph, "bfs")
+    start = global_poses(tree, *initial_locals(graph, tree, "chordal"))
+    assert large.stats["candidates"]["chordal"]["initial_energy"] == pytest.approx(
+        energy(graph, *start), rel=FLOAT64_IDENTITY)
+
+
+def test_large_graph_policy_falls_back_to_the_next_start() -> None:
+    graph, _, _ = random_graph(np.random.default_rng(9), n=20, extra=10)
+    cfg = AutoConfig(large_poses=2, large_inits=("file", "tree"), large_max_sweeps=2)
+    res = optimize(graph, cfg)
+    assert list(res.stats["candidates"]) == ["file"]
+    assert res.stats["candidates"]["file"]["sweeps_run"] <= 2
+    # without vertices the file start does not apply: the next one is used
+    bare = dataclasses.replace(graph, has_estimates=False)
+    res = optimize(bare, cfg)
+    assert list(res.stats["candidates"]) == ["tree"] and res.stats["skipped_inits"] == ["file"]

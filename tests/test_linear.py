@@ -27,7 +27,7 @@ def rng() -> np.random.Generator:
 
 @dataclass(frozen=True)
 class Pattern:
-    """A CSC pattern with both triangles stored, as the exact solver assembles it."""
+    """A CSC pattern of the lower triangle, as the exact solver assembles it."""
 
     indptr: np.ndarray
     indices: np.ndarray
@@ -36,15 +36,16 @@ class Pattern:
 
 
 def _pattern_of(a: np.ndarray) -> tuple[Pattern, np.ndarray]:
-    """Pattern and values of a dense symmetric matrix (every diagonal entry stored)."""
-    m = sp.csc_matrix(a + np.eye(a.shape[0]))  # the pattern holds the whole diagonal
-    m.data[:] = a[m.nonzero()[0], np.repeat(np.arange(a.shape[0]), np.diff(m.indptr))]
+    """Pattern and values of the lower triangle of a dense symmetric matrix (every diagonal
+    entry stored, first in its column)."""
+    m = sp.csc_matrix(np.tril(a) + np.eye(a.shape[0]))  # the pattern holds the whole diagonal
     m.sort_indices()
     indptr = m.indptr.astype(np.int64)
     indices = m.indices.astype(np.int64)
     col = np.repeat(np.arange(a.shape[0]), np.diff(indptr))
     values = a[indices, col]
-    return Pattern(indptr, indices, np.flatnonzero(indices == col), a.shape[0]), values
+    assert np.array_equal(indices[indptr[:-1]], np.arange(a.shape[0]))
+    return Pattern(indptr, indices, indptr[:-1], a.shape[0]), values
 
 
 def _sparse_spd(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -149,16 +150,29 @@ def test_cholmod_missing_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> No
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_unsorted_pattern(backend: str, rng: np.random.Generator) -> None:
-    """A CSC pattern whose row indices are not sorted within columns solves the same."""
+def test_pattern_must_be_the_lower_triangle(backend: str, rng: np.random.Generator) -> None:
+    """Both triangles (the diagonal not first in its column) are refused, not misread."""
     a = _sparse_spd(rng, 20)
+    m = sp.csc_matrix(a)
+    m.sort_indices()
+    indptr = m.indptr.astype(np.int64)
+    full = Pattern(indptr, m.indices.astype(np.int64), indptr[:-1], 20)
+    with pytest.raises(ValueError, match="lower triangle"):
+        _make_factorizer(full, backend)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_values_buffer_is_used_without_a_copy(backend: str, rng: np.random.Generator) -> None:
+    """Values written into the factorizer's buffer are what it factors."""
+    a = _sparse_spd(rng, 30)
     pat, values = _pattern_of(a)
-    perm = np.concatenate([np.arange(lo, hi)[::-1]
-                           for lo, hi in zip(pat.indptr[:-1], pat.indptr[1:], strict=True)])
-    indices = pat.indices[perm]
-    col = np.repeat(np.arange(20), np.diff(pat.indptr))
-    shuffled = Pattern(pat.indptr, indices, np.flatnonzero(indices == col), 20)
-    b = rng.normal(size=20)
-    x = _make_factorizer(shuffled, backend).solve(values[perm], b, check=True)
+    f = _make_factorizer(pat, backend)
+    buf = f.values_buffer()
+    if buf is None:
+        assert backend == "splu"
+        return
+    buf[:] = values
+    b = rng.normal(size=30)
+    x = f.solve(buf, b, check=True)
     np.testing.assert_allclose(x, np.linalg.solve(a, b), rtol=0,
                                atol=FLOAT64_IDENTITY * np.linalg.cond(a) * np.abs(x).max())

@@ -8,17 +8,19 @@ the lever for reaching the global optimum).  Two linear least-squares problems:
 2. translations: with those rotations fixed, minimize
    sum_c ||t_b - t_a - R_a t_c||^2_{W_c} (+ GPS terms) over the positions.
 
-Both are sparse and solved with one factorization each.  ``kappa_c`` is the mean of the
+Both are sparse and solved with one factorization each (:func:`._linear.solve_spd`: a
+fill-reducing ordering of the pose graph, then CHOLMOD; the three rows of the rotations share
+one factorization).  ``kappa_c`` is the mean of the
 rotation block's diagonal of the information; ``W_c`` is ``R_a Omega_tt R_a^T``.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
-from .errors import GraphError
+from .errors import GraphError, SolverError
 from .graph import FloatArray, PoseGraph
 
 
@@ -30,9 +32,73 @@ def _project_to_so3(m: FloatArray) -> FloatArray:
     return out
 
 
-def _solve_spd(a: sp.spmatrix, b: FloatArray) -> FloatArray:
-    lu = spla.splu(sp.csc_matrix(a), permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
-    out: FloatArray = lu.solve(b)
+def _solve_blocks(n: int, diag: FloatArray, ea: npt.NDArray[np.int64],
+                  eb: npt.NDArray[np.int64], off: FloatArray, rhs: FloatArray,
+                  fixed: int | None, x_fixed: FloatArray | None) -> FloatArray:
+    """Solve the SPD normal equations of 3-vectors per pose, given by blocks.
+
+    ``diag`` (n, 3, 3): diagonal blocks; ``off`` (m, 3, 3): the block (row ea, column eb) of
+    each edge (the (eb, ea) one is its transpose; parallel edges add up); ``rhs`` (n, 3, k).
+    With ``fixed``, that pose is held at ``x_fixed`` (3, k): its blocks move to the right-hand
+    side.  Only the lower triangle is built, straight in a fill-reducing (AMD, pose graph)
+    order, and factored once for the k right-hand sides (CHOLMOD, else SuperLU).
+    """
+    from .solvers._linear import _CscPattern, _fill_reducing_order, _make_factorizer
+
+    k = rhs.shape[2]
+    rhs = rhs.copy()
+    keep = np.ones(n, bool)
+    if fixed is not None:
+        assert x_fixed is not None
+        keep[fixed] = False
+        at_a = (ea == fixed) & (eb != fixed)
+        at_b = (eb == fixed) & (ea != fixed)
+        # row eb of H holds off^T at column ea (= fixed): rhs_eb -= off^T x_fixed, and so on
+        np.add.at(rhs, eb[at_a], -np.einsum("eqp,qk->epk", off[at_a], x_fixed))
+        np.add.at(rhs, ea[at_b], -np.einsum("epq,qk->epk", off[at_b], x_fixed))
+    var = np.full(n, -1, np.int64)
+    nf = int(keep.sum())
+    var[keep] = np.arange(nf)
+    va, vb = var[ea], var[eb]
+    both = (va >= 0) & (vb >= 0) & (va != vb)
+    va, vb, off = va[both], vb[both], off[both]
+    lo, hi = np.minimum(va, vb), np.maximum(va, vb)
+    pairs = np.unique(lo * max(nf, 1) + hi)
+    new = _fill_reducing_order(nf, pairs % max(nf, 1), pairs // max(nf, 1))
+    del pairs, lo, hi
+    pa, pb = new[va], new[vb]
+    q3 = np.arange(3)
+    # off-diagonal: block (pa, pb) = off; keep the one below the diagonal of the new order
+    swap = pa < pb
+    blk = np.where(swap[:, None, None], np.swapaxes(off, 1, 2), off)
+    row_b = np.maximum(pa, pb)
+    col_b = np.minimum(pa, pb)
+    rows = [(3 * row_b[:, None, None] + q3[None, :, None]).repeat(3, 2).ravel()]
+    cols = [(3 * col_b[:, None, None] + q3[None, None, :]).repeat(3, 1).ravel()]
+    vals = [blk.ravel()]
+    pi = new[var[keep]]
+    il, jl = np.tril_indices(3)
+    rows.append((3 * pi[:, None] + il[None, :]).ravel())
+    cols.append((3 * pi[:, None] + jl[None, :]).ravel())
+    vals.append(diag[keep][:, il, jl].ravel())
+    dim = 3 * nf
+    low = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                        shape=(dim, dim))
+    del rows, cols, vals, blk
+    low.sum_duplicates()
+    low.sort_indices()
+    b = np.empty((dim, k))
+    b.reshape(nf, 3, k)[new[var[keep]]] = rhs[keep]
+    try:
+        x = _make_factorizer(_CscPattern(low), "auto").solve(
+            np.asarray(low.data, np.float64), b, check=True)
+    except SolverError as exc:
+        raise RuntimeError(str(exc)) from exc
+    out = np.empty((n, 3, k))
+    out[keep] = np.asarray(x).reshape(nf, 3, k)[new[var[keep]]]
+    if fixed is not None:
+        assert x_fixed is not None
+        out[fixed] = x_fixed
     return out
 
 
@@ -48,7 +114,7 @@ def chordal_initialization(
         Dense index of the pose whose rotation (and, without GPS, translation) is held at its
         file value (identity when the file has none).  Default: the first FIX node or pose 0.
     """
-    n, m = graph.num_nodes, graph.num_edges
+    n = graph.num_nodes
     if gauge is None:
         gauge = int(graph.fixed_nodes[0]) if graph.fixed_nodes.size else 0
     r_gauge = graph.rotations[gauge] if graph.has_estimates else np.eye(3)
@@ -58,89 +124,51 @@ def chordal_initialization(
     zr = graph.edge_rotations
     kappa = np.mean(np.diagonal(graph.edge_information[:, 3:, 3:], axis1=1, axis2=2), axis=1)
 
-    # --- rotations: row k of R_b = (row k of R_a) Z, i.e. r_b - Z^T r_a = 0 for each row k.
-    # Unknowns: x[3i:3i+3] = row k of R_i (the same matrix for the three rows k).
-    rows = np.arange(3 * m).reshape(m, 3)
-    ii, jj, vv = [], [], []
-    w = np.sqrt(kappa)
-    for comp in range(3):
-        ii.append(rows[:, comp])
-        jj.append(3 * b + comp)
-        vv.append(w)
-    zt = np.swapaxes(zr, 1, 2)  # Z^T
-    for p in range(3):
-        for q in range(3):
-            ii.append(rows[:, p])
-            jj.append(3 * a + q)
-            vv.append(-w * zt[:, p, q])
-    amat = sp.csr_matrix(
-        (np.concatenate(vv), (np.concatenate(ii), np.concatenate(jj))), shape=(3 * m, 3 * n)
-    )
-    free = np.ones(3 * n, bool)
-    free[3 * gauge : 3 * gauge + 3] = False
-    a_free = amat[:, free]
-    a_fix = amat[:, ~free]
-    normal = (a_free.T @ a_free).tocsc()
-    rot = np.empty((n, 3, 3))
+    # --- rotations: row k of R_b = (row k of R_a) Z, i.e. residual sqrt(kappa) (r_b - Z^T r_a)
+    # for each row k (unknowns: the rows r of every R_i).  Normal equations by blocks:
+    # (a, a) and (b, b) += kappa I (Z Z^T = I), (a, b) += -kappa Z; three right-hand sides k.
+    eye = np.eye(3)
+    deg = np.bincount(a, kappa, n) + np.bincount(b, kappa, n)
+    diag = deg[:, None, None] * eye[None]
+    off = -kappa[:, None, None] * zr
     try:
-        for k in range(3):
-            rhs = -(a_fix @ r_gauge[k])
-            x = _solve_spd(normal, a_free.T @ rhs)
-            full = np.empty(3 * n)
-            full[free] = x
-            full[~free] = r_gauge[k]
-            rot[:, k, :] = full.reshape(n, 3)
+        x = _solve_blocks(n, diag, a, b, off, np.zeros((n, 3, 3)), gauge, r_gauge.T)
     except RuntimeError as exc:  # singular: a part of the graph has no path to the gauge
         raise GraphError(
             "chordal initialization failed: the rotation system is singular "
             "(is the graph connected?)"
         ) from exc
-    rot = _project_to_so3(rot)
+    rot = _project_to_so3(np.swapaxes(x, 1, 2))  # x[i, :, k] is row k of R_i
+    del x, diag, off
 
-    # --- translations: t_b - t_a = R_a t_c, weighted by R_a Omega_tt R_a^T
+    # --- translations: residual L^T R_a^T (t_b - t_a) - L^T t_c with Omega_tt = L L^T, i.e.
+    # weight S = R_a Omega_tt R_a^T: (a, a), (b, b) += S, (a, b) += -S; rhs_b += S R_a t_c.
     info_t = graph.edge_information[:, :3, :3]
-    lw = np.linalg.cholesky(info_t)  # Omega = L L^T; whitened residual L^T R_a^T (...)
-    wmat = np.einsum("kji,kjl->kil", lw, np.swapaxes(rot[a], 1, 2))  # L^T R_a^T
-    rhs_e = np.einsum("kij,kj->ki", wmat, np.einsum("kij,kj->ki", rot[a], graph.edge_translations))
-    ii, jj, vv = [], [], []
-    rows = np.arange(3 * m).reshape(m, 3)
+    ra = rot[a]
+    smat = np.einsum("eij,ejk,elk->eil", ra, info_t, ra)
+    d = np.einsum("eij,ej->ei", smat, np.einsum("eij,ej->ei", ra, graph.edge_translations))
+    diag = np.zeros((n, 3, 3))
+    rhs = np.zeros((n, 3))
     for p in range(3):
+        rhs[:, p] = np.bincount(b, d[:, p], n) - np.bincount(a, d[:, p], n)
         for q in range(3):
-            ii += [rows[:, p], rows[:, p]]
-            jj += [3 * b + q, 3 * a + q]
-            vv += [wmat[:, p, q], -wmat[:, p, q]]
-    blocks_rhs = [rhs_e.reshape(-1)]
-    n_rows = 3 * m
+            diag[:, p, q] = np.bincount(a, smat[:, p, q], n) + np.bincount(b, smat[:, p, q], n)
     if graph.num_gps:
-        g = graph.num_gps
-        lg = np.linalg.cholesky(graph.gps_information)
-        wg = np.swapaxes(lg, 1, 2)
-        grow = n_rows + np.arange(3 * g).reshape(g, 3)
+        gn = graph.gps_nodes.astype(np.int64)
+        og = graph.gps_information
+        gd = np.einsum("gij,gj->gi", og, graph.gps_positions)
         for p in range(3):
+            rhs[:, p] += np.bincount(gn, gd[:, p], n)
             for q in range(3):
-                ii.append(grow[:, p])
-                jj.append(3 * graph.gps_nodes.astype(np.int64) + q)
-                vv.append(wg[:, p, q])
-        blocks_rhs.append(np.einsum("kij,kj->ki", wg, graph.gps_positions).reshape(-1))
-        n_rows += 3 * g
-    tmat = sp.csr_matrix(
-        (np.concatenate(vv), (np.concatenate(ii), np.concatenate(jj))), shape=(n_rows, 3 * n)
-    )
-    rhs = np.concatenate(blocks_rhs)
-    free = np.ones(3 * n, bool)
-    if not graph.num_gps:
-        free[3 * gauge : 3 * gauge + 3] = False
-        rhs = rhs - tmat[:, ~free] @ t_gauge
-    t_free = tmat[:, free]
+                diag[:, p, q] += np.bincount(gn, og[:, p, q], n)
+    del ra, d
     try:
-        x = _solve_spd((t_free.T @ t_free).tocsc(), t_free.T @ rhs)
+        t = _solve_blocks(n, diag, a, b, -smat, rhs[:, :, None],
+                          None if graph.num_gps else gauge,
+                          None if graph.num_gps else t_gauge[:, None])
     except RuntimeError as exc:
         raise GraphError(
             "chordal initialization failed: the translation system is singular "
             "(a part of the graph without a gauge?)"
         ) from exc
-    trans = np.empty(3 * n)
-    trans[free] = x
-    if not graph.num_gps:
-        trans[~free] = t_gauge
-    return rot, trans.reshape(n, 3)
+    return rot, np.ascontiguousarray(t[:, :, 0])

@@ -15,14 +15,13 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
-import io
 import math
 import os
 import stat
 import sys
 import tempfile
 import warnings
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import IO
 
@@ -95,7 +94,7 @@ class Source:
     path: str
     lines: list[str]
     #: tag -> (1-based line numbers, the text after the tag); dict order = first appearance.
-    groups: dict[str, tuple[list[int], list[str]]] = field(default_factory=dict)
+    groups: dict[str, tuple[list[int], Sequence[str]]] = field(default_factory=dict)
     #: What to do with information that is not positive definite: None (raise), or one of
     #: :data:`FIX_INFORMATION` (set by the readers from their ``fix_information`` argument).
     fix_information: str | None = None
@@ -162,7 +161,11 @@ def load_source(path: PathLike, fix_information: str | None = None) -> Source:
     """
     check_fix_information(fix_information)
     name, raw = read_bytes(path)
-    src = source_from_text(raw.decode("utf-8", errors="replace"), name)
+    text = raw.decode("utf-8", errors="replace")
+    del raw  # a 1M-pose file is 500 MB: hold at most the text and its lines at once
+    lines = split_lines(text)
+    del text
+    src = _source_from_lines(lines, name)
     src.fix_information = fix_information
     return src
 
@@ -170,18 +173,44 @@ def load_source(path: PathLike, fix_information: str | None = None) -> Source:
 def source_from_text(text: str, name: str) -> Source:
     """A :class:`Source` from text in memory (``name`` is used in messages)."""
     # Undecodable bytes become U+FFFD, so a binary file fails later as an unknown tag with a line.
-    lines = split_lines(text)
-    groups: dict[str, tuple[list[int], list[str]]] = {}
+    return _source_from_lines(split_lines(text), name)
+
+
+class _Rests(Sequence[str]):
+    """The text after the tag of some lines, split off when asked for (no second copy of a
+    large file's text is kept)."""
+
+    def __init__(self, lines: list[str], line_nos: list[int]) -> None:
+        self._lines = lines
+        self._line_nos = line_nos
+
+    def __len__(self) -> int:
+        return len(self._line_nos)
+
+    @staticmethod
+    def _rest(line: str) -> str:
+        head = line.split(None, 1)
+        return head[1] if len(head) > 1 else ""
+
+    def __getitem__(self, k: int) -> str:  # type: ignore[override]
+        return self._rest(self._lines[self._line_nos[k] - 1])
+
+    def __iter__(self) -> Iterator[str]:
+        lines, rest = self._lines, self._rest
+        return (rest(lines[i - 1]) for i in self._line_nos)
+
+
+def _source_from_lines(lines: list[str], name: str) -> Source:
+    line_nos: dict[str, list[int]] = {}
     for i, line in enumerate(lines, start=1):
         head = line.split(None, 1)  # only the tag is split off here (see the module doc)
         if not head or head[0].startswith("#"):
             continue
-        g = groups.get(head[0])
+        g = line_nos.get(head[0])
         if g is None:
-            g = groups[head[0]] = ([], [])
-        g[0].append(i)
-        g[1].append(head[1] if len(head) > 1 else "")
-    return Source(name, lines, groups)
+            g = line_nos[head[0]] = []
+        g.append(i)
+    return Source(name, lines, {tag: (nos, _Rests(lines, nos)) for tag, nos in line_nos.items()})
 
 
 # =========================================================================== tag layouts
@@ -301,14 +330,13 @@ def parse_blocks(src: Source, specs: Mapping[str, TagSpec], fmt: str,
     return out
 
 
-def _parse_fast(spec: TagSpec, line_nos: list[int], rests: list[str]) -> Block | None:
+def _parse_fast(spec: TagSpec, line_nos: list[int], rests: Sequence[str]) -> Block | None:
     """One ``loadtxt`` pass over the group (ids again as int64); None when anything is off."""
     k = len(rests)
     n_ids = len(spec.id_fields)
-    text = "\n".join(rests)
-    try:
-        vals = np.loadtxt(io.StringIO(text), dtype=np.float64, comments=None, ndmin=2)
-        ids = np.loadtxt(io.StringIO(text), dtype=np.int64, comments=None, ndmin=2,
+    try:  # straight from the list of lines: no joined copy, no StringIO (4 bytes a character)
+        vals = np.loadtxt(iter(rests), dtype=np.float64, comments=None, ndmin=2)
+        ids = np.loadtxt(iter(rests), dtype=np.int64, comments=None, ndmin=2,
                          usecols=range(n_ids))
     except (ValueError, OverflowError):
         return None
@@ -408,6 +436,8 @@ def stack(blocks: Iterable[Block]) -> tuple[IntArray, IntArray, FloatArray, list
     bl = [b for b in blocks if len(b)]
     if not bl:
         return np.zeros(0, np.int64), np.zeros((0, 0), np.int64), np.zeros((0, 0)), []
+    if len(bl) == 1:  # one field count (the usual case): already in file order, no copies
+        return bl[0].line_nos, bl[0].ids, bl[0].values, bl
     ln = np.concatenate([b.line_nos for b in bl])
     order = np.argsort(ln, kind="stable")
     ids = np.concatenate([b.ids for b in bl])[order]
@@ -455,6 +485,10 @@ def nearest_spd(mats: FloatArray) -> FloatArray:
     return res
 
 
+#: :func:`spd_filter` computes eigenvalues of this many matrices at a time.
+_EIG_CHUNK = 65536
+
+
 def spd_filter(src: Source, mats: FloatArray, line_nos: IntArray, kind: str,
                what: str = "information matrix", hint: str = "",
                ) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
@@ -477,7 +511,8 @@ def spd_filter(src: Source, mats: FloatArray, line_nos: IntArray, kind: str,
     keep = np.ones(k, bool)
     if k == 0:
         return mats, keep
-    big = np.abs(mats).reshape(k, -1).max(axis=1)
+    flat = mats.reshape(k, -1)
+    big = np.maximum(flat.max(axis=1), -flat.min(axis=1))  # max |entry|, NaN kept; no |mats| copy
     limit = MAX_INFORMATION
     over = np.nonzero(~(big <= limit))[0]
     if over.size:
@@ -486,7 +521,8 @@ def spd_filter(src: Source, mats: FloatArray, line_nos: IntArray, kind: str,
                 else "entries that overflow float64")
         raise src.error(int(line_nos[j]), f"{what} is too large: {size}; at most {limit:.3g} is "
                         f"supported (larger values overflow when squared){hint}")
-    eig_min = np.linalg.eigvalsh(mats)[:, 0]
+    eig_min = np.concatenate([np.linalg.eigvalsh(mats[i:i + _EIG_CHUNK])[:, 0]
+                              for i in range(0, k, _EIG_CHUNK)])  # bounded LAPACK copies
     bad = np.nonzero(~(eig_min > 0.0))[0]
     if bad.size == 0:
         return mats, keep

@@ -8,9 +8,16 @@ Global parametrization, right perturbation ``X_i <- X_i Exp(delta_i)``, tangent 
 
 The normal equations ``H = J^T Omega J``, ``g = J^T Omega e`` (with a robust kernel
 ``H = sum_c w_c J_c^T Omega_c J_c``, ``g = sum_c w_c J_c^T Omega_c e_c``, DESIGN §10) are
-written straight into the value array of a CSC matrix whose pattern was computed once (the
-"analyze" step in :mod:`hybridpgo.solvers.gauss_newton`).  Each 6x6 block ``(row i, col j)`` of
-H is addressed by a *slot*: entry ``(p, q)`` of the block lives at ``data[base + q * stride + p]``.
+written straight into the value array of the *lower triangle* of H in CSC form, whose pattern
+was computed once (the "analyze" step in :mod:`hybridpgo.solvers.gauss_newton`): the layout
+CHOLMOD factors, so no copy or transpose of H is ever made.  Scalar column ``6 j + q`` of block
+column ``j`` holds the diagonal block's rows ``q..5`` first, then the 6 rows of each lower
+off-diagonal block (block rows ``> j``, increasing).  So, with ``indptr`` the scalar column
+pointers, entry ``(p, q)``, ``p >= q``, of diagonal block ``j`` lives at
+``data[indptr[6 j + q] + p - q]`` and entry ``(p, q)`` of the ``k``-th lower block of block
+column ``j`` at ``data[indptr[6 j + q] + 6 - q + 6 k + p]``.  A relative constraint between
+variables ``va, vb`` touches the diagonal blocks of both and one lower block, in block column
+``min(va, vb)`` at position ``edge_off[c]`` (computed once).
 
 The error, ``Jr^-1``, χ², energy and retraction come from the cost layer
 (:mod:`hybridpgo._cost`), shared with the hybrid solver and :mod:`hybridpgo.energy`; they are
@@ -43,15 +50,28 @@ def _matmul6(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
 
 
 @kernel
-def _add_block_atb(a: np.ndarray, b: np.ndarray, data: np.ndarray, base: int,
-                   stride: int) -> None:
-    """data-block += a^T @ b for (6, 6) a, b, into the CSC slot (base, stride)."""
+def _add_diag_atb(a: np.ndarray, b: np.ndarray, data: np.ndarray, indptr: np.ndarray,
+                  v: int) -> None:
+    """Lower triangle of diagonal block v += lower triangle of a^T @ b ((6, 6) a, b)."""
     for q in range(6):
-        col = base + q * stride
-        for p in range(6):
+        col = indptr[6 * v + q] - q
+        for p in range(q, 6):
             s = 0.0
             for k in range(6):
                 s += a[k, p] * b[k, q]
+            data[col + p] += s
+
+
+@kernel
+def _add_lower_atb(a: np.ndarray, b: np.ndarray, data: np.ndarray, indptr: np.ndarray,
+                   v: int, k: int) -> None:
+    """The k-th lower block of block column v += a^T @ b ((6, 6) a, b)."""
+    for q in range(6):
+        col = indptr[6 * v + q] + 6 - q + 6 * k
+        for p in range(6):
+            s = 0.0
+            for i in range(6):
+                s += a[i, p] * b[i, q]
             data[col + p] += s
 
 
@@ -124,20 +144,20 @@ def edge_jacobians(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarray,
 def assemble_normal_equations(
     rot: np.ndarray, trans: np.ndarray,
     edge_nodes: np.ndarray, edge_rot: np.ndarray, edge_trans: np.ndarray, edge_info: np.ndarray,
-    edge_base: np.ndarray, edge_stride: np.ndarray,
+    edge_off: np.ndarray,
     gps_nodes: np.ndarray, gps_pos: np.ndarray, gps_info: np.ndarray,
-    gps_base: np.ndarray, gps_stride: np.ndarray,
-    var_of_node: np.ndarray, data: np.ndarray, grad: np.ndarray,
+    var_of_node: np.ndarray, indptr: np.ndarray, data: np.ndarray, grad: np.ndarray,
     robust_kind: int, robust_delta: float,
 ) -> tuple[int, float, float]:
-    """Fill ``data`` (CSC values of H) and ``grad`` (g = J^T Omega e) in one pass; return energy.
+    """Fill ``data`` (lower-triangle CSC values of H, module docstring) and ``grad``
+    (g = J^T Omega e) in one pass; return the energy.
 
     With a robust kernel (``robust_kind``, ``robust_delta``: :func:`hybridpgo._cost.robust_cost`)
     a relative constraint's terms are multiplied by its weight ``w = rho'(s)``.
 
-    ``edge_base``/``edge_stride`` (M, 4): slots of the blocks (a, a), (b, b), (a, b), (b, a)
-    (row, column), -1 where a node is fixed.  ``gps_base``/``gps_stride`` (G,): slot of (n, n).
-    ``var_of_node`` (N,): variable index of each node, -1 when fixed.
+    ``edge_off`` (M,): position of the constraint's lower off-diagonal block in block column
+    ``min(va, vb)`` (-1 when a node is fixed).  ``var_of_node`` (N,): variable index of each
+    node, -1 when fixed.  ``indptr``: the scalar column pointers of the lower triangle.
 
     Returns ``(status, robust energy, plain energy)``: status -1 when every quantity is
     finite, else the index of the first offending constraint (relative edges 0..M-1, then
@@ -184,14 +204,19 @@ def assemble_normal_equations(
         va = var_of_node[a]
         vb = var_of_node[b]
         if va >= 0:
-            _add_block_atb(ja, wa, data, edge_base[c, 0], edge_stride[c, 0])
+            _add_diag_atb(ja, wa, data, indptr, va)
             _add_gradient(ja, oe, grad, va)
         if vb >= 0:
-            _add_block_atb(jb, wb, data, edge_base[c, 1], edge_stride[c, 1])
+            _add_diag_atb(jb, wb, data, indptr, vb)
             _add_gradient(jb, oe, grad, vb)
         if va >= 0 and vb >= 0:
-            _add_block_atb(ja, wb, data, edge_base[c, 2], edge_stride[c, 2])
-            _add_block_atb(jb, wa, data, edge_base[c, 3], edge_stride[c, 3])
+            if va > vb:  # block (row a, col b) = Ja^T W Jb is the lower one
+                _add_lower_atb(ja, wb, data, indptr, vb, edge_off[c])
+            elif vb > va:  # block (row b, col a) = Jb^T W Ja
+                _add_lower_atb(jb, wa, data, indptr, va, edge_off[c])
+            else:  # one variable for both ends: both cross terms land on the diagonal
+                _add_diag_atb(ja, wb, data, indptr, va)
+                _add_diag_atb(jb, wa, data, indptr, va)
     for c in range(gps_nodes.shape[0]):
         n = gps_nodes[c]
         om = gps_info[c]
@@ -205,18 +230,39 @@ def assemble_normal_equations(
         if vn < 0:
             continue
         # J = [R | 0]: H_nn = [[R^T Omega R, 0], [0, 0]], g_n = (R^T Omega e, 0).
-        base = gps_base[c]
-        stride = gps_stride[c]
         for q in range(3):
-            for p in range(3):
+            col = indptr[6 * vn + q] - q
+            for p in range(q, 3):
                 s = 0.0
                 for k in range(3):
                     for l in range(3):
                         s += r[k, p] * om[k, l] * r[l, q]
-                data[base + q * stride + p] += s
+                data[col + p] += s
         for p in range(3):
             grad[6 * vn + p] += r[0, p] * oe[0] + r[1, p] * oe[1] + r[2, p] * oe[2]
     return -1, energy, plain
+
+
+@kernel
+def lower_pattern_indices(block_ptr: np.ndarray, block_row: np.ndarray, indptr: np.ndarray,
+                          indices: np.ndarray) -> None:
+    """Row indices of the scalar lower-triangle pattern (module docstring) from the block one.
+
+    ``block_ptr`` (nv+1,), ``block_row``: the lower off-diagonal blocks of each block column
+    (rows increasing); ``indptr`` (6 nv + 1,): the scalar column pointers; fills ``indices``.
+    """
+    nv = block_ptr.shape[0] - 1
+    for j in range(nv):
+        for q in range(6):
+            pos = indptr[6 * j + q]
+            for p in range(q, 6):
+                indices[pos] = 6 * j + p
+                pos += 1
+            for k in range(block_ptr[j], block_ptr[j + 1]):
+                r = 6 * block_row[k]
+                for p in range(6):
+                    indices[pos] = r + p
+                    pos += 1
 
 
 @kernel

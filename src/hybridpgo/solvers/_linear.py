@@ -1,7 +1,8 @@
 """Sparse symmetric factorizations for the exact solver: analyze once, factor per iteration.
 
 Two backends factor a symmetric positive definite matrix ``A`` given as the values of a fixed CSC
-pattern (both triangles stored, as :class:`hybridpgo.solvers.gauss_newton` assembles it):
+pattern of its *lower triangle*, rows increasing within each column (so each column starts with
+its diagonal entry), as :class:`hybridpgo.solvers.gauss_newton` assembles it:
 
 ``_Cholmod`` (``linear_solver="cholmod"``)
     SuiteSparse CHOLMOD through :mod:`cvxopt.cholmod` (a runtime dependency: manylinux, macOS and
@@ -10,6 +11,10 @@ pattern (both triangles stored, as :class:`hybridpgo.solvers.gauss_newton` assem
     factorization into the same factor object.  Measured on paris2 with GPS (251 742 unknowns,
     5.5 M nonzeros, 2 cores shared with other jobs): symbolic 0.27-0.48 s once, numeric
     0.5-1.0 s per iteration (``python -m benchmarks --only linear``).
+    Memory per stored entry: the values buffer the caller assembles into (8 bytes,
+    :meth:`_Cholmod.values_buffer`), cvxopt's copy of the matrix (16), and during each numeric
+    factorization cvxopt's packed copy and CHOLMOD's transposed one (16 + 16, freed after), plus
+    the factor L.
 ``_SuperLU`` (``linear_solver="splu"``)
     SciPy's SuperLU on the pre-ordered matrix (natural column order, symmetric mode, diagonal
     pivots).  A full LU (no BLAS-3 supernodes), 2-3x slower than CHOLMOD, but it no longer
@@ -51,7 +56,8 @@ _RHS_BATCH_BYTES = 64 * 2**20
 
 
 class SymmetricPattern(Protocol):
-    """A fixed CSC pattern of a symmetric (dim, dim) matrix, both triangles stored."""
+    """A fixed CSC pattern of the lower triangle of a symmetric (dim, dim) matrix, rows
+    increasing within each column, every diagonal entry stored (first in its column)."""
 
     @property
     def indptr(self) -> Int64Array: ...
@@ -59,10 +65,20 @@ class SymmetricPattern(Protocol):
     def indices(self) -> Int64Array: ...
     @property
     def diag_index(self) -> Int64Array:
-        """(dim,) position of each diagonal entry in the values array."""
+        """(dim,) position of each diagonal entry in the values array (``indptr[:-1]``)."""
         ...
     @property
     def dim(self) -> int: ...
+
+
+def _check_lower(pattern: SymmetricPattern) -> None:
+    """Cheap check of the layout: each column's first row is its diagonal."""
+    ptr = pattern.indptr
+    if ptr.shape[0] != pattern.dim + 1 or (pattern.dim and not (
+            np.all(ptr[1:] > ptr[:-1])
+            and np.array_equal(pattern.indices[ptr[:-1]], np.arange(pattern.dim)))):
+        raise ValueError("the pattern must be the lower triangle with every diagonal entry "
+                         "stored first in its column")
 
 
 # --------------------------------------------------------------------------- ordering
@@ -154,31 +170,34 @@ class _SuperLU:
     name = "splu"
 
     def __init__(self, pattern: SymmetricPattern) -> None:
+        _check_lower(pattern)
         self._pat = pattern
         self._lu: Any = None
-        self._values: FloatArray | None = None
+        self._diagonal: FloatArray | None = None
+
+    def values_buffer(self) -> FloatArray | None:
+        """None: SuperLU builds its own matrix from the values at each factorization."""
+        return None
 
     def factor(self, values: FloatArray) -> None:
         """Numeric factorization of A with the given values (in the pattern's order)."""
         p = self._pat
-        h = sp.csc_matrix((values, p.indices, p.indptr), shape=(p.dim, p.dim))
-        if not h.has_sorted_indices:  # SuperLU needs sorted rows (sort a copy, not values)
-            h = h.copy()
-            h.sort_indices()
+        low = sp.csc_matrix((values, p.indices, p.indptr), shape=(p.dim, p.dim))
+        h = (low + low.T - sp.diags(low.diagonal())).tocsc()  # SuperLU needs both triangles
+        h.sort_indices()
         try:
             self._lu = spla.splu(h, permc_spec="NATURAL", diag_pivot_thresh=0.0,
                                  options={"SymmetricMode": True})
         except RuntimeError as exc:  # "Factor is exactly singular"
             raise SolverError(f"the normal equations are singular ({exc}); is the gauge fixed?"
                               ) from exc
-        self._values = values
+        self._diagonal = values[p.diag_index]
 
     def check(self) -> None:
         """Raise SolverError when the last factored matrix is singular to rounding."""
-        assert self._lu is not None and self._values is not None
+        assert self._lu is not None and self._diagonal is not None
         pivots = np.abs(self._lu.U.diagonal())  # U's diagonal, in the order of perm_c
-        diagonal = self._values[self._pat.diag_index]
-        _check_pivots(pivots, diagonal[np.argsort(self._lu.perm_c)])
+        _check_pivots(pivots, self._diagonal[np.argsort(self._lu.perm_c)])
 
     def solve_factored(self, rhs: FloatArray) -> FloatArray:
         """``A^-1 rhs`` with the last factorization (rhs: (dim,) or (dim, k))."""
@@ -238,45 +257,50 @@ class _Cholmod:
     def __init__(self, pattern: SymmetricPattern) -> None:
         import cvxopt
 
+        _check_lower(pattern)
         self._cvxopt = cvxopt
-        self._pat = pattern
-        self._perm: Int64Array | None = None
-        self._values: FloatArray | None = None
-        self._factor: Any = None
         dim = pattern.dim
+        self._dim = dim
+        self._diag_index = pattern.diag_index
+        self._perm: Int64Array | None = None
+        self._diagonal: FloatArray | None = None
+        self._factor: Any = None
+        nnz = int(pattern.indptr[-1]) if dim else 0
+        #: the values the caller assembles into (numpy view of a cvxopt matrix, no copy)
+        self._store = cvxopt.matrix(0.0, (max(nnz, 1), 1))
+        self._buffer: FloatArray = np.asarray(self._store)[:nnz, 0]
         if dim == 0:
             return
-        indptr = np.asarray(pattern.indptr, np.int64)
-        indices = np.asarray(pattern.indices, np.int64)
-        col = np.repeat(np.arange(dim, dtype=np.int64), np.diff(indptr))
-        lower = np.flatnonzero(indices >= col)
-        rows = indices[lower]
-        cols = col[lower]
-        if not np.all((np.diff(rows) > 0) | (np.diff(cols) > 0)):  # not in cvxopt's CCS order
-            lower = lower[np.lexsort((rows, cols))]
-        #: values[take] are the lower triangle's values in the order cvxopt stores them
-        self._take = lower
-        self._matrix = cvxopt.spmatrix(
-            0.0, cvxopt.matrix(indices[self._take], tc="i"),
-            cvxopt.matrix(col[self._take], tc="i"), (dim, dim))
+        rows = cvxopt.matrix(pattern.indices, tc="i")
+        col = np.repeat(np.arange(dim, dtype=np.int64), np.diff(pattern.indptr))
+        cols = cvxopt.matrix(col, tc="i")
+        del col
+        self._matrix = cvxopt.spmatrix(0.0, rows, cols, (dim, dim))
+        del rows, cols
         natural = cvxopt.matrix(np.arange(dim, dtype=np.int64), tc="i")
         with _cholmod_options(**_CHOLMOD_OPTIONS) as cm:
             self._factor = cm.symbolic(self._matrix, p=natural)
 
+    def values_buffer(self) -> FloatArray:
+        """The array to assemble the values into: :meth:`factor` then copies nothing more."""
+        return self._buffer
+
     def factor(self, values: FloatArray) -> None:
         """Numeric factorization of A with the given values (in the pattern's order)."""
-        self._matrix.V = self._cvxopt.matrix(values[self._take])
+        if values is not self._buffer:
+            self._buffer[:] = values
+        self._matrix.V = self._store  # one copy, into the matrix cvxopt hands to CHOLMOD
+        self._diagonal = values[self._diag_index]
         with _cholmod_options(**_CHOLMOD_OPTIONS) as cm:
             try:
                 cm.numeric(self._matrix, self._factor)
             except ArithmeticError as exc:  # cvxopt: the column where a pivot was <= 0
                 raise _not_positive_definite(f"non-positive pivot in column {exc}") from exc
-        self._values = values
 
     def _permutation(self) -> Int64Array:
         """p with ``(P A P^T)[i, j] = A[p[i], p[j]]``: CHOLMOD's final order (postordered)."""
         if self._perm is None:
-            b = self._cvxopt.matrix(np.arange(self._pat.dim, dtype=np.float64))
+            b = self._cvxopt.matrix(np.arange(self._dim, dtype=np.float64))
             with _cholmod_options(**_CHOLMOD_OPTIONS) as cm:
                 cm.solve(self._factor, b, sys=7)  # b := P b
             self._perm = np.asarray(b, np.float64).ravel().astype(np.int64)
@@ -284,10 +308,10 @@ class _Cholmod:
 
     def check(self) -> None:
         """Raise SolverError when the last factored matrix is singular to rounding."""
-        assert self._values is not None
+        assert self._diagonal is not None
         with _cholmod_options(**_CHOLMOD_OPTIONS) as cm:
             pivots = np.asarray(cm.diag(self._factor), np.float64).ravel() ** 2  # D of L D L^T
-        _check_pivots(pivots, self._values[self._pat.diag_index][self._permutation()])
+        _check_pivots(pivots, self._diagonal[self._permutation()])
 
     def solve_factored(self, rhs: FloatArray) -> FloatArray:
         """``A^-1 rhs`` with the last factorization (rhs: (dim,) or (dim, k))."""
@@ -299,7 +323,7 @@ class _Cholmod:
 
     def solve(self, values: FloatArray, rhs: FloatArray, check: bool = False) -> FloatArray:
         """Solve ``A x = rhs`` for the system matrix A with the given values."""
-        if self._pat.dim == 0:
+        if self._dim == 0:
             return np.zeros(0)
         self.factor(values)
         if check:
@@ -313,7 +337,7 @@ class _Cholmod:
         columns E of one block, so each block costs one forward solve with b right-hand sides
         (``2 b nnz(L)`` flops) and a (b, dim) x (dim, b) product; batched.
         """
-        dim = self._pat.dim
+        dim = self._dim
         k, b = block_index.shape
         pinv = np.empty(dim, np.int64)
         pinv[self._permutation()] = np.arange(dim)
@@ -339,3 +363,55 @@ def _make_factorizer(pattern: SymmetricPattern, backend: str) -> _SuperLU | _Cho
                               "wheels bundle SuiteSparse's CHOLMOD)")
         return _Cholmod(pattern)
     return _SuperLU(pattern)
+
+
+class _CscPattern:
+    """A lower-triangle pattern (:class:`SymmetricPattern`) from a SciPy CSC matrix."""
+
+    def __init__(self, low: sp.csc_matrix) -> None:
+        self.indptr: Int64Array = low.indptr.astype(np.int64)
+        self.indices: Int64Array = low.indices.astype(np.int64)
+        self.dim = int(low.shape[0])
+
+    @property
+    def diag_index(self) -> Int64Array:
+        return self.indptr[:-1]
+
+
+def solve_spd(a: sp.spmatrix, rhs: FloatArray, block: int = 1) -> FloatArray:
+    """Solve ``A x = rhs`` once for a sparse SPD ``A`` (rhs: (dim,) or (dim, k)).
+
+    The unknowns come in blocks of ``block`` (a pose's 3 or 6 entries): they are permuted by a
+    fill-reducing ordering of the block graph (:func:`_fill_reducing_order`), then factored by
+    CHOLMOD when cvxopt is available (else SuperLU), one factorization for every right-hand side.
+
+    Raises
+    ------
+    SolverError
+        ``A`` is not positive definite, or singular to rounding.
+    """
+    csc = sp.csc_matrix(a)
+    dim = int(csc.shape[0])
+    if dim == 0:
+        return np.zeros_like(rhs, dtype=np.float64)
+    coo = csc.tocoo()
+    nb = dim // block
+    br = coo.row.astype(np.int64) // block
+    bc = coo.col.astype(np.int64) // block
+    del coo
+    lower = br > bc
+    key = np.unique(bc[lower] * nb + br[lower])  # each block pair once (block^2 fewer)
+    del br, bc, lower
+    new_block = _fill_reducing_order(nb, key % nb, key // nb)
+    del key
+    new_pos = (block * new_block[:, None] + np.arange(block, dtype=np.int64)[None, :]).ravel()
+    old_at = np.empty(dim, np.int64)
+    old_at[new_pos] = np.arange(dim)
+    low = sp.tril(csc[old_at][:, old_at], format="csc")
+    del csc
+    low.sort_indices()
+    pattern = _CscPattern(low)
+    factorizer = _make_factorizer(pattern, "auto")
+    x = factorizer.solve(np.asarray(low.data, np.float64), np.asarray(rhs, np.float64)[old_at],
+                         check=True)
+    return np.asarray(x[new_pos], np.float64)

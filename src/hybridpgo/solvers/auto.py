@@ -24,6 +24,12 @@ solver is named (``--solver auto``).  The paper's pure method stays ``--solver h
    polish took (at least :data:`MIN_FINALIST_ITERATIONS`); it goes on to convergence only if
    it is then below the best, else it is reported as cut.
 
+**Large graphs** (``AutoConfig.large_poses``, default 200 000 poses and more): every start,
+sweep and polish costs seconds to minutes, so only the first start of ``large_inits`` that can
+be computed is used, with at most ``large_max_sweeps`` sweeps and one polish (no runner-up, no
+unswept twin); ``stats["policy"]`` is ``"large"`` (else ``"full"``) and the reason says so.
+benchmarks/scale.py measures what this costs against the full policy on a 100k-pose city.
+
 The result's ``status`` is the winning polish's; ``stats`` name the start (``init``), the
 sweeps and polish iterations it took (``sweeps``, ``polish_iterations``, ``polish_status``),
 every candidate's energies (``candidates``) and a one-line ``reason``.
@@ -40,7 +46,7 @@ import numpy as np
 
 from ..errors import HybridPGOError, SolverError
 from ..graph import FloatArray, PoseGraph
-from ..tree import build_tree, initial_locals
+from ..tree import build_tree, global_poses, initial_locals
 from .config import AutoConfig, Progress, ProgressCallback
 from .gauss_newton import solve_exact
 from .hybrid.solver import HybridSolver
@@ -109,6 +115,18 @@ def _sweep_candidate(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate, tree: 
                      progress: ProgressCallback | None) -> None:
     """Sweeps from one start while they pay; keeps the best poses in ``cand``."""
     t0 = time.perf_counter()
+    if cfg.max_sweeps == 0:  # no hybrid solver (its per-path blocks cost memory): poses, E
+        from ..energy import robust_energy
+
+        cand.rot, cand.trans = cand.start = global_poses(tree, *locals0)
+        e0 = robust_energy(graph, cand.rot, cand.trans, cfg.robust,
+                           cfg.hybrid_config(cand.init, 0).robust_delta)[0]
+        cand.history.append(e0)
+        cand.times.append(time.perf_counter() - t_origin)
+        if progress is not None:
+            progress(Progress("start", 0, 0, e0, detail=cand.init))
+        cand.sweep_seconds = time.perf_counter() - t0
+        return
     solver = HybridSolver(graph, cfg.hybrid_config(cand.init, cfg.max_sweeps), tree=tree,
                           locals0=locals0)
     e0 = solver.energy()
@@ -204,6 +222,13 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
         When no start could be computed and polished.
     """
     cfg = config or AutoConfig()
+    large = cfg.is_large(graph.num_nodes)
+    policy = ""
+    if large:
+        policy = (f"large-graph policy ({graph.num_nodes} poses >= {cfg.large_poses}): one "
+                  f"start, at most {cfg.large_max_sweeps} sweeps, one polish; ")
+        cfg = dataclasses.replace(cfg, inits=cfg.large_inits, max_sweeps=cfg.large_max_sweeps,
+                                  finalists=1, polish_unswept=False)
     from .gauss_newton import _ensure_compiled as ensure_exact
     from .hybrid.solver import ensure_compiled as ensure_hybrid
 
@@ -228,7 +253,10 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
             continue
         cand.start_seconds = time.perf_counter() - t0
         _sweep_candidate(graph, cfg, cand, tree, locals0, t_origin, progress)
+        del locals0
         cands.append(cand)
+        if large and cand.rot is not None and np.isfinite(cand.energy):
+            break  # the large-graph policy: the first start that could be computed
     usable = [c for c in cands if c.rot is not None and np.isfinite(c.energy)]
     if not usable:
         raise SolverError("no start gave finite poses: "
@@ -271,7 +299,7 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     cut = [c.label for c in finalists if c.cut]
     swept = (f"{win.sweeps} sweep(s) kept of {win.sweeps_run} run" if win.label == win.init
              else "its own poses, no sweeps")
-    reason = (f"start {win.init}: {swept}, then "
+    reason = (f"{policy}start {win.init}: {swept}, then "
               f"{pol.iterations} LM iteration(s), {pol.status.value}")
     if others:
         reason += f"; other polished start(s): {others}"
@@ -279,6 +307,7 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
         reason += (f"; polish of {', '.join(cut)} stopped at its budget above the best "
                    f"({', '.join(f'{c.energy:.6g}' for c in ranked if c.cut)})")
     stats: dict[str, Any] = {
+        "policy": "large" if large else "full",
         "init": win.init,
         "start": win.label,
         "sweeps": win.sweeps,

@@ -110,7 +110,9 @@ class GaussNewtonConfig:
     runtime dependency: supernodal Cholesky, symbolic analysis once per solve, numeric
     factorization per iteration), ``"splu"`` (SciPy's SuperLU in symmetric mode with diagonal
     pivots: an LU, 2-5x slower), or ``"auto"`` (CHOLMOD when cvxopt is importable, else
-    SuperLU)."""
+    SuperLU; except that a 3D system whose factor stays sparse, as on city-like graphs, uses
+    the block Cholesky of :mod:`hybridpgo.solvers._block_cholesky`: 3x faster than CHOLMOD
+    there and ~4x less memory, which keeps a 1M-pose polish within 4 GB)."""
     robust: RobustName = "none"
     """Robust kernel (see ``HybridConfig.robust``); the LM acceptance test uses E_rho."""
     robust_scale: float | None = None
@@ -324,8 +326,34 @@ class AutoConfig:
     """Robust kernel of the sweeps and the polish (``HybridConfig.robust``)."""
     robust_scale: float = 1.0
     """The kernel's delta (``HybridConfig.robust_scale``)."""
+    large_poses: int | None = 200_000
+    """Graphs with at least this many poses get the *large-graph policy* (None: never), since
+    every start, sweep and polish costs seconds to minutes there (a 1M-pose city: one sweep
+    20-40 s, one LM iteration ~10 s): only the first applicable start of ``large_inits``, at
+    most ``large_max_sweeps`` sweeps, one polish (``finalists=1``, no ``polish_unswept``).  The
+    result's ``stats["policy"]`` and its ``reason`` say which policy ran."""
+    large_inits: tuple[InitName, ...] = ("chordal", "file", "tree")
+    """Starts of the large-graph policy, in order of preference: the first that applies (and
+    can be computed) is the only one swept and polished."""
+    large_max_sweeps: int = 0
+    """Most sweeps from the start under the large-graph policy.  0 (default): none, and no
+    hybrid solver is built (its per-path 6x6 blocks alone take 1 GB at 1M poses without GPS,
+    ~6 GB with GPS).  Measured on a 100k-pose city (benchmarks/scale.py): from the chordal start
+    the first sweep raises E (it is undone) and LM converges in 12 iterations either way; from
+    the tree start 13 sweeps (26 s) leave LM 14 iterations where it needs 12 without them."""
 
     def __post_init__(self) -> None:
+        if self.large_poses is not None:
+            _check_int("large_poses", self.large_poses, 2)
+        if (not isinstance(self.large_inits, tuple) or not self.large_inits
+                or any(i not in INIT_NAMES for i in self.large_inits)
+                or len(set(self.large_inits)) != len(self.large_inits)):
+            raise ValueError(f"large_inits must be a non-empty tuple of distinct names from "
+                             f"{', '.join(INIT_NAMES)}, got {self.large_inits!r}")
+        _check_int("large_max_sweeps", self.large_max_sweeps, 0)
+        if self.large_max_sweeps > MAX_SWEEPS:
+            raise ValueError(f"large_max_sweeps must be at most {MAX_SWEEPS}, got "
+                             f"{self.large_max_sweeps!r}")
         if (not isinstance(self.inits, tuple) or not self.inits
                 or any(i not in INIT_NAMES for i in self.inits)
                 or len(set(self.inits)) != len(self.inits)):
@@ -344,6 +372,10 @@ class AutoConfig:
         _check_float("energy_tolerance", self.energy_tolerance, positive=False)
         # the sweep options are checked by the HybridConfig they build (same messages)
         self.hybrid_config("tree", 0)
+
+    def is_large(self, num_poses: int) -> bool:
+        """True when a graph of ``num_poses`` poses gets the large-graph policy."""
+        return self.large_poses is not None and num_poses >= self.large_poses
 
     def hybrid_config(self, init: str, sweeps: int) -> HybridConfig:
         """The options of one start's sweeps (no polish: the pipeline polishes itself)."""

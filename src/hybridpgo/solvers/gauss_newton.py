@@ -13,7 +13,10 @@ constraints: then the earth frame is the gauge and no pose is fixed.
 Linear algebra (:mod:`._linear`): the variables are permuted once per solve by a fill-reducing
 ordering of the 6x6 *block* graph (AMD, 36x smaller than H); then CHOLMOD through cvxopt
 (supernodal, symbolic analysis once, numeric factorization each iteration) or, with
-``linear_solver="splu"``, SciPy's SuperLU in symmetric mode with diagonal pivots.
+``linear_solver="splu"``, SciPy's SuperLU in symmetric mode with diagonal pivots.  With
+``"auto"``, a 3D system whose factor stays sparse (city-like graphs: few loop closures) is
+factored by the block Cholesky of :mod:`._block_cholesky` instead (``_BLOCK_MAX_FILL``):
+faster there, and the only backend that keeps a 1M-pose polish within 4 GB.
 
 Lifted 2D graphs (DESIGN §1) at planar poses solve only the (x, y, yaw) unknowns: the other three
 are decoupled and their step is exactly zero (see ``_PLANAR_DOFS``); M3500: 133 -> 38 ms per
@@ -22,6 +25,7 @@ iteration.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -35,6 +39,7 @@ from .. import _cost
 from ..errors import GraphError, SolverError
 from ..graph import FloatArray, PoseGraph
 from . import _gn_kernels as _k
+from ._block_cholesky import BlockCholesky
 from ._linear import NotPositiveDefinite, _fill_reducing_order, _make_factorizer
 from ._linear import _cholmod_available as _cholmod_available  # re-exported for the tests
 from .config import GaussNewtonConfig, Progress, ProgressCallback
@@ -59,6 +64,11 @@ _MAX_DAMPING = 1e16
 #: LM damping matrix: diag(H) clipped below at this fraction of its largest entry, so that the
 #: damped system stays SPD where a direction carries (almost) no information.
 _DIAG_FLOOR = 1e-12
+#: ``linear_solver="auto"``: the block Cholesky (:mod:`._block_cholesky`) when its factor has at
+#: most this many 6x6 blocks per block column (diagonal included); else CHOLMOD, whose BLAS
+#: supernodes win on high fill.  Measured (factor + solve): 100k-pose city 2-3 blocks per
+#: column, block 0.37 s vs CHOLMOD 1.08 s; sphere2500 17, block 0.27 s vs CHOLMOD 0.18 s.
+_BLOCK_MAX_FILL = 6
 
 
 # --------------------------------------------------------------------------- gauge
@@ -90,17 +100,15 @@ def _check_gauge(graph: PoseGraph, fixed: npt.NDArray[np.int32]) -> None:
 # --------------------------------------------------------------------------- analyze
 @dataclass(frozen=True, slots=True)
 class _Pattern:
-    """Sparsity pattern of H and where each constraint's blocks go (computed once)."""
+    """Sparsity pattern of the lower triangle of H and where each constraint's blocks go
+    (computed once; layout in :mod:`._gn_kernels`)."""
 
     var_of_node: Int64Array  # (N,) variable (block column) of each node, -1 when fixed
     num_vars: int
-    indptr: Int64Array  # CSC of the (6 nv, 6 nv) scalar matrix
-    indices: Int64Array
-    diag_index: Int64Array  # (6 nv,) position of H[k, k] in data
-    edge_base: Int64Array  # (M, 4) slots (a,a), (b,b), (a,b), (b,a)
-    edge_stride: Int64Array
-    gps_base: Int64Array  # (G,) slot (n, n)
-    gps_stride: Int64Array
+    indptr: Int64Array  # (6 nv + 1,) scalar column pointers of the lower triangle
+    block_ptr: Int64Array  # (nv + 1,) lower off-diagonal blocks of each block column
+    block_row: Int64Array  # their block rows (increasing within a column)
+    edge_off: Int64Array  # (M,) position of each edge's lower block in its column, -1: fixed
 
     @property
     def dim(self) -> int:
@@ -108,17 +116,20 @@ class _Pattern:
 
     @property
     def nnz(self) -> int:
-        return int(self.indices.shape[0])
+        """Stored entries (the lower triangle, diagonal included)."""
+        return int(self.indptr[-1])
 
+    @property
+    def diag_index(self) -> Int64Array:
+        """(dim,) position of H[k, k] in the values: the first entry of each column."""
+        return self.indptr[:-1]
 
-def _block_pairs(graph: PoseGraph, var: Int64Array) -> tuple[Int64Array, Int64Array]:
-    """(rows, cols) of every block each constraint touches, -1 for fixed nodes (unfiltered)."""
-    va = var[graph.edge_nodes[:, 0]]
-    vb = var[graph.edge_nodes[:, 1]]
-    vg = var[graph.gps_nodes]
-    rows = np.concatenate([va, vb, va, vb, vg])
-    cols = np.concatenate([va, vb, vb, va, vg])
-    return rows, cols
+    def lower_indices(self) -> Int64Array:
+        """Row index of every stored entry (built on demand: the solver itself never needs
+        them after the factorization's symbolic analysis)."""
+        indices = np.empty(self.nnz, np.int64)
+        _k.lower_pattern_indices(self.block_ptr, self.block_row, self.indptr, indices)
+        return indices
 
 
 def _analyze(graph: PoseGraph, fixed: npt.NDArray[np.int32], reorder: bool) -> _Pattern:
@@ -129,46 +140,39 @@ def _analyze(graph: PoseGraph, fixed: npt.NDArray[np.int32], reorder: bool) -> _
     nv = int(free.size)
     var = np.full(n, -1, np.int64)
     var[free] = np.arange(nv)
+    ends = graph.edge_nodes
     if reorder:
-        rows, cols = _block_pairs(graph, var)
-        new_pos = _fill_reducing_order(nv, rows, cols)
-        var[free] = new_pos
-    rows, cols = _block_pairs(graph, var)
-    valid = (rows >= 0) & (cols >= 0)
-    keys = np.where(valid, cols * nv + rows, -1)
-    diag_keys = np.arange(nv, dtype=np.int64) * (nv + 1)  # every diagonal block, for damping
-    uniq, inv = np.unique(np.concatenate([keys[valid], diag_keys]), return_inverse=True)
+        va, vb = var[ends[:, 0]], var[ends[:, 1]]
+        var[free] = _fill_reducing_order(nv, np.concatenate([va, vb]), np.concatenate([vb, va]))
+        del va, vb
+    va, vb = var[ends[:, 0]], var[ends[:, 1]]
+    both = (va >= 0) & (vb >= 0) & (va != vb)
+    lo = np.minimum(va, vb)[both]
+    hi = np.maximum(va, vb)[both]
+    del va, vb
+    uniq, inv = np.unique(lo * max(nv, 1) + hi, return_inverse=True)
+    del lo, hi
     bcol = uniq // max(nv, 1)
-    brow = uniq % max(nv, 1)
-    counts = np.bincount(bcol, minlength=nv).astype(np.int64)
-    bptr = np.zeros(nv + 1, np.int64)
-    np.cumsum(counts, out=bptr[1:])
-    pos = np.arange(uniq.shape[0], dtype=np.int64) - bptr[bcol]
-    base = 36 * bptr[bcol] + 6 * pos
-    stride = 6 * counts[bcol]
+    nblocks = np.bincount(bcol, minlength=nv).astype(np.int64)
+    block_ptr = np.zeros(nv + 1, np.int64)
+    np.cumsum(nblocks, out=block_ptr[1:])
+    edge_off = np.full(graph.num_edges, -1, np.int64)
+    edge_off[both] = inv - block_ptr[bcol[inv]]
     q6 = np.arange(6, dtype=np.int64)
-    indptr = np.empty(6 * nv + 1, np.int64)
-    indptr[:-1] = (36 * bptr[:-1, None] + q6[None, :] * 6 * counts[:, None]).ravel()
-    indptr[-1] = 36 * bptr[-1]
-    where = base[:, None, None] + q6[None, :, None] * stride[:, None, None] + q6[None, None, :]
-    indices = np.empty(36 * uniq.shape[0], np.int64)
-    indices[where.ravel()] = np.broadcast_to(6 * brow[:, None, None] + q6[None, None, :],
-                                             where.shape).ravel()
-    slot_of = np.full(keys.shape[0], -1, np.int64)
-    slot_of[valid] = inv[: int(valid.sum())]
-    slot_base = np.where(slot_of >= 0, base[slot_of], -1)
-    slot_stride = np.where(slot_of >= 0, stride[slot_of], 0)
-    m = graph.num_edges
-    dslot = inv[int(valid.sum()):]
-    diag_index = (base[dslot][:, None] + q6[None, :] * stride[dslot][:, None] + q6[None, :])
-    return _Pattern(
-        var_of_node=var, num_vars=nv, indptr=indptr, indices=indices,
-        diag_index=np.ascontiguousarray(diag_index.ravel()),
-        edge_base=np.ascontiguousarray(slot_base[: 4 * m].reshape(4, m).T),
-        edge_stride=np.ascontiguousarray(slot_stride[: 4 * m].reshape(4, m).T),
-        gps_base=np.ascontiguousarray(slot_base[4 * m:]),
-        gps_stride=np.ascontiguousarray(slot_stride[4 * m:]),
-    )
+    counts = (6 - q6)[None, :] + 6 * nblocks[:, None]  # column 6j+q: diagonal rows q..5, blocks
+    indptr = np.zeros(6 * nv + 1, np.int64)
+    np.cumsum(counts.ravel(), out=indptr[1:])
+    return _Pattern(var_of_node=var, num_vars=nv, indptr=indptr, block_ptr=block_ptr,
+                    block_row=np.ascontiguousarray(uniq % max(nv, 1)), edge_off=edge_off)
+
+
+def _lower_to_full(values: FloatArray, indices: Int64Array, indptr: Int64Array,
+                   dim: int) -> sp.csc_matrix:
+    """The symmetric matrix (both triangles) whose lower triangle is given."""
+    low = sp.csc_matrix((values, indices, indptr), shape=(dim, dim))
+    full = (low + low.T - sp.diags(low.diagonal())).tocsc()
+    full.sort_indices()
+    return full
 
 
 #: Lifted-2D graphs (DESIGN §1): the tangent entries x, y, yaw.  At planar poses with planar
@@ -181,18 +185,31 @@ _OUT_OF_PLANE_DOFS = np.array([2, 3, 4])
 
 @dataclass(frozen=True, slots=True)
 class _System:
-    """The symmetric system actually factored: all of H, or its (x, y, yaw) rows/columns."""
+    """The symmetric system actually factored: all of H, or its (x, y, yaw) rows/columns.
 
-    indptr: Int64Array  # CSC pattern of the (dim, dim) system matrix
-    indices: Int64Array
-    diag_index: Int64Array  # (dim,) position of each diagonal entry in the system's values
+    Stored as its lower triangle in CSC form, rows increasing in each column (so the diagonal
+    entry comes first): the layout of :class:`._linear.SymmetricPattern`.
+    """
+
+    indptr: Int64Array  # CSC pattern of the lower triangle of the (dim, dim) system matrix
+    indices: Int64Array  # empty once the factorizer has taken them (CHOLMOD keeps its own)
     dofs: Int64Array | None  # positions of the system's unknowns in the full vector; None: all
     value_map: Int64Array | None  # system values = data[value_map]; None: data itself
     dim: int
 
-    def values(self, data: FloatArray) -> FloatArray:
-        """A fresh array of the system's values (data's entries, gathered when reduced)."""
-        return data.copy() if self.value_map is None else data[self.value_map]
+    @property
+    def diag_index(self) -> Int64Array:
+        return self.indptr[:-1]
+
+    @property
+    def nnz(self) -> int:
+        return int(self.indptr[-1])
+
+    def values(self, data: FloatArray, out: FloatArray | None) -> FloatArray:
+        """The system's values: ``data`` itself, or its entries gathered (into ``out``)."""
+        if self.value_map is None:
+            return data
+        return np.take(data, self.value_map, out=out)
 
     def restrict(self, vec: FloatArray) -> FloatArray:
         return vec if self.dofs is None else vec[self.dofs]
@@ -204,28 +221,24 @@ class _System:
         out[self.dofs] = sub
         return out
 
-    def matrix(self, values: FloatArray) -> sp.csc_matrix:
-        return sp.csc_matrix((values, self.indices, self.indptr), shape=(self.dim, self.dim))
-
 
 def _full_system(pat: _Pattern) -> _System:
-    return _System(pat.indptr, pat.indices, pat.diag_index, None, None, pat.dim)
+    return _System(pat.indptr, pat.lower_indices(), None, None, pat.dim)
 
 
 def _planar_system(pat: _Pattern) -> _System:
     """The (x, y, yaw) rows and columns of H, with a value map computed once."""
     keep = (6 * np.arange(pat.num_vars)[:, None] + _PLANAR_DOFS[None, :]).ravel()
-    ids = sp.csc_matrix((np.arange(1, pat.nnz + 1, dtype=np.float64), pat.indices, pat.indptr),
-                        shape=(pat.dim, pat.dim))
+    ids = sp.csc_matrix((np.arange(1, pat.nnz + 1, dtype=np.float64), pat.lower_indices(),
+                         pat.indptr), shape=(pat.dim, pat.dim))
     sub = ids[keep][:, keep].tocsc()
     sub.sort_indices()
     value_map = sub.data.astype(np.int64) - 1
     indptr = sub.indptr.astype(np.int64)
     indices = sub.indices.astype(np.int64)
-    col = np.repeat(np.arange(keep.shape[0]), np.diff(indptr))
-    diag = np.flatnonzero(indices == col)
-    assert diag.shape[0] == keep.shape[0]  # every diagonal entry is in the pattern
-    return _System(indptr, indices, diag, keep, value_map, int(keep.shape[0]))
+    # every diagonal entry is in the pattern, first in its column (a lower triangle)
+    assert np.array_equal(indices[indptr[:-1]], np.arange(keep.shape[0]))
+    return _System(indptr, indices, keep, value_map, int(keep.shape[0]))
 
 
 def _is_planar(graph: PoseGraph, rot: FloatArray, trans: FloatArray) -> bool:
@@ -247,9 +260,8 @@ def _assemble(graph: PoseGraph, pat: _Pattern, rot: FloatArray, trans: FloatArra
     """H and g into ``data``, ``grad``; returns ``(E_rho, E)`` (equal without a kernel)."""
     status, e, plain = _k.assemble_normal_equations(
         rot, trans, graph.edge_nodes, graph.edge_rotations, graph.edge_translations,
-        graph.edge_information, pat.edge_base, pat.edge_stride,
-        graph.gps_nodes, graph.gps_positions, graph.gps_information, pat.gps_base,
-        pat.gps_stride, pat.var_of_node, data, grad, robust[0], robust[1],
+        graph.edge_information, pat.edge_off, graph.gps_nodes, graph.gps_positions,
+        graph.gps_information, pat.var_of_node, pat.indptr, data, grad, robust[0], robust[1],
     )
     if status >= 0:
         where = _describe_constraint(graph, status)
@@ -320,7 +332,7 @@ def normal_equations(graph: PoseGraph, rotations: FloatArray | None = None,
     data = np.empty(pat.nnz)
     grad = np.empty(pat.dim)
     e, _plain = _assemble(graph, pat, rot, trans, data, grad, (kind, float(robust_scale)))
-    h = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.dim, pat.dim))
+    h = _lower_to_full(data, pat.lower_indices(), pat.indptr, pat.dim)
     return NormalEquations(h, grad, np.flatnonzero(pat.var_of_node >= 0), e)
 
 
@@ -397,6 +409,7 @@ def _ensure_compiled() -> float:
     rot = np.array(g.rotations)  # writable, like the solver's state (Numba types differ)
     trans = np.array(g.translations)
     _assemble(g, pat, rot, trans, data, grad)
+    pat.lower_indices()
     out_r = np.empty((2, 3, 3))
     out_t = np.empty((2, 3))
     _k.retract(rot, trans, grad, pat.var_of_node, 1.0, out_r, out_t)
@@ -409,7 +422,13 @@ def _ensure_compiled() -> float:
 # --------------------------------------------------------------------------- the solver
 @dataclass
 class _Run:
-    """One exact solve after its analysis: pattern, factorizer, buffers, current poses."""
+    """One exact solve after its analysis: pattern, factorizer, buffers, current poses.
+
+    Memory (per stored entry of the lower triangle of H, "nnz"; 1M-pose city: 57 M): the values
+    are assembled straight into the factorizer's own buffer (CHOLMOD: the cvxopt matrix it
+    copies into the factored matrix), damped in place on the diagonal and restored; no other
+    copy of H exists.  The row indices live only in CHOLMOD's matrix after the analysis.
+    """
 
     graph: PoseGraph
     cfg: GaussNewtonConfig
@@ -419,6 +438,9 @@ class _Run:
     rot: FloatArray
     trans: FloatArray
     data: FloatArray
+    """Values of the lower triangle of H (the factorizer's buffer for the full system)."""
+    sys_values: FloatArray | None
+    """The reduced (planar) system's values (the factorizer's buffer), None for the full one."""
     grad: FloatArray
     new_rot: FloatArray
     new_trans: FloatArray
@@ -432,16 +454,35 @@ class _Run:
     @classmethod
     def analyze(cls, graph: PoseGraph, rotations: FloatArray | None,
                 translations: FloatArray | None, cfg: GaussNewtonConfig) -> _Run:
-        """Check the start and the gauge, compute the pattern and ordering once."""
+        """Check the start and the gauge, compute the pattern, ordering and symbolic
+        factorization once."""
         rot, trans = _initial_poses(graph, rotations, translations)
         fixed = default_fixed_nodes(graph)
         _check_gauge(graph, fixed)
         pat = _analyze(graph, fixed, reorder=True)
         planar = _is_planar(graph, rot, trans)
-        system = _planar_system(pat) if planar else _full_system(pat)
-        return cls(graph, cfg, pat, system, _make_factorizer(system, cfg.linear_solver), rot,
-                   trans, np.empty(pat.nnz), np.empty(pat.dim), np.empty_like(rot),
-                   np.empty_like(trans), planar,
+        solver: Any = None
+        if not planar and cfg.linear_solver == "auto":
+            block = BlockCholesky(pat.num_vars, pat.block_ptr, pat.block_row, pat.indptr)
+            if not _cholmod_available() or block.factor_blocks <= _BLOCK_MAX_FILL * max(
+                    pat.num_vars, 1):
+                solver = block
+        if solver is not None:  # the block factorization reads the values in place
+            system = _System(pat.indptr, np.zeros(0, np.int64), None, None, pat.dim)
+        else:
+            system = _planar_system(pat) if planar else _full_system(pat)
+            solver = _make_factorizer(system, cfg.linear_solver)
+        if solver.name == "cholmod":  # CHOLMOD holds the pattern: drop our copy of the rows
+            system = dataclasses.replace(system, indices=np.zeros(0, np.int64))
+        buffer = solver.values_buffer()
+        sys_values = None
+        if planar:
+            data = np.empty(pat.nnz)
+            sys_values = buffer if buffer is not None else np.empty(system.nnz)
+        else:
+            data = buffer if buffer is not None else np.empty(pat.nnz)
+        return cls(graph, cfg, pat, system, solver, rot, trans, data, sys_values,
+                   np.empty(pat.dim), np.empty_like(rot), np.empty_like(trans), planar,
                    {"assemble": 0.0, "factorize": 0.0, "energy": 0.0},
                    (_cost.robust_kind(cfg.robust, cfg.robust_delta), float(cfg.robust_delta)))
 
@@ -457,27 +498,31 @@ class _Run:
               iteration: int) -> tuple[FloatArray, FloatArray, FloatArray] | None:
         """The step: ``(H + mu D) delta = -g`` (LM) or ``H delta = -g`` (GN).
 
-        Returns ``(h_values, step_sys, step)``: the undamped system values, the step over the
-        system's unknowns and over all of them.  LM returns None when the damped system is
-        numerically not positive definite (H is only PSD: a robust kernel can weight every
+        Returns ``(damping, step_sys, step)``: the LM damping diagonal D (GN: empty), the step
+        over the system's unknowns and over all of them.  LM returns None when the damped system
+        is numerically not positive definite (H is only PSD: a robust kernel can weight every
         constraint of a pose to ~0, and a small ``mu D`` then drowns in rounding); the caller
-        raises ``mu`` as for a rejected step.
+        raises ``mu`` as for a rejected step.  H's values are unchanged on return.
         """
         t0 = time.perf_counter()
         system = self.system
-        h_values = system.values(self.data)
+        values = system.values(self.data, self.sys_values)
         g_sys = system.restrict(self.grad)
+        damping = np.zeros(0)
         if self.cfg.method == "lm":
-            diag = h_values[system.diag_index]
-            damped = h_values.copy()
-            damped[system.diag_index] += mu * np.maximum(diag, _DIAG_FLOOR * diag.max())
+            diag_index = system.diag_index
+            diag = values[diag_index]  # a copy: restored after the factorization
+            damping = np.maximum(diag, _DIAG_FLOOR * diag.max())
+            values[diag_index] = diag + mu * damping
             try:
-                step_sys = self.solver.solve(damped, -g_sys)
+                step_sys = self.solver.solve(values, -g_sys)
             except NotPositiveDefinite:
                 self.seconds["factorize"] += time.perf_counter() - t0
                 return None
+            finally:
+                values[diag_index] = diag
         else:
-            step_sys = self.solver.solve(h_values, -g_sys, check=True)
+            step_sys = self.solver.solve(values, -g_sys, check=True)
         step = system.expand(step_sys, self.pat.dim)
         self.seconds["factorize"] += time.perf_counter() - t0
         if not np.all(np.isfinite(step)):
@@ -486,7 +531,7 @@ class _Run:
                                   f"(mu = {mu:.3g})")
             raise SolverError(f"iteration {iteration}: the Gauss-Newton step is not finite; "
                               "H is singular or ill-conditioned (use method='lm')")
-        return h_values, step_sys, step
+        return damping, step_sys, step
 
     def trial(self, step: FloatArray, e_cur: float) -> tuple[float, float, int]:
         """Energy at the retracted poses (into ``new_rot/new_trans``); GN with its step guard
@@ -513,16 +558,16 @@ class _Run:
         self.trans, self.new_trans = self.new_trans, self.trans
 
 
-def _lm_damping(run: _Run, h_values: FloatArray, step_sys: FloatArray, e_cur: float,
+def _lm_damping(run: _Run, damping: FloatArray, step_sys: FloatArray, e_cur: float,
                 e_new: float, mu: float, nu: float) -> tuple[bool, float, float]:
     """LM: accept when E did not rise; update mu by the gain ratio (Nielsen).
 
+    The predicted decrease of the quadratic model ``E + 2 g.d + d.H.d`` (E has no 1/2) is
+    ``-2 g.d - d.H.d = -g.d + mu d.D.d``, since ``(H + mu D) d = -g``: no product with H.
     Returns ``(take, mu, nu)``.
     """
     g_sys = run.system.restrict(run.grad)
-    # Predicted decrease of the quadratic model E + 2 g.d + d.H.d (E has no 1/2).
-    hstep = run.system.matrix(h_values) @ step_sys
-    predicted = -2.0 * float(g_sys @ step_sys) - float(step_sys @ hstep)
+    predicted = -float(g_sys @ step_sys) + mu * float(step_sys @ (damping * step_sys))
     take = bool(np.isfinite(e_new) and e_new <= e_cur)
     if take:
         rho = (e_cur - e_new) / predicted if predicted > 0 else 0.0
@@ -611,13 +656,13 @@ def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
             plain_history.append(run.plain)
             times.append(time.perf_counter() - t_start)
             continue
-        h_values, step_sys, step = solved
+        damping, step_sys, step = solved
         step_small = float(np.max(np.abs(step))) < cfg.step_tolerance * (
             1.0 + float(np.max(np.abs(run.trans))))
         e_new, scale, tries = run.trial(step, e_cur)
         halvings += tries
         if cfg.method == "lm":
-            take, mu, nu = _lm_damping(run, h_values, step_sys, e_cur, e_new, mu, nu)
+            take, mu, nu = _lm_damping(run, damping, step_sys, e_cur, e_new, mu, nu)
         else:
             take = _gn_accept(cfg, e_cur, e_new, iteration)
         changed = bool(np.isfinite(e_new)) and abs(e_new - e_cur) <= cfg.energy_tolerance * e_cur
@@ -660,6 +705,6 @@ def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
                "step_halvings": halvings, "linear_solver": run.solver.name,
                "final_damping": mu if cfg.method == "lm" else 0.0,
                "num_variables": run.system.dim,
-               "hessian_nnz": int(run.system.indices.shape[0]), "planar": run.planar,
+               "hessian_nnz": 2 * run.system.nnz - run.system.dim, "planar": run.planar,
                **robust_stats},
     )
