@@ -239,14 +239,29 @@ def test_optimize_rerun_records_every_iteration(capsys: pytest.CaptureFixture[st
     assert not any(p.name.startswith(".hybridpgo-") for p in tmp_path.iterdir())
 
 
+def test_optimize_rerun_records_every_start_of_the_default_pipeline(
+        capsys: pytest.CaptureFixture[str], tiny: Path, tmp_path: Path) -> None:
+    pytest.importorskip("rerun")
+    from hybridpgo.solvers.auto import solve_auto
+
+    frames: list[str] = []
+    solve_auto(read_graph(tiny), iterate=lambda p, r, t: frames.append(p.phase))
+    assert {"start", "polish"} <= set(frames)
+    rrd = tmp_path / "run.rrd"
+    code, out, err = run_cli(capsys, "optimize", tiny, "-o", tmp_path / "o.g2o", "--rerun", rrd,
+                             "--json", "-q")
+    assert code == 0, err
+    assert json.loads(out)["rerun"] == {"path": str(rrd), "iterations": len(frames)}
+    counts = _recorded(rrd)
+    assert counts.get("/graph/poses") == counts.get("/log") == len(frames)
+
+
 def test_optimize_rerun_refusals(capsys: pytest.CaptureFixture[str], tiny: Path,
                                  tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     out, rrd = tmp_path / "o.g2o", tmp_path / "run.rrd"
     code, _, err = run_cli(capsys, "optimize", tiny, "-o", out, "--solver", "toro",
                            "--rerun", rrd)
-    assert code == 2 and "--rerun records --solver hybrid or exact, not --solver toro" in err
-    code, _, err = run_cli(capsys, "optimize", tiny, "-o", out, "--rerun", rrd)  # default auto
-    assert code == 2 and "not --solver auto" in err
+    assert code == 2 and "--rerun records --solver auto, hybrid or exact, not --solver toro" in err
     monkeypatch.setattr("hybridpgo.recording.rerun_available", lambda: False)
     code, _, err = run_cli(capsys, "optimize", tiny, "-o", out, "--solver", "exact",
                            "--rerun", rrd)

@@ -74,3 +74,23 @@ def test_recorder_abort_leaves_nothing(tmp_path: Path) -> None:
     rec(Progress("exact", 0, 1, 1.0), graph.rotations, graph.translations)
     rec.close()
     assert [p.name for p in tmp_path.iterdir()] == ["y.rrd"] and rec.frames == 1
+
+
+def test_iterate_of_the_default_pipeline_sees_every_start_and_the_winner() -> None:
+    from hybridpgo.energy import energy
+    from hybridpgo.solvers.auto import solve_auto
+
+    graph, _, _ = random_graph(np.random.default_rng(24), n=10, extra=6, gps=2)
+    plain = solve_auto(graph)
+    seen = _Frames()
+    res = solve_auto(graph, iterate=seen)
+    np.testing.assert_array_equal(res.translations, plain.translations)
+    starts = [f[0].detail for f in seen.frames if f[0].phase == "start"]
+    cands = res.stats["candidates"]
+    assert starts == [k for k, v in cands.items() if ", no sweeps" not in k
+                      and not str(v.get("error", "")).startswith("start:")]
+    for p, rot, trans in seen.frames:
+        assert energy(graph, rot, trans) == pytest.approx(p.energy, rel=1e-12)
+    winner = [f for f in seen.frames if f[0].phase == "polish"
+              and f[0].detail == res.stats["start"]]
+    np.testing.assert_array_equal(winner[-1][2], res.translations)

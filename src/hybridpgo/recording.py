@@ -130,9 +130,9 @@ class RerunRecorder:
         self._rec.set_time("iteration", sequence=self.frames)
         self._log_map(self.graph, rotations, translations, self._traj)
         tau = "" if progress.tau is None else f", tau {progress.tau:.4g}"
+        what = f"{progress.phase} ({progress.detail})" if progress.detail else progress.phase
         self._rec.log("log", self._rr.TextLog(
-            f"{progress.phase} {progress.iteration}/{progress.total}: "
-            f"E {progress.energy:.6g}{tau}"))
+            f"{what} {progress.iteration}/{progress.total}: E {progress.energy:.6g}{tau}"))
         self.frames += 1
 
     def frame(self, frame: int, robot: FloatArray, latency_ms: float,

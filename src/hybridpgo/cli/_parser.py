@@ -372,7 +372,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rerun", metavar="RRD",
                    help="record the poses and residuals after every sweep and polish (or exact) "
                         "iteration to RRD, to scrub through in the Rerun viewer ('rerun RRD'; "
-                        "needs: pip install hybridpgo[rerun]; not for --solver toro)")
+                        "with --solver auto every start it tries, one after the other; needs: "
+                        "pip install hybridpgo[rerun]; not for --solver toro)")
     p.add_argument("--skip-unknown", action="store_true",
                    help="skip lines with unsupported tags (one warning) instead of failing")
     p.add_argument("--json", action="store_true",

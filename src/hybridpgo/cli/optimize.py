@@ -218,9 +218,8 @@ def _recorder(job: Job, graph: PoseGraph) -> Any:
     """The ``--rerun`` recorder (checked before the solve), or None."""
     if job.rerun is None:
         return None
-    if job.solver in ("toro", "auto"):
-        raise HybridPGOError(f"--rerun records --solver hybrid or exact, not --solver {job.solver} "
-                             "(e.g. --solver hybrid --polish)")
+    if job.solver == "toro":
+        raise HybridPGOError("--rerun records --solver auto, hybrid or exact, not --solver toro")
     from ..recording import RerunRecorder, rerun_available
 
     if not rerun_available():
@@ -241,7 +240,7 @@ def _optimize(graph: PoseGraph, config: SolverConfig, progress: Any, init: str |
     from ..solvers import GaussNewtonConfig, exact_start
     from ..solvers.gauss_newton import solve_exact
 
-    assert isinstance(config, GaussNewtonConfig)  # --rerun refuses --solver toro and auto
+    assert isinstance(config, GaussNewtonConfig)  # --rerun refuses --solver toro
     return solve_exact(graph, *exact_start(graph, init, tree), config, progress=progress,
                        iterate=iterate)
 
@@ -252,7 +251,7 @@ def _solve(job: Job, graph: PoseGraph, config: SolverConfig, init: str,
 
     nc = graph.num_constraints
     if isinstance(config, AutoConfig):
-        return _solve_auto(job, graph, config)
+        return _solve_auto(job, graph, config, recorder)
     if isinstance(config, ToroConfig):
         tbar = ProgressBar("toro", config.iterations, nc, enabled=not job.quiet)
         try:
@@ -280,9 +279,11 @@ def _solve(job: Job, graph: PoseGraph, config: SolverConfig, init: str,
         bar.close()
 
 
-def _solve_auto(job: Job, graph: PoseGraph, config: Any) -> SolveResult:
-    """The default pipeline, with one progress bar per start's sweeps and per polish."""
+def _solve_auto(job: Job, graph: PoseGraph, config: Any, recorder: Any = None) -> SolveResult:
+    """The default pipeline, with one progress bar per start's sweeps and per polish (and every
+    start, sweep and polish iteration recorded by ``recorder``, ``--rerun``)."""
     from ..solvers import Progress, optimize
+    from ..solvers.auto import solve_auto
 
     nc = graph.num_constraints
     current: list[Any] = [None, None]  # (phase, detail), its bar
@@ -305,6 +306,8 @@ def _solve_auto(job: Job, graph: PoseGraph, config: Any) -> SolveResult:
         current[1].update(p.iteration, p.energy, p.tau)
 
     try:
+        if recorder is not None:
+            return solve_auto(graph, config, progress=report, iterate=recorder)
         return optimize(graph, config, progress=report)
     finally:
         if current[1] is not None:

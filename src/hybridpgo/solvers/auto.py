@@ -48,7 +48,7 @@ from ..errors import HybridPGOError, SolverError
 from ..graph import FloatArray, PoseGraph
 from ..tree import build_tree, global_poses, initial_locals
 from .config import AutoConfig, Progress, ProgressCallback
-from .gauss_newton import solve_exact
+from .gauss_newton import IterateCallback, solve_exact
 from .hybrid.solver import HybridSolver
 from .result import SolveResult, Status
 
@@ -112,7 +112,8 @@ class _Candidate:
 
 def _sweep_candidate(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate, tree: Any,
                      locals0: tuple[FloatArray, FloatArray], t_origin: float,
-                     progress: ProgressCallback | None) -> None:
+                     progress: ProgressCallback | None,
+                     iterate: IterateCallback | None = None) -> None:
     """Sweeps from one start while they pay; keeps the best poses in ``cand``."""
     t0 = time.perf_counter()
     if cfg.max_sweeps == 0:  # no hybrid solver (its per-path blocks cost memory): poses, E
@@ -125,6 +126,8 @@ def _sweep_candidate(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate, tree: 
         cand.times.append(time.perf_counter() - t_origin)
         if progress is not None:
             progress(Progress("start", 0, 0, e0, detail=cand.init))
+        if iterate is not None:
+            iterate(Progress("start", 0, 0, e0, detail=cand.init), cand.rot, cand.trans)
         cand.sweep_seconds = time.perf_counter() - t0
         return
     solver = HybridSolver(graph, cfg.hybrid_config(cand.init, cfg.max_sweeps), tree=tree,
@@ -137,6 +140,8 @@ def _sweep_candidate(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate, tree: 
         progress(Progress("start", 0, 0, e0, detail=cand.init))
         if cfg.max_sweeps:
             progress(Progress("sweeps", 0, cfg.max_sweeps, e0, solver.tau, cand.init))
+    if iterate is not None:
+        iterate(Progress("start", 0, 0, e0, detail=cand.init), cand.rot, cand.trans)
     best = e0
     for k in range(cfg.max_sweeps):
         if not np.isfinite(best) or best == 0.0:
@@ -152,6 +157,9 @@ def _sweep_candidate(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate, tree: 
         cand.rejected += int(res.stats["rejected_steps"])
         if progress is not None:
             progress(Progress("sweeps", k + 1, cfg.max_sweeps, e, solver.tau, cand.init))
+        if iterate is not None:
+            iterate(Progress("sweeps", k + 1, cfg.max_sweeps, e, solver.tau, cand.init),
+                    res.rotations, res.translations)
         if e < best:
             cand.rot, cand.trans = res.rotations, res.translations
             cand.sweeps = cand.sweeps_run
@@ -164,7 +172,8 @@ def _sweep_candidate(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate, tree: 
 
 
 def _polish(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate,
-            progress: ProgressCallback | None, limit: int) -> None:
+            progress: ProgressCallback | None, limit: int,
+            iterate: IterateCallback | None = None) -> None:
     """LM from the candidate's kept poses, at most ``limit`` iterations (more when it is
     continued: :func:`_continue`)."""
     report = None if progress is None else (
@@ -172,8 +181,10 @@ def _polish(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate,
     done = cand.polished
     rot, trans = (cand.rot, cand.trans) if done is None else (done.rotations, done.translations)
     config = dataclasses.replace(cfg.polish_config(), max_iterations=limit)
+    each = None if iterate is None else (
+        lambda p, r, t: iterate(p._replace(phase="polish", detail=cand.label), r, t))
     try:
-        more = solve_exact(graph, rot, trans, config, progress=report)
+        more = solve_exact(graph, rot, trans, config, progress=report, iterate=each)
     except SolverError as exc:
         cand.error = f"polish: {exc}"
         return
@@ -199,7 +210,8 @@ def _continue(first: SolveResult, second: SolveResult) -> SolveResult:
 
 
 def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
-               progress: ProgressCallback | None = None) -> SolveResult:
+               progress: ProgressCallback | None = None,
+               iterate: IterateCallback | None = None) -> SolveResult:
     """Optimize ``graph`` with the default pipeline (module docstring).
 
     Parameters
@@ -209,6 +221,10 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     progress : callable, optional
         ``progress(Progress)``: ``phase`` ``"start"`` (a start computed), ``"sweeps"`` and
         ``"polish"``, with ``detail`` naming the start.
+    iterate : callable, optional
+        ``iterate(Progress, rotations, translations)``: the global poses at every start, sweep
+        and polish iteration of every start tried, in the order they run (the ``Progress`` as
+        ``progress`` gets it; e.g. :class:`hybridpgo.recording.RerunRecorder`).
 
     Returns
     -------
@@ -252,7 +268,7 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
             cands.append(cand)
             continue
         cand.start_seconds = time.perf_counter() - t0
-        _sweep_candidate(graph, cfg, cand, tree, locals0, t_origin, progress)
+        _sweep_candidate(graph, cfg, cand, tree, locals0, t_origin, progress, iterate)
         del locals0
         cands.append(cand)
         if large and cand.rot is not None and np.isfinite(cand.energy):
@@ -269,16 +285,16 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     best: _Candidate | None = None
     for cand in finalists:
         if best is None or best.polished is None:
-            _polish(graph, cfg, cand, progress, cfg.polish_iterations)
+            _polish(graph, cfg, cand, progress, cfg.polish_iterations, iterate)
         else:  # a runner-up: a bounded polish, continued only if it is then the lowest
             budget = min(cfg.polish_iterations, max(
                 math.ceil(cfg.finalist_budget * best.polished.iterations),
                 MIN_FINALIST_ITERATIONS))
-            _polish(graph, cfg, cand, progress, budget)
+            _polish(graph, cfg, cand, progress, budget, iterate)
             pol = cand.polished
             if (pol is not None and pol.status is Status.MAX_ITERATIONS
                     and pol.final_energy < best.energy and budget < cfg.polish_iterations):
-                _polish(graph, cfg, cand, progress, cfg.polish_iterations - budget)
+                _polish(graph, cfg, cand, progress, cfg.polish_iterations - budget, iterate)
             elif pol is not None and pol.status is Status.MAX_ITERATIONS:
                 cand.cut = budget < cfg.polish_iterations
         if cand.polished is not None and (best is None or cand.energy < best.energy * (
