@@ -182,7 +182,7 @@ def test_local_batch_is_the_whole_graph_batch_step_without_zero_blocks() -> None
     pb, sb = b._prob_state()
     counts = np.zeros(ok.NUM_C, np.int64)
     nu = ok.local_batch(pa, sa, cs, 0.7, 1e-6, np.uint64(2**63), a._model, a._slot, a._xb,
-                        a._nodes_buf, counts)
+                        a._nodes_buf, counts, a._depth)
     nu2 = _batch.batch_relax(pb, sb, cs, cs.shape[0], 0.7, 1e-6, b._slot, b._xb, b._nodes_buf)
     assert nu == nu2 > 0
     assert np.array_equal(a._rot, b._rot) and np.array_equal(a._trans, b._trans)
