@@ -181,6 +181,12 @@ def _predict(model: np.ndarray, d: int, batch: bool) -> float:
 
 
 @kernel
+def _kid(prob: Problem, canonical: int) -> int:
+    """Kernel constraint index of a canonical id (edge e >= 0, GPS reading g as -(g+1))."""
+    return canonical if canonical >= 0 else prob.num_edges - canonical - 1
+
+
+@kernel
 def batch_work(prob: Problem, depth: np.ndarray, c: int) -> int:
     """Work of constraint c in a batch update, in domain-node units: its domain plus the depth
     of its root (the batch computes the root's global pose, O(depth))."""
@@ -239,14 +245,14 @@ def relax_list(prob: Problem, state: State, wk: Workspace, order: np.ndarray, ta
                max_updates: int, force_first: bool, skip: bool, chi2: np.ndarray,
                last: np.ndarray, stamp: int, model: np.ndarray, slot: np.ndarray,
                xb: np.ndarray, nodes: np.ndarray, counts: np.ndarray, grp_of: np.ndarray,
-               grp_ptr: np.ndarray, grp_edges: np.ndarray, grp_stamp: np.ndarray,
-               depth: np.ndarray) -> int:
+               grp_of_g: np.ndarray, grp_ptr: np.ndarray, grp_edges: np.ndarray,
+               grp_stamp: np.ndarray, depth: np.ndarray) -> int:
     """Relax the constraints of ``order`` in turn (paper Algorithm 1, GPS batched).
 
-    A relative constraint of a junction group (``grp_of[c] >= 0``: the constraints that joined a
-    pose to the map in its frame, ``grp_edges[grp_ptr[g]:grp_ptr[g+1]]``) is relaxed together
-    with the rest of its group as one batch, once per ``stamp`` (``grp_stamp``); its other
-    members are then passed over in this call.
+    A constraint of a junction group (``grp_of[c]`` for an edge, ``grp_of_g[g]`` for a GPS
+    reading, >= 0: the constraints that joined a pose to the map in its frame, canonical ids
+    ``grp_edges[grp_ptr[k]:grp_ptr[k+1]]``) is relaxed together with the rest of its group as
+    one batch, once per ``stamp`` (``grp_stamp``); its other members are then passed over.
 
     An update is started only when ``cycle_counter() + predicted cost <= deadline`` (the first
     one regardless when ``force_first``) and fewer than ``max_updates`` were started.  When an
@@ -265,25 +271,28 @@ def relax_list(prob: Problem, state: State, wk: Workspace, order: np.ndarray, ta
     for idx in range(n_order + 1):
         c = order[idx] if idx < n_order else -1
         gps = False
+        grp = -1
+        nb = 1
+        d = 0
         if c >= 0:
             gps = is_gps(prob, c)
-            grp = -1 if gps else grp_of[c]
+            grp = grp_of_g[c - prob.num_edges] if gps else grp_of[c]
             if grp >= 0 and grp_stamp[grp] == stamp:
                 continue  # relaxed with its group in this frame
             d = domain(prob, c)[1]
-            nb = 1
             if grp >= 0:
                 d = 0
                 nb = grp_ptr[grp + 1] - grp_ptr[grp]
                 for j in range(grp_ptr[grp], grp_ptr[grp + 1]):
-                    d += batch_work(prob, depth, grp_edges[j])
+                    d += batch_work(prob, depth, _kid(prob, grp_edges[j]))
             if started >= max_updates:
                 c = -1
                 stop_at = idx
             else:
-                pred = _predict(model, d, gps) + (buf_cost if gps else 0.0)
                 if grp >= 0:
                     pred = _predict(model, d, True) + _capacitance_cost(nb)
+                else:
+                    pred = _predict(model, d, gps) + (buf_cost if gps else 0.0)
                 late = float(cycle_counter()) + pred > float(deadline)
                 if late and not (force_first and started == 0):
                     counts[C_SKIPPED] += 1
@@ -291,7 +300,7 @@ def relax_list(prob: Problem, state: State, wk: Workspace, order: np.ndarray, ta
                         continue
                     c = -1
                     stop_at = idx
-        if nbuf > 0 and (c < 0 or not gps or nbuf >= gps_batch_size):
+        if nbuf > 0 and (c < 0 or not gps or grp >= 0 or nbuf >= gps_batch_size):
             _flush(prob, state, buf, nbuf, tau, mu, slot, xb, nodes, model, counts)
             nbuf = 0
             buf_cost = 0.0
@@ -300,24 +309,29 @@ def relax_list(prob: Problem, state: State, wk: Workspace, order: np.ndarray, ta
         started += 1
         counts[C_DONE] += 1
         last[c] = stamp
+        if grp >= 0:
+            grp_stamp[grp] = stamp
+            gbuf = np.empty(nb, np.int64)
+            for j in range(nb):
+                cj = _kid(prob, grp_edges[grp_ptr[grp] + j])
+                gbuf[j] = cj
+                if is_gps(prob, cj):
+                    chi2[cj] = _gps_chi2(prob, state, cj, ro, to)
+                else:
+                    chi2[cj] = _edge_chi2(prob, state, cj, wk)
+                last[cj] = stamp
+            t0 = cycle_counter()
+            nu = batch_relax(prob, state, gbuf, nb, tau, mu, slot, xb, nodes, 0, False)
+            _learn(model, max(d, 1), float(cycle_counter() - t0), True)
+            counts[C_BATCHES] += 1
+            if nu == BATCH_REJECTED:
+                counts[C_REJECTED] += 1
+            continue
         if gps:
             chi2[c] = _gps_chi2(prob, state, c, ro, to)
             buf[nbuf] = c
             nbuf += 1
             buf_cost += _predict(model, d, True)
-            continue
-        if grp >= 0:
-            grp_stamp[grp] = stamp
-            cs = grp_edges[grp_ptr[grp]: grp_ptr[grp + 1]]
-            for j in range(nb):
-                chi2[cs[j]] = _edge_chi2(prob, state, cs[j], wk)
-                last[cs[j]] = stamp
-            t0 = cycle_counter()
-            nu = batch_relax(prob, state, cs, nb, tau, mu, slot, xb, nodes, 0, False)
-            _learn(model, max(d, 1), float(cycle_counter() - t0), True)
-            counts[C_BATCHES] += 1
-            if nu == BATCH_REJECTED:
-                counts[C_REJECTED] += 1
             continue
         t0 = cycle_counter()
         st = relax(prob, state, wk, c, tau, mu, step_kind, True)
