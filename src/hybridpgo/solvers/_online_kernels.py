@@ -162,7 +162,7 @@ def _gps_chi2(prob: Problem, state: State, c: int, ro: np.ndarray, to: np.ndarra
 @kernel
 def _edge_chi2(prob: Problem, state: State, c: int, wk: Workspace) -> float:
     """χ² of relative constraint c at the current estimate, from its path only (O(d))."""
-    s, d = domain(prob, c)
+    d = domain(prob, c)[1]
     na = path_products(prob, c, state.rot, state.trans, wk.path_rot, wk.path_trans)
     ra, ta, rb, tb = endpoints(wk.path_rot, wk.path_trans, na, d)
     residual_and_jr_inv(prob.edge_rot[c], prob.edge_trans[c], ra, ta, rb, tb, wk.e, wk.ws)
@@ -195,7 +195,7 @@ def batch_work(prob: Problem, depth: np.ndarray, c: int) -> int:
         return 0
     na = num_a_side(prob, c)
     top = prob.path_node[s + na - 1] if na > 0 else prob.path_node[s + d - 1]
-    return d + depth[prob.parent[top]]
+    return int(d + depth[prob.parent[top]])
 
 
 @kernel

@@ -103,17 +103,20 @@ class OnlineConfig:
     """A new pose with a GPS reading in its frame hangs from the earth (its tree link is the
     reading), as GPS readings do in the whole-graph tree (III-G).  The tree's depth is then
     bounded by the spacing of the readings rather than growing with the drive, so GPS domains
-    stay short (one node) and so do the paths of loops; the pose's odometry carries the path
-    through the earth to the previous subtree.  Needs ``junctions`` to be accurate (the soft
-    reading and the stiff odometry then meet at the new pose)."""
+    stay one node long: no GPS frame pays for a path to the start (valencia_gps: 180 ms frames
+    where the path pool doubled).  The pose's odometry carries the path through the earth to
+    the previous subtree.  Cost: the subtrees are held to each other by stiff odometry only,
+    which the hybrid steps relax slowly (valencia_gps, first 1000 frames, no budget: 34x the
+    optimum against 1.3x with False)."""
     junctions: bool = True
     """Relax the constraints that join a pose to the map in its frame (its odometry, its loop
     closures to earlier poses and its GPS readings, when their stiffness differs by more than
-    ``JUNCTION_RATIO``) together as one batch, every time any of them is relaxed.  With the ``"oldest"`` tree a revisiting pose hangs from a
-    soft loop closure while its stiff odometry carries the long path around the loop; relaxed
-    one at a time, the two only trade the loop's error through the junction pose, at a rate of
-    about (loop information) / (odometry information) per update (valencia: 1e-3 in rotation,
-    so the estimate stayed 100-1000x above the optimum).  The batch solves the pair jointly."""
+    ``JUNCTION_RATIO``) together as one batch, every time any of them is relaxed.  With the
+    ``"oldest"`` tree a revisiting pose hangs from a soft loop closure while its stiff
+    odometry carries the long path around the loop; relaxed one at a time, the two only trade
+    the loop's error through the junction pose, at a rate of about (loop information) /
+    (odometry information) per update (valencia: 1e-3 in rotation, so the estimate stayed
+    100-1000x above the optimum).  The batch solves them jointly."""
     local_size: int = 0
     """Local solve (III-G): relax the newest ``local_size`` relative constraints together as
     one batch in every frame (0: off).  Bounded: the batch costs O(entries + (6 local_size)^3)."""
@@ -1042,7 +1045,8 @@ class OnlineSolver:
             "chi2_e": self._chi2[:m], "chi2_g": self._chi2[cm: cm + g],
             "last_e": self._last[:m], "last_g": self._last[cm: cm + g],
             "queue": self._queue[self._q_head: self._q_tail], "model": self._model,
-            "grp_of": self._grp_of[:m], "grp_of_g": self._grp_of_g[:g], "grp_ptr": self._grp_ptr[: self._ngrp + 1],
+            "grp_of": self._grp_of[:m], "grp_of_g": self._grp_of_g[:g],
+            "grp_ptr": self._grp_ptr[: self._ngrp + 1],
             "grp_edges": self._grp_edges[: int(self._grp_ptr[self._ngrp])],
             "grp_stamp": self._grp_stamp[: self._ngrp],
         }  # fmt: skip
