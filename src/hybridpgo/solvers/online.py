@@ -9,9 +9,13 @@ doubling, so no frame costs O(N):
   first pose hangs from it by a *free* link (no constraint), so before any GPS reading arrives
   no domain contains the first pose and it stays where it started (the gauge), and from the
   first GPS reading on every GPS domain contains it, so GPS can move and turn the whole map
-  (no re-rooting is ever needed).  A new pose hangs from the *oldest* pose it is constrained
-  to in its frame (its odometry parent unless a loop closure reaches an older pose;
-  ``OnlineConfig.tree = "odometry"`` always uses the odometry parent).  Revisits then hang
+  (no re-rooting is ever needed).  A new pose whose frame brings a GPS reading hangs from the
+  earth by that reading (``OnlineConfig.gps_link``); any other new pose hangs from the
+  *oldest* pose it is constrained to in its frame (its odometry parent unless a loop closure
+  reaches an older pose; ``OnlineConfig.tree = "odometry"`` always uses the odometry parent).
+  The constraints that joined a pose in its frame are relaxed together as one batch when their
+  stiffness differs (``OnlineConfig.junctions``: the soft link and the stiff odometry that
+  carries the long path meet at that pose).  Revisits then hang
   from the first visit, which keeps the tree shallow: on M3500 the constraint paths total
   32 110 nodes, against 742 356 for the odometry chain (paris2: 0.49 M against 148 M).
 * **A constraint's path is computed when it is first used**, by a walk to the lowest common
