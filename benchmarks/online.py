@@ -19,6 +19,7 @@ checkpoint; <= 1.01 at the end after at most 100 extra frames.
 
 from __future__ import annotations
 
+import os
 import time
 from typing import Any
 
@@ -42,6 +43,14 @@ ISAM2_EXTRA = 10
 #: iSAM2 stops once its updates have taken this long (paris2: over an hour otherwise; cut from
 #: 600 s to 300 s for the 2026-11-23-online run on a loaded 2-core machine).
 ISAM2_MAX_S = 300.0
+#: Environment variable overriding ISAM2_MAX_S (seconds; 0 skips iSAM2: the whole run then takes
+#: ~25 min instead of ~60 on a loaded 2-core machine).
+ISAM2_ENV = "HYBRIDPGO_BENCH_ISAM2_MAX_S"
+
+
+def _isam2_max_s() -> float:
+    raw = os.environ.get(ISAM2_ENV, "")
+    return float(raw) if raw else ISAM2_MAX_S
 
 
 def _graphs(ctx: Context) -> list[tuple[str, Any]]:
@@ -105,10 +114,11 @@ def run(ctx: Context) -> Result:
         bg = OnlineConfig(reserve_poses=graph.num_nodes, background_refine=True)
         runs.append(replay_online(stream, bg, BUDGET_S, checkpoints=frames, extra_frames=EXTRA))
         print(f"    {name}: background done", flush=True)
-        if gtsam_available() and not (graph.is_2d and graph.num_gps):
+        isam2_s = _isam2_max_s()
+        if isam2_s > 0 and gtsam_available() and not (graph.is_2d and graph.num_gps):
             try:
                 runs.append(replay_isam2(stream, checkpoints=frames, extra_frames=ISAM2_EXTRA,
-                                         max_seconds=ISAM2_MAX_S))
+                                         max_seconds=isam2_s))
             except RuntimeError as exc:  # GTSAM's exceptions arrive as RuntimeError
                 msg = str(exc).strip().splitlines()[0]
                 rows.append([name, graph.num_nodes, graph.num_edges, graph.num_gps, "isam2",

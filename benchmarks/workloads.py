@@ -609,7 +609,10 @@ WORKLOADS["outliers"] = _outliers
 
 
 def _online(ctx: Context) -> Result:
-    pass
+    from .online import run
+
+    return run(ctx)
+
 
 def _scale(ctx: Context) -> Result:  # issue 11 item 6
     from .scale import run

@@ -21,8 +21,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._cost import residual_and_jr_inv, whiten_residual
 from .._numba import cycle_counter, kernel
 from .hybrid._batch import batch_relax, global_pose
+from .hybrid._linearize import endpoints, num_a_side, path_products
 from .hybrid._step import relax
 from .hybrid.problem import (
     BATCH_REJECTED,
@@ -157,11 +159,50 @@ def _gps_chi2(prob: Problem, state: State, c: int, ro: np.ndarray, to: np.ndarra
     return s
 
 
+@kernel
+def _edge_chi2(prob: Problem, state: State, c: int, wk: Workspace) -> float:
+    """χ² of relative constraint c at the current estimate, from its path only (O(d))."""
+    d = domain(prob, c)[1]
+    na = path_products(prob, c, state.rot, state.trans, wk.path_rot, wk.path_trans)
+    ra, ta, rb, tb = endpoints(wk.path_rot, wk.path_trans, na, d)
+    residual_and_jr_inv(prob.edge_rot[c], prob.edge_trans[c], ra, ta, rb, tb, wk.e, wk.ws)
+    whiten_residual(prob.edge_lt[c], wk.e, 6, wk.r)
+    acc = 0.0
+    for i in range(6):
+        acc += wk.r[i] * wk.r[i]
+    return acc
+
+
 # --------------------------------------------------------------------------- cost model
 @kernel
 def _predict(model: np.ndarray, d: int, batch: bool) -> float:
     per = model[MODEL_BATCH] if batch else model[MODEL_NODE]
     return float(MODEL_MARGIN * (model[MODEL_BASE] + per * d))
+
+
+@kernel
+def _kid(prob: Problem, canonical: int) -> int:
+    """Kernel constraint index of a canonical id (edge e >= 0, GPS reading g as -(g+1))."""
+    return canonical if canonical >= 0 else prob.num_edges - canonical - 1
+
+
+@kernel
+def batch_work(prob: Problem, depth: np.ndarray, c: int) -> int:
+    """Work of constraint c in a batch update, in domain-node units: its domain plus the depth
+    of its root (the batch computes the root's global pose, O(depth))."""
+    s, d = domain(prob, c)
+    if d == 0:
+        return 0
+    na = num_a_side(prob, c)
+    top = prob.path_node[s + na - 1] if na > 0 else prob.path_node[s + d - 1]
+    return int(d + depth[prob.parent[top]])
+
+
+@kernel
+def _capacitance_cost(nb: int) -> float:
+    """Predicted cycles of the dense factorization of a batch's (6 nb)^2 capacitance matrix
+    ((6 nb)^3 / 3 flops)."""
+    return MODEL_MARGIN * CYCLES_PER_FLOP * 72.0 * nb * nb * nb
 
 
 @kernel
@@ -203,8 +244,15 @@ def relax_list(prob: Problem, state: State, wk: Workspace, order: np.ndarray, ta
                mu: float, step_kind: int, gps_batch_size: int, deadline: np.uint64,
                max_updates: int, force_first: bool, skip: bool, chi2: np.ndarray,
                last: np.ndarray, stamp: int, model: np.ndarray, slot: np.ndarray,
-               xb: np.ndarray, nodes: np.ndarray, counts: np.ndarray) -> int:
+               xb: np.ndarray, nodes: np.ndarray, counts: np.ndarray, grp_of: np.ndarray,
+               grp_of_g: np.ndarray, grp_ptr: np.ndarray, grp_edges: np.ndarray,
+               grp_stamp: np.ndarray, depth: np.ndarray) -> int:
     """Relax the constraints of ``order`` in turn (paper Algorithm 1, GPS batched).
+
+    A constraint of a junction group (``grp_of[c]`` for an edge, ``grp_of_g[g]`` for a GPS
+    reading, >= 0: the constraints that joined a pose to the map in its frame, canonical ids
+    ``grp_edges[grp_ptr[k]:grp_ptr[k+1]]``) is relaxed together with the rest of its group as
+    one batch, once per ``stamp`` (``grp_stamp``); its other members are then passed over.
 
     An update is started only when ``cycle_counter() + predicted cost <= deadline`` (the first
     one regardless when ``force_first``) and fewer than ``max_updates`` were started.  When an
@@ -223,14 +271,28 @@ def relax_list(prob: Problem, state: State, wk: Workspace, order: np.ndarray, ta
     for idx in range(n_order + 1):
         c = order[idx] if idx < n_order else -1
         gps = False
+        grp = -1
+        nb = 1
+        d = 0
         if c >= 0:
             gps = is_gps(prob, c)
+            grp = grp_of_g[c - prob.num_edges] if gps else grp_of[c]
+            if grp >= 0 and grp_stamp[grp] == stamp:
+                continue  # relaxed with its group in this frame
             d = domain(prob, c)[1]
+            if grp >= 0:
+                d = 0
+                nb = grp_ptr[grp + 1] - grp_ptr[grp]
+                for j in range(grp_ptr[grp], grp_ptr[grp + 1]):
+                    d += batch_work(prob, depth, _kid(prob, grp_edges[j]))
             if started >= max_updates:
                 c = -1
                 stop_at = idx
             else:
-                pred = _predict(model, d, gps) + (buf_cost if gps else 0.0)
+                if grp >= 0:
+                    pred = _predict(model, d, True) + _capacitance_cost(nb)
+                else:
+                    pred = _predict(model, d, gps) + (buf_cost if gps else 0.0)
                 late = float(cycle_counter()) + pred > float(deadline)
                 if late and not (force_first and started == 0):
                     counts[C_SKIPPED] += 1
@@ -238,7 +300,7 @@ def relax_list(prob: Problem, state: State, wk: Workspace, order: np.ndarray, ta
                         continue
                     c = -1
                     stop_at = idx
-        if nbuf > 0 and (c < 0 or not gps or nbuf >= gps_batch_size):
+        if nbuf > 0 and (c < 0 or not gps or grp >= 0 or nbuf >= gps_batch_size):
             _flush(prob, state, buf, nbuf, tau, mu, slot, xb, nodes, model, counts)
             nbuf = 0
             buf_cost = 0.0
@@ -247,6 +309,24 @@ def relax_list(prob: Problem, state: State, wk: Workspace, order: np.ndarray, ta
         started += 1
         counts[C_DONE] += 1
         last[c] = stamp
+        if grp >= 0:
+            grp_stamp[grp] = stamp
+            gbuf = np.empty(nb, np.int64)
+            for j in range(nb):
+                cj = _kid(prob, grp_edges[grp_ptr[grp] + j])
+                gbuf[j] = cj
+                if is_gps(prob, cj):
+                    chi2[cj] = _gps_chi2(prob, state, cj, ro, to)
+                else:
+                    chi2[cj] = _edge_chi2(prob, state, cj, wk)
+                last[cj] = stamp
+            t0 = cycle_counter()
+            nu = batch_relax(prob, state, gbuf, nb, tau, mu, slot, xb, nodes, 0, False)
+            _learn(model, max(d, 1), float(cycle_counter() - t0), True)
+            counts[C_BATCHES] += 1
+            if nu == BATCH_REJECTED:
+                counts[C_REJECTED] += 1
+            continue
         if gps:
             chi2[c] = _gps_chi2(prob, state, c, ro, to)
             buf[nbuf] = c
@@ -272,7 +352,7 @@ def relax_list(prob: Problem, state: State, wk: Workspace, order: np.ndarray, ta
 @kernel
 def local_batch(prob: Problem, state: State, cs: np.ndarray, tau: float, mu: float,
                 deadline: np.uint64, model: np.ndarray, slot: np.ndarray, xb: np.ndarray,
-                nodes: np.ndarray, counts: np.ndarray) -> int:
+                nodes: np.ndarray, counts: np.ndarray, depth: np.ndarray) -> int:
     """The local solve (III-G): relax ``cs`` together when its predicted cost fits.
 
     Returns the number of union nodes moved, 0 when the batch did not fit the deadline, or
@@ -283,9 +363,8 @@ def local_batch(prob: Problem, state: State, cs: np.ndarray, tau: float, mu: flo
         return 0
     ne = 0
     for q in range(nb):
-        ne += domain(prob, cs[q])[1]
-    # plus the dense factorization of the (6 nb)^2 capacitance matrix: (6 nb)^3 / 3 flops
-    pred = _predict(model, ne, True) + MODEL_MARGIN * CYCLES_PER_FLOP * 72.0 * nb * nb * nb
+        ne += batch_work(prob, depth, cs[q])
+    pred = _predict(model, ne, True) + _capacitance_cost(nb)
     if float(cycle_counter()) + pred > float(deadline):
         counts[C_SKIPPED] += 1
         return 0

@@ -9,9 +9,13 @@ doubling, so no frame costs O(N):
   first pose hangs from it by a *free* link (no constraint), so before any GPS reading arrives
   no domain contains the first pose and it stays where it started (the gauge), and from the
   first GPS reading on every GPS domain contains it, so GPS can move and turn the whole map
-  (no re-rooting is ever needed).  A new pose hangs from the *oldest* pose it is constrained
-  to in its frame (its odometry parent unless a loop closure reaches an older pose;
-  ``OnlineConfig.tree = "odometry"`` always uses the odometry parent).  Revisits then hang
+  (no re-rooting is ever needed).  A new pose whose frame brings a GPS reading hangs from the
+  earth by that reading (``OnlineConfig.gps_link``); any other new pose hangs from the
+  *oldest* pose it is constrained to in its frame (its odometry parent unless a loop closure
+  reaches an older pose; ``OnlineConfig.tree = "odometry"`` always uses the odometry parent).
+  The constraints that joined a pose in its frame are relaxed together as one batch when their
+  stiffness differs (``OnlineConfig.junctions``: the soft link and the stiff odometry that
+  carries the long path meet at that pose).  Revisits then hang
   from the first visit, which keeps the tree shallow: on M3500 the constraint paths total
   32 110 nodes, against 742 356 for the odometry chain (paris2: 0.49 M against 148 M).
 * **A constraint's path is computed when it is first used**, by a walk to the lowest common
@@ -61,6 +65,11 @@ VERSION = 1
 ROTATION_TOL = 1e-6
 #: Seconds of every budget kept for the work after the last update (estimate, bookkeeping).
 RESERVE_S = 2e-4
+#: A junction group (``OnlineConfig.junctions``) is formed when the stiffest of its constraints
+#: has more than this many times the translational information of the softest (cities: loop
+#: closures and GPS are 25-10^4 times softer than the odometry; M3500: 1, no groups, which
+#: measured better there: 1.17x against 1.25x the optimum at the end).
+JUNCTION_RATIO = 10.0
 #: Initial cost model (cycles): base per update, per domain node, per batch entry.
 _MODEL0 = (4000.0, 800.0, 1500.0)
 _NO_DEADLINE = np.uint64(np.iinfo(np.uint64).max)
@@ -94,6 +103,24 @@ class OnlineConfig:
     entries: 16 per pose, GPS readings and their path entries: 1 and 16 per 16 poses).  Beyond
     it every array doubles when full: amortized O(1) per frame, but the frame that doubles pays
     for copying the array (milliseconds at 10^4 poses), so give the expected map size."""
+    gps_link: bool = True
+    """A new pose with a GPS reading in its frame hangs from the earth (its tree link is the
+    reading), as GPS readings do in the whole-graph tree (III-G).  The tree's depth is then
+    bounded by the spacing of the readings rather than growing with the drive, so GPS domains
+    stay one node long: no GPS frame pays for a path to the start (valencia_gps: 180 ms frames
+    where the path pool doubled).  The pose's odometry carries the path through the earth to
+    the previous subtree.  Cost: the subtrees are held to each other by stiff odometry only,
+    which the hybrid steps relax slowly (valencia_gps, first 1000 frames, no budget: 34x the
+    optimum against 1.3x with False)."""
+    junctions: bool = True
+    """Relax the constraints that join a pose to the map in its frame (its odometry, its loop
+    closures to earlier poses and its GPS readings, when their stiffness differs by more than
+    ``JUNCTION_RATIO``) together as one batch, every time any of them is relaxed.  With the
+    ``"oldest"`` tree a revisiting pose hangs from a soft loop closure while its stiff
+    odometry carries the long path around the loop; relaxed one at a time, the two only trade
+    the loop's error through the junction pose, at a rate of about (loop information) /
+    (odometry information) per update (valencia: 1e-3 in rotation, so the estimate stayed
+    100-1000x above the optimum).  The batch solves them jointly."""
     local_size: int = 0
     """Local solve (III-G): relax the newest ``local_size`` relative constraints together as
     one batch in every frame (0: off).  Bounded: the batch costs O(entries + (6 local_size)^3)."""
@@ -265,6 +292,8 @@ class OnlineSolver:
         self._m_laid = 0  # edges whose paths exist
         self._g = 0
         self._g_laid = 0
+        self._ngrp = 0  # junction groups
+        self._gps_link_count = 0  # poses hung from the earth by a GPS reading
         self._q_head = 0
         self._q_tail = 0
         self._cursor = 0
@@ -338,6 +367,12 @@ class OnlineSolver:
         self._chi2 = np.zeros(edges + gps)
         self._last = np.full(edges + gps, -1, np.int64)
         self._queue = np.zeros(queue, np.int64)  # canonical ids: edge e, GPS -(g+1)
+        # junction groups (OnlineConfig.junctions): CSR of edge lists, the group of each edge
+        self._grp_of = np.full(edges, -1, np.int64)  # per edge
+        self._grp_of_g = np.full(gps, -1, np.int64)  # per GPS reading
+        self._grp_ptr = np.zeros(nodes + 1, np.int64)
+        self._grp_edges = np.zeros(edges + gps, np.int64)  # canonical ids (edge e, GPS -(g+1))
+        self._grp_stamp = np.full(nodes, -1, np.int64)
 
     def _ensure_nodes(self, need: int) -> None:
         if need <= self._cap_n:
@@ -354,6 +389,8 @@ class OnlineSolver:
         self._nodes_buf = np.empty(cap, np.int64)
         self._ids = _grow(self._ids, cap)
         self._odom = _grow(self._odom, cap, -1)
+        self._grp_ptr = _grow(self._grp_ptr, cap + 1)
+        self._grp_stamp = _grow(self._grp_stamp, cap, -1)
         self._cap_n = cap
         self._problem = None
 
@@ -368,6 +405,9 @@ class OnlineSolver:
             setattr(self, name, _grow(getattr(self, name), cap_m))
         for name in ("_gps_node", "_gps_pos", "_gps_info", "_gps_lt"):
             setattr(self, name, _grow(getattr(self, name), cap_g))
+        self._grp_of = _grow(self._grp_of, cap_m, -1)
+        self._grp_of_g = _grow(self._grp_of_g, cap_g, -1)
+        self._grp_edges = _grow(self._grp_edges, cap_m + cap_g)
         ptr = np.zeros(cap_m + cap_g + 1, np.int64)
         ptr[: om] = self._ptr[: om]
         ptr[cap_m: cap_m + og + 1] = self._ptr[om: om + og + 1]
@@ -582,17 +622,31 @@ class OnlineSolver:
 
     def _place_poses(self) -> None:
         parent_of: dict[int, int] = {}
-        if self.config.tree == "oldest":
-            ab = self._edge_ab[self._m_laid: self._m]
-            for a, b in ab.tolist():
-                lo, hi = (a, b) if a < b else (b, a)
-                if hi >= self._placed and parent_of.get(hi, hi) > lo:
+        joining: dict[int, list[int]] = {}  # new pose -> its edges to earlier poses, its GPS
+        ab = self._edge_ab[self._m_laid: self._m]
+        for e, (a, b) in enumerate(ab.tolist(), start=self._m_laid):
+            lo, hi = (a, b) if a < b else (b, a)
+            if hi >= self._placed:
+                joining.setdefault(hi, []).append(e)
+                if self.config.tree == "oldest" and parent_of.get(hi, hi) > lo:
                     parent_of[hi] = lo
+        if self.config.gps_link:
+            for g, n in enumerate(self._gps_node[self._g_laid: self._g].tolist(),
+                                  start=self._g_laid):
+                if n >= self._placed:
+                    joining.setdefault(n, []).append(-(g + 1))
+                    parent_of[n] = -1  # the earth
+        if self.config.junctions:
+            for edges in joining.values():
+                if len(edges) > 1 and self._stiffness_spread(edges) > JUNCTION_RATIO:
+                    self._add_group(edges)
         ro, to = np.empty((3, 3)), np.empty(3)
         for p in range(self._placed, self._n):
             node = p + 1
             if p == 0:
                 tp, rot, trans = 0, self._first_rot, self._first_trans
+                if parent_of.get(0) == -1:  # the first pose's link: its GPS reading
+                    self._gps_link_count += 1
             else:
                 e = int(self._odom[p])
                 a = int(self._edge_ab[e, 0])
@@ -603,6 +657,9 @@ class OnlineSolver:
                 tp = parent_of.get(p, a) + 1
                 if tp == a + 1:
                     rot, trans = zr.copy(), zt.copy()
+                elif tp == 0:  # hangs from the earth: the local transform is the global pose
+                    rot, trans = gr, gt
+                    self._gps_link_count += 1
                 else:
                     ok.node_pose(tp, self._parent, self._rot, self._trans, ro, to)
                     rot, trans = ro.T @ gr, ro.T @ (gt - to)
@@ -611,6 +668,25 @@ class OnlineSolver:
             self._rot[node] = rot
             self._trans[node] = trans
         self._placed = self._n
+
+    def _stiffness_spread(self, cs: list[int]) -> float:
+        """Largest over smallest translational information (trace) among canonical ids ``cs``."""
+        tr = [float(np.trace(self._edge_info[c, :3, :3])) if c >= 0
+              else float(np.trace(self._gps_info[-c - 1])) for c in cs]
+        return max(tr) / min(tr)
+
+    def _add_group(self, edges: list[int]) -> None:
+        """A junction group (``OnlineConfig.junctions``): these edges are relaxed together."""
+        k = self._ngrp
+        lo = int(self._grp_ptr[k])
+        self._grp_edges[lo: lo + len(edges)] = edges
+        for c in edges:
+            if c >= 0:
+                self._grp_of[c] = k
+            else:
+                self._grp_of_g[-c - 1] = k
+        self._grp_ptr[k + 1] = lo + len(edges)
+        self._ngrp = k + 1
 
     def _lay_paths(self) -> None:
         m0, m1, g0, g1 = self._m_laid, self._m, self._g_laid, self._g
@@ -632,6 +708,10 @@ class OnlineSolver:
         if lengths.size:
             self._dmax = max(self._dmax, int(lengths.max()))
         self._m_laid, self._g_laid = m1, g1
+
+    def _groups(self) -> tuple[np.ndarray, ...]:
+        return (self._grp_of, self._grp_of_g, self._grp_ptr, self._grp_edges, self._grp_stamp,
+                self._depth)
 
     def _kernel_ids(self, canonical: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
         return np.where(canonical >= 0, canonical, self._cap_m - canonical - 1)
@@ -678,7 +758,7 @@ class OnlineSolver:
         n_new = int(ok.relax_list(prob, state, wk, order, cfg.tau_new, mu, kind,
                                   cfg.gps_batch_size, deadline, limit, True, False, self._chi2,
                                   self._last, stamp, self._model, self._slot, self._xb,
-                                  self._nodes_buf, counts))
+                                  self._nodes_buf, counts, *self._groups()))
         self._q_head += n_new
         if self._q_head == self._q_tail:
             self._q_head = self._q_tail = 0
@@ -690,7 +770,7 @@ class OnlineSolver:
             cs = np.arange(self._m_laid - k, self._m_laid, dtype=np.int64)
             local_nodes = max(int(ok.local_batch(prob, state, cs, cfg.tau_new, mu, deadline,
                                                  self._model, self._slot, self._xb,
-                                                 self._nodes_buf, counts)), 0)
+                                                 self._nodes_buf, counts, self._depth)), 0)
             if local_nodes:
                 limit -= 1
         # 3. spare time: older constraints, largest last chi2 first
@@ -713,7 +793,8 @@ class OnlineSolver:
             done0 = int(counts[ok.C_DONE])
             ok.relax_list(prob, state, wk, cand, cfg.tau_old, mu, kind, cfg.gps_batch_size,
                           deadline, limit, False, True, self._chi2, self._last, stamp,
-                          self._model, self._slot, self._xb, self._nodes_buf, counts)
+                          self._model, self._slot, self._xb, self._nodes_buf, counts,
+                          *self._groups())
             old = int(counts[ok.C_DONE]) - done0
         self.frame += 1
         return FrameReport(n_new, self.backlog, old, local_nodes, int(counts[ok.C_CAPPED]),
@@ -934,7 +1015,7 @@ class OnlineSolver:
     # ----------------------------------------------------------------- save / load
     _SCALARS = ("frame", "_n", "_placed", "_m", "_m_laid", "_g", "_g_laid", "_cursor",
                 "_gps_cursor", "_dmax", "_cap_n", "_cap_m", "_cap_g", "_cap_pe", "_cap_pg",
-                "_refined_m", "_refined_g")
+                "_refined_m", "_refined_g", "_ngrp", "_gps_link_count")
 
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the whole state to ``path`` (NumPy ``.npz``), atomically (temp file + rename).
@@ -968,6 +1049,10 @@ class OnlineSolver:
             "chi2_e": self._chi2[:m], "chi2_g": self._chi2[cm: cm + g],
             "last_e": self._last[:m], "last_g": self._last[cm: cm + g],
             "queue": self._queue[self._q_head: self._q_tail], "model": self._model,
+            "grp_of": self._grp_of[:m], "grp_of_g": self._grp_of_g[:g],
+            "grp_ptr": self._grp_ptr[: self._ngrp + 1],
+            "grp_edges": self._grp_edges[: int(self._grp_ptr[self._ngrp])],
+            "grp_stamp": self._grp_stamp[: self._ngrp],
         }  # fmt: skip
         del cg
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -1020,7 +1105,8 @@ class OnlineSolver:
         return self
 
     def _restore(self, meta: dict[str, Any], d: dict[str, np.ndarray]) -> None:
-        optional = ("_refined_m", "_refined_g")  # absent from the first files of VERSION 1
+        # absent from the first files of VERSION 1 (junction groups: none)
+        optional = ("_refined_m", "_refined_g", "_ngrp", "_gps_link_count")
         sc = {k: int(meta[k] if k not in optional else meta.get(k, 0)) for k in self._SCALARS}
         self._alloc(nodes=sc["_cap_n"], edges=sc["_cap_m"], gps=sc["_cap_g"],
                     pool_e=sc["_cap_pe"], pool_g=sc["_cap_pg"],
@@ -1058,6 +1144,12 @@ class OnlineSolver:
         put(self._chi2, cm, d["chi2_g"])
         put(self._last, 0, d["last_e"])
         put(self._last, cm, d["last_g"])
+        if self._ngrp:
+            put(self._grp_of, 0, d["grp_of"])
+            put(self._grp_of_g, 0, d["grp_of_g"])
+            put(self._grp_ptr, 0, d["grp_ptr"])
+            put(self._grp_edges, 0, d["grp_edges"])
+            put(self._grp_stamp, 0, d["grp_stamp"])
         q = d["queue"]
         put(self._queue, 0, q)
         self._q_head, self._q_tail = 0, int(q.shape[0])
