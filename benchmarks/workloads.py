@@ -643,3 +643,7 @@ WORKLOADS["auto"] = _auto  # issue 11 items 1-2: the default pipeline and local 
 from .converge import run as _converge_run  # noqa: E402  (issue 11 item 3: levers)
 
 WORKLOADS["converge"] = _converge_run
+
+from .first_run import run as _first_run  # noqa: E402  (issue 11 item 5: cold first run)
+
+WORKLOADS["first_run"] = _first_run
