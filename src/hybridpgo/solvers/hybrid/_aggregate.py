@@ -33,7 +33,7 @@ from ..._numba import cycle_counter, kernel
 from ._dense import chol_inplace, chol_solve_cols, solve_lt
 from ._linearize import linearize
 from ._step import accumulate_blocks, cap_and_apply
-from ._sweep import _flush
+from ._sweep import _flush_exact
 from .problem import (
     Count,
     FloatArray,
@@ -208,8 +208,8 @@ def sweep_aggregated(prob: Problem, state: State, mem: Memory, rate: float, orde
             c = -1
         gps = c >= 0 and is_gps(prob, c)
         if nbuf > 0 and (not gps or nbuf >= gps_batch_size):
-            if _flush(prob, state, buf, nbuf, tau, mu, slot, xb, nodes, cycles, batch_cycles,
-                      counts) and first_bad < 0:
+            if _flush_exact(prob, state, buf, nbuf, tau, mu, slot, xb, nodes, cycles,
+                            batch_cycles, counts) and first_bad < 0:
                 first_bad = buf[0]
             nbuf = 0
         if c < 0:

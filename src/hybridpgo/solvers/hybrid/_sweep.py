@@ -42,13 +42,9 @@ def max_domain(prob: Problem) -> int:
 
 
 @kernel
-def _flush(prob: Problem, state: State, buf: np.ndarray, nbuf: int, tau: float, mu: float,
-           slot: np.ndarray, xb: np.ndarray, nodes: np.ndarray, cycles: np.ndarray,
-           batch_cycles: np.ndarray, counts: np.ndarray, d_max: int = 0) -> bool:
-    """Relax the buffered GPS readings as one batch (interpolated when ``d_max`` > 0 is below
-    the union's size, III-G); True when the batch was rejected."""
-    t0 = cycle_counter()
-    nu = batch_relax(prob, state, buf, nbuf, tau, mu, slot, xb, nodes, d_max)
+def _count_batch(nu: int, t0: np.uint64, buf: np.ndarray, nbuf: int, cycles: np.ndarray,
+                 batch_cycles: np.ndarray, counts: np.ndarray) -> bool:
+    """Book a GPS batch started at cycle ``t0`` that returned ``nu``; True when rejected."""
     dc = cycle_counter() - t0
     if dc > counts[Count.MAX_CYCLES]:
         counts[Count.MAX_CYCLES] = dc
@@ -61,6 +57,16 @@ def _flush(prob: Problem, state: State, buf: np.ndarray, nbuf: int, tau: float, 
         return True
     return False
 
+
+@kernel
+def _flush(prob: Problem, state: State, buf: np.ndarray, nbuf: int, tau: float, mu: float,
+           slot: np.ndarray, xb: np.ndarray, nodes: np.ndarray, cycles: np.ndarray,
+           batch_cycles: np.ndarray, counts: np.ndarray, d_max: int = 0) -> bool:
+    """Relax the buffered GPS readings as one batch (interpolated when ``d_max`` > 0 is below
+    the union's size, III-G); True when the batch was rejected."""
+    t0 = cycle_counter()
+    nu = batch_relax(prob, state, buf, nbuf, tau, mu, slot, xb, nodes, d_max)
+    return _count_batch(nu, t0, buf, nbuf, cycles, batch_cycles, counts)
 
 
 @kernel
@@ -70,17 +76,7 @@ def _flush_exact(prob: Problem, state: State, buf: np.ndarray, nbuf: int, tau: f
     """:func:`_flush` without interpolated solving (``batch_relax_exact``: compiles less)."""
     t0 = cycle_counter()
     nu = batch_relax_exact(prob, state, buf, nbuf, tau, mu, slot, xb, nodes)
-    dc = cycle_counter() - t0
-    if dc > counts[Count.MAX_CYCLES]:
-        counts[Count.MAX_CYCLES] = dc
-    counts[Count.BATCHES] += 1
-    for q in range(nbuf):
-        cycles[buf[q]] = dc // nbuf
-    batch_cycles[buf[0]] = dc
-    if nu == BATCH_REJECTED:
-        counts[Count.REJECTED] += nbuf
-        return True
-    return False
+    return _count_batch(nu, t0, buf, nbuf, cycles, batch_cycles, counts)
 
 
 def _make_sweep(with_gps: bool, with_interpolation: bool) -> Any:
