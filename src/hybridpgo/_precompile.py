@@ -91,6 +91,13 @@ def _exact() -> None:
     solve_exact(_tiny_graph())
 
 
+def _toro() -> None:
+    """The TORO baseline (``--solver toro``, ``hybridpgo warmup``)."""
+    from .solvers.toro import _ensure_compiled
+
+    _ensure_compiled()
+
+
 #: Kernel groups a helper can compile: name -> (function, kernels that tell cold from warm).
 GROUPS: dict[str, tuple[Callable[[], None], tuple[str, ...]]] = {
     "finish": (_finish, ("hybridpgo.tree:_globals_from_locals",
@@ -100,6 +107,7 @@ GROUPS: dict[str, tuple[Callable[[], None], tuple[str, ...]]] = {
                        "hybridpgo.solvers._gn_kernels:retract",
                        "hybridpgo._cost:total_energy",
                        "hybridpgo.solvers._block_cholesky:_numeric")),
+    "toro": (_toro, ("hybridpgo.solvers._toro_kernels:sweep",)),
 }
 
 
