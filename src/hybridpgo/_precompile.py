@@ -66,8 +66,8 @@ def _tiny_graph() -> Any:
 
 
 def _finish() -> None:
-    """What a hybrid solve compiles after its sweep: local transforms from global poses (the
-    ``file``/``chordal`` starts), global poses from local transforms, per-constraint energies."""
+    """What a hybrid solve compiles right after its sweep: global poses from local transforms,
+    per-constraint energies."""
     import numpy as np
 
     from .energy import energy
@@ -75,11 +75,21 @@ def _finish() -> None:
 
     graph = _tiny_graph()
     tree = build_tree(graph)
-    initial_locals(graph, tree, "chordal")  # writable global poses (the file's are read-only)
-    rot, trans = initial_locals(graph, tree, "file")
+    rot, trans = initial_locals(graph, tree, "tree")  # no kernel: local transforms from edges
     grot, gtr = global_poses(tree, np.array(rot, np.float64, order="C"),
                              np.array(trans, np.float64, order="C"))
     energy(graph, grot, gtr)
+
+
+def _starts() -> None:
+    """Local transforms from global poses: the ``file`` start (the file's read-only arrays) and
+    the ``chordal`` one (writable arrays: a second signature)."""
+    from .tree import build_tree, initial_locals
+
+    graph = _tiny_graph()
+    tree = build_tree(graph)
+    initial_locals(graph, tree, "file")
+    initial_locals(graph, tree, "chordal")
 
 
 def _exact() -> None:
@@ -101,8 +111,8 @@ def _toro() -> None:
 #: Kernel groups a helper can compile: name -> (function, kernels that tell cold from warm).
 GROUPS: dict[str, tuple[Callable[[], None], tuple[str, ...]]] = {
     "finish": (_finish, ("hybridpgo.tree:_globals_from_locals",
-                         "hybridpgo.tree:_locals_from_globals",
                          "hybridpgo._cost:constraint_energies")),
+    "starts": (_starts, ("hybridpgo.tree:_locals_from_globals",)),
     "exact": (_exact, ("hybridpgo.solvers._gn_kernels:assemble_normal_equations",
                        "hybridpgo.solvers._gn_kernels:retract",
                        "hybridpgo._cost:total_energy",
@@ -172,9 +182,15 @@ class Helper:
     def _read(self) -> None:
         out = self.proc.stdout
         assert out is not None
+        log_path = os.environ.get("HYBRIDPGO_PRECOMPILE_LOG")  # diagnostics: timed reports
+        t0 = time.perf_counter()
         try:
             for raw in out:
-                what, _, name = raw.decode("utf-8", "replace").strip().partition(" ")
+                line = raw.decode("utf-8", "replace").strip()
+                if log_path:
+                    with open(log_path, "a") as log:
+                        log.write(f"{time.perf_counter() - t0:8.2f} helper {line}\n")
+                what, _, name = line.partition(" ")
                 with self._cond:
                     if what == "start":
                         self.started.add(name)
@@ -206,6 +222,10 @@ class Helper:
                     break
                 self._cond.wait(min(left, 0.5))
             self.waited += time.perf_counter() - t0
+            log_path = os.environ.get("HYBRIDPGO_PRECOMPILE_LOG")
+            if log_path:
+                with open(log_path, "a") as log:
+                    log.write(f"main waited {time.perf_counter() - t0:.2f} s for {name}\n")
             return name in self.done
 
     def join(self, timeout: float | None = None) -> bool:

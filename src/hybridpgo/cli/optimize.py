@@ -211,7 +211,8 @@ def _compile_kernels(job: Job, graph: PoseGraph) -> None:
     if job.solver in ("hybrid", "auto"):  # a second core compiles what comes after the sweep
         from .._precompile import start
 
-        start(["finish", "exact"] if exact else ["finish"])
+        # in the order the solve needs them: after the sweep, the polish, the starts
+        start(["finish", "exact", "starts"] if exact else ["finish", "starts"])
     with phase("compiling kernels (first run only)", enabled=not job.quiet):
         if job.solver in ("hybrid", "auto"):
             ensure_hybrid(graph.num_gps > 0, bool(job.options.get("dmax")))

@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     if "hybrid" in targets:  # a second core compiles the other targets meanwhile
         from .._precompile import start
 
-        start(["finish", *(t for t in targets if t != "hybrid")])
+        start(["finish", *(t for t in targets if t != "hybrid"), "starts"])
     before = compile_status()
     t0 = time.perf_counter()
     for target in targets:
