@@ -178,7 +178,10 @@ def test_off_unless_asked_under_pytest_or_ci(monkeypatch: pytest.MonkeyPatch) ->
     assert _precompile.start(["finish"]) is None
     monkeypatch.delenv("PYTEST_CURRENT_TEST")
     monkeypatch.delenv("CI", raising=False)
+    monkeypatch.setattr(_precompile, "_idle_cores", lambda: 1.2)
     assert _precompile.enabled()
+    monkeypatch.setattr(_precompile, "_idle_cores", lambda: 0.5)  # a busy machine
+    assert not _precompile.enabled()
     monkeypatch.setenv("CI", "true")
     assert not _precompile.enabled()
     monkeypatch.setenv(_precompile.ENV, "1")

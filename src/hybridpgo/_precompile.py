@@ -23,8 +23,9 @@ can be compiled meanwhile by a second process into the same on-disk cache:
   its stdin pipe closes (this process ended, even by SIGKILL) and is terminated at exit
   (:func:`stop`, registered with :mod:`atexit`).
 
-``HYBRIDPGO_PARALLEL_COMPILE=0`` turns it off, ``=1`` on; by default it is on, except under
-pytest (``PYTEST_CURRENT_TEST``), in CI (``CI``) and with ``NUMBA_DISABLE_JIT``.
+``HYBRIDPGO_PARALLEL_COMPILE=0`` turns it off, ``=1`` on; by default it is on when a core is
+idle (CPUs minus the 1-minute load average >= :data:`IDLE_CORES`), except under pytest
+(``PYTEST_CURRENT_TEST``), in CI (``CI``) and with ``NUMBA_DISABLE_JIT``.
 """
 
 from __future__ import annotations
@@ -46,6 +47,8 @@ __all__ = ["GROUPS", "Helper", "enabled", "start", "stop"]
 #: Longest wait (seconds) for one kernel the helper is compiling, before compiling it here.
 WAIT_S = 60.0
 ENV = "HYBRIDPGO_PARALLEL_COMPILE"
+#: By default a helper starts only if this many cores are idle (CPUs - 1-minute load average).
+IDLE_CORES = 1.0
 
 
 # --------------------------------------------------------------------------- the groups
@@ -139,8 +142,23 @@ def _group(name: str) -> tuple[Callable[[], None], tuple[str, ...]]:
 
 
 # --------------------------------------------------------------------------- this process
+def _idle_cores() -> float:
+    """CPUs this process may use minus the 1-minute load average (cheap, lagging)."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        cpus = os.cpu_count() or 1
+    try:
+        load = os.getloadavg()[0]
+    except (AttributeError, OSError):  # pragma: no cover - Windows
+        load = 0.0
+    return cpus - load
+
+
 def enabled() -> bool:
-    """Whether :func:`start` may launch a helper (module docstring)."""
+    """Whether :func:`start` may launch a helper (module docstring): ``=1`` always; by default
+    only with a core to spare (measured on a 2-core machine at load 4-7: a helper made a cold
+    run slower, its duplicated compile work competing for busy cores)."""
     value = os.environ.get(ENV, "").strip().lower()
     if value in ("0", "false", "no", "off"):
         return False
@@ -148,8 +166,10 @@ def enabled() -> bool:
         return False
     if value in ("1", "true", "yes", "on"):
         return True
-    return not (os.environ.get("PYTEST_CURRENT_TEST")
-                or os.environ.get("CI", "").strip().lower() not in ("", "0", "false"))
+    if (os.environ.get("PYTEST_CURRENT_TEST")
+            or os.environ.get("CI", "").strip().lower() not in ("", "0", "false")):
+        return False
+    return _idle_cores() >= IDLE_CORES
 
 
 def _cold(groups: Sequence[str]) -> bool:
