@@ -224,8 +224,9 @@ def test_the_real_groups_compile_what_a_solve_loads(tmp_path: pathlib.Path) -> N
 
     graph = TESTS / "data" / "tinyGrid3D.g2o"
     out = json.loads(subprocess.run(
-        [sys.executable, "-c", REAL, "finish,exact,starts", str(graph)], env=_env(tmp_path),
-        check=True, capture_output=True, text=True, timeout=900).stdout.splitlines()[-1])
+        [sys.executable, "-c", REAL, "finish,exact,starts,exact-solve", str(graph)],
+        env=_env(tmp_path), check=True, capture_output=True, text=True,
+        timeout=900).stdout.splitlines()[-1])
     assert out["ok"] is True
     assert (out["finish"], out["exact"]) == (0, 0)
     assert out["energy"] >= 0.0

@@ -96,11 +96,17 @@ def _starts() -> None:
 
 
 def _exact() -> None:
-    """The exact solver (the default pipeline's polish, ``--polish``, ``--solver exact``):
-    its warm-up, then a solve, which adds the block Cholesky of small sparse systems."""
-    from .solvers.gauss_newton import _ensure_compiled, solve_exact
+    """The exact solver (the default pipeline's polish, ``--polish``, ``--solver exact``)."""
+    from .solvers.gauss_newton import _ensure_compiled
 
     _ensure_compiled()
+
+
+def _exact_solve() -> None:
+    """An exact solve, which adds the block Cholesky of small sparse systems (a large graph's
+    polish may use CHOLMOD instead)."""
+    from .solvers.gauss_newton import solve_exact
+
     solve_exact(_tiny_graph())
 
 
@@ -118,8 +124,8 @@ GROUPS: dict[str, tuple[Callable[[], None], tuple[str, ...]]] = {
     "starts": (_starts, ("hybridpgo.tree:_locals_from_globals",)),
     "exact": (_exact, ("hybridpgo.solvers._gn_kernels:assemble_normal_equations",
                        "hybridpgo.solvers._gn_kernels:retract",
-                       "hybridpgo._cost:total_energy",
-                       "hybridpgo.solvers._block_cholesky:_numeric")),
+                       "hybridpgo._cost:total_energy")),
+    "exact-solve": (_exact_solve, ("hybridpgo.solvers._block_cholesky:_numeric",)),
     "toro": (_toro, ("hybridpgo.solvers._toro_kernels:sweep",)),
 }
 

@@ -212,7 +212,7 @@ def _compile_kernels(job: Job, graph: PoseGraph) -> None:
         from .._precompile import start
 
         # in the order the solve needs them: after the sweep, the polish, the starts
-        start(["finish", "exact", "starts"] if exact else ["finish", "starts"])
+        start(["finish", "exact", "starts", "exact-solve"] if exact else ["finish", "starts"])
     with phase("compiling kernels (first run only)", enabled=not job.quiet):
         if job.solver in ("hybrid", "auto"):
             ensure_hybrid(graph.num_gps > 0, bool(job.options.get("dmax")))

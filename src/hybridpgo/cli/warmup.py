@@ -41,7 +41,8 @@ def run(args: argparse.Namespace) -> int:
     if "hybrid" in targets:  # a second core compiles the other targets meanwhile
         from .._precompile import start
 
-        start(["finish", *(t for t in targets if t != "hybrid"), "starts"])
+        others = [t for t in targets if t != "hybrid"]
+        start(["finish", *others, "starts", *(["exact-solve"] if "exact" in others else [])])
     before = compile_status()
     t0 = time.perf_counter()
     for target in targets:
