@@ -82,6 +82,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("command", nargs=argparse.REMAINDER)
     args = ap.parse_args(argv)
     cmd = [a for a in args.command if a != "--"] if args.command else ["warmup"]
+    # one process: a helper compiling in parallel (hybridpgo._precompile) would hide kernels
+    os.environ.setdefault("HYBRIDPGO_PARALLEL_COMPILE", "0")
     if "NUMBA_CACHE_DIR" not in os.environ:
         os.environ["NUMBA_CACHE_DIR"] = tempfile.mkdtemp(prefix="hpgo-numba-")
     records: list[dict[str, Any]] = []

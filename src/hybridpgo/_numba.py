@@ -50,7 +50,8 @@ def kernel(fn: F) -> F:
     throw-away versions for the constant a variable starts with (``nbuf = 0``), each with its
     whole call tree.  LLVM still sees the constant after inlining, so the runtime is the same.
     """
-    return _at_opt_level(_widen_literals(numba.njit(**_OPTIONS)(fn)))  # type: ignore[no-any-return]
+    dispatcher = numba.njit(**_OPTIONS)(fn)
+    return _watched(_at_opt_level(_widen_literals(_checked_cache(dispatcher))))  # type: ignore[no-any-return]
 
 
 #: LLVM optimization level of the package's kernels (Numba's default is 3; module docstring).
@@ -95,6 +96,82 @@ def _widen_literals(dispatcher: Any) -> Any:
 
     dispatcher.get_call_template = get_call_template
     return dispatcher
+
+
+# --------------------------------------------------------------------------- parallel compile
+class CompileHooks:
+    """Called around every package kernel's compilation (or cache load) by its dispatcher;
+    set by :mod:`hybridpgo._precompile` (None: nothing to do).
+
+    ``before(name)`` runs before Numba looks at its cache for a kernel with no compiled version
+    in this process (the first process waits there while its helper compiles ``name``);
+    ``after(name)`` runs once the kernel is compiled *and saved* to the cache (the helper
+    reports it).  ``name`` is ``module.qualname``.
+    """
+
+    before: Callable[[str], None] | None = None
+    after: Callable[[str], None] | None = None
+
+
+def kernel_name(dispatcher: Any) -> str:
+    """``module.qualname`` of a kernel, as the compile hooks name it."""
+    fn = dispatcher.py_func
+    return f"{fn.__module__}.{fn.__qualname__}"
+
+
+def _watched(dispatcher: Any) -> Any:
+    compile_sig = dispatcher.compile
+    name = kernel_name(dispatcher)
+
+    def compile(sig: Any) -> Any:
+        before, after = CompileHooks.before, CompileHooks.after
+        if before is not None and not dispatcher.overloads:
+            before(name)
+        entry = compile_sig(sig)  # Numba's compile: cache load, or compile then save
+        if after is not None:
+            after(name)
+        return entry
+
+    dispatcher.compile = compile
+    return dispatcher
+
+
+def _checked_cache(dispatcher: Any) -> Any:
+    """Load a cache entry only if it was compiled for the signature asked for.
+
+    Numba numbers a kernel's data files in its index (``f.1.nbc``, ``f.2.nbc``); two processes
+    saving *different* signatures of one kernel at the same time can both pick ``.1`` and leave
+    an index entry pointing to the other signature's code.  Such an entry is treated as a miss
+    (compiled again) instead of being loaded under the wrong signature.
+    """
+    cache = getattr(dispatcher, "_cache", None)
+    load = getattr(cache, "load_overload", None)
+    if load is None:  # pragma: no cover - a Numba without a per-dispatcher cache
+        return dispatcher
+
+    def load_overload(sig: Any, target_context: Any) -> Any:
+        cres = load(sig, target_context)
+        if cres is None:
+            return None
+        from numba.core import sigutils
+
+        args, _ = sigutils.normalize_signature(sig)
+        if tuple(getattr(cres.signature, "args", ())) != tuple(args):
+            return None
+        return cres
+
+    setattr(cache, "load_overload", load_overload)  # noqa: B010 (cache: Any | None for mypy)
+    return dispatcher
+
+
+def is_cached(dispatcher: Any) -> bool:
+    """Whether Numba's cache holds a version of this kernel for the current sources (its index
+    exists and carries the current stamp); True when that cannot be told (Numba's private cache
+    API changed), so a caller that would do extra work for a cold cache does nothing."""
+    try:
+        return bool(dispatcher._cache._cache_file._load_index())
+    except Exception:  # private API: assume warm
+        return True
 
 
 # --------------------------------------------------------------------------- cache freshness

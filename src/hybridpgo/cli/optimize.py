@@ -207,10 +207,16 @@ def _compile_kernels(job: Job, graph: PoseGraph) -> None:
     from ..solvers.hybrid.solver import ensure_compiled as ensure_hybrid
     from ._progress import phase
 
+    exact = job.solver in ("exact", "auto") or bool(job.options.get("polish"))
+    if job.solver in ("hybrid", "auto"):  # a second core compiles what comes after the sweep
+        from .._precompile import start
+
+        # in the order the solve needs them: after the sweep, the polish, the starts
+        start(["finish", "exact", "starts", "exact-solve"] if exact else ["finish", "starts"])
     with phase("compiling kernels (first run only)", enabled=not job.quiet):
         if job.solver in ("hybrid", "auto"):
             ensure_hybrid(graph.num_gps > 0, bool(job.options.get("dmax")))
-        if job.solver in ("exact", "auto") or job.options.get("polish"):
+        if exact:
             ensure_exact()
 
 

@@ -38,6 +38,11 @@ def run(args: argparse.Namespace) -> int:
     from ._progress import phase
 
     targets = TARGETS if args.solver == "all" else (args.solver,)
+    if "hybrid" in targets:  # a second core compiles the other targets meanwhile
+        from .._precompile import start
+
+        others = [t for t in targets if t != "hybrid"]
+        start(["finish", *others, "starts", *(["exact-solve"] if "exact" in others else [])])
     before = compile_status()
     t0 = time.perf_counter()
     for target in targets:
