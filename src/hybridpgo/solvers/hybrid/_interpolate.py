@@ -31,8 +31,8 @@ from ..._cost import jr_inv_matrix, residual_and_jr_inv, retract_into
 from ..._numba import kernel
 from ...geometry._kernels import so3_log_into
 from ._dense import regularized_factor
-from ._linearize import linearize, relative_linearization
-from ._step import accumulate_path, solve_single, step_temperature
+from ._linearize import linearize, relative_setup
+from ._step import accumulate_path, linearize_accumulate, solve_single, step_temperature
 from .problem import EYE, ZERO, Problem, State, Update, Workspace, domain, is_gps
 
 
@@ -411,15 +411,13 @@ def distribute_chains(rot: np.ndarray, trans: np.ndarray, bdiag: np.ndarray,
     Chain j is ``chains[j] = (start, k, ia, ib)``: nodes ``nodes[start:start + k]``, a's pose
     ``(apr[ia], apt[ia])`` (the identity when ``ia < 0``), b's desired pose
     ``(bpr[ib], bpt[ib])``.  ``qr``, ``cw``, ``ws``, ``ws6``: a workspace's ``chain_rot``,
-    ``chain_w``, ``iws``, ``iws6``.
+    ``chain_w``, ``iws``, ``iws6``.  Per node, the 3x3 products live in scalar locals (``v..``:
+    the previous ``Q``, ``c..``/``q..`` the current one, ``x..`` the Rodrigues factor, ``m..``/
+    ``g..`` the new local and its Gram matrix, symmetric: six entries).
     """
     dr = ws[0]
     dt = ws[1][0]
-    kx = ws[2]
-    k2 = ws[3]
-    ex = ws[4]
     mm = ws[5]
-    gg = ws[6]
     phi6 = ws6[3][0]
     for jc in range(nch):
         start = chains[jc, 0]
@@ -436,12 +434,26 @@ def distribute_chains(rot: np.ndarray, trans: np.ndarray, bdiag: np.ndarray,
                 qr[0, i, j] = 1.0 if i == j else 0.0
         cw[0, 0] = 0.0
         cw[0, 1] = 0.0
+        v00, v01, v02 = 1.0, 0.0, 0.0
+        v10, v11, v12 = 0.0, 1.0, 0.0
+        v20, v21, v22 = 0.0, 0.0, 1.0
         for j in range(1, k + 1):
             i = nodes[start + k - j]
-            for p in range(3):
-                for q in range(3):
-                    qr[j, p, q] = (qr[j - 1, p, 0] * rot[i, 0, q] + qr[j - 1, p, 1] * rot[i, 1, q]
-                                   + qr[j - 1, p, 2] * rot[i, 2, q])
+            q00 = v00 * rot[i, 0, 0] + v01 * rot[i, 1, 0] + v02 * rot[i, 2, 0]
+            q01 = v00 * rot[i, 0, 1] + v01 * rot[i, 1, 1] + v02 * rot[i, 2, 1]
+            q02 = v00 * rot[i, 0, 2] + v01 * rot[i, 1, 2] + v02 * rot[i, 2, 2]
+            q10 = v10 * rot[i, 0, 0] + v11 * rot[i, 1, 0] + v12 * rot[i, 2, 0]
+            q11 = v10 * rot[i, 0, 1] + v11 * rot[i, 1, 1] + v12 * rot[i, 2, 1]
+            q12 = v10 * rot[i, 0, 2] + v11 * rot[i, 1, 2] + v12 * rot[i, 2, 2]
+            q20 = v20 * rot[i, 0, 0] + v21 * rot[i, 1, 0] + v22 * rot[i, 2, 0]
+            q21 = v20 * rot[i, 0, 1] + v21 * rot[i, 1, 1] + v22 * rot[i, 2, 1]
+            q22 = v20 * rot[i, 0, 2] + v21 * rot[i, 1, 2] + v22 * rot[i, 2, 2]
+            qr[j, 0, 0], qr[j, 0, 1], qr[j, 0, 2] = q00, q01, q02
+            qr[j, 1, 0], qr[j, 1, 1], qr[j, 1, 2] = q10, q11, q12
+            qr[j, 2, 0], qr[j, 2, 1], qr[j, 2, 2] = q20, q21, q22
+            v00, v01, v02 = q00, q01, q02
+            v10, v11, v12 = q10, q11, q12
+            v20, v21, v22 = q20, q21, q22
             wr, wt = node_weights(bdiag, i)
             cw[j, 0] = cw[j - 1, 0] + wr
             cw[j, 1] = cw[j - 1, 1] + wt
@@ -459,26 +471,32 @@ def distribute_chains(rot: np.ndarray, trans: np.ndarray, bdiag: np.ndarray,
         so3_log_into(mm, phi6)
         px, py, pz = phi6[3], phi6[4], phi6[5]
         th = math.sqrt(px * px + py * py + pz * pz)
-        kx[0, 0], kx[0, 1], kx[0, 2] = 0.0, -pz, py
-        kx[1, 0], kx[1, 1], kx[1, 2] = pz, 0.0, -px
-        kx[2, 0], kx[2, 1], kx[2, 2] = -py, px, 0.0
-        for p in range(3):
-            for q in range(3):
-                k2[p, q] = kx[p, 0] * kx[0, q] + kx[p, 1] * kx[1, q] + kx[p, 2] * kx[2, q]
+        kx00, kx01, kx02 = 0.0, -pz, py
+        kx10, kx11, kx12 = pz, 0.0, -px
+        kx20, kx21, kx22 = -py, px, 0.0
+        kk00 = kx00 * kx00 + kx01 * kx10 + kx02 * kx20
+        kk01 = kx00 * kx01 + kx01 * kx11 + kx02 * kx21
+        kk02 = kx00 * kx02 + kx01 * kx12 + kx02 * kx22
+        kk10 = kx10 * kx00 + kx11 * kx10 + kx12 * kx20
+        kk11 = kx10 * kx01 + kx11 * kx11 + kx12 * kx21
+        kk12 = kx10 * kx02 + kx11 * kx12 + kx12 * kx22
+        kk20 = kx20 * kx00 + kx21 * kx10 + kx22 * kx20
+        kk21 = kx20 * kx01 + kx21 * kx11 + kx22 * kx21
+        kk22 = kx20 * kx02 + kx21 * kx12 + kx22 * kx22
         # 1. rotations first: R''_j = Exp(f_j phi) Q_j (Rodrigues about the one axis); positions
         # re-bent with the old locals: t''_k = sum_j R''_{j-1} t_j
         w_r = cw[k, 0]
         t0 = 0.0
         t1 = 0.0
         t2 = 0.0
+        v00, v01, v02 = 1.0, 0.0, 0.0
+        v10, v11, v12 = 0.0, 1.0, 0.0
+        v20, v21, v22 = 0.0, 0.0, 1.0
         for j in range(1, k + 1):
             i = nodes[start + k - j]
-            t0 += (qr[j - 1, 0, 0] * trans[i, 0] + qr[j - 1, 0, 1] * trans[i, 1]
-                   + qr[j - 1, 0, 2] * trans[i, 2])
-            t1 += (qr[j - 1, 1, 0] * trans[i, 0] + qr[j - 1, 1, 1] * trans[i, 1]
-                   + qr[j - 1, 1, 2] * trans[i, 2])
-            t2 += (qr[j - 1, 2, 0] * trans[i, 0] + qr[j - 1, 2, 1] * trans[i, 1]
-                   + qr[j - 1, 2, 2] * trans[i, 2])
+            t0 += v00 * trans[i, 0] + v01 * trans[i, 1] + v02 * trans[i, 2]
+            t1 += v10 * trans[i, 0] + v11 * trans[i, 1] + v12 * trans[i, 2]
+            t2 += v20 * trans[i, 0] + v21 * trans[i, 1] + v22 * trans[i, 2]
             if j == k:  # the end reaches its desired rotation exactly
                 for p in range(3):
                     for q in range(3):
@@ -493,39 +511,76 @@ def distribute_chains(rot: np.ndarray, trans: np.ndarray, bdiag: np.ndarray,
                 sh = math.sin(0.5 * a_th)
                 ca = math.sin(a_th) / th
                 cb = 2.0 * sh * sh / (th * th)
-            for p in range(3):
-                for q in range(3):
-                    ex[p, q] = (1.0 if p == q else 0.0) + ca * kx[p, q] + cb * k2[p, q]
-            for q in range(3):
-                c0 = qr[j, 0, q]
-                c1 = qr[j, 1, q]
-                c2 = qr[j, 2, q]
-                for p in range(3):
-                    qr[j, p, q] = ex[p, 0] * c0 + ex[p, 1] * c1 + ex[p, 2] * c2
-        # 2. then translations, linearly along the re-bent chain; new locals
+            x00 = 1.0 + ca * kx00 + cb * kk00
+            x01 = 0.0 + ca * kx01 + cb * kk01
+            x02 = 0.0 + ca * kx02 + cb * kk02
+            x10 = 0.0 + ca * kx10 + cb * kk10
+            x11 = 1.0 + ca * kx11 + cb * kk11
+            x12 = 0.0 + ca * kx12 + cb * kk12
+            x20 = 0.0 + ca * kx20 + cb * kk20
+            x21 = 0.0 + ca * kx21 + cb * kk21
+            x22 = 1.0 + ca * kx22 + cb * kk22
+            c00, c01, c02 = qr[j, 0, 0], qr[j, 0, 1], qr[j, 0, 2]
+            c10, c11, c12 = qr[j, 1, 0], qr[j, 1, 1], qr[j, 1, 2]
+            c20, c21, c22 = qr[j, 2, 0], qr[j, 2, 1], qr[j, 2, 2]
+            v00 = x00 * c00 + x01 * c10 + x02 * c20
+            v01 = x00 * c01 + x01 * c11 + x02 * c21
+            v02 = x00 * c02 + x01 * c12 + x02 * c22
+            v10 = x10 * c00 + x11 * c10 + x12 * c20
+            v11 = x10 * c01 + x11 * c11 + x12 * c21
+            v12 = x10 * c02 + x11 * c12 + x12 * c22
+            v20 = x20 * c00 + x21 * c10 + x22 * c20
+            v21 = x20 * c01 + x21 * c11 + x22 * c21
+            v22 = x20 * c02 + x21 * c12 + x22 * c22
+            qr[j, 0, 0], qr[j, 0, 1], qr[j, 0, 2] = v00, v01, v02
+            qr[j, 1, 0], qr[j, 1, 1], qr[j, 1, 2] = v10, v11, v12
+            qr[j, 2, 0], qr[j, 2, 1], qr[j, 2, 2] = v20, v21, v22
+        # 2. then translations, linearly along the re-bent chain; new locals, with one Newton
+        # step towards the polar factor (as the retraction does): products along long chains
+        # would otherwise let rounding grow
         e0 = dt[0] - t0
         e1 = dt[1] - t1
         e2 = dt[2] - t2
         w_t = cw[k, 1]
+        v00, v01, v02 = 1.0, 0.0, 0.0
+        v10, v11, v12 = 0.0, 1.0, 0.0
+        v20, v21, v22 = 0.0, 0.0, 1.0
         for j in range(1, k + 1):
             i = nodes[start + k - j]
             g = (cw[j, 1] - cw[j - 1, 1]) / w_t
-            for p in range(3):
-                trans[i, p] += g * (qr[j - 1, 0, p] * e0 + qr[j - 1, 1, p] * e1
-                                    + qr[j - 1, 2, p] * e2)
-                for q in range(3):
-                    mm[p, q] = (qr[j - 1, 0, p] * qr[j, 0, q] + qr[j - 1, 1, p] * qr[j, 1, q]
-                                + qr[j - 1, 2, p] * qr[j, 2, q])
-            # one Newton step towards the polar factor (as the retraction does): products along
-            # long chains would otherwise let rounding grow
-            for p in range(3):
-                for q in range(3):
-                    gg[p, q] = mm[0, p] * mm[0, q] + mm[1, p] * mm[1, q] + mm[2, p] * mm[2, q]
-            for p in range(3):
-                for q in range(3):
-                    rot[i, p, q] = 0.5 * (3.0 * mm[p, q] - (mm[p, 0] * gg[0, q]
-                                                            + mm[p, 1] * gg[1, q]
-                                                            + mm[p, 2] * gg[2, q]))
+            c00, c01, c02 = qr[j, 0, 0], qr[j, 0, 1], qr[j, 0, 2]
+            c10, c11, c12 = qr[j, 1, 0], qr[j, 1, 1], qr[j, 1, 2]
+            c20, c21, c22 = qr[j, 2, 0], qr[j, 2, 1], qr[j, 2, 2]
+            trans[i, 0] += g * (v00 * e0 + v10 * e1 + v20 * e2)
+            trans[i, 1] += g * (v01 * e0 + v11 * e1 + v21 * e2)
+            trans[i, 2] += g * (v02 * e0 + v12 * e1 + v22 * e2)
+            m00 = v00 * c00 + v10 * c10 + v20 * c20
+            m01 = v00 * c01 + v10 * c11 + v20 * c21
+            m02 = v00 * c02 + v10 * c12 + v20 * c22
+            m10 = v01 * c00 + v11 * c10 + v21 * c20
+            m11 = v01 * c01 + v11 * c11 + v21 * c21
+            m12 = v01 * c02 + v11 * c12 + v21 * c22
+            m20 = v02 * c00 + v12 * c10 + v22 * c20
+            m21 = v02 * c01 + v12 * c11 + v22 * c21
+            m22 = v02 * c02 + v12 * c12 + v22 * c22
+            g00 = m00 * m00 + m10 * m10 + m20 * m20
+            g01 = m00 * m01 + m10 * m11 + m20 * m21
+            g02 = m00 * m02 + m10 * m12 + m20 * m22
+            g11 = m01 * m01 + m11 * m11 + m21 * m21
+            g12 = m01 * m02 + m11 * m12 + m21 * m22
+            g22 = m02 * m02 + m12 * m12 + m22 * m22
+            rot[i, 0, 0] = 0.5 * (3.0 * m00 - (m00 * g00 + m01 * g01 + m02 * g02))
+            rot[i, 0, 1] = 0.5 * (3.0 * m01 - (m00 * g01 + m01 * g11 + m02 * g12))
+            rot[i, 0, 2] = 0.5 * (3.0 * m02 - (m00 * g02 + m01 * g12 + m02 * g22))
+            rot[i, 1, 0] = 0.5 * (3.0 * m10 - (m10 * g00 + m11 * g01 + m12 * g02))
+            rot[i, 1, 1] = 0.5 * (3.0 * m11 - (m10 * g01 + m11 * g11 + m12 * g12))
+            rot[i, 1, 2] = 0.5 * (3.0 * m12 - (m10 * g02 + m11 * g12 + m12 * g22))
+            rot[i, 2, 0] = 0.5 * (3.0 * m20 - (m20 * g00 + m21 * g01 + m22 * g02))
+            rot[i, 2, 1] = 0.5 * (3.0 * m21 - (m20 * g01 + m21 * g11 + m22 * g12))
+            rot[i, 2, 2] = 0.5 * (3.0 * m22 - (m20 * g02 + m21 * g12 + m22 * g22))
+            v00, v01, v02 = c00, c01, c02
+            v10, v11, v12 = c10, c11, c12
+            v20, v21, v22 = c20, c21, c22
 
 
 @kernel
@@ -604,15 +659,17 @@ def relax_interpolated(prob: Problem, state: State, wk: Workspace, sub: Workspac
     s, d = domain(prob, c)
     if is_gps(prob, c):
         kr, na = linearize(prob, c, state.rot, state.trans, wk, wk.jac)
+        accumulate_path(prob.path_node, s, d, kr, wk.jac, state.bdiag, state.contrib, mu,
+                        wk.lfac, wk.bc, False)
     else:
         kr = 6
-        na = relative_linearization(prob.path_node, prob.path_sign, s, d, prob.edge_rot[c],
-                                    prob.edge_trans[c], prob.edge_lt[c], prob.robust_kind,
-                                    prob.robust_scale, state.rot, state.trans, wk.path_rot,
-                                    wk.path_trans, wk.iws, wk.ws, wk.e, wk.r, wk.jri, wk.a,
-                                    wk.jac)
-    accumulate_path(prob.path_node, s, d, kr, wk.jac, state.bdiag, state.contrib, mu, wk.lfac,
-                    wk.bc, False)
+        na = relative_setup(prob.path_node, prob.path_sign, s, d, prob.edge_rot[c],
+                            prob.edge_trans[c], prob.edge_lt[c], prob.robust_kind,
+                            prob.robust_scale, state.rot, state.trans, wk.path_rot,
+                            wk.path_trans, wk.iws, wk.ws, wk.e, wk.r, wk.jri, wk.a)
+        linearize_accumulate(prob.path_node, prob.path_sign, s, d, na, wk.path_rot,
+                             wk.path_trans, wk.a, wk.jac, True, state.bdiag, state.contrib, mu,
+                             wk.lfac, wk.bc, wk.iws6[0], False)
     nk = kept_positions(d, na, d_max, keep)
     reduced_factors(prob, state, c, d, na, kr, wk, keep, nk, mu, sub)
     for i in range(6):

@@ -179,20 +179,14 @@ def _gps_blocks(prob: Problem, c: int, wk: Workspace, jac: np.ndarray) -> None:
 
 
 @kernel
-def relative_linearization(path_node: np.ndarray, path_sign: np.ndarray, s: int, d: int,
-                           zr: np.ndarray, zt: np.ndarray, lt: np.ndarray, robust_kind: int,
-                           robust_scale: float, rot: np.ndarray, trans: np.ndarray,
-                           pr: np.ndarray, pt: np.ndarray, iws: np.ndarray, ws: np.ndarray,
-                           e: np.ndarray, r: np.ndarray, jri: np.ndarray, a: np.ndarray,
-                           jac: np.ndarray) -> int:
-    """:func:`linearize` of a relative constraint (measurement ``zr, zt``, whitening ``lt``)
-    whose domain is ``path_node[s:s + d]``, with a :class:`~.problem.Workspace`'s fields
-    passed one by one (``iws[EYE]``, ``iws[ZERO][0]``: the identity); returns n_a.
-
-    The update kernels call this instead of :func:`linearize`: every array a Numba call
-    receives (each field of a NamedTuple included) costs an atomic reference-count pair, so
-    the hot path passes only the arrays it needs.
-    """
+def relative_setup(path_node: np.ndarray, path_sign: np.ndarray, s: int, d: int,
+                   zr: np.ndarray, zt: np.ndarray, lt: np.ndarray, robust_kind: int,
+                   robust_scale: float, rot: np.ndarray, trans: np.ndarray, pr: np.ndarray,
+                   pt: np.ndarray, iws: np.ndarray, ws: np.ndarray, e: np.ndarray,
+                   r: np.ndarray, jri: np.ndarray, a: np.ndarray) -> int:
+    """:func:`relative_linearization` up to the Jacobian blocks: the path products, ``e0``,
+    ``r``, ``Jr^-1(e0)`` and ``a = L^T Jr^-1(e0)``; returns n_a.  The update kernels then run
+    :func:`~._step.linearize_accumulate` (the blocks and 𝔅(H) in one pass)."""
     na = 0
     while na < d and path_sign[s + na] < 0:
         na += 1
@@ -219,6 +213,30 @@ def relative_linearization(path_node: np.ndarray, path_sign: np.ndarray, s: int,
             r[p] *= sw
             for j in range(6):
                 a[p, j] *= sw
+    return na
+
+
+@kernel
+def relative_linearization(path_node: np.ndarray, path_sign: np.ndarray, s: int, d: int,
+                           zr: np.ndarray, zt: np.ndarray, lt: np.ndarray, robust_kind: int,
+                           robust_scale: float, rot: np.ndarray, trans: np.ndarray,
+                           pr: np.ndarray, pt: np.ndarray, iws: np.ndarray, ws: np.ndarray,
+                           e: np.ndarray, r: np.ndarray, jri: np.ndarray, a: np.ndarray,
+                           jac: np.ndarray) -> int:
+    """:func:`linearize` of a relative constraint (measurement ``zr, zt``, whitening ``lt``)
+    whose domain is ``path_node[s:s + d]``, with a :class:`~.problem.Workspace`'s fields
+    passed one by one (``iws[EYE]``, ``iws[ZERO][0]``: the identity); returns n_a.
+
+    Every array a Numba call receives (each field of a NamedTuple included) costs an atomic
+    reference-count pair, so callers pass only the arrays needed.
+    """
+    na = relative_setup(path_node, path_sign, s, d, zr, zt, lt, robust_kind, robust_scale, rot,
+                        trans, pr, pt, iws, ws, e, r, jri, a)
+    rb = iws[EYE]
+    tb = iws[ZERO][0]
+    if na < d:
+        rb = pr[na]
+        tb = pt[na]
     relative_blocks(path_sign, s, d, rb, tb, pr, pt, a, ws, jac)
     return na
 

@@ -19,7 +19,7 @@ import numpy as np
 from ..._cost import retract_into
 from ..._numba import kernel
 from ._dense import chol_inplace, regularized_factor
-from ._linearize import linearize, relative_linearization
+from ._linearize import linearize, relative_setup
 from .problem import Problem, State, StepKind, Update, Workspace, domain, is_gps
 
 #: Largest rotation (rad) any node may turn in one step (paper III-H).
@@ -43,6 +43,175 @@ def accumulate_path(path_node: np.ndarray, s: int, d: int, kr: int, jac: np.ndar
                 acc = 0.0
                 for t in range(kr):
                     acc += jac[k, t, p] * jac[k, t, q]
+                old = contrib[e, p, q]
+                b_old = bdiag[i, p, q]
+                v = b_old + (acc - old)
+                bdiag[i, p, q] = v
+                bdiag[i, q, p] = v
+                contrib[e, p, q] = acc
+                contrib[e, q, p] = acc
+                if factor:
+                    bc[p, q] = b_old - old
+                    bc[q, p] = b_old - old
+            scale += contrib[e, p, p]
+        if factor:
+            regularized_factor(bc, scale, mu, lfac[k])
+
+
+@kernel
+def linearize_accumulate(path_node: np.ndarray, path_sign: np.ndarray, s: int, d: int, na: int,
+                         pr: np.ndarray, pt: np.ndarray, a: np.ndarray, jac: np.ndarray,
+                         store: bool, bdiag: np.ndarray, contrib: np.ndarray, mu: float,
+                         lfac: np.ndarray, bc: np.ndarray, cm: np.ndarray,
+                         factor: bool) -> None:
+    """:func:`~._linearize.relative_blocks` and :func:`accumulate_path` of a relative constraint
+    in one pass over its domain ``path_node[s:s + d]`` (n_a nodes on the a side; path products
+    ``pr``, ``pt`` and ``a = L^T Jr^-1(e0)`` from :func:`~._linearize.relative_setup`).
+
+    Each node's ``Ad(M_k)``, Jacobian block and ``J_k^T J_k`` stay in scalar locals (the same
+    products summed in the same order as the two kernels: bit-identical), so the block is not
+    stored and read back, and no scratch array is reloaded after a store (Numba's arrays may
+    alias).  ``jac[k]`` is stored only with ``store``; ``cm`` (6, 6) scratch.
+    """
+    rb00, rb01, rb02 = 1.0, 0.0, 0.0
+    rb10, rb11, rb12 = 0.0, 1.0, 0.0
+    rb20, rb21, rb22 = 0.0, 0.0, 1.0
+    tb0, tb1, tb2 = 0.0, 0.0, 0.0
+    if na < d:  # X_b in the root's frame (an empty b side: the root itself)
+        rb00, rb01, rb02 = pr[na, 0, 0], pr[na, 0, 1], pr[na, 0, 2]
+        rb10, rb11, rb12 = pr[na, 1, 0], pr[na, 1, 1], pr[na, 1, 2]
+        rb20, rb21, rb22 = pr[na, 2, 0], pr[na, 2, 1], pr[na, 2, 2]
+        tb0, tb1, tb2 = pt[na, 0], pt[na, 1], pt[na, 2]
+    for k in range(d):
+        # Ad(M_k) = [[R, [m]x R], [0, R]], M_k = X_b^-1 X_k: R -> r.., [m]x R -> x..
+        m0 = (rb00 * (pt[k, 0] - tb0) + rb10 * (pt[k, 1] - tb1)
+              + rb20 * (pt[k, 2] - tb2))
+        m1 = (rb01 * (pt[k, 0] - tb0) + rb11 * (pt[k, 1] - tb1)
+              + rb21 * (pt[k, 2] - tb2))
+        m2 = (rb02 * (pt[k, 0] - tb0) + rb12 * (pt[k, 1] - tb1)
+              + rb22 * (pt[k, 2] - tb2))
+        r00 = rb00 * pr[k, 0, 0] + rb10 * pr[k, 1, 0] + rb20 * pr[k, 2, 0]
+        r01 = rb00 * pr[k, 0, 1] + rb10 * pr[k, 1, 1] + rb20 * pr[k, 2, 1]
+        r02 = rb00 * pr[k, 0, 2] + rb10 * pr[k, 1, 2] + rb20 * pr[k, 2, 2]
+        r10 = rb01 * pr[k, 0, 0] + rb11 * pr[k, 1, 0] + rb21 * pr[k, 2, 0]
+        r11 = rb01 * pr[k, 0, 1] + rb11 * pr[k, 1, 1] + rb21 * pr[k, 2, 1]
+        r12 = rb01 * pr[k, 0, 2] + rb11 * pr[k, 1, 2] + rb21 * pr[k, 2, 2]
+        r20 = rb02 * pr[k, 0, 0] + rb12 * pr[k, 1, 0] + rb22 * pr[k, 2, 0]
+        r21 = rb02 * pr[k, 0, 1] + rb12 * pr[k, 1, 1] + rb22 * pr[k, 2, 1]
+        r22 = rb02 * pr[k, 0, 2] + rb12 * pr[k, 1, 2] + rb22 * pr[k, 2, 2]
+        x00 = m1 * r20 - m2 * r10
+        x10 = m2 * r00 - m0 * r20
+        x20 = m0 * r10 - m1 * r00
+        x01 = m1 * r21 - m2 * r11
+        x11 = m2 * r01 - m0 * r21
+        x21 = m0 * r11 - m1 * r01
+        x02 = m1 * r22 - m2 * r12
+        x12 = m2 * r02 - m0 * r22
+        x22 = m0 * r12 - m1 * r02
+        sg = float(path_sign[s + k])
+        a0, a1, a2, a3, a4, a5 = a[0, 0], a[0, 1], a[0, 2], a[0, 3], a[0, 4], a[0, 5]
+        j00 = sg * (a0 * r00 + a1 * r10 + a2 * r20)
+        j01 = sg * (a0 * r01 + a1 * r11 + a2 * r21)
+        j02 = sg * (a0 * r02 + a1 * r12 + a2 * r22)
+        j03 = sg * (a0 * x00 + a1 * x10 + a2 * x20 + a3 * r00 + a4 * r10 + a5 * r20)
+        j04 = sg * (a0 * x01 + a1 * x11 + a2 * x21 + a3 * r01 + a4 * r11 + a5 * r21)
+        j05 = sg * (a0 * x02 + a1 * x12 + a2 * x22 + a3 * r02 + a4 * r12 + a5 * r22)
+        a0, a1, a2, a3, a4, a5 = a[1, 0], a[1, 1], a[1, 2], a[1, 3], a[1, 4], a[1, 5]
+        j10 = sg * (a0 * r00 + a1 * r10 + a2 * r20)
+        j11 = sg * (a0 * r01 + a1 * r11 + a2 * r21)
+        j12 = sg * (a0 * r02 + a1 * r12 + a2 * r22)
+        j13 = sg * (a0 * x00 + a1 * x10 + a2 * x20 + a3 * r00 + a4 * r10 + a5 * r20)
+        j14 = sg * (a0 * x01 + a1 * x11 + a2 * x21 + a3 * r01 + a4 * r11 + a5 * r21)
+        j15 = sg * (a0 * x02 + a1 * x12 + a2 * x22 + a3 * r02 + a4 * r12 + a5 * r22)
+        a0, a1, a2, a3, a4, a5 = a[2, 0], a[2, 1], a[2, 2], a[2, 3], a[2, 4], a[2, 5]
+        j20 = sg * (a0 * r00 + a1 * r10 + a2 * r20)
+        j21 = sg * (a0 * r01 + a1 * r11 + a2 * r21)
+        j22 = sg * (a0 * r02 + a1 * r12 + a2 * r22)
+        j23 = sg * (a0 * x00 + a1 * x10 + a2 * x20 + a3 * r00 + a4 * r10 + a5 * r20)
+        j24 = sg * (a0 * x01 + a1 * x11 + a2 * x21 + a3 * r01 + a4 * r11 + a5 * r21)
+        j25 = sg * (a0 * x02 + a1 * x12 + a2 * x22 + a3 * r02 + a4 * r12 + a5 * r22)
+        a0, a1, a2, a3, a4, a5 = a[3, 0], a[3, 1], a[3, 2], a[3, 3], a[3, 4], a[3, 5]
+        j30 = sg * (a0 * r00 + a1 * r10 + a2 * r20)
+        j31 = sg * (a0 * r01 + a1 * r11 + a2 * r21)
+        j32 = sg * (a0 * r02 + a1 * r12 + a2 * r22)
+        j33 = sg * (a0 * x00 + a1 * x10 + a2 * x20 + a3 * r00 + a4 * r10 + a5 * r20)
+        j34 = sg * (a0 * x01 + a1 * x11 + a2 * x21 + a3 * r01 + a4 * r11 + a5 * r21)
+        j35 = sg * (a0 * x02 + a1 * x12 + a2 * x22 + a3 * r02 + a4 * r12 + a5 * r22)
+        a0, a1, a2, a3, a4, a5 = a[4, 0], a[4, 1], a[4, 2], a[4, 3], a[4, 4], a[4, 5]
+        j40 = sg * (a0 * r00 + a1 * r10 + a2 * r20)
+        j41 = sg * (a0 * r01 + a1 * r11 + a2 * r21)
+        j42 = sg * (a0 * r02 + a1 * r12 + a2 * r22)
+        j43 = sg * (a0 * x00 + a1 * x10 + a2 * x20 + a3 * r00 + a4 * r10 + a5 * r20)
+        j44 = sg * (a0 * x01 + a1 * x11 + a2 * x21 + a3 * r01 + a4 * r11 + a5 * r21)
+        j45 = sg * (a0 * x02 + a1 * x12 + a2 * x22 + a3 * r02 + a4 * r12 + a5 * r22)
+        a0, a1, a2, a3, a4, a5 = a[5, 0], a[5, 1], a[5, 2], a[5, 3], a[5, 4], a[5, 5]
+        j50 = sg * (a0 * r00 + a1 * r10 + a2 * r20)
+        j51 = sg * (a0 * r01 + a1 * r11 + a2 * r21)
+        j52 = sg * (a0 * r02 + a1 * r12 + a2 * r22)
+        j53 = sg * (a0 * x00 + a1 * x10 + a2 * x20 + a3 * r00 + a4 * r10 + a5 * r20)
+        j54 = sg * (a0 * x01 + a1 * x11 + a2 * x21 + a3 * r01 + a4 * r11 + a5 * r21)
+        j55 = sg * (a0 * x02 + a1 * x12 + a2 * x22 + a3 * r02 + a4 * r12 + a5 * r22)
+        if store:
+            jac[k, 0, 0], jac[k, 0, 1], jac[k, 0, 2], jac[k, 0, 3], jac[k, 0, 4], jac[k, 0, 5] = (
+                j00, j01, j02, j03, j04, j05)
+            jac[k, 1, 0], jac[k, 1, 1], jac[k, 1, 2], jac[k, 1, 3], jac[k, 1, 4], jac[k, 1, 5] = (
+                j10, j11, j12, j13, j14, j15)
+            jac[k, 2, 0], jac[k, 2, 1], jac[k, 2, 2], jac[k, 2, 3], jac[k, 2, 4], jac[k, 2, 5] = (
+                j20, j21, j22, j23, j24, j25)
+            jac[k, 3, 0], jac[k, 3, 1], jac[k, 3, 2], jac[k, 3, 3], jac[k, 3, 4], jac[k, 3, 5] = (
+                j30, j31, j32, j33, j34, j35)
+            jac[k, 4, 0], jac[k, 4, 1], jac[k, 4, 2], jac[k, 4, 3], jac[k, 4, 4], jac[k, 4, 5] = (
+                j40, j41, j42, j43, j44, j45)
+            jac[k, 5, 0], jac[k, 5, 1], jac[k, 5, 2], jac[k, 5, 3], jac[k, 5, 4], jac[k, 5, 5] = (
+                j50, j51, j52, j53, j54, j55)
+        c00 = 0.0 + j00 * j00 + j10 * j10 + j20 * j20 + j30 * j30 + j40 * j40 + j50 * j50
+        c01 = 0.0 + j00 * j01 + j10 * j11 + j20 * j21 + j30 * j31 + j40 * j41 + j50 * j51
+        c02 = 0.0 + j00 * j02 + j10 * j12 + j20 * j22 + j30 * j32 + j40 * j42 + j50 * j52
+        c03 = 0.0 + j00 * j03 + j10 * j13 + j20 * j23 + j30 * j33 + j40 * j43 + j50 * j53
+        c04 = 0.0 + j00 * j04 + j10 * j14 + j20 * j24 + j30 * j34 + j40 * j44 + j50 * j54
+        c05 = 0.0 + j00 * j05 + j10 * j15 + j20 * j25 + j30 * j35 + j40 * j45 + j50 * j55
+        c11 = 0.0 + j01 * j01 + j11 * j11 + j21 * j21 + j31 * j31 + j41 * j41 + j51 * j51
+        c12 = 0.0 + j01 * j02 + j11 * j12 + j21 * j22 + j31 * j32 + j41 * j42 + j51 * j52
+        c13 = 0.0 + j01 * j03 + j11 * j13 + j21 * j23 + j31 * j33 + j41 * j43 + j51 * j53
+        c14 = 0.0 + j01 * j04 + j11 * j14 + j21 * j24 + j31 * j34 + j41 * j44 + j51 * j54
+        c15 = 0.0 + j01 * j05 + j11 * j15 + j21 * j25 + j31 * j35 + j41 * j45 + j51 * j55
+        c22 = 0.0 + j02 * j02 + j12 * j12 + j22 * j22 + j32 * j32 + j42 * j42 + j52 * j52
+        c23 = 0.0 + j02 * j03 + j12 * j13 + j22 * j23 + j32 * j33 + j42 * j43 + j52 * j53
+        c24 = 0.0 + j02 * j04 + j12 * j14 + j22 * j24 + j32 * j34 + j42 * j44 + j52 * j54
+        c25 = 0.0 + j02 * j05 + j12 * j15 + j22 * j25 + j32 * j35 + j42 * j45 + j52 * j55
+        c33 = 0.0 + j03 * j03 + j13 * j13 + j23 * j23 + j33 * j33 + j43 * j43 + j53 * j53
+        c34 = 0.0 + j03 * j04 + j13 * j14 + j23 * j24 + j33 * j34 + j43 * j44 + j53 * j54
+        c35 = 0.0 + j03 * j05 + j13 * j15 + j23 * j25 + j33 * j35 + j43 * j45 + j53 * j55
+        c44 = 0.0 + j04 * j04 + j14 * j14 + j24 * j24 + j34 * j34 + j44 * j44 + j54 * j54
+        c45 = 0.0 + j04 * j05 + j14 * j15 + j24 * j25 + j34 * j35 + j44 * j45 + j54 * j55
+        c55 = 0.0 + j05 * j05 + j15 * j15 + j25 * j25 + j35 * j35 + j45 * j45 + j55 * j55
+        cm[0, 0] = c00
+        cm[0, 1] = c01
+        cm[0, 2] = c02
+        cm[0, 3] = c03
+        cm[0, 4] = c04
+        cm[0, 5] = c05
+        cm[1, 1] = c11
+        cm[1, 2] = c12
+        cm[1, 3] = c13
+        cm[1, 4] = c14
+        cm[1, 5] = c15
+        cm[2, 2] = c22
+        cm[2, 3] = c23
+        cm[2, 4] = c24
+        cm[2, 5] = c25
+        cm[3, 3] = c33
+        cm[3, 4] = c34
+        cm[3, 5] = c35
+        cm[4, 4] = c44
+        cm[4, 5] = c45
+        cm[5, 5] = c55
+        i = path_node[s + k]
+        e = s + k
+        scale = 0.0
+        for p in range(6):
+            for q in range(p, 6):
+                acc = cm[p, q]
                 old = contrib[e, p, q]
                 b_old = bdiag[i, p, q]
                 v = b_old + (acc - old)
@@ -244,14 +413,17 @@ def relax(prob: Problem, state: State, wk: Workspace, c: int, tau: float, mu: fl
         return Update.APPLIED
     if is_gps(prob, c):
         kr = linearize(prob, c, state.rot, state.trans, wk, wk.jac)[0]
+        accumulate_path(prob.path_node, s, d, kr, wk.jac, state.bdiag, state.contrib, mu,
+                        wk.lfac, wk.bc, True)
     else:
         kr = 6
-        relative_linearization(prob.path_node, prob.path_sign, s, d, prob.edge_rot[c],
-                               prob.edge_trans[c], prob.edge_lt[c], prob.robust_kind,
-                               prob.robust_scale, state.rot, state.trans, wk.path_rot,
-                               wk.path_trans, wk.iws, wk.ws, wk.e, wk.r, wk.jri, wk.a, wk.jac)
-    accumulate_path(prob.path_node, s, d, kr, wk.jac, state.bdiag, state.contrib, mu, wk.lfac,
-                    wk.bc, True)
+        na = relative_setup(prob.path_node, prob.path_sign, s, d, prob.edge_rot[c],
+                            prob.edge_trans[c], prob.edge_lt[c], prob.robust_kind,
+                            prob.robust_scale, state.rot, state.trans, wk.path_rot,
+                            wk.path_trans, wk.iws, wk.ws, wk.e, wk.r, wk.jri, wk.a)
+        linearize_accumulate(prob.path_node, prob.path_sign, s, d, na, wk.path_rot,
+                             wk.path_trans, wk.a, wk.jac, True, state.bdiag, state.contrib, mu,
+                             wk.lfac, wk.bc, wk.iws6[0], True)
     if not apply:
         return Update.APPLIED
     if step_kind == StepKind.GIVENS:
