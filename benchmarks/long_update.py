@@ -11,8 +11,8 @@ Run: ``PYTHONPATH=src python -m benchmarks.long_update [--dmax 200] [--repeat 30
   (largest over constraints of each one's cheapest update) and the longest constraint's own
   steady time, plus the mean per update.
 * ``--phases``: best-of cycle counts of the update's phases (path products and residual,
-  Jacobian blocks with 𝔅(H), reduced factors with the merged chains, solve, distribution) from a kernel of this script that calls
-  them one by one on a copy of the state.
+  Jacobian blocks with 𝔅(H), reduced factors with the merged chains, solve, distribution) from
+  a kernel of this script that calls them one by one on a copy of the state.
 * ``checksum``: SHA-256 of the local transforms after the sweeps: two code versions whose
   checksums agree computed bit-identical results.
 """
@@ -61,9 +61,10 @@ def _phases(prob: Problem, state: State, c: int, d_max: int, repeat: int,
             prob.edge_lt[c], prob.robust_kind, prob.robust_scale, state.rot, state.trans,
             wk.path_rot, wk.path_trans, wk.iws, wk.ws, wk.e, wk.r, wk.jri, wk.a)
         t1 = cycle_counter()
+        nk = ip.kept_positions(d, na, d_max, keep)
         stp.linearize_accumulate(prob.path_node, prob.path_sign, s, d, na, wk.path_rot,
-                                 wk.path_trans, wk.a, wk.jac, True, state.bdiag, state.contrib,
-                                 0.0, wk.lfac, wk.bc, wk.iws6[0], False)
+                                 wk.path_trans, wk.a, wk.jac, False, keep, nk, state.bdiag,
+                                 state.contrib, 0.0, wk.lfac, wk.bc, False)
         t2 = cycle_counter()
         nk = ip.kept_positions(d, na, d_max, keep)
         ip.reduced_factors(prob, state, c, d, na, 6, wk, keep, nk, 0.0, sub)
@@ -116,7 +117,8 @@ def main() -> None:  # pragma: no cover - benchmark
     if args.phases and dmax:
         out = np.zeros(6, np.uint64)
         _phases(solver.problem, solver.state, c, dmax, args.repeat, out)
-        names = ("path products+residual", "blocks+B(H)", "reduced+merge", "solve", "distribute", "total")
+        names = ("path products+residual", "blocks+B(H)", "reduced+merge", "solve",
+                 "distribute", "total")
         print("phases (best-of, us): " + ", ".join(
             f"{n} {float(v) * us:.1f}" for n, v in zip(names, out, strict=True)))
 

@@ -667,9 +667,10 @@ def relax_interpolated(prob: Problem, state: State, wk: Workspace, sub: Workspac
                             prob.edge_trans[c], prob.edge_lt[c], prob.robust_kind,
                             prob.robust_scale, state.rot, state.trans, wk.path_rot,
                             wk.path_trans, wk.iws, wk.ws, wk.e, wk.r, wk.jri, wk.a)
+        nk = kept_positions(d, na, d_max, keep)  # only the kept nodes' blocks are stored
         linearize_accumulate(prob.path_node, prob.path_sign, s, d, na, wk.path_rot,
-                             wk.path_trans, wk.a, wk.jac, True, state.bdiag, state.contrib, mu,
-                             wk.lfac, wk.bc, wk.iws6[0], False)
+                             wk.path_trans, wk.a, wk.jac, False, keep, nk, state.bdiag,
+                             state.contrib, mu, wk.lfac, wk.bc, False)
     nk = kept_positions(d, na, d_max, keep)
     reduced_factors(prob, state, c, d, na, kr, wk, keep, nk, mu, sub)
     for i in range(6):
