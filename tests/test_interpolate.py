@@ -235,3 +235,48 @@ def test_dmax_is_validated() -> None:
     for bad in (0, 1, -3, 2.5, True):
         with pytest.raises(ValueError, match="dmax"):
             HybridConfig(dmax=bad)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("factor", [True, False])
+def test_linearize_accumulate_equals_the_two_kernels_bit_for_bit(factor: bool) -> None:
+    """The fused pass (Jacobian blocks and 𝔅(H) in one loop) against its naive twin:
+    ``relative_linearization`` then ``accumulate_path``; with a keep list only those blocks are
+    stored."""
+    rng = np.random.default_rng(3)
+    graph = _chain_graph(rng)
+    solver = HybridSolver(graph)
+    prob = solver.problem
+    lengths = solver.tree.path_lengths()
+    for c in (int(np.argmax(lengths)), int(np.argmin(lengths))):
+        s, d = int(prob.path_ptr[c]), int(lengths[c])
+        twin, fused = (State(*(a.copy() for a in solver.state)) for _ in range(2))
+        shift = 0.1 * rng.standard_normal(twin.trans.shape)  # moved: 𝔅(H) must change
+        twin.trans[:] += shift
+        fused.trans[:] += shift
+        wt, wf = new_workspace(d), new_workspace(d)
+        args = (prob.path_node, prob.path_sign, s, d, prob.edge_rot[c], prob.edge_trans[c],
+                prob.edge_lt[c], prob.robust_kind, prob.robust_scale)
+        na = _linearize.relative_linearization(*args, twin.rot, twin.trans, wt.path_rot,
+                                               wt.path_trans, wt.iws, wt.ws, wt.e, wt.r, wt.jri,
+                                               wt.a, wt.jac)
+        _step.accumulate_path(prob.path_node, s, d, 6, wt.jac, twin.bdiag, twin.contrib, 0.1,
+                              wt.lfac, wt.bc, factor)
+        assert _linearize.relative_setup(*args, fused.rot, fused.trans, wf.path_rot,
+                                         wf.path_trans, wf.iws, wf.ws, wf.e, wf.r, wf.jri,
+                                         wf.a) == na
+        keep = np.array([0, d // 2, d - 1][: min(d, 3)], np.int64)
+        keep = np.unique(keep)
+        _step.linearize_accumulate(prob.path_node, prob.path_sign, s, d, na, wf.path_rot,
+                                   wf.path_trans, wf.a, wf.jac, False, keep, keep.size,
+                                   fused.bdiag, fused.contrib, 0.1, wf.lfac, wf.bc, factor)
+        assert np.array_equal(fused.bdiag, twin.bdiag)
+        assert np.array_equal(fused.contrib, twin.contrib)
+        assert np.array_equal(wf.jac[keep], wt.jac[keep])
+        assert np.array_equal(wf.r, wt.r)
+        assert not np.array_equal(twin.bdiag, solver.state.bdiag)  # the test can fail
+        if factor:
+            assert np.array_equal(wf.lfac[:d], wt.lfac[:d])
+        _step.linearize_accumulate(prob.path_node, prob.path_sign, s, d, na, wf.path_rot,
+                                   wf.path_trans, wf.a, wf.jac, True, keep, 0, fused.bdiag,
+                                   fused.contrib, 0.1, wf.lfac, wf.bc, factor)
+        assert np.array_equal(wf.jac[:d], wt.jac[:d])

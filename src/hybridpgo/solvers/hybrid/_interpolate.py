@@ -31,8 +31,8 @@ from ..._cost import jr_inv_matrix, residual_and_jr_inv, retract_into
 from ..._numba import kernel
 from ...geometry._kernels import so3_log_into
 from ._dense import regularized_factor
-from ._linearize import linearize, relative_linearization
-from ._step import accumulate_path, solve_single, step_temperature
+from ._linearize import linearize, relative_setup
+from ._step import accumulate_path, linearize_accumulate, solve_single, step_temperature
 from .problem import EYE, ZERO, Problem, State, Update, Workspace, domain, is_gps
 
 
@@ -92,84 +92,150 @@ def chain_measurement(link_c: np.ndarray, link_fwd: np.ndarray, edge_rot: np.nda
                       gps_lt: np.ndarray, num_edges: int, rot: np.ndarray, nodes: np.ndarray,
                       start: int, k: int, zr: np.ndarray, zt: np.ndarray, s_beta: np.ndarray,
                       ws: np.ndarray, m: np.ndarray) -> None:
-    """:func:`merged_constraint` with the problem's arrays passed one by one."""
-    # ws[0]: R_{b, node}; ws[1]: R_{b, parent of node}; (ws[2], ws[3, 0]): the link's desired
-    # local transform; ws[4]: scratch (scalar indexing only: no view per node)
-    for i in range(3):
-        zt[i] = 0.0
-        for j in range(3):
-            ws[0, i, j] = 1.0 if i == j else 0.0
-            zr[i, j] = 1.0 if i == j else 0.0
-    for i in range(6):
-        for j in range(6):
-            s_beta[i, j] = 0.0
+    """:func:`merged_constraint` with the problem's arrays passed one by one (``ws``, ``m``:
+    unused scratch, kept for the signature).
+
+    Everything per node lives in scalar locals (no store in the loop: the arrays a Numba kernel
+    receives may alias, so a scratch array would be reloaded after every store): ``f..`` is
+    ``F = R_{b, node}``, ``l..``/``u.`` the link's desired local transform, ``g..`` ``R_{b,
+    parent}``, ``a..``/``b..`` the columns of ``M = L^T blockdiag(H, H)^T`` (H: the error
+    frame), ``s..`` the upper triangle of ``S_β``.  ``p_β``'s rotation is ``F^T`` at the top
+    (``F_n^T = l_n F_{n-1}^T`` is the product ``l_n ... l_1`` term by term, so it is not
+    accumulated separately: the same products, summed in the same order).  Each entry of ``M^T
+    M`` is summed from 0.0 over the rows of M that are not structurally zero (L^T is upper
+    triangular: rows 3..5 vanish in columns 0..2; a GPS link has rows 0..2 only).
+    """
+    lt = edge_lt
+    glt = gps_lt
+    f00, f01, f02 = 1.0, 0.0, 0.0
+    f10, f11, f12 = 0.0, 1.0, 0.0
+    f20, f21, f22 = 0.0, 0.0, 1.0
+    z0 = 0.0
+    z1 = 0.0
+    z2 = 0.0
+    s00 = s01 = s02 = s03 = s04 = s05 = s11 = s12 = s13 = s14 = s15 = 0.0
+    s22 = s23 = s24 = s25 = s33 = s34 = s35 = s44 = s45 = s55 = 0.0
     for n in range(k):
         node = nodes[start + n]
         c = link_c[node]
         gps = c >= num_edges
         forward = link_fwd[node] and not gps
-        if gps:
-            for i in range(3):
-                ws[3, 0, i] = gps_pos[c - num_edges, i]
-                for j in range(3):
-                    ws[2, i, j] = rot[node, i, j]
+        g = c - num_edges
+        if gps:  # the GPS reading prescribes the position, the rotation stays the current one
+            u0, u1, u2 = gps_pos[g, 0], gps_pos[g, 1], gps_pos[g, 2]
+            l00, l01, l02 = rot[node, 0, 0], rot[node, 0, 1], rot[node, 0, 2]
+            l10, l11, l12 = rot[node, 1, 0], rot[node, 1, 1], rot[node, 1, 2]
+            l20, l21, l22 = rot[node, 2, 0], rot[node, 2, 1], rot[node, 2, 2]
         elif forward:
-            for i in range(3):
-                ws[3, 0, i] = edge_trans[c, i]
-                for j in range(3):
-                    ws[2, i, j] = edge_rot[c, i, j]
+            u0, u1, u2 = edge_trans[c, 0], edge_trans[c, 1], edge_trans[c, 2]
+            l00, l01, l02 = edge_rot[c, 0, 0], edge_rot[c, 0, 1], edge_rot[c, 0, 2]
+            l10, l11, l12 = edge_rot[c, 1, 0], edge_rot[c, 1, 1], edge_rot[c, 1, 2]
+            l20, l21, l22 = edge_rot[c, 2, 0], edge_rot[c, 2, 1], edge_rot[c, 2, 2]
+        else:  # the inverse of the measurement
+            e0, e1, e2 = edge_trans[c, 0], edge_trans[c, 1], edge_trans[c, 2]
+            u0 = -(edge_rot[c, 0, 0] * e0 + edge_rot[c, 1, 0] * e1 + edge_rot[c, 2, 0] * e2)
+            u1 = -(edge_rot[c, 0, 1] * e0 + edge_rot[c, 1, 1] * e1 + edge_rot[c, 2, 1] * e2)
+            u2 = -(edge_rot[c, 0, 2] * e0 + edge_rot[c, 1, 2] * e1 + edge_rot[c, 2, 2] * e2)
+            l00, l01, l02 = edge_rot[c, 0, 0], edge_rot[c, 1, 0], edge_rot[c, 2, 0]
+            l10, l11, l12 = edge_rot[c, 0, 1], edge_rot[c, 1, 1], edge_rot[c, 2, 1]
+            l20, l21, l22 = edge_rot[c, 0, 2], edge_rot[c, 1, 2], edge_rot[c, 2, 2]
+        g00 = f00 * l00 + f01 * l01 + f02 * l02
+        g01 = f00 * l10 + f01 * l11 + f02 * l12
+        g02 = f00 * l20 + f01 * l21 + f02 * l22
+        g10 = f10 * l00 + f11 * l01 + f12 * l02
+        g11 = f10 * l10 + f11 * l11 + f12 * l12
+        g12 = f10 * l20 + f11 * l21 + f12 * l22
+        g20 = f20 * l00 + f21 * l01 + f22 * l02
+        g21 = f20 * l10 + f21 * l11 + f22 * l12
+        g22 = f20 * l20 + f21 * l21 + f22 * l22
+        if forward:
+            h00, h01, h02 = f00, f01, f02
+            h10, h11, h12 = f10, f11, f12
+            h20, h21, h22 = f20, f21, f22
         else:
-            for i in range(3):
-                ws[3, 0, i] = -(edge_rot[c, 0, i] * edge_trans[c, 0] + edge_rot[c, 1, i]
-                                * edge_trans[c, 1] + edge_rot[c, 2, i] * edge_trans[c, 2])
-                for j in range(3):
-                    ws[2, i, j] = edge_rot[c, j, i]
-        for i in range(3):
-            for j in range(3):
-                ws[1, i, j] = (ws[0, i, 0] * ws[2, j, 0] + ws[0, i, 1] * ws[2, j, 1]
-                               + ws[0, i, 2] * ws[2, j, 2])
-        f = 0 if forward else 1  # ws[f]: F
-        # M = L^T blockdiag(F, F)^T (a GPS link: 3 rows, translation only).  L^T is upper
-        # triangular, so rows 3..5 of a relative link are zero in columns 0..2: those entries
-        # are neither computed nor summed (their products are exact zeros)
-        rows = 3 if gps else 6
-        for q in range(rows):
-            for j in range(3):
-                if gps:
-                    l0 = gps_lt[c - num_edges, q, 0]
-                    l1 = gps_lt[c - num_edges, q, 1]
-                    l2 = gps_lt[c - num_edges, q, 2]
-                    m[q, 3 + j] = 0.0
-                    m[q, j] = l0 * ws[f, j, 0] + l1 * ws[f, j, 1] + l2 * ws[f, j, 2]
-                    continue
-                m[q, 3 + j] = (edge_lt[c, q, 3] * ws[f, j, 0]
-                               + edge_lt[c, q, 4] * ws[f, j, 1]
-                               + edge_lt[c, q, 5] * ws[f, j, 2])
-                if q < 3:
-                    m[q, j] = (edge_lt[c, q, 0] * ws[f, j, 0] + edge_lt[c, q, 1] * ws[f, j, 1]
-                               + edge_lt[c, q, 2] * ws[f, j, 2])
-        for i in range(6):
-            qmax = rows if i >= 3 else min(rows, 3)
-            for j in range(i, 6):
-                v = 0.0
-                for q in range(qmax):
-                    v += m[q, i] * m[q, j]
-                s_beta[i, j] += v
-        # p_β from b upwards: (zr, zt) <- (lr, lt) (zr, zt)
-        for i in range(3):
-            for j in range(3):
-                ws[4, i, j] = (ws[2, i, 0] * zr[0, j] + ws[2, i, 1] * zr[1, j]
-                               + ws[2, i, 2] * zr[2, j])
-        t0 = ws[2, 0, 0] * zt[0] + ws[2, 0, 1] * zt[1] + ws[2, 0, 2] * zt[2] + ws[3, 0, 0]
-        t1 = ws[2, 1, 0] * zt[0] + ws[2, 1, 1] * zt[1] + ws[2, 1, 2] * zt[2] + ws[3, 0, 1]
-        t2 = ws[2, 2, 0] * zt[0] + ws[2, 2, 1] * zt[1] + ws[2, 2, 2] * zt[2] + ws[3, 0, 2]
-        zt[0] = t0
-        zt[1] = t1
-        zt[2] = t2
-        for i in range(3):
-            for j in range(3):
-                zr[i, j] = ws[4, i, j]
-                ws[0, i, j] = ws[1, i, j]
+            h00, h01, h02 = g00, g01, g02
+            h10, h11, h12 = g10, g11, g12
+            h20, h21, h22 = g20, g21, g22
+        if gps:
+            a00 = glt[g, 0, 0] * h00 + glt[g, 0, 1] * h01 + glt[g, 0, 2] * h02
+            a01 = glt[g, 0, 0] * h10 + glt[g, 0, 1] * h11 + glt[g, 0, 2] * h12
+            a02 = glt[g, 0, 0] * h20 + glt[g, 0, 1] * h21 + glt[g, 0, 2] * h22
+            a10 = glt[g, 1, 0] * h00 + glt[g, 1, 1] * h01 + glt[g, 1, 2] * h02
+            a11 = glt[g, 1, 0] * h10 + glt[g, 1, 1] * h11 + glt[g, 1, 2] * h12
+            a12 = glt[g, 1, 0] * h20 + glt[g, 1, 1] * h21 + glt[g, 1, 2] * h22
+            a20 = glt[g, 2, 0] * h00 + glt[g, 2, 1] * h01 + glt[g, 2, 2] * h02
+            a21 = glt[g, 2, 0] * h10 + glt[g, 2, 1] * h11 + glt[g, 2, 2] * h12
+            a22 = glt[g, 2, 0] * h20 + glt[g, 2, 1] * h21 + glt[g, 2, 2] * h22
+            b00 = b01 = b02 = b10 = b11 = b12 = b20 = b21 = b22 = 0.0
+            b30 = b31 = b32 = b40 = b41 = b42 = b50 = b51 = b52 = 0.0
+        else:
+            b00 = lt[c, 0, 3] * h00 + lt[c, 0, 4] * h01 + lt[c, 0, 5] * h02
+            b01 = lt[c, 0, 3] * h10 + lt[c, 0, 4] * h11 + lt[c, 0, 5] * h12
+            b02 = lt[c, 0, 3] * h20 + lt[c, 0, 4] * h21 + lt[c, 0, 5] * h22
+            a00 = lt[c, 0, 0] * h00 + lt[c, 0, 1] * h01 + lt[c, 0, 2] * h02
+            a01 = lt[c, 0, 0] * h10 + lt[c, 0, 1] * h11 + lt[c, 0, 2] * h12
+            a02 = lt[c, 0, 0] * h20 + lt[c, 0, 1] * h21 + lt[c, 0, 2] * h22
+            b10 = lt[c, 1, 3] * h00 + lt[c, 1, 4] * h01 + lt[c, 1, 5] * h02
+            b11 = lt[c, 1, 3] * h10 + lt[c, 1, 4] * h11 + lt[c, 1, 5] * h12
+            b12 = lt[c, 1, 3] * h20 + lt[c, 1, 4] * h21 + lt[c, 1, 5] * h22
+            a10 = lt[c, 1, 0] * h00 + lt[c, 1, 1] * h01 + lt[c, 1, 2] * h02
+            a11 = lt[c, 1, 0] * h10 + lt[c, 1, 1] * h11 + lt[c, 1, 2] * h12
+            a12 = lt[c, 1, 0] * h20 + lt[c, 1, 1] * h21 + lt[c, 1, 2] * h22
+            b20 = lt[c, 2, 3] * h00 + lt[c, 2, 4] * h01 + lt[c, 2, 5] * h02
+            b21 = lt[c, 2, 3] * h10 + lt[c, 2, 4] * h11 + lt[c, 2, 5] * h12
+            b22 = lt[c, 2, 3] * h20 + lt[c, 2, 4] * h21 + lt[c, 2, 5] * h22
+            a20 = lt[c, 2, 0] * h00 + lt[c, 2, 1] * h01 + lt[c, 2, 2] * h02
+            a21 = lt[c, 2, 0] * h10 + lt[c, 2, 1] * h11 + lt[c, 2, 2] * h12
+            a22 = lt[c, 2, 0] * h20 + lt[c, 2, 1] * h21 + lt[c, 2, 2] * h22
+            b30 = lt[c, 3, 3] * h00 + lt[c, 3, 4] * h01 + lt[c, 3, 5] * h02
+            b31 = lt[c, 3, 3] * h10 + lt[c, 3, 4] * h11 + lt[c, 3, 5] * h12
+            b32 = lt[c, 3, 3] * h20 + lt[c, 3, 4] * h21 + lt[c, 3, 5] * h22
+            b40 = lt[c, 4, 3] * h00 + lt[c, 4, 4] * h01 + lt[c, 4, 5] * h02
+            b41 = lt[c, 4, 3] * h10 + lt[c, 4, 4] * h11 + lt[c, 4, 5] * h12
+            b42 = lt[c, 4, 3] * h20 + lt[c, 4, 4] * h21 + lt[c, 4, 5] * h22
+            b50 = lt[c, 5, 3] * h00 + lt[c, 5, 4] * h01 + lt[c, 5, 5] * h02
+            b51 = lt[c, 5, 3] * h10 + lt[c, 5, 4] * h11 + lt[c, 5, 5] * h12
+            b52 = lt[c, 5, 3] * h20 + lt[c, 5, 4] * h21 + lt[c, 5, 5] * h22
+        s00 += 0.0 + a00 * a00 + a10 * a10 + a20 * a20
+        s01 += 0.0 + a00 * a01 + a10 * a11 + a20 * a21
+        s02 += 0.0 + a00 * a02 + a10 * a12 + a20 * a22
+        s03 += 0.0 + a00 * b00 + a10 * b10 + a20 * b20
+        s04 += 0.0 + a00 * b01 + a10 * b11 + a20 * b21
+        s05 += 0.0 + a00 * b02 + a10 * b12 + a20 * b22
+        s11 += 0.0 + a01 * a01 + a11 * a11 + a21 * a21
+        s12 += 0.0 + a01 * a02 + a11 * a12 + a21 * a22
+        s13 += 0.0 + a01 * b00 + a11 * b10 + a21 * b20
+        s14 += 0.0 + a01 * b01 + a11 * b11 + a21 * b21
+        s15 += 0.0 + a01 * b02 + a11 * b12 + a21 * b22
+        s22 += 0.0 + a02 * a02 + a12 * a12 + a22 * a22
+        s23 += 0.0 + a02 * b00 + a12 * b10 + a22 * b20
+        s24 += 0.0 + a02 * b01 + a12 * b11 + a22 * b21
+        s25 += 0.0 + a02 * b02 + a12 * b12 + a22 * b22
+        s33 += 0.0 + b00 * b00 + b10 * b10 + b20 * b20 + b30 * b30 + b40 * b40 + b50 * b50
+        s34 += 0.0 + b00 * b01 + b10 * b11 + b20 * b21 + b30 * b31 + b40 * b41 + b50 * b51
+        s35 += 0.0 + b00 * b02 + b10 * b12 + b20 * b22 + b30 * b32 + b40 * b42 + b50 * b52
+        s44 += 0.0 + b01 * b01 + b11 * b11 + b21 * b21 + b31 * b31 + b41 * b41 + b51 * b51
+        s45 += 0.0 + b01 * b02 + b11 * b12 + b21 * b22 + b31 * b32 + b41 * b42 + b51 * b52
+        s55 += 0.0 + b02 * b02 + b12 * b12 + b22 * b22 + b32 * b32 + b42 * b42 + b52 * b52
+        # p_β from b upwards: zt <- l zt + u; F <- G
+        t0 = l00 * z0 + l01 * z1 + l02 * z2 + u0
+        t1 = l10 * z0 + l11 * z1 + l12 * z2 + u1
+        t2 = l20 * z0 + l21 * z1 + l22 * z2 + u2
+        z0, z1, z2 = t0, t1, t2
+        f00, f01, f02 = g00, g01, g02
+        f10, f11, f12 = g10, g11, g12
+        f20, f21, f22 = g20, g21, g22
+    zt[0], zt[1], zt[2] = z0, z1, z2
+    zr[0, 0], zr[0, 1], zr[0, 2] = f00, f10, f20
+    zr[1, 0], zr[1, 1], zr[1, 2] = f01, f11, f21
+    zr[2, 0], zr[2, 1], zr[2, 2] = f02, f12, f22
+    s_beta[0, 0], s_beta[0, 1], s_beta[0, 2] = s00, s01, s02
+    s_beta[0, 3], s_beta[0, 4], s_beta[0, 5] = s03, s04, s05
+    s_beta[1, 1], s_beta[1, 2], s_beta[1, 3], s_beta[1, 4], s_beta[1, 5] = s11, s12, s13, s14, s15
+    s_beta[2, 2], s_beta[2, 3], s_beta[2, 4], s_beta[2, 5] = s22, s23, s24, s25
+    s_beta[3, 3], s_beta[3, 4], s_beta[3, 5] = s33, s34, s35
+    s_beta[4, 4], s_beta[4, 5] = s44, s45
+    s_beta[5, 5] = s55
     for i in range(6):
         for j in range(i):
             s_beta[i, j] = s_beta[j, i]
@@ -345,15 +411,13 @@ def distribute_chains(rot: np.ndarray, trans: np.ndarray, bdiag: np.ndarray,
     Chain j is ``chains[j] = (start, k, ia, ib)``: nodes ``nodes[start:start + k]``, a's pose
     ``(apr[ia], apt[ia])`` (the identity when ``ia < 0``), b's desired pose
     ``(bpr[ib], bpt[ib])``.  ``qr``, ``cw``, ``ws``, ``ws6``: a workspace's ``chain_rot``,
-    ``chain_w``, ``iws``, ``iws6``.
+    ``chain_w``, ``iws``, ``iws6``.  Per node, the 3x3 products live in scalar locals (``v..``:
+    the previous ``Q``, ``c..``/``q..`` the current one, ``x..`` the Rodrigues factor, ``m..``/
+    ``g..`` the new local and its Gram matrix, symmetric: six entries).
     """
     dr = ws[0]
     dt = ws[1][0]
-    kx = ws[2]
-    k2 = ws[3]
-    ex = ws[4]
     mm = ws[5]
-    gg = ws[6]
     phi6 = ws6[3][0]
     for jc in range(nch):
         start = chains[jc, 0]
@@ -370,12 +434,26 @@ def distribute_chains(rot: np.ndarray, trans: np.ndarray, bdiag: np.ndarray,
                 qr[0, i, j] = 1.0 if i == j else 0.0
         cw[0, 0] = 0.0
         cw[0, 1] = 0.0
+        v00, v01, v02 = 1.0, 0.0, 0.0
+        v10, v11, v12 = 0.0, 1.0, 0.0
+        v20, v21, v22 = 0.0, 0.0, 1.0
         for j in range(1, k + 1):
             i = nodes[start + k - j]
-            for p in range(3):
-                for q in range(3):
-                    qr[j, p, q] = (qr[j - 1, p, 0] * rot[i, 0, q] + qr[j - 1, p, 1] * rot[i, 1, q]
-                                   + qr[j - 1, p, 2] * rot[i, 2, q])
+            q00 = v00 * rot[i, 0, 0] + v01 * rot[i, 1, 0] + v02 * rot[i, 2, 0]
+            q01 = v00 * rot[i, 0, 1] + v01 * rot[i, 1, 1] + v02 * rot[i, 2, 1]
+            q02 = v00 * rot[i, 0, 2] + v01 * rot[i, 1, 2] + v02 * rot[i, 2, 2]
+            q10 = v10 * rot[i, 0, 0] + v11 * rot[i, 1, 0] + v12 * rot[i, 2, 0]
+            q11 = v10 * rot[i, 0, 1] + v11 * rot[i, 1, 1] + v12 * rot[i, 2, 1]
+            q12 = v10 * rot[i, 0, 2] + v11 * rot[i, 1, 2] + v12 * rot[i, 2, 2]
+            q20 = v20 * rot[i, 0, 0] + v21 * rot[i, 1, 0] + v22 * rot[i, 2, 0]
+            q21 = v20 * rot[i, 0, 1] + v21 * rot[i, 1, 1] + v22 * rot[i, 2, 1]
+            q22 = v20 * rot[i, 0, 2] + v21 * rot[i, 1, 2] + v22 * rot[i, 2, 2]
+            qr[j, 0, 0], qr[j, 0, 1], qr[j, 0, 2] = q00, q01, q02
+            qr[j, 1, 0], qr[j, 1, 1], qr[j, 1, 2] = q10, q11, q12
+            qr[j, 2, 0], qr[j, 2, 1], qr[j, 2, 2] = q20, q21, q22
+            v00, v01, v02 = q00, q01, q02
+            v10, v11, v12 = q10, q11, q12
+            v20, v21, v22 = q20, q21, q22
             wr, wt = node_weights(bdiag, i)
             cw[j, 0] = cw[j - 1, 0] + wr
             cw[j, 1] = cw[j - 1, 1] + wt
@@ -393,26 +471,32 @@ def distribute_chains(rot: np.ndarray, trans: np.ndarray, bdiag: np.ndarray,
         so3_log_into(mm, phi6)
         px, py, pz = phi6[3], phi6[4], phi6[5]
         th = math.sqrt(px * px + py * py + pz * pz)
-        kx[0, 0], kx[0, 1], kx[0, 2] = 0.0, -pz, py
-        kx[1, 0], kx[1, 1], kx[1, 2] = pz, 0.0, -px
-        kx[2, 0], kx[2, 1], kx[2, 2] = -py, px, 0.0
-        for p in range(3):
-            for q in range(3):
-                k2[p, q] = kx[p, 0] * kx[0, q] + kx[p, 1] * kx[1, q] + kx[p, 2] * kx[2, q]
+        kx00, kx01, kx02 = 0.0, -pz, py
+        kx10, kx11, kx12 = pz, 0.0, -px
+        kx20, kx21, kx22 = -py, px, 0.0
+        kk00 = kx00 * kx00 + kx01 * kx10 + kx02 * kx20
+        kk01 = kx00 * kx01 + kx01 * kx11 + kx02 * kx21
+        kk02 = kx00 * kx02 + kx01 * kx12 + kx02 * kx22
+        kk10 = kx10 * kx00 + kx11 * kx10 + kx12 * kx20
+        kk11 = kx10 * kx01 + kx11 * kx11 + kx12 * kx21
+        kk12 = kx10 * kx02 + kx11 * kx12 + kx12 * kx22
+        kk20 = kx20 * kx00 + kx21 * kx10 + kx22 * kx20
+        kk21 = kx20 * kx01 + kx21 * kx11 + kx22 * kx21
+        kk22 = kx20 * kx02 + kx21 * kx12 + kx22 * kx22
         # 1. rotations first: R''_j = Exp(f_j phi) Q_j (Rodrigues about the one axis); positions
         # re-bent with the old locals: t''_k = sum_j R''_{j-1} t_j
         w_r = cw[k, 0]
         t0 = 0.0
         t1 = 0.0
         t2 = 0.0
+        v00, v01, v02 = 1.0, 0.0, 0.0
+        v10, v11, v12 = 0.0, 1.0, 0.0
+        v20, v21, v22 = 0.0, 0.0, 1.0
         for j in range(1, k + 1):
             i = nodes[start + k - j]
-            t0 += (qr[j - 1, 0, 0] * trans[i, 0] + qr[j - 1, 0, 1] * trans[i, 1]
-                   + qr[j - 1, 0, 2] * trans[i, 2])
-            t1 += (qr[j - 1, 1, 0] * trans[i, 0] + qr[j - 1, 1, 1] * trans[i, 1]
-                   + qr[j - 1, 1, 2] * trans[i, 2])
-            t2 += (qr[j - 1, 2, 0] * trans[i, 0] + qr[j - 1, 2, 1] * trans[i, 1]
-                   + qr[j - 1, 2, 2] * trans[i, 2])
+            t0 += v00 * trans[i, 0] + v01 * trans[i, 1] + v02 * trans[i, 2]
+            t1 += v10 * trans[i, 0] + v11 * trans[i, 1] + v12 * trans[i, 2]
+            t2 += v20 * trans[i, 0] + v21 * trans[i, 1] + v22 * trans[i, 2]
             if j == k:  # the end reaches its desired rotation exactly
                 for p in range(3):
                     for q in range(3):
@@ -427,39 +511,76 @@ def distribute_chains(rot: np.ndarray, trans: np.ndarray, bdiag: np.ndarray,
                 sh = math.sin(0.5 * a_th)
                 ca = math.sin(a_th) / th
                 cb = 2.0 * sh * sh / (th * th)
-            for p in range(3):
-                for q in range(3):
-                    ex[p, q] = (1.0 if p == q else 0.0) + ca * kx[p, q] + cb * k2[p, q]
-            for q in range(3):
-                c0 = qr[j, 0, q]
-                c1 = qr[j, 1, q]
-                c2 = qr[j, 2, q]
-                for p in range(3):
-                    qr[j, p, q] = ex[p, 0] * c0 + ex[p, 1] * c1 + ex[p, 2] * c2
-        # 2. then translations, linearly along the re-bent chain; new locals
+            x00 = 1.0 + ca * kx00 + cb * kk00
+            x01 = 0.0 + ca * kx01 + cb * kk01
+            x02 = 0.0 + ca * kx02 + cb * kk02
+            x10 = 0.0 + ca * kx10 + cb * kk10
+            x11 = 1.0 + ca * kx11 + cb * kk11
+            x12 = 0.0 + ca * kx12 + cb * kk12
+            x20 = 0.0 + ca * kx20 + cb * kk20
+            x21 = 0.0 + ca * kx21 + cb * kk21
+            x22 = 1.0 + ca * kx22 + cb * kk22
+            c00, c01, c02 = qr[j, 0, 0], qr[j, 0, 1], qr[j, 0, 2]
+            c10, c11, c12 = qr[j, 1, 0], qr[j, 1, 1], qr[j, 1, 2]
+            c20, c21, c22 = qr[j, 2, 0], qr[j, 2, 1], qr[j, 2, 2]
+            v00 = x00 * c00 + x01 * c10 + x02 * c20
+            v01 = x00 * c01 + x01 * c11 + x02 * c21
+            v02 = x00 * c02 + x01 * c12 + x02 * c22
+            v10 = x10 * c00 + x11 * c10 + x12 * c20
+            v11 = x10 * c01 + x11 * c11 + x12 * c21
+            v12 = x10 * c02 + x11 * c12 + x12 * c22
+            v20 = x20 * c00 + x21 * c10 + x22 * c20
+            v21 = x20 * c01 + x21 * c11 + x22 * c21
+            v22 = x20 * c02 + x21 * c12 + x22 * c22
+            qr[j, 0, 0], qr[j, 0, 1], qr[j, 0, 2] = v00, v01, v02
+            qr[j, 1, 0], qr[j, 1, 1], qr[j, 1, 2] = v10, v11, v12
+            qr[j, 2, 0], qr[j, 2, 1], qr[j, 2, 2] = v20, v21, v22
+        # 2. then translations, linearly along the re-bent chain; new locals, with one Newton
+        # step towards the polar factor (as the retraction does): products along long chains
+        # would otherwise let rounding grow
         e0 = dt[0] - t0
         e1 = dt[1] - t1
         e2 = dt[2] - t2
         w_t = cw[k, 1]
+        v00, v01, v02 = 1.0, 0.0, 0.0
+        v10, v11, v12 = 0.0, 1.0, 0.0
+        v20, v21, v22 = 0.0, 0.0, 1.0
         for j in range(1, k + 1):
             i = nodes[start + k - j]
             g = (cw[j, 1] - cw[j - 1, 1]) / w_t
-            for p in range(3):
-                trans[i, p] += g * (qr[j - 1, 0, p] * e0 + qr[j - 1, 1, p] * e1
-                                    + qr[j - 1, 2, p] * e2)
-                for q in range(3):
-                    mm[p, q] = (qr[j - 1, 0, p] * qr[j, 0, q] + qr[j - 1, 1, p] * qr[j, 1, q]
-                                + qr[j - 1, 2, p] * qr[j, 2, q])
-            # one Newton step towards the polar factor (as the retraction does): products along
-            # long chains would otherwise let rounding grow
-            for p in range(3):
-                for q in range(3):
-                    gg[p, q] = mm[0, p] * mm[0, q] + mm[1, p] * mm[1, q] + mm[2, p] * mm[2, q]
-            for p in range(3):
-                for q in range(3):
-                    rot[i, p, q] = 0.5 * (3.0 * mm[p, q] - (mm[p, 0] * gg[0, q]
-                                                            + mm[p, 1] * gg[1, q]
-                                                            + mm[p, 2] * gg[2, q]))
+            c00, c01, c02 = qr[j, 0, 0], qr[j, 0, 1], qr[j, 0, 2]
+            c10, c11, c12 = qr[j, 1, 0], qr[j, 1, 1], qr[j, 1, 2]
+            c20, c21, c22 = qr[j, 2, 0], qr[j, 2, 1], qr[j, 2, 2]
+            trans[i, 0] += g * (v00 * e0 + v10 * e1 + v20 * e2)
+            trans[i, 1] += g * (v01 * e0 + v11 * e1 + v21 * e2)
+            trans[i, 2] += g * (v02 * e0 + v12 * e1 + v22 * e2)
+            m00 = v00 * c00 + v10 * c10 + v20 * c20
+            m01 = v00 * c01 + v10 * c11 + v20 * c21
+            m02 = v00 * c02 + v10 * c12 + v20 * c22
+            m10 = v01 * c00 + v11 * c10 + v21 * c20
+            m11 = v01 * c01 + v11 * c11 + v21 * c21
+            m12 = v01 * c02 + v11 * c12 + v21 * c22
+            m20 = v02 * c00 + v12 * c10 + v22 * c20
+            m21 = v02 * c01 + v12 * c11 + v22 * c21
+            m22 = v02 * c02 + v12 * c12 + v22 * c22
+            g00 = m00 * m00 + m10 * m10 + m20 * m20
+            g01 = m00 * m01 + m10 * m11 + m20 * m21
+            g02 = m00 * m02 + m10 * m12 + m20 * m22
+            g11 = m01 * m01 + m11 * m11 + m21 * m21
+            g12 = m01 * m02 + m11 * m12 + m21 * m22
+            g22 = m02 * m02 + m12 * m12 + m22 * m22
+            rot[i, 0, 0] = 0.5 * (3.0 * m00 - (m00 * g00 + m01 * g01 + m02 * g02))
+            rot[i, 0, 1] = 0.5 * (3.0 * m01 - (m00 * g01 + m01 * g11 + m02 * g12))
+            rot[i, 0, 2] = 0.5 * (3.0 * m02 - (m00 * g02 + m01 * g12 + m02 * g22))
+            rot[i, 1, 0] = 0.5 * (3.0 * m10 - (m10 * g00 + m11 * g01 + m12 * g02))
+            rot[i, 1, 1] = 0.5 * (3.0 * m11 - (m10 * g01 + m11 * g11 + m12 * g12))
+            rot[i, 1, 2] = 0.5 * (3.0 * m12 - (m10 * g02 + m11 * g12 + m12 * g22))
+            rot[i, 2, 0] = 0.5 * (3.0 * m20 - (m20 * g00 + m21 * g01 + m22 * g02))
+            rot[i, 2, 1] = 0.5 * (3.0 * m21 - (m20 * g01 + m21 * g11 + m22 * g12))
+            rot[i, 2, 2] = 0.5 * (3.0 * m22 - (m20 * g02 + m21 * g12 + m22 * g22))
+            v00, v01, v02 = c00, c01, c02
+            v10, v11, v12 = c10, c11, c12
+            v20, v21, v22 = c20, c21, c22
 
 
 @kernel
@@ -538,15 +659,18 @@ def relax_interpolated(prob: Problem, state: State, wk: Workspace, sub: Workspac
     s, d = domain(prob, c)
     if is_gps(prob, c):
         kr, na = linearize(prob, c, state.rot, state.trans, wk, wk.jac)
+        accumulate_path(prob.path_node, s, d, kr, wk.jac, state.bdiag, state.contrib, mu,
+                        wk.lfac, wk.bc, False)
     else:
         kr = 6
-        na = relative_linearization(prob.path_node, prob.path_sign, s, d, prob.edge_rot[c],
-                                    prob.edge_trans[c], prob.edge_lt[c], prob.robust_kind,
-                                    prob.robust_scale, state.rot, state.trans, wk.path_rot,
-                                    wk.path_trans, wk.iws, wk.ws, wk.e, wk.r, wk.jri, wk.a,
-                                    wk.jac)
-    accumulate_path(prob.path_node, s, d, kr, wk.jac, state.bdiag, state.contrib, mu, wk.lfac,
-                    wk.bc, False)
+        na = relative_setup(prob.path_node, prob.path_sign, s, d, prob.edge_rot[c],
+                            prob.edge_trans[c], prob.edge_lt[c], prob.robust_kind,
+                            prob.robust_scale, state.rot, state.trans, wk.path_rot,
+                            wk.path_trans, wk.iws, wk.ws, wk.e, wk.r, wk.jri, wk.a)
+        nk = kept_positions(d, na, d_max, keep)  # only the kept nodes' blocks are stored
+        linearize_accumulate(prob.path_node, prob.path_sign, s, d, na, wk.path_rot,
+                             wk.path_trans, wk.a, wk.jac, False, keep, nk, state.bdiag,
+                             state.contrib, mu, wk.lfac, wk.bc, False)
     nk = kept_positions(d, na, d_max, keep)
     reduced_factors(prob, state, c, d, na, kr, wk, keep, nk, mu, sub)
     for i in range(6):

@@ -56,23 +56,44 @@ def chain_products(path_node: np.ndarray, s: int, lo: int, hi: int, rot: np.ndar
                    trans: np.ndarray, pr: np.ndarray, pt: np.ndarray) -> None:
     """``P_k = P_{k+1} X_{path[k]}`` for ``k = hi-1 .. lo`` (``P_{hi-1}`` its local transform).
 
-    Scalar indexing only: a view or an array argument per node costs a reference-count pair
-    (an atomic operation), more than the 3x3 product itself.
+    Scalar indexing only (a view or an array argument per node costs a reference-count pair,
+    an atomic operation, more than the 3x3 product itself); ``P_{k+1}`` is carried in scalar
+    locals (``v..``, ``w.``) rather than read back from ``pr``/``pt`` after a store.
     """
-    for k in range(hi - 1, lo - 1, -1):
+    if hi <= lo:
+        return
+    i = path_node[s + hi - 1]
+    v00, v01, v02 = rot[i, 0, 0], rot[i, 0, 1], rot[i, 0, 2]
+    v10, v11, v12 = rot[i, 1, 0], rot[i, 1, 1], rot[i, 1, 2]
+    v20, v21, v22 = rot[i, 2, 0], rot[i, 2, 1], rot[i, 2, 2]
+    w0, w1, w2 = trans[i, 0], trans[i, 1], trans[i, 2]
+    k = hi - 1
+    pr[k, 0, 0], pr[k, 0, 1], pr[k, 0, 2] = v00, v01, v02
+    pr[k, 1, 0], pr[k, 1, 1], pr[k, 1, 2] = v10, v11, v12
+    pr[k, 2, 0], pr[k, 2, 1], pr[k, 2, 2] = v20, v21, v22
+    pt[k, 0], pt[k, 1], pt[k, 2] = w0, w1, w2
+    for k in range(hi - 2, lo - 1, -1):
         i = path_node[s + k]
-        if k == hi - 1:
-            for p in range(3):
-                pt[k, p] = trans[i, p]
-                for q in range(3):
-                    pr[k, p, q] = rot[i, p, q]
-            continue
-        for p in range(3):
-            for q in range(3):
-                pr[k, p, q] = (pr[k + 1, p, 0] * rot[i, 0, q] + pr[k + 1, p, 1] * rot[i, 1, q]
-                               + pr[k + 1, p, 2] * rot[i, 2, q])
-            pt[k, p] = (pr[k + 1, p, 0] * trans[i, 0] + pr[k + 1, p, 1] * trans[i, 1]
-                        + pr[k + 1, p, 2] * trans[i, 2] + pt[k + 1, p])
+        q00 = v00 * rot[i, 0, 0] + v01 * rot[i, 1, 0] + v02 * rot[i, 2, 0]
+        q01 = v00 * rot[i, 0, 1] + v01 * rot[i, 1, 1] + v02 * rot[i, 2, 1]
+        q02 = v00 * rot[i, 0, 2] + v01 * rot[i, 1, 2] + v02 * rot[i, 2, 2]
+        q10 = v10 * rot[i, 0, 0] + v11 * rot[i, 1, 0] + v12 * rot[i, 2, 0]
+        q11 = v10 * rot[i, 0, 1] + v11 * rot[i, 1, 1] + v12 * rot[i, 2, 1]
+        q12 = v10 * rot[i, 0, 2] + v11 * rot[i, 1, 2] + v12 * rot[i, 2, 2]
+        q20 = v20 * rot[i, 0, 0] + v21 * rot[i, 1, 0] + v22 * rot[i, 2, 0]
+        q21 = v20 * rot[i, 0, 1] + v21 * rot[i, 1, 1] + v22 * rot[i, 2, 1]
+        q22 = v20 * rot[i, 0, 2] + v21 * rot[i, 1, 2] + v22 * rot[i, 2, 2]
+        u0 = v00 * trans[i, 0] + v01 * trans[i, 1] + v02 * trans[i, 2] + w0
+        u1 = v10 * trans[i, 0] + v11 * trans[i, 1] + v12 * trans[i, 2] + w1
+        u2 = v20 * trans[i, 0] + v21 * trans[i, 1] + v22 * trans[i, 2] + w2
+        pr[k, 0, 0], pr[k, 0, 1], pr[k, 0, 2] = q00, q01, q02
+        pr[k, 1, 0], pr[k, 1, 1], pr[k, 1, 2] = q10, q11, q12
+        pr[k, 2, 0], pr[k, 2, 1], pr[k, 2, 2] = q20, q21, q22
+        pt[k, 0], pt[k, 1], pt[k, 2] = u0, u1, u2
+        v00, v01, v02 = q00, q01, q02
+        v10, v11, v12 = q10, q11, q12
+        v20, v21, v22 = q20, q21, q22
+        w0, w1, w2 = u0, u1, u2
 
 
 @kernel
@@ -179,20 +200,14 @@ def _gps_blocks(prob: Problem, c: int, wk: Workspace, jac: np.ndarray) -> None:
 
 
 @kernel
-def relative_linearization(path_node: np.ndarray, path_sign: np.ndarray, s: int, d: int,
-                           zr: np.ndarray, zt: np.ndarray, lt: np.ndarray, robust_kind: int,
-                           robust_scale: float, rot: np.ndarray, trans: np.ndarray,
-                           pr: np.ndarray, pt: np.ndarray, iws: np.ndarray, ws: np.ndarray,
-                           e: np.ndarray, r: np.ndarray, jri: np.ndarray, a: np.ndarray,
-                           jac: np.ndarray) -> int:
-    """:func:`linearize` of a relative constraint (measurement ``zr, zt``, whitening ``lt``)
-    whose domain is ``path_node[s:s + d]``, with a :class:`~.problem.Workspace`'s fields
-    passed one by one (``iws[EYE]``, ``iws[ZERO][0]``: the identity); returns n_a.
-
-    The update kernels call this instead of :func:`linearize`: every array a Numba call
-    receives (each field of a NamedTuple included) costs an atomic reference-count pair, so
-    the hot path passes only the arrays it needs.
-    """
+def relative_setup(path_node: np.ndarray, path_sign: np.ndarray, s: int, d: int,
+                   zr: np.ndarray, zt: np.ndarray, lt: np.ndarray, robust_kind: int,
+                   robust_scale: float, rot: np.ndarray, trans: np.ndarray, pr: np.ndarray,
+                   pt: np.ndarray, iws: np.ndarray, ws: np.ndarray, e: np.ndarray,
+                   r: np.ndarray, jri: np.ndarray, a: np.ndarray) -> int:
+    """:func:`relative_linearization` up to the Jacobian blocks: the path products, ``e0``,
+    ``r``, ``Jr^-1(e0)`` and ``a = L^T Jr^-1(e0)``; returns n_a.  The update kernels then run
+    :func:`~._step.linearize_accumulate` (the blocks and 𝔅(H) in one pass)."""
     na = 0
     while na < d and path_sign[s + na] < 0:
         na += 1
@@ -219,6 +234,30 @@ def relative_linearization(path_node: np.ndarray, path_sign: np.ndarray, s: int,
             r[p] *= sw
             for j in range(6):
                 a[p, j] *= sw
+    return na
+
+
+@kernel
+def relative_linearization(path_node: np.ndarray, path_sign: np.ndarray, s: int, d: int,
+                           zr: np.ndarray, zt: np.ndarray, lt: np.ndarray, robust_kind: int,
+                           robust_scale: float, rot: np.ndarray, trans: np.ndarray,
+                           pr: np.ndarray, pt: np.ndarray, iws: np.ndarray, ws: np.ndarray,
+                           e: np.ndarray, r: np.ndarray, jri: np.ndarray, a: np.ndarray,
+                           jac: np.ndarray) -> int:
+    """:func:`linearize` of a relative constraint (measurement ``zr, zt``, whitening ``lt``)
+    whose domain is ``path_node[s:s + d]``, with a :class:`~.problem.Workspace`'s fields
+    passed one by one (``iws[EYE]``, ``iws[ZERO][0]``: the identity); returns n_a.
+
+    Every array a Numba call receives (each field of a NamedTuple included) costs an atomic
+    reference-count pair, so callers pass only the arrays needed.
+    """
+    na = relative_setup(path_node, path_sign, s, d, zr, zt, lt, robust_kind, robust_scale, rot,
+                        trans, pr, pt, iws, ws, e, r, jri, a)
+    rb = iws[EYE]
+    tb = iws[ZERO][0]
+    if na < d:
+        rb = pr[na]
+        tb = pt[na]
     relative_blocks(path_sign, s, d, rb, tb, pr, pt, a, ws, jac)
     return na
 
