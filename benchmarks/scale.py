@@ -19,6 +19,8 @@ Phases, timed separately, in order:
   ``analyze``: tree, initial locals, problem arrays, 𝔅(H) with every constraint's blocks --
   once per solve), ``kernel`` (the sweep itself, ``solve``), ``energies`` (the rest: the start
   and end energies with their global poses, the result);
+* ``sweep_gpstree`` (graphs with GPS): the same with ``tree="gps"`` (every GPS pose a child of
+  the earth: GPS domains of one pose, so far fewer per-path blocks);
 * ``write``: the optimized graph written as g2o.
 
 Kernels are compiled (or loaded) before the clock starts.  Each phase's own peak memory is
@@ -105,10 +107,10 @@ def generate_case(poses: int, gps_every: int, path: pathlib.Path) -> dict[str, A
 
 
 def _phases() -> set[str]:
-    """The solving phases to run: ``HYBRIDPGO_SCALE_PHASES`` (default pipeline,sweep)."""
-    spec = os.environ.get("HYBRIDPGO_SCALE_PHASES", "pipeline,sweep")
+    """The solving phases to run: ``HYBRIDPGO_SCALE_PHASES`` (default all three)."""
+    spec = os.environ.get("HYBRIDPGO_SCALE_PHASES", "pipeline,sweep,sweep_gpstree")
     phases = {p.strip() for p in spec.split(",") if p.strip()}
-    unknown = phases - {"pipeline", "sweep"}
+    unknown = phases - {"pipeline", "sweep", "sweep_gpstree"}
     if unknown:
         raise ValueError(f"HYBRIDPGO_SCALE_PHASES: unknown phase(s) {sorted(unknown)}")
     return phases
@@ -118,7 +120,7 @@ def solve_case(path: pathlib.Path, pipeline: bool = True,
                compare: bool = True) -> dict[str, Any]:
     """Read, one sweep, the pipeline, write: the phase times (s) and the peak (GB) after each."""
     from hybridpgo.io import read_graph, write_graph
-    from hybridpgo.solvers import AutoConfig, HybridConfig, optimize
+    from hybridpgo.solvers import AutoConfig, optimize
     from hybridpgo.solvers.gauss_newton import _ensure_compiled
     from hybridpgo.solvers.hybrid.solver import ensure_compiled
 
@@ -152,6 +154,12 @@ def solve_case(path: pathlib.Path, pipeline: bool = True,
     phase("read", t)
     out["constraints"] = graph.num_constraints
     out["gps"] = graph.num_gps
+    t = time.perf_counter()
+    ensure_compiled(graph.num_gps > 0)  # the GPS sweep variant, before the clocks
+    out["compile_or_load_s"] += time.perf_counter() - t
+    _reset_phase_peak()
+    cpu[0] = time.process_time()
+    load[0] = os.getloadavg()[0]
     rot = trans = None
     phases = _phases()
     pipeline = pipeline and "pipeline" in phases
@@ -178,34 +186,44 @@ def solve_case(path: pathlib.Path, pipeline: bool = True,
     entries = int(tree.path_ptr[-1])
     del tree, lengths
     out["sweep_block_gb"] = entries * 36 * 8 / 2**30  # the hybrid solver's per-path 6x6 blocks
-    if out["sweep_block_gb"] > SWEEP_BLOCKS_LIMIT_GB or "sweep" not in phases:
-        # (blocks over the limit: would swap or be killed, so not run)
-        if "sweep" in phases:
-            print(f"  {path.name}: sweep skipped: the hybrid solver's per-path blocks alone "
-                  f"need {out['sweep_block_gb']:.1f} GB", file=sys.stderr, flush=True)
-        if rot is None:
-            rot, trans = graph.rotations, graph.translations
-        t = time.perf_counter()
-        write_graph(graph.with_poses(rot, trans), path.with_name(path.stem + "_out.g2o"))
-        phase("write", t)
-        return out
-    t = time.perf_counter()
-    res = optimize(graph, HybridConfig(sweeps=1))
-    phase("sweep", t)
-    out["sweep_parts"] = {k: float(v) for k, v in res.timings.items()}
-    out["sweep_parts"]["setup"] = float(res.timings["analyze"])
-    out["sweep_parts"]["kernel"] = float(res.timings["solve"])
-    out["sweep_parts"]["energies"] = (out["times"]["sweep"] - res.timings["analyze"]
-                                      - res.timings["solve"] - res.timings.get("compile", 0.0))
-    out["energy_start"] = float(res.energy_history[0])
-    out["energy_sweep"] = float(res.energy_history[-1])
+    if "sweep" in phases and out["sweep_block_gb"] > SWEEP_BLOCKS_LIMIT_GB:
+        # would swap or be killed: not run
+        print(f"  {path.name}: sweep skipped: the hybrid solver's per-path blocks alone "
+              f"need {out['sweep_block_gb']:.1f} GB", file=sys.stderr, flush=True)
+    elif "sweep" in phases:
+        rot, trans = _sweep_phase(graph, "bfs", "sweep", phase, out, rot, trans)
+    if "sweep_gpstree" in phases and graph.num_gps:
+        rot, trans = _sweep_phase(graph, "gps", "sweep_gpstree", phase, out, rot, trans)
     if rot is None:
-        rot, trans = res.rotations, res.translations
-    del res
+        rot, trans = graph.rotations, graph.translations
     t = time.perf_counter()
     write_graph(graph.with_poses(rot, trans), path.with_name(path.stem + "_out.g2o"))
     phase("write", t)
     return out
+
+
+def _sweep_phase(graph: Any, tree: str, name: str, phase: Any, out: dict[str, Any],
+                 rot: Any, trans: Any) -> tuple[Any, Any]:
+    """One hybrid sweep from the tree start (``optimize(graph, HybridConfig(sweeps=1,
+    tree=tree))``): its time in parts, its energies; returns the poses to write."""
+    from hybridpgo.solvers import HybridConfig, optimize
+
+    t = time.perf_counter()
+    res = optimize(graph, HybridConfig(sweeps=1, tree=tree))  # type: ignore[arg-type]
+    phase(name, t)
+    parts = {k: float(v) for k, v in res.timings.items()}
+    parts["setup"] = float(res.timings["analyze"])
+    parts["kernel"] = float(res.timings["solve"])
+    parts["energies"] = (out["times"][name] - res.timings["analyze"] - res.timings["solve"]
+                         - res.timings.get("compile", 0.0))
+    suffix = "" if name == "sweep" else "_" + name
+    out["sweep_parts" + suffix] = parts
+    out["energy_start" + suffix] = float(res.energy_history[0])
+    out["energy_sweep" + suffix] = float(res.energy_history[-1])
+    out["sweep_blocks" + suffix] = int(res.stats["path_length_mean"] * res.num_constraints)
+    if rot is None:
+        return res.rotations, res.translations
+    return rot, trans
 
 
 def _pipeline_summary(res: Any, key: str) -> dict[str, Any]:
@@ -269,7 +287,7 @@ def run(ctx: Any) -> tuple[list[Metric], list[str]]:
         r = _subprocess_case(poses, gps, pipeline=True)
         key = f"scale.{poses // 1000}k.{'gps' if gps else 'nogps'}"
         if "error" in r:
-            rows.append([f"{poses:,}", "yes" if gps else "no", r["error"]] + [""] * 10)
+            rows.append([f"{poses:,}", "yes" if gps else "no", r["error"]] + [""] * 11)
             continue
         tm, pk = r["times"], r["peak_gb"]
         for name, value in tm.items():
@@ -312,11 +330,21 @@ def run(ctx: Any) -> tuple[list[Metric], list[str]]:
         gen = r["generate"]
         metrics.append(info(f"{key}.generate_s", gen["times"]["generate"], "s"))
         metrics.append(info(f"{key}.generate_peak_gb", gen["peak_gb"], "GB"))
+        gps_tree_cell = "-"
+        if "sweep_gpstree" in tm:
+            gparts = r["sweep_parts_sweep_gpstree"]
+            gps_tree_cell = (
+                f"{tm['sweep_gpstree']:.1f} = {gparts['setup']:.1f} + {gparts['kernel']:.1f} + "
+                f"{gparts['energies']:.1f} (CPU {cpu['sweep_gpstree']:.1f}) / "
+                f"{pk['sweep_gpstree']:.2f} GB / E/c "
+                f"{r['energy_sweep_sweep_gpstree'] / r['constraints']:.3g}")
+            metrics.append(info(f"{key}.sweep_gpstree_s", tm["sweep_gpstree"], "s"))
+            metrics.append(info(f"{key}.sweep_gpstree_peak_gb", pk["sweep_gpstree"], "GB"))
         rows.append([
             f"{poses:,}", "yes" if gps else "no", f"{r['constraints']:,} + {r['gps']:,} GPS",
             f"{gen['times']['generate']:.0f} / {gen['peak_gb']:.2f}",
             f"{r['tree']['tree_max_depth']:.0f} / {r['tree']['path_length_mean']:.1f}",
-            f"{tm['read']:.1f}", sweep_cell,
+            f"{tm['read']:.1f}", sweep_cell, gps_tree_cell,
             f"{tm.get('pipeline', float('nan')):.0f}",
             f"{r['pipeline_policy']}: {r['pipeline_init']}, {r['pipeline_sweeps']} sweeps, "
             f"{r['pipeline_polish_iterations']} LM {r['pipeline_status']}"
@@ -328,7 +356,8 @@ def run(ctx: Any) -> tuple[list[Metric], list[str]]:
             f"{r.get('energy_pipeline', float('nan')) / r['constraints']:.4g}",
         ])
     header = ["poses", "GPS", "constraints", "generate s / GB", "tree depth / mean path",
-              "read s", "1 sweep s = setup + kernel + energies", "pipeline s",
+              "read s", "1 sweep s = setup + kernel + energies",
+              "1 sweep, tree=gps: s / peak / E/c", "pipeline s",
               "pipeline: policy, start, sweeps, LM",
               "write s", "peak GB read / pipeline / sweep / write", "E/c sweep / pipeline"]
     table = markdown_table("Scale: generated cities", header, rows)
