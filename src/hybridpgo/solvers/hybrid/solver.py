@@ -298,7 +298,9 @@ class HybridSolver:
         counts = np.zeros(NUM_COUNTS, np.int64)
         sum_cycles = 0.0
         p999 = 0.0
-        poses = self.poses()  # once per evaluation: the energies and the result share them
+        # once per evaluation: the energies and the result share them
+        poses: tuple[FloatArray, FloatArray] | None
+        poses = self.poses()
         e0, e0_plain = self._energies_of(*poses)
         history = [e0]
         plain = [e0_plain] if self.problem.robust_kind else []
@@ -314,6 +316,7 @@ class HybridSolver:
         corrections: list[float] = []
         undone = 0
         for k in range(n_sweeps):
+            poses = None  # not kept through the sweep (96 MB at 1M poses)
             t0 = time.perf_counter()
             saved = (self.state.rot.copy(), self.state.trans.copy()) if cfg.monotone else None
             bad = self._sweep(tree.sweep_order, self.tau, _U64_MAX, counts)
@@ -355,7 +358,7 @@ class HybridSolver:
                 break
         if nc and counts[Count.REJECTED] >= nc * max(done, 1):
             raise SolverError(f"every update was non-finite (first: constraint {first_bad})")
-        rot, trans = poses  # the last evaluation's (nothing changed the state since)
+        rot, trans = poses if poses is not None else self.poses()  # the last evaluation's
         if iterate:  # the callback saw these arrays: the result gets its own
             rot, trans = rot.copy(), trans.copy()
         n_updates = max(done * nc, 1)
