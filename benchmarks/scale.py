@@ -14,8 +14,13 @@ Phases, timed separately, in order:
   ``--no-pipeline``;
 * ``pipeline_other`` (cases below ``large_poses`` only, ``--compare``): the large-graph policy
   forced on the same graph, to measure what it costs in energy against the full one;
-* ``sweep``: one hybrid sweep from the tree initialization (``HybridConfig(sweeps=1)``), with
-  its ``analyze`` (tree, problem set-up) and ``solve`` parts;
+* ``sweep``: one hybrid sweep from the tree initialization, ``optimize(graph,
+  HybridConfig(sweeps=1))``, timed as a whole and in parts: ``setup`` (the solver's
+  ``analyze``: tree, initial locals, problem arrays, 𝔅(H) with every constraint's blocks --
+  once per solve), ``kernel`` (the sweep itself, ``solve``), ``energies`` (the rest: the start
+  and end energies with their global poses, the result);
+* ``sweep_gpstree`` (graphs with GPS): the same with ``tree="gps"`` (every GPS pose a child of
+  the earth: GPS domains of one pose, so far fewer per-path blocks);
 * ``write``: the optimized graph written as g2o.
 
 Kernels are compiled (or loaded) before the clock starts.  Each phase's own peak memory is
@@ -25,7 +30,10 @@ Targets (issue 11): one sweep <= 10 s, pipeline <= 5 min, peak
 <= 4 GB at 1M poses.
 
 Run: ``PYTHONPATH=src python -m benchmarks --only scale --run <name>`` (``--quick``: 20k
-poses only).
+poses only).  ``HYBRIDPGO_SCALE_PHASES="sweep"`` (a comma list of ``pipeline``, ``sweep``;
+default both) runs only those solving phases (read and write always run).  Every phase also
+records its CPU time and the load average before and after it (the machine is shared: wall
+times under load are 2-3x the CPU times of these single-threaded phases).
 """
 
 from __future__ import annotations
@@ -98,11 +106,21 @@ def generate_case(poses: int, gps_every: int, path: pathlib.Path) -> dict[str, A
     return out
 
 
+def _phases() -> set[str]:
+    """The solving phases to run: ``HYBRIDPGO_SCALE_PHASES`` (default all three)."""
+    spec = os.environ.get("HYBRIDPGO_SCALE_PHASES", "pipeline,sweep,sweep_gpstree")
+    phases = {p.strip() for p in spec.split(",") if p.strip()}
+    unknown = phases - {"pipeline", "sweep", "sweep_gpstree"}
+    if unknown:
+        raise ValueError(f"HYBRIDPGO_SCALE_PHASES: unknown phase(s) {sorted(unknown)}")
+    return phases
+
+
 def solve_case(path: pathlib.Path, pipeline: bool = True,
                compare: bool = True) -> dict[str, Any]:
     """Read, one sweep, the pipeline, write: the phase times (s) and the peak (GB) after each."""
     from hybridpgo.io import read_graph, write_graph
-    from hybridpgo.solvers import AutoConfig, HybridConfig, optimize
+    from hybridpgo.solvers import AutoConfig, optimize
     from hybridpgo.solvers.gauss_newton import _ensure_compiled
     from hybridpgo.solvers.hybrid.solver import ensure_compiled
 
@@ -113,12 +131,22 @@ def solve_case(path: pathlib.Path, pipeline: bool = True,
     out["compile_or_load_s"] = time.perf_counter() - t0
     out["peak_gb"]["start"] = _peak_gb()
 
+    out["cpu_s"] = {}
+    out["load"] = {}
+    cpu = [time.process_time()]
+    load = [os.getloadavg()[0]]
+
     def phase(name: str, t_start: float) -> None:
         out["times"][name] = time.perf_counter() - t_start
         out["peak_gb"][name] = _phase_peak_gb()
-        print(f"  {path.name}: {name} {out['times'][name]:.2f} s, peak "
-              f"{out['peak_gb'][name]:.2f} GB", file=sys.stderr, flush=True)
+        out["cpu_s"][name] = time.process_time() - cpu[0]
+        out["load"][name] = [load[0], os.getloadavg()[0]]
+        print(f"  {path.name}: {name} {out['times'][name]:.2f} s (CPU "
+              f"{out['cpu_s'][name]:.2f} s, load {load[0]:.1f} -> {out['load'][name][1]:.1f}), "
+              f"peak {out['peak_gb'][name]:.2f} GB", file=sys.stderr, flush=True)
         _reset_phase_peak()
+        cpu[0] = time.process_time()
+        load[0] = os.getloadavg()[0]
 
     _reset_phase_peak()
     t = time.perf_counter()
@@ -126,7 +154,15 @@ def solve_case(path: pathlib.Path, pipeline: bool = True,
     phase("read", t)
     out["constraints"] = graph.num_constraints
     out["gps"] = graph.num_gps
+    t = time.perf_counter()
+    ensure_compiled(graph.num_gps > 0)  # the GPS sweep variant, before the clocks
+    out["compile_or_load_s"] += time.perf_counter() - t
+    _reset_phase_peak()
+    cpu[0] = time.process_time()
+    load[0] = os.getloadavg()[0]
     rot = trans = None
+    phases = _phases()
+    pipeline = pipeline and "pipeline" in phases
     if pipeline:  # first: the sweep's per-path blocks are the hybrid solver's, not the pipeline's
         t = time.perf_counter()
         final = optimize(graph)  # the default: --solver auto
@@ -150,26 +186,44 @@ def solve_case(path: pathlib.Path, pipeline: bool = True,
     entries = int(tree.path_ptr[-1])
     del tree, lengths
     out["sweep_block_gb"] = entries * 36 * 8 / 2**30  # the hybrid solver's per-path 6x6 blocks
-    if out["sweep_block_gb"] > SWEEP_BLOCKS_LIMIT_GB:  # would swap or be killed: not run
-        print(f"  {path.name}: sweep skipped: the hybrid solver's per-path blocks alone need "
-              f"{out['sweep_block_gb']:.1f} GB", file=sys.stderr, flush=True)
-        t = time.perf_counter()
-        write_graph(graph.with_poses(rot, trans), path.with_name(path.stem + "_out.g2o"))
-        phase("write", t)
-        return out
-    t = time.perf_counter()
-    res = optimize(graph, HybridConfig(sweeps=1))
-    phase("sweep", t)
-    out["sweep_parts"] = {k: float(v) for k, v in res.timings.items()}
-    out["energy_start"] = float(res.energy_history[0])
-    out["energy_sweep"] = float(res.energy_history[-1])
+    if "sweep" in phases and out["sweep_block_gb"] > SWEEP_BLOCKS_LIMIT_GB:
+        # would swap or be killed: not run
+        print(f"  {path.name}: sweep skipped: the hybrid solver's per-path blocks alone "
+              f"need {out['sweep_block_gb']:.1f} GB", file=sys.stderr, flush=True)
+    elif "sweep" in phases:
+        rot, trans = _sweep_phase(graph, "bfs", "sweep", phase, out, rot, trans)
+    if "sweep_gpstree" in phases and graph.num_gps:
+        rot, trans = _sweep_phase(graph, "gps", "sweep_gpstree", phase, out, rot, trans)
     if rot is None:
-        rot, trans = res.rotations, res.translations
-    del res
+        rot, trans = graph.rotations, graph.translations
     t = time.perf_counter()
     write_graph(graph.with_poses(rot, trans), path.with_name(path.stem + "_out.g2o"))
     phase("write", t)
     return out
+
+
+def _sweep_phase(graph: Any, tree: str, name: str, phase: Any, out: dict[str, Any],
+                 rot: Any, trans: Any) -> tuple[Any, Any]:
+    """One hybrid sweep from the tree start (``optimize(graph, HybridConfig(sweeps=1,
+    tree=tree))``): its time in parts, its energies; returns the poses to write."""
+    from hybridpgo.solvers import HybridConfig, optimize
+
+    t = time.perf_counter()
+    res = optimize(graph, HybridConfig(sweeps=1, tree=tree))  # type: ignore[arg-type]
+    phase(name, t)
+    parts = {k: float(v) for k, v in res.timings.items()}
+    parts["setup"] = float(res.timings["analyze"])
+    parts["kernel"] = float(res.timings["solve"])
+    parts["energies"] = (out["times"][name] - res.timings["analyze"] - res.timings["solve"]
+                         - res.timings.get("compile", 0.0))
+    suffix = "" if name == "sweep" else "_" + name
+    out["sweep_parts" + suffix] = parts
+    out["energy_start" + suffix] = float(res.energy_history[0])
+    out["energy_sweep" + suffix] = float(res.energy_history[-1])
+    out["sweep_blocks" + suffix] = int(res.stats["path_length_mean"] * res.num_constraints)
+    if rot is None:
+        return res.rotations, res.translations
+    return rot, trans
 
 
 def _pipeline_summary(res: Any, key: str) -> dict[str, Any]:
@@ -233,7 +287,7 @@ def run(ctx: Any) -> tuple[list[Metric], list[str]]:
         r = _subprocess_case(poses, gps, pipeline=True)
         key = f"scale.{poses // 1000}k.{'gps' if gps else 'nogps'}"
         if "error" in r:
-            rows.append([f"{poses:,}", "yes" if gps else "no", r["error"]] + [""] * 10)
+            rows.append([f"{poses:,}", "yes" if gps else "no", r["error"]] + [""] * 11)
             continue
         tm, pk = r["times"], r["peak_gb"]
         for name, value in tm.items():
@@ -259,20 +313,42 @@ def run(ctx: Any) -> tuple[list[Metric], list[str]]:
                 "LM)",
                 f"{r['energy_pipeline'] / r['constraints']:.10g}",
                 f"{r['energy_pipeline_other'] / r['constraints']:.10g}", f"{ratio - 1.0:+.2e}"])
-        sweep_solve = r.get("sweep_parts", {}).get("solve", float("nan"))
+        parts = r.get("sweep_parts", {})
+        nan = float("nan")
+        for part in ("setup", "kernel", "energies"):
+            if part in parts:
+                metrics.append(info(f"{key}.sweep_{part}_s", parts[part], "s"))
+        cpu = r.get("cpu_s", {})
+        if "sweep" in cpu:
+            metrics.append(info(f"{key}.sweep_cpu_s", cpu["sweep"], "s"))
+        sweep_cell = (
+            f"{tm['sweep']:.1f} = {parts.get('setup', nan):.1f} + {parts.get('kernel', nan):.1f}"
+            f" + {parts.get('energies', nan):.1f} (CPU {cpu.get('sweep', nan):.1f}; load "
+            f"{r.get('load', {}).get('sweep', [nan])[0]:.1f})" if "sweep" in tm
+            else f"skipped: {r['sweep_block_gb']:.0f} GB of blocks"
+            if r["sweep_block_gb"] > SWEEP_BLOCKS_LIMIT_GB else "not run")
         gen = r["generate"]
         metrics.append(info(f"{key}.generate_s", gen["times"]["generate"], "s"))
         metrics.append(info(f"{key}.generate_peak_gb", gen["peak_gb"], "GB"))
+        gps_tree_cell = "-"
+        if "sweep_gpstree" in tm:
+            gparts = r["sweep_parts_sweep_gpstree"]
+            gps_tree_cell = (
+                f"{tm['sweep_gpstree']:.1f} = {gparts['setup']:.1f} + {gparts['kernel']:.1f} + "
+                f"{gparts['energies']:.1f} (CPU {cpu['sweep_gpstree']:.1f}) / "
+                f"{pk['sweep_gpstree']:.2f} GB / E/c "
+                f"{r['energy_sweep_sweep_gpstree'] / r['constraints']:.3g}")
+            metrics.append(info(f"{key}.sweep_gpstree_s", tm["sweep_gpstree"], "s"))
+            metrics.append(info(f"{key}.sweep_gpstree_peak_gb", pk["sweep_gpstree"], "GB"))
         rows.append([
             f"{poses:,}", "yes" if gps else "no", f"{r['constraints']:,} + {r['gps']:,} GPS",
             f"{gen['times']['generate']:.0f} / {gen['peak_gb']:.2f}",
             f"{r['tree']['tree_max_depth']:.0f} / {r['tree']['path_length_mean']:.1f}",
-            f"{tm['read']:.1f}", f"{tm.get('sweep', float('nan')):.1f} ({sweep_solve:.1f})"
-            + ("" if "sweep" in tm else f" skipped: {r['sweep_block_gb']:.0f} GB of blocks"),
+            f"{tm['read']:.1f}", sweep_cell, gps_tree_cell,
             f"{tm.get('pipeline', float('nan')):.0f}",
-            f"{r.get('pipeline_policy', '')}: {r.get('pipeline_init', '')}, "
-            f"{r.get('pipeline_sweeps', '')} sweeps, {r.get('pipeline_polish_iterations', '')} LM "
-            f"{r.get('pipeline_status', '')}",
+            f"{r['pipeline_policy']}: {r['pipeline_init']}, {r['pipeline_sweeps']} sweeps, "
+            f"{r['pipeline_polish_iterations']} LM {r['pipeline_status']}"
+            if "pipeline" in tm else "not run",
             f"{tm['write']:.1f}",
             f"{pk['read']:.2f} / {pk.get('pipeline', float('nan')):.2f} / "
             f"{pk.get('sweep', float('nan')):.2f} / {pk['write']:.2f}",
@@ -280,14 +356,19 @@ def run(ctx: Any) -> tuple[list[Metric], list[str]]:
             f"{r.get('energy_pipeline', float('nan')) / r['constraints']:.4g}",
         ])
     header = ["poses", "GPS", "constraints", "generate s / GB", "tree depth / mean path",
-              "read s", "1 sweep s (solve)", "pipeline s", "pipeline: policy, start, sweeps, LM",
+              "read s", "1 sweep s = setup + kernel + energies",
+              "1 sweep, tree=gps: s / peak / E/c", "pipeline s",
+              "pipeline: policy, start, sweeps, LM",
               "write s", "peak GB read / pipeline / sweep / write", "E/c sweep / pipeline"]
     table = markdown_table("Scale: generated cities", header, rows)
     note = (f"Targets at 1M poses: one sweep <= {TARGET_SWEEP_S:.0f} s, default pipeline "
             f"(`optimize(graph)`, --solver auto) <= {TARGET_PIPELINE_S:.0f} s, peak <= "
             f"{TARGET_PEAK_GB:.0f} GB.  Each case solved in its own process (generated and written "
             "by another); peak = the phase's own peak RSS (VmHWM) in the solving process.  "
-            "1 sweep = analyze (tree, set-up) + solve.")
+            "1 sweep = `optimize(graph, HybridConfig(sweeps=1))` from the tree start: setup "
+            "(tree, locals, problem, 𝔅(H) and every constraint's blocks; once per solve) + the "
+            "sweep kernel + energies (start and end energy, result poses); its CPU time and "
+            "the load average when it started in brackets.")
     out = [table + "\n" + note + "\n"]
     if compare_rows:
         out.append(markdown_table(

@@ -25,7 +25,7 @@ def _ancestors(tree, i):
     return out
 
 
-@pytest.mark.parametrize("kind", ["bfs", "mst"])
+@pytest.mark.parametrize("kind", ["bfs", "mst", "gps"])
 @pytest.mark.parametrize("gps", [0, 3])
 def test_paths_match_a_naive_lowest_common_ancestor(kind, gps):
     rng = np.random.default_rng(0)
@@ -110,6 +110,26 @@ def test_gps_tree_hangs_from_a_central_reading():
     graph = graph.add_gps([0, 20, 40], [[0, 0, 0], [20, 0, 0], [40, 0, 0]], np.eye(3))
     tree = build_tree(graph)
     assert tree.parent[20] == n and tree.max_depth == 21
+
+
+def test_gps_forest_hangs_every_gps_pose_from_the_earth():
+    """tree="gps": each GPS pose is a child of the earth, linked by its first reading; so a
+    GPS domain is that one pose, and the tree is shallow."""
+    rng = np.random.default_rng(3)
+    graph, _, _ = random_graph(rng, n=30, extra=10, gps=6)
+    first = int(graph.node_ids[graph.gps_nodes[0]])
+    graph = graph.add_gps([first], [[1.0, 2.0, 3.0]], np.eye(3))  # a second reading
+    tree = build_tree(graph, "gps")
+    n, m = graph.num_nodes, graph.num_edges
+    gps_poses = np.unique(graph.gps_nodes)
+    assert np.all(tree.parent[gps_poses] == n)
+    assert np.all(tree.link_kind[gps_poses] == LINK_GPS)
+    for v in gps_poses:
+        assert tree.link_index[v] == np.flatnonzero(graph.gps_nodes == v)[0]
+    others = np.setdiff1d(np.arange(n), gps_poses)
+    assert np.all(tree.link_kind[others] == LINK_EDGE)
+    assert np.all(np.diff(tree.path_ptr)[m:] == 1)  # every GPS domain: its own pose
+    assert tree.max_depth <= build_tree(graph).max_depth
 
 
 def test_parts_without_gps_are_rejected():

@@ -19,7 +19,7 @@ if TYPE_CHECKING:
     from ..graph import PoseGraph
 
 StepName = Literal["woodbury", "givens"]
-TreeName = Literal["bfs", "mst"]
+TreeName = Literal["bfs", "mst", "gps"]
 InitName = Literal["tree", "file", "chordal"]
 #: Robust kernels (DESIGN §10); the same names as ``_cost.ROBUST_NAMES`` (tested).
 RobustName = Literal["none", "huber", "cauchy", "geman_mcclure"]
@@ -166,7 +166,9 @@ class HybridConfig:
     step: StepName = "woodbury"
     """``"woodbury"`` (O(d), default) or ``"givens"`` (the paper's O(d^2) triangularization)."""
     tree: TreeName = "bfs"
-    """``"bfs"`` (paper) or ``"mst"`` (maximum-stiffness spanning tree)."""
+    """``"bfs"`` (paper), ``"mst"`` (maximum-stiffness spanning tree) or ``"gps"`` (every GPS
+    pose a child of the earth: GPS domains of one pose, a fraction of the per-path blocks on
+    large GPS graphs, but measured slower to converge; experimental)."""
     init: InitName = "tree"
     """``"tree"`` (concatenate tree-edge measurements, paper), ``"file"`` (the file's vertices)
     or ``"chordal"`` (chordal rotation relaxation, then positions)."""
