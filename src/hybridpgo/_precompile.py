@@ -85,8 +85,8 @@ def _finish() -> None:
 
 
 def _starts() -> None:
-    """Local transforms from global poses: the ``file`` start (the file's read-only arrays) and
-    the ``chordal`` one (writable arrays: a second signature)."""
+    """Local transforms from global poses (the ``file`` start; the ``chordal`` one also compiles
+    the chordal initialization)."""
     from .tree import build_tree, initial_locals
 
     graph = _tiny_graph()

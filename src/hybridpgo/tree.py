@@ -404,7 +404,7 @@ def initial_locals(
             if tree.has_earth
             else np.ascontiguousarray(gtr0)
         )
-        _locals_from_globals(tree.parent, grot, gtr, rot, trans)
+        locals_from_globals(tree.parent, grot, gtr, rot, trans)
         return rot, trans
     kind = tree.link_kind
     idx = tree.link_index
@@ -425,20 +425,6 @@ def initial_locals(
         rot[tree.root] = graph.rotations[tree.root]
         trans[tree.root] = graph.translations[tree.root]
     return rot, trans
-
-
-@kernel
-def _locals_from_globals(
-    parent: np.ndarray, grot: np.ndarray, gtr: np.ndarray, rot: np.ndarray, trans: np.ndarray
-) -> None:
-    for i in range(parent.shape[0]):
-        p = parent[i]
-        if p < 0:
-            rot[i] = grot[i]
-            trans[i] = gtr[i]
-        else:
-            rot[i] = grot[p].T @ grot[i]
-            trans[i] = grot[p].T @ (gtr[i] - gtr[p])
 
 
 def _make_fma() -> Any:
@@ -464,6 +450,44 @@ def _make_fma() -> Any:
 
 
 _fma = _make_fma()
+
+
+def locals_from_globals(parent: np.ndarray, grot: np.ndarray, gtr: np.ndarray,
+                        rot: np.ndarray, trans: np.ndarray) -> None:
+    """Local transforms ``T_i = G_parent^-1 G_i`` (``rot``, ``trans``: written) of global poses
+    (``parent`` < 0: ``T_i = G_i``).  The arguments are normalized (int32 parents, read-only
+    poses) so the kernel is compiled once, whoever calls it."""
+    ro_rot = np.ascontiguousarray(grot).view()
+    ro_tr = np.ascontiguousarray(gtr).view()
+    ro_rot.flags.writeable = ro_tr.flags.writeable = False
+    _locals_from_globals(np.ascontiguousarray(parent, np.int32), ro_rot, ro_tr, rot, trans)
+
+
+@kernel
+def _locals_from_globals(
+    parent: np.ndarray, grot: np.ndarray, gtr: np.ndarray, rot: np.ndarray, trans: np.ndarray
+) -> None:
+    """:func:`locals_from_globals` in scalar code: ``G_p^T G_i`` and ``G_p^T (g_i - g_p)`` with
+    the roundings of the ``@`` products this replaced (OpenBLAS's 3x3 kernels: fused
+    multiply-adds in this order), so the starts stay bit-identical; ``@`` pulled Numba's dot
+    machinery into the kernel (~5 s of compilation per signature)."""
+    for i in range(parent.shape[0]):
+        p = parent[i]
+        if p < 0:
+            for a in range(3):
+                trans[i, a] = gtr[i, a]
+                for b in range(3):
+                    rot[i, a, b] = grot[i, a, b]
+            continue
+        d0 = gtr[i, 0] - gtr[p, 0]
+        d1 = gtr[i, 1] - gtr[p, 1]
+        d2 = gtr[i, 2] - gtr[p, 2]
+        for a in range(3):
+            for b in range(3):
+                rot[i, a, b] = _fma(grot[p, 2, a], grot[i, 2, b],
+                                    _fma(grot[p, 1, a], grot[i, 1, b],
+                                         grot[p, 0, a] * grot[i, 0, b]))
+            trans[i, a] = _fma(grot[p, 2, a], d2, _fma(grot[p, 1, a], d1, grot[p, 0, a] * d0))
 
 
 @kernel

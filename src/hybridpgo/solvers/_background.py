@@ -338,7 +338,7 @@ class _Map:
     def solve(self, max_iterations: int) -> tuple[Arrays, dict[str, Any]]:
         """Exact LM over the map from the current estimate; the locals of nodes 1..n."""
         from ..graph import PoseGraph
-        from ..tree import _locals_from_globals
+        from ..tree import locals_from_globals
         from .config import GaussNewtonConfig
         from .gauss_newton import solve_exact
 
@@ -367,7 +367,7 @@ class _Map:
         seconds = time.perf_counter() - t0
         lrot = np.empty((n + 1, 3, 3))
         ltr = np.empty((n + 1, 3))
-        _locals_from_globals(self.parent[: n + 1], self.grot[: n + 1], self.gtr[: n + 1],
+        locals_from_globals(self.parent[: n + 1], self.grot[: n + 1], self.gtr[: n + 1],
                              lrot, ltr)
         meta = {"type": "result", "n": n, "m": m, "g": g, "energy": energy,
                 "iterations": iterations, "status": status, "seconds": seconds}

@@ -969,7 +969,7 @@ class OnlineSolver:
         when a frame can afford it (e.g. while the robot stands still).  The gauge is the
         solver's: the first pose without GPS, the earth with it.  Returns the iterations done.
         """
-        from ..tree import _locals_from_globals
+        from ..tree import locals_from_globals
         from .config import GaussNewtonConfig
         from .gauss_newton import solve_exact
 
@@ -989,7 +989,7 @@ class OnlineSolver:
         grot[0] = np.eye(3)
         grot[1:] = res.rotations[rank]
         gtr[1:] = res.translations[rank]
-        _locals_from_globals(self._parent[:t], grot, gtr, self._rot[:t], self._trans[:t])
+        locals_from_globals(self._parent[:t], grot, gtr, self._rot[:t], self._trans[:t])
         return int(res.iterations)
 
     def stats(self) -> dict[str, Any]:
