@@ -18,14 +18,17 @@ from hybridpgo.solvers.hybrid.solver import _whitening
 from hybridpgo.tree import global_poses
 
 
+@pytest.mark.parametrize("interpolation", [False, True])
 @pytest.mark.parametrize(("gps", "robust"), [(0, "none"), (4, "none"), (4, "huber")])
-def test_init_blocks_is_bit_identical_to_the_sweep_kernels_blocks(gps, robust):
+def test_init_blocks_is_bit_identical_to_the_sweep_kernels_blocks(gps, robust, interpolation):
+    """The own kernel (large graphs) against every sweep variant with ``apply=False`` (the
+    small graphs' set-up, by the variant the solve uses)."""
     graph = random_graph(np.random.default_rng(5), 14, 10, gps=gps)[0]
     solver = HybridSolver(graph, HybridConfig(robust=robust, robust_scale=0.5))
     solver.step(solver.tree.sweep_order, tau=0.6)  # away from the tree start
     prob, st = solver.problem, solver.state
     old = State(st.rot, st.trans, np.full_like(st.bdiag, 7.0), np.full_like(st.contrib, 7.0))
-    _sweep.init_blocks(prob, old, solver.dmax)  # the former set-up: the sweep, apply=False
+    _sweep.init_blocks(prob, old, solver.dmax, gps > 0, interpolation)
     new = State(st.rot.copy(), st.trans.copy(), np.full_like(st.bdiag, np.nan),
                 np.full_like(st.contrib, np.nan))  # garbage in: every entry is overwritten
     _init_blocks.init_blocks(prob, new, solver.dmax)
@@ -59,3 +62,24 @@ def test_run_returns_the_poses_its_last_energy_was_computed_at():
     assert np.array_equal(res.rotations, rot) and np.array_equal(res.translations, trans)
     assert np.array_equal(seen[-1][0], rot) and np.array_equal(seen[-1][1], trans)
     assert len(seen) == 3
+
+
+def test_the_set_up_kernel_is_chosen_by_size_and_gives_the_same_solve(monkeypatch):
+    """Above ``INIT_KERNEL_ENTRIES`` path entries the own kernel builds 𝔅(H), below the sweep
+    kernel: the same blocks, so the same sweeps, bit for bit."""
+    from hybridpgo.solvers.hybrid import solver as hs
+
+    graph = random_graph(np.random.default_rng(8), 16, 12, gps=3)[0]
+    calls = []
+    own = _init_blocks.init_blocks
+    monkeypatch.setattr(_init_blocks, "init_blocks", lambda *a: (calls.append(1), own(*a)))
+    results = []
+    for threshold in (10**9, 0):
+        monkeypatch.setattr(hs, "INIT_KERNEL_ENTRIES", threshold)
+        solver = HybridSolver(graph, HybridConfig(sweeps=3))
+        results.append(solver.run())
+        results.append(calls.copy())
+    small, small_calls, large, large_calls = results
+    assert small_calls == [] and large_calls  # the own kernel only for the "large" graph
+    assert np.array_equal(small.rotations, large.rotations)
+    assert np.array_equal(small.translations, large.translations)

@@ -27,10 +27,12 @@ import json, sys
 import numpy as np
 sys.path.insert(0, sys.argv[1])
 from graphs import random_graph
-from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver, _sweep
+from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver, _init_blocks, _sweep
 
 def signatures():
-    return {f"{g:d}{i:d}": len(k.signatures) for (g, i), k in _sweep.SWEEPS.items()}
+    out = {f"{g:d}{i:d}": len(k.signatures) for (g, i), k in _sweep.SWEEPS.items()}
+    out["init"] = len(_init_blocks.init_blocks.signatures)
+    return out
 
 out = []
 for gps in (0, 3):
@@ -78,14 +80,15 @@ def test_each_sweep_variant_calls_only_what_it_needs() -> None:
 def test_a_solve_compiles_only_the_sweep_variant_it_uses() -> None:
     """Checked in a fresh interpreter (this one may have compiled every variant): a graph
     without GPS runs one plain sweep kernel with one signature for run(), step() and
-    rebuild_blocks(); a GPS graph adds the GPS variant; neither the interpolating ones."""
+    rebuild_blocks(); a GPS graph adds the GPS variant; neither the interpolating ones, nor
+    the large graphs' own 𝔅(H) kernel (the solve's sweep variant builds 𝔅(H))."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(SRC), os.environ.get("PYTHONPATH", "")]))
     env.pop("NUMBA_DISABLE_JIT", None)
     out = subprocess.run([sys.executable, "-c", SCRIPT, str(TESTS)], env=env, check=True,
                          capture_output=True, text=True).stdout
     no_gps, with_gps = json.loads(out.strip().splitlines()[-1])
-    assert no_gps == {"00": 1, "01": 0, "10": 0, "11": 0}
-    assert with_gps == {"00": 1, "01": 0, "10": 1, "11": 0}
+    assert no_gps == {"00": 1, "01": 0, "10": 0, "11": 0, "init": 0}
+    assert with_gps == {"00": 1, "01": 0, "10": 1, "11": 0, "init": 0}
 
 
 def test_every_sweep_variant_gives_the_plain_sweeps_result_without_gps_and_dmax() -> None:

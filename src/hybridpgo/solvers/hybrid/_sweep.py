@@ -196,15 +196,19 @@ def _run(kern: Any, prob: Problem, state: State, order: np.ndarray, tau: float, 
                     batch_cycles, counts, bool(apply)))
 
 
-def init_blocks(prob: Problem, state: State, dmax: int) -> None:
+def init_blocks(prob: Problem, state: State, dmax: int, with_gps: bool = False,
+                with_interpolation: bool = False) -> None:
     """𝔅(H) and every constraint's contribution at the current poses (no step).
 
-    Runs the plain sweep kernel with ``apply=False`` over every constraint (GPS readings one by
-    one: only their blocks are wanted), so no kernel of its own is compiled.
+    Runs the sweep kernel of the given variant (the one the solve uses: nothing more to
+    compile) with ``apply=False`` over every constraint: every variant then relaxes each
+    constraint, GPS readings one by one, with :func:`relax` (only the blocks are wanted), so
+    the blocks are the same whatever the variant.
     """
     state.bdiag[:] = 0.0
     state.contrib[:] = 0.0
     nc = prob.path_ptr.shape[0] - 1
-    _run(sweep_kernel(False, False), prob, state, np.arange(nc, dtype=np.int32), 0.0, 0.0,
+    _run(sweep_kernel(with_gps, with_interpolation), prob, state, np.arange(nc, dtype=np.int32),
+         0.0, 0.0,
          StepKind.WOODBURY, 1, dmax, 0, np.iinfo(np.uint64).max, np.zeros(nc, np.uint64),
          np.zeros(nc, np.uint64), np.zeros(NUM_COUNTS, np.int64), False)

@@ -121,7 +121,9 @@ class HybridSolver:
         )
         lengths = tree.path_lengths()
         self.dmax = max(int(lengths.max()) if lengths.size else 1, 1)
+        compiled = self.compile_seconds
         self.rebuild_blocks()
+        compiled = self.compile_seconds - compiled  # the first large graph's init kernel
         aggregated = cfg.update != "paper"
         self.memory = _aggregate.new_memory(int(tree.path_ptr[-1]) if aggregated else 0,
                                             tree.num_tree_nodes if aggregated else 0)
@@ -130,7 +132,7 @@ class HybridSolver:
         self.tau = cfg.tau0
         """The temperature of the next sweep."""
         self.sweeps_done = 0
-        self.analyze_seconds = time.perf_counter() - t0
+        self.analyze_seconds = time.perf_counter() - t0 - compiled
         nc = tree.num_constraints
         self._cycles = np.zeros(nc, np.uint64)
         self._batch_cycles = np.zeros(nc, np.uint64)
@@ -141,8 +143,18 @@ class HybridSolver:
         return self.tree.num_constraints
 
     def rebuild_blocks(self) -> None:
-        """Recompute 𝔅(H) and all contributions from scratch at the current poses."""
-        _init_blocks.init_blocks(self.problem, self.state, self.dmax)
+        """Recompute 𝔅(H) and all contributions from scratch at the current poses.
+
+        With at least :data:`INIT_KERNEL_ENTRIES` path entries by their own kernel
+        (:mod:`._init_blocks`), otherwise by the solve's sweep kernel with ``apply=False``
+        (bit-identical blocks; nothing more to compile).
+        """
+        if self.problem.path_node.shape[0] >= INIT_KERNEL_ENTRIES:
+            self.compile_seconds += _compile_init_kernel()
+            _init_blocks.init_blocks(self.problem, self.state, self.dmax)
+        else:
+            _sweep.init_blocks(self.problem, self.state, self.dmax,
+                               self.problem.gps_pos.shape[0] > 0, bool(self.config.dmax))
 
     def init_memory(self) -> None:
         """``update="saga"``: remember every constraint's force at the current poses (a warm
@@ -455,6 +467,35 @@ def solve_hybrid(graph: PoseGraph, config: HybridConfig | None = None, *,
 
 #: The sweep variants ``(gps, interpolate)`` compiled (or loaded) in this process.
 _COMPILED: set[tuple[bool, bool]] = set()
+
+#: 𝔅(H) is built by its own kernel (:mod:`._init_blocks`: no damped factorization per node, no
+#: solve; 1M-pose city: 2.8 s of CPU against 5.0 s by the sweep kernel with ``apply=False``) on
+#: problems with at least this many constraint-path entries.  Below, the solve's sweep kernel
+#: builds it: the own kernel costs as much compilation as a sweep variant (~10 s of CPU on a
+#: cold cache), more than it saves there.
+INIT_KERNEL_ENTRIES = 1_000_000
+_INIT_COMPILED: list[bool] = []
+
+
+def _compile_init_kernel() -> float:
+    """Compile (or load) :func:`._init_blocks.init_blocks`; the seconds spent (0 once done)."""
+    if _INIT_COMPILED:
+        return 0.0
+    _INIT_COMPILED.append(True)  # first: the tiny solver below builds its blocks too
+    t0 = time.perf_counter()
+    eye = np.tile(np.eye(3), (2, 1, 1))
+    tiny = PoseGraph(
+        node_ids=np.arange(2), rotations=eye, translations=np.zeros((2, 3)),
+        edge_nodes=np.array([[0, 1]], np.int32), edge_rotations=eye[:1],
+        edge_translations=np.ones((1, 3)), edge_information=np.eye(6)[None],
+    )
+    try:
+        solver = HybridSolver(tiny, HybridConfig(sweeps=1, init="tree"))
+        _init_blocks.init_blocks(solver.problem, solver.state, solver.dmax)
+    except BaseException:
+        _INIT_COMPILED.clear()
+        raise
+    return time.perf_counter() - t0
 
 
 def ensure_compiled(gps: bool = False, interpolate: bool = False) -> float:
