@@ -27,12 +27,13 @@ import json, sys
 import numpy as np
 sys.path.insert(0, sys.argv[1])
 from graphs import random_graph
-from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver, _init_blocks, _sweep
+from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver, _init_blocks, _step, _sweep
 
 def signatures():
-    out = {f"{g:d}{i:d}": len(k.signatures) for (g, i), k in _sweep.SWEEPS.items()}
+    out = {f"{g:d}{i:d}{v:d}": len(k.signatures) for (g, i, v), k in _sweep.SWEEPS.items()}
     out["init"] = len(_init_blocks.init_blocks.signatures)
-    return out
+    out["relax"] = len(_step.relax.signatures)  # the generic one: every branch compiled in
+    return {key: n for key, n in out.items() if n}
 
 out = []
 for gps in (0, 3):
@@ -63,15 +64,24 @@ def test_each_sweep_variant_calls_only_what_it_needs() -> None:
     """The plain sweep never reaches the GPS batches (``_flush*`` -> ``batch_relax*``) or
     ``relax_interpolated``, together about two thirds of the hybrid compile time; a GPS sweep
     without ``d_max`` never the interpolated batch (``_reduced_batch``)."""
-    from hybridpgo.solvers.hybrid import _batch, _sweep
+    from hybridpgo.solvers.hybrid import _batch, _step, _sweep
+    from hybridpgo.solvers.hybrid.problem import StepKind
 
     heavy = {"_flush", "_flush_exact", "relax_interpolated"}
-    for (gps, interp), kern in _sweep.SWEEPS.items():
+    for (gps, interp, givens), kern in _sweep.SWEEPS.items():
         used = _referenced_globals(kern)
         assert "relax" in used
+        relax = kern.py_func.__closure__[kern.py_func.__code__.co_freevars.index("relax")]
+        assert relax.cell_contents is _step.RELAX[gps, StepKind.GIVENS if givens
+                                                  else StepKind.WOODBURY]
         flush = ("_flush" if interp else "_flush_exact") if gps else None
         expected = {name for name in (flush, "relax_interpolated" if interp else None) if name}
         assert used & heavy == expected, (gps, interp)
+    for (gps, step), kern in _step.RELAX.items():  # one solve, the GPS linearization if asked
+        used = _referenced_globals(kern)
+        assert ("givens_solve" in used, "woodbury_solve" in used) == (
+            (True, False) if step == StepKind.GIVENS else (False, True))
+        assert ("linearize" in used) == gps
     assert "batch_relax_exact" in _referenced_globals(_sweep._flush_exact)
     assert "_reduced_batch" not in _referenced_globals(_batch.batch_relax_exact)
     assert "_reduced_batch" in _referenced_globals(_batch.batch_relax)
@@ -87,8 +97,8 @@ def test_a_solve_compiles_only_the_sweep_variant_it_uses() -> None:
     out = subprocess.run([sys.executable, "-c", SCRIPT, str(TESTS)], env=env, check=True,
                          capture_output=True, text=True).stdout
     no_gps, with_gps = json.loads(out.strip().splitlines()[-1])
-    assert no_gps == {"00": 1, "01": 0, "10": 0, "11": 0, "init": 0}
-    assert with_gps == {"00": 1, "01": 0, "10": 1, "11": 0, "init": 0}
+    assert no_gps == {"000": 1}
+    assert with_gps == {"000": 1, "100": 1}
 
 
 def test_every_sweep_variant_gives_the_plain_sweeps_result_without_gps_and_dmax() -> None:
@@ -103,7 +113,7 @@ def test_every_sweep_variant_gives_the_plain_sweeps_result_without_gps_and_dmax(
     graph = random_graph(np.random.default_rng(1), 12, 8)[0]
     assert graph.num_gps == 0
     results = []
-    for variant in ((False, False), (False, True)):
+    for variant in ((False, False), (False, True)):  # Woodbury
         solver = HybridSolver(graph, HybridConfig())
         nc = solver.num_constraints
         counts = np.zeros(NUM_COUNTS, np.int64)

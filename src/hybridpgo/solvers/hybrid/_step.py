@@ -13,6 +13,7 @@ pi/8 (III-H) and applied; single and batch updates both use it.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -496,6 +497,52 @@ def solve_single(d: int, kr: int, step_kind: int, wk: Workspace) -> None:
         woodbury_solve(d, kr, wk.jac, wk.lfac, wk.r, wk.w, wk.x, wk.bc, wk.sv)
 
 
+def _make_relax(with_gps: bool, step: int) -> Any:
+    """The single update of one variant: ``with_gps`` compiles the GPS linearization in (a
+    graph without GPS readings never reaches it); ``step`` is ``StepKind.WOODBURY`` or
+    ``GIVENS`` to compile that solve only (its ``step_kind`` argument is then ignored), -1 to
+    choose by ``step_kind`` at run time.  Closure constants: Numba prunes the dead branches
+    before typing, so each variant compiles only its own callees (``sweep`` variants)."""
+    givens_only = step == StepKind.GIVENS
+    by_argument = step < 0
+
+    def relax_variant(prob: Problem, state: State, wk: Workspace, c: int, tau: float,
+                      mu: float, step_kind: int, apply: bool) -> int:
+        s, d = domain(prob, c)
+        if d == 0:
+            return Update.APPLIED
+        if with_gps and is_gps(prob, c):
+            kr = linearize(prob, c, state.rot, state.trans, wk, wk.jac)[0]
+            accumulate_path(prob.path_node, s, d, kr, wk.jac, state.bdiag, state.contrib, mu,
+                            wk.lfac, wk.bc, True)
+        else:
+            kr = 6
+            na = relative_setup(prob.path_node, prob.path_sign, s, d, prob.edge_rot[c],
+                                prob.edge_trans[c], prob.edge_lt[c], prob.robust_kind,
+                                prob.robust_scale, state.rot, state.trans, wk.path_rot,
+                                wk.path_trans, wk.iws, wk.ws, wk.e, wk.r, wk.jri, wk.a)
+            linearize_accumulate(prob.path_node, prob.path_sign, s, d, na, wk.path_rot,
+                                 wk.path_trans, wk.a, wk.jac, True, prob.path_ptr, 0,
+                                 state.bdiag, state.contrib, mu, wk.lfac, wk.bc, True)
+        if not apply:
+            return Update.APPLIED
+        if givens_only or (by_argument and step_kind == StepKind.GIVENS):
+            givens_solve(d, kr, wk.jac, wk.lfac, wk.r, wk.x)
+        else:
+            woodbury_solve(d, kr, wk.jac, wk.lfac, wk.r, wk.w, wk.x, wk.bc, wk.sv)
+        return apply_step(prob.path_node, s, d, wk.x, tau, state.rot, state.trans, wk.ws)
+
+    relax_variant.__qualname__ = relax_variant.__name__ = (
+        "relax" + ("_gps" if with_gps else "")
+        + ("_givens" if givens_only else "" if by_argument else "_woodbury"))
+    return kernel(relax_variant)
+
+
+#: Single updates that compile one solve, by ``(with_gps, step kind)`` (the sweep variants').
+RELAX = {(g, int(k)): _make_relax(g, int(k)) for g in (False, True)
+         for k in (StepKind.WOODBURY, StepKind.GIVENS)}
+
+
 @kernel
 def relax(prob: Problem, state: State, wk: Workspace, c: int, tau: float, mu: float,
           step_kind: int, apply: bool) -> int:
@@ -503,6 +550,8 @@ def relax(prob: Problem, state: State, wk: Workspace, c: int, tau: float, mu: fl
 
     With ``apply=False`` only 𝔅(H) and c's contributions are updated.  Returns an ``Update``.
     The callees get single arrays, not the NamedTuples (see :func:`relative_linearization`).
+    Every branch compiled in (GPS, both solves); the sweeps use the :data:`RELAX` variant
+    they need, with the same arithmetic.
     """
     s, d = domain(prob, c)
     if d == 0:

@@ -15,7 +15,7 @@ import numpy as np
 from ..._numba import cycle_counter, kernel
 from ._batch import batch_relax, batch_relax_exact
 from ._interpolate import relax_interpolated
-from ._step import relax
+from ._step import RELAX
 from .problem import (
     BATCH_REJECTED,
     NUM_COUNTS,
@@ -79,12 +79,15 @@ def _flush_exact(prob: Problem, state: State, buf: np.ndarray, nbuf: int, tau: f
     return _count_batch(nu, t0, buf, nbuf, cycles, batch_cycles, counts)
 
 
-def _make_sweep(with_gps: bool, with_interpolation: bool) -> Any:
+def _make_sweep(with_gps: bool, with_interpolation: bool, givens: bool) -> Any:
     """The sweep kernel of one variant: GPS batches and interpolated solving are compiled in
     only when the flag says so (a constant of the closure: Numba prunes the dead branch before
     typing it, so a plain sweep never compiles the GPS batches (:func:`_flush_exact`,
     ``batch_relax``) or ``relax_interpolated``, about two thirds of the hybrid solver's compile
-    time, and a sweep without ``d_max`` never the interpolated batch)."""
+    time, and a sweep without ``d_max`` never the interpolated batch).  Its single updates are
+    the :data:`~._step.RELAX` variant with the GPS linearization only ``with_gps`` and one
+    solve, Givens' when ``givens`` (the ``step_kind`` argument must then agree)."""
+    relax = RELAX[with_gps, int(StepKind.GIVENS if givens else StepKind.WOODBURY)]
 
     def sweep_variant(prob: Problem, state: State, order: np.ndarray, tau: float, mu: float,
                       step_kind: int, gps_batch_size: int, dmax: int, d_max: int,
@@ -144,18 +147,22 @@ def _make_sweep(with_gps: bool, with_interpolation: bool) -> Any:
         return first_bad
 
     sweep_variant.__qualname__ = sweep_variant.__name__ = (
-        "sweep" + ("_gps" if with_gps else "") + ("_interpolated" if with_interpolation else ""))
+        "sweep" + ("_gps" if with_gps else "") + ("_interpolated" if with_interpolation else "")
+        + ("_givens" if givens else ""))
     return kernel(sweep_variant)
 
 
-#: The sweep kernels by ``(with_gps, with_interpolation)``; each is compiled on first use.
-SWEEPS = {(g, i): _make_sweep(g, i) for g in (False, True) for i in (False, True)}
+#: The sweep kernels by ``(with_gps, with_interpolation, givens)``; each is compiled on first
+#: use.
+SWEEPS = {(g, i, v): _make_sweep(g, i, v) for g in (False, True) for i in (False, True)
+          for v in (False, True)}
 
 
-def sweep_kernel(with_gps: bool, with_interpolation: bool) -> Any:
+def sweep_kernel(with_gps: bool, with_interpolation: bool, givens: bool = False) -> Any:
     """The sweep kernel a problem needs: with GPS batches when it has GPS readings, with
-    interpolated solving when ``d_max`` > 0 (compiling only what is used)."""
-    return SWEEPS[bool(with_gps), bool(with_interpolation)]
+    interpolated solving when ``d_max`` > 0, with the Givens solve when asked, Woodbury's
+    otherwise (compiling only what is used)."""
+    return SWEEPS[bool(with_gps), bool(with_interpolation), bool(givens)]
 
 
 def sweep(prob: Problem, state: State, order: np.ndarray, tau: float, mu: float,
@@ -177,9 +184,9 @@ def sweep(prob: Problem, state: State, order: np.ndarray, tau: float, mu: float,
     Runs the variant of :func:`sweep_kernel` the problem needs (GPS batches only when it has GPS
     readings, interpolation only with ``d_max`` > 0).
     """
-    return _run(sweep_kernel(prob.gps_pos.shape[0] > 0, d_max > 0), prob, state, order, tau, mu,
-                step_kind, gps_batch_size, dmax, d_max, deadline, cycles, batch_cycles, counts,
-                True)
+    return _run(sweep_kernel(prob.gps_pos.shape[0] > 0, d_max > 0, step_kind == StepKind.GIVENS),
+                prob, state, order, tau, mu, step_kind, gps_batch_size, dmax, d_max, deadline,
+                cycles, batch_cycles, counts, True)
 
 
 def _run(kern: Any, prob: Problem, state: State, order: np.ndarray, tau: float, mu: float,
@@ -197,7 +204,7 @@ def _run(kern: Any, prob: Problem, state: State, order: np.ndarray, tau: float, 
 
 
 def init_blocks(prob: Problem, state: State, dmax: int, with_gps: bool = False,
-                with_interpolation: bool = False) -> None:
+                with_interpolation: bool = False, givens: bool = False) -> None:
     """𝔅(H) and every constraint's contribution at the current poses (no step).
 
     Runs the sweep kernel of the given variant (the one the solve uses: nothing more to
@@ -208,7 +215,7 @@ def init_blocks(prob: Problem, state: State, dmax: int, with_gps: bool = False,
     state.bdiag[:] = 0.0
     state.contrib[:] = 0.0
     nc = prob.path_ptr.shape[0] - 1
-    _run(sweep_kernel(with_gps, with_interpolation), prob, state, np.arange(nc, dtype=np.int32),
-         0.0, 0.0,
-         StepKind.WOODBURY, 1, dmax, 0, np.iinfo(np.uint64).max, np.zeros(nc, np.uint64),
-         np.zeros(nc, np.uint64), np.zeros(NUM_COUNTS, np.int64), False)
+    _run(sweep_kernel(with_gps, with_interpolation, givens), prob, state,
+         np.arange(nc, dtype=np.int32), 0.0, 0.0,
+         StepKind.GIVENS if givens else StepKind.WOODBURY, 1, dmax, 0, np.iinfo(np.uint64).max,
+         np.zeros(nc, np.uint64), np.zeros(nc, np.uint64), np.zeros(NUM_COUNTS, np.int64), False)

@@ -154,7 +154,8 @@ class HybridSolver:
             _init_blocks.init_blocks(self.problem, self.state, self.dmax)
         else:
             _sweep.init_blocks(self.problem, self.state, self.dmax,
-                               self.problem.gps_pos.shape[0] > 0, bool(self.config.dmax))
+                               self.problem.gps_pos.shape[0] > 0, bool(self.config.dmax),
+                               self.config.step == "givens")
 
     def init_memory(self) -> None:
         """``update="saga"``: remember every constraint's force at the current poses (a warm
