@@ -603,3 +603,23 @@ def test_background_state_survives_save_load(tmp_path: Path) -> None:
         _stream(t, g, range(25, st.num_frames))
         assert t.join_refine(timeout=120.0)
         assert abs(t.energy() - opt) <= ONLINE_REFINED * opt
+
+
+@pytest.mark.parametrize("hold", [True, False])
+def test_background_hold_keeps_an_optimum_that_covers_everything(hold: bool) -> None:
+    """OnlineConfig.background_hold: once the adopted optimum covers every constraint, frames
+    make no spare-time update (the estimate stays bit-identical); without it they do."""
+    g = _graph(seed=18, n=40, extra=20, gps=3)
+    with OnlineSolver(OnlineConfig(background_refine=True, background_join=1000,
+                                   background_hold=hold)) as s:
+        _stream(s, g, range(g.num_nodes))
+        assert s.join_refine(timeout=120.0)
+        rot, trans = s.estimate()
+        rep = s.update(None, UPDATES)
+        rot1, trans1 = s.estimate()
+        same = np.array_equal(rot, rot1) and np.array_equal(trans, trans1)
+        assert (rep.old == 0 and same) if hold else (rep.old > 0 and not same)
+        s.add_constraint(int(s.pose_ids()[0]), int(s.pose_ids()[-1]),
+                         s.pose(int(s.pose_ids()[-1])), np.eye(6))
+        rep = s.update(None, UPDATES)  # a constraint outside the optimum: spare time again
+        assert rep.new == 1 and rep.old > 0

@@ -23,7 +23,7 @@ import numpy as np
 
 from .._cost import residual_and_jr_inv, whiten_residual
 from .._numba import cycle_counter, kernel
-from .hybrid._batch import batch_relax, global_pose
+from .hybrid._batch import batch_relax_exact, global_pose
 from .hybrid._linearize import endpoints, num_a_side, path_products
 from .hybrid._step import relax
 from .hybrid.problem import (
@@ -226,7 +226,7 @@ def _flush(prob: Problem, state: State, buf: np.ndarray, nbuf: int, tau: float, 
            counts: np.ndarray) -> bool:
     """Relax the buffered GPS readings as one batch (III-G); True when it was rejected."""
     t0 = cycle_counter()
-    nu = batch_relax(prob, state, buf, nbuf, tau, mu, slot, xb, nodes, 0, False)
+    nu = batch_relax_exact(prob, state, buf, nbuf, tau, mu, slot, xb, nodes, 0, False)
     dc = float(cycle_counter() - t0)
     ne = 0
     for q in range(nbuf):
@@ -321,7 +321,7 @@ def relax_list(prob: Problem, state: State, wk: Workspace, order: np.ndarray, ta
                     chi2[cj] = _edge_chi2(prob, state, cj, wk)
                 last[cj] = stamp
             t0 = cycle_counter()
-            nu = batch_relax(prob, state, gbuf, nb, tau, mu, slot, xb, nodes, 0, False)
+            nu = batch_relax_exact(prob, state, gbuf, nb, tau, mu, slot, xb, nodes, 0, False)
             _learn(model, max(d, 1), float(cycle_counter() - t0), True)
             counts[C_BATCHES] += 1
             if nu == BATCH_REJECTED:
@@ -369,7 +369,7 @@ def local_batch(prob: Problem, state: State, cs: np.ndarray, tau: float, mu: flo
         counts[C_SKIPPED] += 1
         return 0
     t0 = cycle_counter()
-    nu = batch_relax(prob, state, cs, nb, tau, mu, slot, xb, nodes, 0, False)
+    nu = batch_relax_exact(prob, state, cs, nb, tau, mu, slot, xb, nodes, 0, False)
     _learn(model, max(ne, 1), float(cycle_counter() - t0), True)
     counts[C_BATCHES] += 1
     if nu == BATCH_REJECTED:
