@@ -407,3 +407,35 @@ def candidates(chi2: np.ndarray, first: int, m: int, recent: int, window: int, c
     for j in range(k):
         out[j] = tmp[perm[j]]
     return k
+
+
+@kernel
+def follow_odometry(parent: np.ndarray, rot: np.ndarray, trans: np.ndarray, n0: int, t: int,
+                    odom: np.ndarray, edge_ab: np.ndarray, old_r: np.ndarray,
+                    old_t: np.ndarray) -> None:
+    """After the local transforms of tree nodes ``1..n0-1`` were replaced (an adopted result):
+    give every later node ``i < t`` whose pose has an odometry edge the pose relative to its
+    odometry parent it had before (``old_r``, ``old_t``: the global poses before the
+    replacement), by rewriting its local transform; a node without odometry keeps its local.
+    Parents are older than their children, so one pass in index order suffices."""
+    gr = np.empty((t, 3, 3))
+    gt = np.empty((t, 3))
+    all_poses(parent, rot, trans, n0, gr, gt)
+    rel_r = np.empty((3, 3))
+    rel_t = np.empty(3)
+    for i in range(n0, t):
+        p = parent[i]
+        e = odom[i - 1]
+        if e < 0:  # no odometry (the first pose): the local stays
+            gr[i] = gr[p] @ rot[i]
+            gt[i] = gr[p] @ trans[i] + gt[p]
+            continue
+        a = edge_ab[e, 0] + 1  # the odometry parent's tree node (older than i)
+        # the pose relative to the odometry parent before: old_a^-1 old_i
+        rel_r[:] = old_r[a].T @ old_r[i]
+        rel_t[:] = old_r[a].T @ (old_t[i] - old_t[a])
+        gr[i] = gr[a] @ rel_r
+        gt[i] = gr[a] @ rel_t + gt[a]
+        # the new local transform relative to the tree parent
+        rot[i] = gr[p].T @ gr[i]
+        trans[i] = gr[p].T @ (gt[i] - gt[p])
