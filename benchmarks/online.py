@@ -46,6 +46,9 @@ ISAM2_MAX_S = 300.0
 #: Environment variable overriding ISAM2_MAX_S (seconds; 0 skips iSAM2: the whole run then takes
 #: ~25 min instead of ~60 on a loaded 2-core machine).
 ISAM2_ENV = "HYBRIDPGO_BENCH_ISAM2_MAX_S"
+#: Environment variable restricting the graphs (comma-separated names, e.g.
+#: ``M3500_isam,valencia,paris2,paris2_gps``; empty: all).
+GRAPHS_ENV = "HYBRIDPGO_BENCH_ONLINE_GRAPHS"
 
 
 def _isam2_max_s() -> float:
@@ -63,7 +66,11 @@ def _graphs(ctx: Context) -> list[tuple[str, Any]]:
         for gps in (None, 100):
             name = preset + ("_gps" if gps else "")
             out.append((name, lambda p=preset, k=gps: generate_city(p, seed=0, gps_every=k).graph))
-    return out
+    only = [v for v in os.environ.get(GRAPHS_ENV, "").split(",") if v]
+    unknown = sorted(set(only) - {name for name, _ in out})
+    if unknown:
+        raise ValueError(f"{GRAPHS_ENV}: unknown graph(s) {', '.join(unknown)}")
+    return [c for c in out if not only or c[0] in only]
 
 
 def _figure(ctx: Context, name: str, runs: list[ReplayResult], optima: dict[int, float]) -> None:

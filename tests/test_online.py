@@ -509,7 +509,7 @@ def test_adoption_keeps_newer_poses_relative_to_their_parents() -> None:
     from hybridpgo.solvers._background import Refined
 
     g = _graph(seed=13, n=40, extra=20)
-    s = OnlineSolver(OnlineConfig(background_rebase=False))
+    s = OnlineSolver(OnlineConfig(background_rebase=False, background_follow="tree"))
     _stream(s, g, range(g.num_nodes))
     rot0, trans0 = s.estimate()
     parent = s._parent[1: s._n + 1] - 1  # pose index of each pose's tree parent (-1: earth)
@@ -535,6 +535,43 @@ def test_adoption_keeps_newer_poses_relative_to_their_parents() -> None:
             assert np.allclose(before[0], after[0], atol=FLOAT64_IDENTITY)
             assert np.allclose(before[1], after[1], atol=FLOAT64_IDENTITY * 100)
     assert (s._refined_m, s._refined_g) == (30, 0)
+
+
+def test_adoption_moves_newer_poses_with_their_odometry_parents() -> None:
+    """Naive check of _adopt with background_follow="odometry": the result's poses take its
+    local transforms; every pose added after its snapshot keeps its pose relative to its
+    odometry parent (so the odometry's error into the tail is unchanged)."""
+    from hybridpgo.solvers._background import Refined
+
+    g = _graph(seed=13, n=40, extra=20, gps=4)
+    s = OnlineSolver(OnlineConfig(background_rebase=False, background_follow="odometry"))
+    _stream(s, g, range(g.num_nodes))
+    rot0, trans0 = s.estimate()
+    parent = s._parent[1: s._n + 1] - 1
+    n = 25
+    rng = np.random.default_rng(1)
+    lrot = np.empty((n, 3, 3))
+    for i in range(n):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        lrot[i] = q * np.sign(np.linalg.det(q))
+    ltrans = rng.normal(size=(n, 3))
+    s._adopt(Refined(n, 30, 0, 0, lrot, ltrans, 0.0, 1, "converged", 0.0))
+    rot1, trans1 = s.estimate()
+    moved = 0
+    for p in range(s._n):
+        if p < n:
+            a = int(parent[p])
+            pr, pt = (np.eye(3), np.zeros(3)) if a < 0 else (rot1[a], trans1[a])
+            assert np.allclose(rot1[p], pr @ lrot[p], atol=FLOAT64_IDENTITY)
+            assert np.allclose(trans1[p], pr @ ltrans[p] + pt, atol=FLOAT64_IDENTITY * 100)
+            continue
+        a = int(s._edge_ab[s._odom[p], 0])  # the odometry parent
+        before = (rot0[a].T @ rot0[p], rot0[a].T @ (trans0[p] - trans0[a]))
+        after = (rot1[a].T @ rot1[p], rot1[a].T @ (trans1[p] - trans1[a]))
+        assert np.allclose(before[0], after[0], atol=FLOAT64_IDENTITY * 100)
+        assert np.allclose(before[1], after[1], atol=FLOAT64_IDENTITY * 1e4)
+        moved += int(parent[p]) != a  # the tree parent is not the odometry parent
+    assert moved > 0  # the test covers poses whose tree parent differs
 
 
 def test_adoption_with_rebase_queues_the_tail_once() -> None:
@@ -603,3 +640,56 @@ def test_background_state_survives_save_load(tmp_path: Path) -> None:
         _stream(t, g, range(25, st.num_frames))
         assert t.join_refine(timeout=120.0)
         assert abs(t.energy() - opt) <= ONLINE_REFINED * opt
+
+
+@pytest.mark.parametrize("hold", [True, False])
+def test_background_hold_keeps_an_optimum_that_covers_everything(hold: bool) -> None:
+    """OnlineConfig.background_hold: once the adopted optimum covers every constraint, frames
+    make no spare-time update (the estimate stays bit-identical); without it they do."""
+    g = _graph(seed=18, n=40, extra=20, gps=3)
+    with OnlineSolver(OnlineConfig(background_refine=True, background_join=1000,
+                                   background_hold=hold)) as s:
+        _stream(s, g, range(g.num_nodes))
+        assert s.join_refine(timeout=120.0)
+        rot, trans = s.estimate()
+        rep = s.update(None, UPDATES)
+        rot1, trans1 = s.estimate()
+        same = np.array_equal(rot, rot1) and np.array_equal(trans, trans1)
+        assert (rep.old == 0 and same) if hold else (rep.old > 0 and not same)
+        s.add_constraint(int(s.pose_ids()[0]), int(s.pose_ids()[-1]),
+                         s.pose(int(s.pose_ids()[-1])), np.eye(6))
+        rep = s.update(None, UPDATES)  # a constraint outside the optimum: spare time again
+        assert rep.new == 1 and rep.old > 0
+
+
+@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
+def test_background_worker_solves_a_planar_map_in_the_plane(data_dir: Path,
+                                                            monkeypatch: pytest.MonkeyPatch
+                                                            ) -> None:
+    """The worker hands a map without GPS to solve_exact as is_2d, which takes the (x, y, yaw)
+    system when the map is exactly planar: same optimum as the 3D solve."""
+    from hybridpgo.io import read_graph
+    from hybridpgo.solvers import _background, gauss_newton
+
+    g = read_graph(data_dir / "w100_toro.graph")
+    st = make_stream(g)
+    opt = prefix_optima(st, [st.num_frames])[st.num_frames]
+    seen: list[bool] = []
+    real = gauss_newton._is_planar
+
+    def spy(*args: object) -> bool:
+        seen.append(real(*args))  # type: ignore[arg-type]
+        return seen[-1]
+
+    monkeypatch.setattr(gauss_newton, "_is_planar", spy)
+    s = OnlineSolver(OnlineConfig(background_follow="tree"))
+    _stream(s, g, range(g.num_nodes))
+    mp = _background._Map()
+    t = s._placed + 1
+    mp.add({"parent": s._parent[1:t], "rot": s._rot[1:t], "trans": s._trans[1:t],
+            "edge_ab": s._edge_ab[: s._m], "edge_rot": s._edge_rot[: s._m],
+            "edge_trans": s._edge_trans[: s._m], "edge_info": s._edge_info[: s._m],
+            "gps_node": s._gps_node[:0], "gps_pos": s._gps_pos[:0], "gps_info": s._gps_info[:0]})
+    _, meta = mp.solve(50)
+    assert seen and all(seen)
+    assert abs(meta["energy"] - opt) <= ONLINE_REFINED * opt

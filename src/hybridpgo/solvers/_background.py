@@ -349,13 +349,17 @@ class _Map:
                 "status": "converged", "seconds": 0.0}
         # the gauge: the first pose until three GPS readings can hold the map (DESIGN §2)
         fixed = np.zeros(1 if g < 3 else 0, np.int32)
+        # is_2d lets solve_exact use the (x, y, yaw) system when the map is exactly planar
+        # (it checks every pose, measurement and information exactly, else solves in 3D):
+        # half the unknowns (M3500_isam, a warm solve: 0.10-0.14 s against 0.23-0.25 s)
+        planar = g == 0
         graph = PoseGraph(
             node_ids=np.arange(n, dtype=np.int64), rotations=self.grot[1: n + 1],
             translations=self.gtr[1: n + 1], edge_nodes=self.edge_ab[:m],
             edge_rotations=self.edge_rot[:m], edge_translations=self.edge_trans[:m],
             edge_information=self.edge_info[:m], gps_nodes=self.gps_node[:g],
             gps_positions=self.gps_pos[:g], gps_information=self.gps_info[:g],
-            fixed_nodes=fixed)  # fmt: skip
+            fixed_nodes=fixed, is_2d=planar)  # fmt: skip
         t0 = time.perf_counter()
         energy, iterations, status = 0.0, 0, "converged"
         if n >= 2:

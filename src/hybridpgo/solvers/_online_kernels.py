@@ -23,7 +23,7 @@ import numpy as np
 
 from .._cost import residual_and_jr_inv, whiten_residual
 from .._numba import cycle_counter, kernel
-from .hybrid._batch import batch_relax, global_pose
+from .hybrid._batch import batch_relax_exact, global_pose
 from .hybrid._linearize import endpoints, num_a_side, path_products
 from .hybrid._step import relax
 from .hybrid.problem import (
@@ -226,7 +226,7 @@ def _flush(prob: Problem, state: State, buf: np.ndarray, nbuf: int, tau: float, 
            counts: np.ndarray) -> bool:
     """Relax the buffered GPS readings as one batch (III-G); True when it was rejected."""
     t0 = cycle_counter()
-    nu = batch_relax(prob, state, buf, nbuf, tau, mu, slot, xb, nodes, 0, False)
+    nu = batch_relax_exact(prob, state, buf, nbuf, tau, mu, slot, xb, nodes, 0, False)
     dc = float(cycle_counter() - t0)
     ne = 0
     for q in range(nbuf):
@@ -321,7 +321,7 @@ def relax_list(prob: Problem, state: State, wk: Workspace, order: np.ndarray, ta
                     chi2[cj] = _edge_chi2(prob, state, cj, wk)
                 last[cj] = stamp
             t0 = cycle_counter()
-            nu = batch_relax(prob, state, gbuf, nb, tau, mu, slot, xb, nodes, 0, False)
+            nu = batch_relax_exact(prob, state, gbuf, nb, tau, mu, slot, xb, nodes, 0, False)
             _learn(model, max(d, 1), float(cycle_counter() - t0), True)
             counts[C_BATCHES] += 1
             if nu == BATCH_REJECTED:
@@ -369,7 +369,7 @@ def local_batch(prob: Problem, state: State, cs: np.ndarray, tau: float, mu: flo
         counts[C_SKIPPED] += 1
         return 0
     t0 = cycle_counter()
-    nu = batch_relax(prob, state, cs, nb, tau, mu, slot, xb, nodes, 0, False)
+    nu = batch_relax_exact(prob, state, cs, nb, tau, mu, slot, xb, nodes, 0, False)
     _learn(model, max(ne, 1), float(cycle_counter() - t0), True)
     counts[C_BATCHES] += 1
     if nu == BATCH_REJECTED:
@@ -407,3 +407,35 @@ def candidates(chi2: np.ndarray, first: int, m: int, recent: int, window: int, c
     for j in range(k):
         out[j] = tmp[perm[j]]
     return k
+
+
+@kernel
+def follow_odometry(parent: np.ndarray, rot: np.ndarray, trans: np.ndarray, n0: int, t: int,
+                    odom: np.ndarray, edge_ab: np.ndarray, old_r: np.ndarray,
+                    old_t: np.ndarray) -> None:
+    """After the local transforms of tree nodes ``1..n0-1`` were replaced (an adopted result):
+    give every later node ``i < t`` whose pose has an odometry edge the pose relative to its
+    odometry parent it had before (``old_r``, ``old_t``: the global poses before the
+    replacement), by rewriting its local transform; a node without odometry keeps its local.
+    Parents are older than their children, so one pass in index order suffices."""
+    gr = np.empty((t, 3, 3))
+    gt = np.empty((t, 3))
+    all_poses(parent, rot, trans, n0, gr, gt)
+    rel_r = np.empty((3, 3))
+    rel_t = np.empty(3)
+    for i in range(n0, t):
+        p = parent[i]
+        e = odom[i - 1]
+        if e < 0:  # no odometry (the first pose): the local stays
+            gr[i] = gr[p] @ rot[i]
+            gt[i] = gr[p] @ trans[i] + gt[p]
+            continue
+        a = edge_ab[e, 0] + 1  # the odometry parent's tree node (older than i)
+        # the pose relative to the odometry parent before: old_a^-1 old_i
+        rel_r[:] = old_r[a].T @ old_r[i]
+        rel_t[:] = old_r[a].T @ (old_t[i] - old_t[a])
+        gr[i] = gr[a] @ rel_r
+        gt[i] = gr[a] @ rel_t + gt[a]
+        # the new local transform relative to the tree parent
+        rot[i] = gr[p].T @ gr[i]
+        trans[i] = gr[p].T @ (gt[i] - gt[p])
