@@ -265,12 +265,13 @@ class PlanarRelaxation:
         return t
 
     def minimize(self, y: ComplexArray, max_iterations: int,
-                 gradient_tolerance: float = 1e-6) -> tuple[ComplexArray, float, int]:
+                 gradient_tolerance: float = 1e-6, stall: float = 1e-6
+                 ) -> tuple[ComplexArray, float, int]:
         """Riemannian conjugate gradients (Polak-Ribiere+, the tangent projection as
         transport) on the unit rows of Y, from ``y``; each step minimizes the quadratic model
         along the direction, then normalizes the rows (Armijo backtracking).  Stops when the
         Riemannian gradient falls below ``gradient_tolerance`` of its first norm, or the cost
-        fell by less than 1e-9 (relative) over 20 iterations.  Returns ``(Y, cost, its)``."""
+        fell by less than ``stall`` (relative) over 20 iterations.  Returns ``(Y, cost, its)``."""
         def unit(v: ComplexArray) -> ComplexArray:
             out: ComplexArray = v / np.linalg.norm(v, axis=1, keepdims=True)
             return out
@@ -314,7 +315,7 @@ class PlanarRelaxation:
             past.append(f)
             if float(np.linalg.norm(grad)) <= gradient_tolerance * g0:
                 break
-            if len(past) > 20 and past[-21] - f <= 1e-9 * abs(past[-21]):
+            if len(past) > 20 and past[-21] - f <= stall * abs(past[-21]):
                 break
         return y, f, it
 
