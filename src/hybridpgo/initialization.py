@@ -348,7 +348,7 @@ def planar_relaxation_start(graph: PoseGraph, rotations: FloatArray, translation
         raise ValueError("the planar relaxation needs a 2D graph without GPS constraints")
     rel = PlanarRelaxation(graph)
     n = graph.num_nodes
-    z0 = rotations[:, 0, 0] + 1j * rotations[:, 1, 0]
+    z0: ComplexArray = np.asarray(rotations[:, 0, 0] + 1j * rotations[:, 1, 0], np.complex128)
     z0 = z0 / np.abs(z0)
     rng = np.random.default_rng(seed)
     y0 = np.empty((n, rank), np.complex128)
