@@ -261,7 +261,7 @@ def run(ctx: Any, *, log: Callable[[str], None] | None = None) -> tuple[list[Met
                 else "")) if k in c and c[k].get("initial_energy") is not None else "—"
             for k in ("chordal", "tree", "file")] + [
             " / ".join(f"{k} {v:.1f}" for k, v in r["auto_timings"].items()
-                       if k in ("start", "sweeps", "polish"))])
+                       if k in ("start", "sweeps", "polish", "relaxation"))])
     tables.append(markdown_table(
         header=["graph", "chordal", "tree", "file", "auto time by phase (s)"], rows=t3,
         title="What the default did per start: E0 → E after the kept sweeps → polished "

@@ -52,6 +52,9 @@ def best_known(graph, truth=None) -> float:
     ({"large_inits": ()}, "large_inits must be a non-empty tuple"),
     ({"large_inits": ("chordal", "chordal")}, "large_inits must be a non-empty tuple of distinct"),
     ({"large_max_sweeps": -1}, "large_max_sweeps must be an integer >= 0"),
+    ({"relaxation": 1}, "relaxation must be True or False"),
+    ({"relaxation_iterations": 0}, "relaxation_iterations must be an integer >= 1"),
+    ({"relaxation_angle": 0.0}, "relaxation_angle must be a finite number > 0"),
 ])
 def test_auto_config_rejects_bad_values(options, message) -> None:
     with pytest.raises(ValueError, match=message.replace("(", r"\(")):

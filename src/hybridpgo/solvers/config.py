@@ -328,6 +328,22 @@ class AutoConfig:
     """Robust kernel of the sweeps and the polish (``HybridConfig.robust``)."""
     robust_scale: float = 1.0
     """The kernel's delta (``HybridConfig.robust_scale``)."""
+    relaxation: bool = True
+    """Planar graphs (2D, no GPS, no robust kernel, at most one FIX node; not under the
+    large-graph policy): after the polish, run the rank-2 relaxation of the chordal cost
+    (SE-Sync's, complex form: :func:`hybridpgo.initialization.planar_relaxation_start`) from the
+    winner's poses.  If its rounded rotations differ from the winner's by more than
+    ``relaxation_angle`` somewhere, the winner sits in another basin than the relaxation's
+    minimum: that start is polished too (full budget) and the lower energy wins; else nothing
+    more runs.  Measured (benchmarks/auto.py): the check moves <= 0.01 rad on the graphs the
+    pipeline already solves (relaxation ~1-4 s on 3 500 poses) and 2.3-3.1 rad on m3500c and
+    m3500b + 10 deg of yaw noise, where the relaxation's polish reaches the optimum (1.15 ->
+    1.0000, 1.015 -> 1.0000, 1.041 -> 1.0000 of LM from the ground truth)."""
+    relaxation_iterations: int = 300
+    """Most Riemannian conjugate-gradient iterations of the relaxation."""
+    relaxation_angle: float = 0.1
+    """Radians: the relaxation's start is polished when some rotation differs from the
+    winner's by more than this (the two are then in different basins)."""
     large_poses: int | None = 200_000
     """Graphs with at least this many poses get the *large-graph policy* (None: never), since
     every start, sweep and polish costs seconds to minutes there (a 1M-pose city: one sweep
@@ -372,6 +388,10 @@ class AutoConfig:
         _check_float("sweep_tolerance", self.sweep_tolerance, positive=False)
         _check_int("polish_iterations", self.polish_iterations, 0)
         _check_float("energy_tolerance", self.energy_tolerance, positive=False)
+        if not isinstance(self.relaxation, bool):
+            raise ValueError(f"relaxation must be True or False, got {self.relaxation!r}")
+        _check_int("relaxation_iterations", self.relaxation_iterations, 1)
+        _check_float("relaxation_angle", self.relaxation_angle, positive=True)
         # the sweep options are checked by the HybridConfig they build (same messages)
         self.hybrid_config("tree", 0)
 
