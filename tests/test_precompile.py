@@ -230,3 +230,17 @@ def test_the_real_groups_compile_what_a_solve_loads(tmp_path: pathlib.Path) -> N
     assert out["ok"] is True
     assert (out["finish"], out["exact"]) == (0, 0)
     assert out["energy"] >= 0.0
+
+
+def test_a_warm_cache_is_told_by_the_first_group_only(monkeypatch):
+    """A later group's probe that the main process never compiles (and a helper ended with it
+    never reached) must not make every warm run start a helper."""
+    from hybridpgo import _numba, _precompile
+
+    cached = {"hybridpgo.tree:_globals_from_locals": True,
+              "hybridpgo._cost:constraint_energies": True}
+    monkeypatch.setattr(_precompile, "_resolve", lambda ref: ref)
+    monkeypatch.setattr(_numba, "is_cached", lambda ref: cached.get(ref, False))
+    assert not _precompile._cold(["finish", "exact-solve"])  # exact-solve's probe: not cached
+    cached["hybridpgo._cost:constraint_energies"] = False
+    assert _precompile._cold(["finish", "exact-solve"])

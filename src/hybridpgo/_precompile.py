@@ -6,7 +6,7 @@ kernels a solve needs *after* the sweeps (global poses, energies, the exact solv
 can be compiled meanwhile by a second process into the same on-disk cache:
 
 * :func:`start` launches ``python -m hybridpgo._precompile GROUP...`` (no shell) when the
-  cache is cold for the groups' kernels (:func:`hybridpgo._numba.is_cached`) and parallel
+  cache is cold (:func:`_cold`: the first group's kernels are not cached) and parallel
   compilation is on (:func:`enabled`).  The helper compiles each group's kernels by running
   the package's own functions on a three-pose graph, so the argument types are the real ones.
 * Numba's dispatcher looks in the on-disk cache before it compiles a signature, so when this
@@ -179,11 +179,12 @@ def enabled() -> bool:
 
 
 def _cold(groups: Sequence[str]) -> bool:
-    for name in groups:
-        for ref in _group(name)[1]:
-            if not _numba.is_cached(_resolve(ref)):
-                return True
-    return False
+    """Whether the cache is cold: the first group's probe kernels are not cached.  Only the
+    first group's: every solve compiles those itself, so they are cached after any run, while
+    a later group may never be needed by the main process (``optimize intel.g2o`` never
+    factors with the block Cholesky of ``exact-solve``) and its helper may have been ended with
+    the main process before it got there; probing it would start a helper on every warm run."""
+    return any(not _numba.is_cached(_resolve(ref)) for ref in _group(groups[0])[1])
 
 
 class Helper:
