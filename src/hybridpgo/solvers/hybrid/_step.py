@@ -543,36 +543,8 @@ RELAX = {(g, int(k)): _make_relax(g, int(k)) for g in (False, True)
          for k in (StepKind.WOODBURY, StepKind.GIVENS)}
 
 
-@kernel
-def relax(prob: Problem, state: State, wk: Workspace, c: int, tau: float, mu: float,
-          step_kind: int, apply: bool) -> int:
-    """Relax constraint c (paper eq. 25): linearize, update 𝔅(H), solve, apply ``tau x``.
-
-    With ``apply=False`` only 𝔅(H) and c's contributions are updated.  Returns an ``Update``.
-    The callees get single arrays, not the NamedTuples (see :func:`relative_linearization`).
-    Every branch compiled in (GPS, both solves); the sweeps use the :data:`RELAX` variant
-    they need, with the same arithmetic.
-    """
-    s, d = domain(prob, c)
-    if d == 0:
-        return Update.APPLIED
-    if is_gps(prob, c):
-        kr = linearize(prob, c, state.rot, state.trans, wk, wk.jac)[0]
-        accumulate_path(prob.path_node, s, d, kr, wk.jac, state.bdiag, state.contrib, mu,
-                        wk.lfac, wk.bc, True)
-    else:
-        kr = 6
-        na = relative_setup(prob.path_node, prob.path_sign, s, d, prob.edge_rot[c],
-                            prob.edge_trans[c], prob.edge_lt[c], prob.robust_kind,
-                            prob.robust_scale, state.rot, state.trans, wk.path_rot,
-                            wk.path_trans, wk.iws, wk.ws, wk.e, wk.r, wk.jri, wk.a)
-        linearize_accumulate(prob.path_node, prob.path_sign, s, d, na, wk.path_rot,
-                             wk.path_trans, wk.a, wk.jac, True, prob.path_ptr, 0, state.bdiag,
-                             state.contrib, mu, wk.lfac, wk.bc, True)
-    if not apply:
-        return Update.APPLIED
-    if step_kind == StepKind.GIVENS:
-        givens_solve(d, kr, wk.jac, wk.lfac, wk.r, wk.x)
-    else:
-        woodbury_solve(d, kr, wk.jac, wk.lfac, wk.r, wk.w, wk.x, wk.bc, wk.sv)
-    return apply_step(prob.path_node, s, d, wk.x, tau, state.rot, state.trans, wk.ws)
+#: Relax constraint c (paper eq. 25): linearize, update 𝔅(H), solve, apply ``tau x``.  With
+#: ``apply=False`` only 𝔅(H) and c's contributions are updated.  Returns an ``Update``.  Every
+#: branch compiled in (GPS readings, the solve chosen by ``step_kind``): the online mode's; the
+#: sweeps use the :data:`RELAX` variant they need (the same arithmetic).
+relax = _make_relax(True, -1)
