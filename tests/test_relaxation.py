@@ -140,7 +140,7 @@ def test_a_winner_in_another_basin_is_replaced() -> None:
     win = _Candidate("tree")
     win.polished = fake
     cfg = AutoConfig()
-    out = _relaxation_check(graph, cfg, win, 0.0, None, None)
+    out = _relaxation_check(graph, cfg, False, win, 0.0, None, None)
     cand = out["candidate"]
     assert out["ran"] and out["polished"] and out["max_angle"] > cfg.relaxation_angle
     ref = solve_exact(graph, made.truth_rotations, made.truth_translations,

@@ -218,8 +218,12 @@ def _continue(first: SolveResult, second: SolveResult) -> SolveResult:
         timings={k: first.timings.get(k, 0.0) + v for k, v in second.timings.items()})
 
 
-def _relaxation_applies(graph: PoseGraph, cfg: AutoConfig) -> str:
+def _relaxation_applies(graph: PoseGraph, cfg: AutoConfig, large: bool) -> str:
     """Why the planar relaxation does not apply ("" when it does)."""
+    if not cfg.relaxation:
+        return "off"
+    if large:
+        return "large-graph policy"
     if not graph.is_2d:
         return "not a 2D graph"
     if graph.num_gps:
@@ -233,15 +237,15 @@ def _relaxation_applies(graph: PoseGraph, cfg: AutoConfig) -> str:
     return ""
 
 
-def _relaxation_check(graph: PoseGraph, cfg: AutoConfig, win: _Candidate, t_origin: float,
-                      progress: ProgressCallback | None,
+def _relaxation_check(graph: PoseGraph, cfg: AutoConfig, large: bool, win: _Candidate,
+                      t_origin: float, progress: ProgressCallback | None,
                       iterate: IterateCallback | None) -> dict[str, Any]:
     """The planar relaxation from the winner's poses (``AutoConfig.relaxation``); its start is
     polished (returned as ``"candidate"``) when its rotations leave the winner's basin."""
     from ..energy import robust_energy
     from ..initialization import planar_relaxation_start
 
-    why = _relaxation_applies(graph, cfg)
+    why = _relaxation_applies(graph, cfg, large)
     if why:
         return {"ran": False, "why": why}
     assert win.polished is not None
@@ -381,9 +385,7 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
                           + "; ".join(f"{c.label}: {c.error}" for c in finalists))
     win = min(polished, key=lambda c: c.energy)
     t_relax = time.perf_counter()
-    relax = _relaxation_check(graph, cfg, win, t_origin, progress, iterate) if (
-        cfg.relaxation and not large) else {"ran": False, "why": "off" if not cfg.relaxation
-                                             else "large-graph policy"}
+    relax = _relaxation_check(graph, cfg, large, win, t_origin, progress, iterate)
     relax_cand = relax.pop("candidate", None)
     if isinstance(relax_cand, _Candidate):
         cands.append(relax_cand)
