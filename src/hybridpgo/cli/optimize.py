@@ -215,7 +215,8 @@ def _compile_kernels(job: Job, graph: PoseGraph) -> None:
         start(["finish", "exact", "starts", "exact-solve"] if exact else ["finish", "starts"])
     with phase("compiling kernels (first run only)", enabled=not job.quiet):
         if job.solver in ("hybrid", "auto"):
-            ensure_hybrid(graph.num_gps > 0, bool(job.options.get("dmax")))
+            ensure_hybrid(graph.num_gps > 0, bool(job.options.get("dmax")),
+                          job.options.get("step") == "givens")
         if exact:
             ensure_exact()
 

@@ -19,11 +19,11 @@ TARGETS = ("hybrid", "exact", "toro")
 
 
 def _compile(target: str) -> float:
-    if target == "hybrid":  # every sweep variant: with and without GPS, with interpolation
-        from ..solvers.hybrid.solver import ensure_compiled
+    if target == "hybrid":  # every sweep variant: with and without GPS, with interpolation,
+        from ..solvers.hybrid.solver import ensure_compiled  # Woodbury and Givens
 
-        return sum(ensure_compiled(gps, interp) for gps in (False, True)
-                   for interp in (False, True))
+        return sum(ensure_compiled(gps, interp, givens) for gps in (False, True)
+                   for interp in (False, True) for givens in (False, True))
     if target == "exact":
         from ..solvers.gauss_newton import _ensure_compiled
 

@@ -160,7 +160,8 @@ class OnlineConfig:
     parent; one copy, O(n)); ``"odometry"``: each keeps its pose relative to its odometry
     parent as the frames had estimated it (two passes over the tree, O(N)).  Measured worse
     (5 ms, ``background_join=100``, worst checkpoint / end): M3500_isam 1.21 / 1.07 against
-    1.12 / 1.06 with ``"tree"``; valencia 60 / 1.06 against 19 / 1.03."""
+    1.12 / 1.06 with ``"tree"``; valencia 60 / 1.06 against 19 / 1.03.  Its kernel is compiled
+    at the first adoption that needs it, not with the solver (that frame pays for it once)."""
     background_iterations: int = 20
     """Most LM iterations of one background solve (an unconverged solve is continued)."""
 
@@ -1218,11 +1219,6 @@ def _ensure_online_compiled() -> float:
         s.update(1.0)
         s.energy()
         s.pose(3)
-        t = s._placed + 1  # the adoption's kernels (background_follow="odometry")
-        gr, gt = np.empty((t, 3, 3)), np.empty((t, 3))
-        ok.all_poses(s._parent, s._rot, s._trans, t, gr, gt)
-        ok.follow_odometry(s._parent, s._rot.copy(), s._trans.copy(), 2, t, s._odom,
-                           s._edge_ab, gr, gt)
     except BaseException:
         _COMPILED[0] = False
         raise

@@ -100,7 +100,8 @@ class HybridSolver:
             # batches carry no memory, so the optimum is not a fixed point there either
             raise ValueError(f"update={cfg.update!r} (experimental) does not support GPS "
                              "constraints; use update='paper'")
-        self.compile_seconds = ensure_compiled(graph.num_gps > 0, bool(cfg.dmax))
+        self.compile_seconds = ensure_compiled(graph.num_gps > 0, bool(cfg.dmax),
+                                               cfg.step == "givens")
         t0 = time.perf_counter()
         self.graph = graph
         self.tree = tree = tree if tree is not None else build_tree(graph, cfg.tree)
@@ -466,8 +467,8 @@ def solve_hybrid(graph: PoseGraph, config: HybridConfig | None = None, *,
     )
 
 
-#: The sweep variants ``(gps, interpolate)`` compiled (or loaded) in this process.
-_COMPILED: set[tuple[bool, bool]] = set()
+#: The sweep variants ``(gps, interpolate, givens)`` compiled (or loaded) in this process.
+_COMPILED: set[tuple[bool, bool, bool]] = set()
 
 #: 𝔅(H) is built by its own kernel (:mod:`._init_blocks`: no damped factorization per node, no
 #: solve; 1M-pose city: 2.8 s of CPU against 5.0 s by the sweep kernel with ``apply=False``) on
@@ -499,17 +500,19 @@ def _compile_init_kernel() -> float:
     return time.perf_counter() - t0
 
 
-def ensure_compiled(gps: bool = False, interpolate: bool = False) -> float:
+def ensure_compiled(gps: bool = False, interpolate: bool = False,
+                    givens: bool = False) -> float:
     """Compile (or load from Numba's cache) the kernels a solve uses; returns the seconds spent.
 
     Runs a three-pose graph once per process and variant, so a caller's ``analyze`` and
     ``solve`` times are not inflated by compilation (STYLE.md §6).  Only what is asked is
-    compiled: the sweep variant of ``(gps, interpolate)`` (the plain sweep without either) and
-    the 𝔅(H) initialization; the GPS batches (III-G) with ``gps``, interpolated solving (III-E)
-    with ``interpolate`` -- each about as long to compile as the plain solver, so a graph
-    without GPS never waits for them.
+    compiled: the sweep variant of ``(gps, interpolate, givens)`` (which also builds 𝔅(H)
+    below :data:`INIT_KERNEL_ENTRIES`); the GPS batches (III-G) with ``gps``, interpolated
+    solving (III-E) with ``interpolate``, the Givens solve instead of Woodbury's with
+    ``givens`` -- each about as long to compile as the plain solver, so a graph without GPS
+    never waits for them.
     """
-    wanted = {(gps, interpolate)}
+    wanted = {(bool(gps), bool(interpolate), bool(givens))}
     todo = sorted(wanted - _COMPILED)
     if not todo:
         return 0.0
@@ -527,10 +530,10 @@ def ensure_compiled(gps: bool = False, interpolate: bool = False) -> float:
                                  gps_positions=np.zeros((0, 3)),
                                  gps_information=np.zeros((0, 3, 3)))
     try:
-        for with_gps, with_interp in todo:
+        for with_gps, with_interp, with_givens in todo:
             HybridSolver(tiny if with_gps else no_gps,
-                         HybridConfig(sweeps=1, init="tree", dmax=2 if with_interp else None)
-                         ).run()
+                         HybridConfig(sweeps=1, init="tree", dmax=2 if with_interp else None,
+                                      step="givens" if with_givens else "woodbury")).run()
     except BaseException:
         _COMPILED.difference_update(todo)
         raise
