@@ -253,6 +253,10 @@ class ReplayResult:
         return out
 
 
+#: Seconds :func:`replay_online` waits for the background worker to start before the stream.
+BACKGROUND_START_TIMEOUT_S = 60.0
+
+
 def replay_online(stream: Stream, config: Any = None, budget_s: float | None = 5e-3, *,
                   checkpoints: Sequence[int] = (), extra_frames: int = 0,
                   refine_every: int = 0, refine_offset: int = 0,
@@ -266,15 +270,25 @@ def replay_online(stream: Stream, config: Any = None, budget_s: float | None = 5
     also run :meth:`OnlineSolver.refine` (the whole-map exact solve), inside their latency.
     ``on_frame(k, solver, latency_s)`` is called after every frame ``k`` (counting from 1, the
     extra frames continuing the count), outside the timing (e.g. to record the run).
+    With ``background_refine``, the stream starts once the worker is up
+    (:meth:`OnlineSolver.wait_background_ready`, as a robot starts its back end before it
+    drives); the wait is ``info["background_start_s"]``.
     """
     from .solvers.online import OnlineSolver
 
     solver = OnlineSolver(config)
     try:
-        return _replay_online(solver, stream, budget_s, checkpoints, extra_frames,
-                              refine_every, refine_offset, progress, on_frame)
+        t0 = time.perf_counter()
+        if solver.config.background_refine:  # started before the drive, as on a robot
+            solver.wait_background_ready(BACKGROUND_START_TIMEOUT_S)
+        start_s = time.perf_counter() - t0
+        result = _replay_online(solver, stream, budget_s, checkpoints, extra_frames,
+                                refine_every, refine_offset, progress, on_frame)
     finally:
         solver.close()
+    if solver.config.background_refine:
+        result.info["background_start_s"] = start_s
+    return result
 
 
 def _replay_online(solver: Any, stream: Stream, budget_s: float | None,
