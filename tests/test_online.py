@@ -662,6 +662,51 @@ def test_background_hold_keeps_an_optimum_that_covers_everything(hold: bool) -> 
         assert rep.new == 1 and rep.old > 0
 
 
+def test_background_hold_keeps_an_optimum_extended_by_new_tree_links() -> None:
+    """background_hold also holds while every constraint since the adopted result is the tree
+    link of a new pose and the only constraint through it (odometry driving on): that map's
+    optimum is the adopted one with the new poses composed on, which the frames keep; a loop
+    closure among the new constraints ends the hold (it needs spare time again)."""
+    g = _graph(seed=19, n=60, extra=20)
+    st = make_stream(g)
+    sizes = np.diff(st.edge_ptr)  # edges each frame brings (its odometry first)
+    odometry_only = [k for k in range(31, st.num_frames) if sizes[k] == 1]
+    assert len(odometry_only) >= 4
+    first = odometry_only[0]
+    with OnlineSolver(OnlineConfig(background_refine=True, background_join=1000)) as s:
+        _stream(s, g, range(first))
+        assert s.join_refine(timeout=120.0)
+        e0 = s.energy()
+        feed_frame(s, st, first)  # a new pose with its odometry only
+        rep = s.update(None, UPDATES)
+        assert rep.new == 1 and rep.old == 0  # held: no spare-time update
+        e1 = s.energy()
+        assert abs(e1 - e0) <= ONLINE_REFINED * max(e0, 1.0)  # the new pose is exact
+        loop = next(k for k in range(first + 1, st.num_frames) if sizes[k] > 1)
+        for k in range(first + 1, loop + 1):
+            feed_frame(s, st, k)
+            rep = s.update(None, UPDATES)
+        assert rep.old > 0  # the loop closure: spare time again
+
+
+def test_background_worker_waits_ready_and_runs_one_thread() -> None:
+    """wait_background_ready() returns once the worker has loaded its kernels (False without a
+    worker); the worker runs with one BLAS / OpenMP / Numba thread (a second BLAS thread
+    fighting the frames for the other core made its solves 4-10x slower)."""
+    from hybridpgo.solvers import _background
+
+    assert OnlineSolver(OnlineConfig()).wait_background_ready(1.0) is False
+    with OnlineSolver(OnlineConfig(background_refine=True)) as s:
+        assert s.wait_background_ready(120.0)
+        ref = s._refiner
+        assert ref is not None and ref._proc is not None
+        environ = Path(f"/proc/{ref._proc.pid}/environ")
+        if environ.exists():  # Linux
+            env = dict(v.split("=", 1) for v in environ.read_text().split("\0") if "=" in v)
+            for key, value in _background.WORKER_THREADS.items():
+                assert env.get(key) == value, key
+
+
 @pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
 def test_background_worker_solves_a_planar_map_in_the_plane(data_dir: Path,
                                                             monkeypatch: pytest.MonkeyPatch

@@ -132,6 +132,7 @@ def _plots(runs: list[Any], optima: dict[int, float], prefix: str, budget_ms: fl
     import matplotlib.pyplot as plt
 
     from ..plot import save_figure
+    from ..replay import energy_ratio
 
     written = []
     fig, ax = plt.subplots(figsize=(8, 4))
@@ -151,7 +152,8 @@ def _plots(runs: list[Any], optima: dict[int, float], prefix: str, budget_ms: fl
         fig, ax = plt.subplots(figsize=(8, 4))
         for r in runs:
             f = sorted(k for k in r.checkpoints if k in optima)
-            ax.plot(f, [r.checkpoints[k] / optima[k] for k in f], marker="o", ms=3, label=r.name)
+            ax.plot(f, [energy_ratio(r.checkpoints[k], optima[k]) for k in f], marker="o",
+                    ms=3, label=r.name)
         ax.axhline(1.05, color="k", ls="--", lw=0.8, label="optimum + 5%")
         ax.set_yscale("log")
         ax.set_xlabel("frame")

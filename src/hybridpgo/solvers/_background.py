@@ -22,8 +22,9 @@ Protocol (both directions, binary on the worker's stdin and stdout): an 8-byte l
 length of a JSON header, the header (``{"type": ..., "arrays": [[name, dtype, shape], ...], ...}``)
 and the arrays' raw bytes in order.  Main -> worker: ``data`` (new tree nodes with their parent
 and local transform, new edges, new GPS readings), ``solve`` (answer request ``req`` with the
-optimum of everything shipped so far), EOF to stop.  Worker -> main: ``result`` (``n`` tree
-nodes below the earth, their local transforms, the iterations, energy and status) or ``error``.
+optimum of everything shipped so far), EOF to stop.  Worker -> main: ``ready`` once its kernels
+are loaded (:meth:`BackgroundRefiner.wait_ready`), then ``result`` (``n`` tree nodes below the
+earth, their local transforms, the iterations, energy and status) or ``error``.
 
 The worker solves only on request.  The asynchronous mode keeps one request outstanding and
 makes the next as soon as the answer is adopted, so which prefix each answer covers depends on
@@ -48,6 +49,13 @@ import numpy as np
 
 #: Niceness added to the worker process (the frames get the CPU first on a busy machine).
 WORKER_NICE = 5
+#: The worker's environment: one thread for BLAS (CHOLMOD's supernodes), OpenMP and Numba.  The
+#: worker is one core's job beside the frames; a second BLAS thread competing with the frames
+#: for the other core made every solve 4-10x slower (M3500_isam, warm LM solve of the whole map
+#: while the frames run: 0.31-0.45 s with OpenBLAS's default of a thread per core, 0.08-0.11 s
+#: with one; 0.045 s with the frames idle).
+WORKER_THREADS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+                  "NUMBA_NUM_THREADS": "1"}
 #: Seconds :meth:`BackgroundRefiner.close` waits for the worker to exit before killing it.
 STOP_TIMEOUT_S = 5.0
 _HEADER = struct.Struct("<Q")
@@ -148,6 +156,7 @@ class BackgroundRefiner:
         root = os.path.dirname(os.path.dirname(os.path.abspath(hybridpgo.__file__)))
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
+        env.update(WORKER_THREADS)
         self._proc: subprocess.Popen[bytes] | None = subprocess.Popen(
             [sys.executable, "-m", "hybridpgo.solvers._background", str(max_iterations)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, bufsize=0, env=env)
@@ -161,6 +170,7 @@ class BackgroundRefiner:
         """Results received."""
         self._alive = True
         self._req = -1
+        self._ready = False
         self._sender = threading.Thread(target=self._send_loop, name="hybridpgo-refine-send",
                                         daemon=True)
         self._receiver = threading.Thread(target=self._recv_loop,
@@ -196,7 +206,9 @@ class BackgroundRefiner:
                     break
                 meta, arrays = msg
                 with self._cond:
-                    if meta["type"] == "result":
+                    if meta["type"] == "ready":
+                        self._ready = True
+                    elif meta["type"] == "result":
                         self._latest = Refined(
                             int(meta["n"]), int(meta["m"]), int(meta["g"]), int(meta["req"]),
                             arrays["rot"], arrays["trans"], float(meta["energy"]),
@@ -226,6 +238,17 @@ class BackgroundRefiner:
     @property
     def alive(self) -> bool:
         return self._alive
+
+    def wait_ready(self, timeout: float | None = None) -> bool:
+        """Block until the worker has loaded its kernels (True), died or ``timeout`` passed."""
+        end = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            while not self._ready and self._alive:
+                left = None if end is None else end - time.monotonic()
+                if left is not None and left <= 0:
+                    break
+                self._cond.wait(left)
+            return self._ready
 
     def ship(self, meta: dict[str, Any], arrays: Arrays) -> None:
         """Queue a message for the worker (the sender thread writes it)."""
@@ -408,6 +431,10 @@ def _worker(max_iterations: int) -> int:
     from .gauss_newton import _ensure_compiled
 
     _ensure_compiled()  # load the exact solver's kernels while the first frames arrive
+    try:
+        write_all(out, encode({"type": "ready"}, {}))
+    except (BrokenPipeError, OSError):
+        return 0
     mp = _Map()
     pending = -1  # highest request received
     answered = -1

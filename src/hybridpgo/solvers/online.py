@@ -145,11 +145,15 @@ class OnlineConfig:
     worst checkpoint 1.13x the prefix optimum with False, 1.48x with True).  See
     ``background_hold`` for the end of a stream."""
     background_hold: bool = True
-    """With ``background_refine``: while the adopted optimum covers every constraint added (no
-    new data since its snapshot, e.g. the robot stands still or the stream ended), no spare-time
-    updates are made, so the optimum is kept as it is (the single steps' fixed point is not the
-    optimum: M3500_isam, 100 frames after the end, ``background_join=100``: 1.002x with hold,
-    drifting to 1.03x without)."""
+    """With ``background_refine``: while the adopted optimum is also the optimum of everything
+    added since, no spare-time updates are made, so it is kept as it is (the single steps'
+    fixed point is not the optimum: M3500_isam, 100 frames after the end,
+    ``background_join=100``: 1.002x with hold, drifting to 1.03x without).  That is the case
+    when every constraint added after the result's snapshot is the tree link of a pose added
+    after it and the only constraint through that pose (the robot drove on with odometry or
+    GPS-linked poses and closed no loop: the new poses are placed exactly, nothing else moves),
+    in particular when nothing was added (the robot stands still or the stream ended).  The
+    check is O(new constraints) per frame."""
     background_rebase: bool = True
     """With ``background_refine``: when a result is adopted, the constraints added after its
     snapshot are queued to be relaxed again as new ones (on top of the optimum, in arrival
@@ -328,6 +332,10 @@ class OnlineSolver:
         self._join_req = -1
         self._adopted = 0
         self._refined_m = self._refined_g = 0  # constraints covered by the adopted optimum
+        # background_hold: tree nodes <= _tail_n are the adopted result's; the constraints after
+        # it checked up to (_tail_m, _tail_g) keep it the optimum while _tail_ok
+        self._tail_n = self._tail_m = self._tail_g = 0
+        self._tail_ok = False
         self._adopt_s_max = 0.0
         self._lag_max = 0
         self._ship_frames: dict[int, int] = {}
@@ -799,8 +807,7 @@ class OnlineSolver:
         # with an adopted background optimum, only the constraints it did not cover
         fm, fg = ((self._refined_m, self._refined_g) if cfg.background_tail_only
                   else (0, 0))
-        held = (cfg.background_hold and self._adopted > 0 and self._refined_m >= self._m_laid
-                and self._refined_g >= self._g_laid)
+        held = cfg.background_hold and self._adopted > 0 and self._tail_still_optimal()
         if limit > 0 and self.backlog == 0 and self._m_laid - fm > 1 and not held:
             cand = np.empty(cfg.recent + cfg.window, np.int64)
             k = int(ok.candidates(self._chi2, fm, self._m_laid, cfg.recent, cfg.window,
@@ -891,6 +898,7 @@ class OnlineSolver:
             ok.follow_odometry(self._parent, self._rot, self._trans, n + 1, t, self._odom,
                                self._edge_ab, old_r, old_t)
         self._refined_m, self._refined_g = res.m, res.g
+        self._tail_n, self._tail_m, self._tail_g, self._tail_ok = n, res.m, res.g, True
         if self.config.background_rebase:
             # the tail: constraints the solve did not see, relaxed again first, in arrival
             # order, on top of the optimum (as when they arrived); the queue's others after
@@ -910,6 +918,38 @@ class OnlineSolver:
             self._lag_max = max(self._lag_max, self.frame - shipped)
         for key in [k for k in self._ship_frames if k < n]:
             del self._ship_frames[key]
+
+    def wait_background_ready(self, timeout: float | None = None) -> bool:
+        """Block until the background worker has started and loaded its kernels (about 1.5 s
+        after the solver is built: a process start, the imports, the cached kernels).
+
+        The frames never wait for the worker; call this before the robot drives (as the replay
+        and its benchmark do) so that the first results are not late by the start-up.  Returns
+        True when the worker is ready (False: ``timeout`` passed or the worker failed); False
+        without waiting when ``background_refine`` is off or the solver is closed.
+        """
+        ref = self._refiner
+        return ref is not None and ref.wait_ready(timeout)
+
+    def _tail_still_optimal(self) -> bool:
+        """``background_hold``'s test (see there), on the constraints laid since the last call:
+        each must be a path of one node, added after the adopted result, with no other path
+        through it."""
+        if not self._tail_ok:
+            return False
+        ptr, node, count = self._ptr, self._path_node, self._path_count
+        for c in (*range(self._tail_m, self._m_laid),
+                  *range(self._cap_m + self._tail_g, self._cap_m + self._g_laid)):
+            lo = int(ptr[c])
+            if int(ptr[c + 1]) - lo != 1:
+                self._tail_ok = False
+                return False
+            u = int(node[lo])
+            if u <= self._tail_n or int(count[u]) != 1:
+                self._tail_ok = False
+                return False
+        self._tail_m, self._tail_g = self._m_laid, self._g_laid
+        return True
 
     def join_refine(self, timeout: float | None = None) -> bool:
         """Ship everything added so far, wait for the worker's optimum of it and adopt it.
