@@ -503,6 +503,16 @@ def test_background_join_is_reproducible() -> None:
     assert np.array_equal(out[0][0], out[1][0]) and np.array_equal(out[0][1], out[1][1])
 
 
+def _random_locals(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """n random local transforms (rotations, translations): a made-up worker result."""
+    rng = np.random.default_rng(seed)
+    lrot = np.empty((n, 3, 3))
+    for i in range(n):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        lrot[i] = q * np.sign(np.linalg.det(q))
+    return lrot, rng.normal(size=(n, 3))
+
+
 def test_adoption_keeps_newer_poses_relative_to_their_parents() -> None:
     """Naive check of _adopt: the result's poses take its local transforms; every pose added
     after its snapshot keeps its pose relative to its tree parent."""
@@ -514,12 +524,7 @@ def test_adoption_keeps_newer_poses_relative_to_their_parents() -> None:
     rot0, trans0 = s.estimate()
     parent = s._parent[1: s._n + 1] - 1  # pose index of each pose's tree parent (-1: earth)
     n = 25
-    rng = np.random.default_rng(0)
-    lrot = np.empty((n, 3, 3))
-    for i in range(n):
-        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
-        lrot[i] = q * np.sign(np.linalg.det(q))
-    ltrans = rng.normal(size=(n, 3))
+    lrot, ltrans = _random_locals(n, seed=0)
     s._adopt(Refined(n, 30, 0, 0, lrot, ltrans, 0.0, 1, "converged", 0.0))
     rot1, trans1 = s.estimate()
     for p in range(s._n):
@@ -549,12 +554,7 @@ def test_adoption_moves_newer_poses_with_their_odometry_parents() -> None:
     rot0, trans0 = s.estimate()
     parent = s._parent[1: s._n + 1] - 1
     n = 25
-    rng = np.random.default_rng(1)
-    lrot = np.empty((n, 3, 3))
-    for i in range(n):
-        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
-        lrot[i] = q * np.sign(np.linalg.det(q))
-    ltrans = rng.normal(size=(n, 3))
+    lrot, ltrans = _random_locals(n, seed=1)
     s._adopt(Refined(n, 30, 0, 0, lrot, ltrans, 0.0, 1, "converged", 0.0))
     rot1, trans1 = s.estimate()
     moved = 0

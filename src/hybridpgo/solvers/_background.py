@@ -241,13 +241,8 @@ class BackgroundRefiner:
 
     def wait_ready(self, timeout: float | None = None) -> bool:
         """Block until the worker has loaded its kernels (True), died or ``timeout`` passed."""
-        end = None if timeout is None else time.monotonic() + timeout
         with self._cond:
-            while not self._ready and self._alive:
-                left = None if end is None else end - time.monotonic()
-                if left is not None and left <= 0:
-                    break
-                self._cond.wait(left)
+            self._cond.wait_for(lambda: self._ready or not self._alive, timeout)
             return self._ready
 
     def ship(self, meta: dict[str, Any], arrays: Arrays) -> None:
@@ -275,13 +270,8 @@ class BackgroundRefiner:
     def wait(self, req: int, timeout: float | None = None) -> Refined | None:
         """Block until request ``req`` is answered (or the worker died, or ``timeout``);
         then the newest result not taken yet."""
-        end = None if timeout is None else time.monotonic() + timeout
         with self._cond:
-            while self._answered < req and self._alive:
-                left = None if end is None else end - time.monotonic()
-                if left is not None and left <= 0:
-                    break
-                self._cond.wait(left)
+            self._cond.wait_for(lambda: self._answered >= req or not self._alive, timeout)
             out, self._latest = self._latest, None
         return out
 

@@ -333,7 +333,8 @@ class OnlineSolver:
         self._adopted = 0
         self._refined_m = self._refined_g = 0  # constraints covered by the adopted optimum
         # background_hold: tree nodes <= _tail_n are the adopted result's; the constraints after
-        # it checked up to (_tail_m, _tail_g) keep it the optimum while _tail_ok
+        # it checked up to (_tail_m, _tail_g) keep it the optimum while _tail_ok (False until
+        # a result is adopted)
         self._tail_n = self._tail_m = self._tail_g = 0
         self._tail_ok = False
         self._adopt_s_max = 0.0
@@ -807,7 +808,7 @@ class OnlineSolver:
         # with an adopted background optimum, only the constraints it did not cover
         fm, fg = ((self._refined_m, self._refined_g) if cfg.background_tail_only
                   else (0, 0))
-        held = cfg.background_hold and self._adopted > 0 and self._tail_still_optimal()
+        held = cfg.background_hold and self._tail_still_optimal()
         if limit > 0 and self.backlog == 0 and self._m_laid - fm > 1 and not held:
             cand = np.empty(cfg.recent + cfg.window, np.int64)
             k = int(ok.candidates(self._chi2, fm, self._m_laid, cfg.recent, cfg.window,
