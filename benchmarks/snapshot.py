@@ -37,6 +37,22 @@ CASES: list[tuple[str, str, list[str]]] = [
     ("city_gps_g", "city", ["--solver", "hybrid", "--sweeps", "2", "--step", "givens"]),
     ("city_gps_polish", "city", ["--solver", "hybrid", "--sweeps", "3", "--polish"]),
     ("city_gps_exact", "city", ["--solver", "exact", "--init", "tree"]),
+    ("m3500_auto", "bundled:M3500_isam.txt", []),
+    ("intel_auto", "bundled:intel.g2o", []),
+    ("garage_auto", "bundled:garage.g2o", []),
+    ("smallgrid_auto", "test:smallGrid3D.g2o", []),
+    ("city_gps_auto", "city", []),
+    ("m3500_toro", "bundled:M3500_isam.txt", ["--solver", "toro", "--sweeps", "20"]),
+    ("w100_toro_bfs", "test:w100_toro.graph", ["--solver", "toro", "--sweeps", "20", "--tree", "bfs"]),  # noqa: E501
+    ("intel_exact_huber", "bundled:intel.g2o", ["--solver", "exact", "--robust", "huber:2"]),
+    ("m3500_cov", "bundled:M3500_isam.txt", ["--solver", "exact", "--covariance", "{out}.npz", "--covariance-poses", "0,100,3499"]),  # noqa: E501
+    ("garage_cov", "bundled:garage.g2o", ["--solver", "exact", "--covariance", "{out}.npz", "--covariance-poses", "0,500,1600"]),  # noqa: E501
+]
+#: Online replays, no time budget (reproducible): (name, input, OnlineConfig keywords)
+ONLINE: list[tuple[str, str, dict[str, object]]] = [
+    ("m3500_online", "bundled:M3500_isam.txt", {}),
+    ("city_gps_online", "city", {}),
+    ("m3500_online_local", "bundled:M3500_isam.txt", {"local_size": 4, "tree": "odometry"}),
 ]
 # fmt: on
 
@@ -63,8 +79,35 @@ def write(outdir: pathlib.Path) -> None:
     outdir.mkdir(parents=True, exist_ok=True)
     for name, spec, opts in CASES:
         inp = _input(spec, outdir)
-        rc = main(["optimize", inp, "-o", str(outdir / f"{name}.g2o"), "--quiet", *opts])
+        out = str(outdir / name)
+        rc = main(["optimize", inp, "-o", out + ".g2o", "--quiet",
+                   *(o.format(out=out) for o in opts)])
         print(name, rc, flush=True)
+    for name, spec, kw in ONLINE:
+        _online(_input(spec, outdir), outdir / f"{name}.g2o", kw)
+        print(name, flush=True)
+
+
+def _online(inp: str, out: pathlib.Path, kw: dict[str, object]) -> None:
+    """Stream the graph through the online solver with no budget (one update per frame, then
+    five more: reproducible), and write the estimate."""
+    import hybridpgo
+    from hybridpgo import replay
+
+    try:
+        from hybridpgo.online import OnlineConfig, OnlineSolver
+    except ImportError:
+        from hybridpgo.solvers.online import OnlineConfig, OnlineSolver
+
+    graph = hybridpgo.read_graph(inp)
+    stream = replay.make_stream(graph)
+    solver = OnlineSolver(OnlineConfig(**kw))  # type: ignore[arg-type]
+    for k in range(stream.num_frames):
+        replay.feed_frame(solver, stream, k)
+        solver.update(None)
+    for _ in range(5):
+        solver.update(None)
+    hybridpgo.write_graph(solver.to_graph(), str(out))
 
 
 def _numbers(path: pathlib.Path) -> list[float]:
@@ -77,9 +120,29 @@ def _numbers(path: pathlib.Path) -> list[float]:
     return out
 
 
+def _compare_npz(name: str, fa: pathlib.Path, fb: pathlib.Path) -> float:
+    import numpy as np
+
+    with np.load(fa) as za, np.load(fb) as zb:
+        worst = 0.0
+        for key in za.files:
+            x, y = za[key], zb[key]
+            if x.dtype.kind in "fi" and x.shape == y.shape:
+                d = np.abs(x - y) / np.maximum(np.maximum(np.abs(x), np.abs(y)), 1.0)
+                worst = max(worst, float(d.max()) if d.size else 0.0)
+            elif not np.array_equal(x, y):
+                worst = float("inf")
+    print(f"{name + '.npz':24s} max relative difference {worst:.3g}")
+    return worst
+
+
 def compare(a: pathlib.Path, b: pathlib.Path) -> int:
     worst_all = 0.0
-    for name, _, _ in CASES:
+    names = [c[0] for c in CASES] + [c[0] for c in ONLINE]
+    for name in names:
+        npz = a / f"{name}.npz"
+        if npz.exists():
+            worst_all = max(worst_all, _compare_npz(name, npz, b / f"{name}.npz"))
         fa, fb = a / f"{name}.g2o", b / f"{name}.g2o"
         if fa.read_bytes() == fb.read_bytes():
             print(f"{name:24s} identical")
