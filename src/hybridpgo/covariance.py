@@ -35,15 +35,8 @@ import numpy.typing as npt
 from .errors import FormatError
 from .graph import FloatArray, PoseGraph
 from .io._lines import _UMASK
-from .solvers._linear import _make_factorizer
-from .solvers.gauss_newton import (
-    _analyze,
-    _assemble,
-    _check_gauge,
-    _full_system,
-    _initial_poses,
-    default_fixed_nodes,
-)
+from .solvers.config import GaussNewtonConfig
+from .solvers.gauss_newton import ExactSolver
 
 __all__ = ["TANGENT_LABELS", "marginal_covariances", "save_covariances"]
 
@@ -91,23 +84,17 @@ def marginal_covariances(graph: PoseGraph, rotations: FloatArray | None,
     if sel.size and (sel.min() < 0 or sel.max() >= graph.num_nodes):
         raise ValueError(f"node indices must lie in 0..{graph.num_nodes - 1}, got "
                          f"{int(sel.min())}..{int(sel.max())}")
-    rot, trans = _initial_poses(graph, rotations, translations)
-    fixed = default_fixed_nodes(graph)
-    _check_gauge(graph, fixed)
-    pat = _analyze(graph, fixed, reorder=True)
+    solver = ExactSolver(graph, GaussNewtonConfig(
+        linear_solver=linear_solver))  # type: ignore[arg-type]  # checked there
     out = np.zeros((sel.shape[0], 6, 6))
-    var = pat.var_of_node[sel]
+    var = solver.pattern.var_of_node[sel]
     free = var >= 0
-    if not free.any():
+    if solver.pattern.num_vars == 0:
         return out
-    data = np.empty(pat.nnz)
-    grad = np.empty(pat.dim)
-    _assemble(graph, pat, rot, trans, data, grad)
-    factorizer = _make_factorizer(_full_system(pat), linear_solver)
-    factorizer.factor(data)
-    factorizer.check()
-    index = 6 * var[free][:, None] + np.arange(6, dtype=np.int64)[None, :]
-    out[free] = factorizer.inverse_blocks(index)
+    factorizer = solver.factor(rotations, translations)
+    if free.any():
+        index = 6 * var[free][:, None] + np.arange(6, dtype=np.int64)[None, :]
+        out[free] = factorizer.inverse_blocks(index)
     return out
 
 

@@ -56,7 +56,7 @@ def _trees() -> list[str]:
 
 
 def _inits() -> list[str]:
-    from ..tree import InitKind
+    from ..initialization import InitKind
 
     return [k.value for k in InitKind]
 
@@ -284,9 +284,9 @@ def build_parser() -> argparse.ArgumentParser:
                "--max-iterations limits the exact solver, or the "
                "polish with --polish.  --solver auto takes the hybrid options except --polish "
                "(it always polishes): --init is then the only start tried, --sweeps the most "
-               f"sweeps per start (default {au.max_sweeps}), --max-iterations and "
-               f"--tolerance limit each polish (default {au.polish_iterations} and "
-               f"{au.energy_tolerance:g}).  --solver toro (the TORO-style baseline) "
+               f"sweeps per start (default {au.sweeps.sweeps}), --max-iterations and "
+               f"--tolerance limit each polish (default {au.polish.max_iterations} and "
+               f"{au.polish.energy_tolerance:g}).  --solver toro (the TORO-style baseline) "
                "takes --sweeps (its iterations, default 100), --tolerance, --init tree|file "
                "and --tree toro|bfs.  " + OUTPUT_HELP)
     p.add_argument("file", help="pose-graph file (g2o, TORO or iSAM; '-': standard input)")
@@ -436,7 +436,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="output directory (default: hybridpgo-demo)")
     p.add_argument("--sweeps", type=_sweeps, metavar="N",
                    help="most hybrid sweeps from each start before the polish (default "
-                        f"{au.max_sweeps}; fewer when a sweep stops paying)")
+                        f"{au.sweeps.sweeps}; fewer when a sweep stops paying)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     _add_progress(p)
     _add_common(p)

@@ -418,9 +418,9 @@ def _worker(max_iterations: int) -> int:
                 cond.notify()
 
     threading.Thread(target=reader, daemon=True).start()
-    from .gauss_newton import _ensure_compiled
+    from .gauss_newton import ensure_compiled
 
-    _ensure_compiled()  # load the exact solver's kernels while the first frames arrive
+    ensure_compiled()  # load the exact solver's kernels while the first frames arrive
     try:
         write_all(out, encode({"type": "ready"}, {}))
     except (BrokenPipeError, OSError):

@@ -23,7 +23,8 @@ import numpy as np
 
 from .._cost import residual_and_jr_inv, whiten_residual
 from .._numba import cycle_counter, kernel
-from .hybrid._batch import batch_relax_exact, global_pose
+from .._tree_kernels import global_pose
+from .hybrid._batch import batch_relax_exact
 from .hybrid._linearize import endpoints, num_a_side, path_products
 from .hybrid._step import relax
 from .hybrid.problem import (
@@ -55,93 +56,6 @@ C_REJECTED = 2
 C_BATCHES = 3
 C_SKIPPED = 4
 NUM_C = 5
-
-
-# --------------------------------------------------------------------------- paths
-@kernel
-def _lca(parent: np.ndarray, depth: np.ndarray, a: int, b: int) -> tuple[int, int]:
-    """``(lca, d)``: the lowest common ancestor of a and b and the length of the path."""
-    u = a
-    v = b
-    d = 0
-    while depth[u] > depth[v]:
-        u = parent[u]
-        d += 1
-    while depth[v] > depth[u]:
-        v = parent[v]
-        d += 1
-    while u != v:
-        u = parent[u]
-        v = parent[v]
-        d += 2
-    return u, d
-
-
-@kernel
-def path_lengths(parent: np.ndarray, depth: np.ndarray, ends: np.ndarray,
-                 out: np.ndarray) -> int:
-    """Domain size of each constraint ``ends[k] = (a, b)`` (tree nodes) into ``out``; the sum."""
-    total = 0
-    for k in range(ends.shape[0]):
-        out[k] = _lca(parent, depth, ends[k, 0], ends[k, 1])[1]
-        total += out[k]
-    return total
-
-
-@kernel
-def fill_paths(parent: np.ndarray, depth: np.ndarray, ends: np.ndarray, starts: np.ndarray,
-               path_node: np.ndarray, path_sign: np.ndarray, path_count: np.ndarray) -> None:
-    """Write each constraint's domain at ``path_node[starts[k]:]`` (tree.py's convention).
-
-    The a side from a upwards with sign -1, then the b side from b upwards with +1 (GPS:
-    ``a`` is the earth, so only n and its ancestors below the earth, +1); the root (lowest
-    common ancestor) is excluded.  ``path_count`` counts the domains through each node.
-    """
-    for k in range(ends.shape[0]):
-        a = ends[k, 0]
-        b = ends[k, 1]
-        r = _lca(parent, depth, a, b)[0]
-        j = starts[k]
-        u = a
-        while u != r:
-            path_node[j] = u
-            path_sign[j] = -1
-            path_count[u] += 1
-            j += 1
-            u = parent[u]
-        v = b
-        while v != r:
-            path_node[j] = v
-            path_sign[j] = 1
-            path_count[v] += 1
-            j += 1
-            v = parent[v]
-
-
-# --------------------------------------------------------------------------- estimates
-@kernel
-def node_pose(i: int, parent: np.ndarray, rot: np.ndarray, trans: np.ndarray,
-              ro: np.ndarray, to: np.ndarray) -> None:
-    """Global pose of tree node i (earth frame), O(depth)."""
-    global_pose(i, parent, rot, trans, ro, to)
-
-
-@kernel
-def all_poses(parent: np.ndarray, rot: np.ndarray, trans: np.ndarray, n: int,
-              grot: np.ndarray, gtr: np.ndarray) -> None:
-    """Global poses of tree nodes ``0..n-1``; every parent has a smaller index than its child."""
-    for i in range(n):
-        p = parent[i]
-        if p < 0:
-            grot[i] = rot[i]
-            gtr[i] = trans[i]
-            continue
-        for r in range(3):
-            for c in range(3):
-                grot[i, r, c] = (grot[p, r, 0] * rot[i, 0, c] + grot[p, r, 1] * rot[i, 1, c]
-                                 + grot[p, r, 2] * rot[i, 2, c])
-            gtr[i, r] = (grot[p, r, 0] * trans[i, 0] + grot[p, r, 1] * trans[i, 1]
-                         + grot[p, r, 2] * trans[i, 2] + gtr[p, r])
 
 
 @kernel
@@ -407,35 +321,3 @@ def candidates(chi2: np.ndarray, first: int, m: int, recent: int, window: int, c
     for j in range(k):
         out[j] = tmp[perm[j]]
     return k
-
-
-@kernel
-def follow_odometry(parent: np.ndarray, rot: np.ndarray, trans: np.ndarray, n0: int, t: int,
-                    odom: np.ndarray, edge_ab: np.ndarray, old_r: np.ndarray,
-                    old_t: np.ndarray) -> None:
-    """After the local transforms of tree nodes ``1..n0-1`` were replaced (an adopted result):
-    give every later node ``i < t`` whose pose has an odometry edge the pose relative to its
-    odometry parent it had before (``old_r``, ``old_t``: the global poses before the
-    replacement), by rewriting its local transform; a node without odometry keeps its local.
-    Parents are older than their children, so one pass in index order suffices."""
-    gr = np.empty((t, 3, 3))
-    gt = np.empty((t, 3))
-    all_poses(parent, rot, trans, n0, gr, gt)
-    rel_r = np.empty((3, 3))
-    rel_t = np.empty(3)
-    for i in range(n0, t):
-        p = parent[i]
-        e = odom[i - 1]
-        if e < 0:  # no odometry (the first pose): the local stays
-            gr[i] = gr[p] @ rot[i]
-            gt[i] = gr[p] @ trans[i] + gt[p]
-            continue
-        a = edge_ab[e, 0] + 1  # the odometry parent's tree node (older than i)
-        # the pose relative to the odometry parent before: old_a^-1 old_i
-        rel_r[:] = old_r[a].T @ old_r[i]
-        rel_t[:] = old_r[a].T @ (old_t[i] - old_t[a])
-        gr[i] = gr[a] @ rel_r
-        gt[i] = gr[a] @ rel_t + gt[a]
-        # the new local transform relative to the tree parent
-        rot[i] = gr[p].T @ gr[i]
-        trans[i] = gr[p].T @ (gt[i] - gt[p])

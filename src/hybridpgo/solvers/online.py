@@ -47,6 +47,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .. import _cost
+from .. import _tree_kernels as tk
 from .._numba import cycles_per_second, read_cycles
 from ..errors import FormatError, GraphError
 from ..graph import SYMMETRY_RTOL, FloatArray, PoseGraph
@@ -158,14 +159,6 @@ class OnlineConfig:
     """With ``background_refine``: when a result is adopted, the constraints added after its
     snapshot are queued to be relaxed again as new ones (on top of the optimum, in arrival
     order), so what the frames had made of them is redone rather than left inconsistent."""
-    background_follow: Literal["tree", "odometry"] = "tree"
-    """With ``background_refine``: how the poses added after a result's snapshot move when it
-    is adopted.  ``"tree"``: each keeps its local transform (its pose relative to its tree
-    parent; one copy, O(n)); ``"odometry"``: each keeps its pose relative to its odometry
-    parent as the frames had estimated it (two passes over the tree, O(N)).  Measured worse
-    (5 ms, ``background_join=100``, worst checkpoint / end): M3500_isam 1.21 / 1.07 against
-    1.12 / 1.06 with ``"tree"``; valencia 60 / 1.06 against 19 / 1.03.  Its kernel is compiled
-    at the first adoption that needs it, not with the solver (that frame pays for it once)."""
     background_iterations: int = 20
     """Most LM iterations of one background solve (an unconverged solve is continued)."""
 
@@ -184,9 +177,6 @@ class OnlineConfig:
         _check_int("reserve_poses", self.reserve_poses, 1)
         _check_int("background_join", self.background_join, 0)
         _check_int("background_iterations", self.background_iterations, 1)
-        if self.background_follow not in ("odometry", "tree"):
-            raise ValueError(f"background_follow must be 'odometry' or 'tree', got "
-                             f"{self.background_follow!r}")
         if self.local_size > 64:
             raise ValueError(f"local_size must be at most 64 (its dense system is "
                              f"(6 local_size)^2), got {self.local_size}")
@@ -681,7 +671,7 @@ class OnlineSolver:
                 e = int(self._odom[p])
                 a = int(self._edge_ab[e, 0])
                 # initial guess: the odometry composed onto the parent's estimate (DESIGN §11)
-                ok.node_pose(a + 1, self._parent, self._rot, self._trans, ro, to)
+                tk.global_pose(a + 1, self._parent, self._rot, self._trans, ro, to)
                 zr, zt = self._edge_rot[e], self._edge_trans[e]
                 gr, gt = ro @ zr, ro @ zt + to
                 tp = parent_of.get(p, a) + 1
@@ -691,7 +681,7 @@ class OnlineSolver:
                     rot, trans = gr, gt
                     self._gps_link_count += 1
                 else:
-                    ok.node_pose(tp, self._parent, self._rot, self._trans, ro, to)
+                    tk.global_pose(tp, self._parent, self._rot, self._trans, ro, to)
                     rot, trans = ro.T @ gr, ro.T @ (gt - to)
             self._parent[node] = tp
             self._depth[node] = self._depth[tp] + 1
@@ -725,7 +715,8 @@ class OnlineSolver:
         ends[m1 - m0:, 0] = 0  # GPS: from the earth
         ends[m1 - m0:, 1] = self._gps_node[g0:g1] + 1
         lengths = np.empty(ends.shape[0], np.int64)
-        ok.path_lengths(self._parent, self._depth, ends, lengths)
+        roots = np.empty(ends.shape[0], np.int32)
+        tk.path_lengths(ends, self._parent, self._depth, lengths, roots)
         le, lg = lengths[: m1 - m0], lengths[m1 - m0:]
         self._ensure_pool(int(self._ptr[m0] + le.sum()),
                           int(self._ptr[self._cap_m + g0] - self._cap_pe + lg.sum()))
@@ -733,8 +724,11 @@ class OnlineSolver:
         self._ptr[m0 + 1: m1 + 1] = self._ptr[m0] + np.cumsum(le)
         self._ptr[cm + g0 + 1: cm + g1 + 1] = self._ptr[cm + g0] + np.cumsum(lg)
         starts = np.concatenate([self._ptr[m0:m1], self._ptr[cm + g0: cm + g1]])
-        ok.fill_paths(self._parent, self._depth, ends, starts, self._path_node,
-                      self._path_sign, self._path_count)
+        tk.fill_paths(ends, self._parent, roots, starts, self._path_node, self._path_sign)
+        lo_e, hi_e = int(self._ptr[m0]), int(self._ptr[m1])
+        lo_g, hi_g = int(self._ptr[cm + g0]), int(self._ptr[cm + g1])
+        for lo, hi in ((lo_e, hi_e), (lo_g, hi_g)):
+            np.add.at(self._path_count, self._path_node[lo:hi], 1)
         if lengths.size:
             self._dmax = max(self._dmax, int(lengths.max()))
         self._m_laid, self._g_laid = m1, g1
@@ -880,24 +874,14 @@ class OnlineSolver:
         self._ship_frames[n] = self.frame
 
     def _adopt(self, res: Refined) -> None:
-        """Replace the local transforms of the result's poses; the poses added after its
-        snapshot move along with their odometry parents (``background_follow="odometry"``: two
-        passes over the tree, O(N)) or with their tree parents (``"tree"``: one copy, O(n))."""
+        """Replace the local transforms of the result's poses (one copy, O(n)); the poses
+        added after its snapshot move along with their tree parents."""
         t0 = time.perf_counter()
         n = res.n
         if n > self._placed:  # cannot happen: only placed poses are shipped
             return
-        t = self._placed + 1
-        follow = self.config.background_follow == "odometry" and n + 1 < t
-        if follow:
-            old_r = np.empty((t, 3, 3))
-            old_t = np.empty((t, 3))
-            ok.all_poses(self._parent, self._rot, self._trans, t, old_r, old_t)
         self._rot[1: n + 1] = res.rotations
         self._trans[1: n + 1] = res.translations
-        if follow:
-            ok.follow_odometry(self._parent, self._rot, self._trans, n + 1, t, self._odom,
-                               self._edge_ab, old_r, old_t)
         self._refined_m, self._refined_g = res.m, res.g
         self._tail_n, self._tail_m, self._tail_g, self._tail_ok = n, res.m, res.g, True
         if self.config.background_rebase:
@@ -984,7 +968,7 @@ class OnlineSolver:
             grot, gtr = self.estimate()
             return grot[p], gtr[p]
         ro, to = np.empty((3, 3)), np.empty(3)
-        ok.node_pose(p + 1, self._parent, self._rot, self._trans, ro, to)
+        tk.global_pose(p + 1, self._parent, self._rot, self._trans, ro, to)
         return ro, to
 
     def estimate(self) -> tuple[FloatArray, FloatArray]:
@@ -996,7 +980,8 @@ class OnlineSolver:
         t = self._placed + 1
         grot = np.empty((t, 3, 3))
         gtr = np.empty((t, 3))
-        ok.all_poses(self._parent, self._rot, self._trans, t, grot, gtr)
+        tk.globals_from_locals(np.arange(t, dtype=np.int32), self._parent, self._rot,
+                               self._trans, grot, gtr)
         rot = np.empty((self._n, 3, 3))
         trans = np.empty((self._n, 3))
         rot[: self._placed] = grot[1:]

@@ -21,7 +21,8 @@ from ..._numba import cycles_per_second, read_cycles
 from ...energy import energy, robust_energy
 from ...errors import SolverError
 from ...graph import FloatArray, PoseGraph
-from ...tree import LINK_EDGE, LINK_GPS, PoseTree, build_tree, global_poses, initial_locals
+from ...initialization import initial_locals
+from ...tree import LINK_EDGE, LINK_GPS, PoseTree, build_tree, global_poses
 from ..config import HybridConfig, Progress, ProgressCallback
 from ..result import SolveResult, Status
 from . import _aggregate, _batch, _correction, _init_blocks, _linearize, _step, _sweep
