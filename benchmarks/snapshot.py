@@ -97,7 +97,7 @@ def _online(inp: str, out: pathlib.Path, kw: dict[str, object]) -> None:
     try:
         from hybridpgo.online import OnlineConfig, OnlineSolver
     except ImportError:
-        from hybridpgo.solvers.online import OnlineConfig, OnlineSolver
+        from hybridpgo.solvers.online import OnlineConfig, OnlineSolver  # type: ignore
 
     graph = hybridpgo.read_graph(inp)
     stream = replay.make_stream(graph)

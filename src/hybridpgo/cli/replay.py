@@ -39,7 +39,7 @@ def _recorder(args: argparse.Namespace, graph: Any) -> Any:
 
 
 def _frame_recorder(recorder: Any, stream: Any, every: int, extra: int) -> Any:
-    """``on_frame`` of :func:`~hybridpgo.replay.replay_online` logging to ``recorder``."""
+    """``on_frame`` of :func:`~hybridpgo.online.replay.replay_online` logging to ``recorder``."""
     nf = stream.num_frames
     total = nf + extra
     every = every or max(1, math.ceil(total / RERUN_MAPS))
@@ -60,8 +60,8 @@ def _frame_recorder(recorder: Any, stream: Any, every: int, extra: int) -> Any:
 
 def replay_file(args: argparse.Namespace) -> dict[str, Any]:
     """Read, stream through the online solver (and iSAM2), measure; the JSON-friendly summary."""
-    from ..replay import checkpoint_frames, make_stream
-    from ..solvers.online import OnlineConfig
+    from ..online import OnlineConfig
+    from ..online.replay import checkpoint_frames, make_stream
 
     _check_outputs(args.plot)
     graph = read_input(args.file, args.format)
@@ -98,7 +98,7 @@ def replay_file(args: argparse.Namespace) -> dict[str, Any]:
 
 def _run(args: argparse.Namespace, graph: Any, stream: Any, config: Any, frames: list[int],
          recorder: Any, say: Any) -> dict[str, Any]:
-    from ..replay import prefix_optima, replay_isam2, replay_online
+    from ..online.replay import prefix_optima, replay_isam2, replay_online
 
     budget = args.budget_ms * 1e-3
     on_frame = (None if recorder is None else
@@ -131,8 +131,8 @@ def _plots(runs: list[Any], optima: dict[int, float], prefix: str, budget_ms: fl
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from ..online.replay import energy_ratio
     from ..plot import save_figure
-    from ..replay import energy_ratio
 
     written = []
     fig, ax = plt.subplots(figsize=(8, 4))

@@ -58,12 +58,12 @@ LINEAR_SOLVERS = ("auto", "cholmod", "splu")
 
 
 
-def _check_int(name: str, value: object, minimum: int) -> None:
+def check_int(name: str, value: object, minimum: int) -> None:
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
 
 
-def _check_float(name: str, value: object, *, positive: bool) -> None:
+def check_float(name: str, value: object, *, positive: bool) -> None:
     if (isinstance(value, bool) or not isinstance(value, (int, float))
             or not math.isfinite(value) or (value <= 0 if positive else value < 0)):
         kind = "a finite number > 0" if positive else "a finite number >= 0"
@@ -130,13 +130,13 @@ class GaussNewtonConfig:
     def __post_init__(self) -> None:
         if self.method not in ("gn", "lm"):
             raise ValueError(f"method must be 'gn' or 'lm', got {self.method!r}")
-        _check_int("max_iterations", self.max_iterations, 0)
-        _check_float("energy_tolerance", self.energy_tolerance, positive=False)
-        _check_float("step_tolerance", self.step_tolerance, positive=False)
-        _check_float("initial_damping", self.initial_damping, positive=True)
+        check_int("max_iterations", self.max_iterations, 0)
+        check_float("energy_tolerance", self.energy_tolerance, positive=False)
+        check_float("step_tolerance", self.step_tolerance, positive=False)
+        check_float("initial_damping", self.initial_damping, positive=True)
         if not isinstance(self.step_guard, bool):
             raise ValueError(f"step_guard must be True or False, got {self.step_guard!r}")
-        _check_int("max_step_halvings", self.max_step_halvings, 0)
+        check_int("max_step_halvings", self.max_step_halvings, 0)
         if self.linear_solver not in LINEAR_SOLVERS:
             raise ValueError(f"linear_solver must be one of {', '.join(LINEAR_SOLVERS)}, "
                              f"got {self.linear_solver!r}")
@@ -196,17 +196,6 @@ class HybridConfig:
     """The kernel's delta (> 0) in whitened units (sqrt of χ²); None: the kernel's default
     (:data:`ROBUST_DEFAULT_SCALE`).  The value used is :attr:`robust_delta`."""
 
-    update: Literal["paper", "saga"] = "paper"
-    """``"paper"``: each relative constraint's step solves ``H_c x = J_c^T r_c`` (eq. 25).
-    ``"saga"``: the same hybrid system with an aggregated right-hand side (each constraint's
-    remembered force, balanced per node, is subtracted), so a settled optimum is a fixed point of
-    the sweeps (:mod:`hybridpgo.solvers.hybrid._aggregate`); GPS batches stay the paper's.
-    Needs ``step="woodbury"`` and no ``dmax``.  Experimental: it diverges on generated cities
-    with and without GPS (``benchmarks/sag.py``, ``benchmarks/converge.py``) and is no better
-    than the paper's on M3500_isam.  For sweeps that converge use ``correction="pcg"``."""
-    memory_rate: float = 0.03
-    """``update="saga"``: the memory moves this fraction of the way to each fresh contribution,
-    in (0, 1] (1: SAGA itself, which diverges on M3500_isam; 0.1 diverges on intel)."""
     correction: Literal["none", "pcg"] = "none"
     """``"pcg"``: after every sweep one global truncated Gauss-Newton step:
     ``correction_iterations`` iterations of conjugate gradients on the exact normal equations of
@@ -226,43 +215,36 @@ class HybridConfig:
         return default_robust_scale(self.robust, self.robust_scale)
 
     def __post_init__(self) -> None:
-        if self.update not in ("paper", "saga"):
-            raise ValueError(f"update must be 'paper' or 'saga', got {self.update!r}")
         if self.correction not in ("none", "pcg"):
             raise ValueError(f"correction must be 'none' or 'pcg', got {self.correction!r}")
-        _check_int("correction_iterations", self.correction_iterations, 1)
+        check_int("correction_iterations", self.correction_iterations, 1)
         if not isinstance(self.monotone, bool):
             raise ValueError(f"monotone must be True or False, got {self.monotone!r}")
         if self.monotone and self.correction == "none":
             raise ValueError("monotone=True needs correction='pcg' (an undone sweep alone would "
                              "repeat itself)")
-        rate = self.memory_rate
-        if not (isinstance(rate, (int, float)) and not isinstance(rate, bool) and 0 < rate <= 1):
-            raise ValueError(f"memory_rate must be in (0, 1], got {self.memory_rate!r}")
-        if self.update != "paper" and (self.step != "woodbury" or self.dmax is not None):
-            raise ValueError(f"update={self.update!r} needs step='woodbury' and dmax=None")
-        _check_int("sweeps", self.sweeps, 0)
+        check_int("sweeps", self.sweeps, 0)
         if self.sweeps > MAX_SWEEPS:
             raise ValueError(f"sweeps must be at most {MAX_SWEEPS}, got {self.sweeps!r}")
-        _check_float("tau0", self.tau0, positive=True)
+        check_float("tau0", self.tau0, positive=True)
         if not self.tau0 < MAX_TAU:
             raise ValueError(f"tau0 must be below {MAX_TAU:g} (a larger temperature "
                              f"over-relaxes and the sweeps diverge), got {self.tau0!r}")
         if not (isinstance(self.tau_decay, (int, float)) and 0 < self.tau_decay <= 1):
             raise ValueError(f"tau_decay must be in (0, 1], got {self.tau_decay!r}")
-        _check_float("damping", self.damping, positive=False)
+        check_float("damping", self.damping, positive=False)
         for name, value, allowed in (("step", self.step, STEP_NAMES),
                                      ("tree", self.tree, TREE_NAMES),
                                      ("init", self.init, INIT_NAMES)):
             if value not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {value!r}")
-        _check_int("gps_batch_size", self.gps_batch_size, 1)
+        check_int("gps_batch_size", self.gps_batch_size, 1)
         if self.dmax is not None:
-            _check_int("dmax", self.dmax, 2)  # one node per side of the path at least
-        _check_float("energy_tolerance", self.energy_tolerance, positive=False)
+            check_int("dmax", self.dmax, 2)  # one node per side of the path at least
+        check_float("energy_tolerance", self.energy_tolerance, positive=False)
         if not isinstance(self.polish, bool):
             raise ValueError(f"polish must be True or False, got {self.polish!r}")
-        _check_int("polish_iterations", self.polish_iterations, 0)
+        check_int("polish_iterations", self.polish_iterations, 0)
         robust_kind(self.robust, self.robust_delta)
 
 
@@ -383,26 +365,26 @@ class AutoConfig:
                 f"{self.sweeps.robust}:{self.sweeps.robust_delta:g} and "
                 f"{self.polish.robust}:{self.polish.robust_delta:g}")
         if self.large_poses is not None:
-            _check_int("large_poses", self.large_poses, 2)
+            check_int("large_poses", self.large_poses, 2)
         for name, value in (("inits", self.inits), ("large_inits", self.large_inits)):
             if (not isinstance(value, tuple) or not value
                     or any(i not in INIT_NAMES for i in value) or len(set(value)) != len(value)):
                 raise ValueError(f"{name} must be a non-empty tuple of distinct names from "
                                  f"{', '.join(INIT_NAMES)}, got {value!r}")
-        _check_int("large_max_sweeps", self.large_max_sweeps, 0)
+        check_int("large_max_sweeps", self.large_max_sweeps, 0)
         if self.large_max_sweeps > MAX_SWEEPS:
             raise ValueError(f"large_max_sweeps must be at most {MAX_SWEEPS}, got "
                              f"{self.large_max_sweeps!r}")
         if self.finalists is not None:
-            _check_int("finalists", self.finalists, 1)
+            check_int("finalists", self.finalists, 1)
         if not isinstance(self.polish_unswept, bool):
             raise ValueError(f"polish_unswept must be True or False, got {self.polish_unswept!r}")
-        _check_float("finalist_budget", self.finalist_budget, positive=True)
-        _check_float("sweep_tolerance", self.sweep_tolerance, positive=False)
+        check_float("finalist_budget", self.finalist_budget, positive=True)
+        check_float("sweep_tolerance", self.sweep_tolerance, positive=False)
         if not isinstance(self.relaxation, bool):
             raise ValueError(f"relaxation must be True or False, got {self.relaxation!r}")
-        _check_int("relaxation_iterations", self.relaxation_iterations, 1)
-        _check_float("relaxation_angle", self.relaxation_angle, positive=True)
+        check_int("relaxation_iterations", self.relaxation_iterations, 1)
+        check_float("relaxation_angle", self.relaxation_angle, positive=True)
 
     @property
     def robust(self) -> RobustName:

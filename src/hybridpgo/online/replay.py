@@ -2,7 +2,7 @@
 
 Frames come in increasing pose id: frame k brings pose k with every relative constraint
 between k and an earlier pose (its odometry first, then the loop closures) and every GPS
-reading on k.  :func:`replay_online` feeds them to :class:`~hybridpgo.solvers.online.OnlineSolver`
+reading on k.  :func:`replay_online` feeds them to :class:`~hybridpgo.online.OnlineSolver`
 and :func:`replay_isam2` to GTSAM's ISAM2 (the optional ``gtsam`` extra), timing one update
 per frame; :func:`prefix_optima` computes the batch optimum of the prefixes the accuracy is
 measured against.
@@ -20,9 +20,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from .energy import energy
-from .errors import GraphError
-from .graph import FloatArray, PoseGraph
+from ..energy import energy
+from ..errors import GraphError
+from ..graph import FloatArray, PoseGraph
 
 IntArray = npt.NDArray[np.int64]
 #: ``on_frame(k, solver, latency_s)`` of :func:`replay_online`: frame k (from 1) is done.
@@ -175,8 +175,8 @@ def prefix_optima(stream: Stream, frames: Sequence[int], max_iterations: int = 1
                   progress: Callable[[int, float], None] | None = None) -> dict[int, float]:
     """Batch optimum (exact LM) of each prefix; each warm-starts from the previous optimum,
     the new poses composed from their odometry (independent of any online solver)."""
-    from .solvers.config import GaussNewtonConfig
-    from .solvers.gauss_newton import solve_exact
+    from ..solvers.config import GaussNewtonConfig
+    from ..solvers.gauss_newton import solve_exact
 
     g = stream.graph
     out: dict[int, float] = {}
@@ -288,7 +288,7 @@ def replay_online(stream: Stream, config: Any = None, budget_s: float | None = 5
     (:meth:`OnlineSolver.wait_background_ready`, as a robot starts its back end before it
     drives); the wait is ``info["background_start_s"]``.
     """
-    from .solvers.online import OnlineSolver
+    from .solver import OnlineSolver
 
     solver = OnlineSolver(config)
     try:
