@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from graphs import random_graph
 
-from hybridpgo.errors import FormatError
+from hybridpgo.errors import FormatError, GraphError
 from hybridpgo.online import OnlineConfig, OnlineSolver
 from hybridpgo.online.persist import state_arrays
 from hybridpgo.online.replay import feed_frame, make_stream
@@ -70,7 +70,7 @@ def test_a_saved_state_loads_and_continues_like_the_original(tmp_path: Path) -> 
 @pytest.mark.parametrize("key, value", [
     ("parent", 10**9), ("parent", -5), ("edge_ab", 10**9), ("edge_ab", -1), ("gps_node", 10**9),
     ("odom", 10**9), ("queue", 10**9), ("queue", -10**9), ("group_members", 10**9),
-    ("group_ptr", 10**9), ("last_e", 10**12), ("model", -1.0), ("model", np.nan),
+    ("group_ptr", 10**9), ("group_stamp", 10**12), ("model", -1.0), ("model", np.nan),
     ("chi2_e", -1.0), ("rot", np.inf), ("edge_info", np.nan), ("bdiag", np.inf),
 ])
 def test_a_crafted_index_or_value_is_refused(tmp_path: Path, key: str, value: float) -> None:
@@ -236,3 +236,61 @@ def test_save_writes_through_a_link_and_refuses_what_it_cannot_replace(tmp_path:
         s.save("/dev/null")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["dir.npz", "fifo.npz", "link.npz",
                                                           "real.npz"]
+
+
+# --------------------------------------------------------------------------- bad calls
+@pytest.mark.parametrize("budget", [0.0, -1.0, float("nan"), float("inf"), "5", True])
+def test_a_bad_budget_is_refused_and_changes_nothing(budget: object) -> None:
+    s = _solver()
+    before = state_arrays(s)
+    with pytest.raises(ValueError, match="budget_s must be a finite number > 0"):
+        s.update(budget)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="budget_s must be a finite number > 0"):
+        s.idle(budget)  # type: ignore[arg-type]
+    after = state_arrays(s)
+    for k in before:
+        assert np.array_equal(before[k], after[k]), k
+
+
+def test_a_huge_budget_is_a_long_frame_not_an_overflow() -> None:
+    s = _solver()
+    s.update(1e15)
+    s.update(1e12)
+    assert np.isfinite(s.energy())
+
+
+def test_bad_input_changes_nothing() -> None:
+    s = _solver()
+    ids = s.pose_ids()
+    before = state_arrays(s)
+    nan_pose = (np.eye(3), np.array([np.nan, 0.0, 0.0]))
+    with pytest.raises(GraphError, match="not finite"):
+        s.add_constraint(int(ids[0]), int(ids[3]), nan_pose, np.eye(6))
+    with pytest.raises(GraphError, match="unknown pose id"):
+        s.add_constraint(int(ids[0]), 10**9, (np.eye(3), np.ones(3)), np.eye(6))
+    with pytest.raises(GraphError, match="duplicate pose id"):
+        s.add_pose(int(ids[2]), int(ids[1]), (np.eye(3), np.ones(3)), np.eye(6))
+    s.add_constraint(int(ids[0]), int(ids[4]), (np.eye(3), np.ones(3)), np.eye(6))
+    mid = state_arrays(s)
+    with pytest.raises(GraphError, match="duplicate constraint"):
+        s.add_constraint(int(ids[0]), int(ids[4]), (np.eye(3), np.ones(3)), np.eye(6))
+    after = state_arrays(s)
+    for k in mid:
+        assert np.array_equal(mid[k], after[k]), k
+    assert before["meta"].tobytes() != mid["meta"].tobytes()  # the good constraint was taken
+
+
+def test_idle_uses_the_time_between_frames() -> None:
+    """idle() between frames relaxes what a tight budget left queued and then older
+    constraints; the frames' own work stays as it was."""
+    g, _, _ = random_graph(np.random.default_rng(5), n=40, extra=30, noise=0.05)
+    st = make_stream(g)
+    busy, resting = (OnlineSolver(OnlineConfig(reserve_poses=64, background_refine=False))
+                     for _ in range(2))
+    for k in range(st.num_frames):
+        for s in (busy, resting):
+            feed_frame(s, st, k)
+            s.update(None, 1)  # one update per frame: a backlog builds up
+        resting.idle(0.002)
+    assert busy.backlog > 0 and resting.backlog == 0
+    assert resting.energy() < busy.energy()

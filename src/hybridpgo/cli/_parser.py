@@ -618,6 +618,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_format(p)
     p.add_argument("--budget-ms", type=_pos_float, default=5.0, metavar="B",
                    help="time budget of one frame's update in milliseconds (default 5)")
+    p.add_argument("--rate", type=_pos_float, metavar="HZ",
+                   help="frames arrive at this rate (e.g. 10 for a lidar): the time between a "
+                        "frame's work and the next frame goes to the back end (default: back "
+                        "to back, the worst case)")
     p.add_argument("--every", type=_nonneg_int, default=500, metavar="K",
                    help="measure the accuracy every K frames and at the end (default 500; "
                         "0: only the latency, no batch optima)")
@@ -635,9 +639,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="local solve: relax the K newest relative constraints together in every "
                         "frame (default 0: off)")
     p.add_argument("--background-refine", action=argparse.BooleanOptionalAction,
-                   default=False,
+                   default=None,
                    help="run the exact whole-map solve over and over in a worker process and "
-                        "adopt each result in the next frame (default: off)")
+                        "adopt each result in the next frame (default: the library's, "
+                        "OnlineConfig.background_refine)")
     p.add_argument("--plot", metavar="PREFIX",
                    help="write PREFIX_latency.png and PREFIX_energy.png (needs matplotlib)")
     p.add_argument("--rerun", metavar="RRD",
