@@ -111,7 +111,8 @@ def test_info_residuals_with_gps_to_stdout(capsys: pytest.CaptureFixture[str],
 
 def test_info_residuals_of_a_file_without_vertices(capsys: pytest.CaptureFixture[str],
                                                   tiny: Path, tmp_path: Path) -> None:
-    from hybridpgo.tree import build_tree, global_poses, initial_locals
+    from hybridpgo.initialization import initial_locals
+    from hybridpgo.tree import build_tree, global_poses
 
     isam = tmp_path / "tiny.txt"
     assert run_cli(capsys, "convert", tiny, isam)[0] == 0

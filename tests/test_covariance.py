@@ -14,13 +14,13 @@ from hybridpgo.covariance import marginal_covariances
 from hybridpgo.errors import SolverError
 from hybridpgo.graph import PoseGraph
 from hybridpgo.io import read_graph
-from hybridpgo.solvers._linear import _cholmod_available
+from hybridpgo.linalg._factor import cholmod_available
 from hybridpgo.solvers.config import GaussNewtonConfig
 from hybridpgo.solvers.gauss_newton import normal_equations, solve_exact
 
 BACKENDS = [
     "splu",
-    pytest.param("cholmod", marks=pytest.mark.skipif(not _cholmod_available(),
+    pytest.param("cholmod", marks=pytest.mark.skipif(not cholmod_available(),
                                                      reason="cvxopt not installed")),
 ]
 #: Our tangent (rho, phi) -> GTSAM Pose3's (rotation, translation).

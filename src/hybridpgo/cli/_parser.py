@@ -56,7 +56,7 @@ def _trees() -> list[str]:
 
 
 def _inits() -> list[str]:
-    from ..tree import InitKind
+    from ..initialization import InitKind
 
     return [k.value for k in InitKind]
 
@@ -284,9 +284,9 @@ def build_parser() -> argparse.ArgumentParser:
                "--max-iterations limits the exact solver, or the "
                "polish with --polish.  --solver auto takes the hybrid options except --polish "
                "(it always polishes): --init is then the only start tried, --sweeps the most "
-               f"sweeps per start (default {au.max_sweeps}), --max-iterations and "
-               f"--tolerance limit each polish (default {au.polish_iterations} and "
-               f"{au.energy_tolerance:g}).  --solver toro (the TORO-style baseline) "
+               f"sweeps per start (default {au.sweeps.sweeps}), --max-iterations and "
+               f"--tolerance limit each polish (default {au.polish.max_iterations} and "
+               f"{au.polish.energy_tolerance:g}).  --solver toro (the TORO-style baseline) "
                "takes --sweeps (its iterations, default 100), --tolerance, --init tree|file "
                "and --tree toro|bfs.  " + OUTPUT_HELP)
     p.add_argument("file", help="pose-graph file (g2o, TORO or iSAM; '-': standard input)")
@@ -436,7 +436,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="output directory (default: hybridpgo-demo)")
     p.add_argument("--sweeps", type=_sweeps, metavar="N",
                    help="most hybrid sweeps from each start before the polish (default "
-                        f"{au.max_sweeps}; fewer when a sweep stops paying)")
+                        f"{au.sweeps.sweeps}; fewer when a sweep stops paying)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     _add_progress(p)
     _add_common(p)
@@ -618,6 +618,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_format(p)
     p.add_argument("--budget-ms", type=_pos_float, default=5.0, metavar="B",
                    help="time budget of one frame's update in milliseconds (default 5)")
+    p.add_argument("--rate", type=_pos_float, metavar="HZ",
+                   help="frames arrive at this rate (e.g. 10 for a lidar): the time between a "
+                        "frame's work and the next frame goes to the back end (default: back "
+                        "to back, the worst case)")
     p.add_argument("--every", type=_nonneg_int, default=500, metavar="K",
                    help="measure the accuracy every K frames and at the end (default 500; "
                         "0: only the latency, no batch optima)")
@@ -635,9 +639,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="local solve: relax the K newest relative constraints together in every "
                         "frame (default 0: off)")
     p.add_argument("--background-refine", action=argparse.BooleanOptionalAction,
-                   default=False,
+                   default=None,
                    help="run the exact whole-map solve over and over in a worker process and "
-                        "adopt each result in the next frame (default: off)")
+                        "adopt each result in the next frame (default: the library's, "
+                        "OnlineConfig.background_refine)")
     p.add_argument("--plot", metavar="PREFIX",
                    help="write PREFIX_latency.png and PREFIX_energy.png (needs matplotlib)")
     p.add_argument("--rerun", metavar="RRD",

@@ -273,20 +273,20 @@ class BlockCholesky:
 
     def factor(self, values: FloatArray) -> None:
         """Numeric factorization of A with the given values (the lower-triangle layout)."""
-        from ._linear import _not_positive_definite
+        from ._factor import not_positive_definite
 
         col = _numeric(self._nv, self._a_ptr, self._a_row, self._indptr, values, self._l_ptr,
                        self._l_row, self._diag, self._off, self._pivots)
         if col >= 0:
-            raise _not_positive_definite(f"non-positive pivot in column {col}")
+            raise not_positive_definite(f"non-positive pivot in column {col}")
         self._diagonal = values[self._indptr[:-1]]
 
     def check(self) -> None:
         """Raise SolverError when the last factored matrix is singular to rounding."""
-        from ._linear import _check_pivots
+        from ._factor import check_pivots
 
         assert self._diagonal is not None
-        _check_pivots(self._pivots, self._diagonal)
+        check_pivots(self._pivots, self._diagonal)
 
     def solve_factored(self, rhs: FloatArray) -> FloatArray:
         """``A^-1 rhs`` with the last factorization (rhs: (dim,))."""
