@@ -178,14 +178,15 @@ def run_example(ex: Example, workdir: Path, monkeypatch: pytest.MonkeyPatch) -> 
     exec(code_obj, namespace)
 
 
-@pytest.mark.parametrize("page", PAGES, ids=[p.relative_to(ROOT).as_posix() for p in PAGES])
+#: The pages with at least one example (the others have nothing to run).
+RUNNABLE = [p for p in PAGES if examples(p)]
+
+
+@pytest.mark.parametrize("page", RUNNABLE, ids=[p.relative_to(ROOT).as_posix() for p in RUNNABLE])
 def test_page_examples_run(page: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                            subtests: pytest.Subtests) -> None:
     """Every command and python block of the page works, in order (see the module doc)."""
-    found = examples(page)
-    if not found:
-        pytest.skip(f"{page.name} has no hybridpgo command or python block")
-    for ex in found:
+    for ex in examples(page):
         with subtests.test(msg=ex.label):
             missing = [e for e in needed_extras(ex)
                        if importlib.util.find_spec(EXTRAS[e][0]) is None]
