@@ -648,3 +648,7 @@ WORKLOADS["converge"] = _converge_run
 from .first_run import run as _first_run  # noqa: E402  (issue 11 item 5: cold first run)
 
 WORKLOADS["first_run"] = _first_run
+
+from .covariance import run as _covariance_run  # noqa: E402
+
+WORKLOADS["covariance"] = _covariance_run

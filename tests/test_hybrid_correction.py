@@ -62,8 +62,7 @@ def _linearization(solver: HybridSolver) -> tuple[np.ndarray, ...]:
     topo = solver.topology
     nt, nc = topo.parent.shape[0], topo.ends.shape[0]
     yr, yt = np.empty((nt, 3, 3)), np.empty((nt, 3))
-    globals_from_locals(topo.order, topo.parent, solver.state.rot,
-                        solver.state.trans, yr, yt)
+    globals_from_locals(topo.order, topo.parent, solver.state.rot, solver.state.trans, yr, yt)
     amat, res = np.empty((nc, 6, 6)), np.empty((nc, 6))
     _correction.linearize_all(solver.problem, topo.ends, yr, yt, amat, res)
     return yr, yt, amat, res

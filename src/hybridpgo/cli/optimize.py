@@ -50,7 +50,7 @@ class Job:
     covariance: str | None = None
     """``--covariance``: where to write the poses' marginal covariances (.npz)."""
     covariance_poses: tuple[int, ...] | str | None = None
-    """``--covariance-poses``: file ids, ``"all"``, or None (all up to COVARIANCE_ALL_MAX)."""
+    """``--covariance-poses``: file ids, ``"all"``, or None (all)."""
     rerun: str | None = None
     """``--rerun``: where to record the run for the Rerun viewer (.rrd)."""
 
@@ -59,17 +59,11 @@ def _covariance_nodes(job: Job, graph: PoseGraph) -> Any:
     """Dense indices of the poses of ``--covariance`` (checked before the solve), or None."""
     import numpy as np
 
-    from ._parser import COVARIANCE_ALL_MAX
-
     if job.covariance is None:
         if job.covariance_poses is not None:
             raise HybridPGOError("--covariance-poses: give --covariance NPZ too")
         return None
     sel = job.covariance_poses
-    if sel is None and graph.num_nodes > COVARIANCE_ALL_MAX:
-        raise HybridPGOError(f"--covariance: {job.input} has {graph.num_nodes} poses (more than "
-                             f"{COVARIANCE_ALL_MAX}): choose them with --covariance-poses "
-                             "(e.g. 0,100..200, or all)")
     if sel is None or isinstance(sel, str):  # None or "all"
         return np.arange(graph.num_nodes)
     index = graph.index_from_id()

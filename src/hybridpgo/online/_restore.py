@@ -120,7 +120,6 @@ def restore(solver: OnlineSolver, meta: dict[str, Any], d: dict[str, np.ndarray]
     st.gps_node[:g], st.gps_pos[:g], st.gps_info[:g], st.gps_lt[:g] = (
         gps_node, d["gps_pos"], d["gps_info"], gps_lt)
     cm = st.cap_m
-    st.last[:m], st.last[cm: cm + g] = d["last_e"], d["last_g"]
     st.group_of[:m] = -1
     st.group_of[cm: cm + g] = -1
     st.m_laid = st.g_laid = 0
@@ -131,8 +130,6 @@ def restore(solver: OnlineSolver, meta: dict[str, Any], d: dict[str, np.ndarray]
         if vals.size and vals.min() < 0:
             raise ValueError(f"{key} holds a negative χ²")
         st.chi2[lo: lo + vals.shape[0]] = vals
-    for key in ("last_e", "last_g"):
-        _in_range(key, d[key], -1, frame + 1)
     _groups(st, d, ngroups, m, g, frame)
     queue = d["queue"].astype(np.int64)
     _constraint_names("queue", queue, m, g)

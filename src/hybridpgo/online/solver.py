@@ -101,6 +101,7 @@ class OnlineSolver:
         self._wk: Any = None
         self._cursor = 0
         self._gps_cursor = 0
+        self._stamp = 0  # one per call of the relaxation loops (junction groups: once each)
         self._link: WorkerLink | None = None
         self._finalizer: weakref.finalize[Any, Any] | None = None
         if cfg.background_refine:
@@ -292,43 +293,75 @@ class OnlineSolver:
             is changed.
         """
         t0 = time.perf_counter()
-        c0 = int(read_cycles())
-        budget = None if budget_s is None else _check_budget(budget_s)
+        deadline = self._deadline(budget_s)
         if max_updates is not None:
             check_int("max_updates", max_updates, 0)
-        cfg = self.config
-        deadline = _NO_DEADLINE
-        if budget is not None:
-            spare = max(budget - RESERVE_S, 0.0)
-            deadline = np.uint64(c0 + int(spare * cycles_per_second()))
         limit = (1 << 62) if max_updates is None else max_updates
         self._integrate()
         if self._link is not None:
+            cfg = self.config
             self._link.step(self._store, self.frame, cfg.background_join,
                             cfg.background_rebase)
+        report = self._work(deadline, limit, time.perf_counter() - t0)
+        self.frame += 1
+        return report._replace(seconds=time.perf_counter() - t0)
+
+    def idle(self, budget_s: float) -> int:
+        """Use ``budget_s`` seconds between frames for the back end: adopt the worker's
+        results, relax what is still queued, then older constraints, until the time is used or
+        nothing is left to do (the adopted optimum holds, ``background_hold``).  Returns the
+        updates made.  A stream at a real rate calls it after each frame's :meth:`update` with
+        the time until the next frame; a frame's own work stays bounded by its budget.
+
+        Raises
+        ------
+        ValueError
+            A budget that is not a finite number > 0.
+        """
+        t0 = time.perf_counter()
+        deadline = self._deadline(budget_s)
+        self._integrate()
+        done = 0
+        while np.uint64(read_cycles()) < deadline:
+            if self._link is not None and self.config.background_join == 0:
+                self._link.step(self._store, self.frame, 0, self.config.background_rebase)
+            rep = self._work(deadline, 1 << 62, time.perf_counter() - t0)
+            if rep.new + rep.old + rep.local_nodes == 0:
+                break
+            done += rep.new + rep.old
+        return done
+
+    def _deadline(self, budget_s: float | None) -> np.uint64:
+        """The cycle count at which a call with this budget stops starting updates."""
+        c0 = int(read_cycles())
+        if budget_s is None:
+            return _NO_DEADLINE
+        spare = max(_check_budget(budget_s) - RESERVE_S, 0.0)
+        return np.uint64(c0 + int(spare * cycles_per_second()))
+
+    def _work(self, deadline: np.uint64, limit: int, elapsed: float) -> FrameReport:
+        """New constraints in arrival order, the local solve, then spare time (one call of the
+        relaxation loop each, under the admission policy)."""
+        cfg = self.config
         st = self._store
         prob, state, pol = st.views()
         sc = st.scratch(self._wk)
         self._wk = sc.wk
-        kern = loop_kernel(True, False, False, True)
         counts = np.zeros(NUM_COUNTS, np.int64)
-        stamp = self.frame
-        mu = cfg.damping
-        kind = int(STEP_KINDS[cfg.step])
-        # 1. new constraints, in arrival order
-        n_new = run_loop(kern, prob, state, sc, st.pending(), cfg.tau_new, mu, kind,
-                         cfg.gps_batch_size, 0, deadline, counts, True, pol, stamp, limit,
-                         force_first=True, skip=False)
+        self._stamp += 1
+        stamp = self._stamp
+        n_new = run_loop(loop_kernel(True, False, False, True), prob, state, sc, st.pending(),
+                         cfg.tau_new, cfg.damping, int(STEP_KINDS[cfg.step]), cfg.gps_batch_size,
+                         0, deadline, counts, True, pol, stamp, limit, force_first=True,
+                         skip=False)
         st.pop(n_new)
         limit -= int(counts[Count.DONE])
         local_nodes = self._local_solve(deadline, counts, limit) if cfg.local_size else 0
         if local_nodes:
             limit -= 1
         old = self._spare_time(deadline, counts, limit, stamp)
-        self.frame += 1
         return FrameReport(n_new, self.backlog, old, local_nodes, int(counts[Count.CAPPED]),
-                           int(counts[Count.REJECTED]), int(counts[Count.SKIPPED]),
-                           time.perf_counter() - t0)
+                           int(counts[Count.REJECTED]), int(counts[Count.SKIPPED]), elapsed)
 
     def _local_solve(self, deadline: np.uint64, counts: npt.NDArray[np.int64],
                      limit: int) -> int:

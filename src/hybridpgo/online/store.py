@@ -68,8 +68,8 @@ _POOL_ARRAYS: _Spec = (("path_node", (), np.int32), ("path_sign", (), np.int8),
                 ("contrib", (6, 6), np.float64))
 #: Arrays per constraint (edges, then GPS readings at ``cap_m``).
 _CONSTRAINT_ARRAYS: _Spec = (
-    ("ptr", (), np.int64), ("chi2", (), np.float64), ("last", (), np.int64),
-    ("group_of", (), np.int64), ("cycles", (), np.uint64), ("batch_cycles", (), np.uint64))
+    ("ptr", (), np.int64), ("chi2", (), np.float64), ("group_of", (), np.int64),
+    ("cycles", (), np.uint64), ("batch_cycles", (), np.uint64))
 
 
 class MapStore:
@@ -108,7 +108,6 @@ class MapStore:
     contrib: np.ndarray
     ptr: np.ndarray
     chi2: np.ndarray
-    last: np.ndarray
     group_of: np.ndarray
     cycles: np.ndarray
     batch_cycles: np.ndarray
@@ -262,7 +261,7 @@ class MapStore:
                 self.parent, _NO_LINKS, _NO_FORWARD, self.robust[0], self.robust[1],
             )  # fmt: skip
             state = State(self.rot, self.trans, self.bdiag, self.contrib)
-            pol = Admission(self.model, self.chi2, self.last, self.group_of, self.group_ptr,
+            pol = Admission(self.model, self.chi2, self.group_of, self.group_ptr,
                             self.group_members, self.group_stamp, self.depth)
             self._views = (prob, state, pol)
         return self._views
@@ -295,7 +294,6 @@ class MapStore:
         self.edge_trans[e] = trans
         self.edge_info[e] = info
         self.edge_lt[e] = lt
-        self.last[e] = -1
         self.group_of[e] = -1
         self.m = e + 1
         return e
@@ -309,7 +307,6 @@ class MapStore:
         self.gps_info[g] = info
         self.gps_lt[g] = lt
         c = self.cap_m + g
-        self.last[c] = -1
         self.group_of[c] = -1
         self.g = g + 1
         return c

@@ -163,10 +163,12 @@ class ExactSolver:
 
     # ----------------------------------------------------------------- covariances
     def factor(self, rotations: FloatArray | None = None,
-               translations: FloatArray | None = None) -> Any:
+               translations: FloatArray | None = None, *, block: bool = False) -> Any:
         """Assemble H (plain least squares) at the poses and factor it; returns the factorizer
         (``inverse_blocks``, ``solve_factored``) with the full 6-dof system of the free nodes,
-        variables in the order of :attr:`pattern` (``var_of_node``).
+        variables in the order of :attr:`pattern` (``var_of_node``): the configured backend's,
+        or with ``block`` the 6x6 block Cholesky (:class:`hybridpgo.linalg.BlockCholesky`,
+        whose ``inverse_diagonal_blocks`` is selected inversion), a new factor each call.
 
         Raises
         ------
@@ -174,12 +176,18 @@ class ExactSolver:
             H is singular to rounding, or the linearization is not finite.
         """
         rot, trans = initial_poses(self.graph, rotations, translations)
-        backend = self._backend(False, allow_block=False)
-        grad = np.empty(self.pattern.dim)
-        assemble(self.graph, self.pattern, rot, trans, backend.data, grad)
-        backend.solver.factor(backend.data)
-        backend.solver.check()
-        return backend.solver
+        pat = self.pattern
+        if block:
+            solver: Any = BlockCholesky(pat.num_vars, pat.block_ptr, pat.block_row, pat.indptr)
+            data = np.empty(pat.nnz)
+        else:
+            backend = self._backend(False, allow_block=False)
+            solver, data = backend.solver, backend.data
+        grad = np.empty(pat.dim)
+        assemble(self.graph, pat, rot, trans, data, grad)
+        solver.factor(data)
+        solver.check()
+        return solver
 
     # ----------------------------------------------------------------- solving
     def solve(self, rotations: FloatArray | None = None, translations: FloatArray | None = None,

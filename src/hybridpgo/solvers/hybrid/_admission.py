@@ -55,8 +55,6 @@ class Admission(NamedTuple):
     """(3,) the cost model (``MODEL_BASE``, ``MODEL_NODE``, ``MODEL_BATCH``), learnt in place."""
     chi2: npt.NDArray[np.float64]
     """(C,) each constraint's χ² before its last update (written)."""
-    last: npt.NDArray[np.int64]
-    """(C,) the stamp of each constraint's last update (written)."""
     group_of: npt.NDArray[np.int64]
     """(C,) the junction group of each constraint, -1 for none."""
     group_ptr: npt.NDArray[np.int64]

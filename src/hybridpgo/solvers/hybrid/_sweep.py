@@ -135,7 +135,8 @@ def _group_work(prob: Problem, pol: Admission, grp: int) -> int:
 @kernel
 def _relax_group(prob: Problem, state: State, sc: Scratch, pol: Admission, grp: int,
                  stamp: int, tau: float, mu: float, counts: np.ndarray) -> None:
-    """Relax a junction group's members together as one batch (their χ² recorded first)."""
+    """Relax a junction group's members together as one batch (their χ² recorded first); the
+    group is marked with ``stamp`` (relaxed once per call of the loop)."""
     lo = pol.group_ptr[grp]
     nb = pol.group_ptr[grp + 1] - lo
     pol.group_stamp[grp] = stamp
@@ -145,7 +146,6 @@ def _relax_group(prob: Problem, state: State, sc: Scratch, pol: Admission, grp: 
     for j in range(nb):
         cj = members[j]
         pol.chi2[cj] = adm.chi2_of(prob, state, cj, sc.wk, ro, to)
-        pol.last[cj] = stamp
     t0 = cycle_counter()
     nu = batch_relax_exact(prob, state, members, nb, tau, mu, sc.slot, sc.xb, sc.nodes, 0,
                            False)
@@ -224,7 +224,6 @@ def _make_loop(with_gps: bool, with_interpolation: bool, givens: bool, admission
                     if admission:
                         started += 1
                         pol.chi2[c] = adm.gps_chi2(prob, state, c, ro, to)
-                        pol.last[c] = stamp
                         buf_cost += adm.predict(pol.model, domain(prob, c)[1], True)
                     sc.buf[nbuf] = c
                     nbuf += 1
@@ -233,7 +232,6 @@ def _make_loop(with_gps: bool, with_interpolation: bool, givens: bool, admission
                 break
             if admission:
                 started += 1
-                pol.last[c] = stamp
                 if grp >= 0:
                     _relax_group(prob, state, sc, pol, grp, stamp, tau, mu, counts)
                     continue
@@ -284,9 +282,8 @@ def loop_kernel(with_gps: bool, with_interpolation: bool, givens: bool = False,
 
 
 #: The admission arrays of a loop without the policy (never read).
-NO_ADMISSION = Admission(np.zeros(3), np.zeros(0), np.zeros(0, np.int64),
-                         np.zeros(0, np.int64), np.zeros(1, np.int64), np.zeros(0, np.int64),
-                         np.zeros(0, np.int64), np.zeros(0, np.int32))
+NO_ADMISSION = Admission(np.zeros(3), np.zeros(0), np.zeros(0, np.int64), np.zeros(1, np.int64),
+                         np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int32))
 
 
 def run_loop(kern: Any, prob: Problem, state: State, sc: Scratch, order: np.ndarray,
