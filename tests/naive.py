@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 import scipy.linalg
+from scipy.spatial.transform import Rotation
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -81,11 +82,6 @@ def _phi_series(a: FloatArray) -> FloatArray:
     return np.asarray(scipy.linalg.expm(big)[:n, n:], dtype=np.float64)
 
 
-def so3_exp(phi: FloatArray) -> FloatArray:
-    """Matrix exponential of [phi]x."""
-    return np.asarray(scipy.linalg.expm(skew(phi)), dtype=np.float64)
-
-
 def matrix_to_quat_xyzw(r: FloatArray) -> FloatArray:
     """Unit quaternion (x, y, z, w), w >= 0: top eigenvector of 4 q q^T - I (Bar-Itzhack)."""
     k = np.array([
@@ -107,15 +103,6 @@ def quat_xyzw_to_matrix(q: FloatArray) -> FloatArray:
     return (w * w - v @ v) * np.eye(3) + 2.0 * np.outer(v, v) + 2.0 * w * skew(v)
 
 
-def so3_log(r: FloatArray) -> FloatArray:
-    """Rotation vector through the quaternion: phi = 2 atan2(|v|, w) v / |v|, |phi| <= pi."""
-    q = matrix_to_quat_xyzw(r)
-    n = np.linalg.norm(q[:3])
-    if n == 0.0:
-        return np.zeros(3)
-    return 2.0 * np.arctan2(n, q[3]) * q[:3] / n
-
-
 def so3_left_jacobian(phi: FloatArray) -> FloatArray:
     """J_l(phi) = sum_n [phi]x^n / (n+1)!."""
     return _phi_series(skew(phi))
@@ -133,7 +120,7 @@ def se3_exp(xi: FloatArray) -> tuple[FloatArray, FloatArray]:
 
 def se3_log(r: FloatArray, t: FloatArray) -> FloatArray:
     """(rho, phi) with phi = Log(R) and rho solving J_l(phi) rho = t."""
-    phi = so3_log(r)
+    phi = Rotation.from_matrix(r).as_rotvec()  # SciPy's Log(R), |phi| <= pi
     rho = np.linalg.solve(so3_left_jacobian(phi), t)
     return np.concatenate([rho, phi])
 

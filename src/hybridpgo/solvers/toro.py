@@ -49,6 +49,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .._numba import cycles_per_second
+from .._warmup import tiny_graph
 from ..energy import energy
 from ..errors import GraphError, SolverError
 from ..graph import FloatArray, PoseGraph
@@ -215,15 +216,7 @@ def ensure_compiled() -> float:
     if getattr(tk.sweep, "signatures", None):
         return 0.0
     t0 = time.perf_counter()
-    eye = np.tile(np.eye(3), (3, 1, 1))
-    tiny = PoseGraph(
-        node_ids=np.arange(3), rotations=eye, translations=np.eye(3),
-        edge_nodes=np.array([[0, 1], [1, 2], [0, 2]], np.int32), edge_rotations=eye,
-        edge_translations=np.ones((3, 3)), edge_information=np.tile(np.eye(6), (3, 1, 1)),
-        gps_nodes=np.array([2], np.int32), gps_positions=np.ones((1, 3)),
-        gps_information=np.eye(3)[None],
-    )
-    _solve(tiny, ToroConfig(iterations=1), None, compile_s=0.0)
+    _solve(tiny_graph(gps=True), ToroConfig(iterations=1), None, compile_s=0.0)
     cycles_per_second()
     return time.perf_counter() - t0
 

@@ -52,10 +52,11 @@ from ..._cost import (
 )
 from ..._numba import kernel
 from ..._tree_kernels import globals_from_locals
+from ...geometry._kernels import adjoint_into
 from ...graph import FloatArray, PoseGraph
 from ...tree import PoseTree
-from ._batch import adjoint_into
 from ._dense import MAX_DAMPING_ESCALATIONS, regularized_factor, solve_lt
+from ._linearize import gps_factor_into, relative_factor_into
 from ._step import step_temperature
 from .problem import Problem, State, Update
 
@@ -165,26 +166,13 @@ def linearize_all(prob: Problem, ends: np.ndarray, yr: np.ndarray, yt: np.ndarra
                     res[c, p] *= sw
                     for j in range(6):
                         a0[p, j] *= sw
-            rinv = yr[b].T.copy()  # Ad(Y_b)^-1 = Ad(Y_b^-1)
-            tinv = -(rinv @ yt[b])
-            adjoint_into(rinv, tinv, adb)
-            amat[c] = a0 @ adb
+            relative_factor_into(a0, yr[b], yt[b], adb, amat[c])
         else:
             g = c - prob.num_edges
             pn = yt[b]  # the earth is the identity
             gps_residual(pn, prob.gps_pos[g], e)
             whiten_residual(prob.gps_lt[g], e, 3, res[c])
-            for i in range(3):
-                for j in range(6):
-                    blk[i, j] = 0.0
-                blk[i, i] = 1.0
-            blk[0, 4] = pn[2]  # -[p_n]x
-            blk[0, 5] = -pn[1]
-            blk[1, 3] = -pn[2]
-            blk[1, 5] = pn[0]
-            blk[2, 3] = pn[1]
-            blk[2, 4] = -pn[0]
-            whiten_rows(prob.gps_lt[g], blk, 3, amat[c])
+            gps_factor_into(prob.gps_lt[g], pn, blk, amat[c])
 
 
 # --------------------------------------------------------------------------- products

@@ -28,6 +28,7 @@ from ..._cost import (
 )
 from ..._numba import kernel
 from ..._tree_kernels import mul_pose_into as mul_pose_into
+from ...geometry._kernels import adjoint_into
 from .problem import EYE, ZERO, Problem, Workspace, domain, is_gps
 
 
@@ -274,3 +275,33 @@ def linearize(prob: Problem, c: int, rot: np.ndarray, trans: np.ndarray, wk: Wor
     whiten_residual(prob.gps_lt[g], wk.e, 3, wk.r)
     _gps_blocks(prob, c, wk, jac)
     return 3, na
+
+
+# --------------------------------------------------------------------------- J = s A_c Ad(Y)
+@kernel
+def relative_factor_into(a: np.ndarray, rb: np.ndarray, tb: np.ndarray, adb: np.ndarray,
+                         out: np.ndarray) -> None:
+    """``A_c = a Ad(Y_b)^-1`` of a relative constraint (``a = L^T Jr^-1(e)``, ``(rb, tb)`` the
+    global pose ``Y_b``), so that ``J_{c,u} = s_{c,u} A_c Ad(Y_u)`` (the batch solve and the
+    global correction use this factorization); ``adb`` (6, 6) scratch."""
+    rinv = rb.T.copy()  # Ad(Y_b)^-1 = Ad(Y_b^-1)
+    tinv = -(rinv @ tb)
+    adjoint_into(rinv, tinv, adb)
+    out[:] = a @ adb
+
+
+@kernel
+def gps_factor_into(lt: np.ndarray, pn: np.ndarray, blk: np.ndarray, out: np.ndarray) -> None:
+    """``A_c = L^T [I | -[p_n]x]`` of a GPS reading on a node at ``pn`` (the earth is the root)
+    into rows 0..2 of ``out``, as :func:`relative_factor_into`; ``blk`` (3, 6) scratch."""
+    for i in range(3):
+        for j in range(6):
+            blk[i, j] = 0.0
+        blk[i, i] = 1.0
+    blk[0, 4] = pn[2]  # -[p_n]x
+    blk[0, 5] = -pn[1]
+    blk[1, 3] = -pn[2]
+    blk[1, 5] = pn[0]
+    blk[2, 3] = pn[1]
+    blk[2, 4] = -pn[0]
+    whiten_rows(lt, blk, 3, out)

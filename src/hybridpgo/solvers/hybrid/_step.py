@@ -59,6 +59,8 @@ def accumulate_path(path_node: np.ndarray, s: int, d: int, kr: int, jac: np.ndar
             regularized_factor(bc, scale, mu, lfac[k])
 
 
+# Long on purpose (speed): the hottest loop of a sweep, written out so that Ad(M_k), the 6x6
+# Jacobian block and J^T J stay in scalar locals (no scratch array reloaded after a store).
 @kernel
 def linearize_accumulate(path_node: np.ndarray, path_sign: np.ndarray, s: int, d: int, na: int,
                          pr: np.ndarray, pt: np.ndarray, a: np.ndarray, jac: np.ndarray,

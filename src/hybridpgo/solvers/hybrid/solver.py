@@ -18,6 +18,7 @@ import numpy.typing as npt
 
 from ..._cost import robust_kind
 from ..._numba import cycles_per_second, read_cycles
+from ..._warmup import tiny_graph
 from ...energy import energy, robust_energy
 from ...errors import SolverError
 from ...graph import FloatArray, PoseGraph
@@ -501,20 +502,9 @@ def ensure_compiled(gps: bool = False, interpolate: bool = False,
         return 0.0
     _COMPILED.update(todo)  # first: the tiny solves below construct solvers too
     t0 = time.perf_counter()
-    eye = np.tile(np.eye(3), (3, 1, 1))
-    tiny = PoseGraph(
-        node_ids=np.arange(3), rotations=eye, translations=np.eye(3),
-        edge_nodes=np.array([[0, 1], [1, 2], [0, 2]], np.int32), edge_rotations=eye,
-        edge_translations=np.ones((3, 3)), edge_information=np.tile(np.eye(6), (3, 1, 1)),
-        gps_nodes=np.array([2], np.int32), gps_positions=np.ones((1, 3)),
-        gps_information=np.eye(3)[None],
-    )
-    no_gps = dataclasses.replace(tiny, gps_nodes=np.zeros(0, np.int32),
-                                 gps_positions=np.zeros((0, 3)),
-                                 gps_information=np.zeros((0, 3, 3)))
     try:
         for with_gps, with_interp, with_givens in todo:
-            HybridSolver(tiny if with_gps else no_gps,
+            HybridSolver(tiny_graph(gps=with_gps),
                          HybridConfig(sweeps=1, init="tree", dmax=2 if with_interp else None,
                                       step="givens" if with_givens else "woodbury")).run()
     except BaseException:
