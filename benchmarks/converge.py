@@ -1,4 +1,4 @@
-"""Sweeps that converge (issue 11 item 3): the levers against the paper's sweeps.
+"""Sweeps that converge: the levers against the paper's sweeps.
 
 From the paper's setup (tree initialization, BFS tree, tau = 1 x 0.99 per sweep, no polish):
 energy per constraint after 1, 2, 5 and 10 sweeps and the solve time per sweep (sweep plus

@@ -1,4 +1,4 @@
-"""The TORO-style baseline (issue 7, item 2): sanity check on M3500_isam, time per constraint on
+"""The TORO-style baseline: sanity check on M3500_isam, time per constraint on
 the valencia city without GPS (paper Table I), and the dog-leg (paper Fig. 3e/f).
 
 Run: ``PYTHONPATH=src python -m benchmarks --only toro --run <name>``.

@@ -190,7 +190,7 @@ def se3_left_jacobian_inv(xi: np.ndarray) -> np.ndarray:
 
 @kernel
 def se3_right_jacobian_inv(xi: np.ndarray) -> np.ndarray:
-    """J_r(xi)^-1 = J_l(-xi)^-1 (DESIGN §3's ``Jr^-1``)."""
+    """J_r(xi)^-1 = J_l(-xi)^-1 (docs/mathematics.md#jacobians's ``Jr^-1``)."""
     return se3_left_jacobian_inv(-xi)
 
 

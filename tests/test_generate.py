@@ -1,5 +1,5 @@
-"""Tests of the generators ``hybridpgo.generate``: the city (issue 4; paper Table II, Fig. 3,
-Fig. 8), its size scaling, the grid world (issue 11) and outliers (issue 9)."""
+"""Tests of the generators ``hybridpgo.generate``: the city (paper Table II, Fig. 3,
+Fig. 8), its size scaling, the grid world and outliers."""
 
 from __future__ import annotations
 

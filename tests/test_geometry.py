@@ -1,7 +1,8 @@
 """SO(3)/SE(3): the Numba kernels, the vectorised NumPy API (so3, se3) and their conventions.
 
 Oracles: scipy's Rotation, the NumPy twins of ``tests/naive.py`` (matrix exponentials, eigenvector
-quaternions, 4x4 inverses), central finite differences for every Jacobian (DESIGN.md §3) and exact
+quaternions, 4x4 inverses), central finite differences for every Jacobian
+(docs/mathematics.md#jacobians) and exact
 group identities.  Angles are drawn in regimes (``tests/strategies.py``) so that each formula switch
 of ``_kernels`` is crossed: near 0 (1e-8), near pi (pi - 1e-6) and at the thresholds themselves.
 """
@@ -290,7 +291,8 @@ def test_matrix_to_euler_round_trip(r: np.ndarray) -> None:
 
 
 def test_planar_rotation_is_pure_yaw() -> None:
-    """2D graphs are lifted with roll = pitch = 0 (DESIGN.md §1): the yaw comes back exactly."""
+    """2D graphs are lifted with roll = pitch = 0 (docs/conventions.md): the yaw comes back
+    exactly."""
     for yaw in np.linspace(-math.pi, math.pi, 13):
         rpy = K.matrix_to_euler_rpy(K.euler_rpy_to_matrix(0.0, 0.0, yaw))
         assert rpy[0] == 0.0
@@ -377,9 +379,10 @@ def test_se3_left_jacobian_inv_matches_central_difference(xi: np.ndarray) -> Non
     assert_close(K.se3_right_jacobian_inv(xi), K.se3_left_jacobian_inv(-xi), 0.0)
 
 
-# ------------------------------------------------------ DESIGN.md §3: Jacobian of the error
+# ------------------------------------------------------ docs/mathematics.md#jacobians: Jacobian of
+# the error
 def relative_error(z: Pose, xa: Pose, xb: Pose) -> np.ndarray:
-    """e = Log(Z^-1 X_a^-1 X_b) (DESIGN.md §1)."""
+    """e = Log(Z^-1 X_a^-1 X_b) (docs/conventions.md)."""
     return np.asarray(K.relative_error(z[0], z[1], *K.between(*xa, *xb)))
 
 
@@ -406,7 +409,8 @@ def test_relative_error_jacobians_match_central_difference(z: Pose, xa: Pose, xb
        b_side=st.lists(gs.poses(), min_size=1, max_size=3))
 def test_tree_path_jacobian_matches_central_difference(z: Pose, root: Pose, a_side: list[Pose],
                                                        b_side: list[Pose]) -> None:
-    """DESIGN.md §3 in the tree parametrization: perturbing a local transform T_i <- T_i Exp(d)
+    """docs/mathematics.md#jacobians in the tree parametrization: perturbing a local transform T_i
+    <- T_i Exp(d)
     on the path a -> root -> b moves a whole subtree; de/dd_i = s_i Jr^-1(e) Ad(X_b^-1 X_i)."""
 
     def globals_of(locals_: list[Pose]) -> list[Pose]:

@@ -1,4 +1,5 @@
-"""Interpolated solving (paper III-E, DESIGN §6): kept nodes, merged constraints, distribution."""
+"""Interpolated solving (paper III-E, docs/mathematics.md#interpolated-solving): kept nodes, merged
+constraints, distribution."""
 
 from __future__ import annotations
 
@@ -105,7 +106,8 @@ def test_merged_constraint_composes_its_chain() -> None:
 
 
 def _distribute_twin(rot, trans, bdiag, nodes, ra, ta, rb_new, tb_new):
-    """DESIGN §6 in plain NumPy (global frame, 4x4 matrices): rotation about one axis by the
+    """docs/mathematics.md#interpolated-solving in plain NumPy (global frame, 4x4 matrices):
+    rotation about one axis by the
     cumulative-weight profile, then translation on the re-bent chain."""
     k = len(nodes)
     top_down = nodes[::-1]

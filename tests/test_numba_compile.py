@@ -1,4 +1,4 @@
-"""A solve compiles only the kernels it uses, each for one signature (issue 11: the first run).
+"""A solve compiles only the kernels it uses, each for one signature (the first run).
 
 The sweep of a graph without GPS readings and without interpolated solving must not compile the
 GPS batches (``_flush`` -> ``batch_relax``) or ``relax_interpolated``: together they were about

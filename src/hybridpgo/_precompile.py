@@ -1,7 +1,7 @@
 """Compile on two cores: a helper process fills Numba's cache while this one compiles.
 
-A cold first run spends most of its time compiling kernels, one after the other, on one core
-(issue 11 item 5).  The hybrid sweep alone takes about half of it and must come first; the
+A cold first run spends most of its time compiling kernels, one after the other, on one core.
+The hybrid sweep alone takes about half of it and must come first; the
 kernels a solve needs *after* the sweeps (global poses, energies, the exact solver's polish)
 can be compiled meanwhile by a second process into the same on-disk cache:
 

@@ -7,7 +7,7 @@
 >>> result = gtsam.LevenbergMarquardtOptimizer(factors, values).optimize()  # doctest: +SKIP
 >>> rotations, translations = from_gtsam(graph, result)                # doctest: +SKIP
 
-Conventions (DESIGN.md §1), chosen so that **our energy E equals 2 x GTSAM's error** at the
+Conventions (docs/conventions.md), chosen so that **our energy E equals 2 x GTSAM's error** at the
 same poses (GTSAM's error carries a 1/2, ours does not):
 
 * **Keys** are the file's node ids (``graph.node_ids``), so ``values.atPose3(7)`` is the pose the
@@ -22,7 +22,7 @@ same poses (GTSAM's error carries a 1/2, ours does not):
   its error ``p_n - g_c`` in the earth frame is ours exactly.
 * **2D graphs** (read from SE(2) files) become ``Pose2`` / ``BetweenFactorPose2`` with the
   (x, y, yaw) block of the information, the natural GTSAM model, and 2D energy equals the lifted
-  3D one exactly (DESIGN.md §1).  A 2D graph with GPS uses Pose3, since a GPS reading is 3D
+  3D one exactly (docs/conventions.md).  A 2D graph with GPS uses Pose3, since a GPS reading is 3D
   (``planar=False`` forces Pose3 for any graph; ``planar=True`` on a graph with GPS is an error).
 * **Gauge**: our solvers hold the root fixed (the ``FIX`` nodes, else the first pose; with GPS
   the earth frame).  GTSAM needs that said with a prior: ``anchor=True`` appends

@@ -23,7 +23,8 @@ Frames and conventions
 * Vehicle frame: x forward (direction of travel), y left, z up (the terrain normal
   orthogonalized against x), so roll and pitch are the terrain's cross and along slopes.
 * Relative measurement of edge ``(a, b)``: ``Z = (X_a^-1 X_b) Exp(xi)`` with ``xi = (rho, phi)``
-  ~ N(0, Sigma) in b's frame and information ``Omega = Sigma^-1`` (DESIGN.md §1); so the error of
+  ~ N(0, Sigma) in b's frame and information ``Omega = Sigma^-1`` (docs/conventions.md); so the
+  error of
   the true poses is ``-xi`` and the true poses have energy ~ chi^2 with 6 degrees of freedom per
   relative edge (3 per GPS reading).
 * A sigma of 0 gives an exact measurement; its information uses :data:`MIN_SIGMA` instead (an

@@ -15,7 +15,7 @@ with distance like that (seen in its ground truth: 12% of the coincident pairs c
 Every measurement (odometry and loop closure) gets the same noise: ``Z = (X_a^-1 X_b) Exp(xi)``
 with ``xi`` ~ N(0, diag(trans_sigma_m^2, ..., rot_sigma_rad^2, ...)) over (rho, phi) (2D:
 x, y and yaw only) and the matching information ``diag(1 / sigma^2)`` (2D: lifted as a g2o
-``EDGE_SE2`` is, DESIGN.md §1).  The graph's vertices are the noisy odometry chained from the
+``EDGE_SE2`` is, docs/conventions.md).  The graph's vertices are the noisy odometry chained from the
 true first pose (the poor initial guess of M3500).  A 2D grid is written as ``VERTEX_SE2`` /
 ``EDGE_SE2``.
 
@@ -232,7 +232,7 @@ def generate_grid(preset: str | None = None, *, seed: int = 0, **params: Any) ->
     planar = p.dim == 2
     ts, rs = p.trans_sigma_m, p.rot_sigma_rad
     sigma6 = np.array([ts, ts, 0.0, 0.0, 0.0, rs] if planar else [ts] * 3 + [rs] * 3)
-    if planar:  # information as a g2o EDGE_SE2 line is read (DESIGN.md §1)
+    if planar:  # information as a g2o EDGE_SE2 line is read (docs/conventions.md)
         info1 = lift_information_2d(diag_information(np.array([[ts, ts, rs]])))[0]
     else:
         info1 = diag_information(sigma6[None])[0]

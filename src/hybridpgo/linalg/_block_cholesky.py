@@ -4,7 +4,7 @@ CHOLMOD through cvxopt needs, per stored scalar entry of the lower triangle of H
 copy of the matrix (16 bytes: values and 64-bit row indices), the symbolic factor (~10), and at
 each numeric factorization a packed copy and a transposed one (16 + 16, transient), on top of
 the factor (~19 on a city graph) and the caller's values (8): ~100 bytes per entry at the peak,
-6 GB for a 1M-pose city (57 M entries), over the 4 GB target (issue 11 item 6).
+6 GB for a 1M-pose city (57 M entries), over a 4 GB memory target.
 
 This factorization works on the 6x6 *blocks* instead, straight from the values the assembly
 kernel writes (the lower-triangle layout of :mod:`._gn_kernels`, no copy): its row structure is

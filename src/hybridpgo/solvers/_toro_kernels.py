@@ -1,6 +1,7 @@
 """Numba kernels of the TORO-style baseline (``hybridpgo.solvers.toro``; shared/TORO.md).
 
-Layout (DESIGN.md §8): tree nodes ``0..N-1`` are the poses, node ``N`` the earth when the graph
+Layout (docs/contributing.md#data): tree nodes ``0..N-1`` are the poses, node ``N`` the earth when
+the graph
 has GPS constraints.  Constraints are the M relative edges, then the G GPS readings (constraint
 ``M + g`` joins the earth to ``gps_nodes[g]``).  Paths are CSR: the a-side nodes from a up to
 (excluding) the top with sign -1, then the b-side nodes from b up with sign +1.

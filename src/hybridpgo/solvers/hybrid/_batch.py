@@ -1,4 +1,5 @@
-"""Batch updates: several constraints relaxed together (paper III-F, III-G; DESIGN.md §5).
+"""Batch updates: several constraints relaxed together (paper III-F, III-G;
+docs/mathematics.md#batches).
 
 For a set C of constraints, ``H_C = sum_{c in C} J_c^T J_c + B_C`` over the union U of their
 domains, with ``B_C = 𝔅(H) - sum_{c in C} 𝔅(J_c^T J_c)`` (eq. 35-37).  GPS readings are relaxed
@@ -139,7 +140,8 @@ def _make_batch_relax(with_interpolation: bool) -> Callable[..., int]:
     def batch_relax(prob: Problem, state: State, cs: np.ndarray, nb: int, tau: float, mu: float,
                     slot: np.ndarray, x_out: np.ndarray, nodes_out: np.ndarray,
                     d_max: int = 0, dense: bool = True) -> int:
-        """Relax the constraints ``cs[:nb]`` together (paper eq. 35-37, DESIGN §5).
+        """Relax the constraints ``cs[:nb]`` together (paper eq. 35-37,
+        docs/mathematics.md#batches).
 
         ``slot`` (T,) must be -1 on entry and is -1 again on exit.  The step of union node
         ``nodes_out[u]`` is written to ``x_out[u]``.  Returns the number of union nodes, or
@@ -151,7 +153,8 @@ def _make_batch_relax(with_interpolation: bool) -> Callable[..., int]:
 
         ``dense=False`` keeps the segmented Woodbury solve even when a block of B_C vanishes (a
         node all of whose constraints are in the batch): such a block is then damped like every
-        other (DESIGN §4) and the cost stays O(entries + (6|C|)^3) instead of the dense
+        other (docs/mathematics.md#hybrid-step) and the cost stays O(entries + (6|C|)^3) instead of
+        the dense
         O((6|U|)^3) -- what a time budget per frame needs (the online solver).
         """
         e_off = np.empty(nb + 1, np.int64)

@@ -20,7 +20,8 @@ from .problem import Problem
 #: Largest union (nodes) solved by the dense normal equations when B_C has a zero block.
 MAX_DENSE_NODES = 4096 // 6
 #: An undamped dense batch system whose Cholesky pivot^2 falls below this fraction of its
-#: diagonal entry is singular to rounding; it is solved again with the damping of DESIGN §4.
+#: diagonal entry is singular to rounding; it is solved again with the damping of
+#: docs/mathematics.md#hybrid-step.
 SINGULAR_PIVOT = 1e-12
 
 
@@ -32,7 +33,8 @@ def dense_solve(nb: int, jb: np.ndarray, e_off: np.ndarray, e_slot: np.ndarray,
     """``(sum_c J_c^T J_c + B_C) x = sum_c J_c^T r_c`` densely over the union (6|U| unknowns).
 
     An entry whose ``e_slot`` is negative is left out (interpolated batches).
-    ``damped``: every block of B_C gets the damping of DESIGN §4 (``mu tr(B)/6 + TINY scale``),
+    ``damped``: every block of B_C gets the damping of docs/mathematics.md#hybrid-step (``mu
+    tr(B)/6 + TINY scale``),
     which keeps the system SPD where the batch alone leaves a direction free (e.g. the rotation
     of a subtree about a single GPS reading).
     """
@@ -241,7 +243,8 @@ def woodbury_segments(prob: Problem, cs: np.ndarray, nb: int, mu: float, jb: np.
                       by_slot: np.ndarray, bc: np.ndarray, slot: np.ndarray,
                       nodes_out: np.ndarray, amat: np.ndarray, yr: np.ndarray, yt: np.ndarray,
                       x_out: np.ndarray) -> bool:
-    """Woodbury solve of a batch in O(entries + sum over segments of |sig|^2) (DESIGN §5).
+    """Woodbury solve of a batch in O(entries + sum over segments of |sig|^2)
+    (docs/mathematics.md#batches).
 
     Every Jacobian block factors as ``J_{c,u} = s_{c,u} A_c Ad(Y_u)``.  Union nodes whose
     constraint sets agree (chains between branch points, "segments") share one moment

@@ -1,8 +1,8 @@
 """A global correction between sweeps: a truncated Gauss-Newton step by preconditioned CG.
 
 The single updates of a sweep are local: each one moves only its constraint's domain, and at the
-optimum the single forces ``J_c^T r_c`` do not vanish, so the sweeps hover around it (issue 11,
-item 3).  After each sweep :func:`correct` takes one *global* step: a few iterations of conjugate
+optimum the single forces ``J_c^T r_c`` do not vanish, so the sweeps hover around it.
+After each sweep :func:`correct` takes one *global* step: a few iterations of conjugate
 gradients on the exact Gauss-Newton system of the tree parametrization (paper eq. 11, the step
 the batch of every constraint would take, III-F)
 
@@ -160,7 +160,8 @@ def linearize_all(prob: Problem, ends: np.ndarray, yr: np.ndarray, yt: np.ndarra
             lt = prob.edge_lt[c]
             whiten_residual(lt, e, 6, res[c])
             whiten_rows(lt, jri, 6, a0)
-            if prob.robust_kind != ROBUST_NONE:  # whiten with sqrt(w) L^T (DESIGN §10)
+            if prob.robust_kind != ROBUST_NONE:  # whiten with sqrt(w) L^T
+            # (docs/conventions.md#robust-kernels)
                 sw = robust_whitening(prob.robust_kind, prob.robust_scale, res[c], 6)
                 for p in range(6):
                     res[c, p] *= sw
@@ -301,7 +302,8 @@ def pcg_step(topo: Topology, num_edges: int, yr: np.ndarray, yt: np.ndarray,
              amat: np.ndarray, res: np.ndarray, mu: float, iterations: int,
              x: np.ndarray) -> int:
     """At most ``iterations`` of CG on ``H x = J^T r`` from ``x = 0``, preconditioned by 𝔅(H)
-    (each block damped as the hybrid step's, DESIGN §4).  Returns the iterations run."""
+    (each block damped as the hybrid step's, docs/mathematics.md#hybrid-step).  Returns the
+    iterations run."""
     parent = topo.parent
     nt = parent.shape[0]
     nc = topo.ends.shape[0]

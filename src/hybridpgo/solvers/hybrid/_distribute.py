@@ -227,7 +227,8 @@ def distribute_chain(state: State, nodes: np.ndarray, start: int, k: int, ra: np
                      ta: np.ndarray, rb_new: np.ndarray, tb_new: np.ndarray,
                      wk: Workspace) -> None:
     """Move the chain ``nodes[start]`` (= b) ... ``nodes[start+k-1]`` (the top) so that b
-    reaches its desired pose relative to the chain's top parent a, TORO's way (DESIGN §6).
+    reaches its desired pose relative to the chain's top parent a, TORO's way
+    (docs/mathematics.md#interpolated-solving).
 
     ``(ra, ta)``: a's pose, ``(rb_new, tb_new)``: b's desired pose, in any common frame.  The
     locals of the chain nodes are rewritten; everything hanging below rides along.  In a's

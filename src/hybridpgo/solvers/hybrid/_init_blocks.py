@@ -34,7 +34,8 @@ def init_blocks(prob: Problem, state: State, dmax: int) -> None:
             continue
         if is_gps(prob, c):
             kr = linearize(prob, c, state.rot, state.trans, wk, jac)[0]
-        else:  # as relax() does: the arrays one by one (no NamedTuple per call, DESIGN §8)
+        else:  # as relax() does: the arrays one by one (no NamedTuple per call,
+        # docs/contributing.md#data)
             kr = 6
             relative_linearization(path_node, prob.path_sign, s, d, prob.edge_rot[c],
                                    prob.edge_trans[c], prob.edge_lt[c], prob.robust_kind,

@@ -1,4 +1,4 @@
-"""Interpolated solving (paper III-E, eq. 31-34; DESIGN.md §6).
+"""Interpolated solving (paper III-E, eq. 31-34; docs/mathematics.md#interpolated-solving).
 
 A constraint whose domain has more than ``D_max`` nodes is solved for a subset ``S_c`` of at most
 ``D_max`` nodes, kept uniformly along each side of its path (the endpoints always kept).  For a

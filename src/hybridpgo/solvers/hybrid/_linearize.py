@@ -1,4 +1,4 @@
-"""Linearization in the tree parametrization (paper III-B; DESIGN.md §3).
+"""Linearization in the tree parametrization (paper III-B; docs/mathematics.md#jacobians).
 
 Perturbing every local transform on the right, ``T_i <- T_i Exp(delta_i)``, constraint c's
 whitened Jacobian block for domain node i is
@@ -9,7 +9,8 @@ whitened Jacobian block for domain node i is
 Both come from products of local transforms along the path only (no global pose is needed),
 so one linearization costs O(d).  The error, ``Jr^-1`` and the whitening come from the cost
 layer (:mod:`hybridpgo._cost`).  With a robust kernel a relative constraint is whitened with
-``sqrt(w) L^T`` in place of ``L^T``, ``w = rho'(s)`` (DESIGN §10), so its ``J_c``, ``r_c`` and its
+``sqrt(w) L^T`` in place of ``L^T``, ``w = rho'(s)`` (docs/conventions.md#robust-kernels), so its
+``J_c``, ``r_c`` and its
 contribution to 𝔅(H) all carry the weight.
 """
 
@@ -219,7 +220,7 @@ def relative_setup(path_node: np.ndarray, path_sign: np.ndarray, s: int, d: int,
     jr_inv_matrix(ws, jri)
     whiten_residual(lt, e, 6, r)
     whiten_rows(lt, jri, 6, a)
-    if robust_kind != ROBUST_NONE:  # whiten with sqrt(w) L^T (DESIGN §10)
+    if robust_kind != ROBUST_NONE:  # whiten with sqrt(w) L^T (docs/conventions.md#robust-kernels)
         sw = robust_whitening(robust_kind, robust_scale, r, 6)
         for p in range(6):
             r[p] *= sw

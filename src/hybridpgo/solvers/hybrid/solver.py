@@ -51,7 +51,8 @@ class StepReport(NamedTuple):
 
 
 def _whitening(information: FloatArray, k: int) -> FloatArray:
-    """``L^T`` (upper triangular) of every information matrix, ``Omega = L L^T`` (DESIGN §1).
+    """``L^T`` (upper triangular) of every information matrix, ``Omega = L L^T``
+    (docs/conventions.md).
 
     A diagonal matrix (most generated and many file informations) gets ``sqrt`` of its
     diagonal, which is what the Cholesky factorization computes for it; the others are
@@ -63,7 +64,7 @@ def _whitening(information: FloatArray, k: int) -> FloatArray:
     diag = information.reshape(m, k * k)[:, :: k + 1]
     if np.count_nonzero(information) != np.count_nonzero(diag) or not np.all(diag > 0.0):
         out = np.ascontiguousarray(np.swapaxes(np.linalg.cholesky(information), 1, 2))
-        return out  # (not positive definite: LAPACK's error, as before)
+        return out  # (not positive definite: LAPACK's error)
     lt = np.zeros((m, k, k))
     lt.reshape(m, k * k)[:, :: k + 1] = np.sqrt(diag)
     return lt
@@ -157,7 +158,8 @@ class HybridSolver:
         return global_poses(self.tree, self.state.rot, self.state.trans)
 
     def energy(self) -> float:
-        """E of the current estimate (E_rho with a robust kernel, DESIGN §10)."""
+        """E of the current estimate (E_rho with a robust kernel,
+        docs/conventions.md#robust-kernels)."""
         return self.energies()[0]
 
     def energies(self) -> tuple[float, float]:
@@ -489,7 +491,8 @@ def ensure_compiled(gps: bool = False, interpolate: bool = False,
     """Compile (or load from Numba's cache) the kernels a solve uses; returns the seconds spent.
 
     Runs a three-pose graph once per process and variant, so a caller's ``analyze`` and
-    ``solve`` times are not inflated by compilation (STYLE.md §6).  Only what is asked is
+    ``solve`` times are not inflated by compilation (docs/contributing.md#solver-api).  Only what
+    is asked is
     compiled: the sweep variant of ``(gps, interpolate, givens)`` (which also builds 𝔅(H)
     below :data:`INIT_KERNEL_ENTRIES`); the GPS batches (III-G) with ``gps``, interpolated
     solving (III-E) with ``interpolate``, the Givens solve instead of Woodbury's with
