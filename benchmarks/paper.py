@@ -9,7 +9,8 @@ alone).  Figures go to ``results/figures/paper_*``.
 Every run of the hybrid solver here is 10 sweeps from the tree initialization (the paper's
 setting) with the default Woodbury step unless a table says "givens" (the paper timed its
 O(d^2) Givens triangularization; Woodbury is O(d)).  TORO is our TORO-style baseline
-(``solve_toro``, shared/TORO.md), 100 iterations unless said otherwise.  Times come from the
+(``solve_toro``, docs/mathematics.md#toro), 100 iterations unless said otherwise.  Times come from
+the
 same run on the same (shared, loaded) machine: compare them as ratios.  "steady max" is the
 largest over constraints of each constraint's cheapest update over the sweeps (free of the
 scheduler's interruptions); "max" is the largest update seen at all.

@@ -1,4 +1,4 @@
-"""Numba kernels of the TORO-style baseline (``hybridpgo.solvers.toro``; shared/TORO.md).
+"""Numba kernels of the TORO-style baseline (``hybridpgo.solvers.toro``, docs/mathematics.md#toro).
 
 Layout (docs/contributing.md#data): tree nodes ``0..N-1`` are the poses, node ``N`` the earth when
 the graph
@@ -10,7 +10,8 @@ Every constraint update works in the frame of the constraint's *top* (its lowest
 ancestor): the poses of the path nodes relative to the top are composed from the local
 transforms along the path, the update is made there, and the path's local transforms are
 rewritten.  The top and everything outside the path keep their local transforms, so this is the
-global-frame rule of TORO.md exactly (a rotation about the global axis ``a`` is a rotation about
+global-frame rule of docs/mathematics.md#toro exactly (a rotation about the global axis ``a`` is a
+rotation about
 ``R_top^T a`` in the top's frame), at O(path length) cost and without stale global poses.
 """
 
@@ -161,7 +162,8 @@ def _shift_wing(path_node: np.ndarray, s0: int, lo: int, hi: int, w_trans: np.nd
 def update_constraint(
     c: int, k: float, prob: tuple[Any, ...], state: tuple[Any, ...], work: tuple[Any, ...]
 ) -> int:
-    """Relax constraint ``c`` once with sweep counter ``k`` (TORO.md, steps 1 and 2).
+    """Relax constraint ``c`` once with sweep counter ``k`` (docs/mathematics.md#toro: the
+    rotation, then the translation).
 
     ``prob = (num_edges, path_ptr, path_node, path_sign, top, meas_rot, meas_trans, rho, tau,
     gamma_r, gamma_t, w_rot, w_trans)``: ``meas_trans`` has M + G rows (a GPS constraint's row
