@@ -38,8 +38,8 @@ from hybridpgo.solvers.config import GaussNewtonConfig
 from hybridpgo.solvers.gauss_newton import solve_exact
 from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver
 
+from .context import Context, Result
 from .metrics import Metric, markdown_table, quality, timing
-from .workloads import Context, Result
 
 CHECKPOINTS = (1, 2, 5, 10)
 TARGET = 1.30

@@ -21,8 +21,8 @@ import time
 
 from hybridpgo.io import bundled_path
 
+from .context import Context, Result
 from .metrics import Metric, markdown_table, timing
-from .workloads import Context, Result
 
 #: Target of the cold first run (seconds).
 TARGET_S = 30.0

@@ -20,8 +20,8 @@ import numpy as np
 
 from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver
 
+from .context import Context, Result
 from .metrics import Metric, info, markdown_table, quality, timing
-from .workloads import Context, Result
 
 SWEEPS = 10
 DMAXES: tuple[int | None, ...] = (75, 100, 150, 200, None)

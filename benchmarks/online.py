@@ -38,8 +38,8 @@ from hybridpgo.online.replay import (
     replay_online,
 )
 
+from .context import Context, Result
 from .metrics import Metric, info, markdown_table, quality, timing
-from .workloads import Context, Result
 
 BUDGET_S = 5e-3
 EVERY = 500

@@ -34,9 +34,9 @@ from hybridpgo.solvers.result import SolveResult
 from hybridpgo.solvers.toro import ToroConfig, solve_toro
 from hybridpgo.tree import build_tree
 
+from .context import Context, Result, start
 from .metrics import Metric, info, markdown_table, quality, timing
 from .toro import excess_misalignment_deg, heading_misalignment_deg, summary
-from .workloads import Context, Result, start
 
 SWEEPS = 10
 TORO_ITERATIONS = 100

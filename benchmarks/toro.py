@@ -16,8 +16,8 @@ import numpy.typing as npt
 from hybridpgo.solvers.hybrid import HybridConfig, solve_hybrid
 from hybridpgo.solvers.toro import ToroConfig, solve_toro
 
+from .context import Context, Result
 from .metrics import Metric, info, markdown_table, quality, timing
-from .workloads import Context, Result
 
 #: The original TORO binary on M3500_isam.txt, 100 iterations, square-root information
 #: (docs/mathematics.md#toro); the paper reports 2.062.

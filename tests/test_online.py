@@ -20,7 +20,6 @@ from hybridpgo.energy import energy
 from hybridpgo.errors import FormatError, GraphError
 from hybridpgo.online import OnlineConfig, OnlineSolver
 from hybridpgo.online._link import adopt_result
-from hybridpgo.online.persist import state_arrays
 from hybridpgo.online.replay import feed_frame, make_stream, prefix_optima
 from hybridpgo.solvers.config import GaussNewtonConfig
 from hybridpgo.solvers.gauss_newton import solve_exact
@@ -45,7 +44,7 @@ def _stream(solver: OnlineSolver, graph, frames: range, updates: int | None = UP
 
 def _state(s: OnlineSolver) -> dict[str, np.ndarray]:
     """Every array and counter of the solver's state (what a saved state holds)."""
-    return state_arrays(s)
+    return s.state_arrays()
 
 
 def _same(a: dict[str, np.ndarray], b: dict[str, np.ndarray], timing: bool = True) -> None:
