@@ -23,18 +23,14 @@ poses; all N blocks would cost N such solves.
 
 from __future__ import annotations
 
-import contextlib
 import os
-import stat
-import tempfile
 from typing import IO
 
 import numpy as np
 import numpy.typing as npt
 
-from .errors import FormatError
+from ._output import write_file
 from .graph import FloatArray, PoseGraph
-from .io._lines import _UMASK
 from .solvers._linear import _make_factorizer
 from .solvers.gauss_newton import (
     _analyze,
@@ -113,7 +109,8 @@ def marginal_covariances(graph: PoseGraph, rotations: FloatArray | None,
 
 def save_covariances(path: str | os.PathLike[str], ids: npt.ArrayLike,
                      covariances: npt.ArrayLike, *, fixed_ids: npt.ArrayLike = ()) -> None:
-    """Write covariances as an ``.npz`` archive, atomically (temporary file, then rename).
+    """Write covariances as an ``.npz`` archive (the output rules of :mod:`hybridpgo._output`:
+    a temporary file renamed into place, symbolic links written through).
 
     The archive holds ``ids`` (k,) int64 file ids of the poses; ``cov`` (k, 6, 6) float64, the
     covariance of ``delta`` in ``X Exp(delta)`` in tangent order ``tangent`` (``TANGENT_LABELS``:
@@ -139,34 +136,4 @@ def save_covariances(path: str | os.PathLike[str], ids: npt.ArrayLike,
     def dump(fh: IO[bytes]) -> None:
         np.savez(fh, ids=ids_arr, cov=cov, tangent=np.array(TANGENT_LABELS), fixed_ids=fixed)
 
-    target = os.path.realpath(name)  # a symbolic link is written through, as the graph writers
-    try:
-        mode: int | None = os.stat(target).st_mode
-    except FileNotFoundError:
-        mode = None
-    except OSError as exc:
-        raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
-    try:
-        if mode is not None and (stat.S_ISFIFO(mode) or stat.S_ISCHR(mode)):
-            with open(target, "wb") as fh:  # a pipe or /dev/null: cannot be replaced
-                dump(fh)
-            return
-        if mode is not None and not stat.S_ISREG(mode):
-            raise FormatError("cannot write the file: not a regular file, FIFO or device", name)
-    except OSError as exc:
-        raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
-    tmp = ""
-    try:
-        fd, tmp = tempfile.mkstemp(dir=os.path.dirname(target) or ".", prefix=".hybridpgo-",
-                                   suffix=".npz")
-        with os.fdopen(fd, "wb") as fh:
-            dump(fh)
-        os.chmod(tmp, stat.S_IMODE(mode) if mode is not None else 0o666 & ~_UMASK)
-        os.replace(tmp, target)
-        tmp = ""
-    except OSError as exc:
-        raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
-    finally:
-        if tmp:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
+    write_file(name, dump)

@@ -179,9 +179,12 @@ def _make_config(job: Job, init: str) -> SolverConfig:
 
 
 def _check_writable(path: str) -> None:
-    directory = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(directory):
-        raise HybridPGOError(f"{path}: cannot write: directory {directory} does not exist")
+    """Refuse an output that cannot be written, before the solve (a FormatError)."""
+    from .._output import check_output
+    from ._common import STDOUT_NAMES
+
+    if path not in STDOUT_NAMES:
+        check_output(path)
 
 
 def _plots_possible(job: Job) -> bool:
