@@ -7,8 +7,9 @@ solver states are all written through :class:`Outputs` (or its one-file shortcut
 * **Regular file or new name**: the content goes to a temporary file in the same directory,
   which is then renamed over the name (``os.replace``): a reader never sees half a file, and a
   failure or an interruption (Ctrl-C, SIGTERM) leaves what was there untouched and removes the
-  temporary file.  An existing file keeps its permissions; a new one gets ``0o666`` minus the
-  umask, as ``open`` would give it.
+  temporary file (SIGINT and SIGTERM are held while a temporary file is created and
+  registered, and while it is renamed, so an interruption never strands one).  An existing
+  file keeps its permissions; a new one gets ``0o666`` minus the umask, as ``open`` gives.
 * **Symbolic link**: written through.  The file it points to is replaced as above (a dangling
   link creates its target) and the link stays a link, as with ``cp`` or a shell's ``>``.
 * **FIFO or character device** (``/dev/null``, a terminal): it cannot be replaced, so the
@@ -27,9 +28,10 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import signal
 import stat
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from types import TracebackType
 from typing import IO
@@ -122,6 +124,21 @@ def resolve(path: PathLike, *, streams: bool = True) -> Target:
     return Target(name, target, "new", 0o666 & ~UMASK)
 
 
+@contextlib.contextmanager
+def _signals_held() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM for the duration of the block (where the platform can): a
+    temporary file created in the block is registered for removal before an interruption
+    can unwind."""
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
+
+
 def temp_file(target: str, *, suffix: str = TEMP_SUFFIX) -> tuple[int, str]:
     """Create a temporary file beside ``target``, named after it but short enough for the file
     system (``.<start of the name>.<random><suffix>``); returns ``(descriptor, path)``.
@@ -145,12 +162,13 @@ def check_output(path: PathLike, *, streams: bool = True) -> Target:
     real test that the directory takes a new file).  Raises :class:`FormatError`."""
     tgt = resolve(path, streams=streams)
     if tgt.kind != "stream":
-        try:
-            fd, probe = temp_file(tgt.path)
-        except OSError as exc:
-            raise _error(tgt.name, exc) from exc
-        os.close(fd)
-        os.unlink(probe)
+        with _signals_held():
+            try:
+                fd, probe = temp_file(tgt.path)
+            except OSError as exc:
+                raise _error(tgt.name, exc) from exc
+            os.close(fd)
+            os.unlink(probe)
     return tgt
 
 
@@ -194,15 +212,16 @@ class Outputs:
             self.targets.append(tgt)
         try:
             for tgt in self.targets:
-                try:
-                    if tgt.kind == "stream":
-                        fd, tmp = tempfile.mkstemp(prefix=".hybridpgo-", suffix=TEMP_SUFFIX)
-                    else:
-                        fd, tmp = temp_file(tgt.path)
-                except OSError as exc:
-                    raise _error(tgt.name, exc) from exc
-                os.close(fd)
-                self._temps[tgt.name] = tmp
+                with _signals_held():
+                    try:
+                        if tgt.kind == "stream":
+                            fd, tmp = tempfile.mkstemp(prefix=".hybridpgo-", suffix=TEMP_SUFFIX)
+                        else:
+                            fd, tmp = temp_file(tgt.path)
+                    except OSError as exc:
+                        raise _error(tgt.name, exc) from exc
+                    os.close(fd)
+                    self._temps[tgt.name] = tmp
         except BaseException:
             self.discard()
             raise
@@ -223,12 +242,13 @@ class Outputs:
             for tgt in self.targets:
                 if tgt.kind != "stream":
                     tmp = self._temps[tgt.name]
-                    try:
-                        os.chmod(tmp, tgt.mode)
-                        os.replace(tmp, tgt.path)
-                    except OSError as exc:
-                        raise _error(tgt.name, exc) from exc
-                    del self._temps[tgt.name]
+                    with _signals_held():
+                        try:
+                            os.chmod(tmp, tgt.mode)
+                            os.replace(tmp, tgt.path)
+                        except OSError as exc:
+                            raise _error(tgt.name, exc) from exc
+                        del self._temps[tgt.name]
             for tgt in self.targets:
                 if tgt.kind == "stream":
                     try:

@@ -134,6 +134,8 @@ def read_bytes(path: PathLike) -> tuple[str, bytes]:
     name = os.fspath(path)
     if name == STDIO:
         stream = sys.stdin
+        if stream is None:  # started with standard input closed ("<&-")
+            raise FormatError("cannot read: standard input is closed", STDIN_NAME)
         buffer = getattr(stream, "buffer", None)
         try:
             raw = buffer.read() if buffer is not None else stream.read().encode("utf-8")
