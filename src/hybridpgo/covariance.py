@@ -30,6 +30,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ._output import write_file
+from .errors import SolverError
 from .graph import FloatArray, PoseGraph
 from .solvers._linear import _make_factorizer
 from .solvers.gauss_newton import (
@@ -100,8 +101,13 @@ def marginal_covariances(graph: PoseGraph, rotations: FloatArray | None,
     grad = np.empty(pat.dim)
     _assemble(graph, pat, rot, trans, data, grad)
     factorizer = _make_factorizer(_full_system(pat), linear_solver)
-    factorizer.factor(data)
-    factorizer.check()
+    try:
+        factorizer.factor(data)
+        factorizer.check()
+    except SolverError as exc:
+        raise SolverError("the covariances are not defined at these poses: H is singular to "
+                          "rounding (a pose is not determined by its constraints, or the "
+                          "information is too ill-conditioned)") from exc
     index = 6 * var[free][:, None] + np.arange(6, dtype=np.int64)[None, :]
     out[free] = factorizer.inverse_blocks(index)
     return out

@@ -162,7 +162,7 @@ def _run(args: Any, debug: bool) -> int:
     except HybridPGOError as exc:
         if debug:
             traceback.print_exc()
-        print(f"hybridpgo: error: {exc}", file=sys.stderr)
+        print(f"hybridpgo: error: {_with_input_name(args, exc)}", file=sys.stderr)
         return EXIT_ERROR
     except BrokenPipeError:  # e.g. "hybridpgo info FILE | head -1"
         _silence_stdout()
@@ -179,6 +179,26 @@ def _run(args: Any, debug: bool) -> int:
         return EXIT_ERROR
     except Exception:
         return _bug()
+
+
+def _with_input_name(args: Any, exc: HybridPGOError) -> str:
+    """The message of ``exc``; a solver's or a graph's error (which know no file) begins with
+    the name of the command's input when it has exactly one."""
+    from ..errors import GraphError, SolverError
+    from ..io._lines import STDIN_NAME, STDIO
+    from ._common import command_files
+
+    message = str(exc) or type(exc).__name__
+    if not isinstance(exc, (GraphError, SolverError)):
+        return message
+    try:
+        inputs = command_files(args)[0]
+    except Exception:  # pragma: no cover - a command without the usual arguments
+        return message
+    if len(inputs) != 1:
+        return message
+    name = STDIN_NAME if inputs[0] == STDIO else inputs[0]
+    return message if message.startswith(f"{name}:") else f"{name}: {message}"
 
 
 def _bug() -> int:

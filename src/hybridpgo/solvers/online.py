@@ -771,8 +771,9 @@ class OnlineSolver:
         cfg = self.config
         deadline = _NO_DEADLINE
         if budget_s is not None:
-            spare = max(budget_s - RESERVE_S, 0.0)
-            deadline = np.uint64(c0 + int(spare * cycles_per_second()))
+            ticks = max(budget_s - RESERVE_S, 0.0) * cycles_per_second()
+            if ticks < 2.0**62:  # a budget beyond the clock's range is no deadline
+                deadline = np.uint64(c0 + int(ticks))
         limit = (1 << 62) if max_updates is None else max_updates
         self._integrate()
         if self._refiner is not None:
