@@ -182,6 +182,18 @@ def test_fix_information_nearest_clips_eigenvalues(tmp_path: Path) -> None:
     assert np.linalg.eigvalsh(g.edge_information).min() > 0
 
 
+def test_nearest_spd_of_subnormal_entries_is_positive_definite() -> None:
+    """The floor 1e-9 x 1e-320 underflowed to 0: the projection was singular, and the lifted
+    6x6 was then projected (and warned about) a second time and still refused."""
+    from hybridpgo.io._lines import NEAREST_SPD_MIN, nearest_spd
+
+    tiny = np.array([[[1e-320, 1e-320, 0.0], [1e-320, 1e-320, 0.0], [0.0, 0.0, 1e-320]],
+                     [[-1e-320, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 5e-324]]])
+    p = nearest_spd(tiny)
+    assert (np.linalg.eigvalsh(p)[:, 0] >= NEAREST_SPD_MIN * (1.0 - FLOAT64_IDENTITY)).all()
+    np.testing.assert_array_equal(p, np.swapaxes(p, 1, 2))
+
+
 def test_nearest_spd_is_the_frobenius_projection() -> None:
     from hybridpgo.io._lines import nearest_spd
 

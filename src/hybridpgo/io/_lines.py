@@ -61,6 +61,10 @@ FIX_INFORMATION: tuple[str, ...] = ("nearest", "skip")
 #: the nearest (Frobenius norm) symmetric matrix whose eigenvalues are all >= that floor, and its
 #: condition number is at most 1e9.
 NEAREST_SPD_FLOOR = 1e-9
+#: ... and never below this absolute value: a floor of 1e-9 x the largest eigenvalue of a
+#: matrix of subnormal entries (1e-320) underflows to 0, and eigenvalues this far above the
+#: smallest normal float64 (2.2e-308) stay positive through the rounding of the result.
+NEAREST_SPD_MIN = 1e-300
 
 #: Echoed file tokens longer than this are shortened in messages (a million-digit number must
 #: not give a megabyte error line).
@@ -121,8 +125,11 @@ def split_lines(text: str) -> list[str]:
 
     ``str.splitlines`` also breaks at form feeds, vertical tabs, ``\\x1c``-``\\x1e``, U+0085 and
     U+2028/9, which a text editor (and every other tool) shows inside one line: every later line
-    number would be off.
+    number would be off.  A byte-order mark at the start of the text (U+FEFF, which some
+    Windows editors write) is dropped.
     """
+    if text.startswith("\ufeff"):
+        text = text[1:]
     lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
     if lines and lines[-1] == "":
         lines.pop()
@@ -471,14 +478,16 @@ def upper_matrix(vals: FloatArray, d: int) -> FloatArray:
 
 def nearest_spd(mats: FloatArray) -> FloatArray:
     """(k, d, d) symmetric -> the nearest (Frobenius) symmetric matrices with eigenvalues >= the
-    floor ``NEAREST_SPD_FLOOR * max |eigenvalue|`` (``NEAREST_SPD_FLOOR`` for a zero matrix).
+    floor ``NEAREST_SPD_FLOOR * max |eigenvalue|`` (``NEAREST_SPD_FLOOR`` for a zero matrix),
+    and at least :data:`NEAREST_SPD_MIN`.
 
     Eigenvalues above the floor and the eigenvectors are kept; the result is exactly symmetric.
     """
     sym = 0.5 * (mats + np.swapaxes(mats, 1, 2))
     lam, vec = np.linalg.eigh(sym)
     scale = np.abs(lam).max(axis=1)
-    floor = np.where(scale > 0.0, NEAREST_SPD_FLOOR * scale, NEAREST_SPD_FLOOR)
+    floor = np.where(scale > 0.0, np.maximum(NEAREST_SPD_FLOOR * scale, NEAREST_SPD_MIN),
+                     NEAREST_SPD_FLOOR)
     lam = np.maximum(lam, floor[:, None])
     out = (vec * lam[:, None, :]) @ np.swapaxes(vec, 1, 2)
     res: FloatArray = 0.5 * (out + np.swapaxes(out, 1, 2))
