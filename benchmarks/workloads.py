@@ -585,8 +585,10 @@ WORKLOADS["toro"] = _toro
 
 # ------------------------------------------------------------------ fuzzing (issue 9 item 6)
 from .fuzz import run as _fuzz  # noqa: E402
+from .fuzz import run_grammar as _fuzz_cli  # noqa: E402
 
 WORKLOADS["fuzz"] = _fuzz
+WORKLOADS["fuzz_cli"] = _fuzz_cli
 
 from .linear import run as _linear_run  # noqa: E402  (issue 11 item 4)
 

@@ -115,7 +115,7 @@ def marginal_covariances(graph: PoseGraph, rotations: FloatArray | None,
 
 def save_covariances(path: str | os.PathLike[str], ids: npt.ArrayLike,
                      covariances: npt.ArrayLike, *, fixed_ids: npt.ArrayLike = ()) -> None:
-    """Write covariances as an ``.npz`` archive (the output rules of :mod:`hybridpgo._output`:
+    """Write covariances as an ``.npz`` archive (the output rules of ``docs/security.md``:
     a temporary file renamed into place, symbolic links written through).
 
     The archive holds ``ids`` (k,) int64 file ids of the poses; ``cov`` (k, 6, 6) float64, the

@@ -571,7 +571,7 @@ MAX_DPI = 600
 
 
 def save_figure(fig: Figure, path: str | os.PathLike[str], *, dpi: int = 150) -> None:
-    """Write ``fig`` to ``path`` under the output rules of :mod:`hybridpgo._output` (a temporary
+    """Write ``fig`` to ``path`` under the output rules of ``docs/security.md`` (a temporary
     file renamed into place, symbolic links written through, FIFOs written into); the format
     comes from the extension (``.png`` when there is none).
 
