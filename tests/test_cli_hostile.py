@@ -583,3 +583,41 @@ def test_a_byte_order_mark_is_skipped(capsys: pytest.CaptureFixture[str], tmp_pa
     code, _, err = run_cli(capsys, "info", p)
     assert code == 0, err
     assert read_graph(p).num_edges == 3
+
+
+# =========================================================================== found by fuzz_cli
+def test_information_cholesky_cannot_factor_is_refused_at_its_line(
+        capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    """iSAM square-root information with an entry of 1e29: R^T R passes "smallest eigenvalue
+    > 0" by rounding, and every whitening's Cholesky factorization then failed (traceback)."""
+    p = write(tmp_path / "sqrt.txt", "ODOMETRY 1 2 2.93682 -1.33422 -1.85652 0.956784019582386 "
+              "0 0 0.956784019582386 111111111111111111111111111111 0.956784")
+    for cmd in (["info", p], ["optimize", p, "-o", tmp_path / "o.g2o", "-q"]):
+        code, _, err = run_cli(capsys, *cmd)
+        assert_error(code, err, "sqrt.txt:1: ", "Cholesky factorization fails")
+    with pytest.warns(UserWarning, match="projected"):
+        code, _, err = run_cli(capsys, "info", p, "--fix-information", "nearest")
+    assert code == 0, err
+
+
+def test_toro_weights_of_subnormal_information(capsys: pytest.CaptureFixture[str],
+                                               tmp_path: Path) -> None:
+    """A yaw information of 5e-324: 1 / the node's weight overflowed (NumPy warning)."""
+    p = write(tmp_path / "sub.graph", "VERTEX2 0 0 0 0", "VERTEX2 1 1 0 0", "VERTEX2 2 2 0 0",
+              "EDGE2 0 1 1 0 0 1 0 1 1 0 0", "EDGE2 1 2 1 0 0 1 0 1 5e-324 0 0")
+    code, _, err = run_cli(capsys, "optimize", p, "--solver", "toro", "-o",
+                           tmp_path / "o.graph", "-q")
+    assert code == 0, err
+
+
+def test_planar_relaxation_that_overflows_fails_quietly(capsys: pytest.CaptureFixture[str],
+                                                        tmp_path: Path) -> None:
+    """A measurement of 1e154: the relaxation's quadratic overflowed (NumPy warnings); it is
+    the relaxation's failure, reported in the summary, and the pipeline goes on."""
+    import json
+
+    p = write(tmp_path / "far.g2o", *V2, "EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1",
+              "EDGE_SE2 1 2 1e154 0 0 1 0 0 1 0 1", "EDGE_SE2 0 2 2 0 0 1 0 0 1 0 1")
+    code, out, err = run_cli(capsys, "optimize", p, "-o", tmp_path / "o.g2o", "--json")
+    assert code == 0, err
+    assert "overflows float64" in json.dumps(json.loads(out))

@@ -194,6 +194,25 @@ def test_nearest_spd_of_subnormal_entries_is_positive_definite() -> None:
     np.testing.assert_array_equal(p, np.swapaxes(p, 1, 2))
 
 
+def test_positive_definite_needs_a_cholesky_factor() -> None:
+    """Eigenvalues at the rounding level of the largest come out with either sign: "smallest
+    eigenvalue > 0" alone let through matrices no Cholesky factorization accepts."""
+    from hybridpgo.errors import GraphError
+    from hybridpgo.graph import check_information, positive_definite
+
+    d = 0.956784019582386
+    r = np.array([[d, 0.0, 0.0], [0.0, d, 111111111111111111111111111111.0], [0.0, 0.0, 0.956784]])
+    edge = r.T @ r  # iSAM's R^T R
+    assert np.linalg.eigvalsh(edge)[0] > 0.0  # passes the eigenvalue test by rounding ...
+    with pytest.raises(np.linalg.LinAlgError):
+        np.linalg.cholesky(edge)  # ... not the factorization
+    stack = np.stack([np.eye(3), edge, 2.0 * np.eye(3), -np.eye(3), edge, np.eye(3)])
+    np.testing.assert_array_equal(positive_definite(stack),
+                                  [True, False, True, False, False, True])
+    with pytest.raises(GraphError, match=r"edge 1: .*Cholesky factorization fails"):
+        check_information(stack[:3], "edge")
+
+
 def test_nearest_spd_is_the_frobenius_projection() -> None:
     from hybridpgo.io._lines import nearest_spd
 

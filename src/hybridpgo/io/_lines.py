@@ -32,7 +32,13 @@ from ..geometry.so3 import matrix_to_euler_rpy as matrix_to_euler_rpy
 from ..geometry.so3 import matrix_to_quat_xyzw as matrix_to_quat_xyzw
 from ..geometry.so3 import normalize_quaternions as normalize_quaternions
 from ..geometry.so3 import quat_xyzw_to_matrix as quat_xyzw_to_matrix
-from ..graph import MAX_INFORMATION, PoseGraph, lift_information_2d
+from ..graph import (
+    MAX_INFORMATION,
+    PoseGraph,
+    lift_information_2d,
+    pd_problem,
+    positive_definite,
+)
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -505,7 +511,8 @@ def spd_filter(src: Source, mats: FloatArray, line_nos: IntArray, kind: str,
 
     Entries beyond :data:`MAX_INFORMATION` (they would overflow when squared) always raise at
     their line.  Matrices that are not positive definite
-    (smallest eigenvalue not > 0, :func:`hybridpgo.graph.check_information`'s criterion) raise
+    (:func:`hybridpgo.graph.positive_definite`, the criterion of
+    :func:`hybridpgo.graph.check_information`) raise
     at the first such line, with their count, unless ``src.fix_information`` says to project
     them (:func:`nearest_spd`) or to drop them; either is warned about once, with the count.
 
@@ -532,7 +539,9 @@ def spd_filter(src: Source, mats: FloatArray, line_nos: IntArray, kind: str,
                         f"supported (larger values overflow when squared){hint}")
     eig_min = np.concatenate([np.linalg.eigvalsh(mats[i:i + _EIG_CHUNK])[:, 0]
                               for i in range(0, k, _EIG_CHUNK)])  # bounded LAPACK copies
-    bad = np.nonzero(~(eig_min > 0.0))[0]
+    bad = np.nonzero(~np.concatenate([positive_definite(mats[i:i + _EIG_CHUNK],
+                                                        eig_min[i:i + _EIG_CHUNK])
+                                      for i in range(0, k, _EIG_CHUNK)]))[0]
     if bad.size == 0:
         return mats, keep
     bad = bad[np.argsort(line_nos[bad], kind="stable")]
@@ -541,8 +550,8 @@ def spd_filter(src: Source, mats: FloatArray, line_nos: IntArray, kind: str,
     policy = src.fix_information
     if policy is None:
         j = int(bad[0])
-        raise src.error(int(line_nos[j]), f"{what} is not positive definite (smallest "
-                        f"eigenvalue {eig_min[j]:.6g}){hint}; {count} have such information "
+        raise src.error(int(line_nos[j]), f"{what} is not positive definite "
+                        f"({pd_problem(float(eig_min[j]))}){hint}; {count} have such information "
                         f"({lines}); pass {option_hint('fix_information', *FIX_INFORMATION)} "
                         "to project them onto the nearest positive definite matrix or to drop "
                         "them")
@@ -794,7 +803,10 @@ def require_readable_information(graph: PoseGraph, mats: FloatArray, path: str,
             eig_min = np.where(big <= MAX_INFORMATION,
                                np.linalg.eigvalsh(np.where((big <= MAX_INFORMATION)[:, None, None],
                                                            m, 1.0))[:, 0], -np.inf)
-        bad = np.nonzero(~(eig_min > 0.0))[0]
+        finite = np.isfinite(eig_min)
+        ok = np.zeros(m.shape[0], bool)
+        ok[finite] = positive_definite(m[finite], eig_min[finite])
+        bad = np.nonzero(~ok)[0]
         if bad.size:
             k = int(bad[0])
             a, b = graph.node_ids[graph.edge_nodes[k]].tolist()

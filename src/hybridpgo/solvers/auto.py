@@ -206,7 +206,7 @@ def _failure(cand: _Candidate) -> str:
         return cand.error
     if cand.polished is not None and cand.cut:
         return "its polish was cut at the finalists' budget"
-    overflow = " (overflows float64)" if math.isinf(cand.energy) else ""
+    overflow = "" if math.isfinite(cand.energy) else " (the numbers overflow float64)"
     return f"energy {cand.energy:.6g}{overflow} at its best poses"
 
 
