@@ -128,7 +128,8 @@ def _poses(graph: PoseGraph, rot: FloatArray | None,
         return rot, trans
     if graph.has_estimates:
         return graph.rotations, graph.translations
-    from .tree import build_tree, global_poses, initial_locals
+    from .initialization import initial_locals
+    from .tree import build_tree, global_poses
 
     tree = build_tree(graph, "bfs")
     return global_poses(tree, *initial_locals(graph, tree, "tree"))

@@ -282,7 +282,8 @@ def output_format(path: str, explicit: str | None, graph: PoseGraph, *,
 def tree_initial_poses(graph: PoseGraph, tree_kind: str = "bfs",
                        ) -> tuple[FloatArray, FloatArray]:
     """Global poses of the paper's tree initialization (concatenated tree-edge measurements)."""
-    from ..tree import build_tree, global_poses, initial_locals
+    from ..initialization import initial_locals
+    from ..tree import build_tree, global_poses
 
     tree = build_tree(graph, tree_kind)
     return global_poses(tree, *initial_locals(graph, tree, "tree"))
