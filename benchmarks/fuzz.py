@@ -25,7 +25,8 @@ JSON), ``info --residuals``, ``convert``, ``optimize`` (every solver, few iterat
 run in forked worker processes, one at a time, so that a crash (a worker killed by a signal)
 and a hang (an input over 60 s: its worker is killed) are counted and the run goes on.  Failures:
 tracebacks (exit 1, or an exception out of ``main``), crashes, hangs, NumPy warnings, temporary
-files left beside the outputs, exit codes other than 0 and 2, and the reader failures above.
+files left beside the outputs, inputs whose bytes or inode changed, outputs created or replaced
+by a command that failed (exit 2), exit codes other than 0 and 2, and the reader failures above.
 """
 
 from __future__ import annotations
@@ -567,17 +568,31 @@ def cli_commands(layout: Layout, path: pathlib.Path, gt: pathlib.Path, work: pat
     return cmds
 
 
-def run_cli_check(argv: list[str], work: pathlib.Path) -> tuple[int, list[Failure], int]:
+def _files(work: pathlib.Path) -> dict[str, tuple[int, int, int]]:
+    """Each file of ``work``: (inode, modification time in ns, size)."""
+    out = {}
+    for p in work.iterdir():
+        st = p.stat()
+        out[p.name] = (st.st_ino, st.st_mtime_ns, st.st_size)
+    return out
+
+
+def run_cli_check(argv: list[str], work: pathlib.Path,
+                  inputs: tuple[pathlib.Path, ...] = ()) -> tuple[int, list[Failure], int]:
     """``hybridpgo.cli.main(argv)`` in this process, output captured.  Returns the exit code,
     the failures (a traceback: exit 1 or an exception out of ``main``; an exit code other than
-    0/2; a NumPy RuntimeWarning; a temporary file left in ``work``) and the count of the
-    package's own warnings (UserWarning: notes such as skipped lines)."""
+    0/2; a NumPy RuntimeWarning; a temporary file left in ``work``; an input in ``inputs``
+    whose bytes or inode changed; a file of ``work`` created or replaced by a command that
+    failed with exit 2) and the count of the package's own warnings (UserWarning: notes such as
+    skipped lines)."""
     import contextlib
     import io
 
     from hybridpgo.cli import main as cli_main
 
     failures: list[Failure] = []
+    before = _files(work)
+    content = {p: p.read_bytes() for p in inputs}
     err = io.StringIO()
     cmd = argv[0] + (" --residuals" if "--residuals" in argv else "")
     with warnings.catch_warnings(record=True) as rec, contextlib.redirect_stdout(io.StringIO()), \
@@ -602,6 +617,15 @@ def run_cli_check(argv: list[str], work: pathlib.Path) -> tuple[int, list[Failur
         else:
             failures.append((f"{cmd}: {w.category.__name__} {str(w.message)[:50]}",
                              f"{w.filename}:{w.lineno}: {w.message}"))
+    after = _files(work)
+    for p, data in content.items():
+        if after.get(p.name) != before.get(p.name) or p.read_bytes() != data:
+            failures.append((f"{cmd}: input changed", p.name))
+    if code == 2:
+        written = sorted(k for k, v in after.items()
+                         if not k.startswith(".") and before.get(k) != v)
+        if written:
+            failures.append((f"{cmd}: output written after an error", ", ".join(written)))
     left = [p.name for p in work.iterdir() if p.name.startswith(".")]
     if left:
         failures.append((f"{cmd}: temporary file left", ", ".join(left)))
@@ -633,7 +657,7 @@ def grammar_one(seed: int, index: int, work: pathlib.Path, plot_every: int) -> d
     codes: dict[str, int] = {}
     notes = 0
     for argv in cli_commands(layout, path, gt, work, rng, plot_every):
-        code, fails, k = run_cli_check(argv, work)
+        code, fails, k = run_cli_check(argv, work, (path, gt))
         key = argv[0] + (" --residuals" if "--residuals" in argv else "")
         codes[key] = code
         failures += fails
@@ -655,6 +679,8 @@ class GrammarStats:
     tracebacks: int = 0
     warnings: int = 0
     left_files: int = 0
+    changed_inputs: int = 0
+    error_outputs: int = 0
     other: int = 0
     crashes: int = 0
     hangs: int = 0
@@ -664,8 +690,8 @@ class GrammarStats:
 
     @property
     def bad(self) -> int:
-        return self.reader + self.tracebacks + self.warnings + self.left_files + self.other \
-            + self.crashes + self.hangs
+        return self.reader + self.tracebacks + self.warnings + self.left_files \
+            + self.changed_inputs + self.error_outputs + self.other + self.crashes + self.hangs
 
 
 def _warm_up(work: pathlib.Path) -> None:
@@ -802,6 +828,10 @@ def _count(stats: GrammarStats, msg: dict[str, Any], save: pathlib.Path | None) 
             stats.warnings += 1
         elif "temporary file" in kind:
             stats.left_files += 1
+        elif "input changed" in kind:
+            stats.changed_inputs += 1
+        elif "after an error" in kind:
+            stats.error_outputs += 1
         else:
             stats.other += 1
         _note(stats, kind, detail, msg["text"], save)
@@ -814,7 +844,8 @@ def grammar_summary(stats: GrammarStats, seconds: float) -> str:
            f"{stats.slowest_s:.1f} s): "
            f"{stats.graphs_read} read as graphs; {stats.runs} command runs; reader failures "
            f"{stats.reader}, tracebacks {stats.tracebacks}, warnings {stats.warnings}, "
-           f"temporary files left {stats.left_files}, other {stats.other}, crashes "
+           f"temporary files left {stats.left_files}, inputs changed {stats.changed_inputs}, "
+           f"outputs after an error {stats.error_outputs}, other {stats.other}, crashes "
            f"{stats.crashes}, hangs {stats.hangs}"]
     for kind, count in stats.failures.most_common():
         detail, text = stats.examples[kind]
@@ -872,6 +903,8 @@ def run_grammar(ctx: Any) -> tuple[list[Any], list[str]]:
         info("fuzz_cli.crashes", stats.crashes),
         info("fuzz_cli.hangs", stats.hangs),
         info("fuzz_cli.warnings", stats.warnings),
+        info("fuzz_cli.changed_inputs", stats.changed_inputs),
+        info("fuzz_cli.error_outputs", stats.error_outputs),
         timing("fuzz_cli.seconds", seconds),
         info("fuzz_cli.ms_per_input", 1e3 * seconds / max(n, 1), "ms"),
         info("fuzz_cli.load_start", load_start[0], note="1-minute load average, 2 cores"),
@@ -885,7 +918,10 @@ def run_grammar(ctx: Any) -> tuple[list[Any], list[str]]:
         ["crashes (worker killed by a signal)", stats.crashes],
         ["hangs (over 60 s)", stats.hangs],
         ["NumPy warnings (RuntimeWarning ...)", stats.warnings],
-        ["temporary files left", stats.left_files], ["other failures", stats.other],
+        ["temporary files left", stats.left_files],
+        ["inputs changed (bytes or inode)", stats.changed_inputs],
+        ["outputs created or replaced by a failed command (exit 2)", stats.error_outputs],
+        ["other failures", stats.other],
         ["the package's own warnings (UserWarning notes)", stats.notes],
         ["slowest input (s)", stats.slowest_s], ["time (s)", seconds],
         ["load average at start / end (1 min, 2 cores)",

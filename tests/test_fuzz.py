@@ -122,7 +122,8 @@ def test_grammar_inputs_through_the_command_line(tmp_path: Path) -> None:
 
 def test_the_command_line_checker_can_fail(monkeypatch: pytest.MonkeyPatch,
                                            tmp_path: Path) -> None:
-    """A traceback, a NumPy warning and a temporary file left behind are each reported."""
+    """A traceback, a NumPy warning, a temporary file left behind, a changed input and an
+    output written by a failing command are each reported."""
     import warnings
 
     import hybridpgo.cli.info as info
@@ -144,11 +145,22 @@ def test_the_command_line_checker_can_fail(monkeypatch: pytest.MonkeyPatch,
         (out / ".g.g2o.12345678.tmp").write_text("x")
         return 0
 
+    def changes(args: object) -> int:
+        graph.write_text(CORPUS[0][1] + "\n")
+        return 0
+
+    def writes_and_fails(args: object) -> int:
+        (out / "r.csv").write_text("x")
+        return 2
+
     expected = {bug: "info: traceback KeyError", warns: "info: RuntimeWarning overflow",
-                leaves: "info: temporary file left"}
+                leaves: "info: temporary file left", changes: "info: input changed",
+                writes_and_fails: "info: output written after an error"}
     for fake, kind in expected.items():
         monkeypatch.setattr(info, "run", fake)
-        _, failures, _ = run_cli_check(["info", str(graph)], out)
+        _, failures, _ = run_cli_check(["info", str(graph)], out, (graph,))
+        graph.write_text(CORPUS[0][1])
+        (out / "r.csv").unlink(missing_ok=True)
         assert [k for k, _ in failures] and all(k.startswith(kind) for k, _ in failures), \
             failures
     assert list(out.iterdir()) == []  # the checker removes what it found
