@@ -550,8 +550,10 @@ WORKLOADS["toro"] = _toro
 
 # ------------------------------------------------------------------ fuzzing
 from .fuzz import run as _fuzz  # noqa: E402
+from .fuzz import run_grammar as _fuzz_cli  # noqa: E402
 
 WORKLOADS["fuzz"] = _fuzz
+WORKLOADS["fuzz_cli"] = _fuzz_cli
 
 from .linear import run as _linear_run  # noqa: E402
 

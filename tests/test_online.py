@@ -709,3 +709,17 @@ def test_background_worker_solves_a_planar_map_in_the_plane(data_dir: Path,
     _, meta = mp.solve(50)
     assert seen and all(seen)
     assert abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
+
+
+def test_a_budget_beyond_the_clock_is_no_deadline() -> None:
+    """``update(budget_s=1e12)`` overflowed the cycle counter (OverflowError); it is the same
+    frame as ``update(None)``."""
+    g = _graph()
+    st = make_stream(g)
+    a, b = OnlineSolver(), OnlineSolver()
+    for k in range(st.num_frames):
+        feed_frame(a, st, k)
+        feed_frame(b, st, k)
+        a.update(1e12, UPDATES)
+        b.update(None, UPDATES)
+    _same(_state(a), _state(b), timing=False)

@@ -350,6 +350,17 @@ def planar_relaxation_start(graph: PoseGraph, rotations: FloatArray, translation
     """
     if not graph.is_2d or graph.num_gps:
         raise ValueError("the planar relaxation needs a 2D graph without GPS constraints")
+    try:
+        with np.errstate(over="raise", invalid="raise", divide="raise"):
+            return _planar_relaxation(graph, rotations, translations, max_iterations, rank,
+                                      seed)
+    except FloatingPointError as exc:  # measurements of ~1e154: the quadratic overflows
+        raise ValueError(f"the planar relaxation overflows float64 ({exc})") from exc
+
+
+def _planar_relaxation(graph: PoseGraph, rotations: FloatArray, translations: FloatArray,
+                       max_iterations: int, rank: int, seed: int,
+                       ) -> tuple[FloatArray, FloatArray, dict[str, float]]:
     rel = PlanarRelaxation(graph)
     n = graph.num_nodes
     z0: ComplexArray = np.asarray(rotations[:, 0, 0] + 1j * rotations[:, 1, 0], np.complex128)

@@ -21,7 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..energy import energy
-from ..errors import GraphError
+from ..errors import GraphError, SolverError
 from ..graph import FloatArray, PoseGraph
 
 IntArray = npt.NDArray[np.int64]
@@ -508,8 +508,12 @@ def replay_isam2(stream: Stream, *, checkpoints: Sequence[int] = (), extra_frame
                                             g.gps_information[s])))
         c0 = time.process_time()
         t0 = time.perf_counter()
-        isam.update(factors, values)
-        est = calc(p)
+        try:
+            isam.update(factors, values)
+            est = calc(p)
+        except RuntimeError as exc:  # GTSAM's exceptions (an indeterminate system, ...)
+            raise SolverError(f"isam2 stopped at frame {k + 1}: GTSAM: "
+                              f"{_first_sentence(exc)}") from exc
         lat[k] = time.perf_counter() - t0
         cpu[k] = time.process_time() - c0
         spent += lat[k]
@@ -529,16 +533,27 @@ def replay_isam2(stream: Stream, *, checkpoints: Sequence[int] = (), extra_frame
         energies.setdefault(reached, _isam2_energy(stream, isam, reached, est_rot, est_trans))
         extra_frames = 0
     last = int(stream.order[reached - 1])
-    for _ in range(extra_frames):
+    for j in range(extra_frames):
         t0 = time.perf_counter()
-        isam.update()
-        calc(last)
+        try:
+            isam.update()
+            calc(last)
+        except RuntimeError as exc:
+            raise SolverError(f"isam2 stopped at extra frame {j + 1}: GTSAM: "
+                              f"{_first_sentence(exc)}") from exc
         extra_l.append(time.perf_counter() - t0)
         extra_e.append(_isam2_energy(stream, isam, nf, est_rot, est_trans))
     name = "isam2" if reached == nf else f"isam2 (stopped at frame {reached})"
     return ReplayResult(name, lat, cpu, energies, extra_e, extra_l,
                         {"relinearize_skip": relinearize_skip, "factorization": factorization,
                          "frames_reached": reached, "seconds_in_updates": spent})
+
+
+def _first_sentence(exc: BaseException) -> str:
+    """The first sentence of a (GTSAM) exception's message, on one line."""
+    text = " ".join(str(exc).split())
+    end = text.find(". ")
+    return (text[:end + 1] if end >= 0 else text) or type(exc).__name__
 
 
 def _isam2_energy(stream: Stream, isam: Any, frames: int, est_rot: FloatArray,

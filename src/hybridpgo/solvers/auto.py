@@ -199,6 +199,16 @@ def _polish(exact: ExactSolver, cand: _Candidate, progress: ProgressCallback | N
     cand.polished = more if done is None else _continue(done, more)
 
 
+def _failure(cand: _Candidate) -> str:
+    """Why a candidate is out: its error, else its energy (never an empty reason)."""
+    if cand.error:
+        return cand.error
+    if cand.polished is not None and cand.cut:
+        return "its polish was cut at the finalists' budget"
+    overflow = "" if math.isfinite(cand.energy) else " (the numbers overflow float64)"
+    return f"energy {cand.energy:.6g}{overflow} at its best poses"
+
+
 def _unswept(cand: _Candidate) -> _Candidate:
     """The start of a swept candidate, as a candidate of its own (no sweeps)."""
     raw = _Candidate(cand.init, f"{cand.init}, no sweeps")
@@ -427,8 +437,8 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     cands = _swept_starts(graph, cfg, tree, inits, large, t_origin, progress, iterate)
     usable = [c for c in cands if c.rot is not None and np.isfinite(c.energy)]
     if not usable:
-        raise SolverError("no start gave finite poses: "
-                          + "; ".join(f"{c.init}: {c.error}" for c in cands))
+        raise SolverError("no start gave finite poses and a finite energy: "
+                          + "; ".join(f"{c.init}: {_failure(c)}" for c in cands))
     ranked = sorted(usable, key=lambda c: c.energy)  # stable: ties keep the order of inits
     if cfg.polish_unswept:  # each swept start also as it was: the sweeps may leave its basin
         ranked += sorted((_unswept(c) for c in ranked if c.sweeps), key=lambda c: c.energy)
@@ -440,7 +450,7 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     polished = [c for c in finalists if c.polished is not None and not c.cut]
     if not polished:
         raise SolverError("the polish failed from every start: "
-                          + "; ".join(f"{c.label}: {c.error}" for c in finalists))
+                          + "; ".join(f"{c.label}: {_failure(c)}" for c in finalists))
     win = min(polished, key=lambda c: c.energy)
     t_relax = time.perf_counter()
     relax = _relaxation_check(exact, cfg, large, win, t_origin, progress, iterate)

@@ -171,8 +171,10 @@ class ToroState:
         # converging (measured, valencia w/ GPS, 100 sweeps: 279 per constraint vs 30.7)
         gamma_t = (float(tau_rel.min()) if tau_rel.size
                    else float(tau_gps.min()) if tau_gps.size else 1.0)
-        inv_r = np.divide(1.0, m_rot, out=np.zeros(t_nodes), where=m_rot > 0)
-        inv_t = np.divide(1.0, m_trans, out=np.zeros(t_nodes), where=m_trans > 0)
+        # a subnormal weight (information of 1e-320) has no finite inverse: as no weight
+        tiny = np.finfo(np.float64).tiny
+        inv_r = np.divide(1.0, m_rot, out=np.zeros(t_nodes), where=m_rot >= tiny)
+        inv_t = np.divide(1.0, m_trans, out=np.zeros(t_nodes), where=m_trans >= tiny)
         w_rot, w_trans = (inv_r, inv_t) if weights == "documented" else (inv_t, inv_r)
         meas_trans = np.concatenate([graph.edge_translations, graph.gps_positions])
         return cls(graph=graph, tree=tree, rot=np.array(rot, np.float64, order="C"),
