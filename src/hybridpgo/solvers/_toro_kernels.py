@@ -23,19 +23,10 @@ from typing import Any
 import numpy as np
 
 from .._numba import cycle_counter, kernel
+from .._tree_kernels import mul_pose_into
 from ..geometry._kernels import so3_log_into
 
 # ----------------------------------------------------------------------------- small maths
-
-
-@kernel
-def _compose_into(qa: np.ndarray, pa: np.ndarray, rb: np.ndarray, tb: np.ndarray,
-                  qout: np.ndarray, pout: np.ndarray) -> None:
-    """(qout, pout) = (qa, pa) * (rb, tb)."""
-    for r in range(3):
-        for s in range(3):
-            qout[r, s] = qa[r, 0] * rb[0, s] + qa[r, 1] * rb[1, s] + qa[r, 2] * rb[2, s]
-        pout[r] = pa[r] + qa[r, 0] * tb[0] + qa[r, 1] * tb[1] + qa[r, 2] * tb[2]
 
 
 @kernel
@@ -109,9 +100,9 @@ def _wing_poses(path_node: np.ndarray, s0: int, lo: int, hi: int, rot: np.ndarra
     for j in range(hi - 1, lo - 1, -1):
         node = path_node[s0 + j]
         if j == hi - 1:
-            _compose_into(eye, zero, rot[node], trans[node], wq[j], wp[j])
+            mul_pose_into(eye, zero, rot[node], trans[node], wq[j], wp[j])
         else:
-            _compose_into(wq[j + 1], wp[j + 1], rot[node], trans[node], wq[j], wp[j])
+            mul_pose_into(wq[j + 1], wp[j + 1], rot[node], trans[node], wq[j], wp[j])
 
 
 @kernel
