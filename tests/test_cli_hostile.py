@@ -441,6 +441,38 @@ def test_plot_coordinates_beyond_what_can_be_drawn(capsys: pytest.CaptureFixture
     assert not out.exists()
 
 
+_SE3_EDGE = "1 0 0 0 0 0 1 1 0 0 0 0 0 1 0 0 0 0 1 0 0 0 1 0 0 1 0 1"
+
+
+def test_plot_3d_map_far_from_the_origin(capsys: pytest.CaptureFixture[str],
+                                         tmp_path: Path) -> None:
+    """A 3D map whose span is small but which lies at 1.8e308 m: matplotlib's axis limits
+    would overflow, so it is refused like a map that spans too much."""
+    pytest.importorskip("matplotlib")
+    x = "1.7976931348623157e308"
+    p = write(tmp_path / "far3.g2o", *(f"VERTEX_SE3:QUAT {i} {x} 0 {z} 0 0 0 1"
+                                       for i, z in enumerate(("0", "0", "1e-310"))),
+              f"EDGE_SE3:QUAT 0 1 {_SE3_EDGE}", f"EDGE_SE3:QUAT 1 2 {_SE3_EDGE}")
+    out = tmp_path / "far3.png"
+    code, _, err = run_cli(capsys, "plot", p, "-o", out)
+    assert_error(code, err, "far3.g2o: ", "cannot draw")
+    assert not out.exists()
+
+
+def test_plot_3d_map_with_subnormal_heights(capsys: pytest.CaptureFixture[str],
+                                            tmp_path: Path) -> None:
+    """Heights that vary by a subnormal amount: the map is drawn flat (no infinite height
+    exaggeration, no NumPy warning, which the suite turns into an error)."""
+    pytest.importorskip("matplotlib")
+    p = write(tmp_path / "flat3.g2o", *(f"VERTEX_SE3:QUAT {i} {i} 0 {z} 0 0 0 1"
+                                        for i, z in enumerate(("0", "0", "1e-310"))),
+              f"EDGE_SE3:QUAT 0 1 {_SE3_EDGE}", f"EDGE_SE3:QUAT 1 2 {_SE3_EDGE}")
+    out = tmp_path / "flat3.png"
+    code, _, err = run_cli(capsys, "plot", p, "-o", out)
+    assert code == 0, err
+    assert out.stat().st_size > 0
+
+
 def test_nearest_information_of_subnormal_entries(capsys: pytest.CaptureFixture[str],
                                                   tmp_path: Path) -> None:
     p = write(tmp_path / "tiny.g2o", *V2[:2], "EDGE_SE2 0 1 1 0 0 1e-320 1e-320 0 1e-320 0 1e-320")

@@ -137,10 +137,14 @@ def check_drawable(graph: PoseGraph, rot: FloatArray | None = None,
         desired = _desired(graph, rot, trans)
         pts = np.concatenate([trans, desired, graph.gps_positions])
         span = pts.max(axis=0) - pts.min(axis=0) if pts.size else np.zeros(3)
+        far = np.abs(pts).max(axis=0) if pts.size else np.zeros(3)
     if not np.all(span <= MAX_DRAW_EXTENT):  # NaN / inf fail too
         widest = float(np.nanmax(np.where(np.isnan(span), np.inf, span)))
         raise GraphError(f"cannot draw the map: its poses and constraints span {widest:.3g} m; "
                          f"at most {MAX_DRAW_EXTENT:.0e} m can be drawn")
+    if not np.all(far <= MAX_DRAW_EXTENT):
+        raise GraphError(f"cannot draw the map: a pose or constraint lies {float(far.max()):.3g} m "
+                         f"from the origin; at most {MAX_DRAW_EXTENT:.0e} m can be drawn")
 
 
 def _desired(graph: PoseGraph, rot: FloatArray, trans: FloatArray) -> FloatArray:
@@ -396,11 +400,18 @@ def oblique_projection(points: FloatArray, *, azim: float = -60.0, elev: float =
                             (p @ fwd) * np.sin(e) + p[:, 2] * z_scale * np.cos(e)])
 
 
+#: The largest height exaggeration :func:`plot_graph_3d` chooses by itself: a map whose heights
+#: vary by less than 0.015 % of its width is drawn flat rather than with its rounding noise
+#: stretched into relief.
+MAX_Z_SCALE = 1000.0
+
+
 def _auto_z_scale(trans: FloatArray) -> float:
-    """Stretch heights so that their extent is at least 15 % of the horizontal extent."""
+    """Stretch heights so that their extent is at least 15 % of the horizontal extent (at most
+    :data:`MAX_Z_SCALE`; 1 for a flat map)."""
     ext = trans.max(axis=0) - trans.min(axis=0)
     horiz = max(float(ext[0]), float(ext[1]))
-    if ext[2] <= 0 or horiz <= 0:
+    if not (ext[2] > 0 and horiz > 0) or ext[2] * MAX_Z_SCALE < 0.15 * horiz:
         return 1.0
     return max(1.0, 0.15 * horiz / float(ext[2]))
 
