@@ -1,26 +1,17 @@
-"""Shared plumbing of the readers and writers: tokeniser with line numbers, vectorised number
-parsing, graph assembly with file-level checks, and atomic writing.
-
-Reading is vectorised per tag, so files of millions of lines read quickly: only the tag of each
-line is split off in Python, the lines of each tag are joined and converted by one
-:func:`numpy.loadtxt` call (C speed; per-line token lists would cost ~5x more, mostly in the
-garbage collector).  Only when that fails is the group re-parsed line by line, to name the exact
-line and field (docs/contributing.md#errors: errors read like a compiler's).
-
-Also here: SE(2) angle helpers; the quaternion and Euler conversions are
-:mod:`hybridpgo.geometry.so3`'s (re-exported for the format modules).
+"""Shared plumbing of the readers and writers: information matrices (upper-triangle layouts,
+the positive-definite check and the ``nearest`` projection), SE(2) angle helpers, graph assembly
+with file-level checks, and atomic writing.  A file's lines (:mod:`._source`) and their parsing
+by tag (:mod:`._parse`) are re-exported here for the format modules, as are the quaternion and
+Euler conversions of :mod:`hybridpgo.geometry.so3`.
 """
 
 from __future__ import annotations
 
-import contextvars
-import math
 import os
 import sys
 import warnings
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import IO
 
 import numpy as np
 import numpy.typing as npt
@@ -39,426 +30,95 @@ from ..graph import (
     pd_problem,
     positive_definite,
 )
+from ._parse import (
+    Block as Block,
+)
+from ._parse import (
+    TagSpec as TagSpec,
+)
+from ._parse import (
+    parse_blocks as parse_blocks,
+)
+from ._parse import (
+    parse_float as parse_float,
+)
+from ._parse import (
+    parse_int as parse_int,
+)
+from ._parse import (
+    stack as stack,
+)
+from ._parse import (
+    unknown_tag_problem as unknown_tag_problem,
+)
+from ._parse import (
+    upper_names as upper_names,
+)
+from ._source import (
+    FIX_INFORMATION as FIX_INFORMATION,
+)
+from ._source import (
+    IDENTITY_ATOL as IDENTITY_ATOL,
+)
+from ._source import (
+    MAX_ECHO as MAX_ECHO,
+)
+from ._source import (
+    MAX_LINES_LISTED as MAX_LINES_LISTED,
+)
+from ._source import (
+    NEAREST_SPD_FLOOR as NEAREST_SPD_FLOOR,
+)
+from ._source import (
+    NEAREST_SPD_MIN as NEAREST_SPD_MIN,
+)
+from ._source import (
+    STDIN_NAME as STDIN_NAME,
+)
+from ._source import (
+    STDIO as STDIO,
+)
+from ._source import (
+    STDOUT_NAMES as STDOUT_NAMES,
+)
+from ._source import (
+    STDOUT_TARGET as STDOUT_TARGET,
+)
+from ._source import (
+    FloatArray as FloatArray,
+)
+from ._source import (
+    IntArray as IntArray,
+)
+from ._source import (
+    PathLike as PathLike,
+)
+from ._source import (
+    Source as Source,
+)
+from ._source import (
+    check_fix_information as check_fix_information,
+)
+from ._source import (
+    list_lines as list_lines,
+)
+from ._source import (
+    load_source as load_source,
+)
+from ._source import (
+    read_bytes as read_bytes,
+)
+from ._source import (
+    show_token as show_token,
+)
+from ._source import (
+    source_from_text as source_from_text,
+)
+from ._source import (
+    split_lines as split_lines,
+)
 
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
-PathLike = str | os.PathLike[str]
 
-#: A PARAMS_SE3OFFSET (or other "identity") value is accepted when every entry is within this
-#: absolute distance of the identity's (files print ~7 digits; a real offset is >> 1e-9).
-IDENTITY_ATOL = 1e-9
-
-#: The path that means standard input (reading) or standard output (writing).
-STDIO = "-"
-#: Output paths written to ``sys.stdout`` (:data:`STDOUT_TARGET`): ``/dev/stdout`` too, so that
-#: a shell redirection of it to a file is not replaced by a rename, nor truncated twice.
-STDOUT_NAMES = (STDIO, "/dev/stdout")
-#: How standard input is named in messages.
-STDIN_NAME = "<stdin>"
-#: Where writing to ``"-"`` goes (None: ``sys.stdout``).  The CLI sets it to the real standard
-#: output while its own messages go to stderr, so a graph written to ``-o -`` stays clean.
-STDOUT_TARGET: contextvars.ContextVar[IO[str] | None] = contextvars.ContextVar(
-    "hybridpgo_stdout", default=None)
-
-#: Policies for information matrices that are not positive definite (``fix_information``).
-FIX_INFORMATION: tuple[str, ...] = ("nearest", "skip")
-#: ``fix_information="nearest"`` clips the eigenvalues of a symmetric matrix at this fraction of
-#: its largest eigenvalue magnitude (at this absolute value for the zero matrix): the result is
-#: the nearest (Frobenius norm) symmetric matrix whose eigenvalues are all >= that floor, and its
-#: condition number is at most 1e9.
-NEAREST_SPD_FLOOR = 1e-9
-#: ... and never below this absolute value: a floor of 1e-9 x the largest eigenvalue of a
-#: matrix of subnormal entries (1e-320) underflows to 0, and eigenvalues this far above the
-#: smallest normal float64 (2.2e-308) stay positive through the rounding of the result.
-NEAREST_SPD_MIN = 1e-300
-
-#: Echoed file tokens longer than this are shortened in messages (a million-digit number must
-#: not give a megabyte error line).
-MAX_ECHO = 40
-#: At most this many line numbers are listed in a message.
-MAX_LINES_LISTED = 5
-
-
-def show_token(tok: str) -> str:
-    """``repr(tok)``, shortened to :data:`MAX_ECHO` characters with the full length noted."""
-    if len(tok) <= MAX_ECHO:
-        return repr(tok)
-    return repr(tok[:MAX_ECHO]) + f"... ({len(tok)} characters)"
-
-
-def list_lines(line_nos: Iterable[int]) -> str:
-    """``lines 4, 6`` or ``lines 4, 6, 9, 12, 15 and 5016 more``."""
-    nums = [int(n) for n in line_nos]
-    shown = ", ".join(str(n) for n in nums[:MAX_LINES_LISTED])
-    more = f" and {len(nums) - MAX_LINES_LISTED} more" if len(nums) > MAX_LINES_LISTED else ""
-    return f"line{'s' if len(nums) > 1 else ''} {shown}{more}"
-
-
-# =========================================================================== source & tokens
-@dataclass(slots=True)
-class Source:
-    """A text file split into lines, with the data lines grouped by tag (first token)."""
-
-    path: str
-    lines: list[str]
-    #: tag -> (1-based line numbers, the text after the tag); dict order = first appearance.
-    groups: dict[str, tuple[list[int], Sequence[str]]] = field(default_factory=dict)
-    #: What to do with information that is not positive definite: None (raise), or one of
-    #: :data:`FIX_INFORMATION` (set by the readers from their ``fix_information`` argument).
-    fix_information: str | None = None
-
-    def error(self, line_no: int | None, problem: str) -> FormatError:
-        """A :class:`FormatError` at ``line_no`` (``None``: the file as a whole)."""
-        line = self.lines[line_no - 1] if line_no is not None else None
-        return FormatError(problem, self.path, line_no, line)
-
-    def first_line(self, tag: str) -> int:
-        return self.groups[tag][0][0]
-
-    def count_fields(self, tag: str, count: int) -> bool:
-        """True when some ``tag`` line has exactly ``count`` fields after the tag."""
-        return any(len(rest.split()) == count for rest in self.groups[tag][1])
-
-
-def check_fix_information(fix_information: str | None) -> None:
-    if fix_information is not None and fix_information not in FIX_INFORMATION:
-        raise ValueError(f"fix_information must be one of {FIX_INFORMATION} or None, got "
-                         f"{fix_information!r}")
-
-
-def split_lines(text: str) -> list[str]:
-    """Lines broken at ``\\n``, ``\\r\\n`` and ``\\r`` only.
-
-    ``str.splitlines`` also breaks at form feeds, vertical tabs, ``\\x1c``-``\\x1e``, U+0085 and
-    U+2028/9, which a text editor (and every other tool) shows inside one line: every later line
-    number would be off.  A byte-order mark at the start of the text (U+FEFF, which some
-    Windows editors write) is dropped.
-    """
-    if text.startswith("\ufeff"):
-        text = text[1:]
-    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
-    if lines and lines[-1] == "":
-        lines.pop()
-    return lines
-
-
-def read_bytes(path: PathLike) -> tuple[str, bytes]:
-    """(name for messages, content) of ``path``; ``"-"`` reads standard input."""
-    name = os.fspath(path)
-    if name == STDIO:
-        stream = sys.stdin
-        if stream is None:  # started with standard input closed ("<&-")
-            raise FormatError("cannot read: standard input is closed", STDIN_NAME)
-        buffer = getattr(stream, "buffer", None)
-        try:
-            raw = buffer.read() if buffer is not None else stream.read().encode("utf-8")
-        except (OSError, ValueError) as exc:
-            raise FormatError(f"cannot read standard input: {exc}", STDIN_NAME) from exc
-        return STDIN_NAME, raw
-    try:
-        with open(name, "rb") as fh:
-            return name, fh.read()
-    except OSError as exc:
-        reason = exc.strerror or str(exc)
-        raise FormatError(f"cannot read the file: {reason}", name) from exc
-
-
-def load_source(path: PathLike, fix_information: str | None = None) -> Source:
-    """Read ``path`` (``"-"``: standard input) and group its data lines by tag; blank and ``#``
-    lines are skipped.  ``fix_information`` becomes ``Source.fix_information``.
-
-    Raises
-    ------
-    FormatError
-        When the file cannot be read (missing, a directory, no permission, ...).
-    """
-    check_fix_information(fix_information)
-    name, raw = read_bytes(path)
-    text = raw.decode("utf-8", errors="replace")
-    del raw  # a 1M-pose file is 500 MB: hold at most the text and its lines at once
-    lines = split_lines(text)
-    del text
-    src = _source_from_lines(lines, name)
-    src.fix_information = fix_information
-    return src
-
-
-def source_from_text(text: str, name: str) -> Source:
-    """A :class:`Source` from text in memory (``name`` is used in messages)."""
-    # Undecodable bytes become U+FFFD, so a binary file fails later as an unknown tag with a line.
-    return _source_from_lines(split_lines(text), name)
-
-
-class _Rests(Sequence[str]):
-    """The text after the tag of some lines, split off when asked for (no second copy of a
-    large file's text is kept)."""
-
-    def __init__(self, lines: list[str], line_nos: list[int]) -> None:
-        self._lines = lines
-        self._line_nos = line_nos
-
-    def __len__(self) -> int:
-        return len(self._line_nos)
-
-    @staticmethod
-    def _rest(line: str) -> str:
-        head = line.split(None, 1)
-        return head[1] if len(head) > 1 else ""
-
-    def __getitem__(self, k: int) -> str:  # type: ignore[override]
-        return self._rest(self._lines[self._line_nos[k] - 1])
-
-    def __iter__(self) -> Iterator[str]:
-        lines, rest = self._lines, self._rest
-        return (rest(lines[i - 1]) for i in self._line_nos)
-
-
-def _source_from_lines(lines: list[str], name: str) -> Source:
-    line_nos: dict[str, list[int]] = {}
-    for i, line in enumerate(lines, start=1):
-        head = line.split(None, 1)  # only the tag is split off here (see the module doc)
-        if not head or head[0].startswith("#"):
-            continue
-        g = line_nos.get(head[0])
-        if g is None:
-            g = line_nos[head[0]] = []
-        g.append(i)
-    return Source(name, lines, {tag: (nos, _Rests(lines, nos)) for tag, nos in line_nos.items()})
-
-
-# =========================================================================== tag layouts
-@dataclass(frozen=True, slots=True)
-class TagSpec:
-    """Layout of one line type: ``TAG <id fields> <number fields>``.
-
-    ``optional_from``: the number fields from this index on may be omitted all together (TORO
-    ``EDGE3`` without information).  ``variadic_ids``: one or more ids and no numbers (g2o ``FIX``).
-    """
-
-    tag: str
-    id_fields: tuple[str, ...]
-    number_fields: tuple[str, ...] = ()
-    optional_from: int | None = None
-    variadic_ids: bool = False
-
-    @property
-    def counts(self) -> tuple[int, ...]:
-        """Accepted numbers of fields after the tag, the full layout first."""
-        full = len(self.id_fields) + len(self.number_fields)
-        if self.optional_from is None:
-            return (full,)
-        return (full, len(self.id_fields) + self.optional_from)
-
-    def field_name(self, k: int) -> str:
-        """Name of the k-th field after the tag (0-based)."""
-        if self.variadic_ids:
-            return self.id_fields[0]
-        names = self.id_fields + self.number_fields
-        return names[k]
-
-
-@dataclass(frozen=True, slots=True)
-class Block:
-    """All lines of one tag with one field count, parsed: (k,) line numbers, ids, numbers."""
-
-    spec: TagSpec
-    line_nos: IntArray
-    ids: IntArray
-    """(k, n_ids) int64 (variadic tags: (total, 1), one row per id, ``line_nos`` repeated)."""
-    values: FloatArray
-    """(k, n_numbers) float64, all finite."""
-
-    def __len__(self) -> int:
-        return int(self.line_nos.shape[0])
-
-
-def upper_names(prefix: str, labels: Iterable[str]) -> tuple[str, ...]:
-    """Names of upper-triangular entries, row by row: ``I11 I12 ... Inn`` style."""
-    labs = list(labels)
-    return tuple(f"{prefix}{labs[i]}{labs[j]}" for i in range(len(labs))
-                 for j in range(i, len(labs)))
-
-
-def _count_problem(spec: TagSpec, got: int) -> str:
-    counts = spec.counts
-    if spec.variadic_ids:
-        return f"{spec.tag} needs at least one vertex id after the tag, got none"
-    if len(counts) == 1:
-        return f"{spec.tag} needs {counts[0]} numbers after the tag, got {got}"
-    return (f"{spec.tag} needs {counts[0]} numbers after the tag (or {counts[1]} without the "
-            f"information matrix), got {got}")
-
-
-def unknown_tag_problem(tag: str, fmt: str, supported: Iterable[str]) -> str:
-    return (f"unknown tag {show_token(tag)} for the {fmt} format; supported tags: "
-            + ", ".join(supported) + f" (pass {option_hint('skip_unknown')} to skip such lines "
-            "with a warning)")
-
-
-def parse_blocks(src: Source, specs: Mapping[str, TagSpec], fmt: str,
-                 skip_unknown: bool) -> dict[str, list[Block]]:
-    """Parse every group of ``src`` whose tag is in ``specs`` (one Block per field count).
-
-    Unknown tags raise (earliest line first) or, with ``skip_unknown``, are skipped with ONE
-    warning giving the count per tag.  Each group is parsed by :func:`numpy.loadtxt` (C speed);
-    a group that fails is re-parsed line by line (:func:`_parse_slow`) to name the line and the
-    field.  Field counts are checked before numbers, and the earliest bad line is reported.
-    """
-    unknown = [t for t in src.groups if t not in specs]
-    if unknown:
-        if not skip_unknown:
-            first = min(unknown, key=src.first_line)
-            raise src.error(src.first_line(first), unknown_tag_problem(first, fmt, specs))
-        detail = ", ".join(f"{t} ({len(src.groups[t][0])})" for t in unknown)
-        total = sum(len(src.groups[t][0]) for t in unknown)
-        warnings.warn(f"{src.path}: skipped {total} line(s) with tags the {fmt} reader does "
-                      f"not support: {detail}", UserWarning, stacklevel=4)
-    out: dict[str, list[Block]] = {}
-    slow: list[str] = []
-    for tag, spec in specs.items():
-        if tag in src.groups:
-            fast = None if spec.variadic_ids else _parse_fast(spec, *src.groups[tag])
-            if fast is None:
-                slow.append(tag)
-            else:
-                out[tag] = [fast]
-    if slow:
-        tokens = {tag: [rest.split() for rest in src.groups[tag][1]] for tag in slow}
-        bad: list[tuple[int, str]] = []  # field counts first, over all tags
-        for tag in slow:
-            spec = specs[tag]
-            for ln, tk in zip(src.groups[tag][0], tokens[tag], strict=True):
-                if (len(tk) < 1) if spec.variadic_ids else (len(tk) not in spec.counts):
-                    bad.append((ln, _count_problem(spec, len(tk))))
-                    break
-        if bad:
-            raise src.error(*min(bad))
-        for tag in slow:
-            try:
-                out[tag] = _parse_slow(specs[tag], src.groups[tag][0], tokens[tag])
-            except _BadField as exc:
-                bad.append((exc.line_no, exc.problem))
-        if bad:
-            raise src.error(*min(bad))
-    return out
-
-
-def _parse_fast(spec: TagSpec, line_nos: list[int], rests: Sequence[str]) -> Block | None:
-    """One ``loadtxt`` pass over the group (ids again as int64); None when anything is off."""
-    k = len(rests)
-    n_ids = len(spec.id_fields)
-    try:  # straight from the list of lines: no joined copy, no StringIO (4 bytes a character)
-        vals = np.loadtxt(iter(rests), dtype=np.float64, comments=None, ndmin=2)
-        ids = np.loadtxt(iter(rests), dtype=np.int64, comments=None, ndmin=2,
-                         usecols=range(n_ids))
-    except (ValueError, OverflowError):
-        return None
-    # loadtxt skips empty lines and allows any constant width: check both, and finiteness.
-    if vals.shape != (k, spec.counts[0]) and not (len(spec.counts) > 1
-                                                  and vals.shape == (k, spec.counts[1])):
-        return None
-    if ids.shape != (k, n_ids) or not np.isfinite(vals[:, n_ids:]).all():
-        return None
-    return Block(spec, np.asarray(line_nos, np.int64), ids,
-                 np.ascontiguousarray(vals[:, n_ids:]))
-
-
-class _BadField(Exception):
-    def __init__(self, line_no: int, problem: str) -> None:
-        super().__init__(problem)
-        self.line_no = line_no
-        self.problem = problem
-
-
-def parse_int(tok: str) -> int | None:
-    """An int64 written with ASCII digits (optional sign), else None.
-
-    Python's ``int`` also accepts ``"1_0"`` and non-ASCII digits (``"١"``); the fast path
-    (``loadtxt``) and every other tool do not.
-    """
-    if not tok.isascii() or "_" in tok or len(tok) > 20:
-        return None
-    try:
-        v = int(tok)
-    except ValueError:
-        return None
-    return v if -(2**63) <= v < 2**63 else None
-
-
-def parse_float(tok: str) -> float | None:
-    """A float written in ASCII (``1``, ``-2.5e-3``, ``inf``, ``nan``), else None.
-
-    Rejects what Python's ``float`` accepts beyond that: ``"1_0"`` and non-ASCII digits.
-    """
-    if not tok.isascii() or "_" in tok:
-        return None
-    try:
-        return float(tok)
-    except ValueError:
-        return None
-
-
-def _to_int(spec: TagSpec, ln: int, k: int, tok: str) -> int:
-    v = parse_int(tok)
-    if v is None:
-        raise _BadField(ln, f"{spec.tag} field {spec.field_name(k)!r} must be an integer vertex "
-                        f"id, got {show_token(tok)}")
-    return v
-
-
-def _to_float(spec: TagSpec, ln: int, k: int, tok: str) -> float:
-    v = parse_float(tok)
-    if v is None:
-        raise _BadField(ln, f"{spec.tag} field {spec.field_name(k)!r} is not a number: "
-                        f"{show_token(tok)}")
-    if not math.isfinite(v):
-        raise _BadField(ln, f"{spec.tag} field {spec.field_name(k)!r} is not finite: "
-                        f"{show_token(tok)}")
-    return v
-
-
-def _parse_slow(spec: TagSpec, line_nos: list[int], toks: list[list[str]]) -> list[Block]:
-    """Line-by-line parse with exact error reports (counts were checked by the caller)."""
-    if spec.variadic_ids:
-        ids_l = [_to_int(spec, ln, 0, t) for ln, tk in zip(line_nos, toks, strict=True)
-                 for t in tk]
-        rep = np.repeat(np.asarray(line_nos, np.int64), [len(tk) for tk in toks])
-        return [Block(spec, rep, np.array(ids_l, np.int64).reshape(-1, 1),
-                      np.zeros((len(ids_l), 0)))]
-    n_ids = len(spec.id_fields)
-    blocks = []
-    for count in spec.counts:
-        rows_i: list[list[int]] = []
-        rows_v: list[list[float]] = []
-        lns: list[int] = []
-        for ln, tk in zip(line_nos, toks, strict=True):
-            if len(tk) != count:
-                continue
-            rows_i.append([_to_int(spec, ln, k, tk[k]) for k in range(n_ids)])
-            rows_v.append([_to_float(spec, ln, k, tk[k]) for k in range(n_ids, count)])
-            lns.append(ln)
-        if lns:
-            blocks.append(Block(spec, np.asarray(lns, np.int64),
-                                np.array(rows_i, np.int64).reshape(-1, n_ids),
-                                np.array(rows_v, np.float64).reshape(-1, count - n_ids)))
-    return blocks
-
-
-def stack(blocks: Iterable[Block]) -> tuple[IntArray, IntArray, FloatArray, list[Block]]:
-    """Concatenate blocks (same id/number widths) in file order: line_nos, ids, values, blocks."""
-    bl = [b for b in blocks if len(b)]
-    if not bl:
-        return np.zeros(0, np.int64), np.zeros((0, 0), np.int64), np.zeros((0, 0)), []
-    if len(bl) == 1:  # one field count (the usual case): already in file order, no copies
-        return bl[0].line_nos, bl[0].ids, bl[0].values, bl
-    ln = np.concatenate([b.line_nos for b in bl])
-    order = np.argsort(ln, kind="stable")
-    ids = np.concatenate([b.ids for b in bl])[order]
-    vals = np.concatenate([b.values for b in bl])[order]
-    return ln[order], ids, vals, bl
-
-
-# =========================================================================== matrices
 def sym_from_upper(vals: FloatArray, d: int) -> FloatArray:
     """(k, d(d+1)/2) upper-triangular entries, row by row -> (k, d, d) symmetric."""
     iu = np.triu_indices(d)
