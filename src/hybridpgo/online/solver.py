@@ -13,6 +13,10 @@ arrays grow without copies; the updates are the whole-graph solver's relaxation 
   the rest of the budget on older constraints, largest last χ² first among a bounded candidate
   set (the newest constraints, which act near the robot, and a window that cycles through
   all).  An update is started only when its predicted cost fits before the deadline.
+* **The frame's budget** covers its ``add_*`` calls too (their cycles are charged to the next
+  update); what does not fit stays queued for the next frames, in arrival order.  Building the
+  first solver of a process freezes the objects alive then (:func:`gc.freeze`), so no frame
+  pays for a full garbage collection of the compiled kernels.
 * **Staying accurate** (``OnlineConfig.background_refine``): a worker process solves the whole
   map exactly over and over and each answer is adopted in one copy (:mod:`._link`).
 
@@ -23,10 +27,13 @@ from 0); inside, the store's one index (edges, then GPS readings at the edge cap
 from __future__ import annotations
 
 import dataclasses
+import functools
+import gc
 import os
 import time
 import weakref
-from typing import Any, NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -73,6 +80,24 @@ class FrameReport(NamedTuple):
     """Wall time of the call."""
 
 
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def _charged(method: _F) -> _F:
+    """An ``add_*`` method whose cycles count against the next :meth:`OnlineSolver.update`'s
+    budget (they are part of that frame's work)."""
+
+    @functools.wraps(method)
+    def charged(self: OnlineSolver, *args: Any, **kwargs: Any) -> Any:
+        c0 = int(read_cycles())
+        try:
+            return method(self, *args, **kwargs)
+        finally:
+            self._input_cycles += int(read_cycles()) - c0
+
+    return charged  # type: ignore[return-value]
+
+
 def _check_budget(budget_s: object) -> float:
     if (isinstance(budget_s, bool) or not isinstance(budget_s, (int, float, np.floating))
             or not np.isfinite(budget_s) or budget_s <= 0):
@@ -102,6 +127,7 @@ class OnlineSolver:
         self._cursor = 0
         self._gps_cursor = 0
         self._stamp = 0  # one per call of the relaxation loops (junction groups: once each)
+        self._input_cycles = 0  # cycles spent in add_* since the last update (its frame's)
         self._link: WorkerLink | None = None
         self._finalizer: weakref.finalize[Any, Any] | None = None
         if cfg.background_refine:
@@ -170,6 +196,7 @@ class OnlineSolver:
             raise GraphError(f"{what}: unknown pose id {i}")
         return self._index[i]
 
+    @_charged
     def add_pose(self, pose_id: int, parent: int | None = None, measurement: object = None,
                  information: object = None) -> None:
         """Add a pose with its odometry ``Z = X_parent^-1 X_pose`` and its (6, 6) information.
@@ -211,6 +238,7 @@ class OnlineSolver:
         st.odom[p] = st.m
         self._append_edge(a, p, rot, trans, info, lt)
 
+    @_charged
     def add_constraint(self, a: int, b: int, measurement: object, information: object) -> None:
         """Add a relative constraint (loop closure) ``Z = X_a^-1 X_b`` between known poses.
 
@@ -242,6 +270,7 @@ class OnlineSolver:
         self._edge_keys.setdefault((a, b), []).append(e)
         self._store.push(e)
 
+    @_charged
     def add_gps(self, pose_id: int, xyz: object, information: object) -> None:
         """Add a position reading ``g`` (earth frame, metres) of a known pose, (3, 3) information.
 
@@ -278,8 +307,9 @@ class OnlineSolver:
         Parameters
         ----------
         budget_s : float, optional
-            Time budget of the call (seconds, > 0).  No update is started whose predicted cost
-            would pass it; the first new constraint is always relaxed.  None: no time limit.
+            Time budget of the frame (seconds, > 0): the ``add_*`` calls since the last update
+            count against it, so the frame's whole work stays within it.  No update is started
+            whose predicted cost would pass it.  None: no time limit.
         max_updates : int, optional
             Start at most this many updates (counted like the budget; with ``budget_s=None``
             the frame's work does not depend on timing, so runs are reproducible).
@@ -293,7 +323,8 @@ class OnlineSolver:
             is changed.
         """
         t0 = time.perf_counter()
-        deadline = self._deadline(budget_s)
+        deadline = self._deadline(budget_s, self._input_cycles)
+        self._input_cycles = 0
         if max_updates is not None:
             check_int("max_updates", max_updates, 0)
         limit = (1 << 62) if max_updates is None else max_updates
@@ -331,13 +362,14 @@ class OnlineSolver:
             done += rep.new + rep.old
         return done
 
-    def _deadline(self, budget_s: float | None) -> np.uint64:
-        """The cycle count at which a call with this budget stops starting updates."""
-        c0 = int(read_cycles())
+    def _deadline(self, budget_s: float | None, spent: int = 0) -> np.uint64:
+        """The cycle count at which a call with this budget stops starting updates, ``spent``
+        cycles of it being used already."""
+        c0 = int(read_cycles()) - spent
         if budget_s is None:
             return _NO_DEADLINE
         spare = max(_check_budget(budget_s) - RESERVE_S, 0.0)
-        return np.uint64(c0 + int(spare * cycles_per_second()))
+        return np.uint64(max(c0 + int(spare * cycles_per_second()), 0))
 
     def _work(self, deadline: np.uint64, limit: int, elapsed: float) -> FrameReport:
         """New constraints in arrival order, the local solve, then spare time (one call of the
@@ -583,7 +615,11 @@ _COMPILED = [False]
 
 def _ensure_online_compiled() -> float:
     """Compile every online kernel once per process on a four-pose stream with GPS, so the
-    first frames of a caller are not timed with compilation in them."""
+    first frames of a caller are not timed with compilation in them; then move every object
+    alive to the garbage collector's permanent generation (:func:`gc.freeze`).  Loading the
+    kernels leaves some 4 * 10^5 Python objects that live as long as the process, and a full
+    collection walks them all: about 0.2 s, in whichever frame happens to allocate the object
+    that triggers it."""
     if _COMPILED[0]:
         return 0.0
     _COMPILED[0] = True
@@ -603,4 +639,6 @@ def _ensure_online_compiled() -> float:
     except BaseException:
         _COMPILED[0] = False
         raise
+    gc.collect()
+    gc.freeze()
     return time.perf_counter() - t0

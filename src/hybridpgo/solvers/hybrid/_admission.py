@@ -36,6 +36,12 @@ MODEL_NODE = 1
 MODEL_BATCH = 2
 #: Weight of a new sample in the cost model's moving averages.
 MODEL_RATE = 1.0 / 32.0
+#: Single updates of more domain nodes than this (and every batch) teach the cost per node;
+#: shorter ones (above 4 nodes, the base's) teach nothing.  The cost per node is thus the cost
+#: of the nodes of long updates, whose path products and poses miss the cache (more per node
+#: than short domains): short updates, hundreds per frame, would otherwise pull it down to
+#: their own, and a long update admitted on it would overrun its frame.
+MODEL_SIZE_REF = 32
 #: Predictions are the model times this margin (the model is a mean; updates vary around it).
 MODEL_MARGIN = 1.5
 #: Cycles per floating-point operation assumed for the dense factorization of a batch.
@@ -84,10 +90,13 @@ def capacitance_cost(nb: int) -> float:
 
 @kernel
 def learn(model: np.ndarray, d: int, dc: float, batch: bool) -> None:
-    """Moving averages of the base cost (small domains) and of the cost per domain node."""
+    """Moving averages of the base cost (small domains) and of the cost per domain node (long
+    updates, ``MODEL_SIZE_REF``)."""
     if d <= 4 and not batch:
         cur = model[MODEL_BASE]
         model[MODEL_BASE] = cur + MODEL_RATE * (min(dc, 4.0 * cur) - cur)
+        return
+    if d <= MODEL_SIZE_REF and not batch:
         return
     k = MODEL_BATCH if batch else MODEL_NODE
     sample = max(dc - model[MODEL_BASE], 0.0) / d

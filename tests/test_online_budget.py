@@ -1,0 +1,98 @@
+"""The online mode's frame budget: the whole frame's work counts, what does not fit is carried
+over (never dropped), and the cost model admits long updates on the cost of long updates.
+
+No test reads the clock's values: budgets are either spent already (a deadline in the past) or
+absent, and the cost model is a pure function of the samples it is given.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from graphs import random_graph
+
+from hybridpgo.online import OnlineSolver
+from hybridpgo.online.replay import feed_frame, make_stream
+from hybridpgo.solvers.hybrid import _admission as adm
+
+
+def _graph(seed: int = 0, n: int = 60, extra: int = 30):  # type: ignore[no-untyped-def]
+    g, _, _ = random_graph(np.random.default_rng(seed), n=n, extra=extra, noise=0.02)
+    return g
+
+
+def _spend_frame(s: OnlineSolver) -> None:
+    """As if this frame's add_* calls had used a whole day of cycles (every budget is spent)."""
+    s._input_cycles = 1 << 62
+
+
+def test_add_calls_are_charged_to_their_frame() -> None:
+    g = _graph()
+    st = make_stream(g)
+    s = OnlineSolver()
+    assert s._input_cycles == 0
+    feed_frame(s, st, 0)
+    feed_frame(s, st, 1)
+    assert s._input_cycles > 0  # the add_* calls' cycles, waiting for their frame's update
+    s.update(5e-3)
+    assert s._input_cycles == 0  # charged to that update, not to the next frame
+    feed_frame(s, st, 2)
+    s.update(None)  # an unbudgeted frame also takes the charge (and ignores it)
+    assert s._input_cycles == 0
+
+
+def test_spent_frame_carries_its_work_over_and_drops_nothing() -> None:
+    """A frame whose add_* calls used its budget relaxes only the first new constraint (the
+    one unit a frame always makes); the rest waits in the queue and later frames relax every
+    constraint, in arrival order."""
+    g = _graph(seed=3)
+    st = make_stream(g)
+    s = OnlineSolver()
+    for k in range(st.num_frames):
+        feed_frame(s, st, k)
+    total = s.backlog
+    assert total == g.num_edges
+    _spend_frame(s)
+    r = s.update(5e-3)
+    assert (r.new, r.backlog, r.old) == (1, total - 1, 0)
+    queued = s.store.pending().copy()
+    assert np.array_equal(queued, np.arange(1, total))  # carried over in arrival order
+    frames = 0
+    while s.backlog:
+        _spend_frame(s)
+        r = s.update(5e-3)
+        assert r.new == 1 and r.old == 0  # never more than the admitted unit
+        frames += 1
+    assert frames == total - 1  # one per frame: nothing dropped, nothing skipped
+    # every constraint was relaxed: its update's cycles are recorded
+    assert np.all(s.store.cycles[: s.num_edges] > 0)
+
+
+def test_long_updates_are_predicted_from_long_updates() -> None:
+    """Hundreds of short updates per frame do not pull the cost per node below what a long
+    update costs: its prediction covers its measured cost."""
+    model = np.array(adm.MODEL0)
+    long_d, long_per_node = 3000, 4000.0  # cache-missing long path
+    short_d, short_per_node = 8, 800.0
+    for _ in range(40):
+        adm.learn(model, long_d, model[adm.MODEL_BASE] + long_d * long_per_node, False)
+        for _ in range(300):
+            adm.learn(model, short_d, model[adm.MODEL_BASE] + short_d * short_per_node, False)
+    assert adm.predict(model, long_d, False) >= model[adm.MODEL_BASE] + long_d * long_per_node
+
+
+def test_add_calls_do_not_copy_the_map() -> None:
+    """add_* writes in place: with the default reservation no array of the map moves while it
+    grows (a frame never pays for copying the map)."""
+    g = _graph(seed=5, n=400, extra=100)
+    st = make_stream(g)
+    s = OnlineSolver()
+    feed_frame(s, st, 0)
+    s.update(None)
+    store = s.store
+    names = ("parent", "rot", "edge_rot", "edge_info", "path_node", "contrib", "ptr", "chi2")
+    before = {k: getattr(store, k).__array_interface__["data"][0] for k in names}
+    for k in range(1, st.num_frames):
+        feed_frame(s, st, k)
+        s.update(None, 4)
+    after = {k: getattr(store, k).__array_interface__["data"][0] for k in names}
+    assert before == after
