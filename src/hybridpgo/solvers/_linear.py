@@ -192,6 +192,12 @@ class _SuperLU:
             raise SolverError(f"the normal equations are singular ({exc}); is the gauge fixed?"
                               ) from exc
         self._diagonal = values[p.diag_index]
+        # With diagonal pivots U = D L^T: A is positive definite iff every pivot is > 0
+        # (Sylvester), as CHOLMOD's L L^T tells; an off-diagonal pivot means it is not.
+        pivots = self._lu.U.diagonal()
+        if not (np.all(pivots > 0.0) and np.array_equal(self._lu.perm_r, np.arange(p.dim))):
+            bad = int(np.argmax(~(pivots > 0.0)))
+            raise _not_positive_definite(f"non-positive pivot in column {bad}")
 
     def check(self) -> None:
         """Raise SolverError when the last factored matrix is singular to rounding."""
@@ -378,40 +384,101 @@ class _CscPattern:
         return self.indptr[:-1]
 
 
+class SparseSPD:
+    """A sparse symmetric matrix ``A`` prepared for factorizations of ``A + diag(shift)``.
+
+    The unknowns come in blocks of ``block`` (a pose's 3 or 6 entries): they are permuted once
+    by a fill-reducing ordering of the block graph (:func:`_fill_reducing_order`) and the
+    factorizer (CHOLMOD when cvxopt is available, else SuperLU) analyzes the pattern once;
+    each :meth:`factor` is then one numeric factorization, of ``A``'s values or of new values
+    on the same pattern.  Every diagonal entry of ``A`` must be stored (as it is for a matrix
+    whose diagonal is positive).
+    """
+
+    def __init__(self, a: sp.spmatrix, block: int = 1) -> None:
+        csr = sp.csr_matrix(a, copy=True)
+        csr.sum_duplicates()
+        csr.sort_indices()
+        dim = int(csr.shape[0])
+        self.dim = dim
+        self.nnz = int(csr.nnz)
+        coo = csr.tocoo()
+        nb = dim // block
+        br = coo.row.astype(np.int64) // block
+        bc = coo.col.astype(np.int64) // block
+        del coo
+        lower = br > bc
+        key = np.unique(bc[lower] * nb + br[lower])  # each block pair once (block^2 fewer)
+        del br, bc, lower
+        new_block = _fill_reducing_order(nb, key % nb, key // nb)
+        del key
+        self._new_pos = (block * new_block[:, None]
+                         + np.arange(block, dtype=np.int64)[None, :]).ravel()
+        self._old_at = np.empty(dim, np.int64)
+        self._old_at[self._new_pos] = np.arange(dim)
+        # the permuted lower triangle of a matrix of entry numbers: where each value goes
+        ids = sp.csr_matrix((np.arange(1, self.nnz + 1, dtype=np.float64), csr.indices,
+                             csr.indptr), shape=csr.shape)
+        low = sp.tril(sp.csc_matrix(ids)[self._old_at][:, self._old_at], format="csc")
+        low.sort_indices()
+        self._source = np.asarray(low.data, np.int64) - 1
+        self._values = np.asarray(csr.data, np.float64)
+        pattern = _CscPattern(low)
+        del low, ids
+        self._diag = pattern.diag_index
+        self._factorizer = _make_factorizer(pattern, "auto") if dim else None
+
+    @property
+    def backend(self) -> str:
+        """The factorizer's name (``"cholmod"`` or ``"splu"``)."""
+        return "" if self._factorizer is None else str(self._factorizer.name)
+
+    def factor(self, shift: FloatArray | float = 0.0, check: bool = False,
+               values: FloatArray | None = None) -> None:
+        """Factor ``A + diag(shift)`` (``shift``: a scalar or one entry per unknown).
+
+        ``values``: new stored entries of A, in the order of ``scipy.sparse.csr_matrix(A)``'s
+        canonical ``data`` (sorted indices, no duplicates) for the A given at construction.
+
+        Raises
+        ------
+        NotPositiveDefinite
+            A pivot is not positive: the shifted matrix is not positive definite.
+        SolverError
+            With ``check``: the matrix is singular to rounding (a tiny pivot).
+        """
+        if self._factorizer is None:
+            return
+        src = self._values if values is None else np.asarray(values, np.float64)
+        vals = src[self._source]
+        vals[self._diag] += np.broadcast_to(np.asarray(shift, np.float64), (self.dim,))[
+            self._old_at]
+        self._factorizer.factor(vals)
+        if check:
+            self._factorizer.check()
+
+    def solve(self, rhs: FloatArray) -> FloatArray:
+        """``(A + diag(shift))^-1 rhs`` with the last factorization (rhs: (dim,) or (dim, k))."""
+        if self._factorizer is None:
+            return np.zeros_like(rhs, dtype=np.float64)
+        x = self._factorizer.solve_factored(np.asarray(rhs, np.float64)[self._old_at])
+        return np.asarray(np.asarray(x).reshape(rhs.shape)[self._new_pos], np.float64)
+
+
 def solve_spd(a: sp.spmatrix, rhs: FloatArray, block: int = 1) -> FloatArray:
     """Solve ``A x = rhs`` once for a sparse SPD ``A`` (rhs: (dim,) or (dim, k)).
 
     The unknowns come in blocks of ``block`` (a pose's 3 or 6 entries): they are permuted by a
-    fill-reducing ordering of the block graph (:func:`_fill_reducing_order`), then factored by
-    CHOLMOD when cvxopt is available (else SuperLU), one factorization for every right-hand side.
+    fill-reducing ordering of the block graph (:class:`SparseSPD`), then factored by CHOLMOD
+    when cvxopt is available (else SuperLU), one factorization for every right-hand side.
 
     Raises
     ------
     SolverError
         ``A`` is not positive definite, or singular to rounding.
     """
-    csc = sp.csc_matrix(a)
-    dim = int(csc.shape[0])
-    if dim == 0:
+    spd = SparseSPD(a, block)
+    if spd.dim == 0:
         return np.zeros_like(rhs, dtype=np.float64)
-    coo = csc.tocoo()
-    nb = dim // block
-    br = coo.row.astype(np.int64) // block
-    bc = coo.col.astype(np.int64) // block
-    del coo
-    lower = br > bc
-    key = np.unique(bc[lower] * nb + br[lower])  # each block pair once (block^2 fewer)
-    del br, bc, lower
-    new_block = _fill_reducing_order(nb, key % nb, key // nb)
-    del key
-    new_pos = (block * new_block[:, None] + np.arange(block, dtype=np.int64)[None, :]).ravel()
-    old_at = np.empty(dim, np.int64)
-    old_at[new_pos] = np.arange(dim)
-    low = sp.tril(csc[old_at][:, old_at], format="csc")
-    del csc
-    low.sort_indices()
-    pattern = _CscPattern(low)
-    factorizer = _make_factorizer(pattern, "auto")
-    x = factorizer.solve(np.asarray(low.data, np.float64), np.asarray(rhs, np.float64)[old_at],
-                         check=True)
-    return np.asarray(x[new_pos], np.float64)
+    spd.factor(check=True)
+    return spd.solve(rhs)
