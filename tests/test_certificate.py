@@ -151,18 +151,18 @@ def test_newton_system_matches_finite_differences(make) -> None:
     pp = 3 if prob.complex else 6
     st = 2 if prob.complex else 3
     t0 = prob.positions(y)
-    from hybridpgo.certificate import _real_form
-
-    w = _real_form(prob.m, prob.complex, prob.d)
+    kappa, tau = sesync_weights(graph)
+    dd = 2 if prob.complex else 3
 
     def objective(delta: np.ndarray) -> float:
+        """The twin's F at the moved rotations and positions."""
         p = delta.reshape(n, pp)
         yy = prob._step(y, p)
         tt = t0 + ((p[:, 0] + 1j * p[:, 1])[:, None] if prob.complex else p[:, :st])
-        v = np.concatenate([tt, yy])
-        x = v[:, 0].view(np.float64) if prob.complex else v.ravel()
-        x = np.ascontiguousarray(x)
-        return float(x @ (w @ x))
+        rot = prob.rotations(yy)[:, :dd, :dd]
+        trans = prob.translations(tt)[:, :dd]
+        return sesync_objective(graph.edge_nodes, graph.edge_rotations[:, :dd, :dd],
+                                graph.edge_translations[:, :dd], kappa, tau, rot, trans)
 
     dim = pp * n
     assert objective(np.zeros(dim)) == pytest.approx(f, rel=FLOAT64_IDENTITY * 1e3)
@@ -296,6 +296,9 @@ def test_sparse_spd_refuses_an_indefinite_matrix(backend, monkeypatch) -> None:
     rng = np.random.default_rng(0)
     a = sp.random(40, 40, density=0.1, random_state=1)
     a = sp.csr_matrix(a @ a.T + sp.identity(40))
+    a.sort_indices()
+    with pytest.raises(ValueError, match="canonical"):
+        SparseSPD(sp.coo_matrix((np.ones(2), ([0, 0], [0, 0])), shape=(2, 2)))
     spd = SparseSPD(a)
     spd.factor()
     b = rng.standard_normal(40)

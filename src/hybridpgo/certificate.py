@@ -66,7 +66,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
-from .errors import HybridPGOError, SolverError
+from .errors import HybridPGOError
 from .graph import FloatArray, PoseGraph
 
 __all__ = ["Certificate", "SyncProblem", "certify", "sesync_certificate", "sesync_weights",
@@ -111,6 +111,26 @@ def sesync_weights(graph: PoseGraph) -> tuple[FloatArray, FloatArray]:
     return kappa, tau
 
 
+def _hat(v: FloatArray) -> FloatArray:
+    """(..., 3, 3) cross-product matrices of (..., 3) vectors."""
+    out: FloatArray = np.einsum("...k,kij->...ij", v, _GEN)
+    return out
+
+
+def _pair(m: FloatArray) -> FloatArray:
+    """``<M, hat(e_k)>`` for k = 0, 1, 2 of (..., 3, 3) matrices (twice the axial vector of
+    M's antisymmetric part)."""
+    return np.stack([m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0],
+                     m[..., 1, 0] - m[..., 0, 1]], axis=-1)
+
+
+def _sym_minus_trace(m: FloatArray) -> FloatArray:
+    """``sym(M) - tr(M) I`` of (..., 3, 3) matrices."""
+    out: FloatArray = 0.5 * (m + np.swapaxes(m, -1, -2)) - np.trace(
+        m, axis1=-2, axis2=-1)[..., None, None] * np.eye(3)
+    return out
+
+
 def _herm(x: Array) -> Array:
     out: Array = 0.5 * (x + np.conj(np.swapaxes(x, -1, -2)))
     return out
@@ -125,41 +145,6 @@ def _realify_coo(rows: Array, cols: Array, vals: Array
     r, c = 2 * np.asarray(rows, np.int64), 2 * np.asarray(cols, np.int64)
     return (np.concatenate([r, r, r + 1, r + 1]), np.concatenate([c, c + 1, c, c + 1]),
             np.concatenate([p, -q, q, p]))
-
-
-def _real_form(m: sp.spmatrix, complex_form: bool, k: int) -> sp.csr_matrix:
-    """The real symmetric W with ``tr(V^H M V) = x^T W x``, ``x`` the real entries of ``V``
-    (complex: real and imaginary parts interleaved; real (rows, k): row by row)."""
-    if not complex_form:
-        return sp.csr_matrix(sp.kron(m, sp.identity(k), format="csr"))
-    coo = sp.coo_matrix(m)
-    r, c, v = _realify_coo(coo.row, coo.col, coo.data)
-    dim = 2 * m.shape[0]
-    return sp.csr_matrix((v, (r, c)), shape=(dim, dim))
-
-
-class _Coo:
-    """A fixed sparsity pattern given by COO lists (duplicates summed): the canonical CSR
-    layout is computed once, then each set of values is summed into it with one bincount."""
-
-    def __init__(self, rows: Array, cols: Array, shape: tuple[int, int]) -> None:
-        key = np.asarray(rows, np.int64) * shape[1] + np.asarray(cols, np.int64)
-        uniq, self._pos = np.unique(key, return_inverse=True)
-        r = uniq // shape[1]
-        self.indices = (uniq % shape[1]).astype(np.int64)
-        self.indptr = np.zeros(shape[0] + 1, np.int64)
-        np.cumsum(np.bincount(r, minlength=shape[0]), out=self.indptr[1:])
-        self.shape = shape
-        self.nnz = int(uniq.size)
-
-    def data(self, vals: FloatArray) -> FloatArray:
-        """The CSR values of the COO values ``vals``."""
-        out: FloatArray = np.bincount(self._pos.ravel(), weights=np.ravel(vals),
-                                      minlength=self.nnz).astype(np.float64, copy=False)
-        return out
-
-    def matrix(self, vals: FloatArray) -> sp.csr_matrix:
-        return sp.csr_matrix((self.data(vals), self.indices, self.indptr), shape=self.shape)
 
 
 @dataclass(frozen=True)
@@ -253,6 +238,12 @@ class SyncProblem:
         self.m.sum_duplicates()
         keep = np.flatnonzero(np.arange(n) != self.gauge)
         self._t_keep = keep
+        self._edges = (a, b)
+        self._weights = (2.0 * kappa if self.complex else kappa, tau)
+        if self.complex:
+            self._measured: tuple[Array, Array] = (rz, tz)
+        else:
+            self._measured = (np.asarray(graph.edge_rotations), np.asarray(graph.edge_translations))
         rot = np.arange(n, dim)
         self._a = sp.csr_matrix(self.m[rot][:, rot])
         self._b = sp.csr_matrix(self.m[rot][:, keep])
@@ -436,99 +427,165 @@ class SyncProblem:
         return np.ascontiguousarray((uu @ vh).reshape(3 * self.n, 3))
 
     # ------------------------------------------------------------------ Newton on F
-    def _pose_slots(self) -> tuple[Array, int, int, int]:
-        """Where each pose's unknowns sit in the real vector of ``V`` (:func:`_real_form`):
-        ``(slots (n, s), s, params per pose, position params)``; a pose's slots are its
-        position's real entries, then its rotation's (complex: Re z, Im z; real: R^T row by
-        row)."""
-        n = self.n
-        if self.complex:
-            t_slot = 2 * np.arange(n)[:, None] + np.arange(2)[None, :]
-            r_slot = 2 * (n + np.arange(n))[:, None] + np.arange(2)[None, :]
-            return np.concatenate([t_slot, r_slot], axis=1), 4, 3, 2
-        t_slot = 3 * np.arange(n)[:, None] + np.arange(3)[None, :]
-        r_slot = 3 * (n + 3 * np.arange(n))[:, None] + np.arange(9)[None, :]
-        return np.concatenate([t_slot, r_slot], axis=1), 12, 6, 3
-
     def _newton_setup(self) -> dict[str, Any]:
-        """W (the real form of M) as dense (s, s) blocks between poses, computed once."""
+        """The Newton system's block pattern (the pose graph without the gauge pose, BSR with
+        (P, P) blocks) and where each constraint's four blocks go, computed once."""
         if self._newton is not None:
             return self._newton
-        slots, s, pp, st = self._pose_slots()
-        perm = slots.ravel()
-        w = _real_form(self.m, self.complex, self.d)[perm][:, perm]
-        bsr = sp.bsr_matrix(w, blocksize=(s, s))
-        bsr.sort_indices()
-        br = np.repeat(np.arange(self.n), np.diff(bsr.indptr))
-        bc = np.asarray(bsr.indices, np.int64)
-        free = (br != self.gauge) & (bc != self.gauge)
-        fr, fc = br[free], bc[free]
-        fr, fc = fr - (fr > self.gauge), fc - (fc > self.gauge)  # pose -> free-pose index
-        ip = np.arange(pp)
-        rows = (pp * fr[:, None, None] + ip[None, :, None]).repeat(pp, 2)
-        cols = (pp * fc[:, None, None] + ip[None, None, :]).repeat(pp, 1)
-        dim = pp * (self.n - 1)
-        pattern = _Coo(rows.ravel(), cols.ravel(), (dim, dim))
-        self._newton = {"bsr": bsr, "br": br, "bc": bc, "free": free, "diag": br == bc,
-                        "pattern": pattern, "s": s, "pp": pp, "st": st, "spd": None,
-                        "keep": np.flatnonzero(np.repeat(np.arange(self.n) != self.gauge, pp))}
+        from .solvers._linear import SparseSPD
+
+        n, g = self.n, self.gauge
+        pp = 3 if self.complex else 6
+        a, b = self._edges
+        free = np.arange(n) - (np.arange(n) > g)
+        free[g] = -1
+        fa, fb = free[a], free[b]
+        nf = n - 1
+        pairs = np.stack([fa * nf + fa, fa * nf + fb, fb * nf + fa, fb * nf + fb])  # (4, m)
+        ok = np.stack([fa >= 0, (fa >= 0) & (fb >= 0), (fa >= 0) & (fb >= 0), fb >= 0])
+        keys = np.unique(pairs[ok])
+        where = np.full(pairs.shape, -1, np.int64)
+        where[ok] = np.searchsorted(keys, pairs[ok])
+        indptr = np.zeros(nf + 1, np.int64)
+        np.cumsum(np.bincount(keys // nf, minlength=nf), out=indptr[1:])
+        dim = pp * nf
+        pattern = sp.bsr_matrix((np.zeros((keys.size, pp, pp)), keys % nf, indptr),
+                                shape=(dim, dim))
+        diag = np.searchsorted(keys, np.arange(nf) * (nf + 1))
+        self._newton = {"where": where, "nblocks": keys.size, "diag": diag, "pp": pp,
+                        "spd": SparseSPD(pattern) if nf else None,
+                        "keep": np.flatnonzero(np.repeat(free >= 0, pp))}
         return self._newton
 
-    def _pose_x(self, t: Array, y: Array) -> FloatArray:
-        """The real entries of ``V = [T; Y]``, pose by pose (n, s) (:meth:`_pose_slots`)."""
-        n = self.n
-        if self.complex:
-            return np.stack([t[:, 0].real, t[:, 0].imag, y[:, 0].real, y[:, 0].imag], axis=1)
-        return np.concatenate([np.asarray(t, np.float64), y.reshape(n, 9)], axis=1)
+    def _edge_terms(self, y: Array, hessian: bool = True) -> dict[str, Any]:
+        """F's residuals and their derivatives per constraint at rotations Y (rank d) and their
+        optimal positions, over the parameters ``[position shift (world frame), rotation]`` of
+        pose a then pose b (``z exp(i theta)``; ``R Exp(omega)``).
 
-    def _newton_gradient(self, y: Array) -> tuple[Array, FloatArray, FloatArray, Array, float]:
-        """``(jac (n, s, P), x (n, s), W x (n, s), g (n, P), F)`` at rotations Y (rank d) and
-        their optimal positions (:meth:`_newton_blocks`)."""
-        nw = self._newton_setup()
-        n, s, pp, st = self.n, nw["s"], nw["pp"], nw["st"]
-        xp = self._pose_x(self.positions(y), y)
-        wx = (nw["bsr"] @ xp.ravel()).reshape(n, s)
-        f = float(np.sum(xp * wx))
-        jac = np.zeros((n, s, pp))
-        jac[:, :st, :st] = np.eye(st)
+        Returns ``f`` (F), the half-gradient per constraint ``ge`` (m, 2P), and with
+        ``hessian`` the half-Hessian ``he`` (m, 2P, 2P): ``F(p) ~ F + 2 ge.p + p.he.p``
+        (Gauss-Newton part plus the residuals' curvature along the rotation parameters);
+        ``noise``: a bound of F's rounding error."""
+        a, b = self._edges
+        t = self.positions(y)
+        w_r, w_t = self._weights
+        rm, tm = self._measured
+        m = a.size
+        out: dict[str, Any] = {}
         if self.complex:
-            z = y[:, 0]
-            jac[:, 2, 2], jac[:, 3, 2] = -z.imag, z.real
-        else:  # d(R Exp(w))^T / dw_k = -hat(e_k) R^T, R^T row by row
-            jac[:, 3:, 3:] = -np.einsum("kab,ibc->iack", _GEN, y.reshape(n, 3, 3)).reshape(
-                n, 9, 3)
-        g = 2.0 * np.einsum("isp,is->ip", jac, wx)
-        return jac, xp, wx, g, f
+            z, tt = y[:, 0], t[:, 0]
+            za, zb = z[a], z[b]
+            r_r = zb - za * rm
+            r_t = tt[b] - tt[a] - za * tm
+            # complex derivatives over [x_a, y_a, theta_a, x_b, y_b, theta_b], <u, v> = Re(u* v)
+            jr = np.zeros((m, 6), np.complex128)
+            jr[:, 2], jr[:, 5] = -1j * za * rm, 1j * zb
+            jt = np.zeros((m, 6), np.complex128)
+            jt[:, 0], jt[:, 1], jt[:, 2] = -1.0, -1j, -1j * za * tm
+            jt[:, 3], jt[:, 4] = 1.0, 1j
+            out["f"] = float(np.sum(w_r * np.abs(r_r) ** 2) + np.sum(w_t * np.abs(r_t) ** 2))
+            out["ge"] = (w_r[:, None] * np.real(np.conj(jr) * r_r[:, None])
+                         + w_t[:, None] * np.real(np.conj(jt) * r_t[:, None]))
+            if hessian:
+                he = (w_r[:, None, None] * np.real(np.conj(jr)[:, :, None] * jr[:, None, :])
+                      + w_t[:, None, None] * np.real(np.conj(jt)[:, :, None] * jt[:, None, :]))
+                # second derivatives along theta: z_b -> -z_b, -z_a rm -> z_a rm, -z_a tm
+                he[:, 2, 2] += (w_r * np.real(np.conj(r_r) * za * rm)
+                                + w_t * np.real(np.conj(r_t) * za * tm))
+                he[:, 5, 5] -= w_r * np.real(np.conj(r_r) * zb)
+                out["he"] = he
+            size = np.abs(tt[a]) + np.abs(tt[b]) + np.abs(tm)
+            rt_norm = np.abs(r_t)
+        else:
+            rot = np.swapaxes(y.reshape(self.n, 3, 3), 1, 2)
+            ra, rb = rot[a], rot[b]
+            rat = np.swapaxes(ra, 1, 2)
+            r_r = rb - ra @ rm
+            r_t = t[b] - t[a] - np.einsum("eij,ej->ei", ra, tm)
+            wr3, wt3 = w_r[:, None, None], w_t[:, None, None]
+            # <r_R, R_b hat(e_k)> = <R_b^T r_R, hat(e_k)>; pose a's: minus <ma, hat(e_k)>
+            mb = wr3 * (np.swapaxes(rb, 1, 2) @ r_r)
+            ma = wr3 * (rat @ r_r @ np.swapaxes(rm, 1, 2)) + wt3 * (
+                (rat @ r_t[:, :, None]) * tm[:, None, :])
+            ge = np.zeros((m, 12))
+            ge[:, 0:3] = -w_t[:, None] * r_t
+            ge[:, 3:6] = -_pair(ma)
+            ge[:, 6:9] = w_t[:, None] * r_t
+            ge[:, 9:12] = _pair(mb)
+            out["f"] = float(np.sum(w_r * np.sum(r_r * r_r, axis=(1, 2)))
+                             + np.sum(w_t * np.sum(r_t * r_t, axis=1)))
+            out["ge"] = ge
+            if hessian:
+                eye = np.eye(3)
+                he = np.zeros((m, 12, 12))
+                jta = ra @ _hat(tm)  # d r_t / d omega_a
+                he[:, 0:3, 0:3] = he[:, 6:9, 6:9] = wt3 * eye
+                he[:, 0:3, 6:9] = he[:, 6:9, 0:3] = -wt3 * eye
+                he[:, 0:3, 3:6] = -wt3 * jta
+                he[:, 6:9, 3:6] = wt3 * jta
+                he[:, 3:6, 0:3] = -wt3 * np.swapaxes(jta, 1, 2)
+                he[:, 3:6, 6:9] = wt3 * np.swapaxes(jta, 1, 2)
+                # <hat(e_k) X, hat(e_l) X> = 2 delta_kl for a rotation X
+                he[:, 3:6, 3:6] = 2.0 * wr3 * eye + wt3 * (np.swapaxes(jta, 1, 2) @ jta)
+                he[:, 9:12, 9:12] = 2.0 * wr3 * eye
+                # <-R_a hat(e_k) Rm, R_b hat(e_l)> = -<hat(e_k), P hat(e_l) Rm^T>, P = Ra^T Rb
+                pab = rat @ rb
+                cross = np.stack([_pair(pab @ _GEN[k] @ np.swapaxes(rm, 1, 2))
+                                  for k in range(3)], axis=2)  # [e, k, l]
+                he[:, 3:6, 9:12] = -wr3 * cross
+                he[:, 9:12, 3:6] = -wr3 * np.swapaxes(cross, 1, 2)
+                # curvature: <M, (hat(e_k) hat(e_l) + hat(e_l) hat(e_k)) / 2> = sym(M) - tr(M) I
+                he[:, 3:6, 3:6] -= _sym_minus_trace(ma)
+                he[:, 9:12, 9:12] += _sym_minus_trace(mb)
+                out["he"] = he
+            size = (np.linalg.norm(t[a], axis=1) + np.linalg.norm(t[b], axis=1)
+                    + np.linalg.norm(tm, axis=1))
+            rt_norm = np.linalg.norm(r_t, axis=1)
+        # rounding: each residual is computed to ~eps of the numbers it subtracts
+        out["noise"] = 1e3 * float(np.finfo(np.float64).eps) * (
+            out["f"] + float(np.sum(w_t * rt_norm * size)))
+        return out
 
-    def _newton_blocks(self, y: Array) -> tuple[Array, FloatArray, float]:
-        """Newton's system of F at rotations Y (rank d) and their optimal positions over the
-        per-pose parameters (position shift in the world frame, then ``z exp(i theta)`` /
-        ``R Exp(omega)``): H as (nb, P, P) blocks on W's block pattern, g (n, P), and F, with
-        ``F(params) ~ F + g.p + p.H.p / 2``."""
+    def _gradient(self, terms: dict[str, Any]) -> FloatArray:
+        """The gradient of F per pose (n, P) from :meth:`_edge_terms`."""
+        a, b = self._edges
+        pp = terms["ge"].shape[1] // 2
+        g = np.zeros((self.n, pp))
+        np.add.at(g, a, terms["ge"][:, :pp])
+        np.add.at(g, b, terms["ge"][:, pp:])
+        return 2.0 * g
+
+    def _hessian_blocks(self, terms: dict[str, Any]) -> FloatArray:
+        """The Newton Hessian of F on the pattern of :meth:`_newton_setup` (nb, P, P)."""
         nw = self._newton_setup()
-        n, st = self.n, nw["st"]
-        jac, xp, wx, g, f = self._newton_gradient(y)
-        if self.complex:  # d^2 z / dtheta^2 = -z: the gradient's part along it
-            curv = -np.sum(wx[:, 2:] * xp[:, 2:], axis=1)[:, None, None]
-        else:  # <G, (R G2_kl)^T> with G the block of W x in R^T's layout
-            gr = wx[:, 3:].reshape(n, 3, 3) @ y.reshape(n, 3, 3).swapaxes(1, 2)  # (G R)[a, c]
-            curv = np.einsum("iac,klca->ikl", gr, _GEN2)
-        hb = (np.swapaxes(jac, 1, 2)[nw["br"]] @ nw["bsr"].data) @ jac[nw["bc"]]
-        hb[nw["diag"], st:, st:] += curv[nw["br"][nw["diag"]]]
-        return 2.0 * hb, g, f
+        pp = nw["pp"]
+        he = terms["he"]
+        parts = (he[:, :pp, :pp], he[:, :pp, pp:], he[:, pp:, :pp], he[:, pp:, pp:])
+        where = nw["where"]
+        size = nw["nblocks"] * pp * pp
+        out = np.zeros(size)
+        inner = np.arange(pp * pp)
+        for q in range(4):
+            ok = where[q] >= 0
+            idx = (where[q][ok][:, None] * (pp * pp) + inner[None, :]).ravel()
+            out += np.bincount(idx, weights=parts[q][ok].reshape(-1), minlength=size)
+        return 2.0 * out.reshape(nw["nblocks"], pp, pp)
 
     def newton_system(self, y: Array) -> tuple[sp.csr_matrix, FloatArray, float]:
-        """``(H, g, F)``: Newton's system of :meth:`_newton_blocks` as a sparse (P n, P n)
-        matrix and a (P n,) vector, every pose included (the gauge pose too)."""
-        nw = self._newton_setup()
-        hb, g, f = self._newton_blocks(y)
-        pp = nw["pp"]
-        ip = np.arange(pp)
-        rows = (pp * nw["br"][:, None, None] + ip[None, :, None]).repeat(pp, 2)
-        cols = (pp * nw["bc"][:, None, None] + ip[None, None, :]).repeat(pp, 1)
+        """``(H, g, F)``: F's Newton system at rotations Y (rank d) and their optimal
+        positions over every pose's parameters (:meth:`_edge_terms`; the gauge pose's too):
+        ``F(p) ~ F + g.p + p.H.p / 2``, H (P n, P n) sparse, g (P n,)."""
+        terms = self._edge_terms(y)
+        a, b = self._edges
+        pp = terms["ge"].shape[1] // 2
+        he = terms["he"]
+        idx = np.concatenate([pp * a[:, None] + np.arange(pp), pp * b[:, None] + np.arange(pp)],
+                             axis=1)  # (m, 2P)
+        rows = np.broadcast_to(idx[:, :, None], he.shape).ravel()
+        cols = np.broadcast_to(idx[:, None, :], he.shape).ravel()
         dim = pp * self.n
-        h = sp.csr_matrix((hb.ravel(), (rows.ravel(), cols.ravel())), shape=(dim, dim))
-        return h, g.ravel(), f
+        h = sp.csr_matrix((2.0 * he.ravel(), (rows, cols)), shape=(dim, dim))
+        return h, self._gradient(terms).ravel(), terms["f"]
 
     def _step(self, y: Array, delta: FloatArray) -> Array:
         """Rotations moved by the rotation parameters of ``delta`` (n, P)."""
@@ -540,13 +597,6 @@ class SyncProblem:
         rot = np.swapaxes(y.reshape(self.n, 3, 3), 1, 2) @ exp(delta[:, 3:])
         return np.ascontiguousarray(np.swapaxes(rot, 1, 2).reshape(3 * self.n, 3))
 
-    def _rounding(self, y: Array) -> float:
-        """A bound of the rounding error of F computed at Y: ``|x|^T |W| |x|`` times 100 eps
-        (F is a sum of terms that cancel: on garage ~6 digits)."""
-        nw = self._newton_setup()
-        xp = np.abs(self._pose_x(self.positions(y), y)).ravel()
-        return 100.0 * float(np.finfo(np.float64).eps) * float(xp @ (abs(nw["bsr"]) @ xp))
-
     def refine(self, y: Array, max_iterations: int = 30) -> tuple[Array, float, int]:
         """Newton's method on F over the rotations (rank d) and positions, from ``y``, the
         gauge pose held; the positions are re-optimized after each step.
@@ -555,18 +605,20 @@ class SyncProblem:
         predicted decrease falls at least 3x per step (a chord method: each such step costs a
         gradient and a solve); else it is refactored at the current point, and damped
         (``H + mu diag(H)``) while it is not positive definite or its step raises F by more
-        than F's rounding error.  Stops after a step whose predicted decrease is below F's
-        rounding error or ``_NEWTON_TOLERANCE`` of F.  Returns ``(Y, F, factorizations)``.
+        than F's rounding error.  Stops after a step whose predicted decrease is below
+        ``_NEWTON_TOLERANCE`` of F, or below F's rounding error when a fresh factorization no
+        longer shrinks it 3x.  Returns ``(Y, F, factorizations)``.
         """
-        from .solvers._linear import NotPositiveDefinite, SparseSPD
+        from .solvers._linear import NotPositiveDefinite
 
+        if self.n < 2:
+            return y, self.cost(y), 0
         nw = self._newton_setup()
-        pp, keep, pattern = nw["pp"], nw["keep"], nw["pattern"]
-        noise = self._rounding(y)
+        pp, keep, spd = nw["pp"], nw["keep"], nw["spd"]
         mu = 0.0
         factorizations = 0
-        jac_g = self._newton_gradient(y)
-        g, f = jac_g[3], jac_g[4]
+        terms = self._edge_terms(y)
+        g, f = self._gradient(terms), terms["f"]
         fresh = False
         stale = True
         previous = np.inf
@@ -574,21 +626,20 @@ class SyncProblem:
             if stale:
                 if factorizations >= max_iterations or mu >= 1e12:
                     break
-                hb, g, f = self._newton_blocks(y)
-                values = pattern.data(hb[nw["free"]])
-                if nw["spd"] is None:
-                    nw["spd"] = SparseSPD(pattern.matrix(values.copy()), block=pp)
-                diag = np.maximum(_diagonal(pattern, values),
-                                  1e-12 * max(float(np.max(np.abs(values))), 1.0))
+                if "he" not in terms:
+                    terms = self._edge_terms(y)
+                values = self._hessian_blocks(terms)
+                diag = np.diagonal(values[nw["diag"]], axis1=1, axis2=2).ravel()
+                diag = np.maximum(diag, 1e-12 * max(float(np.max(np.abs(diag))), 1.0))
                 factorizations += 1
                 try:
-                    nw["spd"].factor(mu * diag, values=values)
-                except (NotPositiveDefinite, SolverError):
+                    spd.factor(mu * diag, values=values.ravel())
+                except NotPositiveDefinite:
                     mu = max(1e-8, 10.0 * mu)
                     continue
                 fresh, stale = True, False
             gk = g.ravel()[keep]
-            step = nw["spd"].solve(-gk)
+            step = spd.solve(-gk)
             predicted = -0.5 * float(gk @ step)
             if not (predicted >= 0.0 and np.all(np.isfinite(step))):
                 mu = max(1e-8, 10.0 * mu) if fresh else mu
@@ -597,13 +648,16 @@ class SyncProblem:
             full = np.zeros(pp * self.n)
             full[keep] = step
             y_new = self._step(y, full.reshape(self.n, pp))
+            noise = terms["noise"]
             # converged: a tiny predicted decrease, or a fresh Newton step that no longer
             # shrinks it below F's rounding error (rounding floor)
             small = predicted <= _NEWTON_TOLERANCE * abs(f) or (
                 fresh and predicted <= noise and predicted > previous / 3.0)
-            f_new = self.cost(y_new)
+            new_terms = self._edge_terms(y_new, hessian=False)
+            f_new = new_terms["f"]
             if small or (f_new <= f + noise and (fresh or predicted <= previous / 3.0)):
-                y, f = y_new, f_new
+                y, terms = y_new, new_terms
+                g, f = self._gradient(terms), f_new
                 if small:
                     break
                 previous = predicted
@@ -611,7 +665,6 @@ class SyncProblem:
                     mu = 0.1 * mu if mu > 1e-8 else 0.0
                     stale = True  # less damping: refactor
                 fresh = False
-                _, _, _, g, f = self._newton_gradient(y)
             else:
                 if fresh:
                     mu = max(1e-8, 10.0 * mu)
@@ -620,38 +673,52 @@ class SyncProblem:
 
     # ------------------------------------------------------------------ certificate
     def _spectrum_setup(self) -> dict[str, Any]:
-        """The certificate's matrix ``K = M - blockdiag(0, Lambda)`` without the gauge
-        position (real form for the complex problem): its pattern and factorization analysis,
-        computed once."""
+        """The certificate's matrix ``K = M + c e e^T - blockdiag(0, Lambda)`` in real form,
+        pose by pose (BSR, (4, 4) blocks on the pose graph: a pose's position then rotation
+        entries), where Lambda's entries go, and the factorization's analysis, computed once.
+
+        ``c e e^T`` anchors the gauge pose's position (``c``: the mean diagonal of M's
+        position block): the positions' Schur complement is still Q, since ``B 1 = 0`` (F does
+        not change when every position moves together), so K is positive definite iff
+        ``S = Q - Lambda`` is."""
         if self._cert is not None:
             return self._cert
         from .solvers._linear import SparseSPD
 
-        n, d = self.n, self.d
-        nt = self._t_keep.size
-        idx = np.concatenate([self._t_keep, n + np.arange(d * n)])
-        k0 = sp.coo_matrix(self.m[idx][:, idx])
-        bi = np.broadcast_to(nt + d * np.arange(n)[:, None, None] + np.arange(d)[None, :, None],
-                             (n, d, d)).ravel()
-        bj = np.broadcast_to(nt + d * np.arange(n)[:, None, None] + np.arange(d)[None, None, :],
-                             (n, d, d)).ravel()
+        n, _d = self.n, self.d
+        i = np.arange(n)
+        coo = sp.coo_matrix(self.m)
         if self.complex:
-            r0, c0, v0 = _realify_coo(k0.row, k0.col, k0.data)
-            rl, cl, _ = _realify_coo(bi, bj, np.zeros(bi.size))
-            r_first = 2 * nt
+            perm = np.stack([2 * i, 2 * i + 1, 2 * (n + i), 2 * (n + i) + 1], axis=1).ravel()
+            r, c, v = _realify_coo(coo.row, coo.col, coo.data)
+            anchor = [0, 1]
+            rot_slots = [2, 3]
         else:
-            r0, c0, v0 = k0.row, k0.col, k0.data
-            rl, cl = bi, bj
-            r_first = nt
-        dim = 2 * k0.shape[0] if self.complex else k0.shape[0]
-        pattern = _Coo(np.concatenate([r0, rl]), np.concatenate([c0, cl]), (dim, dim))
-        m_vals = np.asarray(v0, np.float64)
-        spd = SparseSPD(pattern.matrix(np.concatenate([m_vals, np.zeros(rl.size)])),
-                        block=2 if self.complex else 1)
-        mask = np.zeros(dim)
-        mask[r_first:] = 1.0
-        self._cert = {"pattern": pattern, "m_vals": m_vals, "spd": spd, "mask": mask,
-                      "first": r_first, "dim": dim,
+            perm = np.stack([i, n + 3 * i, n + 3 * i + 1, n + 3 * i + 2], axis=1).ravel()
+            r, c, v = coo.row, coo.col, np.real(coo.data)
+            anchor = [0]
+            rot_slots = [1, 2, 3]
+        dim = 4 * n
+        where_new = np.empty(dim, np.int64)
+        where_new[perm] = np.arange(dim)
+        diag_t = self.m.diagonal()[:n].real
+        c_anchor = float(np.mean(diag_t)) if n else 1.0
+        rows = np.concatenate([where_new[r], 4 * self.gauge + np.asarray(anchor)])
+        cols = np.concatenate([where_new[c], 4 * self.gauge + np.asarray(anchor)])
+        vals = np.concatenate([v, np.full(len(anchor), c_anchor)])
+        kmat = sp.csr_matrix((vals, (rows, cols)), shape=(dim, dim))  # sums, keeps zeros
+        bsr = sp.bsr_matrix(kmat, blocksize=(4, 4))
+        bsr.sort_indices()
+        br = np.repeat(np.arange(n, dtype=np.int64), np.diff(bsr.indptr))
+        keys = br * n + bsr.indices
+        diag_block = np.searchsorted(keys, i * (n + 1))
+        rs = np.asarray(rot_slots)
+        mask = np.zeros((n, 4))
+        mask[:, rs] = 1.0
+        self._cert = {"values": np.asarray(bsr.data, np.float64).ravel().copy(),
+                      "diag": diag_block, "slots": rs, "spd": SparseSPD(bsr),
+                      "mask": mask.ravel(), "dim": dim,
+                      "rot": (4 * i[:, None] + rs[None, :]).ravel(),
                       "scale": float(np.max(np.abs(self.m.diagonal())))}
         return self._cert
 
@@ -659,7 +726,9 @@ class SyncProblem:
                  eigenvector: bool = False) -> Spectrum:
         """The certificate at Y (any rank): the smallest shift ``sigma`` of a ladder (from
         ``_SHIFT_FLOOR`` of M's largest diagonal entry, x100 per rung) with ``S + sigma I``
-        positive definite, then ``lambda_min(S)`` by Lanczos on ``(S + sigma I)^-1``.
+        positive definite, then ``lambda_min(S)`` from ``(S + sigma I)^-1`` (power iterations
+        when sigma certifies, where that eigenvalue dominates by orders of magnitude; else
+        Lanczos, ARPACK).
 
         The ladder stops at the first positive definite rung; rungs above ``gap_tolerance F /
         (d n)`` (which could not certify) only serve to find a shift for the eigenvalue, up to
@@ -673,12 +742,16 @@ class SyncProblem:
         cs = self._spectrum_setup()
         lam = self.lambda_blocks(y)
         objective = float(np.sum(np.real(np.trace(lam, axis1=1, axis2=2))))
+        values = cs["values"].copy()
+        rs = cs["slots"]
+        blocks = values.reshape(-1, 4, 4)
         if self.complex:
-            lam_vals = _realify_coo(np.zeros(n), np.zeros(n), lam.ravel())[2]
+            lr = np.real(lam[:, 0, 0])
+            blocks[cs["diag"], 2, 2] -= lr
+            blocks[cs["diag"], 3, 3] -= lr
         else:
-            lam_vals = lam.ravel()
-        values = cs["pattern"].data(np.concatenate([cs["m_vals"], -lam_vals]))
-        spd, mask, rdim, r0 = cs["spd"], cs["mask"], cs["dim"], cs["first"]
+            blocks[cs["diag"][:, None, None], rs[None, :, None], rs[None, None, :]] -= lam
+        spd, mask, dim, rot = cs["spd"], cs["mask"], cs["dim"], cs["rot"]
         scale = cs["scale"]
         cap = gap_tolerance * abs(objective) / (d * n)
         top = float(np.max(np.linalg.eigvalsh(lam))) if n else 0.0
@@ -696,40 +769,44 @@ class SyncProblem:
             if sigma > max(top, 0.0) + scale * 1e-6:
                 break
             sigma *= 100.0 if sigma < cap else 10.0
+        certified = shift <= cap
         lam_min = float("nan")
         vec: Array | None = None
         if np.isfinite(shift):
-            dim_r = rdim - r0
-
             def apply(v: FloatArray) -> FloatArray:
-                rhs = np.zeros(rdim)
-                rhs[r0:] = np.ravel(v)
-                return np.asarray(spd.solve(rhs)[r0:], np.float64)
+                rhs = np.zeros(dim)
+                rhs[rot] = np.ravel(v)
+                return np.asarray(spd.solve(rhs)[rot], np.float64)
 
-            op = LinearOperator((dim_r, dim_r), matvec=apply, dtype=np.float64)
-            v0 = np.random.default_rng(0).standard_normal(dim_r)
-            try:
-                vals, vecs = eigsh(op, k=1, which="LA", v0=v0, tol=1e-10,
-                                   ncv=min(dim_r, 20), maxiter=2000)
-                theta = float(vals[0])
-                lam_min = 1.0 / theta - shift if theta > 0 else float("nan")
-                v = vecs[:, 0]
-                vec = (v[0::2] + 1j * v[1::2])[:, None] if self.complex else v[:, None]
-            except ArpackNoConvergence:
-                pass
-        certified = shift <= cap
+            x = np.random.default_rng(0).standard_normal(rot.size)
+            x /= np.linalg.norm(x)
+            theta = float("nan")
+            converged = False
+            if certified:  # 1/sigma dominates: a few power iterations, until lambda_min
+                last = np.inf  # moves by less than 1e-3 of the shift
+                for _ in range(8):
+                    z = apply(x)
+                    theta = float(x @ z)
+                    x = z / np.linalg.norm(z)
+                    estimate = 1.0 / theta - shift if theta > 0 else np.inf
+                    converged = bool(abs(estimate - last) <= 1e-3 * shift)
+                    last = estimate
+                    if converged:
+                        break
+            if not converged:
+                op = LinearOperator((rot.size, rot.size), matvec=apply, dtype=np.float64)
+                try:
+                    vals, vecs = eigsh(op, k=1, which="LA", v0=x, tol=1e-10,
+                                       ncv=min(rot.size, 12), maxiter=2000)
+                    theta, x, converged = float(vals[0]), vecs[:, 0], True
+                except ArpackNoConvergence:
+                    pass
+            if converged and theta > 0:
+                lam_min = 1.0 / theta - shift
+                vec = (x[0::2] + 1j * x[1::2])[:, None] if self.complex else x[:, None]
         return Spectrum(objective, shift if certified else float("inf"), lam_min,
                         vec if eigenvector else None,
                         objective - shift * d * n if certified else -np.inf, tries)
-
-
-def _diagonal(pattern: _Coo, values: FloatArray) -> FloatArray:
-    """The diagonal of a CSR matrix given by its pattern and values (every diagonal stored)."""
-    rows = np.repeat(np.arange(pattern.shape[0]), np.diff(pattern.indptr))
-    on = pattern.indices == rows
-    out = np.zeros(pattern.shape[0])
-    out[rows[on]] = values[on]
-    return out
 
 
 # ------------------------------------------------------------------ results

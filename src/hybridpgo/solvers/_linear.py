@@ -396,33 +396,45 @@ class SparseSPD:
     """
 
     def __init__(self, a: sp.spmatrix, block: int = 1) -> None:
-        csr = sp.csr_matrix(a, copy=True)
-        csr.sum_duplicates()
-        csr.sort_indices()
-        dim = int(csr.shape[0])
+        if not sp.issparse(a) or not a.has_canonical_format:
+            raise ValueError("SparseSPD needs a sparse matrix in canonical format (sorted "
+                             "indices, no duplicates)")
+        dim = int(a.shape[0])
         self.dim = dim
-        self.nnz = int(csr.nnz)
-        coo = csr.tocoo()
-        nb = dim // block
-        br = coo.row.astype(np.int64) // block
-        bc = coo.col.astype(np.int64) // block
-        del coo
-        lower = br > bc
-        key = np.unique(bc[lower] * nb + br[lower])  # each block pair once (block^2 fewer)
+        self.nnz = int(a.data.size)
+        if a.format == "bsr":  # the block graph is the matrix's own block structure
+            block = int(a.blocksize[0])
+            nb = dim // block
+            br = np.repeat(np.arange(nb, dtype=np.int64), np.diff(a.indptr))
+            bc = np.asarray(a.indices, np.int64)
+            lower = br > bc
+            rows, cols = br[lower], bc[lower]
+        else:
+            coo = sp.coo_matrix(a)
+            nb = dim // block
+            br = coo.row.astype(np.int64) // block
+            bc = coo.col.astype(np.int64) // block
+            del coo
+            lower = br > bc
+            if block == 1:  # canonical: every pair once already
+                rows, cols = br[lower], bc[lower]
+            else:
+                key = np.unique(bc[lower] * nb + br[lower])  # each block pair once
+                rows, cols = key % nb, key // nb
         del br, bc, lower
-        new_block = _fill_reducing_order(nb, key % nb, key // nb)
-        del key
+        new_block = _fill_reducing_order(nb, rows, cols)
+        del rows, cols
         self._new_pos = (block * new_block[:, None]
                          + np.arange(block, dtype=np.int64)[None, :]).ravel()
         self._old_at = np.empty(dim, np.int64)
         self._old_at[self._new_pos] = np.arange(dim)
         # the permuted lower triangle of a matrix of entry numbers: where each value goes
-        ids = sp.csr_matrix((np.arange(1, self.nnz + 1, dtype=np.float64), csr.indices,
-                             csr.indptr), shape=csr.shape)
+        ids = a.copy()
+        ids.data = np.arange(1, self.nnz + 1, dtype=np.float64).reshape(a.data.shape)
         low = sp.tril(sp.csc_matrix(ids)[self._old_at][:, self._old_at], format="csc")
         low.sort_indices()
         self._source = np.asarray(low.data, np.int64) - 1
-        self._values = np.asarray(csr.data, np.float64)
+        self._values = np.asarray(a.data, np.float64).ravel().copy()
         pattern = _CscPattern(low)
         del low, ids
         self._diag = pattern.diag_index
@@ -437,8 +449,9 @@ class SparseSPD:
                values: FloatArray | None = None) -> None:
         """Factor ``A + diag(shift)`` (``shift``: a scalar or one entry per unknown).
 
-        ``values``: new stored entries of A, in the order of ``scipy.sparse.csr_matrix(A)``'s
-        canonical ``data`` (sorted indices, no duplicates) for the A given at construction.
+        ``values``: new stored entries of A, in the order of ``A.data.ravel()`` of the matrix
+        given at construction (any sparse format, canonical: sorted indices, no duplicates;
+        BSR: its blocks are the unknowns' blocks).
 
         Raises
         ------
@@ -477,7 +490,10 @@ def solve_spd(a: sp.spmatrix, rhs: FloatArray, block: int = 1) -> FloatArray:
     SolverError
         ``A`` is not positive definite, or singular to rounding.
     """
-    spd = SparseSPD(a, block)
+    csr = sp.csr_matrix(a, copy=True)
+    csr.sum_duplicates()
+    csr.sort_indices()
+    spd = SparseSPD(csr, block)
     if spd.dim == 0:
         return np.zeros_like(rhs, dtype=np.float64)
     spd.factor(check=True)
