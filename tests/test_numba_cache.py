@@ -79,3 +79,32 @@ def test_constants_passed_between_kernels_do_not_multiply_specializations() -> N
     assert len(g_kernel.signatures) == 1
     [sig] = g_kernel.signatures
     assert [str(t) for t in sig] == ["float64", "bool", "int64"]
+
+
+CLOSURE_KEYS = """
+import hashlib, json
+from numba.core.serialize import dumps
+from hybridpgo.solvers.hybrid import _batch, _step, _sweep
+
+kernels = {**{f"sweep{k}": v for k, v in _sweep.SWEEPS.items()},
+           **{f"relax{k}": v for k, v in _step.RELAX.items()},
+           "batch_relax": _batch.batch_relax, "batch_relax_exact": _batch.batch_relax_exact}
+out = {}
+for name, disp in kernels.items():
+    cells = disp.py_func.__closure__ or ()
+    out[name] = hashlib.sha256(dumps(tuple(c.cell_contents for c in cells))).hexdigest()
+print(json.dumps(out))
+"""
+
+
+def test_closure_kernels_have_the_same_cache_key_in_every_process() -> None:
+    """Numba keys a closure's cache entry on the pickle of its cells: a cell holding another
+    kernel pickles differently in every process, so the kernel missed the cache and compiled
+    again in every run (the plain sweep: seconds per ``hybridpgo optimize``)."""
+    import json
+
+    env = dict(os.environ, PYTHONPATH=str(SRC))
+    runs = [json.loads(subprocess.run([sys.executable, "-c", CLOSURE_KEYS], env=env,
+                                      check=True, capture_output=True, text=True).stdout)
+            for _ in range(2)]
+    assert runs[0] and runs[0] == runs[1]

@@ -11,9 +11,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal, NamedTuple, get_args
 
-from .._cost import ROBUST_DEFAULT_SCALE as ROBUST_DEFAULT_SCALE
-from .._cost import ROBUST_NAMES as ROBUST_NAMES
-from .._cost import default_robust_scale, robust_kind
+from .._robust import ROBUST_DEFAULT_SCALE as ROBUST_DEFAULT_SCALE
+from .._robust import ROBUST_NAMES as ROBUST_NAMES
+from .._robust import default_robust_scale, robust_kind
 
 if TYPE_CHECKING:
     from ..graph import PoseGraph

@@ -79,6 +79,16 @@ def _flush_exact(prob: Problem, state: State, buf: np.ndarray, nbuf: int, tau: f
     return _count_batch(nu, t0, buf, nbuf, cycles, batch_cycles, counts)
 
 
+#: The :data:`~._step.RELAX` variants the sweeps call, as module globals: the sweep kernels'
+#: closures hold only booleans.  Numba's cache key of a closure includes the pickle of its
+#: cells, and a kernel in a cell pickles differently in every process: the sweep then missed
+#: the cache and compiled again in every run.
+_RELAX = RELAX[False, int(StepKind.WOODBURY)]
+_RELAX_GIVENS = RELAX[False, int(StepKind.GIVENS)]
+_RELAX_GPS = RELAX[True, int(StepKind.WOODBURY)]
+_RELAX_GPS_GIVENS = RELAX[True, int(StepKind.GIVENS)]
+
+
 def _make_sweep(with_gps: bool, with_interpolation: bool, givens: bool) -> Any:
     """The sweep kernel of one variant: GPS batches and interpolated solving are compiled in
     only when the flag says so (a constant of the closure: Numba prunes the dead branch before
@@ -87,7 +97,6 @@ def _make_sweep(with_gps: bool, with_interpolation: bool, givens: bool) -> Any:
     time, and a sweep without ``d_max`` never the interpolated batch).  Its single updates are
     the :data:`~._step.RELAX` variant with the GPS linearization only ``with_gps`` and one
     solve, Givens' when ``givens`` (the ``step_kind`` argument must then agree)."""
-    relax = RELAX[with_gps, int(StepKind.GIVENS if givens else StepKind.WOODBURY)]
 
     def sweep_variant(prob: Problem, state: State, order: np.ndarray, tau: float, mu: float,
                       step_kind: int, gps_batch_size: int, dmax: int, d_max: int,
@@ -132,8 +141,14 @@ def _make_sweep(with_gps: bool, with_interpolation: bool, givens: bool) -> Any:
             t0 = cycle_counter()
             if with_interpolation and apply and 0 < d_max < domain(prob, c)[1]:
                 st = relax_interpolated(prob, state, wk, sub, keep, c, tau, mu, step_kind, d_max)
+            elif with_gps and givens:
+                st = _RELAX_GPS_GIVENS(prob, state, wk, c, tau, mu, step_kind, apply)
+            elif with_gps:
+                st = _RELAX_GPS(prob, state, wk, c, tau, mu, step_kind, apply)
+            elif givens:
+                st = _RELAX_GIVENS(prob, state, wk, c, tau, mu, step_kind, apply)
             else:
-                st = relax(prob, state, wk, c, tau, mu, step_kind, apply)
+                st = _RELAX(prob, state, wk, c, tau, mu, step_kind, apply)
             dc = cycle_counter() - t0
             cycles[c] = dc
             if dc > counts[Count.MAX_CYCLES]:
