@@ -647,3 +647,12 @@ WORKLOADS["converge"] = _converge_run
 from .first_run import run as _first_run  # noqa: E402  (issue 11 item 5: cold first run)
 
 WORKLOADS["first_run"] = _first_run
+
+
+def _linear_backends(ctx: Context) -> Result:  # issue 21 item 4
+    from .linear_backends import run
+
+    return run(ctx)
+
+
+WORKLOADS["linear_backends"] = _linear_backends
