@@ -722,3 +722,14 @@ def test_the_parser_and_version_import_no_solver() -> None:
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                          check=True).stdout.strip().splitlines()[-1]
     assert out == "HEAVY:"
+
+
+def test_optimize_summary_names_the_linear_solver(capsys: pytest.CaptureFixture[str],
+                                                  tiny: Path, tmp_path: Path) -> None:
+    """The summary says which sparse factorization ran (CHOLMOD is an optional extra)."""
+    code, out, _ = run_cli(capsys, "optimize", tiny, "-o", tmp_path / "o.g2o", "--solver",
+                           "exact")
+    s = run_json(capsys, "optimize", tiny, "-o", tmp_path / "p.g2o", "--solver", "exact")
+    backend = s["result"]["linear_solver"]
+    assert code == 0 and backend
+    assert f"linear solver {backend}" in out

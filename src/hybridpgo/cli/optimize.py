@@ -464,7 +464,9 @@ def print_summary(s: dict[str, Any]) -> None:
                   f"{inp['relative_edges']} relative constraints, {inp['gps']} GPS)"),
         ("solver", f"{r['method']}, init {s['init']}"
                    + (f", {r['step']} step" if "step" in r else "")
-                   + (" (chosen by the pipeline)" if s["solver"] == "auto" else "")),
+                   + (" (chosen by the pipeline)" if s["solver"] == "auto" else "")
+                   + (f"; linear solver {r['linear_solver']}" if r.get("linear_solver")
+                      else "")),
         ("iterations", f"{iters}: {r['message']}"),
         ("energy before", fmt_energy(s["energy_before"], nc)),
     ]
