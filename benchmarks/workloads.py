@@ -656,3 +656,12 @@ def _linear_backends(ctx: Context) -> Result:  # issue 21 item 4
 
 
 WORKLOADS["linear_backends"] = _linear_backends
+
+
+def _certificate(ctx: Context) -> Result:  # issue 21 items 1-2
+    from .certificate import run
+
+    return run(ctx)
+
+
+WORKLOADS["certificate"] = _certificate
