@@ -15,11 +15,12 @@ from typing import Any
 import numpy as np
 
 from hybridpgo.graph import PoseGraph
+from hybridpgo.initialization import initial_locals
 from hybridpgo.io import read_graph
 from hybridpgo.solvers.config import GaussNewtonConfig
 from hybridpgo.solvers.gauss_newton import solve_exact
 from hybridpgo.solvers.hybrid import HybridConfig, solve_hybrid
-from hybridpgo.tree import build_tree, global_poses, initial_locals
+from hybridpgo.tree import build_tree, global_poses
 
 from .metrics import Metric, info, markdown_table, quality, timing
 
@@ -649,7 +650,7 @@ from .first_run import run as _first_run  # noqa: E402  (issue 11 item 5: cold f
 WORKLOADS["first_run"] = _first_run
 
 
-def _linear_backends(ctx: Context) -> Result:  # issue 21 item 4
+def _linear_backends(ctx: Context) -> Result:
     from .linear_backends import run
 
     return run(ctx)
@@ -658,10 +659,14 @@ def _linear_backends(ctx: Context) -> Result:  # issue 21 item 4
 WORKLOADS["linear_backends"] = _linear_backends
 
 
-def _certificate(ctx: Context) -> Result:  # issue 21 items 1-2
+def _certificate(ctx: Context) -> Result:
     from .certificate import run
 
     return run(ctx)
 
 
 WORKLOADS["certificate"] = _certificate
+
+from .covariance import run as _covariance_run  # noqa: E402
+
+WORKLOADS["covariance"] = _covariance_run

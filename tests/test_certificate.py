@@ -23,8 +23,8 @@ from hybridpgo.energy import energy
 from hybridpgo.generate import generate_city, generate_grid
 from hybridpgo.graph import PoseGraph
 from hybridpgo.io import bundled_path, read_graph
-from hybridpgo.solvers import _linear
-from hybridpgo.solvers._linear import NotPositiveDefinite, SparseSPD
+from hybridpgo.linalg import NotPositiveDefinite, SparseSPD
+from hybridpgo.linalg import _factor as _linear
 from hybridpgo.solvers.gauss_newton import solve_exact
 
 DATA = pathlib.Path(__file__).parent / "data"
@@ -289,10 +289,10 @@ def _chordal(graph: PoseGraph):
 # --------------------------------------------------------------------------- SparseSPD
 @pytest.mark.parametrize("backend", ["splu", "cholmod"])
 def test_sparse_spd_refuses_an_indefinite_matrix(backend, monkeypatch) -> None:
-    if backend == "cholmod" and not _linear._cholmod_available():
+    if backend == "cholmod" and not _linear.cholmod_available():
         pytest.skip("cvxopt not installed")
     if backend == "splu":
-        monkeypatch.setattr(_linear, "_cholmod_available", lambda: False)
+        monkeypatch.setattr(_linear, "cholmod_available", lambda: False)
     rng = np.random.default_rng(0)
     a = sp.random(40, 40, density=0.1, random_state=1)
     a = sp.csr_matrix(a @ a.T + sp.identity(40))

@@ -248,7 +248,7 @@ class SyncProblem:
         self._a = sp.csr_matrix(self.m[rot][:, rot])
         self._b = sp.csr_matrix(self.m[rot][:, keep])
         self._bh = sp.csr_matrix(self._b.conj().T)
-        from .solvers._linear import SparseSPD
+        from .linalg import SparseSPD
 
         self._d = SparseSPD(sp.csc_matrix(self.m[keep][:, keep].real))
         self._d.factor(check=True)
@@ -432,7 +432,7 @@ class SyncProblem:
         (P, P) blocks) and where each constraint's four blocks go, computed once."""
         if self._newton is not None:
             return self._newton
-        from .solvers._linear import SparseSPD
+        from .linalg import SparseSPD
 
         n, g = self.n, self.gauge
         pp = 3 if self.complex else 6
@@ -609,7 +609,7 @@ class SyncProblem:
         ``_NEWTON_TOLERANCE`` of F, or below F's rounding error when a fresh factorization no
         longer shrinks it 3x.  Returns ``(Y, F, factorizations)``.
         """
-        from .solvers._linear import NotPositiveDefinite
+        from .linalg import NotPositiveDefinite
 
         if self.n < 2:
             return y, self.cost(y), 0
@@ -683,7 +683,7 @@ class SyncProblem:
         ``S = Q - Lambda`` is."""
         if self._cert is not None:
             return self._cert
-        from .solvers._linear import SparseSPD
+        from .linalg import SparseSPD
 
         n, _d = self.n, self.d
         i = np.arange(n)
@@ -736,7 +736,7 @@ class SyncProblem:
         """
         from scipy.sparse.linalg import ArpackNoConvergence, LinearOperator, eigsh
 
-        from .solvers._linear import NotPositiveDefinite
+        from .linalg import NotPositiveDefinite
 
         n, d = self.n, self.d
         cs = self._spectrum_setup()

@@ -8,7 +8,7 @@ the lever for reaching the global optimum).  Two linear least-squares problems:
 2. translations: with those rotations fixed, minimize
    sum_c ||t_b - t_a - R_a t_c||^2_{W_c} (+ GPS terms) over the positions.
 
-Both are sparse and solved with one factorization each (:func:`._linear.solve_spd`: a
+Both are sparse and solved with one factorization each (:func:`hybridpgo.linalg.solve_spd`: a
 fill-reducing ordering of the pose graph, then CHOLMOD; the three rows of the rotations share
 one factorization).  ``kappa_c`` is the mean of the
 rotation block's diagonal of the information; ``W_c`` is ``R_a Omega_tt R_a^T``.
@@ -16,12 +16,15 @@ rotation block's diagonal of the information; ``W_c`` is ``R_a Omega_tt R_a^T``.
 
 from __future__ import annotations
 
+import enum
+
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
 from .errors import GraphError, SolverError
 from .graph import FloatArray, PoseGraph
+from .tree import LINK_EDGE, LINK_GPS, PoseTree, locals_from_globals
 
 ComplexArray = npt.NDArray[np.complex128]
 
@@ -45,7 +48,7 @@ def _solve_blocks(n: int, diag: FloatArray, ea: npt.NDArray[np.int64],
     side.  Only the lower triangle is built, straight in a fill-reducing (AMD, pose graph)
     order, and factored once for the k right-hand sides (CHOLMOD, else SuperLU).
     """
-    from .solvers._linear import _CscPattern, _fill_reducing_order, _make_factorizer
+    from .linalg import CscPattern, fill_reducing_order, make_factorizer
 
     k = rhs.shape[2]
     rhs = rhs.copy()
@@ -66,7 +69,7 @@ def _solve_blocks(n: int, diag: FloatArray, ea: npt.NDArray[np.int64],
     va, vb, off = va[both], vb[both], off[both]
     lo, hi = np.minimum(va, vb), np.maximum(va, vb)
     pairs = np.unique(lo * max(nf, 1) + hi)
-    new = _fill_reducing_order(nf, pairs % max(nf, 1), pairs // max(nf, 1))
+    new = fill_reducing_order(nf, pairs % max(nf, 1), pairs // max(nf, 1))
     del pairs, lo, hi
     pa, pb = new[va], new[vb]
     q3 = np.arange(3)
@@ -92,7 +95,7 @@ def _solve_blocks(n: int, diag: FloatArray, ea: npt.NDArray[np.int64],
     b = np.empty((dim, k))
     b.reshape(nf, 3, k)[new[var[keep]]] = rhs[keep]
     try:
-        x = _make_factorizer(_CscPattern(low), "auto").solve(
+        x = make_factorizer(CscPattern(low), "auto").solve(
             np.asarray(low.data, np.float64), b, check=True)
     except SolverError as exc:
         raise RuntimeError(str(exc)) from exc
@@ -214,3 +217,75 @@ def planar_relaxation_start(graph: PoseGraph, rotations: FloatArray, translation
             "iterations": float(its), "max_angle": float(angle.max()),
             "second_singular_value": float(s[1] / s[0]) if s.size > 1 and s[0] > 0 else 0.0}
     return rot, trans, info
+
+
+# --------------------------------------------------------------------------- tree starts
+class InitKind(enum.Enum):
+    """Where the initial local transforms of the tree parametrization come from."""
+
+    TREE = "tree"
+    """Concatenate the tree edges' measurements down from the root (paper III-A)."""
+    FILE = "file"
+    """The file's vertex estimates, ``T_i = X_parent^-1 X_i``."""
+    CHORDAL = "chordal"
+    """Chordal relaxation of the rotations, then linear translations (robust to rotation noise)."""
+
+
+def initial_locals(
+    graph: PoseGraph, tree: PoseTree, init: InitKind | str = InitKind.TREE
+) -> tuple[FloatArray, FloatArray]:
+    """Initial local transforms ``(rot (T,3,3), trans (T,3))`` of every tree node.
+
+    ``init="tree"`` concatenates tree-edge measurements (a GPS link gives the child its measured
+    position and its rotation from the file, or the identity when the file has no vertices);
+    ``init="file"`` uses the file's vertex estimates; ``init="chordal"`` the chordal relaxation
+    (:func:`chordal_initialization`).  The root keeps its file pose (the gauge);
+    the earth is the identity.
+    """
+    init = InitKind(init)
+    if init is InitKind.FILE and not graph.has_estimates:
+        raise GraphError(
+            "init='file' needs vertex estimates, but the file has none "
+            "(iSAM files list only constraints): use init='tree'"
+        )
+    t_nodes = tree.num_tree_nodes
+    rot = np.zeros((t_nodes, 3, 3))
+    trans = np.zeros((t_nodes, 3))
+    rot[:] = np.eye(3)
+    n = graph.num_nodes
+    if init in (InitKind.FILE, InitKind.CHORDAL):
+        if init is InitKind.CHORDAL:
+            grot0, gtr0 = chordal_initialization(graph, None if tree.has_earth else tree.root)
+        else:
+            grot0, gtr0 = graph.rotations, graph.translations
+        grot = (
+            np.concatenate([grot0, np.eye(3)[None]])
+            if tree.has_earth
+            else np.ascontiguousarray(grot0)
+        )
+        gtr = (
+            np.concatenate([gtr0, np.zeros((1, 3))])
+            if tree.has_earth
+            else np.ascontiguousarray(gtr0)
+        )
+        locals_from_globals(tree.parent, grot, gtr, rot, trans)
+        return rot, trans
+    kind = tree.link_kind
+    idx = tree.link_index
+    e = kind == LINK_EDGE
+    ei = idx[e]
+    fwd = tree.link_forward[e]
+    zr = graph.edge_rotations[ei]
+    zt = graph.edge_translations[ei]
+    # forward link (parent, child): T = Z; reversed (child, parent): T = Z^-1
+    rot[e] = np.where(fwd[:, None, None], zr, np.swapaxes(zr, 1, 2))
+    inv_t = -np.einsum("kji,kj->ki", zr, zt)
+    trans[e] = np.where(fwd[:, None], zt, inv_t)
+    gl = kind == LINK_GPS
+    trans[gl] = graph.gps_positions[idx[gl]]
+    if graph.has_estimates:
+        rot[gl] = graph.rotations[np.nonzero(gl)[0]]
+    if not tree.has_earth and tree.root < n:
+        rot[tree.root] = graph.rotations[tree.root]
+        trans[tree.root] = graph.translations[tree.root]
+    return rot, trans
