@@ -239,11 +239,13 @@ class SyncProblem:
         keep = np.flatnonzero(np.arange(n) != self.gauge)
         self._t_keep = keep
         self._edges = (a, b)
-        self._weights = (2.0 * kappa if self.complex else kappa, tau)
+        self._weights = (np.ascontiguousarray(2.0 * kappa if self.complex else kappa, np.float64),
+                         np.ascontiguousarray(tau, np.float64))
         if self.complex:
             self._measured: tuple[Array, Array] = (rz, tz)
         else:
-            self._measured = (np.asarray(graph.edge_rotations), np.asarray(graph.edge_translations))
+            self._measured = (np.ascontiguousarray(graph.edge_rotations, np.float64),
+                              np.ascontiguousarray(graph.edge_translations, np.float64))
         rot = np.arange(n, dim)
         self._a = sp.csr_matrix(self.m[rot][:, rot])
         self._b = sp.csr_matrix(self.m[rot][:, keep])
@@ -427,165 +429,91 @@ class SyncProblem:
         return np.ascontiguousarray((uu @ vh).reshape(3 * self.n, 3))
 
     # ------------------------------------------------------------------ Newton on F
-    def _newton_setup(self) -> dict[str, Any]:
-        """The Newton system's block pattern (the pose graph without the gauge pose, BSR with
-        (P, P) blocks) and where each constraint's four blocks go, computed once."""
-        if self._newton is not None:
-            return self._newton
-        from .linalg import SparseSPD
-
-        n, g = self.n, self.gauge
-        pp = 3 if self.complex else 6
+    def _block_map(self, free: Array) -> dict[str, Any]:
+        """The block pattern of F's Hessian over the poses with ``free[i] >= 0`` (their new
+        numbers): ``where`` (4, M) gives each constraint's (a, a), (a, b), (b, a), (b, b) block
+        (-1: a held pose), ``indices``/``indptr`` the BSR structure, ``diag`` every pose's
+        diagonal block."""
         a, b = self._edges
-        free = np.arange(n) - (np.arange(n) > g)
-        free[g] = -1
         fa, fb = free[a], free[b]
-        nf = n - 1
+        nf = int(np.count_nonzero(free >= 0))
         pairs = np.stack([fa * nf + fa, fa * nf + fb, fb * nf + fa, fb * nf + fb])  # (4, m)
         ok = np.stack([fa >= 0, (fa >= 0) & (fb >= 0), (fa >= 0) & (fb >= 0), fb >= 0])
         keys = np.unique(pairs[ok])
         where = np.full(pairs.shape, -1, np.int64)
         where[ok] = np.searchsorted(keys, pairs[ok])
         indptr = np.zeros(nf + 1, np.int64)
-        np.cumsum(np.bincount(keys // nf, minlength=nf), out=indptr[1:])
+        np.cumsum(np.bincount(keys // max(nf, 1), minlength=nf), out=indptr[1:])
+        return {"where": where, "nblocks": keys.size, "indices": keys % max(nf, 1),
+                "indptr": indptr, "nf": nf,
+                "diag": np.searchsorted(keys, np.arange(nf) * (nf + 1))}
+
+    def _newton_setup(self) -> dict[str, Any]:
+        """The Newton system's block pattern (the pose graph without the gauge pose, BSR with
+        (P, P) blocks) and its factorization's analysis, computed once."""
+        if self._newton is not None:
+            return self._newton
+        from .linalg import SparseSPD
+
+        n, g = self.n, self.gauge
+        pp = 3 if self.complex else 6
+        free = np.arange(n) - (np.arange(n) > g)
+        free[g] = -1
+        bm = self._block_map(free)
+        nf = bm["nf"]
         dim = pp * nf
-        pattern = sp.bsr_matrix((np.zeros((keys.size, pp, pp)), keys % nf, indptr),
-                                shape=(dim, dim))
-        diag = np.searchsorted(keys, np.arange(nf) * (nf + 1))
-        self._newton = {"where": where, "nblocks": keys.size, "diag": diag, "pp": pp,
-                        "spd": SparseSPD(pattern) if nf else None,
+        pattern = sp.bsr_matrix((np.zeros((bm["nblocks"], pp, pp)), bm["indices"],
+                                 bm["indptr"]), shape=(dim, dim))
+        self._newton = {**bm, "pp": pp, "spd": SparseSPD(pattern) if nf else None,
                         "keep": np.flatnonzero(np.repeat(free >= 0, pp))}
         return self._newton
 
-    def _edge_terms(self, y: Array, hessian: bool = True) -> dict[str, Any]:
-        """F's residuals and their derivatives per constraint at rotations Y (rank d) and their
-        optimal positions, over the parameters ``[position shift (world frame), rotation]`` of
-        pose a then pose b (``z exp(i theta)``; ``R Exp(omega)``).
+    def _edge_terms(self, y: Array, hessian: bool = True,
+                    blocks: dict[str, Any] | None = None) -> dict[str, Any]:
+        """F at rotations Y (rank d) and their optimal positions, with its gradient over the
+        parameters ``[position shift (world frame), rotation]`` of every pose (``z exp(i
+        theta)``; ``R Exp(omega)``) and, with ``hessian``, its Newton Hessian (the Gauss-Newton
+        part plus the residuals' curvature along the rotation parameters) on the block pattern
+        ``blocks`` (:meth:`_block_map`; default: the Newton system's, without the gauge pose).
 
-        Returns ``f`` (F), the half-gradient per constraint ``ge`` (m, 2P), and with
-        ``hessian`` the half-Hessian ``he`` (m, 2P, 2P): ``F(p) ~ F + 2 ge.p + p.he.p``
-        (Gauss-Newton part plus the residuals' curvature along the rotation parameters);
-        ``noise``: a bound of F's rounding error."""
+        Returns ``f`` (F), ``grad`` (n, P), ``blocks`` (nb, P, P) with ``hessian``, and
+        ``noise``: a bound of F's rounding error (:mod:`hybridpgo._sync_kernels`)."""
+        from ._sync_kernels import sync_terms_2d, sync_terms_3d
+
         a, b = self._edges
         t = self.positions(y)
         w_r, w_t = self._weights
         rm, tm = self._measured
-        m = a.size
-        out: dict[str, Any] = {}
+        pp = 3 if self.complex else 6
+        bm = blocks if blocks is not None else self._newton_setup()
+        grad = np.zeros((self.n, pp))
+        out = np.zeros((bm["nblocks"] if hessian else 0, pp, pp))
         if self.complex:
-            z, tt = y[:, 0], t[:, 0]
-            za, zb = z[a], z[b]
-            r_r = zb - za * rm
-            r_t = tt[b] - tt[a] - za * tm
-            # complex derivatives over [x_a, y_a, theta_a, x_b, y_b, theta_b], <u, v> = Re(u* v)
-            jr = np.zeros((m, 6), np.complex128)
-            jr[:, 2], jr[:, 5] = -1j * za * rm, 1j * zb
-            jt = np.zeros((m, 6), np.complex128)
-            jt[:, 0], jt[:, 1], jt[:, 2] = -1.0, -1j, -1j * za * tm
-            jt[:, 3], jt[:, 4] = 1.0, 1j
-            out["f"] = float(np.sum(w_r * np.abs(r_r) ** 2) + np.sum(w_t * np.abs(r_t) ** 2))
-            out["ge"] = (w_r[:, None] * np.real(np.conj(jr) * r_r[:, None])
-                         + w_t[:, None] * np.real(np.conj(jt) * r_t[:, None]))
-            if hessian:
-                he = (w_r[:, None, None] * np.real(np.conj(jr)[:, :, None] * jr[:, None, :])
-                      + w_t[:, None, None] * np.real(np.conj(jt)[:, :, None] * jt[:, None, :]))
-                # second derivatives along theta: z_b -> -z_b, -z_a rm -> z_a rm, -z_a tm
-                he[:, 2, 2] += (w_r * np.real(np.conj(r_r) * za * rm)
-                                + w_t * np.real(np.conj(r_t) * za * tm))
-                he[:, 5, 5] -= w_r * np.real(np.conj(r_r) * zb)
-                out["he"] = he
-            size = np.abs(tt[a]) + np.abs(tt[b]) + np.abs(tm)
-            rt_norm = np.abs(r_t)
+            f, rounding = sync_terms_2d(np.ascontiguousarray(y[:, 0]),
+                                        np.ascontiguousarray(t[:, 0]), a, b, w_r, w_t, rm, tm,
+                                        bm["where"], hessian, grad, out)
         else:
-            rot = np.swapaxes(y.reshape(self.n, 3, 3), 1, 2)
-            ra, rb = rot[a], rot[b]
-            rat = np.swapaxes(ra, 1, 2)
-            r_r = rb - ra @ rm
-            r_t = t[b] - t[a] - np.einsum("eij,ej->ei", ra, tm)
-            wr3, wt3 = w_r[:, None, None], w_t[:, None, None]
-            # <r_R, R_b hat(e_k)> = <R_b^T r_R, hat(e_k)>; pose a's: minus <ma, hat(e_k)>
-            mb = wr3 * (np.swapaxes(rb, 1, 2) @ r_r)
-            ma = wr3 * (rat @ r_r @ np.swapaxes(rm, 1, 2)) + wt3 * (
-                (rat @ r_t[:, :, None]) * tm[:, None, :])
-            ge = np.zeros((m, 12))
-            ge[:, 0:3] = -w_t[:, None] * r_t
-            ge[:, 3:6] = -_pair(ma)
-            ge[:, 6:9] = w_t[:, None] * r_t
-            ge[:, 9:12] = _pair(mb)
-            out["f"] = float(np.sum(w_r * np.sum(r_r * r_r, axis=(1, 2)))
-                             + np.sum(w_t * np.sum(r_t * r_t, axis=1)))
-            out["ge"] = ge
-            if hessian:
-                eye = np.eye(3)
-                he = np.zeros((m, 12, 12))
-                jta = ra @ _hat(tm)  # d r_t / d omega_a
-                he[:, 0:3, 0:3] = he[:, 6:9, 6:9] = wt3 * eye
-                he[:, 0:3, 6:9] = he[:, 6:9, 0:3] = -wt3 * eye
-                he[:, 0:3, 3:6] = -wt3 * jta
-                he[:, 6:9, 3:6] = wt3 * jta
-                he[:, 3:6, 0:3] = -wt3 * np.swapaxes(jta, 1, 2)
-                he[:, 3:6, 6:9] = wt3 * np.swapaxes(jta, 1, 2)
-                # <hat(e_k) X, hat(e_l) X> = 2 delta_kl for a rotation X
-                he[:, 3:6, 3:6] = 2.0 * wr3 * eye + wt3 * (np.swapaxes(jta, 1, 2) @ jta)
-                he[:, 9:12, 9:12] = 2.0 * wr3 * eye
-                # <-R_a hat(e_k) Rm, R_b hat(e_l)> = -<hat(e_k), P hat(e_l) Rm^T>, P = Ra^T Rb
-                pab = rat @ rb
-                cross = np.stack([_pair(pab @ _GEN[k] @ np.swapaxes(rm, 1, 2))
-                                  for k in range(3)], axis=2)  # [e, k, l]
-                he[:, 3:6, 9:12] = -wr3 * cross
-                he[:, 9:12, 3:6] = -wr3 * np.swapaxes(cross, 1, 2)
-                # curvature: <M, (hat(e_k) hat(e_l) + hat(e_l) hat(e_k)) / 2> = sym(M) - tr(M) I
-                he[:, 3:6, 3:6] -= _sym_minus_trace(ma)
-                he[:, 9:12, 9:12] += _sym_minus_trace(mb)
-                out["he"] = he
-            size = (np.linalg.norm(t[a], axis=1) + np.linalg.norm(t[b], axis=1)
-                    + np.linalg.norm(tm, axis=1))
-            rt_norm = np.linalg.norm(r_t, axis=1)
-        # rounding: each residual is computed to ~eps of the numbers it subtracts
-        out["noise"] = 1e3 * float(np.finfo(np.float64).eps) * (
-            out["f"] + float(np.sum(w_t * rt_norm * size)))
-        return out
-
-    def _gradient(self, terms: dict[str, Any]) -> FloatArray:
-        """The gradient of F per pose (n, P) from :meth:`_edge_terms`."""
-        a, b = self._edges
-        pp = terms["ge"].shape[1] // 2
-        g = np.zeros((self.n, pp))
-        np.add.at(g, a, terms["ge"][:, :pp])
-        np.add.at(g, b, terms["ge"][:, pp:])
-        return 2.0 * g
-
-    def _hessian_blocks(self, terms: dict[str, Any]) -> FloatArray:
-        """The Newton Hessian of F on the pattern of :meth:`_newton_setup` (nb, P, P)."""
-        nw = self._newton_setup()
-        pp = nw["pp"]
-        he = terms["he"]
-        parts = (he[:, :pp, :pp], he[:, :pp, pp:], he[:, pp:, :pp], he[:, pp:, pp:])
-        where = nw["where"]
-        size = nw["nblocks"] * pp * pp
-        out = np.zeros(size)
-        inner = np.arange(pp * pp)
-        for q in range(4):
-            ok = where[q] >= 0
-            idx = (where[q][ok][:, None] * (pp * pp) + inner[None, :]).ravel()
-            out += np.bincount(idx, weights=parts[q][ok].reshape(-1), minlength=size)
-        return 2.0 * out.reshape(nw["nblocks"], pp, pp)
+            rot = np.ascontiguousarray(np.swapaxes(y.reshape(self.n, 3, 3), 1, 2))
+            f, rounding = sync_terms_3d(rot, np.ascontiguousarray(t), a, b, w_r, w_t, rm, tm,
+                                        bm["where"], hessian, grad, out)
+        terms: dict[str, Any] = {
+            "f": f, "grad": grad,
+            # rounding: each residual is computed to ~eps of the numbers it subtracts
+            "noise": 1e3 * float(np.finfo(np.float64).eps) * (f + rounding)}
+        if hessian:
+            terms["blocks"] = out
+        return terms
 
     def newton_system(self, y: Array) -> tuple[sp.csr_matrix, FloatArray, float]:
         """``(H, g, F)``: F's Newton system at rotations Y (rank d) and their optimal
         positions over every pose's parameters (:meth:`_edge_terms`; the gauge pose's too):
         ``F(p) ~ F + g.p + p.H.p / 2``, H (P n, P n) sparse, g (P n,)."""
-        terms = self._edge_terms(y)
-        a, b = self._edges
-        pp = terms["ge"].shape[1] // 2
-        he = terms["he"]
-        idx = np.concatenate([pp * a[:, None] + np.arange(pp), pp * b[:, None] + np.arange(pp)],
-                             axis=1)  # (m, 2P)
-        rows = np.broadcast_to(idx[:, :, None], he.shape).ravel()
-        cols = np.broadcast_to(idx[:, None, :], he.shape).ravel()
-        dim = pp * self.n
-        h = sp.csr_matrix((2.0 * he.ravel(), (rows, cols)), shape=(dim, dim))
-        return h, self._gradient(terms).ravel(), terms["f"]
+        bm = self._block_map(np.arange(self.n))
+        terms = self._edge_terms(y, blocks=bm)
+        pp = terms["grad"].shape[1]
+        h = sp.bsr_matrix((terms["blocks"], bm["indices"], bm["indptr"]),
+                          shape=(pp * self.n, pp * self.n))
+        return sp.csr_matrix(h), terms["grad"].ravel(), terms["f"]
 
     def _step(self, y: Array, delta: FloatArray) -> Array:
         """Rotations moved by the rotation parameters of ``delta`` (n, P)."""
@@ -603,7 +531,8 @@ class SyncProblem:
 
         A factorization of the Hessian is reused while the steps it gives lower F and their
         predicted decrease falls at least 3x per step (a chord method: each such step costs a
-        gradient and a solve); else it is refactored at the current point, and damped
+        gradient and a solve); else it is refactored at the current point (after the step when
+        it lowered F), and damped
         (``H + mu diag(H)``) while it is not positive definite or its step raises F by more
         than F's rounding error.  Stops after a step whose predicted decrease is below
         ``_NEWTON_TOLERANCE`` of F, or below F's rounding error when a fresh factorization no
@@ -618,7 +547,7 @@ class SyncProblem:
         mu = 0.0
         factorizations = 0
         terms = self._edge_terms(y)
-        g, f = self._gradient(terms), terms["f"]
+        g, f = terms["grad"], terms["f"]
         fresh = False
         stale = True
         previous = np.inf
@@ -626,9 +555,9 @@ class SyncProblem:
             if stale:
                 if factorizations >= max_iterations or mu >= 1e12:
                     break
-                if "he" not in terms:
+                if "blocks" not in terms:
                     terms = self._edge_terms(y)
-                values = self._hessian_blocks(terms)
+                values = terms["blocks"]
                 diag = np.diagonal(values[nw["diag"]], axis1=1, axis2=2).ravel()
                 diag = np.maximum(diag, 1e-12 * max(float(np.max(np.abs(diag))), 1.0))
                 factorizations += 1
@@ -657,7 +586,7 @@ class SyncProblem:
             f_new = new_terms["f"]
             if small or (f_new <= f + noise and (fresh or predicted <= previous / 3.0)):
                 y, terms = y_new, new_terms
-                g, f = self._gradient(terms), f_new
+                g, f = terms["grad"], f_new
                 if small:
                     break
                 previous = predicted
@@ -665,6 +594,11 @@ class SyncProblem:
                     mu = 0.1 * mu if mu > 1e-8 else 0.0
                     stale = True  # less damping: refactor
                 fresh = False
+            elif not fresh and f_new < f:  # a chord step that lowers F, slowly: keep it and
+                y, terms = y_new, new_terms  # refactor there
+                g, f = terms["grad"], f_new
+                previous = predicted
+                stale = True
             else:
                 if fresh:
                     mu = max(1e-8, 10.0 * mu)

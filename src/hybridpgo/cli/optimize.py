@@ -442,6 +442,8 @@ def print_summary(s: dict[str, Any]) -> None:
     rows += [
         ("energy after", fmt_energy(s["energy_after"], nc)),
     ]
+    if isinstance(r.get("certificate"), dict):
+        rows.append(("certificate", str(r["certificate"]["summary"])))
     if "plain_energy" in r:
         rows.append(("plain energy", fmt_energy(r["plain_energy"], nc) + " after (least "
                                      "squares, no kernel)"))
