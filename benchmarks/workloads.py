@@ -633,10 +633,6 @@ from .interp import run as _interp_run  # noqa: E402  (issue 7: interpolated upd
 
 WORKLOADS["interp"] = _interp_run
 
-from .sag import run as _sag_run  # noqa: E402  (issue 11 item 3)
-
-WORKLOADS["sag"] = _sag_run
-
 WORKLOADS["scale"] = _scale
 
 WORKLOADS["auto"] = _auto  # issue 11 items 1-2: the default pipeline and local minima
