@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from graphs import planar_rotations
 
 from hybridpgo import read_graph
 from hybridpgo.certificate import SyncProblem
@@ -26,14 +27,6 @@ SAME = 1e-9
 
 def _grid2d() -> PoseGraph:
     return generate_grid("m3500", seed=0, num_poses=120, rot_sigma_rad=0.05).graph
-
-
-def _planar(yaw: np.ndarray) -> np.ndarray:
-    rot = np.zeros((yaw.size, 3, 3))
-    rot[:, 0, 0] = rot[:, 1, 1] = np.cos(yaw)
-    rot[:, 1, 0], rot[:, 0, 1] = np.sin(yaw), -np.sin(yaw)
-    rot[:, 2, 2] = 1.0
-    return rot
 
 
 def _dense_lambda_min(graph: PoseGraph, rotations: np.ndarray) -> tuple[float, float]:
@@ -81,7 +74,7 @@ def _trapped(poses: int, rot_sigma: float) -> tuple[PoseGraph, float, np.ndarray
     made = generate_grid("m3500", seed=0, num_poses=poses, rot_sigma_rad=rot_sigma)
     graph = made.graph
     rot = made.truth_rotations.copy()
-    rot[1:] = _planar(np.random.default_rng(5).uniform(-np.pi, np.pi, graph.num_nodes))[1:]
+    rot[1:] = planar_rotations(np.random.default_rng(5).uniform(-np.pi, np.pi, graph.num_nodes))[1:]
     local = solve_exact(graph, rot, made.truth_translations)
     best = solve_exact(graph, made.truth_rotations, made.truth_translations)
     assert local.final_energy > 1.5 * best.final_energy  # a local minimum indeed

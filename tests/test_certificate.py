@@ -9,6 +9,7 @@ import pathlib
 import numpy as np
 import pytest
 import scipy.sparse as sp
+from graphs import planar_rotations
 from naive import dense_quadratic_form, schur_certificate, sesync_objective
 from tolerances import CENTRAL_DIFF, FLOAT64_IDENTITY
 
@@ -38,18 +39,10 @@ def _tiny3d() -> PoseGraph:
     return read_graph(DATA / "tinyGrid3D.g2o")
 
 
-def _planar(yaw: np.ndarray) -> np.ndarray:
-    rot = np.zeros((yaw.size, 3, 3))
-    rot[:, 0, 0] = rot[:, 1, 1] = np.cos(yaw)
-    rot[:, 1, 0], rot[:, 0, 1] = np.sin(yaw), -np.sin(yaw)
-    rot[:, 2, 2] = 1.0
-    return rot
-
-
 def _random_rotations(graph: PoseGraph, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     if graph.is_2d:
-        return _planar(rng.uniform(-np.pi, np.pi, graph.num_nodes))
+        return planar_rotations(rng.uniform(-np.pi, np.pi, graph.num_nodes))
     from scipy.spatial.transform import Rotation
 
     return np.asarray(Rotation.random(graph.num_nodes, random_state=seed).as_matrix())
@@ -224,7 +217,7 @@ def test_a_local_minimum_is_not_certified() -> None:
     graph = made.graph
     rng = np.random.default_rng(5)
     rot = made.truth_rotations.copy()
-    rot[1:] = _planar(rng.uniform(-np.pi, np.pi, graph.num_nodes))[1:]
+    rot[1:] = planar_rotations(rng.uniform(-np.pi, np.pi, graph.num_nodes))[1:]
     local = solve_exact(graph, rot, made.truth_translations)
     best = solve_exact(graph, made.truth_rotations, made.truth_translations)
     assert local.final_energy > 1.5 * best.final_energy  # a local minimum of E indeed
