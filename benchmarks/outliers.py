@@ -1,4 +1,4 @@
-"""Robust kernels against false loop closures (issue 9, item 3).
+"""Robust kernels against false loop closures.
 
 M3500 (``M3500.g2o`` and the bundled ``M3500_isam.txt``, ground truth
 ``M3500_groundtruth_isam.txt``) and a generated city, each with 0, 10, 100 and 1000 random false
@@ -38,8 +38,8 @@ from hybridpgo.solvers.gauss_newton import solve_exact
 from hybridpgo.solvers.hybrid import HybridConfig, solve_hybrid
 from hybridpgo.tree import build_tree, global_poses
 
+from .context import Context, Result, start
 from .metrics import Metric, info, markdown_table, quality, timing
-from .workloads import Context, Result, start
 
 #: False loop closures added to each graph (nested sets).
 COUNTS = (0, 10, 100, 1000)

@@ -1,4 +1,4 @@
-"""Issue 12: update time and cold compile time of two source trees, interleaved in one run.
+"""Update time and cold compile time of two source trees, interleaved in one run.
 
 ``python -m benchmarks.refactor_compare BEFORE_SRC AFTER_SRC [--repeats 3]`` runs each measurement
 in a fresh subprocess per tree (``PYTHONPATH`` = that tree's ``src``), alternating trees, and prints
@@ -26,7 +26,10 @@ try:
     from hybridpgo.solvers.hybrid.solver import ensure_compiled as hyb
 except ImportError:
     from hybridpgo.solvers.hybrid import _ensure_compiled as hyb
-from hybridpgo.solvers.gauss_newton import ensure_compiled as ex
+try:
+    from hybridpgo.solvers.gauss_newton import ensure_compiled as ex
+except ImportError:
+    from hybridpgo.solvers.gauss_newton import _ensure_compiled as ex
 hyb(); ex()
 compile_s = time.perf_counter() - t0
 from hybridpgo.solvers import optimize

@@ -142,3 +142,51 @@ def test_missing_dask_names_the_extra(monkeypatch: pytest.MonkeyPatch,
     assert code == 2
     assert r"pip install hybridpgo[dask]" in capsys.readouterr().err
     assert os.listdir(tmp_path) == []
+
+
+def test_batch_never_overwrites_an_input(capsys: pytest.CaptureFixture[str], tiny: Path,
+                                         tmp_path: Path) -> None:
+    """Inputs and outputs are compared by identity (device and inode), not by path text."""
+    d = tmp_path / "D"
+    d.mkdir()
+    x = d / "x.g2o"
+    x.write_bytes(tiny.read_bytes())
+    (tmp_path / "L").symlink_to(d)  # the output directory through a link
+    (tmp_path / "F").mkdir()
+    (tmp_path / "F" / "x.g2o").symlink_to(x)  # the input through a link
+    e = tmp_path / "E"
+    e.mkdir()
+    table = e / "summary.csv"  # an input where the summary goes
+    table.write_bytes(tiny.read_bytes())
+    saved = x.read_bytes()
+    for argv in ([str(tmp_path / "L" / "x.g2o"), "-o", str(d)],
+                 [str(x), "-o", str(tmp_path / "L")],
+                 [str(tmp_path / "F" / "x.g2o"), "-o", str(d)],
+                 [str(table), "-o", str(e)]):
+        code = main(["batch", *argv, "-q"])
+        err = capsys.readouterr().err
+        assert code == 2, err
+        assert "would overwrite this input" in err and "Traceback" not in err
+    assert x.read_bytes() == saved and table.read_bytes() == saved
+    assert sorted(p.name for p in d.iterdir()) == ["x.g2o"]
+
+
+def test_an_interrupted_batch_says_what_it_kept(capsys: pytest.CaptureFixture[str], tiny: Path,
+                                                tmp_path: Path,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    import hybridpgo.cli.batch as batch
+
+    def interrupted(jobs, *, finished, **kwargs):  # type: ignore[no-untyped-def]
+        finished.append(batch.run_job(jobs[0]))  # one job done, then Ctrl-C
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(batch, "run_on_dask", interrupted)
+    out = tmp_path / "out"
+    code = main(["batch", str(tiny), "-o", str(out), "--grid", "sweeps=1,2", "-q"])
+    err = capsys.readouterr().err
+    assert code == 130, err
+    first = out / "tinyGrid3D__sweeps-1.g2o"
+    assert first.exists()
+    assert (f"batch interrupted after 1 of 2 job(s) finished; their 1 output(s) are kept: "
+            f"{first}; the summary was not written") in err
+    assert not (out / "summary.csv").exists()

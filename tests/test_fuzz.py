@@ -1,4 +1,4 @@
-"""Bounded fuzzing of the readers and the convert round trip (issue 9 item 6).
+"""Bounded fuzzing of the readers and the convert round trip.
 
 The long run is ``python -m benchmarks.fuzz N`` (``benchmarks/fuzz.py``, whose checker this file
 reuses); here hypothesis drives a few hundred inputs in a few seconds: mutated valid files, and
@@ -88,3 +88,79 @@ _LINE = st.builds(lambda tag, toks, sep: sep.join([tag, *toks]),
        policy=POLICIES, fmt=FORMATS)
 def test_assembled_lines(lines: list[str], policy: str | None, fmt: str | None) -> None:
     assert check_input("\n".join(lines) + "\n", policy, fmt=fmt) == []
+
+
+# --------------------------------------------------------------------------- grammar-aware mode
+def test_grammar_inputs_use_the_tags_of_their_format() -> None:
+    from benchmarks.fuzz import LAYOUTS, grammar_input
+
+    extra = {"FIX", "PARAMS_SE3OFFSET", "EDGE_SE3_XYZ_PRIOR", "EQUIV"}
+    other_tags = set(TAGS)
+    seen = set()
+    for k in range(300):
+        layout, text = grammar_input(np.random.default_rng([7, k]))
+        seen.add(layout.name)
+        allowed = {layout.vertex, *layout.edges, *extra, *other_tags}
+        for line in text.lstrip("\ufeff").replace("\r\n", "\n").replace("\r", "\n").split("\n"):
+            head = line.split()
+            if not head or head[0].startswith("#"):
+                continue
+            if layout.name == "tum":
+                continue
+            assert head[0] in allowed, (layout.name, line[:80])
+    assert seen == {lay.name for lay in LAYOUTS}
+
+
+def test_grammar_inputs_through_the_command_line(tmp_path: Path) -> None:
+    """A few grammar inputs through the readers and every command: no failure."""
+    from benchmarks.fuzz import grammar_one
+
+    for k in range(8):
+        res = grammar_one(3, k, tmp_path, plot_every=0)
+        assert res["failures"] == [], res
+
+
+def test_the_command_line_checker_can_fail(monkeypatch: pytest.MonkeyPatch,
+                                           tmp_path: Path) -> None:
+    """A traceback, a NumPy warning, a temporary file left behind, a changed input and an
+    output written by a failing command are each reported."""
+    import warnings
+
+    import hybridpgo.cli.info as info
+    from benchmarks.fuzz import run_cli_check
+
+    graph = tmp_path / "g.g2o"
+    graph.write_text(CORPUS[0][1])
+    out = tmp_path / "work"
+    out.mkdir()
+
+    def bug(args: object) -> int:
+        raise KeyError("simulated bug")
+
+    def warns(args: object) -> int:
+        warnings.warn("overflow encountered in multiply", RuntimeWarning, stacklevel=1)
+        return 0
+
+    def leaves(args: object) -> int:
+        (out / ".g.g2o.12345678.tmp").write_text("x")
+        return 0
+
+    def changes(args: object) -> int:
+        graph.write_text(CORPUS[0][1] + "\n")
+        return 0
+
+    def writes_and_fails(args: object) -> int:
+        (out / "r.csv").write_text("x")
+        return 2
+
+    expected = {bug: "info: traceback KeyError", warns: "info: RuntimeWarning overflow",
+                leaves: "info: temporary file left", changes: "info: input changed",
+                writes_and_fails: "info: output written after an error"}
+    for fake, kind in expected.items():
+        monkeypatch.setattr(info, "run", fake)
+        _, failures, _ = run_cli_check(["info", str(graph)], out, (graph,))
+        graph.write_text(CORPUS[0][1])
+        (out / "r.csv").unlink(missing_ok=True)
+        assert [k for k, _ in failures] and all(k.startswith(kind) for k, _ in failures), \
+            failures
+    assert list(out.iterdir()) == []  # the checker removes what it found

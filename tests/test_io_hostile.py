@@ -1,4 +1,4 @@
-"""Hostile input for the readers and writers (issue 9 items 4-5, issue 10 item 4).
+"""Hostile input for the readers and writers.
 
 Each test here reproduced a defect before the fix: a traceback or a wrong result on finite
 input, a misreported line, an unbounded error message, a lenient number parser.
@@ -180,6 +180,37 @@ def test_fix_information_nearest_clips_eigenvalues(tmp_path: Path) -> None:
     # SPD matrices are untouched (bit for bit)
     np.testing.assert_array_equal(planar[4], np.diag([2.0, 2.0, 2.0]))
     assert np.linalg.eigvalsh(g.edge_information).min() > 0
+
+
+def test_nearest_spd_of_subnormal_entries_is_positive_definite() -> None:
+    """The floor 1e-9 x 1e-320 underflowed to 0: the projection was singular, and the lifted
+    6x6 was then projected (and warned about) a second time and still refused."""
+    from hybridpgo.io._lines import NEAREST_SPD_MIN, nearest_spd
+
+    tiny = np.array([[[1e-320, 1e-320, 0.0], [1e-320, 1e-320, 0.0], [0.0, 0.0, 1e-320]],
+                     [[-1e-320, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 5e-324]]])
+    p = nearest_spd(tiny)
+    assert (np.linalg.eigvalsh(p)[:, 0] >= NEAREST_SPD_MIN * (1.0 - FLOAT64_IDENTITY)).all()
+    np.testing.assert_array_equal(p, np.swapaxes(p, 1, 2))
+
+
+def test_positive_definite_needs_a_cholesky_factor() -> None:
+    """Eigenvalues at the rounding level of the largest come out with either sign: "smallest
+    eigenvalue > 0" alone let through matrices no Cholesky factorization accepts."""
+    from hybridpgo.errors import GraphError
+    from hybridpgo.graph import check_information, positive_definite
+
+    d = 0.956784019582386
+    r = np.array([[d, 0.0, 0.0], [0.0, d, 111111111111111111111111111111.0], [0.0, 0.0, 0.956784]])
+    edge = r.T @ r  # iSAM's R^T R
+    assert np.linalg.eigvalsh(edge)[0] > 0.0  # passes the eigenvalue test by rounding ...
+    with pytest.raises(np.linalg.LinAlgError):
+        np.linalg.cholesky(edge)  # ... not the factorization
+    stack = np.stack([np.eye(3), edge, 2.0 * np.eye(3), -np.eye(3), edge, np.eye(3)])
+    np.testing.assert_array_equal(positive_definite(stack),
+                                  [True, False, True, False, False, True])
+    with pytest.raises(GraphError, match=r"edge 1: .*Cholesky factorization fails"):
+        check_information(stack[:3], "edge")
 
 
 def test_nearest_spd_is_the_frobenius_projection() -> None:

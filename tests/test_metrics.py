@@ -1,4 +1,4 @@
-"""Tests of the accuracy metrics and trajectory files ``hybridpgo.metrics`` (issue 4)."""
+"""Tests of the accuracy metrics and trajectory files ``hybridpgo.metrics``."""
 
 from __future__ import annotations
 
@@ -214,6 +214,27 @@ def test_align_rigid_recovers_a_transform(rng: np.random.Generator) -> None:
     # A mirrored target is fitted by a rotation, never a reflection.
     rm, _ = align_rigid(pts, pts * [1.0, 1.0, -1.0])
     assert np.linalg.det(rm) == pytest.approx(1.0, abs=FLOAT64_IDENTITY)
+
+
+def test_align_rigid_of_points_whose_squares_overflow(rng: np.random.Generator) -> None:
+    """Coordinates of 1e200: the cross-covariance overflowed to inf and the SVD of it did not
+    return; the fit is scale-invariant, so the same rotation comes out."""
+    pts = rng.normal(size=(30, 3))
+    r = Rotation.from_rotvec([2.0, 0.5, -1.0]).as_matrix()
+    ra, ta = align_rigid(pts * 1e200, (pts @ r.T) * 1e200)
+    np.testing.assert_allclose(ra, r, atol=FLOAT64_IDENTITY * 1e2)
+    assert np.all(np.abs(ta) <= 1e200 * FLOAT64_IDENTITY * 1e3)
+    with pytest.raises(ValueError, match="finite"):
+        align_rigid(pts * np.inf, pts)
+
+
+def test_evaluate_refuses_positions_whose_squares_overflow(rng: np.random.Generator) -> None:
+    rot, trans = trajectory(rng, n=10)
+    far = trans.copy()
+    far[3, 1] = -1e200
+    for est, gt, who in ((far, trans, "the estimate"), (trans, far, "the ground truth")):
+        with pytest.raises(GraphError, match=who + r": pose 3 is at 1e\+200 m"):
+            evaluate(rot, est, rot, gt, align=True)
 
 
 def test_evaluate_rejects_bad_shapes(rng: np.random.Generator) -> None:

@@ -1,4 +1,4 @@
-"""The online mode (DESIGN §11): paths, budget, accuracy, bad input, save/load."""
+"""The online mode (docs/mathematics.md#frames): paths, budget, accuracy, bad input, save/load."""
 
 from __future__ import annotations
 
@@ -20,7 +20,6 @@ from hybridpgo.energy import energy
 from hybridpgo.errors import FormatError, GraphError
 from hybridpgo.online import OnlineConfig, OnlineSolver
 from hybridpgo.online._link import adopt_result
-from hybridpgo.online.persist import state_arrays
 from hybridpgo.online.replay import feed_frame, make_stream, prefix_optima
 from hybridpgo.solvers.config import GaussNewtonConfig
 from hybridpgo.solvers.gauss_newton import solve_exact
@@ -45,7 +44,7 @@ def _stream(solver: OnlineSolver, graph, frames: range, updates: int | None = UP
 
 def _state(s: OnlineSolver) -> dict[str, np.ndarray]:
     """Every array and counter of the solver's state (what a saved state holds)."""
-    return state_arrays(s)
+    return s.state_arrays()
 
 
 def _same(a: dict[str, np.ndarray], b: dict[str, np.ndarray], timing: bool = True) -> None:
@@ -135,7 +134,7 @@ def test_estimate_approaches_the_batch_optimum() -> None:
 
 
 def test_city_loops_through_stiff_odometry_converge() -> None:
-    """Issue 8's valencia bug on a small city: a revisiting pose hangs from its (soft) loop
+    """The valencia defect on a small city: a revisiting pose hangs from its (soft) loop
     closure, its (stiff) odometry carries the loop's path.  Relaxed one at a time the two only
     trade the error through the junction pose (15x the optimum after 100 extra frames); as a
     junction group (the default) they are solved together."""
@@ -710,3 +709,17 @@ def test_background_worker_solves_a_planar_map_in_the_plane(data_dir: Path,
     _, meta = mp.solve(50)
     assert seen and all(seen)
     assert abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
+
+
+def test_a_budget_beyond_the_clock_is_no_deadline() -> None:
+    """``update(budget_s=1e12)`` overflowed the cycle counter (OverflowError); it is the same
+    frame as ``update(None)``."""
+    g = _graph()
+    st = make_stream(g)
+    a, b = OnlineSolver(), OnlineSolver()
+    for k in range(st.num_frames):
+        feed_frame(a, st, k)
+        feed_frame(b, st, k)
+        a.update(1e12, UPDATES)
+        b.update(None, UPDATES)
+    _same(_state(a), _state(b), timing=False)

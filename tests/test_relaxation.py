@@ -114,15 +114,20 @@ def test_relaxation_needs_a_planar_graph_without_gps() -> None:
 
 def test_the_check_agrees_where_the_pipeline_is_right() -> None:
     graph = _grid().graph
-    res = optimize(graph)
+    res = optimize(graph, AutoConfig(certify=False))  # the check runs after every polish
     relax = res.stats["relaxation"]
     assert relax["ran"] and not relax["polished"]
     assert relax["max_angle"] <= AutoConfig().relaxation_angle
     assert "relaxation agrees" in res.stats["reason"]
     assert res.timings["relaxation"] > 0.0
-    off = optimize(graph, AutoConfig(relaxation=False))
+    off = optimize(graph, AutoConfig(relaxation=False, certify=False))
     assert off.stats["relaxation"] == {"ran": False, "why": "off"}
     assert off.final_energy == res.final_energy
+    # by default the winner is certified: the check is skipped, the energy is the same
+    certified = optimize(graph)
+    assert certified.stats["certificate"]["certified"]
+    assert certified.stats["relaxation"] == {"ran": False, "why": "the winner is certified"}
+    assert abs(certified.final_energy - res.final_energy) <= 1e-9 * res.final_energy
 
 
 def test_a_winner_in_another_basin_is_replaced() -> None:

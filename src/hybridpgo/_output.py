@@ -7,8 +7,9 @@ solver states are all written through :class:`Outputs` (or its one-file shortcut
 * **Regular file or new name**: the content goes to a temporary file in the same directory,
   which is then renamed over the name (``os.replace``): a reader never sees half a file, and a
   failure or an interruption (Ctrl-C, SIGTERM) leaves what was there untouched and removes the
-  temporary file.  An existing file keeps its permissions; a new one gets ``0o666`` minus the
-  umask, as ``open`` would give it.
+  temporary file (each temporary name is registered for removal before the file is
+  created, so no interruption strands one).  An existing file keeps its permissions; a new
+  one gets ``0o666`` minus the umask, as ``open`` gives.
 * **Symbolic link**: written through.  The file it points to is replaced as above (a dangling
   link creates its target) and the link stays a link, as with ``cp`` or a shell's ``>``.
 * **FIFO or character device** (``/dev/null``, a terminal): it cannot be replaced, so the
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import secrets
 import shutil
 import stat
 import tempfile
@@ -40,7 +42,7 @@ PathLike = str | os.PathLike[str]
 
 #: Suffix of temporary files (they also start with a dot: hidden from ``ls``).
 TEMP_SUFFIX = ".tmp"
-#: ``tempfile.mkstemp`` adds this many random characters to a temporary file's name.
+#: Random characters in a temporary file's name.
 _RANDOM_CHARS = 8
 #: The name length limit assumed when the file system does not report one.
 _DEFAULT_NAME_MAX = 255
@@ -122,9 +124,16 @@ def resolve(path: PathLike, *, streams: bool = True) -> Target:
     return Target(name, target, "new", 0o666 & ~UMASK)
 
 
-def temp_file(target: str, *, suffix: str = TEMP_SUFFIX) -> tuple[int, str]:
+def temp_file(target: str, *, suffix: str = TEMP_SUFFIX,
+              register: Callable[[str], None] | None = None) -> tuple[int, str]:
     """Create a temporary file beside ``target``, named after it but short enough for the file
-    system (``.<start of the name>.<random><suffix>``); returns ``(descriptor, path)``.
+    system: ``.<start of the name>.<8 random characters><suffix>``; returns
+    ``(descriptor, path)``.
+
+    ``register(path)`` is called with each name *before* the file is created (exclusively,
+    mode 0o600), so a caller that removes what it registered never strands a file, whatever
+    interrupts it (Ctrl-C, SIGTERM); a name that exists already is registered again with the
+    next name, and a failure is registered as ``""``.
 
     Raises
     ------
@@ -137,7 +146,22 @@ def temp_file(target: str, *, suffix: str = TEMP_SUFFIX) -> tuple[int, str]:
     stem = os.fsdecode(base[:max(room, 0)]) if room > 0 else ""
     while stem and len(os.fsencode(stem)) > room:  # a multi-byte character cut in the middle
         stem = stem[:-1]
-    return tempfile.mkstemp(dir=directory, prefix=f".{stem}.", suffix=suffix)
+    flags = os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0)
+    for _ in range(100):
+        path = os.path.join(directory, f".{stem}.{secrets.token_hex(_RANDOM_CHARS // 2)}{suffix}")
+        if register is not None:
+            register(path)
+        try:
+            return os.open(path, flags, 0o600), path
+        except FileExistsError:
+            continue
+        except BaseException:
+            if register is not None:
+                register("")
+            raise
+    if register is not None:
+        register("")
+    raise FileExistsError(f"no unused temporary file name in {directory}")
 
 
 def check_output(path: PathLike, *, streams: bool = True) -> Target:
@@ -145,12 +169,16 @@ def check_output(path: PathLike, *, streams: bool = True) -> Target:
     real test that the directory takes a new file).  Raises :class:`FormatError`."""
     tgt = resolve(path, streams=streams)
     if tgt.kind != "stream":
+        probe = [""]
         try:
-            fd, probe = temp_file(tgt.path)
+            fd, _ = temp_file(tgt.path, register=lambda p: probe.__setitem__(0, p))
+            os.close(fd)
         except OSError as exc:
             raise _error(tgt.name, exc) from exc
-        os.close(fd)
-        os.unlink(probe)
+        finally:
+            if probe[0]:
+                with contextlib.suppress(OSError):
+                    os.unlink(probe[0])
     return tgt
 
 
@@ -194,15 +222,18 @@ class Outputs:
             self.targets.append(tgt)
         try:
             for tgt in self.targets:
+                # a stream's content waits in the system's temporary directory
+                where = (os.path.join(tempfile.gettempdir(), "hybridpgo")
+                         if tgt.kind == "stream" else tgt.path)
+
+                def register(p: str, name: str = tgt.name) -> None:
+                    self._temps[name] = p
+
                 try:
-                    if tgt.kind == "stream":
-                        fd, tmp = tempfile.mkstemp(prefix=".hybridpgo-", suffix=TEMP_SUFFIX)
-                    else:
-                        fd, tmp = temp_file(tgt.path)
+                    fd, _ = temp_file(where, register=register)
                 except OSError as exc:
                     raise _error(tgt.name, exc) from exc
                 os.close(fd)
-                self._temps[tgt.name] = tmp
         except BaseException:
             self.discard()
             raise
@@ -228,7 +259,7 @@ class Outputs:
                         os.replace(tmp, tgt.path)
                     except OSError as exc:
                         raise _error(tgt.name, exc) from exc
-                    del self._temps[tgt.name]
+                    self._temps[tgt.name] = ""
             for tgt in self.targets:
                 if tgt.kind == "stream":
                     try:
@@ -242,10 +273,11 @@ class Outputs:
 
     def discard(self) -> None:
         """Remove the temporary files that were not moved into place."""
-        for tmp in self._temps.values():
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-        self._temps.clear()
+        for name, tmp in self._temps.items():
+            if tmp:
+                with contextlib.suppress(OSError):
+                    os.unlink(tmp)
+            self._temps[name] = ""
 
     def __enter__(self) -> Outputs:
         return self

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import math
 
-#: Robust kernels by code: ``ROBUST_NAMES[code]`` is the name the configs accept.
+#: Robust kernels (docs/conventions.md#robust-kernels) by code: ``ROBUST_NAMES[code]`` is the
+#: name the configs accept.
 ROBUST_NAMES = ("none", "huber", "cauchy", "geman_mcclure")
 ROBUST_NONE = 0
 ROBUST_HUBER = 1

@@ -811,12 +811,17 @@ def sesync_certificate(graph: PoseGraph, rotations: FloatArray,
     if why:
         return Certificate(False, float("nan"), float("inf"), float("inf"), float("nan"),
                            time.perf_counter() - t0, why)
-    prob = problem or SyncProblem(graph)
-    t1 = time.perf_counter()
-    y, f, its = prob.refine(prob.to_y(rotations))
-    t2 = time.perf_counter()
-    spec = prob.spectrum(y, gap_tolerance)
-    t3 = time.perf_counter()
+    try:
+        with np.errstate(over="raise", invalid="raise", divide="raise"):
+            prob = problem or SyncProblem(graph)
+            t1 = time.perf_counter()
+            y, f, its = prob.refine(prob.to_y(rotations))
+            t2 = time.perf_counter()
+            spec = prob.spectrum(y, gap_tolerance)
+            t3 = time.perf_counter()
+    except FloatingPointError as exc:  # measurements of ~1e154: F overflows
+        return Certificate(False, float("nan"), float("inf"), float("inf"), float("nan"),
+                           time.perf_counter() - t0, f"F overflows float64 ({exc})")
     ref = None if translations is None else (rotations, translations)
     rot, trans = prob.poses(y, ref)
     gap = spec.objective - spec.lower_bound

@@ -33,6 +33,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ._output import write_file
+from .errors import SolverError
 from .graph import FloatArray, PoseGraph
 from .solvers.config import GaussNewtonConfig
 from .solvers.gauss_newton import ExactSolver
@@ -93,11 +94,15 @@ def marginal_covariances(graph: PoseGraph, rotations: FloatArray | None,
     free = var >= 0
     if solver.pattern.num_vars == 0:
         return out
+    try:
+        factorizer = solver.factor(rotations, translations, block=linear_solver == "auto")
+    except SolverError as exc:
+        raise SolverError("the covariances are not defined at these poses: H is singular to "
+                          "rounding (a pose is not determined by its constraints, or the "
+                          "information is too ill-conditioned)") from exc
     if linear_solver == "auto":
-        block = solver.factor(rotations, translations, block=True)
-        out[free] = block.inverse_diagonal_blocks(overwrite=True)[var[free]]
+        out[free] = factorizer.inverse_diagonal_blocks(overwrite=True)[var[free]]
         return out
-    factorizer = solver.factor(rotations, translations)
     if free.any():
         index = 6 * var[free][:, None] + np.arange(6, dtype=np.int64)[None, :]
         out[free] = factorizer.inverse_blocks(index)
@@ -106,7 +111,7 @@ def marginal_covariances(graph: PoseGraph, rotations: FloatArray | None,
 
 def save_covariances(path: str | os.PathLike[str], ids: npt.ArrayLike,
                      covariances: npt.ArrayLike, *, fixed_ids: npt.ArrayLike = ()) -> None:
-    """Write covariances as an ``.npz`` archive (the output rules of :mod:`hybridpgo._output`:
+    """Write covariances as an ``.npz`` archive (the output rules of ``docs/security.md``:
     a temporary file renamed into place, symbolic links written through).
 
     The archive holds ``ids`` (k,) int64 file ids of the poses; ``cov`` (k, 6, 6) float64, the

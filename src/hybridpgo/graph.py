@@ -1,4 +1,4 @@
-"""The pose graph: an immutable struct-of-arrays (STYLE.md §2, DESIGN.md §1, §8).
+"""The pose graph: an immutable struct-of-arrays (docs/contributing.md#data, docs/conventions.md).
 
 Frames and conventions
 ----------------------
@@ -8,7 +8,8 @@ Frames and conventions
   ``e_c = Log(Z_c^-1 X_a^-1 X_b)`` in R^6 ordered (rho, phi) and its energy ``e_c^T Omega_c e_c``.
 * A position-only ("GPS") constraint on node ``n`` measures ``g`` (earth frame) with error
   ``p_n - g`` and a 3x3 information.
-* 2D graphs are lifted into SE(3) (DESIGN §1): ``is_2d`` remembers to write them back as SE(2).
+* 2D graphs are lifted into SE(3) (docs/conventions.md): ``is_2d`` remembers to write them back as
+SE(2).
 """
 
 from __future__ import annotations
@@ -127,7 +128,7 @@ class PoseGraph:
                                  "only for 2D graphs (is_2d=True); a 3D graph needs 6x6 over "
                                  "(rho, phi)")
             _check_entries(info, "edge")
-            info = lift_information_2d(info)  # DESIGN §1
+            info = lift_information_2d(info)  # docs/conventions.md
         object.__setattr__(
             self, "edge_information", _frozen(info, np.float64, (6, 6), "edge_information"),
         )
@@ -296,9 +297,52 @@ def _check_entries(info: FloatArray, what: str) -> None:
                          f"{MAX_INFORMATION:.0e} in magnitude, so that it can be squared)")
 
 
+def _cholesky_fails(mats: FloatArray) -> npt.NDArray[np.bool_]:
+    """(k,) True where the Cholesky factorization of the matrix fails (halving the stack
+    where one does: LAPACK reports one failure for the whole stack)."""
+    out = np.zeros(mats.shape[0], bool)
+    if mats.shape[0] == 0:
+        return out
+    try:
+        np.linalg.cholesky(mats)
+    except np.linalg.LinAlgError:
+        if mats.shape[0] == 1:
+            out[0] = True
+        else:
+            half = mats.shape[0] // 2
+            out[:half] = _cholesky_fails(mats[:half])
+            out[half:] = _cholesky_fails(mats[half:])
+    return out
+
+
+def positive_definite(info: FloatArray, eig_min: npt.ArrayLike | None = None,
+                      ) -> npt.NDArray[np.bool_]:
+    """(k,) True where the symmetric matrix in ``info`` (k, d, d) is positive definite to
+    float64 rounding: its smallest eigenvalue (``eig_min``, computed when not given) is > 0
+    *and* its Cholesky factorization succeeds.  (An eigenvalue at the rounding level of the
+    largest, ~1e-16 of it, comes out with either sign: such a matrix may pass the first test
+    and fail the second, which every whitening in the package uses.)"""
+    lam = (np.asarray(eig_min, np.float64) if eig_min is not None
+           else np.linalg.eigvalsh(info)[:, 0] if info.shape[0] else np.zeros(0))
+    ok: npt.NDArray[np.bool_] = np.asarray(lam > 0.0)
+    idx = np.nonzero(ok)[0]
+    ok[idx[_cholesky_fails(info[idx])]] = False
+    return ok
+
+
+def pd_problem(eig_min: float) -> str:
+    """Why a matrix :func:`positive_definite` refuses is not positive definite, for messages:
+    its smallest eigenvalue, and whether only the Cholesky factorization failed."""
+    if eig_min > 0.0:
+        return (f"smallest eigenvalue {eig_min:.6g}, at the rounding level of the largest: "
+                "its Cholesky factorization fails")
+    return f"smallest eigenvalue {eig_min:.6g}"
+
+
 def check_information(info: FloatArray, what: str) -> None:
-    """Raise :class:`GraphError` unless every matrix in ``info`` (k, d, d) is symmetric PD
-    with entries at most :data:`MAX_INFORMATION` in magnitude."""
+    """Raise :class:`GraphError` unless every matrix in ``info`` (k, d, d) is symmetric,
+    positive definite to rounding (:func:`positive_definite`) and with entries at most
+    :data:`MAX_INFORMATION` in magnitude."""
     if info.shape[0] == 0:
         return
     _check_entries(info, what)
@@ -308,18 +352,19 @@ def check_information(info: FloatArray, what: str) -> None:
     if bad.size:
         raise GraphError(f"{what} {int(bad[0])}: information matrix is not symmetric")
     eig_min = np.linalg.eigvalsh(info)[:, 0]
-    bad = np.nonzero(~(eig_min > 0.0))[0]
+    bad = np.nonzero(~positive_definite(info, eig_min))[0]
     if bad.size:
         raise GraphError(
             f"{what} {int(bad[0])}: information matrix is not positive definite "
-            f"(smallest eigenvalue {eig_min[bad[0]]:.3g})"
+            f"({pd_problem(float(eig_min[bad[0]]))})"
         )
 
 
 def lift_information_2d(info3: FloatArray) -> FloatArray:
     """Lift (k, 3, 3) SE(2) information over (x, y, theta) into (k, 6, 6) over (rho, phi).
 
-    DESIGN §1: x, y, yaw go to indices 0, 1, 5; z, roll, pitch get a stiffness equal to the
+    docs/conventions.md: x, y, yaw go to indices 0, 1, 5; z, roll, pitch get a stiffness equal to
+    the
     largest in-plane diagonal entry.
     """
     info3 = np.asarray(info3, dtype=np.float64)

@@ -1,6 +1,7 @@
 """Chordal initialization (Martinec & Pajdla 2007; Carlone et al., ICRA 2015).
 
-A better start than dead reckoning for graphs with large rotation noise (DESIGN.md §9 names it as
+A better start than dead reckoning for graphs with large rotation noise
+(docs/mathematics.md#lm-damping names it as
 the lever for reaching the global optimum).  Two linear least-squares problems:
 
 1. rotations: minimize sum_c kappa_c ||R_b - R_a Z_c||_F^2 over free 3x3 matrices with the
@@ -193,10 +194,21 @@ def planar_relaxation_start(graph: PoseGraph, rotations: FloatArray, translation
     largest rotation difference from the given poses, rad), ``second_singular_value``
     (relative to the first: 0 when the relaxation is rank 1).
     """
-    from .certificate import SyncProblem
-
     if not graph.is_2d or graph.num_gps:
         raise ValueError("the planar relaxation needs a 2D graph without GPS constraints")
+    try:
+        with np.errstate(over="raise", invalid="raise", divide="raise"):
+            return _planar_relaxation(graph, rotations, translations, max_iterations, rank,
+                                      seed)
+    except FloatingPointError as exc:  # measurements of ~1e154: the quadratic overflows
+        raise ValueError(f"the planar relaxation overflows float64 ({exc})") from exc
+
+
+def _planar_relaxation(graph: PoseGraph, rotations: FloatArray, translations: FloatArray,
+                       max_iterations: int, rank: int, seed: int,
+                       ) -> tuple[FloatArray, FloatArray, dict[str, float]]:
+    from .certificate import SyncProblem
+
     rel = SyncProblem(graph, weights="planar")
     n = graph.num_nodes
     z0: ComplexArray = np.asarray(rotations[:, 0, 0] + 1j * rotations[:, 1, 0], np.complex128)

@@ -1,4 +1,4 @@
-"""Accuracy of an estimated trajectory against ground truth (issue 4), and TUM export.
+"""Accuracy of an estimated trajectory against ground truth, and TUM export.
 
 Example (not a doctest)::
 
@@ -43,7 +43,9 @@ from .io.tum import read_tum as read_tum  # re-exported: one TUM reader
 from .io.tum import read_tum_source
 
 __all__ = [
+    "MAX_COORDINATE",
     "align_rigid",
+    "check_positions",
     "evaluate",
     "match_by_ids",
     "read_ground_truth",
@@ -56,6 +58,27 @@ IdArray = npt.NDArray[np.int64]
 
 #: How many missing ids an error message lists before "... and k more".
 _MAX_LISTED = 10
+#: Positions are compared up to this distance from the origin (metres): beyond it, squared
+#: distances overflow float64.
+MAX_COORDINATE = 1e150
+
+
+def check_positions(translations: npt.ArrayLike, what: str,
+                    ids: npt.ArrayLike | None = None) -> None:
+    """Raise :class:`GraphError` when a position is not finite or beyond
+    :data:`MAX_COORDINATE` (``what`` names the poses in the message: a file, "the estimate";
+    ``ids`` their node ids, default their index)."""
+    t = np.asarray(translations, np.float64).reshape(-1, 3)
+    if t.shape[0] == 0:
+        return
+    big = np.maximum(t.max(axis=1), -t.min(axis=1))  # NaN stays NaN
+    bad = np.nonzero(~(big <= MAX_COORDINATE))[0]
+    if bad.size:
+        k = int(bad[0])
+        label = int(np.asarray(ids).reshape(-1)[k]) if ids is not None else k
+        raise GraphError(f"{what}: pose {label} is at {big[k]:.3g} m from the origin; "
+                         f"positions are compared up to {MAX_COORDINATE:.0e} m (beyond, their "
+                         "squared distances overflow)")
 
 
 def _poses(rot: npt.ArrayLike, trans: npt.ArrayLike, what: str) -> tuple[FloatArray, FloatArray]:
@@ -89,13 +112,21 @@ def align_rigid(source: npt.ArrayLike, target: npt.ArrayLike) -> tuple[FloatArra
     if src.ndim != 2 or src.shape[1] != 3 or src.shape != dst.shape or src.shape[0] == 0:
         raise ValueError(f"source and target must both have shape (N, 3), N >= 1, got "
                          f"{src.shape} and {dst.shape}")
-    mu_s = src.mean(axis=0)
-    mu_d = dst.mean(axis=0)
-    cov = (dst - mu_d).T @ (src - mu_s)  # sum of d_i s_i^T
+    if not (np.all(np.isfinite(src)) and np.all(np.isfinite(dst))):
+        raise ValueError("source and target must be finite")
+    # the fit is invariant to a common scale: points scaled into [-1, 1] keep the
+    # cross-covariance finite (coordinates of 1e200 would give inf, and LAPACK's SVD of
+    # non-finite numbers may not return)
+    scale = max(float(np.abs(src).max()), float(np.abs(dst).max())) or 1.0
+    src_n, dst_n = src / scale, dst / scale
+    mu_s = src_n.mean(axis=0)
+    mu_d = dst_n.mean(axis=0)
+    cov = (dst_n - mu_d).T @ (src_n - mu_s)  # sum of d_i s_i^T
     u, _, vt = np.linalg.svd(cov)
     d = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(u @ vt)) or 1.0)])
     r = u @ d @ vt
-    return r, mu_d - r @ mu_s
+    with np.errstate(over="ignore"):  # a translation beyond float64 is inf
+        return r, scale * (mu_d - r @ mu_s)
 
 
 def evaluate(est_rot: npt.ArrayLike, est_trans: npt.ArrayLike, gt_rot: npt.ArrayLike,
@@ -130,9 +161,13 @@ def evaluate(est_rot: npt.ArrayLike, est_trans: npt.ArrayLike, gt_rot: npt.Array
     ------
     ValueError
         Shapes differ or are wrong, values not finite, no poses, ``rpe_delta < 1``.
+    GraphError
+        A position beyond :data:`MAX_COORDINATE` (:func:`check_positions`).
     """
     er, et = _poses(est_rot, est_trans, "estimated")
     gr, gt = _poses(gt_rot, gt_trans, "ground-truth")
+    check_positions(et, "the estimate")
+    check_positions(gt, "the ground truth")
     n = er.shape[0]
     if gr.shape[0] != n:
         raise ValueError(f"the estimate has {n} poses and the ground truth {gr.shape[0]}: "

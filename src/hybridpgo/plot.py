@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ._output import Outputs
-from .errors import FormatError, HybridPGOError
+from .errors import FormatError, GraphError, HybridPGOError
 from .graph import FloatArray, PoseGraph
 
 if TYPE_CHECKING:
@@ -42,6 +42,7 @@ if TYPE_CHECKING:
     from .solvers.result import SolveResult
 
 __all__ = [
+    "check_drawable",
     "energy_figure",
     "energy_title",
     "graph_figure",
@@ -116,37 +117,52 @@ def _energy_range(all_energies: Sequence[FloatArray]) -> tuple[float, float]:
 def _poses(graph: PoseGraph, rot: FloatArray | None,
            trans: FloatArray | None) -> tuple[FloatArray, FloatArray]:
     """The poses to draw: the given ones, the file's, or the tree initialization (iSAM)."""
-    if (rot is None) != (trans is None):
-        raise ValueError("give both rot and trans, or neither")
-    if rot is not None and trans is not None:
-        rot = np.asarray(rot, np.float64)
-        trans = np.asarray(trans, np.float64)
-        if rot.shape != (graph.num_nodes, 3, 3) or trans.shape != (graph.num_nodes, 3):
-            raise ValueError(f"poses must have shapes ({graph.num_nodes}, 3, 3) and "
-                             f"({graph.num_nodes}, 3), got {rot.shape} and {trans.shape}")
-        return rot, trans
-    if graph.has_estimates:
-        return graph.rotations, graph.translations
-    from .initialization import initial_locals
-    from .tree import build_tree, global_poses
+    from ._poses import given_or_start
 
-    tree = build_tree(graph, "bfs")
-    return global_poses(tree, *initial_locals(graph, tree, "tree"))
+    return given_or_start(graph, rot, trans, ("rot", "trans"))
+
+
+#: The largest extent (metres, along any axis) of what a map panel draws: the poses, the ends
+#: of the residuals and the GPS readings.  Beyond it matplotlib's axis limits (margins, equal
+#: aspect) overflow float64.
+MAX_DRAW_EXTENT = 1e300
+
+
+def check_drawable(graph: PoseGraph, rot: FloatArray | None = None,
+                   trans: FloatArray | None = None) -> None:
+    """Raise :class:`GraphError` unless every point a map of ``graph`` at these poses (default:
+    its own) draws lies within :data:`MAX_DRAW_EXTENT` of the others."""
+    rot, trans = _poses(graph, rot, trans)
+    with np.errstate(over="ignore", invalid="ignore"):
+        desired = _desired(graph, rot, trans)
+        pts = np.concatenate([trans, desired, graph.gps_positions])
+        span = pts.max(axis=0) - pts.min(axis=0) if pts.size else np.zeros(3)
+    if not np.all(span <= MAX_DRAW_EXTENT):  # NaN / inf fail too
+        widest = float(np.nanmax(np.where(np.isnan(span), np.inf, span)))
+        raise GraphError(f"cannot draw the map: its poses and constraints span {widest:.3g} m; "
+                         f"at most {MAX_DRAW_EXTENT:.0e} m can be drawn")
+
+
+def _desired(graph: PoseGraph, rot: FloatArray, trans: FloatArray) -> FloatArray:
+    """Where each relative edge puts its second pose: X_a · Z_c applied to the origin,
+    ``R_a t_ab + t_a``."""
+    a = graph.edge_nodes[:, 0]
+    out: FloatArray = np.einsum("nij,nj->ni", rot[a], graph.edge_translations) + trans[a]
+    return out
 
 
 def _segments(graph: PoseGraph, rot: FloatArray, trans: FloatArray) -> dict[str, Any]:
     """Line segments (k, 2, 3) of the trajectory and of the residuals, with energies."""
     from .energy import constraint_energies
 
+    check_drawable(graph, rot, trans)
     a = graph.edge_nodes[:, 0]
     b = graph.edge_nodes[:, 1]
     consecutive = np.abs(a - b) == 1  # neighbours in id order (dense index = rank of the id)
     if not consecutive.any():  # ids carry no order: draw every edge as the "trajectory"
         consecutive = np.ones_like(consecutive)
     traj = np.stack([trans[a[consecutive]], trans[b[consecutive]]], axis=1)
-    # desired position of b: X_a · Z_c applied to the origin = R_a t_ab + t_a
-    desired = np.einsum("nij,nj->ni", rot[a], graph.edge_translations) + trans[a]
-    residual = np.stack([desired, trans[b]], axis=1)
+    residual = np.stack([_desired(graph, rot, trans), trans[b]], axis=1)
     gps = np.stack([graph.gps_positions, trans[graph.gps_nodes]], axis=1)
     e_rel, e_gps = constraint_energies(graph, rot, trans)
     return {"trajectory": traj, "residual": residual, "residual_energy": e_rel, "gps": gps,
@@ -543,7 +559,7 @@ MAX_DPI = 600
 
 
 def save_figure(fig: Figure, path: str | os.PathLike[str], *, dpi: int = 150) -> None:
-    """Write ``fig`` to ``path`` under the output rules of :mod:`hybridpgo._output` (a temporary
+    """Write ``fig`` to ``path`` under the output rules of ``docs/security.md`` (a temporary
     file renamed into place, symbolic links written through, FIFOs written into); the format
     comes from the extension (``.png`` when there is none).
 

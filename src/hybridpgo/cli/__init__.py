@@ -1,12 +1,14 @@
-"""The ``hybridpgo`` command line (STYLE.md §11).
+"""The ``hybridpgo`` command line (docs/contributing.md#cli).
 
 ``main(argv)`` parses the arguments, imports the command's module (heavy imports happen only
 there, after parsing) and runs it inside the one error boundary:
 
 * :class:`~hybridpgo.errors.HybridPGOError` (bad file, bad graph, solver failure, a missing
   optional package): ``hybridpgo: error: <message>`` on stderr, exit 2;
-* ``KeyboardInterrupt`` (also during start-up: parsing, imports): "interrupted", exit 130; a
-  closed stdout pipe (``| head``): exit 141, silently;
+* ``KeyboardInterrupt`` (also during start-up: parsing, imports): "interrupted", exit 130;
+  SIGTERM is handled the same way (:class:`Terminated`, a ``KeyboardInterrupt``: every
+  temporary file is removed): "terminated", exit 143; a closed stdout pipe (``| head``):
+  exit 141, silently; standard output that cannot be written (a full disk): exit 2;
 * anything else is a bug: traceback, exit 1.
 
 Before a command runs, every file it will write is checked (``_common.check_outputs``): a
@@ -32,8 +34,44 @@ from ..errors import HybridPGOError
 
 __all__ = ["main"]
 
-#: Exit codes (141 = 128 + SIGPIPE, as a shell reports a reader that went away).
+#: Exit codes (128 + the signal's number, as a shell reports a process a signal ended: 130
+#: SIGINT, 141 SIGPIPE, 143 SIGTERM).
 EXIT_OK, EXIT_BUG, EXIT_ERROR, EXIT_INTERRUPTED, EXIT_BROKEN_PIPE = 0, 1, 2, 130, 141
+EXIT_TERMINATED = 143
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM arrived: raised by the CLI's handler, so that it unwinds like Ctrl-C."""
+
+
+def _on_sigterm(signum: int, frame: object) -> None:
+    raise Terminated
+
+
+@contextlib.contextmanager
+def _sigterm_unwinds() -> Iterator[None]:
+    """Within this block SIGTERM raises :class:`Terminated` (main thread only: elsewhere
+    Python cannot set a handler); the previous handler is restored afterwards."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _interrupted(exc: KeyboardInterrupt) -> int:
+    """The message and exit code of an interruption (Ctrl-C or SIGTERM)."""
+    if isinstance(exc, Terminated):
+        print("\nhybridpgo: terminated", file=sys.stderr)
+        return EXIT_TERMINATED
+    print("\nhybridpgo: interrupted", file=sys.stderr)
+    return EXIT_INTERRUPTED
 
 
 def _format_warning(message: Warning | str, category: type[Warning], filename: str,
@@ -49,13 +87,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     -------
     int
         The exit code: 0 success, 2 user error (bad input or usage), 130 interrupted,
-        1 an unexpected error (a bug: the traceback is printed).
+        1 an unexpected error (a bug: the traceback is printed), 143 terminated (SIGTERM).
     """
     try:
-        return _main(argv)
-    except KeyboardInterrupt:  # during start-up (parsing, imports) or outside _run's boundary
-        print("\nhybridpgo: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        with _sigterm_unwinds():
+            return _main(argv)
+    except KeyboardInterrupt as exc:  # during start-up (parsing, imports) or outside _run
+        return _interrupted(exc)
 
 
 def _main(argv: Sequence[str] | None) -> int:
@@ -113,26 +151,68 @@ def _run(args: Any, debug: bool) -> int:
         with cli_option_names(), read_options(ReadOptions.from_args(args)), \
                 _graph_to_stdout(args):
             module = importlib.import_module(f"{__name__}.{args.command}")
-            return int(module.run(args))
-    except KeyboardInterrupt:
+            code = int(module.run(args))
+            if sys.stdout is not None:
+                sys.stdout.flush()  # here, where a full disk is reported, not at exit
+            return code
+    except KeyboardInterrupt as exc:
         if debug:
             traceback.print_exc()
-        print("\nhybridpgo: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return _interrupted(exc)
     except HybridPGOError as exc:
         if debug:
             traceback.print_exc()
-        print(f"hybridpgo: error: {exc}", file=sys.stderr)
+        print(f"hybridpgo: error: {_with_input_name(args, exc)}", file=sys.stderr)
         return EXIT_ERROR
     except BrokenPipeError:  # e.g. "hybridpgo info FILE | head -1"
-        try:
-            devnull = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(devnull, sys.stdout.fileno())
-        except (OSError, ValueError):  # pragma: no cover - stdout without a descriptor
-            pass
+        _silence_stdout()
         return EXIT_BROKEN_PIPE
-    except Exception:
-        traceback.print_exc()
-        print("hybridpgo: internal error (a bug): please report it with the traceback above",
+    except OSError as exc:
+        if exc.filename is not None:  # a file operation the command should have reported
+            return _bug()
+        # writing to standard output failed: "> /dev/full", a disk that filled up
+        if debug:
+            traceback.print_exc()
+        _silence_stdout()
+        print(f"hybridpgo: error: cannot write to standard output: {exc.strerror or exc}",
               file=sys.stderr)
-        return EXIT_BUG
+        return EXIT_ERROR
+    except Exception:
+        return _bug()
+
+
+def _with_input_name(args: Any, exc: HybridPGOError) -> str:
+    """The message of ``exc``; a solver's or a graph's error (which know no file) begins with
+    the name of the command's input when it has exactly one."""
+    from ..errors import GraphError, SolverError
+    from ..io._lines import STDIN_NAME, STDIO
+    from ._common import command_files
+
+    message = str(exc) or type(exc).__name__
+    if not isinstance(exc, (GraphError, SolverError)):
+        return message
+    try:
+        inputs = command_files(args)[0]
+    except Exception:  # pragma: no cover - a command without the usual arguments
+        return message
+    if len(inputs) != 1:
+        return message
+    name = STDIN_NAME if inputs[0] == STDIO else inputs[0]
+    return message if message.startswith(f"{name}:") else f"{name}: {message}"
+
+
+def _bug() -> int:
+    traceback.print_exc()
+    print("hybridpgo: internal error (a bug): please report it with the traceback above",
+          file=sys.stderr)
+    return EXIT_BUG
+
+
+def _silence_stdout() -> None:
+    """Point standard output at /dev/null, so that the interpreter's final flush of what is
+    still buffered does not fail again at exit."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (AttributeError, OSError, ValueError):  # stdout without a descriptor (tests)
+        pass

@@ -25,6 +25,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from .._output import same_file
 from ..errors import HybridPGOError
 from ._common import ProgressBar, log, phase, print_json
 
@@ -168,12 +169,24 @@ def plan_jobs(inputs: Sequence[str], out_dir: str, method: str,
             if out in seen:
                 raise HybridPGOError(f"{path} and {seen[out]} would both write {out}: give "
                                      "inputs different file names")
-            if os.path.abspath(out) == os.path.abspath(path):
-                raise HybridPGOError(f"{path}: the output would overwrite the input; choose "
-                                     "another -o OUTDIR")
+            _refuse_inputs(out, inputs)
             seen[out] = path
             jobs.append(BatchJob(input=path, output=out, method=method, options=dict(opts)))
     return jobs
+
+
+def _refuse_inputs(output: str, inputs: Sequence[str]) -> None:
+    """Raise when ``output`` is one of the ``inputs``: the same file (device and inode), also
+    through symbolic links of the file or of a directory, or hard links."""
+    for path in inputs:
+        if same_file(output, path):
+            raise HybridPGOError(f"{path}: {output} would overwrite this input; choose another "
+                                 "-o OUTDIR")
+
+
+def summary_paths(out_dir: str) -> list[str]:
+    """``OUTDIR/summary.csv`` and ``OUTDIR/summary.json``."""
+    return [os.path.join(out_dir, "summary.csv"), os.path.join(out_dir, "summary.json")]
 
 
 # --------------------------------------------------------------------------- running
@@ -187,8 +200,8 @@ def _require_distributed() -> Any:
 
 
 def run_on_dask(jobs: Sequence[BatchJob], *, scheduler: str | None = None,
-                workers: int | None = None, bar: ProgressBar | None = None
-                ) -> list[dict[str, Any]]:
+                workers: int | None = None, bar: ProgressBar | None = None,
+                finished: list[dict[str, Any]] | None = None) -> list[dict[str, Any]]:
     """Run ``jobs`` on Dask; rows in the order of ``jobs``.
 
     Parameters
@@ -198,6 +211,8 @@ def run_on_dask(jobs: Sequence[BatchJob], *, scheduler: str | None = None,
         ``workers`` single-threaded worker processes (default: one per core), closed afterwards.
     bar : ProgressBar, optional
         Advanced as jobs finish (in any order).
+    finished : list, optional
+        Receives each row as its job finishes (what is done when the run is interrupted).
     """
     import logging
 
@@ -231,6 +246,8 @@ def run_on_dask(jobs: Sequence[BatchJob], *, scheduler: str | None = None,
             except Exception as exc:  # the task itself died (e.g. its worker was killed)
                 row = run_job_failed(jobs[k], exc)
             rows[k] = row
+            if finished is not None:
+                finished.append(row)
             failed += row["status"] != "ok"
             if bar is not None:
                 bar.update(done, None, note=f"{failed} failed" if failed else "")
@@ -269,13 +286,12 @@ def _csv_text(rows: Sequence[dict[str, Any]]) -> str:
 
 def write_summary(rows: Sequence[dict[str, Any]], out_dir: str) -> list[str]:
     """``OUTDIR/summary.csv`` and ``OUTDIR/summary.json``, each written atomically."""
-    from ..io._lines import write_atomic
+    from ..io._lines import write_atomic_all
     from ._common import _clean
 
-    csv_path = os.path.join(out_dir, "summary.csv")
-    json_path = os.path.join(out_dir, "summary.json")
-    write_atomic(csv_path, lambda: [_csv_text(rows)])
-    write_atomic(json_path, lambda: [json.dumps(_clean({"jobs": list(rows)}), indent=2) + "\n"])
+    csv_path, json_path = summary_paths(out_dir)
+    write_atomic_all([(csv_path, [_csv_text(rows)]),
+                      (json_path, [json.dumps(_clean({"jobs": list(rows)}), indent=2) + "\n"])])
     return [csv_path, json_path]
 
 
@@ -293,6 +309,18 @@ def print_summary(rows: Sequence[dict[str, Any]]) -> None:
         print("  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip())
 
 
+def _interrupted_note(finished: Sequence[dict[str, Any]], total: int) -> str:
+    """What an interrupted batch leaves behind: the finished jobs' outputs stay (each was
+    written whole), the summary is not written."""
+    written = [str(r["output"]) for r in finished if r["status"] == "ok"]
+    shown = ", ".join(written[:5]) + (f" and {len(written) - 5} more" if len(written) > 5
+                                      else "")
+    kept = (f"their {len(written)} output(s) are kept: {shown}" if written
+            else "no output was written")
+    return (f"hybridpgo: batch interrupted after {len(finished)} of {total} job(s) finished; "
+            f"{kept}; the summary was not written")
+
+
 def run(args: argparse.Namespace) -> int:
     _require_distributed()  # before any work: a missing extra is a one-line error
     if args.scheduler is not None and args.workers is not None:
@@ -303,6 +331,8 @@ def run(args: argparse.Namespace) -> int:
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise HybridPGOError(f"{out_dir}: exists and is not a directory")
     jobs = plan_jobs(args.inputs, out_dir, args.solver, combos)
+    for path in summary_paths(out_dir):
+        _refuse_inputs(path, args.inputs)
     parent = os.path.dirname(os.path.abspath(out_dir))
     if not os.path.isdir(parent):
         raise HybridPGOError(f"{out_dir}: cannot create: directory {parent} does not exist")
@@ -311,8 +341,14 @@ def run(args: argparse.Namespace) -> int:
         log(f"{len(jobs)} job(s): {len(args.inputs)} input(s) x {len(combos)} option "
             f"combination(s), solver {args.solver}")
     bar = ProgressBar("batch", len(jobs), 0, enabled=not args.quiet, unit="job")
+    finished: list[dict[str, Any]] = []
     try:
-        rows = run_on_dask(jobs, scheduler=args.scheduler, workers=args.workers, bar=bar)
+        rows = run_on_dask(jobs, scheduler=args.scheduler, workers=args.workers, bar=bar,
+                           finished=finished)
+    except KeyboardInterrupt:
+        bar.close()
+        log(_interrupted_note(finished, len(jobs)))
+        raise
     finally:
         bar.close()
     paths = write_summary(rows, out_dir)

@@ -1,20 +1,13 @@
-"""``hybridpgo evaluate OUT --ground-truth GT``: accuracy against ground truth (issue 4)."""
+"""``hybridpgo evaluate OUT --ground-truth GT``: accuracy against ground truth."""
 
 from __future__ import annotations
 
 import argparse
-import os
 import warnings
 from typing import Any
 
 from ..errors import HybridPGOError
-from ._common import print_json, print_table, read_input
-
-
-def tum_ground_truth_path(path: str) -> str:
-    """``traj.tum`` -> ``traj_gt.tum`` (where ``--tum`` writes the ground truth)."""
-    stem, ext = os.path.splitext(path)
-    return f"{stem}_gt{ext}"
+from ._common import print_json, print_table, read_input, tum_ground_truth_path
 
 
 def _shared_ids(est_ids: Any, gt_ids: Any, est_path: str, gt_path: str) -> Any:
@@ -57,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
 
     from ..io._lines import write_atomic_all
     from ..io.tum import tum_lines
-    from ..metrics import evaluate, match_by_ids, read_ground_truth
+    from ..metrics import check_positions, evaluate, match_by_ids, read_ground_truth
 
     graph = read_input(args.file, args.format, check_connected=False)
     if not graph.has_estimates:
@@ -70,6 +63,8 @@ def run(args: argparse.Namespace) -> int:
     _, ig = match_by_ids(shared, gt_ids)
     align = graph.num_gps == 0 if args.align == "auto" else args.align == "yes"
     est_rot, est_trans = graph.rotations[ie], graph.translations[ie]
+    check_positions(est_trans, args.file, shared)
+    check_positions(gt_trans[ig], args.ground_truth, shared)
     m = evaluate(est_rot, est_trans, gt_rot[ig], gt_trans[ig], align=align)
     tum: list[str] = []
     if args.tum is not None:

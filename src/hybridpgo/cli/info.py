@@ -60,6 +60,31 @@ def worst_constraints(res: Residuals, k: int = NUM_WORST,
     return out
 
 
+def _check_finite_residuals(res: Residuals, graph: PoseGraph, path: str) -> None:
+    """Refuse (at the constraint's line) residuals that overflow float64: ``--residuals`` writes
+    numbers, not ``inf``."""
+    import numpy as np
+
+    from ..errors import FormatError
+    from ..io._lines import STDIN_NAME, STDIO
+
+    bad: list[tuple[int, str, int]] = []
+    for kind, chi2, lines in (("edge", res.edge_chi2, graph.edge_lines),
+                              ("gps", res.gps_chi2, graph.gps_lines)):
+        idx = np.nonzero(~np.isfinite(chi2))[0]
+        if idx.size:
+            line = [int(v) for v in lines[idx]] if lines is not None else [0] * idx.size
+            bad += [(ln, kind, int(i)) for ln, i in zip(line, idx.tolist(), strict=True)]
+    if not bad:
+        return
+    line_no, kind, _ = min(bad)
+    what = "constraint" if kind == "edge" else "position prior"
+    where = "the file's vertices" if graph.has_estimates else "the tree initialization"
+    raise FormatError(f"the chi2 of this {what} overflows float64 at {where} ({len(bad)} "
+                      "constraint(s) do); --residuals writes finite numbers only",
+                      STDIN_NAME if path == STDIO else path, line_no or None)
+
+
 def graph_info(path: str, fmt: str | None = None, *, tree_kind: str = "bfs",
                skip_unknown: bool = False, residuals_out: str | None = None) -> dict[str, Any]:
     """Everything ``hybridpgo info`` reports, as a JSON-friendly dict.
@@ -70,6 +95,8 @@ def graph_info(path: str, fmt: str | None = None, *, tree_kind: str = "bfs",
     the file has none, ``residuals_at``); ``residuals_out`` receives every constraint's error
     (:func:`residual_csv_lines`).
     """
+    import dataclasses
+
     import numpy as np
 
     from ..energy import energy, residuals
@@ -82,9 +109,13 @@ def graph_info(path: str, fmt: str | None = None, *, tree_kind: str = "bfs",
     # odometry: edges between poses adjacent in id order (dense index = rank of the id)
     en = graph.edge_nodes
     odometry = int(np.count_nonzero(np.abs(en[:, 0] - en[:, 1]) == 1))
+    # the tree holds one pose fixed, its root: with several FIX lines, the first one's pose
+    # (the tree's statistics and initialization; the counts report every FIX line)
+    tree_graph = (graph if graph.fixed_nodes.size <= 1
+                  else dataclasses.replace(graph, fixed_nodes=graph.fixed_nodes[:1]))
     try:
-        tree = build_tree(graph, tree_kind)
-    except GraphError as exc:  # e.g. two FIX lines: the message must name the file
+        tree = build_tree(tree_graph, tree_kind)
+    except GraphError as exc:  # the message must name the file
         raise GraphError(f"{path}: {exc}") from exc
     in_tree = np.zeros(graph.num_edges, bool)
     in_tree[tree.link_index[tree.link_kind == LINK_EDGE]] = True
@@ -95,6 +126,7 @@ def graph_info(path: str, fmt: str | None = None, *, tree_kind: str = "bfs",
     e_tree = energy(graph, *tree_poses)
     res = residuals(graph) if graph.has_estimates else residuals(graph, *tree_poses)
     if residuals_out is not None:
+        _check_finite_residuals(res, graph, path)
         write_atomic(residuals_out, lambda: residual_csv_lines(res))
     return {
         "path": str(path),

@@ -5,14 +5,14 @@ from __future__ import annotations
 import argparse
 import os
 
-from ..errors import HybridPGOError
+from ..errors import GraphError, HybridPGOError
 from ._common import display_poses, phase, read_input
 
 
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..plot import graph_figure, residual_energy_range, save_figure
+    from ..plot import check_drawable, graph_figure, residual_energy_range, save_figure
 
     with phase(f"reading {args.file}"):
         graph = read_input(args.file, args.format)
@@ -34,6 +34,11 @@ def run(args: argparse.Namespace) -> int:
                 f"e.g. {extra[:3].tolist()}): --optimized must be an optimized version of FILE")
         poses.append((opt.rotations, opt.translations))
         titles.append(os.path.basename(args.optimized))
+    for path, (rot, trans) in zip([args.file, args.optimized], poses, strict=False):
+        try:
+            check_drawable(graph, rot, trans)
+        except GraphError as exc:
+            raise GraphError(f"{path}: {exc}") from exc
     with phase(f"drawing {args.output}"):
         # each map on its own colour scale unless --shared-scale (then "redder" compares)
         e_range = (residual_energy_range(graph, poses)

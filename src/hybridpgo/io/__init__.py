@@ -1,4 +1,4 @@
-"""Reading and writing pose-graph files: g2o, TORO and iSAM (DESIGN.md §1); TUM trajectories.
+"""Reading and writing pose-graph files: g2o, TORO and iSAM (docs/conventions.md); TUM trajectories.
 
 >>> from hybridpgo.io import read_graph, write_graph, bundled_path
 >>> g = read_graph(bundled_path("M3500_isam.txt"))        # format detected from the content
@@ -32,6 +32,7 @@ from ._lines import (
     Source,
     check_fix_information,
     load_source,
+    show_token,
     source_from_text,
     write_atomic,
 )
@@ -115,7 +116,8 @@ def _detect(src: Source) -> str:
         return "isam"
     listing = "; ".join(f"{f}: {', '.join(SUPPORTED_TAGS[f])}" for f in FORMATS)
     first = next(iter(src.groups))
-    raise src.error(src.first_line(first), f"cannot detect the file format: tag {first!r} and "
+    raise src.error(src.first_line(first), f"cannot detect the file format: tag "
+                    f"{show_token(first)} and "
                     f"the file's other tags belong to no supported format ({listing})")
 
 

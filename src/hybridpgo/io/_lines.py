@@ -5,7 +5,7 @@ Reading is vectorised per tag, so files of millions of lines read quickly: only 
 line is split off in Python, the lines of each tag are joined and converted by one
 :func:`numpy.loadtxt` call (C speed; per-line token lists would cost ~5x more, mostly in the
 garbage collector).  Only when that fails is the group re-parsed line by line, to name the exact
-line and field (STYLE.md §5: errors read like a compiler's).
+line and field (docs/contributing.md#errors: errors read like a compiler's).
 
 Also here: SE(2) angle helpers; the quaternion and Euler conversions are
 :mod:`hybridpgo.geometry.so3`'s (re-exported for the format modules).
@@ -32,7 +32,13 @@ from ..geometry.so3 import matrix_to_euler_rpy as matrix_to_euler_rpy
 from ..geometry.so3 import matrix_to_quat_xyzw as matrix_to_quat_xyzw
 from ..geometry.so3 import normalize_quaternions as normalize_quaternions
 from ..geometry.so3 import quat_xyzw_to_matrix as quat_xyzw_to_matrix
-from ..graph import MAX_INFORMATION, PoseGraph, lift_information_2d
+from ..graph import (
+    MAX_INFORMATION,
+    PoseGraph,
+    lift_information_2d,
+    pd_problem,
+    positive_definite,
+)
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -61,6 +67,10 @@ FIX_INFORMATION: tuple[str, ...] = ("nearest", "skip")
 #: the nearest (Frobenius norm) symmetric matrix whose eigenvalues are all >= that floor, and its
 #: condition number is at most 1e9.
 NEAREST_SPD_FLOOR = 1e-9
+#: ... and never below this absolute value: a floor of 1e-9 x the largest eigenvalue of a
+#: matrix of subnormal entries (1e-320) underflows to 0, and eigenvalues this far above the
+#: smallest normal float64 (2.2e-308) stay positive through the rounding of the result.
+NEAREST_SPD_MIN = 1e-300
 
 #: Echoed file tokens longer than this are shortened in messages (a million-digit number must
 #: not give a megabyte error line).
@@ -121,8 +131,11 @@ def split_lines(text: str) -> list[str]:
 
     ``str.splitlines`` also breaks at form feeds, vertical tabs, ``\\x1c``-``\\x1e``, U+0085 and
     U+2028/9, which a text editor (and every other tool) shows inside one line: every later line
-    number would be off.
+    number would be off.  A byte-order mark at the start of the text (U+FEFF, which some
+    Windows editors write) is dropped.
     """
+    if text.startswith("\ufeff"):
+        text = text[1:]
     lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
     if lines and lines[-1] == "":
         lines.pop()
@@ -134,6 +147,8 @@ def read_bytes(path: PathLike) -> tuple[str, bytes]:
     name = os.fspath(path)
     if name == STDIO:
         stream = sys.stdin
+        if stream is None:  # started with standard input closed ("<&-")
+            raise FormatError("cannot read: standard input is closed", STDIN_NAME)
         buffer = getattr(stream, "buffer", None)
         try:
             raw = buffer.read() if buffer is not None else stream.read().encode("utf-8")
@@ -469,14 +484,16 @@ def upper_matrix(vals: FloatArray, d: int) -> FloatArray:
 
 def nearest_spd(mats: FloatArray) -> FloatArray:
     """(k, d, d) symmetric -> the nearest (Frobenius) symmetric matrices with eigenvalues >= the
-    floor ``NEAREST_SPD_FLOOR * max |eigenvalue|`` (``NEAREST_SPD_FLOOR`` for a zero matrix).
+    floor ``NEAREST_SPD_FLOOR * max |eigenvalue|`` (``NEAREST_SPD_FLOOR`` for a zero matrix),
+    and at least :data:`NEAREST_SPD_MIN`.
 
     Eigenvalues above the floor and the eigenvectors are kept; the result is exactly symmetric.
     """
     sym = 0.5 * (mats + np.swapaxes(mats, 1, 2))
     lam, vec = np.linalg.eigh(sym)
     scale = np.abs(lam).max(axis=1)
-    floor = np.where(scale > 0.0, NEAREST_SPD_FLOOR * scale, NEAREST_SPD_FLOOR)
+    floor = np.where(scale > 0.0, np.maximum(NEAREST_SPD_FLOOR * scale, NEAREST_SPD_MIN),
+                     NEAREST_SPD_FLOOR)
     lam = np.maximum(lam, floor[:, None])
     out = (vec * lam[:, None, :]) @ np.swapaxes(vec, 1, 2)
     res: FloatArray = 0.5 * (out + np.swapaxes(out, 1, 2))
@@ -494,7 +511,8 @@ def spd_filter(src: Source, mats: FloatArray, line_nos: IntArray, kind: str,
 
     Entries beyond :data:`MAX_INFORMATION` (they would overflow when squared) always raise at
     their line.  Matrices that are not positive definite
-    (smallest eigenvalue not > 0, :func:`hybridpgo.graph.check_information`'s criterion) raise
+    (:func:`hybridpgo.graph.positive_definite`, the criterion of
+    :func:`hybridpgo.graph.check_information`) raise
     at the first such line, with their count, unless ``src.fix_information`` says to project
     them (:func:`nearest_spd`) or to drop them; either is warned about once, with the count.
 
@@ -521,7 +539,9 @@ def spd_filter(src: Source, mats: FloatArray, line_nos: IntArray, kind: str,
                         f"supported (larger values overflow when squared){hint}")
     eig_min = np.concatenate([np.linalg.eigvalsh(mats[i:i + _EIG_CHUNK])[:, 0]
                               for i in range(0, k, _EIG_CHUNK)])  # bounded LAPACK copies
-    bad = np.nonzero(~(eig_min > 0.0))[0]
+    bad = np.nonzero(~np.concatenate([positive_definite(mats[i:i + _EIG_CHUNK],
+                                                        eig_min[i:i + _EIG_CHUNK])
+                                      for i in range(0, k, _EIG_CHUNK)]))[0]
     if bad.size == 0:
         return mats, keep
     bad = bad[np.argsort(line_nos[bad], kind="stable")]
@@ -530,8 +550,8 @@ def spd_filter(src: Source, mats: FloatArray, line_nos: IntArray, kind: str,
     policy = src.fix_information
     if policy is None:
         j = int(bad[0])
-        raise src.error(int(line_nos[j]), f"{what} is not positive definite (smallest "
-                        f"eigenvalue {eig_min[j]:.6g}){hint}; {count} have such information "
+        raise src.error(int(line_nos[j]), f"{what} is not positive definite "
+                        f"({pd_problem(float(eig_min[j]))}){hint}; {count} have such information "
                         f"({lines}); pass {option_hint('fix_information', *FIX_INFORMATION)} "
                         "to project them onto the nearest positive definite matrix or to drop "
                         "them")
@@ -783,7 +803,10 @@ def require_readable_information(graph: PoseGraph, mats: FloatArray, path: str,
             eig_min = np.where(big <= MAX_INFORMATION,
                                np.linalg.eigvalsh(np.where((big <= MAX_INFORMATION)[:, None, None],
                                                            m, 1.0))[:, 0], -np.inf)
-        bad = np.nonzero(~(eig_min > 0.0))[0]
+        finite = np.isfinite(eig_min)
+        ok = np.zeros(m.shape[0], bool)
+        ok[finite] = positive_definite(m[finite], eig_min[finite])
+        bad = np.nonzero(~ok)[0]
         if bad.size:
             k = int(bad[0])
             a, b = graph.node_ids[graph.edge_nodes[k]].tolist()

@@ -1,4 +1,4 @@
-"""Replaying a pose graph as a robot would have produced it (DESIGN.md §11).
+"""Replaying a pose graph as a robot would have produced it (docs/mathematics.md#frames).
 
 Frames come in increasing pose id: frame k brings pose k with every relative constraint
 between k and an earlier pose (its odometry first, then the loop closures) and every GPS
@@ -21,7 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..energy import energy
-from ..errors import GraphError
+from ..errors import GraphError, SolverError
 from ..graph import FloatArray, PoseGraph
 
 IntArray = npt.NDArray[np.int64]
@@ -31,7 +31,8 @@ FrameCallback = Callable[[int, Any, float], None]
 
 @dataclass(frozen=True)
 class Stream:
-    """The frames of a graph (DESIGN §11), as index arrays into the graph's constraints."""
+    """The frames of a graph (docs/mathematics.md#frames), as index arrays into the graph's
+    constraints."""
 
     graph: PoseGraph
     order: IntArray
@@ -75,7 +76,7 @@ class Stream:
 
 
 def make_stream(graph: PoseGraph) -> Stream:
-    """Split ``graph`` into frames (DESIGN §11).
+    """Split ``graph`` into frames (docs/mathematics.md#frames).
 
     A pose's odometry is its edge to the latest earlier pose (normally the previous one).
 
@@ -425,7 +426,8 @@ def replay_isam2(stream: Stream, *, checkpoints: Sequence[int] = (), extra_frame
                  progress: Callable[[int, float], None] | None = None) -> ReplayResult:
     """The same stream through GTSAM's ISAM2, one ``update`` per frame.
 
-    Factors are built from *our* information (DESIGN §1: the tangent order permuted to GTSAM's
+    Factors are built from *our* information (docs/conventions.md: the tangent order permuted to
+    GTSAM's
     (rotation, translation)), so ``2 * error`` is our energy.  The first pose gets a tight prior
     when the graph has no GPS (the gauge our solver also fixes); with GPS it gets a weak prior
     (1e3 m, 1e3 rad), because GTSAM needs a gauge before the readings define one.  A frame's
@@ -506,8 +508,12 @@ def replay_isam2(stream: Stream, *, checkpoints: Sequence[int] = (), extra_frame
                                             g.gps_information[s])))
         c0 = time.process_time()
         t0 = time.perf_counter()
-        isam.update(factors, values)
-        est = calc(p)
+        try:
+            isam.update(factors, values)
+            est = calc(p)
+        except RuntimeError as exc:  # GTSAM's exceptions (an indeterminate system, ...)
+            raise SolverError(f"isam2 stopped at frame {k + 1}: GTSAM: "
+                              f"{_first_sentence(exc)}") from exc
         lat[k] = time.perf_counter() - t0
         cpu[k] = time.process_time() - c0
         spent += lat[k]
@@ -527,16 +533,27 @@ def replay_isam2(stream: Stream, *, checkpoints: Sequence[int] = (), extra_frame
         energies.setdefault(reached, _isam2_energy(stream, isam, reached, est_rot, est_trans))
         extra_frames = 0
     last = int(stream.order[reached - 1])
-    for _ in range(extra_frames):
+    for j in range(extra_frames):
         t0 = time.perf_counter()
-        isam.update()
-        calc(last)
+        try:
+            isam.update()
+            calc(last)
+        except RuntimeError as exc:
+            raise SolverError(f"isam2 stopped at extra frame {j + 1}: GTSAM: "
+                              f"{_first_sentence(exc)}") from exc
         extra_l.append(time.perf_counter() - t0)
         extra_e.append(_isam2_energy(stream, isam, nf, est_rot, est_trans))
     name = "isam2" if reached == nf else f"isam2 (stopped at frame {reached})"
     return ReplayResult(name, lat, cpu, energies, extra_e, extra_l,
                         {"relinearize_skip": relinearize_skip, "factorization": factorization,
                          "frames_reached": reached, "seconds_in_updates": spent})
+
+
+def _first_sentence(exc: BaseException) -> str:
+    """The first sentence of a (GTSAM) exception's message, on one line."""
+    text = " ".join(str(exc).split())
+    end = text.find(". ")
+    return (text[:end + 1] if end >= 0 else text) or type(exc).__name__
 
 
 def _isam2_energy(stream: Stream, isam: Any, frames: int, est_rot: FloatArray,

@@ -70,8 +70,8 @@ import numpy as np
 from ..errors import HybridPGOError, SolverError
 from ..graph import FloatArray, PoseGraph
 from ..initialization import initial_locals
-from ..tree import build_tree, global_poses
-from .config import AutoConfig, Progress, ProgressCallback
+from ..tree import PoseTree, build_tree, global_poses
+from .config import AutoConfig, InitName, Progress, ProgressCallback
 from .gauss_newton import ExactSolver, IterateCallback
 from .hybrid.solver import HybridSolver
 from .result import SolveResult, Status
@@ -211,6 +211,16 @@ def _polish(exact: ExactSolver, cand: _Candidate, progress: ProgressCallback | N
         cand.error = f"polish: {exc}"
         return
     cand.polished = more if done is None else _continue(done, more)
+
+
+def _failure(cand: _Candidate) -> str:
+    """Why a candidate is out: its error, else its energy (never an empty reason)."""
+    if cand.error:
+        return cand.error
+    if cand.polished is not None and cand.cut:
+        return "its polish was cut at the finalists' budget"
+    overflow = "" if math.isfinite(cand.energy) else " (the numbers overflow float64)"
+    return f"energy {cand.energy:.6g}{overflow} at its best poses"
 
 
 def _unswept(cand: _Candidate) -> _Candidate:
@@ -359,6 +369,113 @@ def _certify(exact: ExactSolver, cfg: AutoConfig, win: _Candidate,
     return info, check
 
 
+def _swept_starts(graph: PoseGraph, cfg: AutoConfig, tree: PoseTree, inits: list[InitName],
+                  large: bool, t_origin: float, progress: ProgressCallback | None,
+                  iterate: IterateCallback | None) -> list[_Candidate]:
+    """Every start of ``inits`` computed and swept while the sweeps pay (the large-graph
+    policy: only the first that could be computed)."""
+    cands: list[_Candidate] = []
+    for init in inits:
+        cand = _Candidate(init)
+        t0 = time.perf_counter()
+        try:
+            locals0 = initial_locals(graph, tree, init)
+        except (HybridPGOError, ValueError, np.linalg.LinAlgError, RuntimeError) as exc:
+            cand.error = f"start: {exc}"
+            cands.append(cand)
+            continue
+        cand.start_seconds = time.perf_counter() - t0
+        _sweep_candidate(graph, cfg, cand, tree, locals0, t_origin, progress, iterate)
+        del locals0
+        cands.append(cand)
+        if large and cand.rot is not None and np.isfinite(cand.energy):
+            break  # the large-graph policy: the first start that could be computed
+    return cands
+
+
+def _polish_finalists(exact: ExactSolver, cfg: AutoConfig, finalists: list[_Candidate],
+                      certificate: dict[str, Any] | None, checks: list[_Candidate],
+                      progress: ProgressCallback | None,
+                      iterate: IterateCallback | None
+                      ) -> tuple[list[_Candidate], dict[str, Any] | None]:
+    """Polish the finalists in rank order: the first to convergence, each runner-up within its
+    budget (``finalist_budget``), continued to convergence only if it is then the lowest.
+    ``certificate`` None: the first polished finalist is certified (its check candidate goes
+    to ``checks``), and when it is, no other is polished.  Returns the finalists that were
+    considered and ``stats["certificate"]`` (None when not computed yet)."""
+    best: _Candidate | None = None
+    for k, cand in enumerate(finalists):
+        if best is not None and certificate is None:  # certify the first polished start
+            certificate, check = _certify(exact, cfg, best, progress, iterate)
+            certificate["polished_before"] = k
+            checks.append(check)
+            if certificate["certified"]:
+                return finalists[:k], certificate
+        if best is None or best.polished is None:
+            _polish(exact, cand, progress, cfg.polish.max_iterations, iterate)
+        else:  # a runner-up: a bounded polish, continued only if it is then the lowest
+            budget = min(cfg.polish.max_iterations, max(
+                math.ceil(cfg.finalist_budget * best.polished.iterations),
+                MIN_FINALIST_ITERATIONS))
+            _polish(exact, cand, progress, budget, iterate)
+            pol = cand.polished
+            if (pol is not None and pol.status is Status.MAX_ITERATIONS
+                    and pol.final_energy < best.energy and budget < cfg.polish.max_iterations):
+                _polish(exact, cand, progress, cfg.polish.max_iterations - budget, iterate)
+            elif pol is not None and pol.status is Status.MAX_ITERATIONS:
+                cand.cut = budget < cfg.polish.max_iterations
+        if cand.polished is not None and (best is None or cand.energy < best.energy * (
+                1.0 - _TIE)):
+            best = cand
+    return finalists, certificate
+
+
+def _stats(win: _Candidate, cands: list[_Candidate], ranked: list[_Candidate],
+           finalists: list[_Candidate], polished: list[_Candidate], relax: dict[str, Any],
+           skipped: list[InitName], policy: str, large: bool, certificate: dict[str, Any],
+           checks: list[_Candidate]) -> dict[str, Any]:
+    """The result's ``stats``: the winner, every candidate (``cands``) and the one-line
+    ``reason``."""
+    assert win.polished is not None
+    pol = win.polished
+    others = ", ".join(f"{c.label} {c.energy:.6g}" for c in polished if c is not win)
+    cut = [c.label for c in finalists if c.cut]
+    swept = (f"{win.sweeps} sweep(s) kept of {win.sweeps_run} run" if win.label == win.init
+             else "its certified start (its rotations refined by Newton's method on SE-Sync's "
+             "objective)" if win in checks else "its own poses, no sweeps")
+    reason = (f"{policy}start {win.init}: {swept}, then "
+              f"{pol.iterations} LM iteration(s), {pol.status.value}")
+    if others:
+        reason += f"; other polished start(s): {others}"
+    if relax.get("ran"):
+        reason += "; " + str(relax["summary"])
+    reason += "; " + str(certificate["summary"])
+    if certificate["certified"] and certificate["polished_before"] < len(ranked):
+        reason += ": no other start polished"
+    if cut:
+        reason += (f"; polish of {', '.join(cut)} stopped at its budget above the best "
+                   f"({', '.join(f'{c.energy:.6g}' for c in ranked if c.cut)})")
+    return {
+        "policy": "large" if large else "full",
+        "init": win.init,
+        "start": win.label,
+        "sweeps": win.sweeps,
+        "polish_iterations": pol.iterations,
+        "polish_status": pol.status.value,
+        "energy_after_sweeps": min(win.history),
+        "reason": reason,
+        "candidates": {c.label: c.summary() for c in cands},
+        "skipped_inits": skipped,
+        "finalists": [c.label for c in finalists],
+        "polished_starts": sum(c.polished is not None for c in finalists),
+        "linear_solver": pol.stats.get("linear_solver"),
+        "relaxation": relax,
+        "certificate": certificate,
+        "capped_steps": win.capped,
+        "rejected_steps": win.rejected,
+    }
+
+
 def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
                progress: ProgressCallback | None = None,
                iterate: IterateCallback | None = None) -> SolveResult:
@@ -408,26 +525,11 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     if not inits:
         raise SolverError("no start applies: the file has no vertices; add 'tree' or 'chordal' "
                           "to the starts")
-    cands: list[_Candidate] = []
-    for init in inits:
-        cand = _Candidate(init)
-        t0 = time.perf_counter()
-        try:
-            locals0 = initial_locals(graph, tree, init)
-        except (HybridPGOError, ValueError, np.linalg.LinAlgError, RuntimeError) as exc:
-            cand.error = f"start: {exc}"
-            cands.append(cand)
-            continue
-        cand.start_seconds = time.perf_counter() - t0
-        _sweep_candidate(graph, cfg, cand, tree, locals0, t_origin, progress, iterate)
-        del locals0
-        cands.append(cand)
-        if large and cand.rot is not None and np.isfinite(cand.energy):
-            break  # the large-graph policy: the first start that could be computed
+    cands = _swept_starts(graph, cfg, tree, inits, large, t_origin, progress, iterate)
     usable = [c for c in cands if c.rot is not None and np.isfinite(c.energy)]
     if not usable:
-        raise SolverError("no start gave finite poses: "
-                          + "; ".join(f"{c.init}: {c.error}" for c in cands))
+        raise SolverError("no start gave finite poses and a finite energy: "
+                          + "; ".join(f"{c.init}: {_failure(c)}" for c in cands))
     ranked = sorted(usable, key=lambda c: c.energy)  # stable: ties keep the order of inits
     if cfg.polish_unswept:  # each swept start also as it was: the sweeps may leave its basin
         ranked += sorted((_unswept(c) for c in ranked if c.sweeps), key=lambda c: c.energy)
@@ -435,41 +537,19 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     t_polish = time.perf_counter()
     exact = ExactSolver(graph, cfg.polish)
     why = _certificate_applies(graph, cfg, large)
-    certificate = _not_computed(why) if why else None
     checks: list[_Candidate] = []
-    best: _Candidate | None = None
-    for k, cand in enumerate(finalists):
-        if best is not None and certificate is None:  # certify the first polished start
-            certificate, check = _certify(exact, cfg, best, progress, iterate)
-            certificate["polished_before"] = k
-            checks.append(check)
-            if certificate["certified"]:
-                finalists = finalists[:k]
-                break
-        if best is None or best.polished is None:
-            _polish(exact, cand, progress, cfg.polish.max_iterations, iterate)
-        else:  # a runner-up: a bounded polish, continued only if it is then the lowest
-            budget = min(cfg.polish.max_iterations, max(
-                math.ceil(cfg.finalist_budget * best.polished.iterations),
-                MIN_FINALIST_ITERATIONS))
-            _polish(exact, cand, progress, budget, iterate)
-            pol = cand.polished
-            if (pol is not None and pol.status is Status.MAX_ITERATIONS
-                    and pol.final_energy < best.energy and budget < cfg.polish.max_iterations):
-                _polish(exact, cand, progress, cfg.polish.max_iterations - budget, iterate)
-            elif pol is not None and pol.status is Status.MAX_ITERATIONS:
-                cand.cut = budget < cfg.polish.max_iterations
-        if cand.polished is not None and (best is None or cand.energy < best.energy * (
-                1.0 - _TIE)):
-            best = cand
+    finalists, first = _polish_finalists(exact, cfg, finalists,
+                                         _not_computed(why) if why else None, checks,
+                                         progress, iterate)
     polished = [c for c in finalists if c.polished is not None and not c.cut]
     if not polished:
         raise SolverError("the polish failed from every start: "
-                          + "; ".join(f"{c.label}: {c.error}" for c in finalists))
+                          + "; ".join(f"{c.label}: {_failure(c)}" for c in finalists))
     win = min(polished, key=lambda c: c.energy)
-    if certificate is None or (certificate["computed"] and not certificate["certified"]
-                               and certificate["start"] != win.label):  # certify the winner
-        first = certificate
+    if first is not None and not (first["computed"] and not first["certified"]
+                                  and first["start"] != win.label):
+        certificate = first
+    else:  # certify the winner
         certificate, check = _certify(exact, cfg, win, progress, iterate)
         certificate["polished_before"] = len(finalists)
         checks.append(check)
@@ -496,11 +576,11 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
                 win = relax_cand
     relax_s = time.perf_counter() - t_relax
     if win is relax_cand and certificate["computed"]:  # a new winner: certify it
-        first = certificate
+        before = certificate
         certificate, check = _certify(exact, cfg, win, progress, iterate)
-        certificate["polished_before"] = first["polished_before"]
-        certificate["first"] = {"start": first["start"], "summary": first["summary"]}
-        certificate["seconds"] += first["seconds"]
+        certificate["polished_before"] = before["polished_before"]
+        certificate["first"] = {"start": before["start"], "summary": before["summary"]}
+        certificate["seconds"] += before["seconds"]
         checks.append(check)
         if check.polished is not None and check.polished.status is Status.CONVERGED and (
                 check.energy < win.energy * (1.0 - _TIE)):
@@ -511,42 +591,8 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     offset = win.times[-1]
     history = np.concatenate([win.history, pol.energy_history[1:]])
     times = np.concatenate([win.times, offset + np.asarray(pol.times[1:])])
-    others = ", ".join(f"{c.label} {c.energy:.6g}" for c in polished if c is not win)
-    cut = [c.label for c in finalists if c.cut]
-    swept = (f"{win.sweeps} sweep(s) kept of {win.sweeps_run} run" if win.label == win.init
-             else "its certified start (its rotations refined by Newton's method on SE-Sync's "
-             "objective)" if win in checks else "its own poses, no sweeps")
-    reason = (f"{policy}start {win.init}: {swept}, then "
-              f"{pol.iterations} LM iteration(s), {pol.status.value}")
-    if others:
-        reason += f"; other polished start(s): {others}"
-    if relax.get("ran"):
-        reason += "; " + str(relax["summary"])
-    reason += "; " + str(certificate["summary"])
-    if certificate["certified"] and certificate["polished_before"] < len(ranked):
-        reason += ": no other start polished"
-    if cut:
-        reason += (f"; polish of {', '.join(cut)} stopped at its budget above the best "
-                   f"({', '.join(f'{c.energy:.6g}' for c in ranked if c.cut)})")
-    stats: dict[str, Any] = {
-        "policy": "large" if large else "full",
-        "init": win.init,
-        "start": win.label,
-        "sweeps": win.sweeps,
-        "polish_iterations": pol.iterations,
-        "polish_status": pol.status.value,
-        "energy_after_sweeps": min(win.history),
-        "reason": reason,
-        "candidates": {c.label: c.summary() for c in cands + ranked[len(usable):]},
-        "skipped_inits": skipped,
-        "finalists": [c.label for c in finalists],
-        "polished_starts": sum(c.polished is not None for c in finalists),
-        "linear_solver": pol.stats.get("linear_solver"),
-        "relaxation": relax,
-        "certificate": certificate,
-        "capped_steps": win.capped,
-        "rejected_steps": win.rejected,
-    }
+    stats = _stats(win, cands + ranked[len(usable):], ranked, finalists, polished, relax,
+                   skipped, policy, large, certificate, checks)
     for key in ("robust", "robust_scale", "plain_energy"):
         if key in pol.stats:
             stats[key] = pol.stats[key]

@@ -339,7 +339,9 @@ def _lm_damping(run: _Run, damping: FloatArray, step_sys: FloatArray, e_cur: flo
     predicted = -float(g_sys @ step_sys) + mu * float(step_sys @ (damping * step_sys))
     take = bool(np.isfinite(e_new) and e_new <= e_cur)
     if take:
-        rho = (e_cur - e_new) / predicted if predicted > 0 else 0.0
+        # the gain ratio rho >= 0 enters as min(rho, 1): every rho >= 1 gives the bound
+        # MAX_DECREASE, and (2 rho - 1)^3 of a rho near 1e300 would overflow
+        rho = min((e_cur - e_new) / predicted, 1.0) if predicted > 0 else 0.0
         return take, mu * max(MAX_DECREASE, 1.0 - (2.0 * rho - 1.0) ** 3), 2.0
     return take, mu * nu, nu * 2.0
 
