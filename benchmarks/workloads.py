@@ -611,6 +611,24 @@ from .first_run import run as _first_run  # noqa: E402  (cold first run)
 
 WORKLOADS["first_run"] = _first_run
 
+
+def _linear_backends(ctx: Context) -> Result:
+    from .linear_backends import run
+
+    return run(ctx)
+
+
+WORKLOADS["linear_backends"] = _linear_backends
+
+
+def _certificate(ctx: Context) -> Result:
+    from .certificate import run
+
+    return run(ctx)
+
+
+WORKLOADS["certificate"] = _certificate
+
 from .covariance import run as _covariance_run  # noqa: E402
 
 WORKLOADS["covariance"] = _covariance_run

@@ -13,6 +13,15 @@ def random_rotations(rng: np.random.Generator, k: int, scale: float) -> np.ndarr
     return Rotation.from_rotvec(rng.normal(scale=scale, size=(k, 3))).as_matrix()
 
 
+def planar_rotations(yaw: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotations about z by the angles ``yaw`` (N,)."""
+    rot = np.zeros((yaw.size, 3, 3))
+    rot[:, 0, 0] = rot[:, 1, 1] = np.cos(yaw)
+    rot[:, 1, 0], rot[:, 0, 1] = np.sin(yaw), -np.sin(yaw)
+    rot[:, 2, 2] = 1.0
+    return rot
+
+
 def random_graph(
     rng: np.random.Generator,
     n: int = 8,

@@ -12,6 +12,8 @@ sections at the end; do not edit another section's twins to make a test pass.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import numpy.typing as npt
 import scipy.linalg
@@ -417,3 +419,55 @@ def aggregated_step(jac_blocks: FloatArray, r: FloatArray, bdiag_minus_old: Floa
     x = np.linalg.solve(jd.T @ jd + bd, b.reshape(-1)).reshape(d, 6)
     dm = rate * (g - memory)
     return np.asarray(x, np.float64), memory + dm, memory_sum + dm
+
+
+# ============================================================================================
+# hybridpgo.certificate: SE-Sync's objective and certificate matrix  (tests/test_certificate.py)
+#
+# F = sum_c kappa_c ||R_b - R_a Rm_c||_F^2 + tau_c ||t_b - t_a - R_a tm_c||^2 over arbitrary
+# (d, d) matrices R_i (d = 2: planar, R = [[a, -b], [b, a]] for the complex number a + ib).
+# ============================================================================================
+
+
+def sesync_objective(edges: npt.NDArray[np.integer], rm: FloatArray, tm: FloatArray,
+                     kappa: FloatArray, tau: FloatArray, rot: FloatArray,
+                     trans: FloatArray) -> float:
+    """SE-Sync's F, one term per constraint (rm (M, d, d), tm (M, d), rot (N, d, d))."""
+    f = 0.0
+    for c, (a, b) in enumerate(edges):
+        f += kappa[c] * float(np.sum((rot[b] - rot[a] @ rm[c]) ** 2))
+        f += tau[c] * float(np.sum((trans[b] - trans[a] - rot[a] @ tm[c]) ** 2))
+    return f
+
+
+def dense_quadratic_form(f: Callable[[npt.NDArray[np.complex128]], float], dim: int,
+                         complex_form: bool) -> npt.NDArray[np.complex128]:
+    """The Hermitian M with ``f(v) = v^H M v`` by polarization on unit vectors (a real
+    symmetric M when not ``complex_form``): ``f(e_i + e_j)``, ``f(e_i + i e_j)``."""
+    eye = np.eye(dim, dtype=np.complex128)
+    diag = np.array([f(eye[i]) for i in range(dim)])
+    m = np.diag(diag).astype(np.complex128)
+    for i in range(dim):
+        for j in range(i + 1, dim):
+            re = 0.5 * (f(eye[i] + eye[j]) - diag[i] - diag[j])
+            im = -0.5 * (f(eye[i] + 1j * eye[j]) - diag[i] - diag[j]) if complex_form else 0.0
+            m[i, j] = re + 1j * im
+            m[j, i] = np.conj(m[i, j])
+    return m
+
+
+def schur_certificate(m: npt.NDArray[np.complex128], n: int, d: int, gauge: int,
+                      y: npt.NDArray[np.complex128]) -> npt.NDArray[np.complex128]:
+    """``S = Q - Lambda(Y)``: ``Q`` the Schur complement of the positions (rows 0..n-1, the
+    gauge's removed) in M, ``Lambda`` the Hermitian parts of the (d, d) diagonal blocks of
+    ``Q Y Y^H``."""
+    t = [i for i in range(n) if i != gauge]
+    r = list(range(n, n + d * n))
+    q = m[np.ix_(r, r)] - m[np.ix_(r, t)] @ np.linalg.solve(m[np.ix_(t, t)], m[np.ix_(t, r)])
+    qyy = q @ y @ y.conj().T
+    lam = np.zeros_like(q)
+    for i in range(n):
+        blk = qyy[d * i:d * i + d, d * i:d * i + d]
+        lam[d * i:d * i + d, d * i:d * i + d] = 0.5 * (blk + blk.conj().T)
+    out: npt.NDArray[np.complex128] = q - lam
+    return out

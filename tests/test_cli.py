@@ -704,3 +704,35 @@ def test_runaway_sweeps_and_temperatures_are_refused(capsys: pytest.CaptureFixtu
     code, _, err = run_cli(capsys, "optimize", str(tiny), "-o", str(out), *argv)
     assert code == 2 and message in err
     assert not out.exists()
+
+
+def test_the_parser_and_version_import_no_solver() -> None:
+    """``hybridpgo --version`` and ``--help`` build the parser only: no NumPy, SciPy, Numba or
+    solver module (the choice lists load when a command's help or a value needs them)."""
+    import subprocess
+    import sys
+
+    script = ("import sys\n"
+              "from hybridpgo.cli import main\n"
+              "for argv in (['--version'], ['--help']):\n"
+              "    try:\n"
+              "        main(argv)\n"
+              "    except SystemExit:\n"
+              "        pass\n"
+              "heavy = sorted(m for m in sys.modules if m.split('.')[0] in "
+              "('numpy', 'scipy', 'numba', 'cvxopt') or m.startswith('hybridpgo.solvers.'))\n"
+              "print('HEAVY:' + ','.join(h for h in heavy if h != 'hybridpgo.solvers.config'))\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         check=True).stdout.strip().splitlines()[-1]
+    assert out == "HEAVY:"
+
+
+def test_optimize_summary_names_the_linear_solver(capsys: pytest.CaptureFixture[str],
+                                                  tiny: Path, tmp_path: Path) -> None:
+    """The summary says which sparse factorization ran (CHOLMOD is an optional extra)."""
+    code, out, _ = run_cli(capsys, "optimize", tiny, "-o", tmp_path / "o.g2o", "--solver",
+                           "exact")
+    s = run_json(capsys, "optimize", tiny, "-o", tmp_path / "p.g2o", "--solver", "exact")
+    backend = s["result"]["linear_solver"]
+    assert code == 0 and backend
+    assert f"linear solver {backend}" in out

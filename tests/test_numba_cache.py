@@ -79,3 +79,44 @@ def test_constants_passed_between_kernels_do_not_multiply_specializations() -> N
     assert len(g_kernel.signatures) == 1
     [sig] = g_kernel.signatures
     assert [str(t) for t in sig] == ["float64", "bool", "int64"]
+
+
+CLOSURE_KEYS = """
+import hashlib, importlib, json, pkgutil
+from numba.core.registry import CPUDispatcher
+from numba.core.serialize import dumps
+import hybridpgo
+
+kernels = {}
+for info in pkgutil.walk_packages(hybridpgo.__path__, "hybridpgo."):
+    if info.name.endswith("__main__"):
+        continue
+    try:
+        module = importlib.import_module(info.name)
+    except ImportError:  # an optional extra
+        continue
+    for attr, value in vars(module).items():
+        found = value.items() if isinstance(value, dict) else [(None, value)]
+        for key, disp in found:
+            if isinstance(disp, CPUDispatcher) and disp.py_func.__closure__:
+                kernels[f"{info.name}.{attr}[{key}]"] = disp
+out = {}
+for name, disp in kernels.items():
+    cells = tuple(c.cell_contents for c in disp.py_func.__closure__)
+    out[name] = hashlib.sha256(dumps(cells)).hexdigest()
+print(json.dumps(out))
+"""
+
+
+def test_closure_kernels_have_the_same_cache_key_in_every_process() -> None:
+    """Numba keys a closure's cache entry on the pickle of its cells: a cell holding another
+    kernel pickles differently in every process, so the kernel missed the cache and compiled
+    again in every run (the plain sweep: seconds per ``hybridpgo optimize``)."""
+    import json
+
+    env = dict(os.environ, PYTHONPATH=str(SRC))
+    runs = [json.loads(subprocess.run([sys.executable, "-c", CLOSURE_KEYS], env=env,
+                                      check=True, capture_output=True, text=True).stdout)
+            for _ in range(2)]
+    assert any("_sweep.LOOPS" in name for name in runs[0])
+    assert runs[0] == runs[1]

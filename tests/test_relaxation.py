@@ -1,4 +1,4 @@
-"""The planar rank-restricted relaxation (initialization.PlanarRelaxation) and the default
+"""The planar rank-restricted relaxation (certificate.SyncProblem, planar weights) and the default
 pipeline's relaxation check (AutoConfig.relaxation)."""
 
 from __future__ import annotations
@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 from tolerances import FLOAT64_IDENTITY, OPTIMUM_RELATIVE
 
+from hybridpgo.certificate import SyncProblem
 from hybridpgo.energy import energy
 from hybridpgo.generate import generate_grid
-from hybridpgo.initialization import PlanarRelaxation, planar_relaxation_start
+from hybridpgo.initialization import planar_relaxation_start
 from hybridpgo.solvers import AutoConfig, GaussNewtonConfig, optimize
 from hybridpgo.solvers.auto import _Candidate, _relaxation_check
 from hybridpgo.solvers.gauss_newton import ExactSolver, solve_exact
@@ -57,16 +58,16 @@ def test_cost_and_positions_match_a_dense_twin() -> None:
     graph = _grid().graph
     rng = np.random.default_rng(3)
     z = np.exp(1j * rng.uniform(-np.pi, np.pi, graph.num_nodes))
-    rel = PlanarRelaxation(graph)
+    rel = SyncProblem(graph, weights="planar")
     cost, t = _naive(graph, z)
     assert rel.cost(z[:, None]) == pytest.approx(cost, rel=FLOAT64_IDENTITY * 1e3)
     scale = 1.0 + np.abs(t).max()
-    assert np.abs(rel.positions(z) - t).max() <= FLOAT64_IDENTITY * 1e3 * scale
+    assert np.abs(rel.positions(z[:, None])[:, 0] - t).max() <= FLOAT64_IDENTITY * 1e3 * scale
 
 
 def test_the_riemannian_descent_lowers_the_cost_and_keeps_unit_rows() -> None:
     graph = _grid(rot_sigma=0.2).graph
-    rel = PlanarRelaxation(graph)
+    rel = SyncProblem(graph, weights="planar")
     rng = np.random.default_rng(0)
     y0 = rng.standard_normal((graph.num_nodes, 2)) + 1j * rng.standard_normal(
         (graph.num_nodes, 2))
@@ -113,15 +114,20 @@ def test_relaxation_needs_a_planar_graph_without_gps() -> None:
 
 def test_the_check_agrees_where_the_pipeline_is_right() -> None:
     graph = _grid().graph
-    res = optimize(graph)
+    res = optimize(graph, AutoConfig(certify=False))  # the check runs after every polish
     relax = res.stats["relaxation"]
     assert relax["ran"] and not relax["polished"]
     assert relax["max_angle"] <= AutoConfig().relaxation_angle
     assert "relaxation agrees" in res.stats["reason"]
     assert res.timings["relaxation"] > 0.0
-    off = optimize(graph, AutoConfig(relaxation=False))
+    off = optimize(graph, AutoConfig(relaxation=False, certify=False))
     assert off.stats["relaxation"] == {"ran": False, "why": "off"}
     assert off.final_energy == res.final_energy
+    # by default the winner is certified: the check is skipped, the energy is the same
+    certified = optimize(graph)
+    assert certified.stats["certificate"]["certified"]
+    assert certified.stats["relaxation"] == {"ran": False, "why": "the winner is certified"}
+    assert abs(certified.final_energy - res.final_energy) <= 1e-9 * res.final_energy
 
 
 def test_a_winner_in_another_basin_is_replaced() -> None:

@@ -9,7 +9,7 @@ the lever for reaching the global optimum).  Two linear least-squares problems:
 2. translations: with those rotations fixed, minimize
    sum_c ||t_b - t_a - R_a t_c||^2_{W_c} (+ GPS terms) over the positions.
 
-Both are sparse and solved with one factorization each (:func:`._linear.solve_spd`: a
+Both are sparse and solved with one factorization each (:func:`hybridpgo.linalg.solve_spd`: a
 fill-reducing ordering of the pose graph, then CHOLMOD; the three rows of the rotations share
 one factorization).  ``kappa_c`` is the mean of the
 rotation block's diagonal of the information; ``W_c`` is ``R_a Omega_tt R_a^T``.
@@ -26,6 +26,8 @@ import scipy.sparse as sp
 from .errors import GraphError, SolverError
 from .graph import FloatArray, PoseGraph
 from .tree import LINK_EDGE, LINK_GPS, PoseTree, locals_from_globals
+
+ComplexArray = npt.NDArray[np.complex128]
 
 
 def _project_to_so3(m: FloatArray) -> FloatArray:
@@ -178,162 +180,6 @@ def chordal_initialization(
     return rot, np.ascontiguousarray(t[:, :, 0])
 
 
-# --------------------------------------------------------------------------- planar relaxation
-ComplexArray = npt.NDArray[np.complex128]
-
-
-class PlanarRelaxation:
-    """The planar pose-graph problem in SE-Sync's form (Rosen et al. 2019; complex numbers as in
-    CPL-SLAM, Fan et al. 2020), for a rank-restricted (Burer-Monteiro) relaxation.
-
-    With rotations ``z_i`` (unit complex numbers) and positions ``t_i`` (complex), the chordal
-    cost of a 2D graph is ``sum_c kappa_c |z_b - z_a r_c|^2 + tau_c |t_b - t_a - z_a t_c|^2``
-    (``r_c``, ``t_c``: the measurement; ``kappa_c`` the yaw information, ``tau_c`` the mean of
-    the x and y information: an isotropic model of the translation term).  The positions enter
-    linearly: eliminating them (pose 0's held at 0) leaves ``z^H Q z`` with the Schur complement
-    ``Q = A - B D^-1 B^H`` (D: the weighted position Laplacian, factored once; Q stays implicit,
-    one sparse solve per product).  The relaxation replaces each unit ``z_i`` by a unit row of
-    ``Y`` (n, p) and minimizes ``tr(Y^H Q Y)`` (:meth:`minimize`); :meth:`round` projects back.
-    It is the chordal cost, not the energy E (``Log``-based): an initializer, not a certificate
-    of E's optimum.
-    """
-
-    def __init__(self, graph: PoseGraph) -> None:
-        from .linalg import CscPattern, fill_reducing_order, make_factorizer
-
-        n = graph.num_nodes
-        self.n = n
-        a = graph.edge_nodes[:, 0].astype(np.int64)
-        b = graph.edge_nodes[:, 1].astype(np.int64)
-        rz = graph.edge_rotations[:, 0, 0] + 1j * graph.edge_rotations[:, 1, 0]
-        rz = rz / np.abs(rz)
-        tz = graph.edge_translations[:, 0] + 1j * graph.edge_translations[:, 1]
-        info = graph.edge_information
-        kappa = info[:, 5, 5]
-        tau = 0.5 * (info[:, 0, 0] + info[:, 1, 1])
-        one = np.ones(a.size, np.complex128)
-        # each term w |sum_k c_k x_k|^2 adds w conj(c_p) c_q at (p, q); z: 0..n-1, t: n..2n-1
-        rows: list[npt.NDArray[np.int64]] = []
-        cols: list[npt.NDArray[np.int64]] = []
-        vals: list[ComplexArray] = []
-        for idx, coef, w in (((b, a), (one, -rz), kappa),
-                             ((n + b, n + a, a), (one, -one, -tz), tau)):
-            for p, cp in zip(idx, coef, strict=True):
-                for q, cq in zip(idx, coef, strict=True):
-                    rows.append(p)
-                    cols.append(q)
-                    vals.append(w * np.conj(cp) * cq)
-        m = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                          shape=(2 * n, 2 * n))
-        del rows, cols, vals
-        keep = np.arange(n + 1, 2 * n)  # t_0 = 0: the translation gauge
-        self._a = sp.csr_matrix(m[:n][:, :n])
-        self._b = sp.csr_matrix(m[:n][:, keep])
-        self._bh = sp.csr_matrix(self._b.conj().T)
-        d = sp.csc_matrix(m[keep][:, keep].real)
-        # D in a fill-reducing order, lower triangle, for the package's factorizer
-        coo = sp.triu(d, k=1).tocoo()
-        self._order = fill_reducing_order(n - 1, coo.row.astype(np.int64),
-                                           coo.col.astype(np.int64))
-        inv = np.empty(n - 1, np.int64)
-        inv[self._order] = np.arange(n - 1)
-        perm = sp.csc_matrix(d[inv][:, inv])  # (P D P^T)[i, j] = D[inv[i], inv[j]]
-        low = sp.csc_matrix(sp.tril(perm))
-        low.sort_indices()
-        self._inv = inv
-        self._solver = make_factorizer(CscPattern(low), "auto")
-        self._solver.factor(np.asarray(low.data, np.float64))
-
-    def _dsolve(self, rhs: ComplexArray) -> ComplexArray:
-        """``D^-1 rhs`` for a complex (n-1, k) right-hand side (one real solve, 2k columns)."""
-        k = rhs.shape[1]
-        stacked = np.concatenate([rhs.real, rhs.imag], axis=1)[self._inv]
-        x = np.empty_like(stacked)
-        x[self._inv] = np.asarray(self._solver.solve_factored(stacked)).reshape(stacked.shape)
-        out: ComplexArray = x[:, :k] + 1j * x[:, k:]
-        return out
-
-    def q(self, y: ComplexArray) -> ComplexArray:
-        """``Q y`` for y (n, k)."""
-        out: ComplexArray = self._a @ y - self._b @ self._dsolve(self._bh @ y)
-        return out
-
-    def cost(self, y: ComplexArray) -> float:
-        """``tr(Y^H Q Y)`` (the chordal cost at unit ``z``, optimal positions)."""
-        return float(np.real(np.vdot(y, self.q(y))))
-
-    def positions(self, z: ComplexArray) -> ComplexArray:
-        """The optimal positions for rotations z (pose 0 at 0)."""
-        t = np.zeros(self.n, np.complex128)
-        t[1:] = -self._dsolve(self._bh @ z[:, None])[:, 0]
-        return t
-
-    def minimize(self, y: ComplexArray, max_iterations: int,
-                 gradient_tolerance: float = 1e-6, stall: float = 1e-6
-                 ) -> tuple[ComplexArray, float, int]:
-        """Riemannian conjugate gradients (Polak-Ribiere+, the tangent projection as
-        transport) on the unit rows of Y, from ``y``; each step minimizes the quadratic model
-        along the direction, then normalizes the rows (Armijo backtracking).  Stops when the
-        Riemannian gradient falls below ``gradient_tolerance`` of its first norm, or the cost
-        fell by less than ``stall`` (relative) over 20 iterations.  Returns ``(Y, cost, its)``."""
-        def unit(v: ComplexArray) -> ComplexArray:
-            out: ComplexArray = v / np.linalg.norm(v, axis=1, keepdims=True)
-            return out
-
-        def tangent(at: ComplexArray, v: ComplexArray) -> ComplexArray:
-            out: ComplexArray = v - np.real(np.sum(np.conj(at) * v, axis=1,
-                                                   keepdims=True)) * at
-            return out
-
-        qy = self.q(y)
-        f = float(np.real(np.vdot(y, qy)))
-        grad = tangent(y, 2.0 * qy)
-        g0 = float(np.linalg.norm(grad))
-        direction = -grad
-        past = [f]
-        it = 0
-        while it < max_iterations and g0 > 0.0:
-            it += 1
-            slope = float(np.real(np.vdot(grad, direction)))
-            if slope >= 0.0:
-                direction = -grad
-                slope = -float(np.real(np.vdot(grad, grad)))
-            curv = 2.0 * float(np.real(np.vdot(direction, self.q(direction))))
-            step = -slope / curv if curv > 0.0 else 1.0
-            while True:
-                y_new = unit(y + step * direction)
-                qy_new = self.q(y_new)
-                f_new = float(np.real(np.vdot(y_new, qy_new)))
-                if f_new <= f + 1e-4 * step * slope or step < 1e-14:
-                    break
-                step *= 0.5
-            if not f_new <= f:
-                break
-            grad_new = tangent(y_new, 2.0 * qy_new)
-            moved = tangent(y_new, grad)
-            beta = max(0.0, float(np.real(np.vdot(grad_new, grad_new - moved)))
-                       / float(np.real(np.vdot(grad, grad))))
-            direction = tangent(y_new, direction)
-            direction = -grad_new + beta * direction
-            y, grad, f = y_new, grad_new, f_new
-            past.append(f)
-            if float(np.linalg.norm(grad)) <= gradient_tolerance * g0:
-                break
-            if len(past) > 20 and past[-21] - f <= stall * abs(past[-21]):
-                break
-        return y, f, it
-
-    @staticmethod
-    def round(y: ComplexArray) -> ComplexArray:
-        """Unit complex rotations from Y: its leading left singular vector, entries normalized
-        (the rank-1 projection of ``Y Y^H``; global phase arbitrary)."""
-        u, s, _ = np.linalg.svd(y, full_matrices=False)
-        z = u[:, 0] * s[0]
-        mag = np.abs(z)
-        out: ComplexArray = np.where(mag > 0, z / np.where(mag > 0, mag, 1.0), 1.0 + 0j)
-        return out
-
-
 def planar_relaxation_start(graph: PoseGraph, rotations: FloatArray, translations: FloatArray,
                             *, max_iterations: int = 300, rank: int = 2, seed: int = 0
                             ) -> tuple[FloatArray, FloatArray, dict[str, float]]:
@@ -361,7 +207,9 @@ def planar_relaxation_start(graph: PoseGraph, rotations: FloatArray, translation
 def _planar_relaxation(graph: PoseGraph, rotations: FloatArray, translations: FloatArray,
                        max_iterations: int, rank: int, seed: int,
                        ) -> tuple[FloatArray, FloatArray, dict[str, float]]:
-    rel = PlanarRelaxation(graph)
+    from .certificate import SyncProblem
+
+    rel = SyncProblem(graph, weights="planar")
     n = graph.num_nodes
     z0: ComplexArray = np.asarray(rotations[:, 0, 0] + 1j * rotations[:, 1, 0], np.complex128)
     z0 = z0 / np.abs(z0)
@@ -375,21 +223,9 @@ def _planar_relaxation(graph: PoseGraph, rotations: FloatArray, translations: Fl
     y, value, its = rel.minimize(y0, max_iterations)
     s = np.linalg.svd(y, compute_uv=False)
     z = rel.round(y)
-    t = rel.positions(z)
-    g = int(graph.fixed_nodes[0]) if graph.fixed_nodes.size else 0
-    turn = z0[g] * np.conj(z[g])
-    z = z * turn
-    t0 = translations[g, 0] + 1j * translations[g, 1]
-    t = (t - t[g]) * turn + t0
-    angle = np.abs(np.angle(z * np.conj(z0)))
-    rot = np.zeros((n, 3, 3))
-    rot[:, 0, 0] = rot[:, 1, 1] = z.real
-    rot[:, 1, 0] = z.imag
-    rot[:, 0, 1] = -z.imag
-    rot[:, 2, 2] = 1.0
-    trans = np.zeros((n, 3))
-    trans[:, 0], trans[:, 1] = t.real, t.imag
-    info = {"value": value, "rounded_value": rel.cost(z[:, None]), "start_value": start_value,
+    rot, trans = rel.poses(z, (rotations, translations))
+    angle = np.abs(np.angle(rel.to_y(rot)[:, 0] * np.conj(z0)))
+    info = {"value": value, "rounded_value": rel.cost(z), "start_value": start_value,
             "iterations": float(its), "max_angle": float(angle.max()),
             "second_singular_value": float(s[1] / s[0]) if s.size > 1 and s[0] > 0 else 0.0}
     return rot, trans, info

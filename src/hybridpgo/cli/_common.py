@@ -37,8 +37,12 @@ class LazyChoices:
 
     Used for lists that live in modules the CLI imports only after parsing (city presets).
     When the module cannot be imported, every value is accepted here and the command itself
-    reports the problem.
+    reports the problem.  While :attr:`building` is set (the parser is being built: argparse
+    formats each argument once to check its metavar) nothing is loaded.
     """
+
+    building = False
+    """True while ``build_parser`` runs."""
 
     def __init__(self, load: Callable[[], Sequence[str]]) -> None:
         self._load = load
@@ -57,6 +61,8 @@ class LazyChoices:
         return True if values is None else item in values
 
     def __iter__(self) -> Iterator[str]:
+        if LazyChoices.building and self._values is None:
+            return iter(())
         return iter(self._get() or [])
 
     def __len__(self) -> int:

@@ -222,7 +222,18 @@ def _add_generate_common(p: argparse.ArgumentParser, kind: str) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The ``hybridpgo`` argument parser; each subcommand sets ``command`` (its module name)."""
+    """The ``hybridpgo`` argument parser; each subcommand sets ``command`` (its module name).
+
+    Building it imports no solver, reader or Numba kernel: choice lists load when a value is
+    checked or a command's help is shown (:class:`._common.LazyChoices`)."""
+    LazyChoices.building = True
+    try:
+        return _build_parser()
+    finally:
+        LazyChoices.building = False
+
+
+def _build_parser() -> argparse.ArgumentParser:
     from .. import __version__
 
     parser = argparse.ArgumentParser(

@@ -425,7 +425,9 @@ def print_summary(s: dict[str, Any]) -> None:
                   f"{inp['relative_edges']} relative constraints, {inp['gps']} GPS)"),
         ("solver", f"{r['method']}, init {s['init']}"
                    + (f", {r['step']} step" if "step" in r else "")
-                   + (" (chosen by the pipeline)" if s["solver"] == "auto" else "")),
+                   + (" (chosen by the pipeline)" if s["solver"] == "auto" else "")
+                   + (f"; linear solver {r['linear_solver']}" if r.get("linear_solver")
+                      else "")),
         ("iterations", f"{iters}: {r['message']}"),
         ("energy before", fmt_energy(s["energy_before"], nc)),
     ]
@@ -440,6 +442,8 @@ def print_summary(s: dict[str, Any]) -> None:
     rows += [
         ("energy after", fmt_energy(s["energy_after"], nc)),
     ]
+    if isinstance(r.get("certificate"), dict):
+        rows.append(("certificate", str(r["certificate"]["summary"])))
     if "plain_energy" in r:
         rows.append(("plain energy", fmt_energy(r["plain_energy"], nc) + " after (least "
                                      "squares, no kernel)"))

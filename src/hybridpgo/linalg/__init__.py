@@ -9,6 +9,7 @@ the block Cholesky of :mod:`._block_cholesky` for sparse factors of 6x6 blocks.
 from ._block_cholesky import BlockCholesky as BlockCholesky
 from ._factor import CscPattern as CscPattern
 from ._factor import NotPositiveDefinite as NotPositiveDefinite
+from ._factor import SparseSPD as SparseSPD
 from ._factor import SymmetricPattern as SymmetricPattern
 from ._factor import check_pivots as check_pivots
 from ._factor import cholmod_available as cholmod_available
@@ -21,6 +22,7 @@ __all__ = [
     "BlockCholesky",
     "CscPattern",
     "NotPositiveDefinite",
+    "SparseSPD",
     "SymmetricPattern",
     "check_pivots",
     "cholmod_available",

@@ -5,8 +5,9 @@ pattern of its *lower triangle*, rows increasing within each column (so each col
 its diagonal entry), as :class:`hybridpgo.solvers.gauss_newton` assembles it:
 
 ``_Cholmod`` (``linear_solver="cholmod"``)
-    SuiteSparse CHOLMOD through :mod:`cvxopt.cholmod` (a runtime dependency: manylinux, macOS and
-    Windows wheels bundle CHOLMOD and OpenBLAS, nothing to compile).  Supernodal ``L L^T``; the
+    SuiteSparse CHOLMOD through :mod:`cvxopt.cholmod` (GPL-3.0, the optional extra
+    ``hybridpgo[cholmod]``: manylinux, macOS and Windows wheels bundle CHOLMOD and OpenBLAS,
+    nothing to compile; used whenever cvxopt imports).  Supernodal ``L L^T``; the
     symbolic analysis is done once in the constructor, each :meth:`factor` is a numeric
     factorization into the same factor object.  Measured on paris2 with GPS (251 742 unknowns,
     5.5 M nonzeros, 2 cores shared with other jobs): symbolic 0.27-0.48 s once, numeric
@@ -19,8 +20,7 @@ its diagonal entry), as :class:`hybridpgo.solvers.gauss_newton` assembles it:
     SciPy's SuperLU on the pre-ordered matrix (natural column order, symmetric mode, diagonal
     pivots).  A full LU (no BLAS-3 supernodes), 2-3x slower than CHOLMOD, but it no longer
     collapses on dense loop closures now that the pre-ordering is AMD: paris2 with GPS 1.3-2.1 s
-    per factorization, against > 600 s (time limit) with SuperLU's block MMD ordering, the old
-    default (108 s on a quiet machine in the issue's measurement).
+    per factorization, against > 600 s (time limit) with SuperLU's own block MMD ordering.
 
 The fill-reducing ordering (:func:`fill_reducing_order`) is computed once per solve on the 6x6
 *block* graph (36x smaller than A): AMD from :mod:`cvxopt.amd` (15 ms on paris2's 42k blocks), or
@@ -224,6 +224,12 @@ class _SuperLU(Factorizer):
             raise SolverError(f"the normal equations are singular ({exc}); is the gauge fixed?"
                               ) from exc
         self._diagonal = values[p.diag_index]
+        # With diagonal pivots U = D L^T: A is positive definite iff every pivot is > 0
+        # (Sylvester), as CHOLMOD's L L^T tells; an off-diagonal pivot means it is not.
+        pivots = self._lu.U.diagonal()
+        if not (np.all(pivots > 0.0) and np.array_equal(self._lu.perm_r, np.arange(p.dim))):
+            bad = int(np.argmax(~(pivots > 0.0)))
+            raise not_positive_definite(f"non-positive pivot in column {bad}")
 
     def check(self) -> None:
         """Raise SolverError when the last factored matrix is singular to rounding."""
@@ -378,8 +384,9 @@ def make_factorizer(pattern: SymmetricPattern, backend: str) -> _SuperLU | _Chol
     """The factorizer for ``linear_solver`` (see :data:`config.LINEAR_SOLVERS`)."""
     if backend == "cholmod" or (backend == "auto" and cholmod_available()):
         if not cholmod_available():
-            raise SolverError("linear_solver='cholmod' needs cvxopt (pip install cvxopt; its "
-                              "wheels bundle SuiteSparse's CHOLMOD)")
+            raise SolverError("linear_solver='cholmod' needs cvxopt (pip install "
+                              "'hybridpgo[cholmod]', or pip install cvxopt: its wheels bundle "
+                              "SuiteSparse's CHOLMOD)")
         return _Cholmod(pattern)
     return _SuperLU(pattern)
 
@@ -397,40 +404,117 @@ class CscPattern:
         return self.indptr[:-1]
 
 
+class SparseSPD:
+    """A sparse symmetric matrix ``A`` prepared for factorizations of ``A + diag(shift)``.
+
+    The unknowns come in blocks of ``block`` (a pose's 3 or 6 entries): they are permuted once
+    by a fill-reducing ordering of the block graph (:func:`fill_reducing_order`) and the
+    factorizer (CHOLMOD when cvxopt is available, else SuperLU) analyzes the pattern once;
+    each :meth:`factor` is then one numeric factorization, of ``A``'s values or of new values
+    on the same pattern.  Every diagonal entry of ``A`` must be stored (as it is for a matrix
+    whose diagonal is positive).
+    """
+
+    def __init__(self, a: sp.spmatrix, block: int = 1) -> None:
+        if not sp.issparse(a) or not a.has_canonical_format:
+            raise ValueError("SparseSPD needs a sparse matrix in canonical format (sorted "
+                             "indices, no duplicates)")
+        dim = int(a.shape[0])
+        self.dim = dim
+        self.nnz = int(a.data.size)
+        if a.format == "bsr":  # the block graph is the matrix's own block structure
+            block = int(a.blocksize[0])
+            nb = dim // block
+            br = np.repeat(np.arange(nb, dtype=np.int64), np.diff(a.indptr))
+            bc = np.asarray(a.indices, np.int64)
+            lower = br > bc
+            rows, cols = br[lower], bc[lower]
+        else:
+            coo = sp.coo_matrix(a)
+            nb = dim // block
+            br = coo.row.astype(np.int64) // block
+            bc = coo.col.astype(np.int64) // block
+            del coo
+            lower = br > bc
+            if block == 1:  # canonical: every pair once already
+                rows, cols = br[lower], bc[lower]
+            else:
+                key = np.unique(bc[lower] * nb + br[lower])  # each block pair once
+                rows, cols = key % nb, key // nb
+        del br, bc, lower
+        new_block = fill_reducing_order(nb, rows, cols)
+        del rows, cols
+        self._new_pos = (block * new_block[:, None]
+                         + np.arange(block, dtype=np.int64)[None, :]).ravel()
+        self._old_at = np.empty(dim, np.int64)
+        self._old_at[self._new_pos] = np.arange(dim)
+        # the permuted lower triangle of a matrix of entry numbers: where each value goes
+        ids = a.copy()
+        ids.data = np.arange(1, self.nnz + 1, dtype=np.float64).reshape(a.data.shape)
+        low = sp.tril(sp.csc_matrix(ids)[self._old_at][:, self._old_at], format="csc")
+        low.sort_indices()
+        self._source = np.asarray(low.data, np.int64) - 1
+        self._values = np.asarray(a.data, np.float64).ravel().copy()
+        pattern = CscPattern(low)
+        del low, ids
+        self._diag = pattern.diag_index
+        self._factorizer = make_factorizer(pattern, "auto") if dim else None
+
+    @property
+    def backend(self) -> str:
+        """The factorizer's name (``"cholmod"`` or ``"splu"``)."""
+        return "" if self._factorizer is None else str(self._factorizer.name)
+
+    def factor(self, shift: FloatArray | float = 0.0, check: bool = False,
+               values: FloatArray | None = None) -> None:
+        """Factor ``A + diag(shift)`` (``shift``: a scalar or one entry per unknown).
+
+        ``values``: new stored entries of A, in the order of ``A.data.ravel()`` of the matrix
+        given at construction (any sparse format, canonical: sorted indices, no duplicates;
+        BSR: its blocks are the unknowns' blocks).
+
+        Raises
+        ------
+        NotPositiveDefinite
+            A pivot is not positive: the shifted matrix is not positive definite.
+        SolverError
+            With ``check``: the matrix is singular to rounding (a tiny pivot).
+        """
+        if self._factorizer is None:
+            return
+        src = self._values if values is None else np.asarray(values, np.float64)
+        vals = src[self._source]
+        vals[self._diag] += np.broadcast_to(np.asarray(shift, np.float64), (self.dim,))[
+            self._old_at]
+        self._factorizer.factor(vals)
+        if check:
+            self._factorizer.check()
+
+    def solve(self, rhs: FloatArray) -> FloatArray:
+        """``(A + diag(shift))^-1 rhs`` with the last factorization (rhs: (dim,) or (dim, k))."""
+        if self._factorizer is None:
+            return np.zeros_like(rhs, dtype=np.float64)
+        x = self._factorizer.solve_factored(np.asarray(rhs, np.float64)[self._old_at])
+        return np.asarray(np.asarray(x).reshape(rhs.shape)[self._new_pos], np.float64)
+
+
 def solve_spd(a: sp.spmatrix, rhs: FloatArray, block: int = 1) -> FloatArray:
     """Solve ``A x = rhs`` once for a sparse SPD ``A`` (rhs: (dim,) or (dim, k)).
 
     The unknowns come in blocks of ``block`` (a pose's 3 or 6 entries): they are permuted by a
-    fill-reducing ordering of the block graph (:func:`fill_reducing_order`), then factored by
-    CHOLMOD when cvxopt is available (else SuperLU), one factorization for every right-hand side.
+    fill-reducing ordering of the block graph (:class:`SparseSPD`), then factored by CHOLMOD
+    when cvxopt is available (else SuperLU), one factorization for every right-hand side.
 
     Raises
     ------
     SolverError
         ``A`` is not positive definite, or singular to rounding.
     """
-    csc = sp.csc_matrix(a)
-    dim = int(csc.shape[0])
-    if dim == 0:
+    csr = sp.csr_matrix(a, copy=True)
+    csr.sum_duplicates()
+    csr.sort_indices()
+    spd = SparseSPD(csr, block)
+    if spd.dim == 0:
         return np.zeros_like(rhs, dtype=np.float64)
-    coo = csc.tocoo()
-    nb = dim // block
-    br = coo.row.astype(np.int64) // block
-    bc = coo.col.astype(np.int64) // block
-    del coo
-    lower = br > bc
-    key = np.unique(bc[lower] * nb + br[lower])  # each block pair once (block^2 fewer)
-    del br, bc, lower
-    new_block = fill_reducing_order(nb, key % nb, key // nb)
-    del key
-    new_pos = (block * new_block[:, None] + np.arange(block, dtype=np.int64)[None, :]).ravel()
-    old_at = np.empty(dim, np.int64)
-    old_at[new_pos] = np.arange(dim)
-    low = sp.tril(csc[old_at][:, old_at], format="csc")
-    del csc
-    low.sort_indices()
-    pattern = CscPattern(low)
-    factorizer = make_factorizer(pattern, "auto")
-    x = factorizer.solve(np.asarray(low.data, np.float64), np.asarray(rhs, np.float64)[old_at],
-                         check=True)
-    return np.asarray(x[new_pos], np.float64)
+    spd.factor(check=True)
+    return spd.solve(rhs)

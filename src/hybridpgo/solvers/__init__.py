@@ -1,30 +1,60 @@
 """Solvers: the default pipeline (auto), the hybrid Hessian method, the exact sparse GN/LM
-solver and the TORO-style baseline."""
+solver and the TORO-style baseline.
+
+The options (:mod:`.config`) load with this package; the results, the solvers and their
+Numba kernels (``SolveResult``, ``Status``, ``HybridSolver``, ``solve_hybrid``, ``ToroConfig``,
+``TREES``, ``SolverConfig``) load on first use, so that the command line's parser and
+``--help`` import neither NumPy nor Numba.
+"""
 
 from __future__ import annotations
 
-from typing import Any
+import importlib
+from typing import TYPE_CHECKING, Any, TypeAlias
 
-from ..graph import PoseGraph
 from .config import TREE_NAMES
 from .config import AutoConfig as AutoConfig
 from .config import GaussNewtonConfig as GaussNewtonConfig
 from .config import HybridConfig as HybridConfig
 from .config import Progress as Progress
 from .config import default_init as default_init
-from .hybrid import HybridSolver as HybridSolver
-from .hybrid import solve_hybrid as solve_hybrid
-from .result import SolveResult as SolveResult
-from .result import Status as Status
-from .toro import TREES as _TORO_TREES
-from .toro import ToroConfig as ToroConfig
+
+if TYPE_CHECKING:
+    from ..graph import PoseGraph
+    from .hybrid import HybridSolver as HybridSolver
+    from .hybrid import solve_hybrid as solve_hybrid
+    from .result import SolveResult as SolveResult
+    from .result import Status as Status
+    from .toro import ToroConfig as ToroConfig
+
+    SolverConfig: TypeAlias = AutoConfig | HybridConfig | GaussNewtonConfig | ToroConfig
+    TREES: tuple[str, ...]
 
 #: Solver names; the first is the default of :func:`optimize` and ``hybridpgo optimize``.
 METHODS = ("auto", "hybrid", "exact", "toro")
-#: Every tree name some solver accepts (the CLI's --tree choices).
-TREES: tuple[str, ...] = tuple(dict.fromkeys(TREE_NAMES + _TORO_TREES))
 
-SolverConfig = AutoConfig | HybridConfig | GaussNewtonConfig | ToroConfig
+#: Names loaded on first use: name -> (module, attribute).
+_LAZY = {"HybridSolver": (".hybrid", "HybridSolver"), "solve_hybrid": (".hybrid", "solve_hybrid"),
+         "ToroConfig": (".toro", "ToroConfig"), "SolveResult": (".result", "SolveResult"),
+         "Status": (".result", "Status")}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        module, attr = _LAZY[name]
+        value = getattr(importlib.import_module(module, __name__), attr)
+    elif name == "TREES":  # every tree name some solver accepts (the CLI's --tree choices)
+        from .toro import TREES as toro_trees
+
+        value = tuple(dict.fromkeys(TREE_NAMES + toro_trees))
+    elif name == "SolverConfig":
+        from .toro import ToroConfig
+
+        value = AutoConfig | HybridConfig | GaussNewtonConfig | ToroConfig
+    else:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    globals()[name] = value
+    return value
 
 
 def config_for(method: str, **options: Any) -> SolverConfig:
@@ -46,6 +76,8 @@ def config_for(method: str, **options: Any) -> SolverConfig:
     if method == "exact":
         return GaussNewtonConfig(**opts)
     if method == "toro":
+        from .toro import ToroConfig
+
         if "sweeps" in opts:
             opts["iterations"] = opts.pop("sweeps")
         return ToroConfig(**opts)
@@ -71,6 +103,8 @@ def option_names(method: str) -> list[str]:
         return [f.name for f in fields(GaussNewtonConfig) if f.name != "method"] + [
             "init", "tree"]
     if method == "toro":
+        from .toro import ToroConfig
+
         return [f.name for f in fields(ToroConfig)] + ["sweeps"]
     raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
 
@@ -107,6 +141,8 @@ def optimize(graph: PoseGraph, config: SolverConfig | str = "auto", *,
     -------
     SolveResult
     """
+    from .toro import ToroConfig
+
     if isinstance(config, str):
         if config != "exact":
             options.update({k: v for k, v in (("init", init), ("tree", tree)) if v is not None})
@@ -126,6 +162,8 @@ def optimize(graph: PoseGraph, config: SolverConfig | str = "auto", *,
 
         return solve_auto(graph, config, progress=progress, iterate=iterate)
     if isinstance(config, HybridConfig):
+        from .hybrid import solve_hybrid
+
         return solve_hybrid(graph, config, progress=progress, iterate=iterate)
     if isinstance(config, ToroConfig):
         if iterate is not None:

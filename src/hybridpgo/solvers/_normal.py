@@ -151,7 +151,7 @@ class System:
     """The symmetric system actually factored: all of H, or its (x, y, yaw) rows/columns.
 
     Stored as its lower triangle in CSC form, rows increasing in each column (so the diagonal
-    entry comes first): the layout of :class:`._linear.SymmetricPattern`.
+    entry comes first): the layout of :class:`hybridpgo.linalg.SymmetricPattern`.
     """
 
     indptr: Int64Array  # CSC pattern of the lower triangle of the (dim, dim) system matrix

@@ -15,7 +15,8 @@ solver is named (``--solver auto``).  The paper's pure method stays ``--solver h
    first), then each swept start as it was (``polish_unswept``: sweeps that pay can still carry
    a start out of the optimum's basin).  The first ``finalists`` (default: all) are polished
    with Levenberg-Marquardt to convergence (``energy_tolerance``); the lowest polished energy
-   wins (ties: the earlier candidate).  Polishing more than one start is the guard against
+   wins (ties: the earlier candidate); a certified first finalist (5) stops the polish
+   there.  Polishing more than one start is the guard against
    local minima (benchmarks/auto.py measures every case: on ``sphere_bignoise`` the tree
    start's sweeps and polish end 13% above the minimum the chordal start reaches; on M3500
    with 20 degrees of added yaw noise only LM from the file's own vertices reaches the
@@ -33,10 +34,23 @@ solver is named (``--solver auto``).  The paper's pure method stays ``--solver h
    lower energy wins (``stats["relaxation"]``).  It is a check of the chordal cost, not a
    certificate of E's global optimum.
 
+5. **Certificate** (``AutoConfig.certify``; graphs SE-Sync's model describes: no GPS, no
+   robust kernel, at most one FIX node): the first polished finalist is certified
+   (:func:`hybridpgo.certificate.certify`: SE-Sync's objective refined from its rotations by
+   Newton's method, its global minimum certified by the smallest eigenvalue of the
+   certificate matrix, and LM from that certified start ends at the same energy).  When it is,
+   the other finalists are not polished and the relaxation check (4) is skipped; when LM from
+   the certified start converges lower, that polish is the result.  Otherwise the other
+   finalists are polished as in 3 and the winner is certified.  ``stats["certificate"]``:
+   ``certified``, ``summary`` ("certified global optimum (gap ≤ ...)" or "not certified ..."),
+   ``lambda_min``, ``relative_gap``, ``objective`` (SE-Sync's), ``seconds``, or ``why`` it
+   was not computed; ``stats["polished_starts"]`` counts the finalists polished.
+
 **Large graphs** (``AutoConfig.large_poses``, default 200 000 poses and more): every start,
 sweep and polish costs seconds to minutes, so only the first start of ``large_inits`` that can
 be computed is used, with at most ``large_max_sweeps`` sweeps and one polish (no runner-up, no
-unswept twin); ``stats["policy"]`` is ``"large"`` (else ``"full"``) and the reason says so.
+unswept twin, no certificate); ``stats["policy"]`` is ``"large"`` (else ``"full"``) and the
+reason says so.
 benchmarks/scale.py measures what this costs against the full policy on a 100k-pose city.
 
 The result's ``status`` is the winning polish's; ``stats`` name the start (``init``), the
@@ -297,6 +311,64 @@ def _relaxation_check(exact: ExactSolver, cfg: AutoConfig, large: bool, win: _Ca
     return out
 
 
+def _certificate_applies(graph: PoseGraph, cfg: AutoConfig, large: bool) -> str:
+    """Why the certificate is not computed ("" when it is)."""
+    if not cfg.certify:
+        return "off"
+    if large:
+        return "large-graph policy"
+    from ..certificate import not_applicable
+
+    return not_applicable(graph, cfg.robust)
+
+
+def _not_computed(why: str) -> dict[str, Any]:
+    """``stats["certificate"]`` when no certificate was computed."""
+    return {"computed": False, "certified": False, "summary": f"not certified: {why}",
+            "why": why, "seconds": 0.0}
+
+
+def _certify(exact: ExactSolver, cfg: AutoConfig, win: _Candidate,
+             progress: ProgressCallback | None,
+             iterate: IterateCallback | None) -> tuple[dict[str, Any], _Candidate]:
+    """:func:`hybridpgo.certificate.certify` of a polished candidate, the check's polish run
+    by the pipeline's exact solver.  Returns ``stats["certificate"]`` and the certified start's
+    candidate (polished when the certificate of F held)."""
+    from ..certificate import certify
+
+    assert win.polished is not None
+    check = _Candidate(win.init, "certified start")
+
+    def polish(rot: FloatArray, trans: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+        from ..energy import robust_energy
+
+        check.rot, check.trans = check.start = rot, trans
+        check.history = [robust_energy(exact.graph, rot, trans)[0]]
+        check.times = [win.times[-1]]
+        _polish(exact, check, progress, cfg.polish.max_iterations, iterate)
+        if check.polished is None:
+            raise SolverError(check.error)
+        return check.polished.rotations, check.polished.translations, check.polished.final_energy
+
+    cert = certify(exact.graph, win.polished.rotations, win.polished.translations,
+                   energy=win.energy, polish=polish)
+    info: dict[str, Any] = {
+        "computed": True, "certified": bool(cert.certified), "summary": cert.summary(),
+        "start": win.label, "lambda_min": float(cert.lambda_min), "gap": float(cert.gap),
+        "relative_gap": float(cert.relative_gap), "objective": float(cert.objective),
+        "seconds": float(cert.seconds), "reason": cert.reason,
+        **{k: float(v) for k, v in cert.stats.items()}}
+    if (not cert.certified and np.isfinite(cert.gap) and check.polished is not None
+            and check.polished.status is Status.CONVERGED
+            and check.energy < win.energy * (1.0 - _TIE)):
+        # F's minimum is certified and LM from there converges lower: that polish is the
+        # solution, certified by construction (the polish from the certified start)
+        info.update(certified=True, start=check.label, summary=(
+            f"certified global optimum (gap ≤ {cert.relative_gap:.1e} relative)"),
+            reason=f"{cert.reason}; its polish ends below {win.label}'s and is the solution")
+    return info, check
+
+
 def _swept_starts(graph: PoseGraph, cfg: AutoConfig, tree: PoseTree, inits: list[InitName],
                   large: bool, t_origin: float, progress: ProgressCallback | None,
                   iterate: IterateCallback | None) -> list[_Candidate]:
@@ -322,12 +394,23 @@ def _swept_starts(graph: PoseGraph, cfg: AutoConfig, tree: PoseTree, inits: list
 
 
 def _polish_finalists(exact: ExactSolver, cfg: AutoConfig, finalists: list[_Candidate],
+                      certificate: dict[str, Any] | None, checks: list[_Candidate],
                       progress: ProgressCallback | None,
-                      iterate: IterateCallback | None) -> None:
+                      iterate: IterateCallback | None
+                      ) -> tuple[list[_Candidate], dict[str, Any] | None]:
     """Polish the finalists in rank order: the first to convergence, each runner-up within its
-    budget (``finalist_budget``), continued to convergence only if it is then the lowest."""
+    budget (``finalist_budget``), continued to convergence only if it is then the lowest.
+    ``certificate`` None: the first polished finalist is certified (its check candidate goes
+    to ``checks``), and when it is, no other is polished.  Returns the finalists that were
+    considered and ``stats["certificate"]`` (None when not computed yet)."""
     best: _Candidate | None = None
-    for cand in finalists:
+    for k, cand in enumerate(finalists):
+        if best is not None and certificate is None:  # certify the first polished start
+            certificate, check = _certify(exact, cfg, best, progress, iterate)
+            certificate["polished_before"] = k
+            checks.append(check)
+            if certificate["certified"]:
+                return finalists[:k], certificate
         if best is None or best.polished is None:
             _polish(exact, cand, progress, cfg.polish.max_iterations, iterate)
         else:  # a runner-up: a bounded polish, continued only if it is then the lowest
@@ -344,11 +427,13 @@ def _polish_finalists(exact: ExactSolver, cfg: AutoConfig, finalists: list[_Cand
         if cand.polished is not None and (best is None or cand.energy < best.energy * (
                 1.0 - _TIE)):
             best = cand
+    return finalists, certificate
 
 
 def _stats(win: _Candidate, cands: list[_Candidate], ranked: list[_Candidate],
            finalists: list[_Candidate], polished: list[_Candidate], relax: dict[str, Any],
-           skipped: list[InitName], policy: str, large: bool) -> dict[str, Any]:
+           skipped: list[InitName], policy: str, large: bool, certificate: dict[str, Any],
+           checks: list[_Candidate]) -> dict[str, Any]:
     """The result's ``stats``: the winner, every candidate (``cands``) and the one-line
     ``reason``."""
     assert win.polished is not None
@@ -356,13 +441,17 @@ def _stats(win: _Candidate, cands: list[_Candidate], ranked: list[_Candidate],
     others = ", ".join(f"{c.label} {c.energy:.6g}" for c in polished if c is not win)
     cut = [c.label for c in finalists if c.cut]
     swept = (f"{win.sweeps} sweep(s) kept of {win.sweeps_run} run" if win.label == win.init
-             else "its own poses, no sweeps")
+             else "its certified start (its rotations refined by Newton's method on SE-Sync's "
+             "objective)" if win in checks else "its own poses, no sweeps")
     reason = (f"{policy}start {win.init}: {swept}, then "
               f"{pol.iterations} LM iteration(s), {pol.status.value}")
     if others:
         reason += f"; other polished start(s): {others}"
     if relax.get("ran"):
         reason += "; " + str(relax["summary"])
+    reason += "; " + str(certificate["summary"])
+    if certificate["certified"] and certificate["polished_before"] < len(ranked):
+        reason += ": no other start polished"
     if cut:
         reason += (f"; polish of {', '.join(cut)} stopped at its budget above the best "
                    f"({', '.join(f'{c.energy:.6g}' for c in ranked if c.cut)})")
@@ -378,8 +467,10 @@ def _stats(win: _Candidate, cands: list[_Candidate], ranked: list[_Candidate],
         "candidates": {c.label: c.summary() for c in cands},
         "skipped_inits": skipped,
         "finalists": [c.label for c in finalists],
+        "polished_starts": sum(c.polished is not None for c in finalists),
         "linear_solver": pol.stats.get("linear_solver"),
         "relaxation": relax,
+        "certificate": certificate,
         "capped_steps": win.capped,
         "rejected_steps": win.rejected,
     }
@@ -445,15 +536,37 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     finalists = ranked[:cfg.finalists] if cfg.finalists is not None else ranked
     t_polish = time.perf_counter()
     exact = ExactSolver(graph, cfg.polish)
-    _polish_finalists(exact, cfg, finalists, progress, iterate)
-    polish_s = time.perf_counter() - t_polish
+    why = _certificate_applies(graph, cfg, large)
+    checks: list[_Candidate] = []
+    finalists, first = _polish_finalists(exact, cfg, finalists,
+                                         _not_computed(why) if why else None, checks,
+                                         progress, iterate)
     polished = [c for c in finalists if c.polished is not None and not c.cut]
     if not polished:
         raise SolverError("the polish failed from every start: "
                           + "; ".join(f"{c.label}: {_failure(c)}" for c in finalists))
     win = min(polished, key=lambda c: c.energy)
+    if first is not None and not (first["computed"] and not first["certified"]
+                                  and first["start"] != win.label):
+        certificate = first
+    else:  # certify the winner
+        certificate, check = _certify(exact, cfg, win, progress, iterate)
+        certificate["polished_before"] = len(finalists)
+        checks.append(check)
+        if first is not None:
+            certificate["first"] = {"start": first["start"], "summary": first["summary"]}
+            certificate["seconds"] += first["seconds"]
+    for check in checks:  # the certificate's own polish: a candidate only when it wins
+        if check.polished is not None and check.polished.status is Status.CONVERGED and (
+                check.energy < win.energy * (1.0 - _TIE)):
+            cands.append(check)
+            win = check
+    polish_s = time.perf_counter() - t_polish - float(certificate["seconds"])
     t_relax = time.perf_counter()
-    relax = _relaxation_check(exact, cfg, large, win, t_origin, progress, iterate)
+    if certificate["certified"]:
+        relax = {"ran": False, "why": "the winner is certified"}
+    else:
+        relax = _relaxation_check(exact, cfg, large, win, t_origin, progress, iterate)
     relax_cand = relax.pop("candidate", None)
     if isinstance(relax_cand, _Candidate):
         cands.append(relax_cand)
@@ -462,13 +575,24 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
             if relax_cand.energy < win.energy * (1.0 - _TIE):
                 win = relax_cand
     relax_s = time.perf_counter() - t_relax
+    if win is relax_cand and certificate["computed"]:  # a new winner: certify it
+        before = certificate
+        certificate, check = _certify(exact, cfg, win, progress, iterate)
+        certificate["polished_before"] = before["polished_before"]
+        certificate["first"] = {"start": before["start"], "summary": before["summary"]}
+        certificate["seconds"] += before["seconds"]
+        checks.append(check)
+        if check.polished is not None and check.polished.status is Status.CONVERGED and (
+                check.energy < win.energy * (1.0 - _TIE)):
+            cands.append(check)
+            win = check
     assert win.polished is not None
     pol = win.polished
     offset = win.times[-1]
     history = np.concatenate([win.history, pol.energy_history[1:]])
     times = np.concatenate([win.times, offset + np.asarray(pol.times[1:])])
     stats = _stats(win, cands + ranked[len(usable):], ranked, finalists, polished, relax,
-                   skipped, policy, large)
+                   skipped, policy, large, certificate, checks)
     for key in ("robust", "robust_scale", "plain_energy"):
         if key in pol.stats:
             stats[key] = pol.stats[key]
@@ -479,7 +603,7 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
         timings={"compile": compile_s, "analyze": t_analyze,
                  "start": sum(c.start_seconds for c in cands),
                  "sweeps": sum(c.sweep_seconds for c in cands), "polish": polish_s,
-                 "relaxation": relax_s,
+                 "certificate": float(certificate["seconds"]), "relaxation": relax_s,
                  "solve": time.perf_counter() - t_origin - t_analyze},
         stats=stats,
     )

@@ -13,9 +13,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal, NamedTuple, get_args
 
-from .._cost import ROBUST_DEFAULT_SCALE as ROBUST_DEFAULT_SCALE
-from .._cost import ROBUST_NAMES as ROBUST_NAMES
-from .._cost import default_robust_scale, robust_kind
+from .._robust import ROBUST_DEFAULT_SCALE as ROBUST_DEFAULT_SCALE
+from .._robust import ROBUST_NAMES as ROBUST_NAMES
+from .._robust import default_robust_scale, robust_kind
 
 if TYPE_CHECKING:
     from ..graph import PoseGraph
@@ -320,6 +320,15 @@ class AutoConfig:
     """Stop sweeping from a start when a sweep lowers E by less than this fraction (or raises
     it).  Sweeps pay far from the optimum (a tree start: E falls 10-100x in a few sweeps) and
     stop paying near it (the optimum is not a fixed point of the sweeps)."""
+    certify: bool = True
+    """Certify the first polished start (:func:`hybridpgo.certificate.certify`: Newton's
+    method on SE-Sync's objective from its rotations, the certificate of that objective's
+    global minimum, and LM from the certified start back to the same energy).  Certified: no
+    other finalist is polished and the relaxation check is skipped.  Not certified: the other
+    finalists are polished as with ``False`` and the winner is certified.  Applies where
+    SE-Sync's model describes the graph (no GPS, no robust kernel, at most one FIX node,
+    connected) and not under the large-graph policy.  ``stats["certificate"]`` says what was
+    certified, or why not.  False: every finalist is polished, no certificate."""
     relaxation: bool = True
     """Planar graphs (2D, no GPS, no robust kernel, at most one FIX node; not under the
     large-graph policy): after the polish, run the rank-2 relaxation of the chordal cost
@@ -386,6 +395,8 @@ class AutoConfig:
             raise ValueError(f"polish_unswept must be True or False, got {self.polish_unswept!r}")
         check_float("finalist_budget", self.finalist_budget, positive=True)
         check_float("sweep_tolerance", self.sweep_tolerance, positive=False)
+        if not isinstance(self.certify, bool):
+            raise ValueError(f"certify must be True or False, got {self.certify!r}")
         if not isinstance(self.relaxation, bool):
             raise ValueError(f"relaxation must be True or False, got {self.relaxation!r}")
         check_int("relaxation_iterations", self.relaxation_iterations, 1)

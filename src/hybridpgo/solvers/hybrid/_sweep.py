@@ -23,7 +23,7 @@ from . import _admission as adm
 from ._admission import Admission
 from ._batch import batch_relax, batch_relax_exact
 from ._interpolate import relax_interpolated
-from ._step import RELAX
+from ._step import BY_ARGUMENT, RELAX
 from .problem import (
     BATCH_REJECTED,
     NUM_COUNTS,
@@ -153,6 +153,18 @@ def _relax_group(prob: Problem, state: State, sc: Scratch, pol: Admission, grp: 
     _book_batch(nu, t0, members, nb, sc.cycles, sc.batch_cycles, counts)
 
 
+#: The :data:`~._step.RELAX` variants the loops call, as module globals: the loop kernels'
+#: closures hold only booleans.  Numba keys a closure's cache entry on the pickle of its cells,
+#: and a kernel in a cell pickles differently in every process (the loop would miss the cache
+#: and compile again in every run).
+_RELAX = RELAX[False, int(StepKind.WOODBURY)]
+_RELAX_GIVENS = RELAX[False, int(StepKind.GIVENS)]
+_RELAX_GPS = RELAX[True, int(StepKind.WOODBURY)]
+_RELAX_GPS_GIVENS = RELAX[True, int(StepKind.GIVENS)]
+_RELAX_ANY = RELAX[False, BY_ARGUMENT]
+_RELAX_GPS_ANY = RELAX[True, BY_ARGUMENT]
+
+
 def _make_loop(with_gps: bool, with_interpolation: bool, givens: bool, admission: bool) -> Any:
     """The loop kernel of one variant: GPS batches, interpolated solving and the admission
     policy are compiled in only when the flag says so (constants of the closure: Numba prunes
@@ -161,8 +173,6 @@ def _make_loop(with_gps: bool, with_interpolation: bool, givens: bool, admission
     updates are the :data:`~._step.RELAX` variant with the GPS linearization only
     ``with_gps`` and one solve, Givens' when ``givens`` (``step_kind`` must then agree); under
     the policy the solve is chosen by ``step_kind`` at run time."""
-    relax = RELAX[with_gps, -1 if admission else int(
-        StepKind.GIVENS if givens else StepKind.WOODBURY)]
 
     def loop_variant(prob: Problem, state: State, sc: Scratch, order: np.ndarray, tau: float,
                      mu: float, step_kind: int, gps_batch_size: int, d_max: int,
@@ -239,8 +249,20 @@ def _make_loop(with_gps: bool, with_interpolation: bool, givens: bool, admission
             if with_interpolation and apply and 0 < d_max < domain(prob, c)[1]:
                 st = relax_interpolated(prob, state, wk, sc.sub, sc.keep, c, tau, mu,
                                         step_kind, d_max)
+            elif admission:
+                if with_gps:
+                    st = _RELAX_GPS_ANY(prob, state, wk, c, tau, mu, step_kind, apply)
+                else:
+                    st = _RELAX_ANY(prob, state, wk, c, tau, mu, step_kind, apply)
+            elif with_gps:
+                if givens:
+                    st = _RELAX_GPS_GIVENS(prob, state, wk, c, tau, mu, step_kind, apply)
+                else:
+                    st = _RELAX_GPS(prob, state, wk, c, tau, mu, step_kind, apply)
+            elif givens:
+                st = _RELAX_GIVENS(prob, state, wk, c, tau, mu, step_kind, apply)
             else:
-                st = relax(prob, state, wk, c, tau, mu, step_kind, apply)
+                st = _RELAX(prob, state, wk, c, tau, mu, step_kind, apply)
             dc = cycle_counter() - t0
             sc.cycles[c] = dc
             if dc > counts[Count.MAX_CYCLES]:

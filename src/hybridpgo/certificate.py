@@ -1,0 +1,984 @@
+"""Certificates of global optimality in SE-Sync's model of a pose graph, and its relaxation.
+
+The model (SE-Sync: Rosen, Carlone, Bandeira & Leonard, IJRR 2019, "Problem 1")
+-------------------------------------------------------------------------------
+::
+
+    F(t, R) = sum_c kappa_c ||R_b - R_a Rm_c||_F^2 + tau_c ||t_b - t_a - R_a tm_c||^2
+
+over rotations ``R_i`` and positions ``t_i`` (``Rm_c, tm_c``: the measurement of constraint
+``c = (a, b)``), with one isotropic rotational and one translational weight per constraint,
+taken from its information matrix as SE-Sync's loader does (cross terms are ignored):
+
+* 3D: ``tau = 3 / tr(Omega_tt^-1)`` and ``kappa = 3 / (2 tr(Omega_q^-1))`` with ``Omega_q`` the
+  g2o rotation block over ``q_vec``.  Our information is over ``phi`` with
+  ``Omega_phi = Omega_q / 4`` (:mod:`hybridpgo.io.g2o`), so ``kappa = 6 / tr(Omega_phi^-1)``.
+* 2D: ``tau = 2 / tr(Omega_xy^-1)`` and ``kappa = Omega_theta_theta``.
+
+``F`` is **not** the energy E the solvers minimize (E uses geodesic ``Log`` errors and the full
+information): it is the objective that SE-Sync's certificate and its published optimal values
+refer to.  :func:`sesync_weights` computes the weights.
+
+Form
+----
+Stack the unknowns as ``V = [T; Y]``: ``T`` (n, k) holds the positions, ``Y`` (d n, k) the
+rotations, in block rows of ``d`` rows.  In 3D (real, ``d = k = 3``) ``T`` row ``i`` is
+``t_i^T`` and ``Y_i = R_i^T``; in 2D the problem is written over complex numbers as in
+Cartan-Sync / CPL-SLAM (Fan et al.): ``d = k = 1``, ``T_i = x_i + i y_i`` and
+``Y_i = z_i = exp(i theta_i)``, with ``||R_b - R_a Rm||_F^2 = 2 |z_b - z_a r_c|^2``.  Then
+``F = tr(V^H M V)`` for a sparse Hermitian ``M``; eliminating the positions (the gauge pose's
+held at 0) leaves ``F = tr(Y^H Q Y)`` with the Schur complement ``Q = A - B D^-1 B^H`` (``D``:
+the ``tau``-weighted position Laplacian, factored once; ``Q`` stays implicit).
+
+Relaxation and certificate
+--------------------------
+The rank-restricted relaxation replaces each block ``Y_i`` by a (d, p) block with orthonormal
+rows (:meth:`SyncProblem.minimize`; p = d is the problem itself).  For *any* such ``Y`` let
+``Lambda = Herm(BlockDiag(Q Y Y^H))`` and ``S = Q - Lambda`` (the certificate matrix).  If
+``S + sigma I`` is positive semidefinite, ``Lambda - sigma I`` is feasible for the dual of the
+semidefinite relaxation, whose value ``tr(Lambda) - sigma d n = tr(Y^H Q Y) - sigma d n`` is
+then a lower bound of F's global minimum (weak duality).  At a rank-d point (rotations) this
+bounds how far F there is above F's global minimum: ``gap <= sigma d n``.  The test "``S + sigma
+I`` is positive definite" is one sparse Cholesky factorization, of ``M`` with the gauge
+position removed and ``Lambda - sigma I`` subtracted from its rotation block (its Schur
+complement is ``S + sigma I``); the smallest eigenvalue of S is found by Lanczos iterations on
+``(S + sigma I)^-1`` with that factorization (shift-invert, SE-Sync's approach; a handful of
+solves).  :func:`sesync_certificate` first refines the given rotations to a stationary point of
+F with Newton's method (:meth:`SyncProblem.refine`): the certificate needs a stationary point
+of F, and ours (E's) is not one.
+
+What "certified" means (:func:`certify`)
+----------------------------------------
+The solution's F-refined rotations are the global minimum of F within the gap bound, *and* the
+exact solver started there (the certified start) ends at the solution's energy E (within
+:data:`SAME_OPTIMUM` relative): the solution is what a certifiably optimal start leads to.  It
+is not a proof that E has no lower minimum elsewhere: E and F are different functions.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import scipy.sparse as sp
+
+from .errors import HybridPGOError
+from .graph import FloatArray, PoseGraph
+
+__all__ = ["Certificate", "SyncProblem", "certify", "sesync_certificate", "sesync_weights",
+           "staircase_start"]
+
+ComplexArray = npt.NDArray[np.complex128]
+Array = npt.NDArray[Any]
+
+#: Relative gap bound up to which a stationary point of F counts as certified (gap / F).
+GAP_TOLERANCE = 1e-6
+#: The certificate's smallest shift, relative to the largest diagonal entry of M: a Cholesky
+#: factorization of a matrix with condition number up to ~1e12 still decides its sign reliably.
+_SHIFT_FLOOR = 1e-13
+#: Energies of two polishes within this fraction are the same optimum.
+SAME_OPTIMUM = 1e-9
+#: Newton on F stops when the predicted decrease is below this fraction of F.
+_NEWTON_TOLERANCE = 1e-14
+
+_E = np.zeros((3, 3, 3))
+_E[0, 2, 1], _E[0, 1, 2] = 1.0, -1.0
+_E[1, 0, 2], _E[1, 2, 0] = 1.0, -1.0
+_E[2, 1, 0], _E[2, 0, 1] = 1.0, -1.0
+#: hat(e_k) for k = 0, 1, 2, and (hat(e_k) hat(e_l) + hat(e_l) hat(e_k)) / 2.
+_GEN = _E
+_GEN2 = 0.5 * (np.einsum("kab,lbc->klac", _E, _E) + np.einsum("lab,kbc->klac", _E, _E))
+
+
+def sesync_weights(graph: PoseGraph) -> tuple[FloatArray, FloatArray]:
+    """SE-Sync's isotropic weights ``(kappa, tau)`` of every relative constraint.
+
+    3D: ``kappa = 6 / tr(Omega_phi^-1)`` (SE-Sync's ``3 / (2 tr(Omega_q^-1))`` in g2o's
+    ``q_vec`` units), ``tau = 3 / tr(Omega_rho^-1)``; 2D: ``kappa = Omega_yaw,yaw``,
+    ``tau = 2 / tr(Omega_xy^-1)`` (the module docstring).
+    """
+    info = graph.edge_information
+    if graph.is_2d:
+        kappa = np.array(info[:, 5, 5], np.float64)
+        tau = 2.0 / np.trace(np.linalg.inv(info[:, :2, :2]), axis1=1, axis2=2)
+    else:
+        kappa = 6.0 / np.trace(np.linalg.inv(info[:, 3:, 3:]), axis1=1, axis2=2)
+        tau = 3.0 / np.trace(np.linalg.inv(info[:, :3, :3]), axis1=1, axis2=2)
+    return kappa, tau
+
+
+def _hat(v: FloatArray) -> FloatArray:
+    """(..., 3, 3) cross-product matrices of (..., 3) vectors."""
+    out: FloatArray = np.einsum("...k,kij->...ij", v, _GEN)
+    return out
+
+
+def _pair(m: FloatArray) -> FloatArray:
+    """``<M, hat(e_k)>`` for k = 0, 1, 2 of (..., 3, 3) matrices (twice the axial vector of
+    M's antisymmetric part)."""
+    return np.stack([m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0],
+                     m[..., 1, 0] - m[..., 0, 1]], axis=-1)
+
+
+def _sym_minus_trace(m: FloatArray) -> FloatArray:
+    """``sym(M) - tr(M) I`` of (..., 3, 3) matrices."""
+    out: FloatArray = 0.5 * (m + np.swapaxes(m, -1, -2)) - np.trace(
+        m, axis1=-2, axis2=-1)[..., None, None] * np.eye(3)
+    return out
+
+
+def _herm(x: Array) -> Array:
+    out: Array = 0.5 * (x + np.conj(np.swapaxes(x, -1, -2)))
+    return out
+
+
+def _realify_coo(rows: Array, cols: Array, vals: Array
+                 ) -> tuple[Array, Array, FloatArray]:
+    """COO entries of a Hermitian matrix as those of the real symmetric matrix of twice its
+    size with ``u^T W u = v^H M v`` for ``u`` = (Re v_0, Im v_0, Re v_1, ...): each entry
+    ``p + i q`` becomes the 2x2 block ``[[p, -q], [q, p]]``."""
+    p, q = np.real(vals), np.imag(vals)
+    r, c = 2 * np.asarray(rows, np.int64), 2 * np.asarray(cols, np.int64)
+    return (np.concatenate([r, r, r + 1, r + 1]), np.concatenate([c, c + 1, c, c + 1]),
+            np.concatenate([p, -q, q, p]))
+
+
+@dataclass(frozen=True)
+class Spectrum:
+    """The certificate matrix's smallest eigenvalue at a point, and what it proves."""
+
+    objective: float
+    """F at the point (``tr(Y^H Q Y)``)."""
+    shift: float
+    """The smallest shift sigma tried with ``S + sigma I`` positive definite (inf: none)."""
+    lambda_min: float
+    """The smallest eigenvalue of S (Lanczos on ``(S + shift I)^-1``; nan if not found)."""
+    vector: Array | None
+    """Its eigenvector (d n, one column of Y's layout), or None."""
+    lower_bound: float
+    """``objective - shift d n``: a lower bound of F's global minimum (-inf: none)."""
+    factorizations: int
+    """Sparse factorizations spent (one per shift tried)."""
+
+
+class SyncProblem:
+    """A pose graph in SE-Sync's model (module docstring): the data matrix M, its Schur
+    complement Q (implicit), the rank-restricted relaxation, Newton's method on F and the
+    certificate.
+
+    Parameters
+    ----------
+    graph : PoseGraph
+        Without GPS constraints.  2D graphs use the complex form (one complex number per
+        rotation and per position), 3D graphs the real one.
+    weights : {"sesync", "planar"}
+        ``"sesync"``: :func:`sesync_weights`.  ``"planar"`` (2D only): ``kappa`` the yaw
+        information over ``|z_b - z_a r_c|^2`` and ``tau`` the mean of the x and y information
+        (the weights of :func:`hybridpgo.initialization.planar_relaxation_start`).
+    """
+
+    def __init__(self, graph: PoseGraph, weights: str = "sesync") -> None:
+        if graph.num_gps:
+            raise ValueError("SE-Sync's model has no GPS constraints")
+        if weights not in ("sesync", "planar") or (weights == "planar" and not graph.is_2d):
+            raise ValueError(f"weights must be 'sesync' or, for 2D graphs, 'planar'; got "
+                             f"{weights!r}")
+        n = graph.num_nodes
+        self.n = n
+        self.complex = bool(graph.is_2d)
+        d = 1 if self.complex else 3
+        self.d = d
+        self.gauge = int(graph.fixed_nodes[0]) if graph.fixed_nodes.size else 0
+        a = graph.edge_nodes[:, 0].astype(np.int64)
+        b = graph.edge_nodes[:, 1].astype(np.int64)
+        m = a.size
+        kappa, tau = sesync_weights(graph)
+        if weights == "planar":
+            info = graph.edge_information
+            kappa, tau = info[:, 5, 5] / 2.0, 0.5 * (info[:, 0, 0] + info[:, 1, 1])
+        one = np.ones((m, 1, 1))
+        # residual = sum_k c_k V_k (V_k: the block rows of one unknown); each term
+        # w ||residual||^2 adds w c_p^H c_q to M at the blocks (p, q)
+        terms: list[tuple[list[tuple[Array, Array]], FloatArray]]
+        if self.complex:
+            rz = graph.edge_rotations[:, 0, 0] + 1j * graph.edge_rotations[:, 1, 0]
+            rz = rz / np.abs(rz)
+            tz = graph.edge_translations[:, 0] + 1j * graph.edge_translations[:, 1]
+            terms = [([(n + b, one), (n + a, -rz[:, None, None])], 2.0 * kappa),
+                     ([(b, one), (a, -one), (n + a, -tz[:, None, None])], tau)]
+        else:
+            eye = np.broadcast_to(np.eye(3), (m, 3, 3))
+            terms = [([(n + 3 * b, eye), (n + 3 * a, -np.swapaxes(graph.edge_rotations, 1, 2))],
+                      kappa),
+                     ([(b, one), (a, -one), (n + 3 * a, -graph.edge_translations[:, None, :])],
+                      tau)]
+        dim = n + d * n
+        rows: list[Array] = []
+        cols: list[Array] = []
+        vals: list[Array] = []
+        for blocks, w in terms:
+            for sp_, cp in blocks:
+                for sq, cq in blocks:
+                    blk = w[:, None, None] * (np.conj(np.swapaxes(cp, 1, 2)) @ cq)
+                    ip = np.arange(blk.shape[1])
+                    iq = np.arange(blk.shape[2])
+                    rows.append(np.broadcast_to(sp_[:, None, None] + ip[None, :, None],
+                                                blk.shape).ravel())
+                    cols.append(np.broadcast_to(sq[:, None, None] + iq[None, None, :],
+                                                blk.shape).ravel())
+                    vals.append(blk.ravel())
+        dtype = np.complex128 if self.complex else np.float64
+        self.m = sp.csr_matrix((np.concatenate(vals).astype(dtype),
+                                (np.concatenate(rows), np.concatenate(cols))), shape=(dim, dim))
+        del rows, cols, vals
+        self.m.sum_duplicates()
+        keep = np.flatnonzero(np.arange(n) != self.gauge)
+        self._t_keep = keep
+        self._edges = (a, b)
+        self._weights = (np.ascontiguousarray(2.0 * kappa if self.complex else kappa, np.float64),
+                         np.ascontiguousarray(tau, np.float64))
+        if self.complex:
+            self._measured: tuple[Array, Array] = (rz, tz)
+        else:
+            self._measured = (np.ascontiguousarray(graph.edge_rotations, np.float64),
+                              np.ascontiguousarray(graph.edge_translations, np.float64))
+        rot = np.arange(n, dim)
+        self._a = sp.csr_matrix(self.m[rot][:, rot])
+        self._b = sp.csr_matrix(self.m[rot][:, keep])
+        self._bh = sp.csr_matrix(self._b.conj().T)
+        from .linalg import SparseSPD
+
+        self._d = SparseSPD(sp.csc_matrix(self.m[keep][:, keep].real))
+        self._d.factor(check=True)
+        self._newton: dict[str, Any] | None = None
+        self._cert: dict[str, Any] | None = None
+
+    # ------------------------------------------------------------------ conversions
+    def to_y(self, rotations: FloatArray) -> Array:
+        """Rotations (N, 3, 3) as the rank-d ``Y`` (d n, d)."""
+        if self.complex:
+            z = rotations[:, 0, 0] + 1j * rotations[:, 1, 0]
+            return np.asarray((z / np.abs(z))[:, None], np.complex128)
+        return np.ascontiguousarray(np.swapaxes(rotations, 1, 2).reshape(3 * self.n, 3))
+
+    def rotations(self, y: Array) -> FloatArray:
+        """Rotations (N, 3, 3) from a rank-d ``Y`` whose blocks are rotations."""
+        n = self.n
+        if self.complex:
+            z = y[:, 0]
+            out = np.zeros((n, 3, 3))
+            out[:, 0, 0] = out[:, 1, 1] = z.real
+            out[:, 1, 0] = z.imag
+            out[:, 0, 1] = -z.imag
+            out[:, 2, 2] = 1.0
+            return out
+        return np.ascontiguousarray(np.swapaxes(y.reshape(n, 3, 3), 1, 2))
+
+    def translations(self, t: Array) -> FloatArray:
+        """Positions (N, 3) from ``T`` (n, d)."""
+        if self.complex:
+            out = np.zeros((self.n, 3))
+            out[:, 0], out[:, 1] = t[:, 0].real, t[:, 0].imag
+            return out
+        return np.ascontiguousarray(t, np.float64)
+
+    def poses(self, y: Array, reference: tuple[FloatArray, FloatArray] | None = None
+              ) -> tuple[FloatArray, FloatArray]:
+        """Poses ``(R, t)`` of a rank-d ``Y`` with its optimal positions, expressed in the frame
+        of ``reference`` at the gauge pose (the same pose there; none: as they are)."""
+        rot = self.rotations(y)
+        trans = self.translations(self.positions(y))
+        if reference is not None:
+            g = self.gauge
+            turn = reference[0][g] @ rot[g].T
+            if self.complex:  # keep the planar form exact
+                c, s = turn[0, 0], turn[1, 0]
+                h = np.hypot(c, s)
+                turn = np.array([[c / h, -s / h, 0.0], [s / h, c / h, 0.0], [0.0, 0.0, 1.0]])
+            rot = turn[None] @ rot
+            trans = (trans - trans[g]) @ turn.T + reference[1][g]
+        return rot, trans
+
+    # ------------------------------------------------------------------ Q and F
+    def _dsolve(self, rhs: Array) -> Array:
+        """``D^-1 rhs`` for an (n-1, k) right-hand side (complex: one real solve of 2k)."""
+        if not self.complex:
+            return self._d.solve(np.asarray(rhs, np.float64))
+        k = rhs.shape[1]
+        x = self._d.solve(np.concatenate([rhs.real, rhs.imag], axis=1))
+        out: Array = x[:, :k] + 1j * x[:, k:]
+        return out
+
+    def q(self, y: Array) -> Array:
+        """``Q Y`` for Y (d n, p)."""
+        out: Array = self._a @ y - self._b @ self._dsolve(self._bh @ y)
+        return out
+
+    def cost(self, y: Array) -> float:
+        """``tr(Y^H Q Y)``: F at the rotations Y (rank d) with their optimal positions."""
+        return float(np.real(np.vdot(y, self.q(y))))
+
+    def positions(self, y: Array) -> Array:
+        """The optimal ``T`` (n, p) for Y (the gauge pose's row 0)."""
+        out = np.zeros((self.n, y.shape[1]), y.dtype)
+        out[self._t_keep] = -self._dsolve(self._bh @ y)
+        return out
+
+    def lambda_blocks(self, y: Array) -> Array:
+        """``Lambda``: the (n, d, d) Hermitian diagonal blocks of ``Q Y Y^H``."""
+        n, d = self.n, self.d
+        qy = self.q(y).reshape(n, d, -1)
+        yb = y.reshape(n, d, -1)
+        return _herm(qy @ np.conj(np.swapaxes(yb, 1, 2)))
+
+    def certificate_product(self, y: Array, x: Array) -> Array:
+        """``S X = Q X - Lambda(Y) X`` for X (d n, k)."""
+        n, d = self.n, self.d
+        lam = self.lambda_blocks(y)
+        out: Array = self.q(x) - (lam @ x.reshape(n, d, -1)).reshape(n * d, -1)
+        return out
+
+    # ------------------------------------------------------------------ manifold
+    def tangent(self, y: Array, v: Array) -> Array:
+        """Projection of V onto the tangent space at Y (blocks with orthonormal rows)."""
+        n, d = self.n, self.d
+        if d == 1:
+            out: Array = v - np.real(np.sum(np.conj(y) * v, axis=1, keepdims=True)) * y
+            return out
+        yb = y.reshape(n, d, -1)
+        vb = v.reshape(n, d, -1)
+        sym = _herm(vb @ np.conj(np.swapaxes(yb, 1, 2)))
+        moved: Array = (vb - sym @ yb).reshape(v.shape)
+        return moved
+
+    def retract(self, v: Array) -> Array:
+        """The nearest Y with orthonormal block rows (polar factor of each block)."""
+        if self.d == 1:
+            out: Array = v / np.linalg.norm(v, axis=1, keepdims=True)
+            return out
+        u, _, vh = np.linalg.svd(v.reshape(self.n, self.d, -1), full_matrices=False)
+        polar: Array = (u @ vh).reshape(v.shape)
+        return polar
+
+    def minimize(self, y: Array, max_iterations: int, gradient_tolerance: float = 1e-6,
+                 stall: float = 1e-6) -> tuple[Array, float, int]:
+        """Riemannian conjugate gradients (Polak-Ribiere+, the tangent projection as
+        transport) on the blocks of Y, from ``y``; each step minimizes the quadratic model
+        along the direction, then retracts (Armijo backtracking).  Stops when the Riemannian
+        gradient falls below ``gradient_tolerance`` of its first norm, or the cost fell by less
+        than ``stall`` (relative) over 20 iterations.  Returns ``(Y, cost, its)``."""
+        qy = self.q(y)
+        f = float(np.real(np.vdot(y, qy)))
+        grad = self.tangent(y, 2.0 * qy)
+        g0 = float(np.linalg.norm(grad))
+        direction = -grad
+        past = [f]
+        it = 0
+        while it < max_iterations and g0 > 0.0:
+            it += 1
+            slope = float(np.real(np.vdot(grad, direction)))
+            if slope >= 0.0:
+                direction = -grad
+                slope = -float(np.real(np.vdot(grad, grad)))
+            curv = 2.0 * float(np.real(np.vdot(direction, self.q(direction))))
+            step = -slope / curv if curv > 0.0 else 1.0
+            while True:
+                y_new = self.retract(y + step * direction)
+                qy_new = self.q(y_new)
+                f_new = float(np.real(np.vdot(y_new, qy_new)))
+                if f_new <= f + 1e-4 * step * slope or step < 1e-14:
+                    break
+                step *= 0.5
+            if not f_new <= f:
+                break
+            grad_new = self.tangent(y_new, 2.0 * qy_new)
+            moved = self.tangent(y_new, grad)
+            beta = max(0.0, float(np.real(np.vdot(grad_new, grad_new - moved)))
+                       / float(np.real(np.vdot(grad, grad))))
+            direction = self.tangent(y_new, direction)
+            direction = -grad_new + beta * direction
+            y, grad, f = y_new, grad_new, f_new
+            past.append(f)
+            if float(np.linalg.norm(grad)) <= gradient_tolerance * g0:
+                break
+            if len(past) > 20 and past[-21] - f <= stall * abs(past[-21]):
+                break
+        return y, f, it
+
+    def round(self, y: Array) -> Array:
+        """The rank-d rotations nearest Y's leading d-dimensional part (SE-Sync's rounding):
+        the d leading left singular vectors scaled by their singular values, reflected if most
+        blocks have a negative determinant (3D), then each block projected onto the rotations.
+        The global rotation is arbitrary."""
+        u, s, _ = np.linalg.svd(y, full_matrices=False)
+        yd = u[:, :self.d] * s[None, :self.d]
+        if self.d == 1:
+            mag = np.abs(yd)
+            out: Array = np.where(mag > 0, yd / np.where(mag > 0, mag, 1.0), 1.0 + 0j)
+            return out
+        blocks = yd.reshape(self.n, 3, 3)
+        if np.count_nonzero(np.linalg.det(blocks) > 0.0) < 0.5 * self.n:
+            blocks = blocks * np.array([1.0, 1.0, -1.0])[None, None, :]
+        uu, _, vh = np.linalg.svd(blocks)
+        det = np.linalg.det(uu @ vh)
+        uu[:, :, 2] *= det[:, None]
+        return np.ascontiguousarray((uu @ vh).reshape(3 * self.n, 3))
+
+    # ------------------------------------------------------------------ Newton on F
+    def _block_map(self, free: Array) -> dict[str, Any]:
+        """The block pattern of F's Hessian over the poses with ``free[i] >= 0`` (their new
+        numbers): ``where`` (4, M) gives each constraint's (a, a), (a, b), (b, a), (b, b) block
+        (-1: a held pose), ``indices``/``indptr`` the BSR structure, ``diag`` every pose's
+        diagonal block."""
+        a, b = self._edges
+        fa, fb = free[a], free[b]
+        nf = int(np.count_nonzero(free >= 0))
+        pairs = np.stack([fa * nf + fa, fa * nf + fb, fb * nf + fa, fb * nf + fb])  # (4, m)
+        ok = np.stack([fa >= 0, (fa >= 0) & (fb >= 0), (fa >= 0) & (fb >= 0), fb >= 0])
+        keys = np.unique(pairs[ok])
+        where = np.full(pairs.shape, -1, np.int64)
+        where[ok] = np.searchsorted(keys, pairs[ok])
+        indptr = np.zeros(nf + 1, np.int64)
+        np.cumsum(np.bincount(keys // max(nf, 1), minlength=nf), out=indptr[1:])
+        return {"where": where, "nblocks": keys.size, "indices": keys % max(nf, 1),
+                "indptr": indptr, "nf": nf,
+                "diag": np.searchsorted(keys, np.arange(nf) * (nf + 1))}
+
+    def _newton_setup(self) -> dict[str, Any]:
+        """The Newton system's block pattern (the pose graph without the gauge pose, BSR with
+        (P, P) blocks) and its factorization's analysis, computed once."""
+        if self._newton is not None:
+            return self._newton
+        from .linalg import SparseSPD
+
+        n, g = self.n, self.gauge
+        pp = 3 if self.complex else 6
+        free = np.arange(n) - (np.arange(n) > g)
+        free[g] = -1
+        bm = self._block_map(free)
+        nf = bm["nf"]
+        dim = pp * nf
+        pattern = sp.bsr_matrix((np.zeros((bm["nblocks"], pp, pp)), bm["indices"],
+                                 bm["indptr"]), shape=(dim, dim))
+        self._newton = {**bm, "pp": pp, "spd": SparseSPD(pattern) if nf else None,
+                        "keep": np.flatnonzero(np.repeat(free >= 0, pp))}
+        return self._newton
+
+    def _edge_terms(self, y: Array, hessian: bool = True,
+                    blocks: dict[str, Any] | None = None) -> dict[str, Any]:
+        """F at rotations Y (rank d) and their optimal positions, with its gradient over the
+        parameters ``[position shift (world frame), rotation]`` of every pose (``z exp(i
+        theta)``; ``R Exp(omega)``) and, with ``hessian``, its Newton Hessian (the Gauss-Newton
+        part plus the residuals' curvature along the rotation parameters) on the block pattern
+        ``blocks`` (:meth:`_block_map`; default: the Newton system's, without the gauge pose).
+
+        Returns ``f`` (F), ``grad`` (n, P), ``blocks`` (nb, P, P) with ``hessian``, and
+        ``noise``: a bound of F's rounding error (:mod:`hybridpgo._sync_kernels`)."""
+        from ._sync_kernels import sync_terms_2d, sync_terms_3d
+
+        a, b = self._edges
+        t = self.positions(y)
+        w_r, w_t = self._weights
+        rm, tm = self._measured
+        pp = 3 if self.complex else 6
+        bm = blocks if blocks is not None else self._newton_setup()
+        grad = np.zeros((self.n, pp))
+        out = np.zeros((bm["nblocks"] if hessian else 0, pp, pp))
+        if self.complex:
+            f, rounding = sync_terms_2d(np.ascontiguousarray(y[:, 0]),
+                                        np.ascontiguousarray(t[:, 0]), a, b, w_r, w_t, rm, tm,
+                                        bm["where"], hessian, grad, out)
+        else:
+            rot = np.ascontiguousarray(np.swapaxes(y.reshape(self.n, 3, 3), 1, 2))
+            f, rounding = sync_terms_3d(rot, np.ascontiguousarray(t), a, b, w_r, w_t, rm, tm,
+                                        bm["where"], hessian, grad, out)
+        terms: dict[str, Any] = {
+            "f": f, "grad": grad,
+            # rounding: each residual is computed to ~eps of the numbers it subtracts
+            "noise": 1e3 * float(np.finfo(np.float64).eps) * (f + rounding)}
+        if hessian:
+            terms["blocks"] = out
+        return terms
+
+    def newton_system(self, y: Array) -> tuple[sp.csr_matrix, FloatArray, float]:
+        """``(H, g, F)``: F's Newton system at rotations Y (rank d) and their optimal
+        positions over every pose's parameters (:meth:`_edge_terms`; the gauge pose's too):
+        ``F(p) ~ F + g.p + p.H.p / 2``, H (P n, P n) sparse, g (P n,)."""
+        bm = self._block_map(np.arange(self.n))
+        terms = self._edge_terms(y, blocks=bm)
+        pp = terms["grad"].shape[1]
+        h = sp.bsr_matrix((terms["blocks"], bm["indices"], bm["indptr"]),
+                          shape=(pp * self.n, pp * self.n))
+        return sp.csr_matrix(h), terms["grad"].ravel(), terms["f"]
+
+    def _step(self, y: Array, delta: FloatArray) -> Array:
+        """Rotations moved by the rotation parameters of ``delta`` (n, P)."""
+        if self.complex:
+            out: Array = y * np.exp(1j * delta[:, 2])[:, None]
+            return out
+        from .geometry.so3 import exp
+
+        rot = np.swapaxes(y.reshape(self.n, 3, 3), 1, 2) @ exp(delta[:, 3:])
+        return np.ascontiguousarray(np.swapaxes(rot, 1, 2).reshape(3 * self.n, 3))
+
+    def refine(self, y: Array, max_iterations: int = 30) -> tuple[Array, float, int]:
+        """Newton's method on F over the rotations (rank d) and positions, from ``y``, the
+        gauge pose held; the positions are re-optimized after each step.
+
+        A factorization of the Hessian is reused while the steps it gives lower F and their
+        predicted decrease falls at least 3x per step (a chord method: each such step costs a
+        gradient and a solve); else it is refactored at the current point (after the step when
+        it lowered F), and damped
+        (``H + mu diag(H)``) while it is not positive definite or its step raises F by more
+        than F's rounding error.  Stops after a step whose predicted decrease is below
+        ``_NEWTON_TOLERANCE`` of F, or below F's rounding error when a fresh factorization no
+        longer shrinks it 3x.  Returns ``(Y, F, factorizations)``.
+        """
+        from .linalg import NotPositiveDefinite
+
+        if self.n < 2:
+            return y, self.cost(y), 0
+        nw = self._newton_setup()
+        pp, keep, spd = nw["pp"], nw["keep"], nw["spd"]
+        mu = 0.0
+        factorizations = 0
+        terms = self._edge_terms(y)
+        g, f = terms["grad"], terms["f"]
+        fresh = False
+        stale = True
+        previous = np.inf
+        for _ in range(4 * max_iterations):
+            if stale:
+                if factorizations >= max_iterations or mu >= 1e12:
+                    break
+                if "blocks" not in terms:
+                    terms = self._edge_terms(y)
+                values = terms["blocks"]
+                diag = np.diagonal(values[nw["diag"]], axis1=1, axis2=2).ravel()
+                diag = np.maximum(diag, 1e-12 * max(float(np.max(np.abs(diag))), 1.0))
+                factorizations += 1
+                try:
+                    spd.factor(mu * diag, values=values.ravel())
+                except NotPositiveDefinite:
+                    mu = max(1e-8, 10.0 * mu)
+                    continue
+                fresh, stale = True, False
+            gk = g.ravel()[keep]
+            step = spd.solve(-gk)
+            predicted = -0.5 * float(gk @ step)
+            if not (predicted >= 0.0 and np.all(np.isfinite(step))):
+                mu = max(1e-8, 10.0 * mu) if fresh else mu
+                stale = True
+                continue
+            full = np.zeros(pp * self.n)
+            full[keep] = step
+            y_new = self._step(y, full.reshape(self.n, pp))
+            noise = terms["noise"]
+            # converged: a tiny predicted decrease, or a fresh Newton step that no longer
+            # shrinks it below F's rounding error (rounding floor)
+            small = predicted <= _NEWTON_TOLERANCE * abs(f) or (
+                fresh and predicted <= noise and predicted > previous / 3.0)
+            new_terms = self._edge_terms(y_new, hessian=False)
+            f_new = new_terms["f"]
+            if small or (f_new <= f + noise and (fresh or predicted <= previous / 3.0)):
+                y, terms = y_new, new_terms
+                g, f = terms["grad"], f_new
+                if small:
+                    break
+                previous = predicted
+                if fresh and mu > 0.0:
+                    mu = 0.1 * mu if mu > 1e-8 else 0.0
+                    stale = True  # less damping: refactor
+                fresh = False
+            elif not fresh and f_new < f:  # a chord step that lowers F, slowly: keep it and
+                y, terms = y_new, new_terms  # refactor there
+                g, f = terms["grad"], f_new
+                previous = predicted
+                stale = True
+            else:
+                if fresh:
+                    mu = max(1e-8, 10.0 * mu)
+                stale = True
+        return y, f, factorizations
+
+    # ------------------------------------------------------------------ certificate
+    def _spectrum_setup(self) -> dict[str, Any]:
+        """The certificate's matrix ``K = M + c e e^T - blockdiag(0, Lambda)`` in real form,
+        pose by pose (BSR, (4, 4) blocks on the pose graph: a pose's position then rotation
+        entries), where Lambda's entries go, and the factorization's analysis, computed once.
+
+        ``c e e^T`` anchors the gauge pose's position (``c``: the mean diagonal of M's
+        position block): the positions' Schur complement is still Q, since ``B 1 = 0`` (F does
+        not change when every position moves together), so K is positive definite iff
+        ``S = Q - Lambda`` is."""
+        if self._cert is not None:
+            return self._cert
+        from .linalg import SparseSPD
+
+        n, _d = self.n, self.d
+        i = np.arange(n)
+        coo = sp.coo_matrix(self.m)
+        if self.complex:
+            perm = np.stack([2 * i, 2 * i + 1, 2 * (n + i), 2 * (n + i) + 1], axis=1).ravel()
+            r, c, v = _realify_coo(coo.row, coo.col, coo.data)
+            anchor = [0, 1]
+            rot_slots = [2, 3]
+        else:
+            perm = np.stack([i, n + 3 * i, n + 3 * i + 1, n + 3 * i + 2], axis=1).ravel()
+            r, c, v = coo.row, coo.col, np.real(coo.data)
+            anchor = [0]
+            rot_slots = [1, 2, 3]
+        dim = 4 * n
+        where_new = np.empty(dim, np.int64)
+        where_new[perm] = np.arange(dim)
+        diag_t = self.m.diagonal()[:n].real
+        c_anchor = float(np.mean(diag_t)) if n else 1.0
+        rows = np.concatenate([where_new[r], 4 * self.gauge + np.asarray(anchor)])
+        cols = np.concatenate([where_new[c], 4 * self.gauge + np.asarray(anchor)])
+        vals = np.concatenate([v, np.full(len(anchor), c_anchor)])
+        kmat = sp.csr_matrix((vals, (rows, cols)), shape=(dim, dim))  # sums, keeps zeros
+        bsr = sp.bsr_matrix(kmat, blocksize=(4, 4))
+        bsr.sort_indices()
+        br = np.repeat(np.arange(n, dtype=np.int64), np.diff(bsr.indptr))
+        keys = br * n + bsr.indices
+        diag_block = np.searchsorted(keys, i * (n + 1))
+        rs = np.asarray(rot_slots)
+        mask = np.zeros((n, 4))
+        mask[:, rs] = 1.0
+        self._cert = {"values": np.asarray(bsr.data, np.float64).ravel().copy(),
+                      "diag": diag_block, "slots": rs, "spd": SparseSPD(bsr),
+                      "mask": mask.ravel(), "dim": dim,
+                      "rot": (4 * i[:, None] + rs[None, :]).ravel(),
+                      "scale": float(np.max(np.abs(self.m.diagonal())))}
+        return self._cert
+
+    def spectrum(self, y: Array, gap_tolerance: float = GAP_TOLERANCE,
+                 eigenvector: bool = False) -> Spectrum:
+        """The certificate at Y (any rank): the smallest shift ``sigma`` of a ladder (from
+        ``_SHIFT_FLOOR`` of M's largest diagonal entry, x100 per rung) with ``S + sigma I``
+        positive definite, then ``lambda_min(S)`` from ``(S + sigma I)^-1`` (power iterations
+        when sigma certifies, where that eigenvalue dominates by orders of magnitude; else
+        Lanczos, ARPACK).
+
+        The ladder stops at the first positive definite rung; rungs above ``gap_tolerance F /
+        (d n)`` (which could not certify) only serve to find a shift for the eigenvalue, up to
+        the bound ``max lambda(Lambda_i)`` above which S + sigma I is always definite.
+        """
+        from scipy.sparse.linalg import ArpackNoConvergence, LinearOperator, eigsh
+
+        from .linalg import NotPositiveDefinite
+
+        n, d = self.n, self.d
+        cs = self._spectrum_setup()
+        lam = self.lambda_blocks(y)
+        objective = float(np.sum(np.real(np.trace(lam, axis1=1, axis2=2))))
+        values = cs["values"].copy()
+        rs = cs["slots"]
+        blocks = values.reshape(-1, 4, 4)
+        if self.complex:
+            lr = np.real(lam[:, 0, 0])
+            blocks[cs["diag"], 2, 2] -= lr
+            blocks[cs["diag"], 3, 3] -= lr
+        else:
+            blocks[cs["diag"][:, None, None], rs[None, :, None], rs[None, None, :]] -= lam
+        spd, mask, dim, rot = cs["spd"], cs["mask"], cs["dim"], cs["rot"]
+        scale = cs["scale"]
+        cap = gap_tolerance * abs(objective) / (d * n)
+        top = float(np.max(np.linalg.eigvalsh(lam))) if n else 0.0
+        sigma = _SHIFT_FLOOR * scale
+        shift = float("inf")
+        tries = 0
+        while True:
+            tries += 1
+            try:
+                spd.factor(sigma * mask, values=values)
+                shift = sigma
+                break
+            except NotPositiveDefinite:
+                pass
+            if sigma > max(top, 0.0) + scale * 1e-6:
+                break
+            sigma *= 100.0 if sigma < cap else 10.0
+        certified = shift <= cap
+        lam_min = float("nan")
+        vec: Array | None = None
+        if np.isfinite(shift):
+            def apply(v: FloatArray) -> FloatArray:
+                rhs = np.zeros(dim)
+                rhs[rot] = np.ravel(v)
+                return np.asarray(spd.solve(rhs)[rot], np.float64)
+
+            x = np.random.default_rng(0).standard_normal(rot.size)
+            x /= np.linalg.norm(x)
+            theta = float("nan")
+            converged = False
+            if certified:  # 1/sigma dominates: a few power iterations, until lambda_min
+                last = np.inf  # moves by less than 1e-3 of the shift
+                for _ in range(8):
+                    z = apply(x)
+                    theta = float(x @ z)
+                    x = z / np.linalg.norm(z)
+                    estimate = 1.0 / theta - shift if theta > 0 else np.inf
+                    converged = bool(abs(estimate - last) <= 1e-3 * shift)
+                    last = estimate
+                    if converged:
+                        break
+            if not converged:
+                op = LinearOperator((rot.size, rot.size), matvec=apply, dtype=np.float64)
+                try:
+                    vals, vecs = eigsh(op, k=1, which="LA", v0=x, tol=1e-10,
+                                       ncv=min(rot.size, 12), maxiter=2000)
+                    theta, x, converged = float(vals[0]), vecs[:, 0], True
+                except ArpackNoConvergence:
+                    pass
+            if converged and theta > 0:
+                lam_min = 1.0 / theta - shift
+                vec = (x[0::2] + 1j * x[1::2])[:, None] if self.complex else x[:, None]
+        return Spectrum(objective, shift if certified else float("inf"), lam_min,
+                        vec if eigenvector else None,
+                        objective - shift * d * n if certified else -np.inf, tries)
+
+
+# ------------------------------------------------------------------ results
+@dataclass(frozen=True)
+class Certificate:
+    """What :func:`sesync_certificate` / :func:`certify` found at a solution."""
+
+    certified: bool
+    """True: the module docstring's "certified" (F's global minimum within ``gap`` at the
+    refined start, and, for :func:`certify`, the polish from there reaches the solution)."""
+    lambda_min: float
+    """Smallest eigenvalue of the certificate matrix S at the F-refined rotations (nan when it
+    could not be computed)."""
+    gap: float
+    """Upper bound of F(refined) - min F, absolute (inf when not certified)."""
+    relative_gap: float
+    """``gap / F(refined)`` (inf when not certified)."""
+    objective: float
+    """F at the refined rotations (SE-Sync's objective; its published values are comparable)."""
+    seconds: float
+    """Wall time of the certificate: refinement, factorizations, eigenvalue (and polish)."""
+    reason: str
+    """One line: why it is or is not certified."""
+    rotations: FloatArray = field(repr=False, default_factory=lambda: np.zeros((0, 3, 3)))
+    """(N, 3, 3) the F-refined rotations (the certified start), in the solution's frame."""
+    translations: FloatArray = field(repr=False, default_factory=lambda: np.zeros((0, 3)))
+    """(N, 3) their F-optimal positions."""
+    stats: dict[str, Any] = field(default_factory=dict)
+    """Newton iterations, factorizations, seconds per part, polish energies."""
+
+    def summary(self) -> str:
+        """``"certified global optimum (gap <= ...)"`` or ``"not certified (...)"``."""
+        if self.certified:
+            return f"certified global optimum (gap ≤ {self.relative_gap:.1e} relative)"
+        if np.isfinite(self.lambda_min):
+            return f"not certified (λ_min = {self.lambda_min:.3g}): {self.reason}"
+        return f"not certified: {self.reason}"
+
+
+def not_applicable(graph: PoseGraph, robust: str = "none") -> str:
+    """Why SE-Sync's model does not describe ``graph`` ("" when it does)."""
+    if graph.num_gps:
+        return "GPS constraints (not in SE-Sync's model)"
+    if robust != "none":
+        return "robust kernel (not in SE-Sync's model)"
+    if graph.fixed_nodes.size > 1:
+        return "several fixed poses (not in SE-Sync's model)"
+    if graph.num_nodes < 2 or graph.num_edges == 0:
+        return "fewer than 2 poses or no constraint"
+    if np.unique(graph.connected_components()).size > 1:
+        return "the graph is not connected"
+    return ""
+
+
+def sesync_certificate(graph: PoseGraph, rotations: FloatArray,
+                       translations: FloatArray | None = None, *,
+                       gap_tolerance: float = GAP_TOLERANCE,
+                       problem: SyncProblem | None = None) -> Certificate:
+    """Certify F's global optimum near given poses (no claim about E).
+
+    Newton's method refines the rotations to a stationary point of F (SE-Sync's objective),
+    then the certificate (:meth:`SyncProblem.spectrum`) bounds its gap.  ``certified`` is True
+    when ``gap / F <= gap_tolerance``.  The refined poses are returned in the frame of the given
+    ones at the gauge pose (``translations`` default: the F-optimal positions as they come).
+    """
+    t0 = time.perf_counter()
+    why = not_applicable(graph)
+    if why:
+        return Certificate(False, float("nan"), float("inf"), float("inf"), float("nan"),
+                           time.perf_counter() - t0, why)
+    try:
+        with np.errstate(over="raise", invalid="raise", divide="raise"):
+            prob = problem or SyncProblem(graph)
+            t1 = time.perf_counter()
+            y, f, its = prob.refine(prob.to_y(rotations))
+            t2 = time.perf_counter()
+            spec = prob.spectrum(y, gap_tolerance)
+            t3 = time.perf_counter()
+    except FloatingPointError as exc:  # measurements of ~1e154: F overflows
+        return Certificate(False, float("nan"), float("inf"), float("inf"), float("nan"),
+                           time.perf_counter() - t0, f"F overflows float64 ({exc})")
+    ref = None if translations is None else (rotations, translations)
+    rot, trans = prob.poses(y, ref)
+    gap = spec.objective - spec.lower_bound
+    ok = bool(np.isfinite(gap) and gap <= gap_tolerance * abs(spec.objective))
+    rel = gap / abs(spec.objective) if spec.objective else (0.0 if gap == 0.0 else np.inf)
+    if ok:
+        reason = (f"S + {spec.shift:.2g} I is positive definite: F is within {gap:.3g} of its "
+                  f"global minimum ({rel:.2g} relative)")
+    elif np.isfinite(spec.lambda_min):
+        reason = (f"the certificate matrix has a negative eigenvalue {spec.lambda_min:.3g}: "
+                  "the refined rotations are not F's global minimum")
+    else:
+        reason = "the certificate's eigenvalue could not be computed"
+    return Certificate(
+        ok, spec.lambda_min, gap if ok else float("inf"), rel if ok else float("inf"), f,
+        time.perf_counter() - t0, reason, rot, trans,
+        {"newton_iterations": its, "factorizations": spec.factorizations, "shift": spec.shift,
+         "seconds_setup": t1 - t0, "seconds_refine": t2 - t1, "seconds_spectrum": t3 - t2,
+         "objective_before_refine": prob.cost(prob.to_y(rotations))})
+
+
+#: ``polish(rotations, translations) -> (rotations, translations, energy)``.
+PolishCallback = Callable[[FloatArray, FloatArray], tuple[FloatArray, FloatArray, float]]
+
+
+def _default_polish(graph: PoseGraph) -> PolishCallback:
+    def polish(rot: FloatArray, trans: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+        from .solvers.gauss_newton import solve_exact
+
+        res = solve_exact(graph, rot, trans)
+        return res.rotations, res.translations, res.final_energy
+    return polish
+
+
+def certify(graph: PoseGraph, rotations: FloatArray, translations: FloatArray, *,
+            energy: float | None = None, polish: PolishCallback | None = None,
+            gap_tolerance: float = GAP_TOLERANCE) -> Certificate:
+    """Certify a solution (module docstring, "What certified means").
+
+    Parameters
+    ----------
+    graph : PoseGraph
+    rotations, translations : (N, 3, 3), (N, 3) float64
+        The solution (a minimum of E).
+    energy : float, optional
+        Its energy E (default: computed).
+    polish : callable, optional
+        ``polish(R, t) -> (R, t, E)``: the exact solver from a start (default:
+        :func:`hybridpgo.solvers.gauss_newton.solve_exact` with its defaults).
+    gap_tolerance : float
+        Largest relative gap bound of F that counts as certified.
+
+    Returns
+    -------
+    Certificate
+        ``certified`` only if F's refined minimum is certified *and* the polish from it ends
+        at the solution's energy within :data:`SAME_OPTIMUM` (relative).
+    """
+    from .energy import energy as energy_of
+
+    t0 = time.perf_counter()
+    e_sol = energy_of(graph, rotations, translations) if energy is None else float(energy)
+    try:
+        cert = sesync_certificate(graph, rotations, translations, gap_tolerance=gap_tolerance)
+    except (HybridPGOError, ValueError, np.linalg.LinAlgError, RuntimeError) as exc:
+        return Certificate(False, float("nan"), float("inf"), float("inf"), float("nan"),
+                           time.perf_counter() - t0, f"the certificate failed: {exc}")
+    if not cert.certified:
+        return cert
+    t1 = time.perf_counter()
+    try:
+        _, _, e_pol = (polish or _default_polish(graph))(cert.rotations, cert.translations)
+    except (HybridPGOError, ValueError, np.linalg.LinAlgError, RuntimeError) as exc:
+        return _replace(cert, certified=False, seconds=time.perf_counter() - t0,
+                        reason=f"the polish from the certified start failed: {exc}")
+    stats = {**cert.stats, "polish_energy": e_pol, "solution_energy": e_sol,
+             "seconds_polish": time.perf_counter() - t1}
+    if abs(e_pol - e_sol) <= SAME_OPTIMUM * max(abs(e_sol), abs(e_pol)):
+        return _replace(cert, seconds=time.perf_counter() - t0, stats=stats,
+                        reason=cert.reason + f"; the polish from there reaches E = {e_pol:.10g}")
+    lower = e_pol < e_sol
+    return _replace(cert, certified=False, seconds=time.perf_counter() - t0, stats=stats,
+                    reason=(f"F's minimum is certified, but the polish from it ends at "
+                            f"E = {e_pol:.10g}, {'below' if lower else 'above'} the solution's "
+                            f"{e_sol:.10g}"))
+
+
+def _replace(cert: Certificate, **changes: Any) -> Certificate:
+    import dataclasses
+
+    return dataclasses.replace(cert, **changes)
+
+
+# ------------------------------------------------------------------ the staircase
+def staircase_start(graph: PoseGraph, rotations: FloatArray, translations: FloatArray, *,
+                    max_rank: int | None = None, max_iterations: int = 500,
+                    gap_tolerance: float = GAP_TOLERANCE
+                    ) -> tuple[FloatArray, FloatArray, dict[str, Any]]:
+    """Poses from SE-Sync's Riemannian staircase, started at given poses.
+
+    Rank d (the problem itself): Newton's method on F from the given rotations, then the
+    certificate.  While it fails and the rank is below ``max_rank`` (default d + 3): escape
+    along the eigenvector of the certificate's negative eigenvalue into one more rank
+    (``[Y, alpha v]``, ``alpha`` halved until F falls), minimize there (:meth:`SyncProblem.
+    minimize`, at most ``max_iterations``), round to rotations, refine them with Newton and
+    certify again.  Returns the lowest-F rotations found with their optimal positions, in the
+    frame of the given poses at the gauge pose, and ``info``: ``certified``, ``objective`` (F),
+    ``lambda_min``, ``rank`` (where it ended), ``ranks`` (per rank: F of the relaxation, F
+    rounded and refined, lambda_min), ``max_angle`` (largest rotation difference from the given
+    poses, rad), ``seconds``.
+    """
+    t0 = time.perf_counter()
+    why = not_applicable(graph)
+    if why:
+        raise ValueError(f"the staircase does not apply: {why}")
+    prob = SyncProblem(graph)
+    d = prob.d
+    top = max_rank if max_rank is not None else d + 3
+    y, f, _ = prob.refine(prob.to_y(rotations))
+    best_y, best_f = y, f
+    spec = prob.spectrum(y, gap_tolerance, eigenvector=True)
+    ranks: list[dict[str, float]] = [{"rank": float(d), "relaxation": f, "rounded": f,
+                                      "lambda_min": spec.lambda_min}]
+    certified = np.isfinite(spec.lower_bound)
+    yp = y
+    p = d
+    while not certified and p < top and spec.vector is not None and spec.lambda_min < 0:
+        # escape: one more column along the eigenvector (real part of the direction for C)
+        v = spec.vector / np.linalg.norm(spec.vector)
+        fp = prob.cost(yp)
+        alpha = float(np.sqrt(prob.n))
+        for _ in range(60):
+            trial = prob.retract(np.concatenate([yp, alpha * v], axis=1))
+            if prob.cost(trial) < fp:
+                break
+            alpha *= 0.5
+        else:
+            break
+        p += 1
+        yp, fp, _its = prob.minimize(trial, max_iterations)
+        spec_p = prob.spectrum(yp, gap_tolerance, eigenvector=True)
+        yr, fr, _ = prob.refine(prob.round(yp))
+        if fr < best_f:
+            best_y, best_f = yr, fr
+        spec_r = prob.spectrum(yr, gap_tolerance)
+        ranks.append({"rank": float(p), "relaxation": fp, "rounded": fr,
+                      "lambda_min": spec_p.lambda_min})
+        certified = np.isfinite(spec_r.lower_bound) and fr <= best_f
+        spec = spec_p
+        if np.isfinite(spec_p.lower_bound):  # the relaxation is solved: no lower rank helps
+            break
+    from .geometry.so3 import angle as rot_angle
+
+    rot, trans = prob.poses(best_y, (rotations, translations))
+    angle = rot_angle(np.swapaxes(rotations, 1, 2) @ rot)
+    info = {"certified": bool(certified), "objective": best_f,
+            "lambda_min": ranks[-1]["lambda_min"], "rank": p, "ranks": ranks,
+            "max_angle": float(np.max(angle)) if angle.size else 0.0,
+            "seconds": time.perf_counter() - t0}
+    return rot, trans, info

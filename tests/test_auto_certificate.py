@@ -1,0 +1,138 @@
+"""The default pipeline's certificate (``AutoConfig.certify``): the first polished start is
+certified and, when it is, no other start is polished; the result is the one every start gives;
+a start in a local minimum is not certified and the other starts run; the certificate's
+eigenvalue agrees with a dense decomposition."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+from graphs import planar_rotations
+
+from hybridpgo import read_graph
+from hybridpgo.certificate import SyncProblem
+from hybridpgo.cli import main
+from hybridpgo.generate import generate_city, generate_grid
+from hybridpgo.graph import PoseGraph
+from hybridpgo.solvers import AutoConfig
+from hybridpgo.solvers.auto import solve_auto
+from hybridpgo.solvers.gauss_newton import solve_exact
+
+#: Energies of the same minimum reached from two starts (the pipeline's tie rule).
+SAME = 1e-9
+
+
+def _grid2d() -> PoseGraph:
+    return generate_grid("m3500", seed=0, num_poses=120, rot_sigma_rad=0.05).graph
+
+
+def _dense_lambda_min(graph: PoseGraph, rotations: np.ndarray) -> tuple[float, float]:
+    """lambda_min of S = Q - Lambda at F's Newton-refined rotations, by a dense eigvalsh of
+    the matrix built column by column from its products, and its largest |eigenvalue|."""
+    prob = SyncProblem(graph)
+    y = prob.refine(prob.to_y(rotations))[0]
+    eye = np.eye(prob.d * prob.n).astype(y.dtype)
+    s = prob.certificate_product(y, eye)
+    vals = np.linalg.eigvalsh(0.5 * (s + s.conj().T))
+    return float(vals[0]), float(np.abs(vals).max())
+
+
+@pytest.mark.parametrize("make", [_grid2d, lambda: read_graph(
+    Path(__file__).parent / "data" / "smallGrid3D.g2o")], ids=["grid2d", "smallGrid3D"])
+def test_a_certified_start_is_the_only_one_polished(make) -> None:
+    graph = make()
+    res = solve_auto(graph)
+    every = solve_auto(graph, AutoConfig(certify=False))
+    cert = res.stats["certificate"]
+    assert cert["computed"] and cert["certified"], cert["summary"]
+    assert cert["summary"].startswith("certified global optimum (gap ≤ ")
+    assert 0.0 <= cert["relative_gap"] <= 1e-6
+    # one start polished (plus the certificate's own check from the certified start) ...
+    assert res.stats["polished_starts"] == 1 and cert["polished_before"] == 1
+    assert res.stats["finalists"] == every.stats["finalists"][:1]
+    assert res.stats["relaxation"] == {"ran": False, "why": "the winner is certified"}
+    assert "certified start" not in res.stats["candidates"]  # its polish ties: not the result
+    assert abs(cert["polish_energy"] - res.final_energy) <= SAME * res.final_energy
+    # ... where every start is polished without the certificate, to the same energy
+    assert every.stats["polished_starts"] > 1
+    assert every.stats["certificate"] == {"computed": False, "certified": False, "why": "off",
+                                          "summary": "not certified: off", "seconds": 0.0}
+    assert abs(res.final_energy - every.final_energy) <= SAME * every.final_energy
+    # the eigenvalue the certificate found, against a dense decomposition of S
+    exact, norm = _dense_lambda_min(graph, res.rotations)
+    assert cert["lambda_min"] == pytest.approx(exact, abs=1e-9 * norm)
+    assert res.timings["certificate"] == cert["seconds"] > 0.0
+    assert "certified global optimum" in res.stats["reason"]
+
+
+def _trapped(poses: int, rot_sigma: float) -> tuple[PoseGraph, float, np.ndarray]:
+    """A grid whose file vertices are a local minimum of E (LM from scrambled yaws), the
+    optimum's energy (LM from the truth) and the local minimum's rotations."""
+    made = generate_grid("m3500", seed=0, num_poses=poses, rot_sigma_rad=rot_sigma)
+    graph = made.graph
+    rot = made.truth_rotations.copy()
+    rot[1:] = planar_rotations(np.random.default_rng(5).uniform(-np.pi, np.pi, graph.num_nodes))[1:]
+    local = solve_exact(graph, rot, made.truth_translations)
+    best = solve_exact(graph, made.truth_rotations, made.truth_translations)
+    assert local.final_energy > 1.5 * best.final_energy  # a local minimum indeed
+    return graph.with_poses(local.rotations, local.translations), best.final_energy, \
+        local.rotations
+
+
+def _no_sweeps(*inits: str) -> AutoConfig:
+    base = AutoConfig(inits=inits)  # type: ignore[arg-type]
+    return dataclasses.replace(base, sweeps=dataclasses.replace(base.sweeps, sweeps=0))
+
+
+def test_a_start_in_a_local_minimum_is_not_certified_and_the_others_run() -> None:
+    """The file's vertices (a local minimum, lower than the tree start without sweeps) rank
+    first; F refined from there is not F's minimum: its certificate fails with a negative
+    eigenvalue, the tree start is polished too and the winner is certified."""
+    trapped, optimum, local = _trapped(120, 0.15)
+    res = solve_auto(trapped, _no_sweeps("file", "tree"))
+    cert = res.stats["certificate"]
+    assert res.stats["finalists"] == ["file", "tree"]  # the trapped start ranks first
+    assert cert["first"]["start"] == "file"
+    assert cert["first"]["summary"].startswith("not certified (λ_min = -")
+    assert res.stats["polished_starts"] == 2
+    assert cert["certified"] and cert["start"] == "tree" and res.stats["start"] == "tree"
+    assert abs(res.final_energy - optimum) <= SAME * optimum
+    exact, norm = _dense_lambda_min(trapped, local)
+    assert exact < -1e-6 * norm  # the dense decomposition agrees: S is indefinite there
+
+
+def test_a_certified_start_whose_polish_ends_lower_is_the_solution() -> None:
+    """From the trapped file vertices Newton's method on F reaches F's certified minimum,
+    and LM from there ends below the file's polish: that polish is the result, certified,
+    and no other start is polished."""
+    trapped, optimum, _ = _trapped(60, 0.2)
+    res = solve_auto(trapped, _no_sweeps("file", "chordal", "tree"))
+    cert = res.stats["certificate"]
+    assert res.stats["finalists"] == ["file"] and res.stats["polished_starts"] == 1
+    assert cert["certified"] and cert["start"] == "certified start"
+    assert res.stats["start"] == "certified start" and "certified start" in res.stats["reason"]
+    assert abs(res.final_energy - optimum) <= SAME * optimum
+    assert res.stats["candidates"]["file"]["final_energy"] > 1.5 * optimum
+
+
+def test_the_large_graph_policy_and_other_models_say_why_not() -> None:
+    graph = _grid2d()
+    large = solve_auto(graph, AutoConfig(large_poses=10))
+    assert large.stats["certificate"]["why"] == "large-graph policy"
+    assert large.stats["polished_starts"] == 1
+    gps = solve_auto(generate_city(None, seed=0, gps_every=50, num_poses=50).graph)
+    assert gps.stats["certificate"]["summary"] == (
+        "not certified: GPS constraints (not in SE-Sync's model)")
+    assert gps.stats["polished_starts"] > 1
+
+
+def test_the_cli_summary_says_whether_it_is_certified(capsys, data_dir: Path,
+                                                      tmp_path: Path) -> None:
+    code = main(["optimize", str(data_dir / "smallGrid3D.g2o"), "-o", str(tmp_path / "o.g2o")])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    line = next(ln for ln in out.splitlines() if ln.strip().startswith("certificate"))
+    assert "certified global optimum (gap ≤ " in line

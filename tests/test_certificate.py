@@ -1,0 +1,307 @@
+"""SE-Sync's model, Newton's method on it, the certificate and the staircase
+(hybridpgo.certificate), against naive twins, dense linear algebra, finite differences and
+SE-Sync's published optimal values."""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from graphs import planar_rotations
+from naive import dense_quadratic_form, schur_certificate, sesync_objective
+from tolerances import CENTRAL_DIFF, FLOAT64_IDENTITY
+
+from hybridpgo.certificate import (
+    SyncProblem,
+    certify,
+    sesync_certificate,
+    sesync_weights,
+    staircase_start,
+)
+from hybridpgo.energy import energy
+from hybridpgo.generate import generate_city, generate_grid
+from hybridpgo.graph import PoseGraph
+from hybridpgo.io import bundled_path, read_graph
+from hybridpgo.linalg import NotPositiveDefinite, SparseSPD
+from hybridpgo.linalg import _factor as _linear
+from hybridpgo.solvers.gauss_newton import solve_exact
+
+DATA = pathlib.Path(__file__).parent / "data"
+
+
+def _grid2d(seed: int = 0, poses: int = 20, rot_sigma: float = 0.05) -> PoseGraph:
+    return generate_grid("m3500", seed=seed, num_poses=poses, rot_sigma_rad=rot_sigma).graph
+
+
+def _tiny3d() -> PoseGraph:
+    return read_graph(DATA / "tinyGrid3D.g2o")
+
+
+def _random_rotations(graph: PoseGraph, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    if graph.is_2d:
+        return planar_rotations(rng.uniform(-np.pi, np.pi, graph.num_nodes))
+    from scipy.spatial.transform import Rotation
+
+    return np.asarray(Rotation.random(graph.num_nodes, random_state=seed).as_matrix())
+
+
+def _naive_f(graph: PoseGraph, prob: SyncProblem):
+    """v (one column of V = [T; Y]) -> SE-Sync's F with the real (d, d) matrices of v."""
+    kappa, tau = sesync_weights(graph)
+    n = graph.num_nodes
+    if prob.complex:
+        rm = graph.edge_rotations[:, :2, :2]
+        tm = graph.edge_translations[:, :2]
+
+        def f(v: np.ndarray) -> float:
+            t, z = v[:n], v[n:]
+            rot = np.stack([np.stack([z.real, -z.imag], -1), np.stack([z.imag, z.real], -1)], 1)
+            trans = np.stack([t.real, t.imag], -1)
+            return sesync_objective(graph.edge_nodes, rm, tm, kappa, tau, rot, trans)
+    else:
+        def f(v: np.ndarray) -> float:
+            # v is column 0 of V (the other columns 0): entry 0 of every t_i and column 0 of
+            # every R_i^T, i.e. row 0 of R_i; F's rows are independent, so F = v^T M v
+            v = v.real
+            trans = np.zeros((n, 3))
+            trans[:, 0] = v[:n]
+            rot = np.zeros((n, 3, 3))
+            rot[:, 0, :] = v[n:].reshape(n, 3)
+            return sesync_objective(graph.edge_nodes, graph.edge_rotations,
+                                    graph.edge_translations, kappa, tau, rot, trans)
+    return f
+
+
+# --------------------------------------------------------------------------- the model
+def _raw_edges(path: pathlib.Path, tag: str) -> list[list[float]]:
+    return [[float(x) for x in ln.split()[1:]] for ln in path.read_text().splitlines()
+            if ln.startswith(tag)]
+
+
+def test_weights_are_sesyncs_from_the_file_numbers() -> None:
+    """SE-Sync's loader formulas applied to the file's own numbers (g2o units)."""
+    path = DATA / "tinyGrid3D.g2o"
+    kappa, tau = sesync_weights(read_graph(path))
+    for c, row in enumerate(_raw_edges(path, "EDGE_SE3:QUAT")):
+        up = row[9:]
+        info = np.zeros((6, 6))
+        info[np.triu_indices(6)] = up
+        info = info + np.triu(info, 1).T
+        assert kappa[c] == pytest.approx(3.0 / (2.0 * np.trace(np.linalg.inv(info[3:, 3:]))),
+                                         rel=FLOAT64_IDENTITY)
+        assert tau[c] == pytest.approx(3.0 / np.trace(np.linalg.inv(info[:3, :3])),
+                                       rel=FLOAT64_IDENTITY)
+    path = bundled_path("intel.g2o")
+    kappa, tau = sesync_weights(read_graph(path))
+    for c, row in enumerate(_raw_edges(path, "EDGE_SE2")):
+        i11, i12, _i13, i22, _i23, i33 = row[5:]
+        assert kappa[c] == i33
+        assert tau[c] == pytest.approx(2.0 / np.trace(np.linalg.inv([[i11, i12], [i12, i22]])),
+                                       rel=FLOAT64_IDENTITY)
+
+
+@pytest.mark.parametrize("make", [_tiny3d, _grid2d], ids=["3D", "2D"])
+def test_data_matrix_and_certificate_match_naive_twins(make) -> None:
+    """M against the polarization of SE-Sync's F term by term; S = Q - Lambda against the dense
+    Schur complement; F(Y) with optimal positions against the twin at those positions."""
+    graph = make()
+    prob = SyncProblem(graph)
+    n, d = prob.n, prob.d
+    f = _naive_f(graph, prob)
+    m_twin = dense_quadratic_form(f, n + d * n, prob.complex)
+    m = prob.m.toarray()
+    scale = np.abs(m_twin).max()
+    assert np.abs(m - m_twin).max() <= 1e3 * FLOAT64_IDENTITY * scale
+    y = prob.to_y(_random_rotations(graph, 1))
+    s_twin = schur_certificate(m_twin, n, d, prob.gauge, y)
+    s = prob.certificate_product(y, np.eye(d * n, dtype=y.dtype))
+    assert np.abs(s - s_twin).max() <= 1e3 * FLOAT64_IDENTITY * np.abs(s_twin).max()
+    # F at the optimal positions is the twin's F there, and no other positions are lower
+    rot = prob.rotations(y)
+    trans = prob.translations(prob.positions(y))
+    kappa, tau = sesync_weights(graph)
+    dd = 2 if prob.complex else 3
+    rm, tm = graph.edge_rotations[:, :dd, :dd], graph.edge_translations[:, :dd]
+    twin = sesync_objective(graph.edge_nodes, rm, tm, kappa, tau, rot[:, :dd, :dd],
+                            trans[:, :dd])
+    assert prob.cost(y) == pytest.approx(twin, rel=1e3 * FLOAT64_IDENTITY)
+    rng = np.random.default_rng(2)
+    moved = trans[:, :dd] + 1e-3 * rng.standard_normal((n, dd))
+    assert sesync_objective(graph.edge_nodes, rm, tm, kappa, tau, rot[:, :dd, :dd],
+                            moved) > twin
+
+
+@pytest.mark.parametrize("make", [_tiny3d, lambda: _grid2d(poses=12)], ids=["3D", "2D"])
+def test_newton_system_matches_finite_differences(make) -> None:
+    graph = make()
+    prob = SyncProblem(graph)
+    y = prob.to_y(_random_rotations(graph, 3))
+    h, g, f = prob.newton_system(y)
+    n = prob.n
+    pp = 3 if prob.complex else 6
+    st = 2 if prob.complex else 3
+    t0 = prob.positions(y)
+    kappa, tau = sesync_weights(graph)
+    dd = 2 if prob.complex else 3
+
+    def objective(delta: np.ndarray) -> float:
+        """The twin's F at the moved rotations and positions."""
+        p = delta.reshape(n, pp)
+        yy = prob._step(y, p)
+        tt = t0 + ((p[:, 0] + 1j * p[:, 1])[:, None] if prob.complex else p[:, :st])
+        rot = prob.rotations(yy)[:, :dd, :dd]
+        trans = prob.translations(tt)[:, :dd]
+        return sesync_objective(graph.edge_nodes, graph.edge_rotations[:, :dd, :dd],
+                                graph.edge_translations[:, :dd], kappa, tau, rot, trans)
+
+    dim = pp * n
+    assert objective(np.zeros(dim)) == pytest.approx(f, rel=FLOAT64_IDENTITY * 1e3)
+    eye = np.eye(dim)
+    step = 1e-5
+    g_fd = np.array([(objective(step * eye[i]) - objective(-step * eye[i])) / (2 * step)
+                     for i in range(dim)])
+    assert np.abs(g_fd - g).max() <= CENTRAL_DIFF * np.abs(g).max()
+    hd = h.toarray()
+    e = 1e-4
+    h_fd = np.zeros((dim, dim))
+    for i in range(dim):
+        for j in range(i, dim):
+            a, b = e * eye[i], e * eye[j]
+            h_fd[i, j] = h_fd[j, i] = (objective(a + b) - objective(a - b) - objective(b - a)
+                                       + objective(-a - b)) / (4 * e * e)
+    assert np.abs(h_fd - hd).max() <= 10 * CENTRAL_DIFF * np.abs(hd).max()
+
+
+# --------------------------------------------------------------------------- certificate
+@pytest.mark.parametrize("make", [_tiny3d, _grid2d], ids=["3D", "2D"])
+def test_smallest_eigenvalue_matches_a_dense_decomposition(make) -> None:
+    graph = make()
+    prob = SyncProblem(graph)
+    n, d = prob.n, prob.d
+    eye = np.eye(d * n)
+    for y in (prob.to_y(_random_rotations(graph, 4)),  # far from stationary: negative
+              prob.refine(prob.to_y(graph.rotations))[0]):  # F's minimum: ~0
+        s_dense = prob.certificate_product(y, eye.astype(y.dtype))
+        exact = float(np.linalg.eigvalsh(0.5 * (s_dense + s_dense.conj().T))[0])
+        spec = prob.spectrum(y)
+        norm = float(np.abs(np.linalg.eigvalsh(s_dense)).max())
+        assert spec.lambda_min == pytest.approx(exact, abs=1e-9 * norm)
+    assert spec.lower_bound <= spec.objective
+    assert spec.objective == pytest.approx(prob.cost(y), rel=FLOAT64_IDENTITY * 1e3)
+
+
+def test_published_optima_are_certified() -> None:
+    """SE-Sync's published optimal objectives: intel 52.3482 (SE-Sync's example notebook;
+    5.235e1 in IJRR 2019 Table 1), garage 1.263 (IJRR 2019 Table 2).  Certified at LM's
+    solution from the file; the polish from the certified start reaches the same energy."""
+    for name, published, digits in (("intel.g2o", 52.3482, 6), ("garage.g2o", 1.263, 4)):
+        graph = read_graph(bundled_path(name))
+        sol = solve_exact(graph)
+        cert = certify(graph, sol.rotations, sol.translations, energy=sol.final_energy)
+        assert cert.certified, cert.reason
+        assert cert.objective == pytest.approx(published, abs=0.5 * 10.0 ** (
+            np.floor(np.log10(published)) - digits + 1))
+        assert 0.0 <= cert.gap <= 1e-6 * cert.objective
+        assert cert.summary().startswith("certified global optimum (gap ≤ ")
+        assert abs(cert.stats["polish_energy"] - sol.final_energy) <= 1e-9 * sol.final_energy
+        assert np.isfinite(cert.lambda_min) and cert.lambda_min > -1e-6
+
+
+def test_a_local_minimum_is_not_certified() -> None:
+    """LM from scrambled yaws stops in a local minimum of E; F refined from there is a
+    local minimum too, and the certificate says so with a negative eigenvalue."""
+    made = generate_grid("m3500", seed=0, num_poses=120, rot_sigma_rad=0.05)
+    graph = made.graph
+    rng = np.random.default_rng(5)
+    rot = made.truth_rotations.copy()
+    rot[1:] = planar_rotations(rng.uniform(-np.pi, np.pi, graph.num_nodes))[1:]
+    local = solve_exact(graph, rot, made.truth_translations)
+    best = solve_exact(graph, made.truth_rotations, made.truth_translations)
+    assert local.final_energy > 1.5 * best.final_energy  # a local minimum of E indeed
+    cert = certify(graph, local.rotations, local.translations)
+    assert not cert.certified
+    assert cert.lambda_min < 0.0
+    assert cert.summary().startswith("not certified (λ_min = -")
+    good = certify(graph, best.rotations, best.translations)
+    assert good.certified, good.reason
+
+
+def test_the_polish_must_reach_the_solution() -> None:
+    """A certified F minimum whose polish ends elsewhere than the given energy is refused."""
+    graph = _grid2d(poses=60)
+    sol = solve_exact(graph)
+    ok = certify(graph, sol.rotations, sol.translations)
+    assert ok.certified
+    low = certify(graph, sol.rotations, sol.translations, energy=0.99 * sol.final_energy)
+    assert not low.certified and "above" in low.reason
+    assert low.stats["polish_energy"] == pytest.approx(sol.final_energy, rel=1e-9)
+    called = []
+
+    def polish(r, t):
+        called.append(1)
+        return r, t, energy(graph, r, t)  # no polish at all: F's minimum is not E's
+
+    unpolished = certify(graph, sol.rotations, sol.translations, polish=polish)
+    assert called and not unpolished.certified and "above" in unpolished.reason
+
+
+def test_not_applicable_says_why() -> None:
+    city = generate_city(None, seed=0, gps_every=50, num_poses=50)
+    cert = sesync_certificate(city.graph, city.truth_rotations, city.truth_translations)
+    assert not cert.certified and "GPS" in cert.reason
+    assert cert.summary() == f"not certified: {cert.reason}"
+
+
+# --------------------------------------------------------------------------- staircase
+@pytest.mark.parametrize("make", [lambda: read_graph(DATA / "smallGrid3D.g2o"),
+                                  lambda: _grid2d(poses=120, rot_sigma=0.1)], ids=["3D", "2D"])
+def test_the_staircase_reaches_the_certified_optimum_from_random_rotations(make) -> None:
+    graph = make()
+    start = _random_rotations(graph, 7)
+    start[0] = graph.rotations[0]
+    ref = sesync_certificate(graph, *_chordal(graph))
+    assert ref.certified
+    rot, trans, info = staircase_start(graph, start, graph.translations)
+    assert info["certified"]
+    assert info["objective"] == pytest.approx(ref.objective, rel=1e-9)
+    assert info["rank"] > (1 if graph.is_2d else 3)  # it had to climb
+    assert np.abs(rot[0] - start[0]).max() <= FLOAT64_IDENTITY * 10  # the frame of the start
+    cert = sesync_certificate(graph, rot, trans)
+    assert cert.certified and cert.objective == pytest.approx(ref.objective, rel=1e-9)
+
+
+def _chordal(graph: PoseGraph):
+    from hybridpgo.initialization import chordal_initialization
+
+    return chordal_initialization(graph)
+
+
+# --------------------------------------------------------------------------- SparseSPD
+@pytest.mark.parametrize("backend", ["splu", "cholmod"])
+def test_sparse_spd_refuses_an_indefinite_matrix(backend, monkeypatch) -> None:
+    if backend == "cholmod" and not _linear.cholmod_available():
+        pytest.skip("cvxopt not installed")
+    if backend == "splu":
+        monkeypatch.setattr(_linear, "cholmod_available", lambda: False)
+    rng = np.random.default_rng(0)
+    a = sp.random(40, 40, density=0.1, random_state=1)
+    a = sp.csr_matrix(a @ a.T + sp.identity(40))
+    a.sort_indices()
+    with pytest.raises(ValueError, match="canonical"):
+        SparseSPD(sp.coo_matrix((np.ones(2), ([0, 0], [0, 0])), shape=(2, 2)))
+    spd = SparseSPD(a)
+    spd.factor()
+    b = rng.standard_normal(40)
+    assert np.abs(a @ spd.solve(b) - b).max() <= 1e3 * FLOAT64_IDENTITY * np.abs(b).max()
+    lam = float(np.linalg.eigvalsh(a.toarray())[0])
+    with pytest.raises(NotPositiveDefinite):
+        spd.factor(-1.01 * lam)
+    spd.factor(-0.99 * lam)
+    # new values on the same pattern
+    a2 = sp.csr_matrix(2.0 * a)
+    a2.sort_indices()  # the canonical order of the values
+    spd.factor(values=a2.data)
+    assert np.abs(a2 @ spd.solve(b) - b).max() <= 1e3 * FLOAT64_IDENTITY * np.abs(b).max()
