@@ -2,7 +2,7 @@
 
 The per-constraint χ² comes from the cost layer (:mod:`hybridpgo._cost`), the same kernels the
 solvers use.  With a robust kernel (DESIGN §10) the robust energy is ``E_rho = sum_c rho(s_c)``
-over the relative constraints plus the plain χ² of the position (GPS) constraints.
+over every constraint, relative and position (GPS).
 :func:`residuals` gives every constraint's error vector, whitened error and χ².
 
 ``hybridpgo.energy`` is this module; calling it, ``hybridpgo.energy(graph)``, is shorthand for
@@ -72,8 +72,8 @@ def robust_energy(graph: PoseGraph, rotations: FloatArray | None = None,
     rotations, translations : (N, 3, 3), (N, 3) float64, optional
         Global poses; default: the graph's own estimate.
     robust : {"none", "huber", "cauchy", "geman_mcclure"}
-        The kernel applied to each relative constraint's χ² ``s``; GPS constraints stay
-        quadratic.  ``E_rho`` equals 2 x GTSAM's ``graph.error`` with the same kernel, k = scale.
+        The kernel applied to each constraint's χ² ``s`` (relative and GPS).  ``E_rho`` equals
+        2 x GTSAM's ``graph.error`` with the same kernel, k = scale.
     scale : float, optional
         The kernel's delta (> 0), in units of the whitened error (sqrt of χ²); default: the
         kernel's (``hybridpgo._cost.ROBUST_DEFAULT_SCALE``).
@@ -83,8 +83,10 @@ def robust_energy(graph: PoseGraph, rotations: FloatArray | None = None,
     s, s_gps = constraint_energies(graph, rotations, translations)
     rho = np.empty_like(s)
     _cost.robust_costs(kind, float(scale), s, rho, np.empty_like(s))
-    gps = s_gps.sum()  # summed as energy() sums: where rho(s) = s the two agree to the bit
-    return float(rho.sum() + gps), float(s.sum() + gps)
+    rho_gps = np.empty_like(s_gps)
+    _cost.robust_costs(kind, float(scale), s_gps, rho_gps, np.empty_like(s_gps))
+    # summed as energy() sums: where rho(s) = s the two agree to the bit
+    return float(rho.sum() + rho_gps.sum()), float(s.sum() + s_gps.sum())
 
 
 def robust_weights(graph: PoseGraph, rotations: FloatArray | None = None,

@@ -160,16 +160,19 @@ _at_least_2 = _number(int, lambda v: v >= 2, "an integer >= 2")
 
 
 def _robust(text: str) -> tuple[str, float | None]:
-    """``NAME[:SCALE]`` of ``--robust`` -> (kernel name, delta or None for the default)."""
-    from ..solvers.config import ROBUST_NAMES
+    """``auto``, ``none`` or ``NAME[:SCALE]`` of ``--robust`` -> (name, delta or None for the
+    kernel's default)."""
+    from ..solvers.config import ROBUST_CHOICES
 
     name, sep, scale = text.partition(":")
-    if name not in ROBUST_NAMES:
+    if name not in ROBUST_CHOICES:
         raise argparse.ArgumentTypeError(
-            f"kernel must be one of {', '.join(ROBUST_NAMES)} (optionally NAME:SCALE), "
-            f"got {name!r}")
+            f"must be auto, none or a kernel ({', '.join(ROBUST_CHOICES[2:])}, optionally "
+            f"NAME:SCALE), got {name!r}")
     if not sep:
         return name, None
+    if name in ("auto", "none"):
+        raise argparse.ArgumentTypeError(f"{name} takes no scale, got {text!r}")
     return name, float(_pos_float(scale))
 
 
@@ -350,13 +353,23 @@ def build_parser() -> argparse.ArgumentParser:
                         f"the polish (default {hy.polish_iterations})")
     from ..solvers.config import ROBUST_DEFAULT_SCALE
 
-    p.add_argument("--robust", type=_robust, metavar="NAME[:SCALE]",
-                   help="robust kernel on the relative constraints (hybrid, its polish and "
-                        "exact): none, huber, cauchy or geman_mcclure, with the scale delta in "
-                        "whitened units, e.g. cauchy:2 (default none; default scales: "
+    p.add_argument("--robust", type=_robust, metavar="auto|none|NAME[:SCALE]",
+                   help="outliers (auto, hybrid, exact): 'auto' solves least squares, tests "
+                        "every constraint's chi2 and, when some false loop closure or false "
+                        "GPS fix makes the graph inconsistent, solves again without them and "
+                        "lists them (the summary counts them; --json and --rejected-out list "
+                        "them); 'none' is least squares only; a kernel name (huber, cauchy, "
+                        "geman_mcclure) robustifies every constraint, relative and GPS, with "
+                        "the scale delta in whitened units, e.g. cauchy:2 (default scales: "
                         + ", ".join(f"{k} {v:g}" for k, v in ROBUST_DEFAULT_SCALE.items()
                                     if k != "none")
-                        + "); the energies shown are then the robust ones")
+                        + "; the energies shown are then the robust ones) (default auto)")
+    p.add_argument("--rejected-out", metavar="CSV",
+                   help="with --robust auto: write the rejected constraints as CSV with "
+                        "columns kind (edge or gps), index (among that kind, in file order), "
+                        "id_a, id_b (empty for GPS), line (in the input file), sigmas (the "
+                        "whitened error in estimated standard deviations at the result); a "
+                        "header only when none was rejected")
     p.add_argument("--plot", metavar="PREFIX",
                    help="also write PREFIX_before.png, PREFIX_after.png and PREFIX_energy.png "
                         "(needs matplotlib: pip install hybridpgo[plot])")

@@ -28,7 +28,14 @@ SolverConfig = AutoConfig | HybridConfig | GaussNewtonConfig | ToroConfig
 
 
 def config_for(method: str, **options: Any) -> SolverConfig:
-    """The typed options object of ``method`` built from keyword options (ValueError if bad)."""
+    """The typed options object of ``method`` built from keyword options (ValueError if bad).
+
+    ``robust`` defaults to ``"auto"`` for ``"auto"``, ``"hybrid"`` and ``"exact"`` (the outlier
+    test and re-solve of :mod:`hybridpgo.solvers.robust`): the same default under every solver
+    that has robust kernels, as on the command line.
+    """
+    if method in ("hybrid", "exact"):
+        options.setdefault("robust", "auto")
     if method == "auto":
         inits = options.get("inits")
         if isinstance(inits, (list, str)):  # one name (a CLI --init, a batch grid) or a list

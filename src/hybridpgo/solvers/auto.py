@@ -39,6 +39,10 @@ be computed is used, with at most ``large_max_sweeps`` sweeps and one polish (no
 unswept twin); ``stats["policy"]`` is ``"large"`` (else ``"full"``) and the reason says so.
 benchmarks/scale.py measures what this costs against the full policy on a 100k-pose city.
 
+5. **Outliers** (``AutoConfig.robust="auto"``, the default): the winner is tested for false
+   loop closures and false GPS fixes and, when the graph is inconsistent, solved again
+   without them (:mod:`hybridpgo.solvers.robust`; ``stats["outliers"]``).
+
 The result's ``status`` is the winning polish's; ``stats`` name the start (``init``), the
 sweeps and polish iterations it took (``sweeps``, ``polish_iterations``, ``polish_status``),
 every candidate's energies (``candidates``) and a one-line ``reason``.
@@ -316,6 +320,9 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
         When no start could be computed and polished.
     """
     cfg = config or AutoConfig()
+    outliers = cfg.robust == "auto"
+    if outliers:  # least squares first; the outlier test and re-solve close the pipeline
+        cfg = dataclasses.replace(cfg, robust="none")
     large = cfg.is_large(graph.num_nodes)
     policy = ""
     if large:
@@ -432,7 +439,7 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     for key in ("robust", "robust_scale", "plain_energy"):
         if key in pol.stats:
             stats[key] = pol.stats[key]
-    return SolveResult(
+    result = SolveResult(
         rotations=pol.rotations, translations=pol.translations, status=pol.status,
         iterations=win.sweeps, energy_history=history, times=times, method="auto",
         num_constraints=graph.num_constraints,
@@ -443,4 +450,9 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
                  "solve": time.perf_counter() - t_origin - t_analyze},
         stats=stats,
     )
+    if outliers:  # robust="auto": the outlier test, and the re-solve when it fails
+        from .robust import exact_resolver, resolve
+
+        result = resolve(graph, result, exact_resolver(cfg.polish_config(), progress, iterate))
+    return result
 

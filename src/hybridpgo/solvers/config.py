@@ -21,8 +21,11 @@ if TYPE_CHECKING:
 StepName = Literal["woodbury", "givens"]
 TreeName = Literal["bfs", "mst", "gps"]
 InitName = Literal["tree", "file", "chordal"]
-#: Robust kernels (DESIGN §10); the same names as ``_cost.ROBUST_NAMES`` (tested).
-RobustName = Literal["none", "huber", "cauchy", "geman_mcclure"]
+#: ``"auto"`` (least squares, then :mod:`hybridpgo.solvers.robust`'s outlier test and re-solve)
+#: and the robust kernels (DESIGN §10), whose names are ``_cost.ROBUST_NAMES`` (tested).
+RobustName = Literal["auto", "none", "huber", "cauchy", "geman_mcclure"]
+#: Every value ``robust`` accepts: ``"auto"``, then the kernels.
+ROBUST_CHOICES: tuple[str, ...] = get_args(RobustName)
 #: The names a user may give for each choice (derived once from the Literal types).
 STEP_NAMES: tuple[str, ...] = get_args(StepName)
 TREE_NAMES: tuple[str, ...] = get_args(TreeName)
@@ -60,6 +63,18 @@ LINEAR_SOLVERS = ("auto", "cholmod", "splu")
 def _check_int(name: str, value: object, minimum: int) -> None:
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+
+
+def _check_robust(name: str, scale: float | None, delta: float) -> None:
+    """``robust`` and ``robust_scale``: ``"auto"`` takes no scale, a kernel a delta > 0."""
+    if name == "auto":
+        if scale is not None:
+            raise ValueError(f"robust_scale applies to a named kernel, not to robust='auto', "
+                             f"got {scale!r}")
+        return
+    if name not in ROBUST_CHOICES:
+        raise ValueError(f"robust must be one of {', '.join(ROBUST_CHOICES)}, got {name!r}")
+    robust_kind(name, delta)
 
 
 def _check_float(name: str, value: object, *, positive: bool) -> None:
@@ -114,7 +129,10 @@ class GaussNewtonConfig:
     the block Cholesky of :mod:`hybridpgo.solvers._block_cholesky`: 3x faster than CHOLMOD
     there and ~4x less memory, which keeps a 1M-pose polish within 4 GB)."""
     robust: RobustName = "none"
-    """Robust kernel (see ``HybridConfig.robust``); the LM acceptance test uses E_rho."""
+    """Robust kernel (see ``HybridConfig.robust``); the LM acceptance test uses E_rho.
+    ``"auto"``: least squares, then the outlier test and re-solve of
+    :mod:`hybridpgo.solvers.robust` (the default of :func:`hybridpgo.optimize` and the command
+    line; this building block's default is plain least squares)."""
     robust_scale: float | None = None
     """The kernel's delta (> 0) in whitened units (sqrt of χ²): Huber is quadratic for
     ``s <= delta^2``.  GTSAM's ``mEstimator.*(k)`` with ``k = delta`` is the same kernel.
@@ -125,6 +143,11 @@ class GaussNewtonConfig:
     def robust_delta(self) -> float:
         """The robust kernel's delta: ``robust_scale``, or the kernel's default."""
         return default_robust_scale(self.robust, self.robust_scale)
+
+    @property
+    def kernel(self) -> str:
+        """The kernel of the solver's own iterations: ``robust``, ``"none"`` for ``"auto"``."""
+        return "none" if self.robust == "auto" else self.robust
 
     def __post_init__(self) -> None:
         if self.method not in ("gn", "lm"):
@@ -139,7 +162,7 @@ class GaussNewtonConfig:
         if self.linear_solver not in LINEAR_SOLVERS:
             raise ValueError(f"linear_solver must be one of {', '.join(LINEAR_SOLVERS)}, "
                              f"got {self.linear_solver!r}")
-        robust_kind(self.robust, self.robust_delta)
+        _check_robust(self.robust, self.robust_scale, self.robust_delta)
 
 
 #: Most sweeps one run may ask for (a sweep visits every constraint once; the paper runs 10).
@@ -185,12 +208,14 @@ class HybridConfig:
     polish_iterations: int = 100
     """Iteration limit of the polish."""
     robust: RobustName = "none"
-    """Robust kernel on every relative constraint's χ² ``s = e^T Omega e`` (DESIGN §10):
-    ``"none"`` (least squares), ``"huber"``, ``"cauchy"`` or ``"geman_mcclure"`` (g2o's
-    conventions).  The solver minimizes ``E_rho = sum_c rho(s_c)`` (GPS constraints stay
-    quadratic) by iterative reweighting: each step whitens with ``sqrt(w_c) L^T``,
-    ``w_c = rho'(s_c)`` at the current poses.  ``energy_history`` is then E_rho and
-    ``stats["plain_energy_history"]`` the plain E.  The polish uses the same kernel."""
+    """Robust kernel on every constraint's χ² ``s = e^T Omega e`` (relative and GPS; DESIGN
+    §10): ``"none"`` (least squares), ``"huber"``, ``"cauchy"`` or ``"geman_mcclure"`` (g2o's
+    conventions).  The solver minimizes ``E_rho = sum_c rho(s_c)`` by iterative reweighting:
+    each step whitens with ``sqrt(w_c) L^T``, ``w_c = rho'(s_c)`` at the current poses.
+    ``energy_history`` is then E_rho and ``stats["plain_energy_history"]`` the plain E.  The
+    polish uses the same kernel.  ``"auto"``: least squares, then the outlier test and
+    re-solve of :mod:`hybridpgo.solvers.robust` (:func:`solve_hybrid`; a
+    :class:`~hybridpgo.solvers.hybrid.HybridSolver` stepped by hand runs least squares)."""
     robust_scale: float | None = None
     """The kernel's delta (> 0) in whitened units (sqrt of χ²); None: the kernel's default
     (:data:`ROBUST_DEFAULT_SCALE`).  The value used is :attr:`robust_delta`."""
@@ -223,6 +248,11 @@ class HybridConfig:
     def robust_delta(self) -> float:
         """The robust kernel's delta: ``robust_scale``, or the kernel's default."""
         return default_robust_scale(self.robust, self.robust_scale)
+
+    @property
+    def kernel(self) -> str:
+        """The kernel of the sweeps themselves: ``robust``, ``"none"`` for ``"auto"``."""
+        return "none" if self.robust == "auto" else self.robust
 
     def __post_init__(self) -> None:
         if self.update not in ("paper", "saga"):
@@ -262,7 +292,7 @@ class HybridConfig:
         if not isinstance(self.polish, bool):
             raise ValueError(f"polish must be True or False, got {self.polish!r}")
         _check_int("polish_iterations", self.polish_iterations, 0)
-        robust_kind(self.robust, self.robust_delta)
+        _check_robust(self.robust, self.robust_scale, self.robust_delta)
 
 
 #: The starts :class:`AutoConfig` tries by default, in this order (``"file"`` only when the
@@ -324,8 +354,12 @@ class AutoConfig:
     """GPS constraints relaxed together (``HybridConfig.gps_batch_size``)."""
     dmax: int | None = None
     """Interpolated solving in the sweeps (``HybridConfig.dmax``)."""
-    robust: RobustName = "none"
-    """Robust kernel of the sweeps and the polish (``HybridConfig.robust``)."""
+    robust: RobustName = "auto"
+    """``"auto"``: the pipeline solves least squares, then tests every constraint and, when
+    the graph is inconsistent (false loop closures, false GPS fixes), re-solves without the
+    outliers (:mod:`hybridpgo.solvers.robust`; ``stats["outliers"]`` lists them).
+    ``"none"``: least squares only.  A kernel name: that kernel in the sweeps and the polish
+    (``HybridConfig.robust``)."""
     robust_scale: float = 1.0
     """The kernel's delta (``HybridConfig.robust_scale``)."""
     relaxation: bool = True
@@ -405,13 +439,17 @@ class AutoConfig:
                             damping=self.damping, step=self.step, tree=self.tree,
                             init=init,  # type: ignore[arg-type]
                             gps_batch_size=self.gps_batch_size, dmax=self.dmax,
-                            robust=self.robust, robust_scale=self.robust_scale)
+                            robust=self.robust, robust_scale=self._kernel_scale())
 
     def polish_config(self) -> GaussNewtonConfig:
         """The options of the Levenberg-Marquardt polish."""
         return GaussNewtonConfig(method="lm", max_iterations=self.polish_iterations,
                                  energy_tolerance=self.energy_tolerance, robust=self.robust,
-                                 robust_scale=self.robust_scale)
+                                 robust_scale=self._kernel_scale())
+
+    def _kernel_scale(self) -> float | None:
+        """``robust_scale`` for a kernel; none for ``"auto"``, which takes no scale."""
+        return None if self.robust == "auto" else self.robust_scale
 
 
 def default_init(graph: PoseGraph, method: str) -> InitName:

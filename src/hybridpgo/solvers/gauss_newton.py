@@ -624,6 +624,11 @@ def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
         non-finite unguarded GN step.  Never returns non-finite poses.
     """
     cfg = GaussNewtonConfig() if config is None else config
+    if cfg.robust == "auto":  # least squares, then the outlier test (solvers/robust.py)
+        from .robust import solve_exact_auto
+
+        return solve_exact_auto(graph, rotations, translations, cfg, progress=progress,
+                                iterate=iterate)
     compile_s = _ensure_compiled()
     t_start = time.perf_counter()
     run = _Run.analyze(graph, rotations, translations, cfg)

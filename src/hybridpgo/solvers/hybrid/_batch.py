@@ -18,7 +18,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..._cost import retract_into, whiten_rows
+from ..._cost import ROBUST_NONE, retract_into, robust_whitening, whiten_residual, whiten_rows
 from ..._numba import kernel
 from ._dense import TINY, chol_inplace, chol_solve_cols, regularized_factor, solve_lt
 from ._interpolate import distribute_chain, merged_block
@@ -137,7 +137,8 @@ def _linearize_batch(prob: Problem, state: State, cs: np.ndarray, nb: int, wk: W
     and the global pose ``Y_u`` of every union node (``yr``, ``yt``).
 
     ``A_c`` is ``L^T Jr^-1(e) Ad(Y_b)^-1`` for a relative constraint and ``L^T [I | -[p_n]x]``
-    for GPS (the earth is the root).
+    for GPS (the earth is the root); with a robust kernel ``L^T`` is ``sqrt(w) L^T``, as
+    :func:`._linearize.linearize` whitens.
     """
     nu = yr.shape[0]
     have = np.zeros(nu, np.bool_)
@@ -147,6 +148,7 @@ def _linearize_batch(prob: Problem, state: State, cs: np.ndarray, nb: int, wk: W
     tt_ = np.empty(3)
     adb = np.empty((6, 6))
     blk = np.zeros((3, 6))
+    r0 = np.empty(3)
     r_off[0] = 0
     for q in range(nb):
         c = cs[q]
@@ -184,7 +186,14 @@ def _linearize_batch(prob: Problem, state: State, cs: np.ndarray, nb: int, wk: W
             blk[1, 5] = pn[0]
             blk[2, 3] = pn[1]
             blk[2, 4] = -pn[0]
-            whiten_rows(prob.gps_lt[c - prob.num_edges], blk, 3, amat[q])
+            lt = prob.gps_lt[c - prob.num_edges]
+            whiten_rows(lt, blk, 3, amat[q])
+            if prob.robust_kind != ROBUST_NONE:  # the weight linearize folded into jb, rbuf
+                whiten_residual(lt, wk.e, 3, r0)
+                sw = robust_whitening(prob.robust_kind, prob.robust_scale, r0, 3)
+                for i in range(3):
+                    for j in range(6):
+                        amat[q, i, j] *= sw
 
 
 # --------------------------------------------------------------------------- 3. blocks of B_C

@@ -203,6 +203,12 @@ def linearize_all(prob: Problem, ends: np.ndarray, yr: np.ndarray, yt: np.ndarra
             blk[2, 3] = pn[1]
             blk[2, 4] = -pn[0]
             whiten_rows(prob.gps_lt[g], blk, 3, amat[c])
+            if prob.robust_kind != ROBUST_NONE:  # whiten with sqrt(w) L^T (DESIGN §10)
+                sw = robust_whitening(prob.robust_kind, prob.robust_scale, res[c], 3)
+                for p in range(3):
+                    res[c, p] *= sw
+                    for j in range(6):
+                        amat[c, p, j] *= sw
 
 
 # --------------------------------------------------------------------------- products
