@@ -214,11 +214,18 @@ def _add_generate_common(p: argparse.ArgumentParser, kind: str) -> None:
                         "relative pose) (default 0)")
     p.add_argument("--near-miss-fraction", type=_probability, metavar="F",
                    help="fraction of the outliers that are near misses (default 0.5)")
+    p.add_argument("--outlier-pattern", default="mixed",
+                   choices=("mixed", "random", "local", "random-grouped", "local-grouped"),
+                   help="'mixed': random pairs and near misses (--near-miss-fraction); else "
+                        "Suenderhauf and Protzel's patterns, every false edge claiming its two "
+                        "poses are at the same place: between random poses, between a pose and "
+                        "one of the 20 after it ('local'), or in groups of 10 consecutive "
+                        "mutually consistent edges (default mixed)")
     p.add_argument("--outliers-out", metavar="CSV",
                    help="where to list the false edges: CSV with columns edge_index (0-based "
-                        "among the file's edge lines), id_a, id_b, kind (random or near_miss), "
-                        "true_distance_m (default with --outliers: GT, else OUT, with its "
-                        "extension replaced by .outliers.csv)")
+                        "among the file's edge lines), id_a, id_b, kind (random, near_miss or "
+                        "aliased_<pattern>), true_distance_m (default with --outliers: GT, else "
+                        "OUT, with its extension replaced by .outliers.csv)")
     p.add_argument("--seed", type=_any_int, default=0, help="random seed (default 0)")
     p.add_argument("-o", "--output", required=True, metavar="OUT",
                    help="graph file to write (g2o, or TORO for a .graph name; vertices are the "
@@ -496,6 +503,14 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--poses", type=_at_least_2, metavar="N",
                    help="number of poses; the street grid grows with N so that the density of "
                         "loop closures stays the preset's (default: the preset's)")
+    c.add_argument("--gps-outliers", type=_nonneg_int, default=0, metavar="N",
+                   help="move N GPS readings by a multipath jump of 20-60 m in a random "
+                        "horizontal direction (false fixes; default 0)")
+    c.add_argument("--gps-outliers-out", metavar="CSV",
+                   help="where to list the false fixes: CSV with columns gps_index (0-based "
+                        "among the file's GPS lines), id, jump_m, dx, dy, dz (default with "
+                        "--gps-outliers: GT, else OUT, with its extension replaced by "
+                        ".gps_outliers.csv)")
     c.add_argument("--gps-every", type=_nonneg_int, metavar="K",
                    help="a GPS reading on every K-th pose (the paper: 100); 0: no GPS "
                         "(default: no GPS)")

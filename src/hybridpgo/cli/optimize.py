@@ -492,7 +492,8 @@ def print_summary(s: dict[str, Any]) -> None:
     inp = s["input"]
     timings = r.get("timings", {})
     times = [f"read {s['time_read']:.2f} s"]
-    times += [f"{k} {timings[k]:.2f} s" for k in ("compile", "analyze", "solve", "polish")
+    times += [f"{k} {timings[k]:.2f} s"
+              for k in ("compile", "analyze", "solve", "polish", "outliers")
               if k in timings]
     times.append(f"write {s['time_write']:.2f} s")
     iters = f"{r['iterations']} {'sweeps' if s['solver'] in ('hybrid', 'auto') else 'iterations'}"

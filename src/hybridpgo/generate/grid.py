@@ -47,7 +47,7 @@ from .._numba import kernel
 from ..geometry import se3
 from ..graph import FloatArray, PoseGraph, lift_information_2d
 from ._common import chain, diag_information, online_order, perturb
-from .outliers import Outliers, add_outliers, no_outliers
+from .outliers import Outliers, add_outliers, add_pattern_outliers, check_pattern, no_outliers
 
 __all__ = ["GRID_PRESETS", "Grid", "GridParams", "generate_grid"]
 
@@ -108,8 +108,14 @@ class GridParams:
     """A near miss joins two poses at least this far apart (true distance), metres ..."""
     near_miss_max_m: float = 8.0
     """... and at most this far apart."""
+    outlier_pattern: str = "mixed"
+    """``"mixed"``: random pose pairs and near misses (:func:`~.outliers.add_outliers`); or one
+    of Sünderhauf and Protzel's patterns ``"random"``, ``"local"``, ``"random-grouped"``,
+    ``"local-grouped"`` (:func:`~.outliers.add_pattern_outliers`, groups of 10)."""
 
     def __post_init__(self) -> None:
+        check_pattern(self.outlier_pattern)
+
         def is_int(v: object) -> bool:
             return isinstance(v, int | np.integer) and not isinstance(v, bool)
 
@@ -263,7 +269,10 @@ def generate_grid(preset: str | None = None, *, seed: int = 0, **params: Any) ->
         edge_information=np.broadcast_to(info1, (m, 6, 6)), is_2d=planar,
     )
     outliers = no_outliers()
-    if p.num_outliers:
+    if p.num_outliers and p.outlier_pattern != "mixed":
+        graph, outliers = add_pattern_outliers(graph, trans, p.num_outliers, p.outlier_pattern,
+                                               seed=outlier_rng)
+    elif p.num_outliers:
         graph, outliers = add_outliers(
             graph, rot, trans, p.num_outliers, seed=outlier_rng,
             near_miss_fraction=p.near_miss_fraction, near_miss_min_m=p.near_miss_min_m,

@@ -50,8 +50,8 @@ from ..graph import FloatArray, PoseGraph
 from ..io._lines import PathLike, write_atomic
 
 __all__ = ["GPS_CSV_HEADER", "OUTLIER_KINDS", "OUTLIER_PATTERNS", "GpsOutliers", "Outliers",
-           "add_gps_outliers", "add_outliers", "add_pattern_outliers", "no_gps_outliers",
-           "no_outliers", "write_gps_outliers", "write_outliers"]
+           "add_gps_outliers", "add_outliers", "add_pattern_outliers", "check_pattern",
+           "no_gps_outliers", "no_outliers", "write_gps_outliers", "write_outliers"]
 
 #: Sünderhauf and Protzel's outlier patterns (:func:`add_pattern_outliers`).
 OUTLIER_PATTERNS: tuple[str, ...] = ("random", "local", "random-grouped", "local-grouped")
@@ -90,6 +90,14 @@ class Outliers:
         out = np.zeros(num_edges, bool)
         out[self.edges] = True
         return out
+
+
+def check_pattern(pattern: object) -> None:
+    """ValueError unless ``pattern`` is ``"mixed"`` (:func:`add_outliers`) or one of
+    :data:`OUTLIER_PATTERNS` (:func:`add_pattern_outliers`)."""
+    if pattern != "mixed" and pattern not in OUTLIER_PATTERNS:
+        raise ValueError(f"outlier_pattern must be mixed or one of {', '.join(OUTLIER_PATTERNS)}"
+                         f", got {pattern!r}")
 
 
 def no_outliers() -> Outliers:

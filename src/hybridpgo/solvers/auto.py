@@ -41,7 +41,10 @@ benchmarks/scale.py measures what this costs against the full policy on a 100k-p
 
 5. **Outliers** (``AutoConfig.robust="auto"``, the default): the winner is tested for false
    loop closures and false GPS fixes and, when the graph is inconsistent, solved again
-   without them (:mod:`hybridpgo.solvers.robust`; ``stats["outliers"]``).
+   without them (:mod:`hybridpgo.solvers.robust`; ``stats["outliers"]``).  When a polished
+   candidate's fit is inconsistent as a whole (the test's scale beyond its level: the map
+   is folded), the remaining polishes and the relaxation check are skipped, since the
+   re-solve replaces their answer.
 
 The result's ``status`` is the winning polish's; ``stats`` name the start (``init``), the
 sweeps and polish iterations it took (``sweeps``, ``polish_iterations``, ``polish_status``),
@@ -222,6 +225,16 @@ def _continue(first: SolveResult, second: SolveResult) -> SolveResult:
         timings={k: first.timings.get(k, 0.0) + v for k, v in second.timings.items()})
 
 
+def _misfit(graph: PoseGraph, cand: _Candidate) -> bool:
+    """``robust="auto"``: the polished candidate's least-squares fit is inconsistent as a whole
+    (:attr:`hybridpgo.solvers.robust.Consistency.misfit`): false constraints have folded the
+    map, and the outlier re-solve will replace whatever least squares reaches."""
+    from .robust import check_consistency
+
+    assert cand.polished is not None
+    return check_consistency(graph, cand.polished.rotations, cand.polished.translations).misfit
+
+
 def _relaxation_applies(graph: PoseGraph, cfg: AutoConfig, large: bool) -> str:
     """Why the planar relaxation does not apply ("" when it does)."""
     if not cfg.relaxation:
@@ -367,6 +380,7 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
         ranked += sorted((_unswept(c) for c in ranked if c.sweeps), key=lambda c: c.energy)
     finalists = ranked[:cfg.finalists] if cfg.finalists is not None else ranked
     t_polish = time.perf_counter()
+    check_s = 0.0  # robust="auto": the misfit checks after each polish
     best: _Candidate | None = None
     for cand in finalists:
         if best is None or best.polished is None:
@@ -385,6 +399,12 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
         if cand.polished is not None and (best is None or cand.energy < best.energy * (
                 1.0 - _TIE)):
             best = cand
+        if outliers and best is not None:
+            t_check = time.perf_counter()
+            misfit = _misfit(graph, best)
+            check_s += time.perf_counter() - t_check
+            if misfit:  # the re-solve replaces the least-squares answer: no runner-up can help
+                break
     polish_s = time.perf_counter() - t_polish
     polished = [c for c in finalists if c.polished is not None and not c.cut]
     if not polished:
@@ -392,7 +412,9 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
                           + "; ".join(f"{c.label}: {c.error}" for c in finalists))
     win = min(polished, key=lambda c: c.energy)
     t_relax = time.perf_counter()
-    relax = _relaxation_check(graph, cfg, large, win, t_origin, progress, iterate)
+    folded = outliers and _misfit(graph, win)
+    relax = (_relaxation_check(graph, cfg, large, win, t_origin, progress, iterate)
+             if not folded else {"ran": False, "why": "outliers"})
     relax_cand = relax.pop("candidate", None)
     if isinstance(relax_cand, _Candidate):
         cands.append(relax_cand)
@@ -447,7 +469,8 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
                  "start": sum(c.start_seconds for c in cands),
                  "sweeps": sum(c.sweep_seconds for c in cands), "polish": polish_s,
                  "relaxation": relax_s,
-                 "solve": time.perf_counter() - t_origin - t_analyze},
+                 "solve": time.perf_counter() - t_origin - t_analyze,
+                 **({"outliers": check_s} if outliers else {})},
         stats=stats,
     )
     if outliers:  # robust="auto": the outlier test, and the re-solve when it fails

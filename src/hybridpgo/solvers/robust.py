@@ -72,7 +72,7 @@ from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 from ..energy import constraint_energies
 from ..errors import GraphError
 from ..graph import FloatArray, PoseGraph
-from .config import GaussNewtonConfig, HybridConfig, ProgressCallback
+from .config import GaussNewtonConfig, HybridConfig, ProgressCallback, RobustName
 from .result import SolveResult
 
 if TYPE_CHECKING:
@@ -101,7 +101,7 @@ _CHI2_3_MEDIAN = 2.365973884375338
 
 #: ``solve(graph, rotations, translations, robust, robust_scale)``: the caller's solver from
 #: the given poses, with the given kernel (``"none"`` or ``"geman_mcclure"``).
-ResolveFn = Callable[[PoseGraph, FloatArray, FloatArray, str, float], SolveResult]
+ResolveFn = Callable[[PoseGraph, FloatArray, FloatArray, RobustName, float], SolveResult]
 
 
 @dataclass(frozen=True)
@@ -234,8 +234,21 @@ def odometry_tree(graph: PoseGraph) -> npt.NDArray[np.int64]:
     Odometry edges join consecutive ids; among parallel edges the first in file order is used
     (a false closure duplicating an odometry edge comes later in the files we know); other
     edges enter only where the odometry leaves poses unreached (a minimum spanning tree with
-    weight 1 for odometry, 2 for the rest).  Raises GraphError when the relative edges do not
-    connect the graph.
+    weight 1 for odometry, 2 for the rest).
+
+    Parameters
+    ----------
+    graph : PoseGraph
+
+    Returns
+    -------
+    (N - 1,) int64 array
+        Edge indices, increasing.
+
+    Raises
+    ------
+    GraphError
+        The relative edges do not connect the graph.
     """
     n = graph.num_nodes
     en = graph.edge_nodes.astype(np.int64)
@@ -261,11 +274,19 @@ def odometry_tree(graph: PoseGraph) -> npt.NDArray[np.int64]:
 
 def outlier_free_start(graph: PoseGraph, solve: ResolveFn | None = None
                        ) -> tuple[FloatArray, FloatArray]:
-    """Global poses chained along :func:`odometry_tree` (module docstring, step 1).
+    """Global poses chained along :func:`odometry_tree` (module docstring, re-solve step 1).
 
-    With GPS readings, the chain is fitted rigidly onto them (three trimmed fits) and, when
-    ``solve`` is given, solved with the odometry tree and the readings (least squares, then
-    Geman-McClure).
+    Parameters
+    ----------
+    graph : PoseGraph
+    solve : callable, optional
+        :data:`ResolveFn`.  With GPS readings the chain is fitted rigidly onto them (three
+        trimmed fits) and, when ``solve`` is given, solved with the odometry tree and the
+        readings alone (least squares, then Geman-McClure).
+
+    Returns
+    -------
+    rotations, translations : (N, 3, 3), (N, 3) float64
     """
     from ..metrics import align_rigid
     from ..tree import build_tree, global_poses, initial_locals
@@ -298,7 +319,8 @@ def _keep_solvable(graph: PoseGraph, keep: npt.NDArray[np.bool_],
                    keep_gps: npt.NDArray[np.bool_], sigmas: FloatArray,
                    gps_sigmas: FloatArray) -> None:
     """Re-admit rejected constraints (least inconsistent first) until the kept ones connect
-    the graph as all of them do, and every part keeps a gauge (in place)."""
+    the graph as all of them do and every part anchored by GPS readings keeps one (in place;
+    with every reading rejected, the first pose is the gauge)."""
     n = graph.num_nodes
     en = graph.edge_nodes
 
@@ -327,8 +349,6 @@ def _keep_solvable(graph: PoseGraph, keep: npt.NDArray[np.bool_],
             if not anchored[labels[graph.gps_nodes[g]]]:
                 keep_gps[g] = True
                 anchored[labels == labels[graph.gps_nodes[g]]] = True
-    elif graph.num_gps and not graph.fixed_nodes.size and not keep_gps.any():
-        keep_gps[int(np.argmin(gps_sigmas))] = True  # the earth frame stays the gauge
 
 
 def _scaled(graph: PoseGraph, verdict: Consistency) -> PoseGraph:
@@ -347,10 +367,23 @@ def _scaled(graph: PoseGraph, verdict: Consistency) -> PoseGraph:
 def rejected_rows(graph: PoseGraph, edges: npt.NDArray[np.int64],
                   gps: npt.NDArray[np.int64], sigmas: FloatArray,
                   gps_sigmas: FloatArray) -> list[dict[str, Any]]:
-    """The rejected constraints as ``info``-style rows: ``kind`` (``edge`` or ``gps``),
-    ``index`` (among that kind, file order), ``id_a``, ``id_b`` (None for GPS), ``line`` (in
-    the file, None when unknown) and ``sigmas`` (whitened error in estimated sigmas at the
-    result)."""
+    """The rejected constraints as ``info``-style rows (JSON-friendly).
+
+    Parameters
+    ----------
+    graph : PoseGraph
+    edges, gps : int arrays
+        Indices of the rejected relative constraints and GPS readings.
+    sigmas, gps_sigmas : (M,), (G,) float64
+        Every constraint's whitened error in sigmas (:class:`Consistency`).
+
+    Returns
+    -------
+    list of dict
+        ``kind`` (``"edge"`` or ``"gps"``), ``index`` (within its kind, file order), ``id_a``,
+        ``id_b`` (the file's ids; None for GPS), ``line`` (in the file; None when unknown),
+        ``sigmas``; relative constraints first.
+    """
     ids = graph.node_ids
     rows: list[dict[str, Any]] = []
     for c in edges.tolist():
@@ -437,8 +470,7 @@ def resolve(graph: PoseGraph, result: SolveResult, solve: ResolveFn) -> SolveRes
         status=final.status,
         energy_history=np.concatenate([result.energy_history, final.energy_history[1:]]),
         times=np.concatenate([result.times, offset + t_final + np.asarray(final.times[1:])]),
-        timings={**result.timings, "outliers": report["seconds"]},
-        stats={**result.stats, "outliers": report})
+        timings=_timings(result, report), stats={**result.stats, "outliers": report})
 
 
 def _rescaled(graph: PoseGraph, kept: npt.NDArray[np.int64], kept_gps: npt.NDArray[np.int64],
@@ -454,15 +486,34 @@ def _rescaled(graph: PoseGraph, kept: npt.NDArray[np.int64], kept_gps: npt.NDArr
 
 def _with(result: SolveResult, report: dict[str, Any]) -> SolveResult:
     return dataclasses.replace(result, stats={**result.stats, "outliers": report},
-                               timings={**result.timings, "outliers": report["seconds"]})
+                               timings=_timings(result, report))
+
+
+def _timings(result: SolveResult, report: dict[str, Any]) -> dict[str, float]:
+    """``result``'s timings with the outlier test and re-solve's seconds added to
+    ``"outliers"`` (the pipeline's own checks may be there already)."""
+    return {**result.timings,
+            "outliers": result.timings.get("outliers", 0.0) + report["seconds"]}
 
 
 
 # --------------------------------------------------------------------------- the solvers' side
 def exact_resolver(config: GaussNewtonConfig, progress: ProgressCallback | None = None,
                    iterate: IterateCallback | None = None) -> ResolveFn:
-    """:data:`ResolveFn` of the exact solver: ``config``'s method and limits with the given
-    kernel; progress reported as phase ``"polish"``, detail ``"outliers"``."""
+    """:data:`ResolveFn` of the exact solver.
+
+    Parameters
+    ----------
+    config : GaussNewtonConfig
+        Method and limits; ``robust`` and ``robust_scale`` are set per call.
+    progress, iterate : callable, optional
+        As :func:`~hybridpgo.solvers.gauss_newton.solve_exact`'s, reported as phase
+        ``"polish"`` with detail ``"outliers"``.
+
+    Returns
+    -------
+    callable
+    """
     from .gauss_newton import solve_exact
 
     report = None if progress is None else (
@@ -470,7 +521,7 @@ def exact_resolver(config: GaussNewtonConfig, progress: ProgressCallback | None 
     each = None if iterate is None else (
         lambda p, r, t: iterate(p._replace(phase="polish", detail="outliers"), r, t))
 
-    def solve(graph: PoseGraph, rot: FloatArray, trans: FloatArray, kernel: str,
+    def solve(graph: PoseGraph, rot: FloatArray, trans: FloatArray, kernel: RobustName,
               delta: float) -> SolveResult:
         cfg = dataclasses.replace(config, robust=kernel, robust_scale=delta)
         return solve_exact(graph, rot, trans, cfg, progress=report, iterate=each)
@@ -483,7 +534,17 @@ def solve_exact_auto(graph: PoseGraph, rotations: FloatArray | None,
                      progress: ProgressCallback | None = None,
                      iterate: IterateCallback | None = None) -> SolveResult:
     """:func:`~hybridpgo.solvers.gauss_newton.solve_exact` with ``robust="auto"``: least
-    squares, then :func:`resolve` with the same solver."""
+    squares, then :func:`resolve` with the same solver.
+
+    Parameters
+    ----------
+    graph, rotations, translations, config, progress, iterate
+        As :func:`~hybridpgo.solvers.gauss_newton.solve_exact`'s.
+
+    Returns
+    -------
+    SolveResult
+    """
     from .gauss_newton import solve_exact
 
     plain = dataclasses.replace(config, robust="none", robust_scale=None)
@@ -497,7 +558,17 @@ def solve_hybrid_auto(graph: PoseGraph, config: HybridConfig, *, tree: PoseTree 
                       locals0: tuple[FloatArray, FloatArray] | None = None,
                       iterate: IterateCallback | None = None) -> SolveResult:
     """:func:`~hybridpgo.solvers.hybrid.solve_hybrid` with ``robust="auto"``: least squares,
-    then :func:`resolve` with the same sweeps (and polish) from the re-solve's poses."""
+    then :func:`resolve` with the same sweeps (and polish) from the re-solve's poses.
+
+    Parameters
+    ----------
+    graph, config, tree, progress, locals0, iterate
+        As :func:`~hybridpgo.solvers.hybrid.solve_hybrid`'s.
+
+    Returns
+    -------
+    SolveResult
+    """
     from ..tree import build_tree, locals_from_globals
     from .hybrid.solver import solve_hybrid
 
@@ -505,7 +576,7 @@ def solve_hybrid_auto(graph: PoseGraph, config: HybridConfig, *, tree: PoseTree 
     result = solve_hybrid(graph, plain, tree=tree, progress=progress, locals0=locals0,
                           iterate=iterate)
 
-    def solve(sub: PoseGraph, rot: FloatArray, trans: FloatArray, kernel: str,
+    def solve(sub: PoseGraph, rot: FloatArray, trans: FloatArray, kernel: RobustName,
               delta: float) -> SolveResult:
         t = build_tree(sub, plain.tree)
         grot, gtr = rot, trans
