@@ -47,7 +47,7 @@ def best_known(graph, truth=None) -> float:
     ({"polish_iterations": 1.5}, "polish_iterations must be an integer >= 0"),
     ({"tau0": 2.0}, "tau0 must be below 2"),
     ({"step": "cholesky"}, "step must be one of woodbury, givens"),
-    ({"robust": "tukey"}, "robust must be one of none, huber"),
+    ({"robust": "tukey"}, "robust must be one of auto, none, huber"),
     ({"large_poses": 1}, "large_poses must be an integer >= 2"),
     ({"large_inits": ()}, "large_inits must be a non-empty tuple"),
     ({"large_inits": ("chordal", "chordal")}, "large_inits must be a non-empty tuple of distinct"),

@@ -134,6 +134,10 @@ class Residuals:
     """(G, 3) float64: ``L^T e``."""
     gps_chi2: FloatArray
     """(G,) float64: ``e^T Omega e``."""
+    gps_robust: FloatArray
+    """(G,) float64: the robust cost ``rho(chi2)`` of each GPS constraint."""
+    gps_weight: FloatArray
+    """(G,) float64: its IRLS weight ``rho'(chi2)``."""
 
     def worst(self, k: int) -> list[tuple[str, int, float]]:
         """The ``k`` largest χ² over both kinds: ``(kind, index, chi2)`` with kind ``"edge"``
@@ -166,8 +170,8 @@ def residuals(graph: PoseGraph, rotations: FloatArray | None = None,
     rotations, translations : (N, 3, 3), (N, 3) float64, optional
         Global poses; default: the graph's own estimate.
     robust, scale
-        A robust kernel and its delta, as :func:`robust_energy`: fills ``edge_robust`` and
-        ``edge_weight`` (GPS constraints stay quadratic).
+        A robust kernel and its delta, as :func:`robust_energy`: fills ``edge_robust``,
+        ``edge_weight``, ``gps_robust`` and ``gps_weight``.
 
     Returns
     -------
@@ -191,12 +195,16 @@ def residuals(graph: PoseGraph, rotations: FloatArray | None = None,
     rho = np.empty_like(s)
     w = np.empty_like(s)
     _cost.robust_costs(kind, float(scale), s, rho, w)
+    rho_gps = np.empty_like(s_gps)
+    w_gps = np.empty_like(s_gps)
+    _cost.robust_costs(kind, float(scale), s_gps, rho_gps, w_gps)
     ids = graph.node_ids.astype(np.int64)
     return Residuals(
         edge_ids=ids[graph.edge_nodes].reshape(-1, 2), edge_error=e_rel,
         edge_whitened=_whiten(graph.edge_information, e_rel), edge_chi2=s, edge_robust=rho,
         edge_weight=w, gps_ids=ids[graph.gps_nodes], gps_error=e_gps,
-        gps_whitened=_whiten(graph.gps_information, e_gps), gps_chi2=s_gps)
+        gps_whitened=_whiten(graph.gps_information, e_gps), gps_chi2=s_gps,
+        gps_robust=rho_gps, gps_weight=w_gps)
 
 
 class _CallableModule(types.ModuleType):
