@@ -32,6 +32,7 @@ Run: ``PYTHONPATH=src python -m benchmarks --only outliers --run <name>``.
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -241,7 +242,8 @@ def run(ctx: Context, *, log: Callable[[str], None] | None = None) -> Result:
                     (f"{gnc['seconds']:.1f}" if gnc else "—"),
                     (f"{ours['seconds'] / gnc['seconds']:.2f}" if gnc else "—"),
                     _met(bool(ok_ratio and ok_p and ok_r and ok_clean)
-                         and (not gnc or ours["rmse"] <= gnc["rmse"] * (1 + 1e-3)))]
+                         and (not gnc or ours["rmse"] <= gnc["rmse"] * (1 + 1e-3))),
+                    f"{os.getloadavg()[0]:.1f}"]
             table.append(line)
             say("[outliers] " + " | ".join(str(v) for v in line))
             key = ("outliers." + base.name.split()[0] + "_" + base.name.split()[1] + "."
@@ -259,7 +261,7 @@ def run(ctx: Context, *, log: Callable[[str], None] | None = None) -> Result:
               "ours precision / recall (rejected)", "recall of distinguishable "
               "(indistinguishable)", "test fired by", "ours s (re-solve s)", "GNC RMSE (m)",
               "GNC / optimum", "GNC precision / recall (rejected)", "GNC s", "time ours / GNC",
-              "targets"]
+              "targets", "load"]
     title = ("False loop closures and false GPS fixes: the default (optimize(graph), no "
              "option) beside GTSAM's GncOptimizer (defaults, odometry known inliers).  RMSE: "
              "aligned position error against the ground truth; ours / optimum: over the "
@@ -297,7 +299,8 @@ def run_clean(ctx: Context, *, log: Callable[[str], None] | None = None) -> Resu
                 f"{rel:.1e}", "yes" if same else "no", "yes" if o["inconsistent"] else "no",
                 f"{o['max_sigmas']:.3g}", f"{o['scale']:.3g}", f"{t_plain:.2f}",
                 f"{t_auto:.2f}", f"{t_auto / t_plain:.2f}", f"{check:.3f}",
-                f"{check / t_auto:.2%}", _met(ok and check <= 0.10 * t_plain)]
+                f"{check / t_auto:.2%}", _met(ok and check <= 0.10 * t_plain),
+                f"{os.getloadavg()[0]:.1f}"]
         table.append(line)
         say("[outliers-clean] " + " | ".join(str(v) for v in line))
         key = "outliers_clean." + case.name.replace(" ", "_").replace("(", "").replace(
@@ -308,7 +311,7 @@ def run_clean(ctx: Context, *, log: Callable[[str], None] | None = None) -> Resu
     header = ["graph", "poses", "constraints", "E least squares", "|E auto / E - 1|",
               "same poses (bits)", "test fired", "longest error (sigma)", "scale",
               "least squares s", "auto s", "auto / least squares", "test s",
-              "test / auto", "targets"]
+              "test / auto", "targets", "load"]
     title = ("Clean graphs: the default (robust='auto') against least squares alone "
              "(robust='none'), same run.  Targets: energies equal to 1e-9, nothing rejected, "
              "the test's own time at most 10% of the least-squares time (the wall-time ratio "
