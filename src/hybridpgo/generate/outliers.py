@@ -87,9 +87,13 @@ class Outliers:
 
     def mask(self, num_edges: int) -> npt.NDArray[np.bool_]:
         """(num_edges,) bool: True for the false edges."""
-        out = np.zeros(num_edges, bool)
-        out[self.edges] = True
-        return out
+        return _index_mask(self.edges, num_edges)
+
+
+def _index_mask(indices: npt.NDArray[np.int64], size: int) -> npt.NDArray[np.bool_]:
+    out = np.zeros(size, bool)
+    out[indices] = True
+    return out
 
 
 def check_pattern(pattern: object) -> None:
@@ -406,9 +410,7 @@ class GpsOutliers:
 
     def mask(self, num_gps: int) -> npt.NDArray[np.bool_]:
         """(num_gps,) bool: True for the false readings."""
-        out = np.zeros(num_gps, bool)
-        out[self.readings] = True
-        return out
+        return _index_mask(self.readings, num_gps)
 
 
 def no_gps_outliers() -> GpsOutliers:
