@@ -288,8 +288,9 @@ def outlier_free_start(graph: PoseGraph, solve: ResolveFn | None = None
     -------
     rotations, translations : (N, 3, 3), (N, 3) float64
     """
+    from ..initialization import initial_locals
     from ..metrics import align_rigid
-    from ..tree import build_tree, global_poses, initial_locals
+    from ..tree import build_tree, global_poses
 
     tree_edges = odometry_tree(graph)
     chain = _subgraph(graph, tree_edges, np.zeros(0, np.int64))
