@@ -116,6 +116,37 @@ def test_a_robust_name_means_the_same_scale_under_every_solver(name: str) -> Non
     explicit = config_for("auto", robust=name, robust_scale=want)
     assert isinstance(explicit, AutoConfig)
     assert explicit.sweeps.robust_delta == explicit.polish.robust_delta == want
+    from hybridpgo.online import OnlineConfig
+
+    online = OnlineConfig(robust=name)  # type: ignore[arg-type]
+    assert online.robust_delta == want and online.kernel == name
+
+
+@pytest.mark.parametrize("name", ["auto", "none"])
+def test_auto_and_none_mean_the_same_under_every_solver(name: str) -> None:
+    """``--robust auto`` (the default everywhere) and ``--robust none``: every solver's config
+    says the same name, solves its iterations in least squares, and takes no scale."""
+    from hybridpgo.online import OnlineConfig
+    from hybridpgo.solvers import config_for
+
+    auto = config_for("auto", robust=name)
+    assert isinstance(auto, AutoConfig)
+    hybrid = config_for("hybrid", robust=name)
+    exact = config_for("exact", robust=name)
+    online = OnlineConfig(robust=name)  # type: ignore[arg-type]
+    assert isinstance(hybrid, HybridConfig) and isinstance(exact, GaussNewtonConfig)
+    assert auto.robust == hybrid.robust == exact.robust == online.robust == name
+    assert (auto.sweeps.kernel == auto.polish.kernel == hybrid.kernel == exact.kernel
+            == online.kernel == "none")
+    if name == "auto":  # the default of every solver that has robust kernels
+        defaults = (config_for("auto"), config_for("hybrid"), config_for("exact"),
+                    OnlineConfig())
+        assert [c.robust for c in defaults] == ["auto"] * 4
+        for method in ("auto", "hybrid", "exact"):
+            with pytest.raises(ValueError, match="robust_scale applies to a named kernel"):
+                config_for(method, robust="auto", robust_scale=2.0)
+        with pytest.raises(ValueError, match="robust_scale applies to a named kernel"):
+            OnlineConfig(robust="auto", robust_scale=2.0)
 
 
 # ------------------------------------------------------------------------- the optimum

@@ -195,6 +195,34 @@ def test_every_solver_gives_robust_auto_the_same_meaning() -> None:
         energy(made.graph, hybrid.rotations, hybrid.translations), rel=1e-8)
 
 
+@pytest.mark.parametrize("robust", ["auto", "none"])
+def test_online_refine_gives_robust_auto_the_same_meaning(robust: str) -> None:
+    """The online mode's whole-map solve (``OnlineSolver.refine``) under the default
+    ``robust="auto"`` ends at the clean graph's optimum, as the batch solvers do; with
+    ``"none"`` the false closures fold it."""
+    from hybridpgo.online import OnlineConfig, OnlineSolver
+    from hybridpgo.online.replay import feed_frame, make_stream
+
+    made = _grid(seed=3, n=200)
+    g0 = made.graph
+    g, _ = add_pattern_outliers(g0, made.truth_translations, 10, "random", seed=5)
+    cfg = OnlineConfig() if robust == "auto" else OnlineConfig(robust="none")
+    s = OnlineSolver(cfg)
+    st = make_stream(g)
+    for k in range(st.num_frames):
+        feed_frame(s, st, k)
+        s.update(None, 4)
+    s.refine(100)
+    out = s.to_graph()
+    np.testing.assert_array_equal(out.node_ids, g0.node_ids)
+    ref = _lm(g0, (made.truth_rotations, made.truth_translations))
+    e = energy(g0, out.rotations, out.translations)
+    if robust == "auto":
+        assert e == pytest.approx(ref.final_energy, rel=SPARSE_VS_DENSE_GN)
+    else:
+        assert e > 10.0 * ref.final_energy
+
+
 def test_rejecting_keeps_the_graph_connected_and_anchored() -> None:
     """A rejected bridge is kept (least inconsistent first); so is a part's last GPS reading."""
     made = _grid(n=40)

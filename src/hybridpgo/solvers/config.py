@@ -66,7 +66,7 @@ def check_int(name: str, value: object, minimum: int) -> None:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
 
 
-def _check_robust(name: str, scale: float | None, delta: float) -> None:
+def check_robust(name: str, scale: float | None, delta: float) -> None:
     """``robust`` and ``robust_scale``: ``"auto"`` takes no scale, a kernel a delta > 0."""
     if name == "auto":
         if scale is not None:
@@ -163,7 +163,7 @@ class GaussNewtonConfig:
         if self.linear_solver not in LINEAR_SOLVERS:
             raise ValueError(f"linear_solver must be one of {', '.join(LINEAR_SOLVERS)}, "
                              f"got {self.linear_solver!r}")
-        _check_robust(self.robust, self.robust_scale, self.robust_delta)
+        check_robust(self.robust, self.robust_scale, self.robust_delta)
 
 
 #: Most sweeps one run may ask for (a sweep visits every constraint once; the paper runs 10).
@@ -275,7 +275,7 @@ class HybridConfig:
         if not isinstance(self.polish, bool):
             raise ValueError(f"polish must be True or False, got {self.polish!r}")
         check_int("polish_iterations", self.polish_iterations, 0)
-        _check_robust(self.robust, self.robust_scale, self.robust_delta)
+        check_robust(self.robust, self.robust_scale, self.robust_delta)
 
 
 #: The starts :class:`AutoConfig` tries by default, in this order (``"file"`` only when the
