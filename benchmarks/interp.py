@@ -1,4 +1,4 @@
-"""Interpolated solving (paper III-E, issue 7): time per update on valencia for several D_max.
+"""Interpolated solving (paper III-E): time per update on valencia for several D_max.
 
 Run: ``PYTHONPATH=src python -m benchmarks --only interp --run <name>`` (about 2 minutes; the
 same valencia runs as Table I of ``benchmarks/paper.py``, Woodbury step only, plus the GPS
@@ -20,8 +20,8 @@ import numpy as np
 
 from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver
 
+from .context import Context, Result
 from .metrics import Metric, info, markdown_table, quality, timing
-from .workloads import Context, Result
 
 SWEEPS = 10
 DMAXES: tuple[int | None, ...] = (75, 100, 150, 200, None)

@@ -40,8 +40,8 @@ from hybridpgo.solvers.gauss_newton import solve_exact
 from hybridpgo.solvers.hybrid import HybridConfig, solve_hybrid
 from hybridpgo.tree import build_tree, global_poses
 
+from .context import Context, Result, start
 from .metrics import Metric, info, markdown_table, quality, timing
-from .workloads import Context, Result, start
 
 #: False loop closures added to each graph (nested sets).
 COUNTS = (0, 10, 100, 1000)

@@ -56,9 +56,9 @@ from hybridpgo.solvers.config import GaussNewtonConfig
 from hybridpgo.solvers.gauss_newton import solve_exact
 from hybridpgo.solvers.robust import THRESHOLD_SIGMAS, check_consistency
 
+from .context import Context, Result
 from .gtsam_ref import gtsam_available
 from .metrics import Metric, info, markdown_table, quality, timing
-from .workloads import Context, Result
 
 #: False loop closures per pattern.
 COUNTS = (10, 100, 1000)

@@ -1,7 +1,7 @@
 """Benchmark workloads.  Each returns (metrics, markdown tables).
 
-Datasets are read from ``--data-dir`` (default ``../shared/datasets`` beside the repository);
-the package itself never reads them.  Every number in the issue notes comes from here.
+Datasets are read from ``--data-dir`` (default: ``$HYBRIDPGO_DATASETS``, else the bundled graphs);
+the package itself never reads them.  Every number in the benchmark tables comes from here.
 """
 
 from __future__ import annotations
@@ -9,61 +9,25 @@ from __future__ import annotations
 import pathlib
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from hybridpgo.graph import PoseGraph
-from hybridpgo.initialization import initial_locals
-from hybridpgo.io import read_graph
 from hybridpgo.solvers.config import GaussNewtonConfig
 from hybridpgo.solvers.gauss_newton import solve_exact
 from hybridpgo.solvers.hybrid import HybridConfig, solve_hybrid
-from hybridpgo.tree import build_tree, global_poses
+from hybridpgo.tree import build_tree
 
+from .context import Context, Result, start
 from .metrics import Metric, info, markdown_table, quality, timing
-
-
-@dataclass
-class Context:
-    data_dir: pathlib.Path
-    quick: bool
-    cache: dict[str, Any]
-    figures: pathlib.Path | None = None
-
-    def graph(self, name: str) -> PoseGraph:
-        if name not in self.cache:
-            self.cache[name] = read_graph(self.data_dir / name)
-        return self.cache[name]  # type: ignore[no-any-return]
-
-    def optimum(self, name: str) -> float:
-        """Best energy known for a file: LM from the chordal start (global on these files)."""
-        key = "opt:" + name
-        if key not in self.cache:
-            g = self.graph(name)
-            rot, trans = start(g, "chordal")
-            res = solve_exact(g, rot, trans, GaussNewtonConfig(max_iterations=300))
-            self.cache[key] = res.final_energy
-        return float(self.cache[key])
-
-
-Result = tuple[list[Metric], list[str]]
-
-
-def start(graph: PoseGraph, init: str) -> tuple[np.ndarray, np.ndarray]:
-    """Global poses of an initialization ('file', 'tree' or 'chordal')."""
-    if init == "file":
-        return np.array(graph.rotations), np.array(graph.translations)
-    tree = build_tree(graph)
-    return global_poses(tree, *initial_locals(graph, tree, init))
 
 
 def _stem(name: str) -> str:
     return name.split(".")[0]
 
 
-# ------------------------------------------------------------------ exact solver (issue 2)
+# ------------------------------------------------------------------ exact solver
 EXACT_TARGETS = {
     "sphere2500.g2o": 727.285,
     "M3500.g2o": 3549.04,
@@ -150,7 +114,7 @@ def exact(ctx: Context) -> Result:
     return metrics, [table]
 
 
-# ------------------------------------------------------------------ hybrid solver (issue 3)
+# ------------------------------------------------------------------ hybrid solver
 def _hybrid(g: PoseGraph, **kw: Any) -> Any:
     return solve_hybrid(g, HybridConfig(**kw))
 
@@ -475,7 +439,7 @@ WORKLOADS: dict[str, Callable[[Context], Result]] = {
 }
 
 
-# ------------------------------------------------------------------ GPS and the city (issue 4)
+# ------------------------------------------------------------------ GPS and the city
 def _city_figure(c: Any, res: Any, path: pathlib.Path) -> None:
     """Before (tree initialization) / after (hybrid) map with residuals, GPS ones included."""
     try:
@@ -584,16 +548,16 @@ def _toro(ctx: Context) -> Result:
 WORKLOADS["toro"] = _toro
 
 
-# ------------------------------------------------------------------ fuzzing (issue 9 item 6)
+# ------------------------------------------------------------------ fuzzing
 from .fuzz import run as _fuzz  # noqa: E402
 
 WORKLOADS["fuzz"] = _fuzz
 
-from .linear import run as _linear_run  # noqa: E402  (issue 11 item 4)
+from .linear import run as _linear_run  # noqa: E402
 
 WORKLOADS["linear"] = _linear_run
 
-from .paper import run as _paper_run  # noqa: E402  (issue 7 item 3)
+from .paper import run as _paper_run  # noqa: E402
 from .paper import run_table_one as _paper_table1_run  # noqa: E402
 
 WORKLOADS["paper"] = _paper_run
@@ -629,7 +593,7 @@ def _online(ctx: Context) -> Result:
     return run(ctx)
 
 
-def _scale(ctx: Context) -> Result:  # issue 11 item 6
+def _scale(ctx: Context) -> Result:
     from .scale import run
 
     return run(ctx)
@@ -643,19 +607,19 @@ def _auto(ctx: Context) -> Result:
 WORKLOADS["online"] = _online
 
 
-from .interp import run as _interp_run  # noqa: E402  (issue 7: interpolated update times)
+from .interp import run as _interp_run  # noqa: E402  (interpolated update times)
 
 WORKLOADS["interp"] = _interp_run
 
 WORKLOADS["scale"] = _scale
 
-WORKLOADS["auto"] = _auto  # issue 11 items 1-2: the default pipeline and local minima
+WORKLOADS["auto"] = _auto  # the default pipeline and local minima
 
-from .converge import run as _converge_run  # noqa: E402  (issue 11 item 3: levers)
+from .converge import run as _converge_run  # noqa: E402  (levers)
 
 WORKLOADS["converge"] = _converge_run
 
-from .first_run import run as _first_run  # noqa: E402  (issue 11 item 5: cold first run)
+from .first_run import run as _first_run  # noqa: E402  (cold first run)
 
 WORKLOADS["first_run"] = _first_run
 

@@ -1,4 +1,4 @@
-"""The online mode (DESIGN §11): paths, budget, accuracy, bad input, save/load."""
+"""The online mode (docs/mathematics.md#frames): paths, budget, accuracy, bad input, save/load."""
 
 from __future__ import annotations
 
@@ -20,7 +20,6 @@ from hybridpgo.energy import energy
 from hybridpgo.errors import FormatError, GraphError
 from hybridpgo.online import OnlineConfig, OnlineSolver
 from hybridpgo.online._link import adopt_result
-from hybridpgo.online.persist import state_arrays
 from hybridpgo.online.replay import feed_frame, make_stream, prefix_optima
 from hybridpgo.solvers.config import GaussNewtonConfig
 from hybridpgo.solvers.gauss_newton import solve_exact
@@ -45,7 +44,7 @@ def _stream(solver: OnlineSolver, graph, frames: range, updates: int | None = UP
 
 def _state(s: OnlineSolver) -> dict[str, np.ndarray]:
     """Every array and counter of the solver's state (what a saved state holds)."""
-    return state_arrays(s)
+    return s.state_arrays()
 
 
 def _same(a: dict[str, np.ndarray], b: dict[str, np.ndarray], timing: bool = True) -> None:
@@ -135,7 +134,7 @@ def test_estimate_approaches_the_batch_optimum() -> None:
 
 
 def test_city_loops_through_stiff_odometry_converge() -> None:
-    """Issue 8's valencia bug on a small city: a revisiting pose hangs from its (soft) loop
+    """The valencia defect on a small city: a revisiting pose hangs from its (soft) loop
     closure, its (stiff) odometry carries the loop's path.  Relaxed one at a time the two only
     trade the error through the junction pose (15x the optimum after 100 extra frames); as a
     junction group (the default) they are solved together."""

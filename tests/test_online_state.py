@@ -17,7 +17,6 @@ from graphs import random_graph
 
 from hybridpgo.errors import FormatError, GraphError
 from hybridpgo.online import OnlineConfig, OnlineSolver
-from hybridpgo.online.persist import state_arrays
 from hybridpgo.online.replay import feed_frame, make_stream
 
 
@@ -55,13 +54,13 @@ def test_a_saved_state_loads_and_continues_like_the_original(tmp_path: Path) -> 
     path = tmp_path / "state.npz"
     s.save(path)
     t = OnlineSolver.load(path)
-    a, b = state_arrays(s), state_arrays(t)
+    a, b = s.state_arrays(), t.state_arrays()
     assert a.keys() == b.keys()
     for k in a:
         assert np.array_equal(a[k], b[k]), k
     for solver in (s, t):
         solver.update(None, 12)
-    a, b = state_arrays(s), state_arrays(t)
+    a, b = s.state_arrays(), t.state_arrays()
     for k in a:  # the cost model learns from the clock: not reproducible
         assert k == "model" or np.array_equal(a[k], b[k]), k
 
@@ -77,7 +76,7 @@ def test_a_crafted_index_or_value_is_refused(tmp_path: Path, key: str, value: fl
     """A saved 10-pose state with one member set out of range (the parent array at 10^9 made
     the process die with SIGSEGV in the first update after loading) is refused."""
     s = _solver()
-    members = state_arrays(s)
+    members = s.state_arrays()
     if members[key].size == 0:
         pytest.skip(f"{key} is empty in this state")
     arr = members[key].astype(np.float64 if isinstance(value, float) else members[key].dtype)
@@ -96,7 +95,7 @@ def test_a_crafted_index_or_value_is_refused(tmp_path: Path, key: str, value: fl
 ])
 def test_a_crafted_meta_is_refused(tmp_path: Path, meta_change: dict[str, object]) -> None:
     s = _solver()
-    members = state_arrays(s)
+    members = s.state_arrays()
     meta = json.loads(bytes(members["meta"]).decode())
     meta.update(meta_change)
     members["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
@@ -108,14 +107,14 @@ def test_a_crafted_meta_is_refused(tmp_path: Path, meta_change: dict[str, object
 
 def test_meta_that_is_not_an_object_and_members_that_are_not_arrays(tmp_path: Path) -> None:
     s = _solver()
-    members = state_arrays(s)
+    members = s.state_arrays()
     for meta in (b"[1, 2, 3]", b"\xff\xfe", b"{", b'"text"'):
         members["meta"] = np.frombuffer(meta, np.uint8)
         path = tmp_path / "m.npz"
         _write(path, members)
         with pytest.raises(FormatError, match=r"m\.npz: .*meta"):
             OnlineSolver.load(path)
-    members = state_arrays(s)
+    members = s.state_arrays()
     members["parent"] = np.array(["a", "b"])  # not a number
     path = tmp_path / "s.npz"
     _write(path, members)
@@ -125,7 +124,7 @@ def test_meta_that_is_not_an_object_and_members_that_are_not_arrays(tmp_path: Pa
 
 def test_an_object_array_is_refused_without_unpickling(tmp_path: Path) -> None:
     s = _solver()
-    members = state_arrays(s)
+    members = s.state_arrays()
     buf = io.BytesIO()
     np.save(buf, np.array([{"x": 1}], dtype=object), allow_pickle=True)
     path = tmp_path / "pickle.npz"
@@ -147,7 +146,7 @@ def test_an_object_array_is_refused_without_unpickling(tmp_path: Path) -> None:
 
 def test_a_header_that_declares_a_huge_array_is_refused_before_reading(tmp_path: Path) -> None:
     s = _solver()
-    members = state_arrays(s)
+    members = s.state_arrays()
     del members["rot"]
     path = tmp_path / "huge.npz"
     _write(path, members)
@@ -182,7 +181,7 @@ def test_random_damage_never_escapes_the_error_contract(tmp_path: Path) -> None:
     """Fuzz: one member of a valid state changed at random, many times; each load either
     refuses the file with a FormatError or gives a solver that keeps working."""
     rng = np.random.default_rng(7)
-    base = state_arrays(_solver(n=12, gps=4, seed=3))
+    base = _solver(n=12, gps=4, seed=3).state_arrays()
     keys = [k for k in base if k != "meta" and base[k].size]
     specials = [0, -1, 1, 2, 7, -(2**31), 2**31 - 1, 2**62, np.nan, np.inf, -np.inf, 1e308,
                 -1e-300, 0.5]
@@ -242,12 +241,12 @@ def test_save_writes_through_a_link_and_refuses_what_it_cannot_replace(tmp_path:
 @pytest.mark.parametrize("budget", [0.0, -1.0, float("nan"), float("inf"), "5", True])
 def test_a_bad_budget_is_refused_and_changes_nothing(budget: object) -> None:
     s = _solver()
-    before = state_arrays(s)
+    before = s.state_arrays()
     with pytest.raises(ValueError, match="budget_s must be a finite number > 0"):
         s.update(budget)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="budget_s must be a finite number > 0"):
         s.idle(budget)  # type: ignore[arg-type]
-    after = state_arrays(s)
+    after = s.state_arrays()
     for k in before:
         assert np.array_equal(before[k], after[k]), k
 
@@ -262,7 +261,7 @@ def test_a_huge_budget_is_a_long_frame_not_an_overflow() -> None:
 def test_bad_input_changes_nothing() -> None:
     s = _solver()
     ids = s.pose_ids()
-    before = state_arrays(s)
+    before = s.state_arrays()
     nan_pose = (np.eye(3), np.array([np.nan, 0.0, 0.0]))
     with pytest.raises(GraphError, match="not finite"):
         s.add_constraint(int(ids[0]), int(ids[3]), nan_pose, np.eye(6))
@@ -271,10 +270,10 @@ def test_bad_input_changes_nothing() -> None:
     with pytest.raises(GraphError, match="duplicate pose id"):
         s.add_pose(int(ids[2]), int(ids[1]), (np.eye(3), np.ones(3)), np.eye(6))
     s.add_constraint(int(ids[0]), int(ids[4]), (np.eye(3), np.ones(3)), np.eye(6))
-    mid = state_arrays(s)
+    mid = s.state_arrays()
     with pytest.raises(GraphError, match="duplicate constraint"):
         s.add_constraint(int(ids[0]), int(ids[4]), (np.eye(3), np.ones(3)), np.eye(6))
-    after = state_arrays(s)
+    after = s.state_arrays()
     for k in mid:
         assert np.array_equal(mid[k], after[k]), k
     assert before["meta"].tobytes() != mid["meta"].tobytes()  # the good constraint was taken

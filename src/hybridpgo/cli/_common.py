@@ -1,5 +1,6 @@
 """Helpers shared by the CLI commands: reading inputs, choosing output formats, the progress
-bar, and printing summaries.  Results go to stdout, progress and logs to stderr (STYLE.md §11).
+bar, and printing summaries.  Results go to stdout, progress and logs to stderr
+(docs/contributing.md#cli).
 """
 
 from __future__ import annotations
@@ -207,6 +208,12 @@ def _stdin_identity() -> tuple[int, int] | None:
     return st.st_dev, st.st_ino
 
 
+def tum_ground_truth_path(path: str) -> str:
+    """``traj.tum`` -> ``traj_gt.tum`` (where ``evaluate --tum`` writes the ground truth)."""
+    stem, ext = os.path.splitext(path)
+    return f"{stem}_gt{ext}"
+
+
 def command_files(args: Any) -> tuple[list[str], list[Output]]:
     """The graph/trajectory/figure files a parsed command reads and writes (for
     :func:`check_outputs`).  ``generate`` and ``demo`` check their own outputs."""
@@ -242,8 +249,6 @@ def command_files(args: Any) -> tuple[list[str], list[Output]]:
     if cmd == "evaluate":
         outs = []
         if args.tum is not None:
-            from .evaluate import tum_ground_truth_path
-
             outs = [Output(args.tum, "--tum"), Output(tum_ground_truth_path(args.tum), "--tum")]
         return [args.file, args.ground_truth], outs
     return [], []

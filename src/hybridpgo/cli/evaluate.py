@@ -1,20 +1,13 @@
-"""``hybridpgo evaluate OUT --ground-truth GT``: accuracy against ground truth (issue 4)."""
+"""``hybridpgo evaluate OUT --ground-truth GT``: accuracy against ground truth."""
 
 from __future__ import annotations
 
 import argparse
-import os
 import warnings
 from typing import Any
 
 from ..errors import HybridPGOError
-from ._common import print_json, print_table, read_input
-
-
-def tum_ground_truth_path(path: str) -> str:
-    """``traj.tum`` -> ``traj_gt.tum`` (where ``--tum`` writes the ground truth)."""
-    stem, ext = os.path.splitext(path)
-    return f"{stem}_gt{ext}"
+from ._common import print_json, print_table, read_input, tum_ground_truth_path
 
 
 def _shared_ids(est_ids: Any, gt_ids: Any, est_path: str, gt_path: str) -> Any:

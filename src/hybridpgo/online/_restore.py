@@ -11,15 +11,13 @@ and the constraints, so no derived array of the file is trusted.  A check that f
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from .. import _tree_kernels as tk
 from ._validate import ROTATION_TOL
-
-if TYPE_CHECKING:
-    from .solver import OnlineSolver
+from .store import MapStore
 
 
 def _rotations(name: str, r: np.ndarray) -> None:
@@ -62,8 +60,11 @@ def _constraint_names(name: str, names: np.ndarray, m: int, g: int) -> None:
         raise ValueError(f"{name} names a constraint that does not exist")
 
 
-def restore(solver: OnlineSolver, meta: dict[str, Any], d: dict[str, np.ndarray]) -> None:
-    """Fill ``solver``'s (new, empty) store from the checked members ``d``."""
+def restore(st: MapStore, meta: dict[str, Any], d: dict[str, np.ndarray]
+            ) -> dict[tuple[int, int], list[int]]:
+    """Fill the new, empty store ``st`` from the members ``d``, checking every value first.
+
+    Returns the index of the edges by their pose pair (the solver's duplicate check)."""
     sz = {k: int(meta[k]) for k in ("n", "placed", "m", "m_laid", "g", "g_laid", "frame",
                                     "ngroups")}
     n, placed, m, m_laid, g, g_laid = (sz[k] for k in ("n", "placed", "m", "m_laid", "g",
@@ -102,7 +103,6 @@ def restore(solver: OnlineSolver, meta: dict[str, Any], d: dict[str, np.ndarray]
     _in_range("gps_node of a laid reading", gps_node[:g_laid], 0, placed)
     _rotations("rot", d["rot"])
     # --- everything checked: fill the store, then derive what can be derived
-    st = solver._store
     st.ensure_nodes(n + 2)
     st.ensure_constraints(m, g)
     st.n, st.placed, st.m, st.g = n, placed, m, g
@@ -135,22 +135,17 @@ def restore(solver: OnlineSolver, meta: dict[str, Any], d: dict[str, np.ndarray]
     _constraint_names("queue", queue, m, g)
     if np.unique(queue).size != queue.size:
         raise ValueError("the queue lists a constraint twice")
-    from .persist import _internal
-
-    st.set_queue(_internal(st, queue))
+    st.set_queue(st.store_indices(queue))
     model = d["model"].astype(np.float64)
     if not np.all(model > 0):
         raise ValueError("the cost model is not positive")
     st.model[:] = model
     st.gps_links = int(meta["gps_links"])
-    solver.frame = frame
-    solver._cursor, solver._gps_cursor = int(meta["cursor"]), int(meta["gps_cursor"])
-    solver._index = {int(v): i for i, v in enumerate(ids)}
+    edge_keys: dict[tuple[int, int], list[int]] = {}
     for e in range(m):
-        solver._edge_keys.setdefault((int(edge_ab[e, 0]), int(edge_ab[e, 1])), []).append(e)
+        edge_keys.setdefault((int(edge_ab[e, 0]), int(edge_ab[e, 1])), []).append(e)
     st._views = None
-    if solver._link is not None:  # the new worker gets the whole map now
-        solver._link.ship(st, frame)
+    return edge_keys
 
 
 def _lay(st: Any, m_laid: int, g_laid: int) -> None:
@@ -179,9 +174,7 @@ def _groups(st: Any, d: dict[str, np.ndarray], ngroups: int, m: int, g: int,
     if ptr[0] != 0 or np.any(np.diff(ptr) < 1) or int(ptr[-1]) != members.shape[0]:
         raise ValueError("the junction groups' offsets are not increasing from 0")
     _constraint_names("group_members", members, m, g)
-    from .persist import _internal
-
-    inner = _internal(st, members)
+    inner = st.store_indices(members)
     if np.unique(inner).size != inner.size:
         raise ValueError("a constraint is in two junction groups")
     _in_range("group_stamp", d["group_stamp"], -1, frame + 1)

@@ -26,12 +26,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..errors import FormatError, GraphError
+from ..errors import FormatError
 from ._validate import ROTATION_TOL
 from .config import OnlineConfig
 
 if TYPE_CHECKING:
-    from .solver import OnlineSolver
+    from .store import MapStore
 
 #: File format tag and version.
 FORMAT = "hybridpgo-online"
@@ -62,31 +62,21 @@ MAX_MEMBER_BYTES = 1 << 36
 
 
 # --------------------------------------------------------------------------- saving
-def _arrival(st: Any, cs: np.ndarray) -> np.ndarray:
-    """Store indices -> arrival-order names (edge e, GPS reading g as -(g + 1))."""
-    cs = np.asarray(cs, np.int64)
-    return np.where(cs < st.cap_m, cs, -(cs - st.cap_m) - 1)
-
-
-def _internal(st: Any, names: np.ndarray) -> np.ndarray:
-    """Arrival-order names -> store indices."""
-    return np.where(names >= 0, names, st.cap_m - names - 1)
-
-
-def state_arrays(solver: OnlineSolver) -> dict[str, np.ndarray]:
-    """Every member of ``solver``'s saved state (``meta`` as JSON bytes), copies."""
+def state_arrays(st: MapStore, config: OnlineConfig, counters: dict[str, int]
+                 ) -> dict[str, np.ndarray]:
+    """Every member of a saved state (``meta`` as JSON bytes), copies: the store ``st``, the
+    solver's ``config`` and its ``counters`` (``frame``, ``cursor``, ``gps_cursor``)."""
     from dataclasses import asdict
 
-    st = solver.store
     p = st.placed + 1
     pe = int(st.ptr[st.m_laid])
     g0, g1 = st.cap_pe, int(st.ptr[st.cap_m + st.g_laid])
     cm = st.cap_m
     k = int(st.group_ptr[st.ngroups])
-    meta = {"format": FORMAT, "version": VERSION, "config": asdict(solver.config),
+    meta = {"format": FORMAT, "version": VERSION, "config": asdict(config),
             "n": st.n, "placed": st.placed, "m": st.m, "m_laid": st.m_laid, "g": st.g,
-            "g_laid": st.g_laid, "frame": solver.frame, "ngroups": st.ngroups,
-            "cursor": solver._cursor, "gps_cursor": solver._gps_cursor,
+            "g_laid": st.g_laid, "frame": int(counters["frame"]), "ngroups": st.ngroups,
+            "cursor": int(counters["cursor"]), "gps_cursor": int(counters["gps_cursor"]),
             "gps_links": st.gps_links}
     arrays: dict[str, np.ndarray] = {
         "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8),
@@ -100,22 +90,21 @@ def state_arrays(solver: OnlineSolver) -> dict[str, np.ndarray]:
         "gps_info": st.gps_info[: st.g],
         "contrib_e": st.contrib[:pe], "contrib_g": st.contrib[g0:g1],
         "chi2_e": st.chi2[: st.m], "chi2_g": st.chi2[cm: cm + st.g],
-        "queue": _arrival(st, st.pending()),
+        "queue": st.arrival_names(st.pending()),
         "group_ptr": st.group_ptr[: st.ngroups + 1],
-        "group_members": _arrival(st, st.group_members[:k]),
+        "group_members": st.arrival_names(st.group_members[:k]),
         "group_stamp": st.group_stamp[: st.ngroups],
         "model": st.model,
     }  # fmt: skip
     return {k: np.array(v, copy=True) for k, v in arrays.items()}
 
 
-def save_state(solver: OnlineSolver, path: str | os.PathLike[str]) -> None:
-    """Write ``solver``'s state to ``path`` with the output rules of every file the package
-    writes (:func:`hybridpgo._output.write_file`: a temporary file beside the target, then a
-    rename; a symbolic link is written through; a directory, FIFO or device is refused)."""
+def write_state(path: str | os.PathLike[str], arrays: dict[str, np.ndarray]) -> None:
+    """Write the members ``arrays`` (:func:`state_arrays`) to ``path`` with the output rules of
+    every file the package writes (:func:`hybridpgo._output.write_file`: a temporary file beside
+    the target, then a rename; a symbolic link is written through; a directory, FIFO or device is
+    refused)."""
     from .._output import write_file
-
-    arrays = state_arrays(solver)
 
     def dump(fh: Any) -> None:
         np.savez(fh, **arrays)  # type: ignore[arg-type]
@@ -218,8 +207,10 @@ def _check_members(name: str, meta: dict[str, Any], d: dict[str, np.ndarray]) ->
             raise FormatError(f"member {key!r} holds values that are not finite", path=name)
 
 
-def load_state(cls: type[OnlineSolver], path: str | os.PathLike[str]) -> OnlineSolver:
-    """The solver saved at ``path`` (module docstring).
+def read_state(path: str | os.PathLike[str]
+               ) -> tuple[OnlineConfig, dict[str, Any], dict[str, np.ndarray]]:
+    """The configuration, the ``meta`` record and the members of the state saved at ``path``,
+    checked as a file (module docstring); :func:`._restore.restore` checks the values.
 
     Raises
     ------
@@ -234,19 +225,8 @@ def load_state(cls: type[OnlineSolver], path: str | os.PathLike[str]) -> OnlineS
         config = OnlineConfig(**meta["config"])
     except (TypeError, ValueError) as exc:
         raise FormatError(f"meta: config: {exc}", path=name) from exc
-    solver = cls(config)
-    try:
-        from ._restore import restore
-
-        restore(solver, meta, members)
-    except (GraphError, ValueError, IndexError) as exc:
-        solver.close()
-        raise FormatError(f"not a valid online solver state: {exc}", path=name) from exc
-    except BaseException:
-        solver.close()
-        raise
-    return solver
+    return config, meta, members
 
 
-__all__ = ["FORMAT", "MAX_MEMBER_BYTES", "ROTATION_TOL", "VERSION", "load_state",
-           "save_state", "state_arrays"]
+__all__ = ["FORMAT", "MAX_MEMBER_BYTES", "ROTATION_TOL", "VERSION", "read_state",
+           "state_arrays", "write_state"]

@@ -33,7 +33,7 @@ import numpy.typing as npt
 
 from .. import _cost
 from .._numba import cycles_per_second, read_cycles
-from ..errors import GraphError
+from ..errors import FormatError, GraphError
 from ..graph import FloatArray, PoseGraph
 from ..solvers.config import check_int
 from ..solvers.hybrid import _admission as adm
@@ -532,12 +532,20 @@ class OnlineSolver:
         }  # fmt: skip
 
     # ----------------------------------------------------------------- save / load
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        """Every member of the saved state (:mod:`.persist`), as copies: what :meth:`save`
+        writes."""
+        from .persist import state_arrays
+
+        return state_arrays(self._store, self.config, {
+            "frame": self.frame, "cursor": self._cursor, "gps_cursor": self._gps_cursor})
+
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the whole state to ``path`` (:mod:`.persist`), atomically; :meth:`load` of it,
         then the same calls, gives the same results as not stopping."""
-        from .persist import save_state
+        from .persist import write_state
 
-        save_state(self, path)
+        write_state(path, self.state_arrays())
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> OnlineSolver:
@@ -549,9 +557,27 @@ class OnlineSolver:
             The file is missing, truncated, corrupted, not an online state or of another
             version, or any of its values breaks an invariant of the solver.
         """
-        from .persist import load_state
+        from ._restore import restore
+        from .persist import read_state
 
-        return load_state(cls, path)
+        config, meta, members = read_state(path)
+        solver = cls(config)
+        try:
+            solver._edge_keys = restore(solver._store, meta, members)
+        except (GraphError, ValueError, IndexError) as exc:
+            solver.close()
+            raise FormatError(f"not a valid online solver state: {exc}",
+                              path=os.fspath(path)) from exc
+        except BaseException:
+            solver.close()
+            raise
+        st = solver._store
+        solver.frame = int(meta["frame"])
+        solver._cursor, solver._gps_cursor = int(meta["cursor"]), int(meta["gps_cursor"])
+        solver._index = {int(v): i for i, v in enumerate(st.ids[: st.n])}
+        if solver._link is not None:  # the new worker gets the whole map
+            solver._link.ship(st, solver.frame)
+        return solver
 
 
 #: Set once the online kernels have been compiled (or loaded from the cache) in this process.

@@ -245,6 +245,16 @@ class MapStore:
         """The queued constraints (a view)."""
         return self.queue[self.q_head: self.q_tail]
 
+    def arrival_names(self, cs: np.ndarray) -> np.ndarray:
+        """Store indices -> arrival-order names (edge ``e`` as ``e``, GPS reading ``g`` as
+        ``-(g + 1)``): the names a saved state uses, independent of the reserved capacity."""
+        cs = np.asarray(cs, np.int64)
+        return np.where(cs < self.cap_m, cs, -(cs - self.cap_m) - 1)
+
+    def store_indices(self, names: np.ndarray) -> np.ndarray:
+        """Arrival-order names -> store indices (the inverse of :meth:`arrival_names`)."""
+        return np.where(names >= 0, names, self.cap_m - names - 1)
+
     def pop(self, k: int) -> None:
         """Drop the first ``k`` queued constraints."""
         self.q_head += k

@@ -153,9 +153,8 @@ class BackgroundRefiner:
 
     def __init__(self, max_iterations: int, robust: str = "none") -> None:
         """Start the worker (``robust``: ``NAME:DELTA`` of the robust kernel, or ``none``)."""
-        import hybridpgo
-
-        root = os.path.dirname(os.path.dirname(os.path.abspath(hybridpgo.__file__)))
+        # the folder that holds the package (this file is <root>/hybridpgo/online/worker.py)
+        root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
         env.update(WORKER_THREADS)

@@ -1,4 +1,5 @@
-"""Solver options: frozen dataclasses validated once in ``__post_init__`` (STYLE.md §6).
+"""Solver options: frozen dataclasses validated once in ``__post_init__``
+(docs/contributing.md#solver-api).
 
 Every field's docstring states its exact meaning.  Invalid values raise ``ValueError`` naming
 the field, the value and what is allowed.
@@ -23,7 +24,8 @@ StepName = Literal["woodbury", "givens"]
 TreeName = Literal["bfs", "mst", "gps"]
 InitName = Literal["tree", "file", "chordal"]
 #: ``"auto"`` (least squares, then :mod:`hybridpgo.solvers.robust`'s outlier test and re-solve)
-#: and the robust kernels (DESIGN §10), whose names are ``_cost.ROBUST_NAMES`` (tested).
+#: and the robust kernels (docs/conventions.md#robust-kernels), whose names are
+#: ``_cost.ROBUST_NAMES`` (tested).
 RobustName = Literal["auto", "none", "huber", "cauchy", "geman_mcclure"]
 #: Every value ``robust`` accepts: ``"auto"``, then the kernels.
 ROBUST_CHOICES: tuple[str, ...] = get_args(RobustName)
@@ -87,7 +89,8 @@ def check_float(name: str, value: object, *, positive: bool) -> None:
 
 @dataclass(frozen=True)
 class GaussNewtonConfig:
-    """Options of the exact solver :func:`hybridpgo.solvers.gauss_newton.solve_exact` (DESIGN §7).
+    """Options of the exact solver :func:`hybridpgo.solvers.gauss_newton.solve_exact`
+    (docs/mathematics.md#exact-solver).
 
     The energy is ``E = sum_c e_c^T Omega_c e_c`` (no 1/2).  The solver stops at the first of:
     the energy criterion, the step criterion, or ``max_iterations``.
@@ -117,7 +120,7 @@ class GaussNewtonConfig:
     step_guard: bool = True
     """GN only: when a full step raises the energy, halve it until it does not (up to
     ``max_step_halvings`` times; then stop as STALLED).  ``False``: plain Gauss-Newton, every step
-    is taken.  (DESIGN §9: unguarded GN from outside the basin diverges.)"""
+    is taken.  (docs/mathematics.md#lm-damping: unguarded GN from outside the basin diverges.)"""
     max_step_halvings: int = 30
     """GN with ``step_guard``: at most this many halvings of one step."""
     linear_solver: Literal["auto", "cholmod", "splu"] = "auto"
@@ -186,7 +189,8 @@ class HybridConfig:
     tau_decay: float = 0.99
     """tau is multiplied by this after each sweep (paper III-H)."""
     damping: float = 1e-6
-    """mu: each block of B_c gets ``mu * trace(B)/6`` added to its diagonal (DESIGN §4)."""
+    """mu: each block of B_c gets ``mu * trace(B)/6`` added to its diagonal
+    (docs/mathematics.md#hybrid-step)."""
     step: StepName = "woodbury"
     """``"woodbury"`` (O(d), default) or ``"givens"`` (the paper's O(d^2) triangularization)."""
     tree: TreeName = "bfs"
@@ -209,13 +213,14 @@ class HybridConfig:
     polish_iterations: int = 100
     """Iteration limit of the polish."""
     robust: RobustName = "none"
-    """Robust kernel on every constraint's χ² ``s = e^T Omega e`` (relative and GPS; DESIGN
-    §10): ``"none"`` (least squares), ``"huber"``, ``"cauchy"`` or ``"geman_mcclure"`` (g2o's
-    conventions).  The solver minimizes ``E_rho = sum_c rho(s_c)`` by iterative reweighting:
-    each step whitens with ``sqrt(w_c) L^T``, ``w_c = rho'(s_c)`` at the current poses.
-    ``energy_history`` is then E_rho and ``stats["plain_energy_history"]`` the plain E.  The
-    polish uses the same kernel.  ``"auto"``: least squares, then the outlier test and
-    re-solve of :mod:`hybridpgo.solvers.robust` (:func:`solve_hybrid`; a
+    """Robust kernel on every constraint's χ² ``s = e^T Omega e`` (relative and GPS;
+    docs/conventions.md#robust-kernels): ``"none"`` (least squares), ``"huber"``,
+    ``"cauchy"`` or ``"geman_mcclure"`` (g2o's conventions).  The solver minimizes
+    ``E_rho = sum_c rho(s_c)`` by iterative reweighting: each step whitens with
+    ``sqrt(w_c) L^T``, ``w_c = rho'(s_c)`` at the current poses.  ``energy_history`` is then
+    E_rho and ``stats["plain_energy_history"]`` the plain E.  The polish uses the same kernel.
+    ``"auto"``: least squares, then the outlier test and re-solve of
+    :mod:`hybridpgo.solvers.robust` (:func:`solve_hybrid`; a
     :class:`~hybridpgo.solvers.hybrid.HybridSolver` stepped by hand runs least squares)."""
     robust_scale: float | None = None
     """The kernel's delta (> 0) in whitened units (sqrt of χ²); None: the kernel's default
