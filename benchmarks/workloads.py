@@ -572,7 +572,21 @@ def _outliers(ctx: Context) -> Result:
     return run(ctx)
 
 
+def _outliers_clean(ctx: Context) -> Result:
+    from .outliers import run_clean
+
+    return run_clean(ctx)
+
+
+def _outlier_kernels(ctx: Context) -> Result:
+    from .outlier_kernels import run
+
+    return run(ctx)
+
+
 WORKLOADS["outliers"] = _outliers
+WORKLOADS["outliers-clean"] = _outliers_clean
+WORKLOADS["outlier-kernels"] = _outlier_kernels
 
 
 def _online(ctx: Context) -> Result:

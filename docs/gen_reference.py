@@ -32,6 +32,7 @@ MODULES: tuple[tuple[str, str], ...] = (
     ("hybridpgo.solvers.gauss_newton", "the exact sparse Gauss-Newton / Levenberg-Marquardt "
                                        "solver"),
     ("hybridpgo.solvers.hybrid", "the hybrid Hessian solver (the paper's method)"),
+    ("hybridpgo.solvers.robust", "robust=\"auto\": the outlier test and the re-solve"),
     ("hybridpgo.solvers.toro", "the TORO-style baseline"),
     ("hybridpgo.online", "the online (real-time) solver"),
     ("hybridpgo.online.replay", "replaying a graph as a stream of frames, beside iSAM2"),

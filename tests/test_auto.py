@@ -49,7 +49,7 @@ def best_known(graph, truth=None) -> float:
     ({"sweeps": 101, "robust": "huber", "robust_scale": -1.0}, "robust_scale"),
     ({"tau0": 2.0}, "tau0 must be below 2"),
     ({"step": "cholesky"}, "step must be one of woodbury, givens"),
-    ({"robust": "tukey"}, "robust must be one of none, huber"),
+    ({"robust": "tukey"}, "robust must be one of auto, none, huber"),
     ({"large_poses": 1}, "large_poses must be an integer >= 2"),
     ({"large_inits": ()}, "large_inits must be a non-empty tuple"),
     ({"large_inits": ("chordal", "chordal")}, "large_inits must be a non-empty tuple of distinct"),
@@ -82,11 +82,13 @@ def test_auto_config_nests_the_sweep_and_polish_configs() -> None:
     # the nested defaults are the solvers' own: nothing is copied, so nothing can drift
     default = AutoConfig()
     for name in ("tau0", "tau_decay", "damping", "step", "tree", "gps_batch_size", "dmax",
-                 "robust", "robust_scale"):
+                 "robust_scale"):
         assert getattr(default.sweeps, name) == getattr(HybridConfig(), name), name
-    for name in ("method", "energy_tolerance", "initial_damping", "linear_solver", "robust",
+    for name in ("method", "energy_tolerance", "initial_damping", "linear_solver",
                  "robust_scale"):
         assert getattr(default.polish, name) == getattr(GaussNewtonConfig(), name), name
+    # but the pipeline's robust default is the outlier test, in both nested configs
+    assert default.robust == default.sweeps.robust == default.polish.robust == "auto"
 
 
 def test_auto_config_needs_one_robust_kernel() -> None:
@@ -114,6 +116,37 @@ def test_a_robust_name_means_the_same_scale_under_every_solver(name: str) -> Non
     explicit = config_for("auto", robust=name, robust_scale=want)
     assert isinstance(explicit, AutoConfig)
     assert explicit.sweeps.robust_delta == explicit.polish.robust_delta == want
+    from hybridpgo.online import OnlineConfig
+
+    online = OnlineConfig(robust=name)  # type: ignore[arg-type]
+    assert online.robust_delta == want and online.kernel == name
+
+
+@pytest.mark.parametrize("name", ["auto", "none"])
+def test_auto_and_none_mean_the_same_under_every_solver(name: str) -> None:
+    """``--robust auto`` (the default everywhere) and ``--robust none``: every solver's config
+    says the same name, solves its iterations in least squares, and takes no scale."""
+    from hybridpgo.online import OnlineConfig
+    from hybridpgo.solvers import config_for
+
+    auto = config_for("auto", robust=name)
+    assert isinstance(auto, AutoConfig)
+    hybrid = config_for("hybrid", robust=name)
+    exact = config_for("exact", robust=name)
+    online = OnlineConfig(robust=name)  # type: ignore[arg-type]
+    assert isinstance(hybrid, HybridConfig) and isinstance(exact, GaussNewtonConfig)
+    assert auto.robust == hybrid.robust == exact.robust == online.robust == name
+    assert (auto.sweeps.kernel == auto.polish.kernel == hybrid.kernel == exact.kernel
+            == online.kernel == "none")
+    if name == "auto":  # the default of every solver that has robust kernels
+        defaults = (config_for("auto"), config_for("hybrid"), config_for("exact"),
+                    OnlineConfig())
+        assert [c.robust for c in defaults] == ["auto"] * 4
+        for method in ("auto", "hybrid", "exact"):
+            with pytest.raises(ValueError, match="robust_scale applies to a named kernel"):
+                config_for(method, robust="auto", robust_scale=2.0)
+        with pytest.raises(ValueError, match="robust_scale applies to a named kernel"):
+            OnlineConfig(robust="auto", robust_scale=2.0)
 
 
 # ------------------------------------------------------------------------- the optimum

@@ -43,15 +43,15 @@ def _dense(solver: HybridSolver) -> tuple[np.ndarray, np.ndarray]:
             jac, r = naive.relative_jacobian(grot, gtr, a, b, graph.edge_rotations[c],
                                              graph.edge_translations[c], prob.edge_lt[c],
                                              nodes, signs)
-            if solver.config.robust != "none":  # IRLS whitening sqrt(w) L^T, Cauchy
-                delta = solver.config.robust_delta
-                sw = np.sqrt(1.0 / (1.0 + float(r @ r) / delta**2))
-                jac, r = sw * jac, sw * r
         else:
             n = int(graph.gps_nodes[c - graph.num_edges])
             nodes, _ = naive.tree_domain(tree.parent, tree.root, n)
             jac, r = naive.gps_jacobian(grot, gtr, n, graph.gps_positions[c - graph.num_edges],
                                         prob.gps_lt[c - graph.num_edges], nodes)
+        if solver.config.robust != "none":  # IRLS whitening sqrt(w) L^T, Cauchy (every kind)
+            delta = solver.config.robust_delta
+            sw = np.sqrt(1.0 / (1.0 + float(r @ r) / delta**2))
+            jac, r = sw * jac, sw * r
         domains.append(nodes)
         jacs.append(jac)
         res.append(r)

@@ -67,8 +67,13 @@ def test_residuals_match_the_naive_twin(gps: int) -> None:
                                rtol=TWIN_JACOBIAN, atol=0)
     assert res.edge_chi2.sum() + res.gps_chi2.sum() == energy(graph)
     e_rho, _ = robust_energy(graph, robust="cauchy", scale=1.5)
-    assert res.edge_robust.sum() + res.gps_chi2.sum() == pytest.approx(e_rho,
-                                                                       rel=FLOAT64_IDENTITY)
+    assert res.edge_robust.sum() + res.gps_robust.sum() == pytest.approx(e_rho,
+                                                                         rel=FLOAT64_IDENTITY)
+    d2 = 1.5**2  # Cauchy on the GPS constraints too: rho = d2 log(1 + s / d2), w = d2 / (d2 + s)
+    np.testing.assert_allclose(res.gps_robust, d2 * np.log1p(res.gps_chi2 / d2),
+                               rtol=TWIN_JACOBIAN, atol=0)
+    np.testing.assert_allclose(res.gps_weight, d2 / (d2 + res.gps_chi2), rtol=TWIN_JACOBIAN,
+                               atol=0)
 
 
 def test_residuals_at_given_poses_and_without_kernel() -> None:
@@ -91,7 +96,7 @@ def test_worst_lists_the_largest_chi2_of_both_kinds() -> None:
         edge_whitened=np.zeros((3, 6)), edge_chi2=np.array([1.0, 9.0, 4.0]),
         edge_robust=np.zeros(3), edge_weight=np.ones(3), gps_ids=np.array([2, 3]),
         gps_error=np.zeros((2, 3)), gps_whitened=np.zeros((2, 3)),
-        gps_chi2=np.array([5.0, 9.0]))
+        gps_chi2=np.array([5.0, 9.0]), gps_robust=np.zeros(2), gps_weight=np.ones(2))
     assert res.worst(3) == [("edge", 1, 9.0), ("gps", 1, 9.0), ("gps", 0, 5.0)]
     assert len(res.worst(10)) == 5 and res.worst(0) == []
 

@@ -41,7 +41,7 @@ def rho_reference(name: str, delta: float, s: float) -> float:
 
 def test_kernel_names_agree() -> None:
     assert ROBUST_NAMES == _cost.ROBUST_NAMES
-    assert ROBUST_NAMES == RobustName.__args__  # type: ignore[attr-defined]
+    assert ("auto", *ROBUST_NAMES) == RobustName.__args__  # type: ignore[attr-defined]
 
 
 @pytest.mark.parametrize("name", ("none", *KERNELS))
@@ -72,7 +72,7 @@ def test_weights_fall_off_for_outliers() -> None:
 
 def test_bad_kernel_names_and_scales_are_rejected() -> None:
     for cls in (GaussNewtonConfig, HybridConfig):
-        with pytest.raises(ValueError, match="robust must be one of none, huber"):
+        with pytest.raises(ValueError, match="robust must be one of auto, none, huber"):
             cls(robust="tukey")  # type: ignore[arg-type]
         for bad in (0.0, -1.0, math.inf, math.nan, True):
             with pytest.raises(ValueError, match="robust_scale must be"):
@@ -92,6 +92,13 @@ def _with_outliers(rng: np.random.Generator, graph: PoseGraph, k: int) -> PoseGr
         edge_translations=np.concatenate([graph.edge_translations, zt]),
         edge_information=np.concatenate([graph.edge_information,
                                          graph.edge_information[:k]]))
+
+
+def _with_gps_outlier(graph: PoseGraph) -> PoseGraph:
+    """``graph`` with its first GPS reading moved 5 units away (a false fix)."""
+    pos = np.array(graph.gps_positions)
+    pos[0] += [5.0, -3.0, 0.0]
+    return dataclasses.replace(graph, gps_positions=pos)
 
 
 def _perturbed(rng: np.random.Generator, graph: PoseGraph, size: float
@@ -149,11 +156,10 @@ def _dense_twin(solver: HybridSolver, h: float = 1e-6
     return jacs, [-w for w in w0], free
 
 
-def _weights(name: str, delta: float, residuals: list[np.ndarray], num_edges: int
-             ) -> np.ndarray:
-    """w_c = rho'(s_c) by central differences of the reference rho (GPS: 1)."""
+def _weights(name: str, delta: float, residuals: list[np.ndarray]) -> np.ndarray:
+    """w_c = rho'(s_c) by central differences of the reference rho (relative and GPS)."""
     out = np.ones(len(residuals))
-    for c in range(num_edges):
+    for c in range(len(residuals)):
         s = float(residuals[c] @ residuals[c])
         h = CENTRAL_DIFF_STEP * max(1.0, s)
         out[c] = (rho_reference(name, delta, s + h) - rho_reference(name, delta, s - h)) / (2 * h)
@@ -168,13 +174,14 @@ def test_weighted_hybrid_step_equals_dense_twin(name: str) -> None:
     docs/conventions.md#robust-kernels), all built densely from finite differences."""
     rng = np.random.default_rng(11)
     clean, _, _ = random_graph(rng, n=9, extra=5, gps=2, rot_scale=0.4)
-    graph = _with_outliers(rng, clean, 3)
+    graph = _with_gps_outlier(_with_outliers(rng, clean, 3))
     delta = 1.5
     mu = 1e-6
     cfg = HybridConfig(init="file", robust=name, robust_scale=delta, damping=mu)
     jacs, res, free = _dense_twin(HybridSolver(graph, cfg))
-    w = _weights(name, delta, res, graph.num_edges)
+    w = _weights(name, delta, res)
     assert w.min() < 0.2  # the outliers are down-weighted
+    assert w[graph.num_edges] < 0.5  # the false GPS fix too
     col = {node: k for k, node in enumerate(free)}
     nf = 6 * len(free)
     bd = np.zeros((nf, nf))
@@ -222,10 +229,11 @@ def test_weighted_batch_of_all_constraints_is_the_irls_step(name: str) -> None:
     """The all-constraint batch (paper eq. 37) with a kernel is the weighted GN (IRLS) step."""
     rng = np.random.default_rng(12)
     clean, _, _ = random_graph(rng, n=8, extra=5, gps=3, rot_scale=0.4)
-    graph = _with_outliers(rng, clean, 2)
+    graph = _with_gps_outlier(_with_outliers(rng, clean, 2))
     solver = HybridSolver(graph, HybridConfig(init="file", robust=name, robust_scale=1.5))
     jacs, res, free = _dense_twin(solver)
-    sw = np.sqrt(_weights(name, 1.5, res, graph.num_edges))
+    sw = np.sqrt(_weights(name, 1.5, res))
+    assert sw[graph.num_edges] < 0.8  # the false GPS fix is down-weighted
     jd = np.concatenate([s * j for s, j in zip(sw, jacs, strict=True)])
     rd = np.concatenate([s * r for s, r in zip(sw, res, strict=True)])
     x_irls = np.linalg.lstsq(jd, rd, rcond=None)[0].reshape(-1, 6)
@@ -244,7 +252,7 @@ def test_exact_gradient_of_robust_energy_matches_finite_differences(name: str) -
     """g = sum_c w_c J_c^T Omega_c e_c is half the gradient of E_rho (no 1/2)."""
     rng = np.random.default_rng(13)
     clean, _, _ = random_graph(rng, n=7, extra=4, gps=2, rot_scale=0.4)
-    graph = _with_outliers(rng, clean, 2)
+    graph = _with_gps_outlier(_with_outliers(rng, clean, 2))
     rot, trans = _perturbed(rng, graph, 0.05)
     delta = 2.0
     ne = normal_equations(graph, rot, trans, robust=name, robust_scale=delta)
@@ -269,8 +277,10 @@ def test_exact_gradient_of_robust_energy_matches_finite_differences(name: str) -
     scale = max(1.0, np.abs(fd).max())
     np.testing.assert_allclose(2 * ne.gradient, fd, rtol=0, atol=CENTRAL_DIFF * 10 * scale)
     # H = sum_c w_c J_c^T Omega_c J_c: the weighted sum of the plain per-constraint Hessians
-    s, _ = constraint_energies(graph, rot, trans)
-    w = np.array([_cost.robust_cost(ROBUST_NAMES.index(name), delta, v)[1] for v in s])
+    s, s_gps = constraint_energies(graph, rot, trans)
+    w = np.array([_cost.robust_cost(ROBUST_NAMES.index(name), delta, v)[1]
+                  for v in np.concatenate([s, s_gps])])
+    assert w[graph.num_edges] < 0.5  # the false GPS fix is down-weighted
     h_sum = np.zeros(ne.hessian.shape)
     no_gps = {"gps_nodes": np.zeros(0, np.int32), "gps_positions": np.zeros((0, 3)),
               "gps_information": np.zeros((0, 3, 3))}
@@ -280,11 +290,16 @@ def test_exact_gradient_of_robust_energy_matches_finite_differences(name: str) -
                                   edge_translations=graph.edge_translations[c: c + 1],
                                   edge_information=graph.edge_information[c: c + 1], **no_gps)
         h_sum += w[c] * normal_equations(one, rot, trans, ne.free_nodes[:0]).hessian.toarray()
-    gps_only = dataclasses.replace(graph, edge_nodes=np.zeros((0, 2), np.int32),
-                                   edge_rotations=np.zeros((0, 3, 3)),
-                                   edge_translations=np.zeros((0, 3)),
-                                   edge_information=np.zeros((0, 6, 6)))
-    h_sum += normal_equations(gps_only, rot, trans, ne.free_nodes[:0]).hessian.toarray()
+    for k in range(graph.num_gps):
+        gps_one = dataclasses.replace(graph, edge_nodes=np.zeros((0, 2), np.int32),
+                                      edge_rotations=np.zeros((0, 3, 3)),
+                                      edge_translations=np.zeros((0, 3)),
+                                      edge_information=np.zeros((0, 6, 6)),
+                                      gps_nodes=graph.gps_nodes[k: k + 1],
+                                      gps_positions=graph.gps_positions[k: k + 1],
+                                      gps_information=graph.gps_information[k: k + 1])
+        h_sum += w[graph.num_edges + k] * normal_equations(
+            gps_one, rot, trans, ne.free_nodes[:0]).hessian.toarray()
     np.testing.assert_allclose(ne.hessian.toarray(), h_sum, rtol=0,
                                atol=SPARSE_VS_DENSE_GN * np.abs(h_sum).max())
 
@@ -418,7 +433,9 @@ def test_cli_robust_exact_reports_both_energies(capsys: pytest.CaptureFixture[st
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--robust", "tukey"], "kernel must be one of none, huber, cauchy, geman_mcclure"),
+    (["--robust", "tukey"], "must be auto, none or a kernel (huber, cauchy, geman_mcclure"),
+    (["--robust", "auto:3"], "auto takes no scale"),
+    (["--rejected-out", "r.csv", "--robust", "none"], "--rejected-out lists what --robust auto"),
     (["--robust", "huber:0"], "must be a number > 0, got '0'"),
     (["--robust", "cauchy:x"], "must be a number > 0, got 'x'"),
     (["--robust", "huber", "--solver", "toro"], "--robust: not an option of --solver toro"),

@@ -14,8 +14,8 @@ All kernels are allocation-free: the caller passes scratch buffers, so they can 
 per-constraint hot loop (docs/contributing.md#kernels).  A robust kernel
 (docs/conventions.md#robust-kernels) enters as a weight on the
 χ² (exact solver) or on the whitened rows (hybrid solver), computed by :func:`robust_cost`
-only: ``E_rho = sum_c rho(s_c)`` with ``s_c`` the χ² of relative constraint c and the IRLS
-weight ``w_c = rho'(s_c)``.  Position (GPS) constraints keep the quadratic cost ``s_c``.
+only: ``E_rho = sum_c rho(s_c)`` with ``s_c`` the χ² of constraint c (relative or position)
+and the IRLS weight ``w_c = rho'(s_c)``.
 """
 
 from __future__ import annotations
@@ -245,7 +245,7 @@ def robust_total_energy(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarr
                         kind: int, delta: float) -> tuple[float, float]:
     """``(E_rho, E)``: robust and plain energy at global poses (may be inf/nan), in order.
 
-    ``E_rho = sum_c rho(s_c)`` over relative constraints plus the plain χ² of GPS constraints.
+    ``E_rho = sum_c rho(s_c)`` over the relative and the GPS constraints.
     """
     ws = np.empty((3, 3, 3))
     e = np.empty(6)
@@ -261,7 +261,7 @@ def robust_total_energy(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarr
         plain += s
     for c in range(gps_nodes.shape[0]):
         s = gps_chi2(trans[gps_nodes[c]], gps_pos[c], gps_info[c], e, oe)
-        total += s
+        total += robust_cost(kind, delta, s)[0]
         plain += s
     return total, plain
 

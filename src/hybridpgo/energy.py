@@ -2,8 +2,7 @@
 
 The per-constraint χ² comes from the cost layer (:mod:`hybridpgo._cost`), the same kernels the
 solvers use.  With a robust kernel (docs/conventions.md#robust-kernels) the robust energy is
-``E_rho = sum_c rho(s_c)``
-over the relative constraints plus the plain χ² of the position (GPS) constraints.
+``E_rho = sum_c rho(s_c)`` over every constraint, relative and position (GPS).
 :func:`residuals` gives every constraint's error vector, whitened error and χ².
 
 ``hybridpgo.energy`` is this module; calling it, ``hybridpgo.energy(graph)``, is shorthand for
@@ -74,8 +73,8 @@ def robust_energy(graph: PoseGraph, rotations: FloatArray | None = None,
     rotations, translations : (N, 3, 3), (N, 3) float64, optional
         Global poses; default: the graph's own estimate.
     robust : {"none", "huber", "cauchy", "geman_mcclure"}
-        The kernel applied to each relative constraint's χ² ``s``; GPS constraints stay
-        quadratic.  ``E_rho`` equals 2 x GTSAM's ``graph.error`` with the same kernel, k = scale.
+        The kernel applied to each constraint's χ² ``s`` (relative and GPS).  ``E_rho`` equals
+        2 x GTSAM's ``graph.error`` with the same kernel, k = scale.
     scale : float, optional
         The kernel's delta (> 0), in units of the whitened error (sqrt of χ²); default: the
         kernel's (``hybridpgo._cost.ROBUST_DEFAULT_SCALE``).
@@ -85,8 +84,10 @@ def robust_energy(graph: PoseGraph, rotations: FloatArray | None = None,
     s, s_gps = constraint_energies(graph, rotations, translations)
     rho = np.empty_like(s)
     _cost.robust_costs(kind, float(scale), s, rho, np.empty_like(s))
-    gps = s_gps.sum()  # summed as energy() sums: where rho(s) = s the two agree to the bit
-    return float(rho.sum() + gps), float(s.sum() + gps)
+    rho_gps = np.empty_like(s_gps)
+    _cost.robust_costs(kind, float(scale), s_gps, rho_gps, np.empty_like(s_gps))
+    # summed as energy() sums: where rho(s) = s the two agree to the bit
+    return float(rho.sum() + rho_gps.sum()), float(s.sum() + s_gps.sum())
 
 
 def robust_weights(graph: PoseGraph, rotations: FloatArray | None = None,
@@ -134,6 +135,10 @@ class Residuals:
     """(G, 3) float64: ``L^T e``."""
     gps_chi2: FloatArray
     """(G,) float64: ``e^T Omega e``."""
+    gps_robust: FloatArray
+    """(G,) float64: the robust cost ``rho(chi2)`` of each GPS constraint."""
+    gps_weight: FloatArray
+    """(G,) float64: its IRLS weight ``rho'(chi2)``."""
 
     def worst(self, k: int) -> list[tuple[str, int, float]]:
         """The ``k`` largest χ² over both kinds: ``(kind, index, chi2)`` with kind ``"edge"``
@@ -166,8 +171,8 @@ def residuals(graph: PoseGraph, rotations: FloatArray | None = None,
     rotations, translations : (N, 3, 3), (N, 3) float64, optional
         Global poses; default: the graph's own estimate.
     robust, scale
-        A robust kernel and its delta, as :func:`robust_energy`: fills ``edge_robust`` and
-        ``edge_weight`` (GPS constraints stay quadratic).
+        A robust kernel and its delta, as :func:`robust_energy`: fills ``edge_robust``,
+        ``edge_weight``, ``gps_robust`` and ``gps_weight``.
 
     Returns
     -------
@@ -191,12 +196,16 @@ def residuals(graph: PoseGraph, rotations: FloatArray | None = None,
     rho = np.empty_like(s)
     w = np.empty_like(s)
     _cost.robust_costs(kind, float(scale), s, rho, w)
+    rho_gps = np.empty_like(s_gps)
+    w_gps = np.empty_like(s_gps)
+    _cost.robust_costs(kind, float(scale), s_gps, rho_gps, w_gps)
     ids = graph.node_ids.astype(np.int64)
     return Residuals(
         edge_ids=ids[graph.edge_nodes].reshape(-1, 2), edge_error=e_rel,
         edge_whitened=_whiten(graph.edge_information, e_rel), edge_chi2=s, edge_robust=rho,
         edge_weight=w, gps_ids=ids[graph.gps_nodes], gps_error=e_gps,
-        gps_whitened=_whiten(graph.gps_information, e_gps), gps_chi2=s_gps)
+        gps_whitened=_whiten(graph.gps_information, e_gps), gps_chi2=s_gps,
+        gps_robust=rho_gps, gps_weight=w_gps)
 
 
 class _CallableModule(types.ModuleType):

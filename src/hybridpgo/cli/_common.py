@@ -236,6 +236,8 @@ def command_files(args: Any) -> tuple[list[str], list[Output]]:
             outs.append(Output(args.covariance, "--covariance"))
         if getattr(args, "rerun", None) is not None:
             outs.append(Output(args.rerun, "--rerun"))
+        if getattr(args, "rejected_out", None) is not None:
+            outs.append(Output(args.rejected_out, "--rejected-out", stdout_ok=True))
         return [args.file], outs
     if cmd == "replay":
         outs = []

@@ -154,16 +154,19 @@ _at_least_2 = _number(int, lambda v: v >= 2, "an integer >= 2")
 
 
 def _robust(text: str) -> tuple[str, float | None]:
-    """``NAME[:SCALE]`` of ``--robust`` -> (kernel name, delta or None for the default)."""
-    from ..solvers.config import ROBUST_NAMES
+    """``auto``, ``none`` or ``NAME[:SCALE]`` of ``--robust`` -> (name, delta or None for the
+    kernel's default)."""
+    from ..solvers.config import ROBUST_CHOICES
 
     name, sep, scale = text.partition(":")
-    if name not in ROBUST_NAMES:
+    if name not in ROBUST_CHOICES:
         raise argparse.ArgumentTypeError(
-            f"kernel must be one of {', '.join(ROBUST_NAMES)} (optionally NAME:SCALE), "
-            f"got {name!r}")
+            f"must be auto, none or a kernel ({', '.join(ROBUST_CHOICES[2:])}, optionally "
+            f"NAME:SCALE), got {name!r}")
     if not sep:
         return name, None
+    if name in ("auto", "none"):
+        raise argparse.ArgumentTypeError(f"{name} takes no scale, got {text!r}")
     return name, float(_pos_float(scale))
 
 
@@ -205,11 +208,18 @@ def _add_generate_common(p: argparse.ArgumentParser, kind: str) -> None:
                         "relative pose) (default 0)")
     p.add_argument("--near-miss-fraction", type=_probability, metavar="F",
                    help="fraction of the outliers that are near misses (default 0.5)")
+    p.add_argument("--outlier-pattern", default="mixed",
+                   choices=("mixed", "random", "local", "random-grouped", "local-grouped"),
+                   help="'mixed': random pairs and near misses (--near-miss-fraction); else "
+                        "Suenderhauf and Protzel's patterns, every false edge claiming its two "
+                        "poses are at the same place: between random poses, between a pose and "
+                        "one of the 20 after it ('local'), or in groups of 10 consecutive "
+                        "mutually consistent edges (default mixed)")
     p.add_argument("--outliers-out", metavar="CSV",
                    help="where to list the false edges: CSV with columns edge_index (0-based "
-                        "among the file's edge lines), id_a, id_b, kind (random or near_miss), "
-                        "true_distance_m (default with --outliers: GT, else OUT, with its "
-                        "extension replaced by .outliers.csv)")
+                        "among the file's edge lines), id_a, id_b, kind (random, near_miss or "
+                        "aliased_<pattern>), true_distance_m (default with --outliers: GT, else "
+                        "OUT, with its extension replaced by .outliers.csv)")
     p.add_argument("--seed", type=_any_int, default=0, help="random seed (default 0)")
     p.add_argument("-o", "--output", required=True, metavar="OUT",
                    help="graph file to write (g2o, or TORO for a .graph name; vertices are the "
@@ -355,13 +365,23 @@ def _build_parser() -> argparse.ArgumentParser:
                         f"the polish (default {hy.polish_iterations})")
     from ..solvers.config import ROBUST_DEFAULT_SCALE
 
-    p.add_argument("--robust", type=_robust, metavar="NAME[:SCALE]",
-                   help="robust kernel on the relative constraints (hybrid, its polish and "
-                        "exact): none, huber, cauchy or geman_mcclure, with the scale delta in "
-                        "whitened units, e.g. cauchy:2 (default none; default scales: "
+    p.add_argument("--robust", type=_robust, metavar="auto|none|NAME[:SCALE]",
+                   help="outliers (auto, hybrid, exact): 'auto' solves least squares, tests "
+                        "every constraint's chi2 and, when some false loop closure or false "
+                        "GPS fix makes the graph inconsistent, solves again without them and "
+                        "lists them (the summary counts them; --json and --rejected-out list "
+                        "them); 'none' is least squares only; a kernel name (huber, cauchy, "
+                        "geman_mcclure) robustifies every constraint, relative and GPS, with "
+                        "the scale delta in whitened units, e.g. cauchy:2 (default scales: "
                         + ", ".join(f"{k} {v:g}" for k, v in ROBUST_DEFAULT_SCALE.items()
                                     if k != "none")
-                        + "); the energies shown are then the robust ones")
+                        + "; the energies shown are then the robust ones) (default auto)")
+    p.add_argument("--rejected-out", metavar="CSV",
+                   help="with --robust auto: write the rejected constraints as CSV with "
+                        "columns kind (edge or gps), index (among that kind, in file order), "
+                        "id_a, id_b (empty for GPS), line (in the input file), sigmas (the "
+                        "whitened error in estimated standard deviations at the result); a "
+                        "header only when none was rejected")
     p.add_argument("--plot", metavar="PREFIX",
                    help="also write PREFIX_before.png, PREFIX_after.png and PREFIX_energy.png "
                         "(needs matplotlib: pip install hybridpgo[plot])")
@@ -489,6 +509,14 @@ def _build_parser() -> argparse.ArgumentParser:
     c.add_argument("--poses", type=_at_least_2, metavar="N",
                    help="number of poses; the street grid grows with N so that the density of "
                         "loop closures stays the preset's (default: the preset's)")
+    c.add_argument("--gps-outliers", type=_nonneg_int, default=0, metavar="N",
+                   help="move N GPS readings by a multipath jump of 20-60 m in a random "
+                        "horizontal direction (false fixes; default 0)")
+    c.add_argument("--gps-outliers-out", metavar="CSV",
+                   help="where to list the false fixes: CSV with columns gps_index (0-based "
+                        "among the file's GPS lines), id, jump_m, dx, dy, dz (default with "
+                        "--gps-outliers: GT, else OUT, with its extension replaced by "
+                        ".gps_outliers.csv)")
     c.add_argument("--gps-every", type=_nonneg_int, metavar="K",
                    help="a GPS reading on every K-th pose (the paper: 100); 0: no GPS "
                         "(default: no GPS)")

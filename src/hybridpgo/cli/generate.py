@@ -1,5 +1,5 @@
 """``hybridpgo generate city|grid``: synthetic graphs with ground truth and optional false loop
-closures.
+closures and false GPS fixes.
 
 Outputs are all or nothing: every output path is checked (distinct files, writable directories)
 and a temporary file is reserved beside each before any work; the files are written to those
@@ -19,22 +19,32 @@ from ._common import FORMAT_FROM_SUFFIX, describe_graph, print_table
 
 #: Extension of the default outliers file (replacing the ground truth's, else the graph's).
 OUTLIERS_SUFFIX = ".outliers.csv"
+#: Extension of the default GPS outliers file (as :data:`OUTLIERS_SUFFIX`).
+GPS_OUTLIERS_SUFFIX = ".gps_outliers.csv"
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..generate import write_ground_truth, write_outliers
+    from ..generate import write_gps_outliers, write_ground_truth, write_outliers
     from ..io import write_graph
 
     fmt = _graph_format(args.output)
+    base = os.path.splitext(args.ground_truth or args.output)[0]
     outliers_out = args.outliers_out
     if outliers_out is None and args.outliers > 0:
-        outliers_out = os.path.splitext(args.ground_truth or args.output)[0] + OUTLIERS_SUFFIX
+        outliers_out = base + OUTLIERS_SUFFIX
+    gps_given = getattr(args, "gps_outliers_out", None)
+    gps_out = gps_given
+    if gps_out is None and getattr(args, "gps_outliers", 0) > 0:
+        gps_out = base + GPS_OUTLIERS_SUFFIX
     outputs = [("-o/--output", args.output)]
     if args.ground_truth is not None:
         outputs.append(("--ground-truth", args.ground_truth))
     if outliers_out is not None:
         outputs.append(("--outliers-out" if args.outliers_out else "the outliers file",
                         outliers_out))
+    if gps_out is not None:
+        outputs.append(("--gps-outliers-out" if gps_given else "the GPS outliers file",
+                        gps_out))
     if fmt == "toro" and args.kind == "city" and args.gps_every:
         raise HybridPGOError(f"{args.output}: TORO files cannot hold GPS readings; write g2o "
                              "(a .g2o name) or drop --gps-every")
@@ -50,6 +60,8 @@ def run(args: argparse.Namespace) -> int:
                                graph_file=group.temp(args.output) if fmt == "g2o" else None)
         if outliers_out is not None:
             write_outliers(group.temp(outliers_out), graph, made.outliers)
+        if gps_out is not None:
+            write_gps_outliers(group.temp(gps_out), graph, made.gps_outliers)
         group.commit()
 
     rows = [(args.kind, f"{made.name}, seed {args.seed}"),
@@ -60,8 +72,12 @@ def run(args: argparse.Namespace) -> int:
     if outliers_out is not None:
         k = made.outliers.num_outliers
         near = int((made.outliers.kinds == 1).sum())
-        rows.append(("outliers", f"{outliers_out} ({k} false loop closures: {k - near} random, "
-                                 f"{near} near misses)"))
+        what = (f"{k - near} random, {near} near misses" if args.outlier_pattern == "mixed"
+                else f"pattern {args.outlier_pattern}")
+        rows.append(("outliers", f"{outliers_out} ({k} false loop closures: {what})"))
+    if gps_out is not None:
+        rows.append(("GPS outliers", f"{gps_out} ({made.gps_outliers.num_outliers} false "
+                                     "fixes, jumps of 20-60 m)"))
     print_table(rows)
     return 0
 
@@ -73,9 +89,14 @@ def _graph_format(path: str) -> str:
 
 
 def _outlier_params(args: argparse.Namespace) -> dict[str, Any]:
-    out: dict[str, Any] = {"num_outliers": args.outliers}
+    out: dict[str, Any] = {"num_outliers": args.outliers,
+                           "outlier_pattern": args.outlier_pattern}
     if args.near_miss_fraction is not None:
+        if args.outlier_pattern != "mixed":
+            raise HybridPGOError("--near-miss-fraction: only for --outlier-pattern mixed")
         out["near_miss_fraction"] = args.near_miss_fraction
+    if getattr(args, "gps_outliers", 0):
+        out["gps_outliers"] = args.gps_outliers
     return out
 
 

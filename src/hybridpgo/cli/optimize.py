@@ -53,6 +53,8 @@ class Job:
     """``--covariance-poses``: file ids, ``"all"``, or None (all)."""
     rerun: str | None = None
     """``--rerun``: where to record the run for the Rerun viewer (.rrd)."""
+    rejected_out: str | None = None
+    """``--rejected-out``: where to list the constraints ``--robust auto`` rejected (CSV)."""
 
 
 def _covariance_nodes(job: Job, graph: PoseGraph) -> Any:
@@ -84,11 +86,28 @@ def _covariances(job: Job, graph: PoseGraph, result: SolveResult, nodes: Any) ->
         return marginal_covariances(graph, result.rotations, result.translations, nodes)
 
 
+#: Columns of ``optimize --rejected-out`` (:func:`hybridpgo.solvers.robust.rejected_rows`).
+REJECTED_COLUMNS = ("kind", "index", "id_a", "id_b", "line", "sigmas")
+
+
+def rejected_csv_lines(rows: list[dict[str, Any]]) -> list[str]:
+    """``--rejected-out``: a header, then one row per rejected constraint."""
+    out = [",".join(REJECTED_COLUMNS)]
+    for r in rows:
+        out.append(",".join("" if r[k] is None else repr(r[k]) if k == "sigmas" else str(r[k])
+                            for k in REJECTED_COLUMNS))
+    return out
+
+
 def _check_options(job: Job, graph: PoseGraph) -> str:
     """Reject options that do not apply; return the init kind."""
     from ..solvers import default_init
 
     opts = job.options
+    if job.rejected_out is not None and (job.solver == "toro"
+                                         or opts.get("robust", "auto") != "auto"):
+        raise HybridPGOError("--rejected-out lists what --robust auto rejects (the default of "
+                             "--solver auto, hybrid and exact)")
     if job.solver == "auto":
         return _check_auto_options(job, graph)
     if job.solver in ("exact", "toro"):
@@ -320,6 +339,11 @@ def run_job(job: Job) -> dict[str, Any]:
 
     t0 = time.perf_counter()
     write_graph(graph.with_poses(result.rotations, result.translations), job.output, out_fmt)
+    if job.rejected_out is not None:
+        from ..io._lines import write_atomic
+
+        rows = result.stats.get("outliers", {}).get("rejected_constraints", [])
+        write_atomic(job.rejected_out, lambda: rejected_csv_lines(rows))
     if recorder is not None:
         recorder.close()
     if cov is not None:
@@ -407,6 +431,21 @@ def _describe_starts(cands: dict[str, Any]) -> str:
     return ", ".join(parts)
 
 
+def describe_outliers(o: dict[str, Any]) -> str:
+    """The summary line of ``--robust auto`` (``stats["outliers"]``)."""
+    if not o.get("inconsistent"):
+        return (f"none found: the longest whitened error is {o['max_sigmas']:.3g} sigma"
+                + (f" (GPS {o['max_gps_sigmas']:.3g})" if o.get("max_gps_sigmas") else "")
+                + f"; an outlier is beyond {o['threshold_sigmas']:g}")
+    k, g = o["rejected"], o["rejected_gps"]
+    if not k and not g:
+        return ("the least-squares optimum looked inconsistent, but the robust re-solve "
+                "rejected nothing: least squares kept")
+    parts = ([f"{k} relative"] if k else []) + ([f"{g} GPS"] if g else [])
+    return (f"{k + g} rejected ({', '.join(parts)}): the result is the least-squares optimum "
+            "without them and the energies are theirs (list: --json, --rejected-out)")
+
+
 def print_summary(s: dict[str, Any]) -> None:
     """The human-readable summary on stdout."""
     r = s["result"]
@@ -414,7 +453,8 @@ def print_summary(s: dict[str, Any]) -> None:
     inp = s["input"]
     timings = r.get("timings", {})
     times = [f"read {s['time_read']:.2f} s"]
-    times += [f"{k} {timings[k]:.2f} s" for k in ("compile", "analyze", "solve", "polish")
+    times += [f"{k} {timings[k]:.2f} s"
+              for k in ("compile", "analyze", "solve", "polish", "outliers")
               if k in timings]
     times.append(f"write {s['time_write']:.2f} s")
     iters = f"{r['iterations']} {'sweeps' if s['solver'] in ('hybrid', 'auto') else 'iterations'}"
@@ -447,6 +487,8 @@ def print_summary(s: dict[str, Any]) -> None:
     if "plain_energy" in r:
         rows.append(("plain energy", fmt_energy(r["plain_energy"], nc) + " after (least "
                                      "squares, no kernel)"))
+    if "outliers" in r:
+        rows.append(("outliers", describe_outliers(r["outliers"])))
     rows.append(("time", ", ".join(times)))
     if "us_per_constraint_mean" in r:
         line = (f"{r['us_per_constraint_mean']:.3g} us mean, "
@@ -495,7 +537,7 @@ def run(args: argparse.Namespace) -> int:
               options=options_from_args(args), fmt=args.format, out_format=args.out_format,
               plot_prefix=args.plot, skip_unknown=args.skip_unknown, quiet=args.quiet,
               covariance=args.covariance, covariance_poses=args.covariance_poses,
-              rerun=args.rerun)
+              rerun=args.rerun, rejected_out=args.rejected_out)
     summary = run_job(job)
     if args.json:
         print_json(summary)

@@ -8,7 +8,9 @@
   poses; 2D (written as g2o SE2) or 3D, with presets for the hard, large-rotation-noise
   variants (:data:`GRID_PRESETS`).
 * :func:`add_outliers`: false loop closures (random pairs and near misses) and the list of which
-  edges are false (:func:`write_outliers`).
+  edges are false (:func:`write_outliers`); :func:`add_pattern_outliers`: Sünderhauf and
+  Protzel's four patterns (random, local, random-grouped, local-grouped);
+  :func:`add_gps_outliers`: false GPS fixes (:func:`write_gps_outliers`).
 * :func:`noisify`: rotation noise about the local up axis on every edge (paper Fig. 8).
 
 Every generator returns the graph (vertex estimates: the noisy odometry chained from the true
@@ -42,25 +44,35 @@ from .grid import Grid as Grid
 from .grid import GridParams as GridParams
 from .grid import generate_grid as generate_grid
 from .outliers import OUTLIER_KINDS as OUTLIER_KINDS
+from .outliers import OUTLIER_PATTERNS as OUTLIER_PATTERNS
+from .outliers import GpsOutliers as GpsOutliers
 from .outliers import Outliers as Outliers
+from .outliers import add_gps_outliers as add_gps_outliers
 from .outliers import add_outliers as add_outliers
+from .outliers import add_pattern_outliers as add_pattern_outliers
+from .outliers import write_gps_outliers as write_gps_outliers
 from .outliers import write_outliers as write_outliers
 
 __all__ = [
     "GRID_PRESETS",
     "MIN_SIGMA",
     "OUTLIER_KINDS",
+    "OUTLIER_PATTERNS",
     "PRESETS",
     "City",
     "CityParams",
+    "GpsOutliers",
     "Grid",
     "GridParams",
     "Outliers",
+    "add_gps_outliers",
     "add_outliers",
+    "add_pattern_outliers",
     "generate_city",
     "generate_grid",
     "noisify",
     "scale_city",
+    "write_gps_outliers",
     "write_ground_truth",
     "write_outliers",
 ]

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..graph import FloatArray, PoseGraph
 from ._common import chain, online_order
-from .outliers import Outliers, add_outliers, no_outliers
+from .outliers import Outliers, add_outliers, add_pattern_outliers, no_outliers
 
 
 def check_preset(presets: Mapping[str, object], preset: str | None, what: str) -> None:
@@ -80,14 +80,20 @@ class OutlierParams(Protocol):
     def near_miss_max_m(self) -> float: ...
     @property
     def loop_min_gap(self) -> int: ...
+    @property
+    def outlier_pattern(self) -> str: ...
 
 
 def with_outliers(graph: PoseGraph, rot: FloatArray, trans: FloatArray, p: OutlierParams,
                   rng: np.random.Generator) -> tuple[PoseGraph, Outliers]:
-    """``graph`` with ``p.num_outliers`` false loop closures added (:func:`.add_outliers`) and
-    which they are; the true poses ``rot``, ``trans`` are made read-only."""
+    """``graph`` with ``p.num_outliers`` false loop closures added (``p.outlier_pattern``:
+    :func:`.add_outliers` for ``"mixed"``, else :func:`.add_pattern_outliers`) and which they
+    are; the true poses ``rot``, ``trans`` are made read-only."""
     outliers = no_outliers()
-    if p.num_outliers:
+    if p.num_outliers and p.outlier_pattern != "mixed":
+        graph, outliers = add_pattern_outliers(graph, trans, p.num_outliers, p.outlier_pattern,
+                                               seed=rng)
+    elif p.num_outliers:
         graph, outliers = add_outliers(
             graph, rot, trans, p.num_outliers, seed=rng,
             near_miss_fraction=p.near_miss_fraction, near_miss_min_m=p.near_miss_min_m,

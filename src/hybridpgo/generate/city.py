@@ -60,7 +60,14 @@ from ..geometry import se3
 from ..graph import FloatArray, IntArray, PoseGraph
 from ._common import diag_information, perturb
 from ._drive import check_preset, drive_graph, preset_values, with_outliers
-from .outliers import Outliers, no_outliers
+from .outliers import (
+    GpsOutliers,
+    Outliers,
+    add_gps_outliers,
+    check_pattern,
+    no_gps_outliers,
+    no_outliers,
+)
 
 __all__ = ["PRESETS", "City", "CityParams", "generate_city", "scale_city"]
 
@@ -140,8 +147,16 @@ class CityParams:
     """A near miss joins two poses at least this far apart (true 3D distance), metres ..."""
     near_miss_max_m: float = 15.0
     """... and at most this far apart."""
+    outlier_pattern: str = "mixed"
+    """How the false loop closures are drawn (``GridParams.outlier_pattern``)."""
+    gps_outliers: int = 0
+    """Number of GPS readings moved by a multipath jump of 20-60 m
+    (:func:`~.outliers.add_gps_outliers`); at most the number of readings."""
 
     def __post_init__(self) -> None:
+        check_pattern(self.outlier_pattern)
+        if not isinstance(self.gps_outliers, int | np.integer) or self.gps_outliers < 0:
+            raise ValueError(f"gps_outliers must be an integer >= 0, got {self.gps_outliers!r}")
         positive_int = ("nx", "ny", "num_poses")
         for name in positive_int:
             v = getattr(self, name)
@@ -234,6 +249,8 @@ class City:
     """The parameters the city was generated with."""
     outliers: Outliers = dataclasses.field(default_factory=no_outliers)
     """Which edges of ``graph`` are false loop closures (none unless ``num_outliers``)."""
+    gps_outliers: GpsOutliers = dataclasses.field(default_factory=no_gps_outliers)
+    """Which GPS readings of ``graph`` are false fixes (none unless ``gps_outliers``)."""
 
     @property
     def num_loop_edges(self) -> int:
@@ -275,8 +292,8 @@ def generate_city(preset: str | None = None, *, seed: int = 0, gps_every: int | 
         values["gps_every"] = gps_every
     p = CityParams(**values)
 
-    route_rng, odom_rng, loop_rng, gps_rng, outlier_rng = (
-        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(5))
+    route_rng, odom_rng, loop_rng, gps_rng, outlier_rng, gps_outlier_rng = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6))
     rot, trans = _true_poses(p, route_rng)
     n = p.num_poses
 
@@ -312,8 +329,12 @@ def generate_city(preset: str | None = None, *, seed: int = 0, gps_every: int | 
                         diag_information(np.concatenate([odom_sigma, loop_sigma])),
                         gps_nodes=gps_nodes, gps_positions=gps_pos, gps_information=gps_info)
     graph, outliers = with_outliers(graph, rot, trans, p, outlier_rng)
+    gps_outliers = no_gps_outliers()
+    if p.gps_outliers:
+        graph, gps_outliers = add_gps_outliers(graph, p.gps_outliers, seed=gps_outlier_rng)
     return City(graph=graph, truth_rotations=rot, truth_translations=trans,
-                name=preset if preset is not None else "city", params=p, outliers=outliers)
+                name=preset if preset is not None else "city", params=p, outliers=outliers,
+                gps_outliers=gps_outliers)
 
 
 def scale_city(preset: str | None, num_poses: int) -> dict[str, Any]:

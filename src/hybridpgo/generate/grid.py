@@ -48,7 +48,7 @@ from ..geometry import se3
 from ..graph import FloatArray, PoseGraph, lift_information_2d
 from ._common import diag_information, perturb
 from ._drive import drive_graph, preset_values, with_outliers
-from .outliers import Outliers, no_outliers
+from .outliers import Outliers, check_pattern, no_outliers
 
 __all__ = ["GRID_PRESETS", "Grid", "GridParams", "generate_grid"]
 
@@ -109,8 +109,14 @@ class GridParams:
     """A near miss joins two poses at least this far apart (true distance), metres ..."""
     near_miss_max_m: float = 8.0
     """... and at most this far apart."""
+    outlier_pattern: str = "mixed"
+    """``"mixed"``: random pose pairs and near misses (:func:`~.outliers.add_outliers`); or one
+    of Sünderhauf and Protzel's patterns ``"random"``, ``"local"``, ``"random-grouped"``,
+    ``"local-grouped"`` (:func:`~.outliers.add_pattern_outliers`, groups of 10)."""
 
     def __post_init__(self) -> None:
+        check_pattern(self.outlier_pattern)
+
         def is_int(v: object) -> bool:
             return isinstance(v, int | np.integer) and not isinstance(v, bool)
 

@@ -1,8 +1,8 @@
-"""False loop closures ("outliers") added to a generated graph, with the list of which edges are
-false.
+"""False loop closures and false GPS fixes ("outliers") added to a generated graph, with the list
+of which constraints are false.
 
-Two kinds, both with the information of a real loop closure, so that nothing but their
-inconsistency with the rest of the graph gives them away:
+:func:`add_outliers` adds two kinds, both with the information of a real loop closure, so that
+nothing but their inconsistency with the rest of the graph gives them away:
 
 * ``random``: between two poses drawn at random (usually far apart); the measurement is a real
   loop closure's measured relative pose (one drawn at random), with fresh noise drawn from its
@@ -13,9 +13,25 @@ inconsistency with the rest of the graph gives them away:
   ``near_miss_min_m`` above the loop-closure radius the claimed translation is wrong by at
   least ``near_miss_min_m - loop radius``.
 
-In both, the earlier pose comes first (``a < b``, ``b - a >= min_gap``) and the edges are inserted
-in the graph's online order (right after the odometry edge that reaches ``b``) when the graph's
-edges are in that order, else appended.  2D graphs get planar noise only (x, y, yaw).
+In both, the earlier pose comes first (``a < b``, ``b - a >= min_gap``).
+
+:func:`add_pattern_outliers` adds the four patterns of Sünderhauf and Protzel's Vertigo datasets
+(:data:`OUTLIER_PATTERNS`): every false edge claims that its two poses are at the same place
+(a relative pose drawn from N(0, 0.3 m) per translation axis and N(0, 10 deg) per rotation
+axis, as perceptual aliasing would), with a real loop closure's information, between
+
+* ``random``: two poses drawn uniformly;
+* ``local``: a pose and one of the 20 poses after it (never its odometry neighbour);
+* ``random-grouped`` / ``local-grouped``: the same, in groups of ``group_size`` mutually
+  consistent edges ``(a + j, b + j)``, ``j = 0 .. group_size - 1``, sharing one measurement
+  (a front end that aliased a whole stretch of road).
+
+Every false edge is inserted in the graph's online order (right after the odometry edge that
+reaches its later pose) when the graph's edges are in that order, else appended.  2D graphs get
+planar measurements only (x, y, yaw).
+
+:func:`add_gps_outliers` moves some GPS readings by a jump of tens of metres in a random
+horizontal direction (multipath: the receiver locks onto a reflection).
 """
 
 from __future__ import annotations
@@ -33,10 +49,21 @@ from ..geometry import se3
 from ..graph import FloatArray, PoseGraph
 from ..io._lines import PathLike, write_atomic
 
-__all__ = ["OUTLIER_KINDS", "Outliers", "add_outliers", "no_outliers", "write_outliers"]
+__all__ = ["GPS_CSV_HEADER", "OUTLIER_KINDS", "OUTLIER_PATTERNS", "GpsOutliers", "Outliers",
+           "add_gps_outliers", "add_outliers", "add_pattern_outliers", "check_pattern",
+           "no_gps_outliers", "no_outliers", "write_gps_outliers", "write_outliers"]
 
-#: Names of the outlier kinds; :attr:`Outliers.kinds` holds indices into this tuple.
-OUTLIER_KINDS: tuple[str, ...] = ("random", "near_miss")
+#: Sünderhauf and Protzel's outlier patterns (:func:`add_pattern_outliers`).
+OUTLIER_PATTERNS: tuple[str, ...] = ("random", "local", "random-grouped", "local-grouped")
+#: Names of the outlier kinds; :attr:`Outliers.kinds` holds indices into this tuple: the two of
+#: :func:`add_outliers`, then one per pattern of :func:`add_pattern_outliers`.
+OUTLIER_KINDS: tuple[str, ...] = ("random", "near_miss", "aliased_random", "aliased_local",
+                                  "aliased_random_grouped", "aliased_local_grouped")
+#: :func:`add_pattern_outliers`: the local pattern's second pose is at most this many poses
+#: after the first; the measurement's sigma per translation axis (m) and rotation axis (rad).
+LOCAL_WINDOW = 20
+ALIAS_TRANS_SIGMA_M = 0.3
+ALIAS_ROT_SIGMA_RAD = math.radians(10.0)
 
 #: Header of the outliers CSV file written by :func:`write_outliers`.
 CSV_HEADER = "edge_index,id_a,id_b,kind,true_distance_m"
@@ -60,9 +87,21 @@ class Outliers:
 
     def mask(self, num_edges: int) -> npt.NDArray[np.bool_]:
         """(num_edges,) bool: True for the false edges."""
-        out = np.zeros(num_edges, bool)
-        out[self.edges] = True
-        return out
+        return _index_mask(self.edges, num_edges)
+
+
+def _index_mask(indices: npt.NDArray[np.int64], size: int) -> npt.NDArray[np.bool_]:
+    out = np.zeros(size, bool)
+    out[indices] = True
+    return out
+
+
+def check_pattern(pattern: object) -> None:
+    """ValueError unless ``pattern`` is ``"mixed"`` (:func:`add_outliers`) or one of
+    :data:`OUTLIER_PATTERNS` (:func:`add_pattern_outliers`)."""
+    if pattern != "mixed" and pattern not in OUTLIER_PATTERNS:
+        raise ValueError(f"outlier_pattern must be mixed or one of {', '.join(OUTLIER_PATTERNS)}"
+                         f", got {pattern!r}")
 
 
 def no_outliers() -> Outliers:
@@ -125,13 +164,7 @@ def add_outliers(graph: PoseGraph, truth_rotations: FloatArray, truth_translatio
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     rot = np.asarray(truth_rotations, np.float64)
     trans = np.asarray(truth_translations, np.float64)
-    en = graph.edge_nodes
-    if loop_edges is None:
-        loop_edges = np.flatnonzero(np.abs(en[:, 1].astype(np.int64) - en[:, 0]) != 1)
-        if loop_edges.size == 0:
-            loop_edges = np.arange(graph.num_edges)
-    if loop_edges.size == 0:
-        raise ValueError("the graph has no edge to copy a measurement from")
+    loop_edges = _loop_edges(graph, loop_edges)
 
     k_near = round(k * near_miss_fraction)
     k_rand = k - k_near
@@ -152,11 +185,20 @@ def add_outliers(graph: PoseGraph, truth_rotations: FloatArray, truth_translatio
     info = np.array(graph.edge_information[src])
     zr, zt = _noisy(zr, zt, info, graph.is_2d, rng)
 
-    # Insert in online order when the graph is in it (edges sorted by their later pose).
+    return _insert(graph, a, b, zr, zt, info, kinds, np.linalg.norm(trans[b] - trans[a], axis=1))
+
+
+def _insert(graph: PoseGraph, a: npt.NDArray[np.int64], b: npt.NDArray[np.int64],
+            zr: FloatArray, zt: FloatArray, info: FloatArray, kinds: npt.NDArray[np.int8],
+            dist: FloatArray) -> tuple[PoseGraph, Outliers]:
+    """``graph`` with the false edges (a, b) added, in online order when the graph's edges are
+    in it (sorted by their later pose), else appended; and which edges they are."""
+    en = graph.edge_nodes
     later = np.maximum(en[:, 0], en[:, 1]).astype(np.int64)
     m = graph.num_edges
+    k = a.shape[0]
     if m == 0 or np.all(np.diff(later) >= 0):
-        order = np.argsort(np.concatenate([later, b]), kind="stable")
+        order = np.argsort(np.concatenate([later, np.maximum(a, b)]), kind="stable")
     else:
         order = np.arange(m + k)
     position = np.empty(m + k, np.int64)
@@ -167,11 +209,108 @@ def add_outliers(graph: PoseGraph, truth_rotations: FloatArray, truth_translatio
         edge_rotations=np.concatenate([graph.edge_rotations, zr])[order],
         edge_translations=np.concatenate([graph.edge_translations, zt])[order],
         edge_information=np.concatenate([graph.edge_information, info])[order],
+        edge_lines=None,
     )
     idx = position[m:]
     srt = np.argsort(idx, kind="stable")
-    dist = np.linalg.norm(trans[b] - trans[a], axis=1)
     return out, Outliers(idx[srt], kinds[srt], dist[srt])
+
+
+def _loop_edges(graph: PoseGraph, loop_edges: npt.NDArray[np.int64] | None
+                ) -> npt.NDArray[np.int64]:
+    """The real loop closures to copy information (and measurements) from: ``loop_edges``, or
+    every edge whose poses are not consecutive, or every edge when there is none."""
+    if loop_edges is None:
+        en = graph.edge_nodes
+        loop_edges = np.flatnonzero(np.abs(en[:, 1].astype(np.int64) - en[:, 0]) != 1)
+        if loop_edges.size == 0:
+            loop_edges = np.arange(graph.num_edges)
+    if loop_edges.size == 0:
+        raise ValueError("the graph has no edge to copy a measurement from")
+    return loop_edges
+
+
+def add_pattern_outliers(graph: PoseGraph, truth_translations: FloatArray, num_outliers: int,
+                         pattern: str = "random", *, seed: int | np.random.Generator = 0,
+                         group_size: int = 10,
+                         loop_edges: npt.NDArray[np.int64] | None = None
+                         ) -> tuple[PoseGraph, Outliers]:
+    """Return ``graph`` with ``num_outliers`` false loop closures in one of Sünderhauf and
+    Protzel's patterns (module docstring), and which they are.
+
+    Parameters
+    ----------
+    graph : PoseGraph
+        Poses in driving order (dense index = time).
+    truth_translations : (N, 3) float64
+        The true positions (only for the distances reported).
+    num_outliers : int
+        Number of false edges K >= 0; the grouped patterns add ``ceil(K / group_size)`` groups,
+        the last one cut to K edges in all.
+    pattern : {"random", "local", "random-grouped", "local-grouped"}
+    seed : int or numpy.random.Generator
+    group_size : int
+        Edges per group of the grouped patterns (>= 1).
+    loop_edges : (L,) int, optional
+        The real loop closures whose information is copied (default as :func:`add_outliers`).
+
+    Returns
+    -------
+    (PoseGraph, Outliers)
+
+    Raises
+    ------
+    ValueError
+        Bad arguments, or a graph too small for the pattern.
+    """
+    if pattern not in OUTLIER_PATTERNS:
+        raise ValueError(f"pattern must be one of {', '.join(OUTLIER_PATTERNS)}, got "
+                         f"{pattern!r}")
+    k = int(num_outliers)
+    if k < 0:
+        raise ValueError(f"num_outliers must be >= 0, got {num_outliers!r}")
+    if isinstance(group_size, bool) or not isinstance(group_size, int) or group_size < 1:
+        raise ValueError(f"group_size must be an integer >= 1, got {group_size!r}")
+    if k == 0:
+        return graph, no_outliers()
+    g = group_size if pattern.endswith("grouped") else 1
+    top = graph.num_nodes - g  # a group's first poses a, b satisfy b + g - 1 <= N - 1
+    if top < 3:
+        raise ValueError(f"a graph of {graph.num_nodes} poses is too small for the "
+                         f"{pattern!r} pattern (groups of {g})")
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    loops = _loop_edges(graph, loop_edges)
+    groups = -(-k // g)
+    if pattern.startswith("local"):  # b - a in 2 .. LOCAL_WINDOW, within the graph
+        lo = rng.integers(0, top - 1, size=groups)
+        hi = np.minimum(lo + rng.integers(2, LOCAL_WINDOW + 1, size=groups), top)
+    else:  # two poses at least 2 apart, uniformly
+        lo = np.empty(groups, np.int64)
+        hi = np.empty(groups, np.int64)
+        todo = np.arange(groups)
+        while todo.size:
+            pair = rng.integers(0, top + 1, size=(todo.size, 2))
+            ok = np.abs(pair[:, 1] - pair[:, 0]) >= 2
+            lo[todo[ok]] = pair[ok].min(axis=1)
+            hi[todo[ok]] = pair[ok].max(axis=1)
+            todo = todo[~ok]
+    xi = np.zeros((groups, 6))
+    xi[:, :3] = rng.normal(scale=ALIAS_TRANS_SIGMA_M, size=(groups, 3))
+    xi[:, 3:] = rng.normal(scale=ALIAS_ROT_SIGMA_RAD, size=(groups, 3))
+    if graph.is_2d:
+        xi[:, 2:5] = 0.0
+    info_src = loops[rng.integers(loops.size, size=groups)]
+    j = np.arange(g)
+    a = (lo[:, None] + j[None, :]).reshape(-1)[:k].astype(np.int64)
+    b = (hi[:, None] + j[None, :]).reshape(-1)[:k].astype(np.int64)
+    grp = np.repeat(np.arange(groups), g)[:k]
+    zt = xi[:, :3].copy()
+    zr = se3.exp(np.concatenate([np.zeros((groups, 3)), xi[:, 3:]], axis=1))[0]
+    info = np.array(graph.edge_information[info_src])[grp]
+    kinds = np.full(k, 2 + OUTLIER_PATTERNS.index(pattern), np.int8)
+    trans = np.asarray(truth_translations, np.float64)
+    return _insert(graph, a, b, zr[grp], zt[grp], info, kinds,
+                   np.linalg.norm(trans[b] - trans[a], axis=1))
 
 
 def _near_pairs(trans: FloatArray, k: int, lo: float, hi: float, min_gap: int,
@@ -243,6 +382,90 @@ def write_outliers(path: PathLike, graph: PoseGraph, outliers: Outliers) -> None
         rows += [f"{e},{i},{j},{OUTLIER_KINDS[kd]},{d!r}" for e, (i, j), kd, d in zip(
             outliers.edges.tolist(), ids.tolist(), outliers.kinds.tolist(),
             outliers.true_distances_m.tolist(), strict=True)]
+        return rows
+
+    write_atomic(path, lines)
+
+
+# =========================================================================== GPS
+#: Header of the GPS outliers CSV file written by :func:`write_gps_outliers`.
+GPS_CSV_HEADER = "gps_index,id,jump_m,dx,dy,dz"
+#: :func:`add_gps_outliers`: the jump of a false fix is uniform in this range, metres.
+GPS_JUMP_M = (20.0, 60.0)
+
+
+@dataclass(frozen=True, slots=True)
+class GpsOutliers:
+    """Which GPS readings of a graph are false fixes, and by how much they jumped."""
+
+    readings: npt.NDArray[np.int64]
+    """(K,) int64, increasing: indices into the graph's GPS readings (``graph.gps_nodes``),
+    which are also the 0-based indices among the GPS lines of a written file."""
+    jumps: FloatArray
+    """(K, 3) float64: what was added to each reading's position, metres (earth frame)."""
+
+    @property
+    def num_outliers(self) -> int:
+        return int(self.readings.shape[0])
+
+    def mask(self, num_gps: int) -> npt.NDArray[np.bool_]:
+        """(num_gps,) bool: True for the false readings."""
+        return _index_mask(self.readings, num_gps)
+
+
+def no_gps_outliers() -> GpsOutliers:
+    """An empty :class:`GpsOutliers`."""
+    return GpsOutliers(np.zeros(0, np.int64), np.zeros((0, 3)))
+
+
+def add_gps_outliers(graph: PoseGraph, num_outliers: int, *,
+                     seed: int | np.random.Generator = 0,
+                     jump_m: tuple[float, float] = GPS_JUMP_M) -> tuple[PoseGraph, GpsOutliers]:
+    """Return ``graph`` with ``num_outliers`` of its GPS readings moved by a multipath jump, and
+    which they are.
+
+    Each chosen reading (distinct, uniformly among the readings) moves by a length uniform in
+    ``jump_m`` in a uniformly random horizontal direction; its information is kept, so nothing
+    but its inconsistency with the rest of the graph gives it away.
+
+    Raises
+    ------
+    ValueError
+        ``num_outliers`` negative or more than the graph's GPS readings, or a bad ``jump_m``.
+    """
+    k = int(num_outliers)
+    if not 0 <= k <= graph.num_gps:
+        raise ValueError(f"num_outliers must be in 0..{graph.num_gps} (the graph's GPS "
+                         f"readings), got {num_outliers!r}")
+    lo, hi = (float(v) for v in jump_m)
+    if not (math.isfinite(hi) and 0.0 <= lo <= hi):
+        raise ValueError(f"need 0 <= jump_m[0] <= jump_m[1], got {jump_m!r}")
+    if k == 0:
+        return graph, no_gps_outliers()
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    idx = np.sort(rng.choice(graph.num_gps, size=k, replace=False)).astype(np.int64)
+    length = rng.uniform(lo, hi, size=k)
+    angle = rng.uniform(0.0, 2.0 * math.pi, size=k)
+    jumps = np.column_stack([length * np.cos(angle), length * np.sin(angle), np.zeros(k)])
+    pos = np.array(graph.gps_positions)
+    pos[idx] += jumps
+    return dataclasses.replace(graph, gps_positions=pos), GpsOutliers(idx, jumps)
+
+
+def write_gps_outliers(path: PathLike, graph: PoseGraph, outliers: GpsOutliers) -> None:
+    """Write the false GPS readings as CSV (atomically): one header line, then one row each.
+
+    Columns: ``gps_index`` (0-based index among the GPS lines of the graph file, i.e. into
+    ``read_graph(file).gps_nodes``), ``id`` (the pose's file id), ``jump_m`` (the jump's
+    length) and ``dx``, ``dy``, ``dz`` (the jump, earth frame, metres).
+    """
+    ids = graph.node_ids[graph.gps_nodes[outliers.readings]]
+
+    def lines() -> list[str]:
+        rows = [GPS_CSV_HEADER]
+        rows += [f"{g},{i},{float(np.linalg.norm(d))!r},{d[0]!r},{d[1]!r},{d[2]!r}"
+                 for g, i, d in zip(outliers.readings.tolist(), ids.tolist(),
+                                    outliers.jumps.tolist(), strict=True)]
         return rows
 
     write_atomic(path, lines)

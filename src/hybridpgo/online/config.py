@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from .._cost import default_robust_scale, robust_kind
+from .._cost import default_robust_scale
 from ..solvers.config import (
     STEP_NAMES,
     HybridConfig,
@@ -13,6 +13,7 @@ from ..solvers.config import (
     StepName,
     check_float,
     check_int,
+    check_robust,
 )
 
 OnlineTree = Literal["oldest", "odometry"]
@@ -30,9 +31,14 @@ class OnlineConfig:
     """Single-constraint solve: ``"woodbury"`` (O(d)) or ``"givens"`` (the paper's O(d^2))."""
     gps_batch_size: int = HybridConfig.gps_batch_size
     """GPS readings relaxed together in one batch (III-G)."""
-    robust: RobustName = HybridConfig.robust
-    """Robust kernel on the relative constraints, as :attr:`HybridConfig.robust` (the updates
-    and the worker's exact solves use it)."""
+    robust: RobustName = "auto"
+    """Robust kernel on every constraint, relative and GPS, as :attr:`HybridConfig.robust`
+    (the updates and the worker's exact solves use it).  ``"auto"`` (the default, as in every
+    solver): the updates and the worker's solves are least squares, and
+    :meth:`OnlineSolver.refine` runs the outlier test and re-solve of
+    :mod:`hybridpgo.solvers.robust` after its least-squares solve (the map it leaves is the
+    optimum of the kept constraints; the updates that follow still see every constraint);
+    ``"none"``: least squares only."""
     robust_scale: float | None = HybridConfig.robust_scale
     """The kernel's delta; None: the kernel's default, as everywhere
     (:attr:`robust_delta`)."""
@@ -119,11 +125,17 @@ class OnlineConfig:
         """The robust kernel's delta: ``robust_scale``, or the kernel's default."""
         return default_robust_scale(self.robust, self.robust_scale)
 
+    @property
+    def kernel(self) -> str:
+        """The kernel of the updates and the worker's solves: ``robust``, ``"none"`` for
+        ``"auto"``."""
+        return "none" if self.robust == "auto" else self.robust
+
     def __post_init__(self) -> None:
         check_float("damping", self.damping, positive=False)
         if self.step not in STEP_NAMES:
             raise ValueError(f"step must be one of {', '.join(STEP_NAMES)}, got {self.step!r}")
-        robust_kind(self.robust, self.robust_delta)
+        check_robust(self.robust, self.robust_scale, self.robust_delta)
         check_int("gps_batch_size", self.gps_batch_size, 1)
         if self.tree not in ONLINE_TREES:
             raise ValueError(f"tree must be one of {', '.join(ONLINE_TREES)}, got {self.tree!r}")

@@ -121,7 +121,7 @@ class OnlineSolver:
         self._edge_keys: dict[tuple[int, int], list[int]] = {}
         self.frame = 0
         """Number of :meth:`update` calls so far."""
-        robust = (_cost.robust_kind(cfg.robust, cfg.robust_delta), float(cfg.robust_delta))
+        robust = (_cost.robust_kind(cfg.kernel, cfg.robust_delta), float(cfg.robust_delta))
         self._store = MapStore(cfg.reserve_poses, robust, cfg.gps_batch_size)
         self._wk: Any = None
         self._cursor = 0
@@ -131,7 +131,7 @@ class OnlineSolver:
         self._link: WorkerLink | None = None
         self._finalizer: weakref.finalize[Any, Any] | None = None
         if cfg.background_refine:
-            spec = "none" if cfg.robust == "none" else f"{cfg.robust}:{cfg.robust_delta!r}"
+            spec = "none" if cfg.kernel == "none" else f"{cfg.kernel}:{cfg.robust_delta!r}"
             self._link = WorkerLink(cfg.background_iterations, spec)
             # stops the worker when the solver is collected or at exit, whatever comes first
             self._finalizer = weakref.finalize(self, self._link.close)
@@ -518,7 +518,10 @@ class OnlineSolver:
         This is the periodic batch solve of the whole map: it costs a sparse factorization per
         iteration (O(N) and more, no time budget), so it is not part of :meth:`update`; call it
         when a frame can afford it (e.g. while the robot stands still).  The gauge is the
-        solver's: the first pose without GPS, the earth with it.  Returns the iterations done.
+        solver's: the first pose without GPS, the earth with it.  With ``robust="auto"`` (the
+        default) the least-squares solve is followed by the outlier test and, when it fails,
+        the re-solve without the outliers (:mod:`hybridpgo.solvers.robust`).  Returns the
+        iterations done.
         """
         from ..solvers.config import GaussNewtonConfig
         from ..solvers.gauss_newton import solve_exact

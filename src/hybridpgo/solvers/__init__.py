@@ -63,10 +63,15 @@ def config_for(method: str, **options: Any) -> SolverConfig:
     The one place where the command line's option names meet the configs' fields: ``sweeps``
     (hybrid: its sweeps; auto: the most sweeps per start; toro: its iterations),
     ``max_iterations`` (exact: its limit; hybrid and auto: of the polish), ``init`` (auto: the
-    only start to try), and every config's own fields.  TypeError for an option the method does
-    not have, ValueError for a value it does not allow.
+    only start to try), and every config's own fields.  ``robust`` defaults to ``"auto"`` for
+    ``"auto"``, ``"hybrid"`` and ``"exact"`` (the outlier test and re-solve of
+    :mod:`hybridpgo.solvers.robust`): the same default under every solver that has robust
+    kernels, as on the command line.  TypeError for an option the method does not have,
+    ValueError for a value it does not allow.
     """
     opts = dict(options)
+    if method in ("hybrid", "exact"):
+        opts.setdefault("robust", "auto")
     if method == "auto":
         return AutoConfig.from_options(**opts)
     if method == "hybrid":

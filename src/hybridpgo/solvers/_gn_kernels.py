@@ -7,8 +7,8 @@ Global parametrization, right perturbation ``X_i <- X_i Exp(delta_i)``, tangent 
 * position constraint: ``e = p_n - g``, ``de/d delta_n = [R_n | 0]``.
 
 The normal equations ``H = J^T Omega J``, ``g = J^T Omega e`` (with a robust kernel
-``H = sum_c w_c J_c^T Omega_c J_c``, ``g = sum_c w_c J_c^T Omega_c e_c``,
-docs/conventions.md#robust-kernels) are
+``H = sum_c w_c J_c^T Omega_c J_c``, ``g = sum_c w_c J_c^T Omega_c e_c`` over the relative and
+the GPS constraints, docs/conventions.md#robust-kernels) are
 written straight into the value array of the *lower triangle* of H in CSC form, whose pattern
 was computed once (the "analyze" step in :mod:`hybridpgo.solvers.gauss_newton`): the layout
 CHOLMOD factors, so no copy or transpose of H is ever made.  Scalar column ``6 j + q`` of block
@@ -154,7 +154,7 @@ def assemble_normal_equations(
     (g = J^T Omega e) in one pass; return the energy.
 
     With a robust kernel (``robust_kind``, ``robust_delta``: :func:`hybridpgo._cost.robust_cost`)
-    a relative constraint's terms are multiplied by its weight ``w = rho'(s)``.
+    every constraint's terms (relative and GPS) are multiplied by its weight ``w = rho'(s)``.
 
     ``edge_off`` (M,): position of the constraint's lower off-diagonal block in block column
     ``min(va, vb)`` (-1 when a node is fixed).  ``var_of_node`` (N,): variable index of each
@@ -225,12 +225,15 @@ def assemble_normal_equations(
         ec = gps_chi2(trans[n], gps_pos[c], om, e, oe)
         if not math.isfinite(ec):
             return m + c, energy, plain
-        energy += ec
         plain += ec
+        wc = 1.0
+        if robust_kind != ROBUST_NONE:  # IRLS, as for a relative constraint
+            ec, wc = robust_cost(robust_kind, robust_delta, ec)
+        energy += ec
         vn = var_of_node[n]
         if vn < 0:
             continue
-        # J = [R | 0]: H_nn = [[R^T Omega R, 0], [0, 0]], g_n = (R^T Omega e, 0).
+        # J = [R | 0]: H_nn = w [[R^T Omega R, 0], [0, 0]], g_n = w (R^T Omega e, 0).
         for q in range(3):
             col = indptr[6 * vn + q] - q
             for p in range(q, 3):
@@ -238,9 +241,9 @@ def assemble_normal_equations(
                 for k in range(3):
                     for l in range(3):
                         s += r[k, p] * om[k, l] * r[l, q]
-                data[col + p] += s
+                data[col + p] += wc * s
         for p in range(3):
-            grad[6 * vn + p] += r[0, p] * oe[0] + r[1, p] * oe[1] + r[2, p] * oe[2]
+            grad[6 * vn + p] += wc * (r[0, p] * oe[0] + r[1, p] * oe[1] + r[2, p] * oe[2])
     return -1, energy, plain
 
 

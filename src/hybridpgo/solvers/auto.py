@@ -53,6 +53,13 @@ unswept twin, no certificate); ``stats["policy"]`` is ``"large"`` (else ``"full"
 reason says so.
 benchmarks/scale.py measures what this costs against the full policy on a 100k-pose city.
 
+5. **Outliers** (``AutoConfig.robust="auto"``, the default): the winner is tested for false
+   loop closures and false GPS fixes and, when the graph is inconsistent, solved again
+   without them (:mod:`hybridpgo.solvers.robust`; ``stats["outliers"]``).  When a polished
+   candidate's fit is inconsistent as a whole (the test's scale beyond its level: the map
+   is folded), the remaining polishes and the relaxation check are skipped, since the
+   re-solve replaces their answer.
+
 The result's ``status`` is the winning polish's; ``stats`` name the start (``init``), the
 sweeps and polish iterations it took (``sweeps``, ``polish_iterations``, ``polish_status``),
 every candidate's energies (``candidates``) and a one-line ``reason``.
@@ -63,6 +70,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -241,6 +249,24 @@ def _continue(first: SolveResult, second: SolveResult) -> SolveResult:
         timings={k: first.timings.get(k, 0.0) + v for k, v in second.timings.items()})
 
 
+def _misfit(graph: PoseGraph, cand: _Candidate) -> bool:
+    """``robust="auto"``: the polished candidate's least-squares fit is inconsistent as a whole
+    (:attr:`hybridpgo.solvers.robust.Consistency.misfit`): false constraints have folded the
+    map, and the outlier re-solve will replace whatever least squares reaches."""
+    from .robust import check_consistency
+
+    assert cand.polished is not None
+    return check_consistency(graph, cand.polished.rotations, cand.polished.translations).misfit
+
+
+def _least_squares(cfg: AutoConfig) -> AutoConfig:
+    """``cfg`` with plain least squares in the sweeps and the polish (``robust="auto"``'s
+    first solve)."""
+    return dataclasses.replace(
+        cfg, sweeps=dataclasses.replace(cfg.sweeps, robust="none", robust_scale=None),
+        polish=dataclasses.replace(cfg.polish, robust="none", robust_scale=None))
+
+
 def _relaxation_applies(graph: PoseGraph, cfg: AutoConfig, large: bool) -> str:
     """Why the planar relaxation does not apply ("" when it does)."""
     if not cfg.relaxation:
@@ -396,12 +422,15 @@ def _swept_starts(graph: PoseGraph, cfg: AutoConfig, tree: PoseTree, inits: list
 def _polish_finalists(exact: ExactSolver, cfg: AutoConfig, finalists: list[_Candidate],
                       certificate: dict[str, Any] | None, checks: list[_Candidate],
                       progress: ProgressCallback | None,
-                      iterate: IterateCallback | None
+                      iterate: IterateCallback | None,
+                      stop: Callable[[_Candidate], bool] | None = None,
                       ) -> tuple[list[_Candidate], dict[str, Any] | None]:
     """Polish the finalists in rank order: the first to convergence, each runner-up within its
     budget (``finalist_budget``), continued to convergence only if it is then the lowest.
     ``certificate`` None: the first polished finalist is certified (its check candidate goes
-    to ``checks``), and when it is, no other is polished.  Returns the finalists that were
+    to ``checks``), and when it is, no other is polished.  ``stop(best)`` after each polish:
+    True ends the polishes (``robust="auto"``: the best fit is folded by outliers, and the
+    re-solve replaces whatever a runner-up would reach).  Returns the finalists that were
     considered and ``stats["certificate"]`` (None when not computed yet)."""
     best: _Candidate | None = None
     for k, cand in enumerate(finalists):
@@ -427,6 +456,8 @@ def _polish_finalists(exact: ExactSolver, cfg: AutoConfig, finalists: list[_Cand
         if cand.polished is not None and (best is None or cand.energy < best.energy * (
                 1.0 - _TIE)):
             best = cand
+        if stop is not None and best is not None and stop(best):
+            return finalists[:k + 1], certificate
     return finalists, certificate
 
 
@@ -505,6 +536,9 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
         When no start could be computed and polished.
     """
     cfg = config or AutoConfig()
+    outliers = cfg.robust == "auto"
+    if outliers:  # least squares first; the outlier test and re-solve close the pipeline
+        cfg = _least_squares(cfg)
     large = cfg.is_large(graph.num_nodes)
     policy = ""
     if large:
@@ -538,9 +572,17 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     exact = ExactSolver(graph, cfg.polish)
     why = _certificate_applies(graph, cfg, large)
     checks: list[_Candidate] = []
+    misfit_s: list[float] = []  # robust="auto": seconds of each misfit check
+
+    def misfit(cand: _Candidate) -> bool:
+        t_check = time.perf_counter()
+        bad = _misfit(graph, cand)
+        misfit_s.append(time.perf_counter() - t_check)
+        return bad
+
     finalists, first = _polish_finalists(exact, cfg, finalists,
                                          _not_computed(why) if why else None, checks,
-                                         progress, iterate)
+                                         progress, iterate, misfit if outliers else None)
     polished = [c for c in finalists if c.polished is not None and not c.cut]
     if not polished:
         raise SolverError("the polish failed from every start: "
@@ -561,10 +603,14 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
                 check.energy < win.energy * (1.0 - _TIE)):
             cands.append(check)
             win = check
-    polish_s = time.perf_counter() - t_polish - float(certificate["seconds"])
+    polish_s = (time.perf_counter() - t_polish - float(certificate["seconds"])
+                - sum(misfit_s))
     t_relax = time.perf_counter()
+    folded = outliers and _misfit(graph, win)
     if certificate["certified"]:
         relax = {"ran": False, "why": "the winner is certified"}
+    elif folded:
+        relax = {"ran": False, "why": "outliers"}
     else:
         relax = _relaxation_check(exact, cfg, large, win, t_origin, progress, iterate)
     relax_cand = relax.pop("candidate", None)
@@ -596,7 +642,7 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     for key in ("robust", "robust_scale", "plain_energy"):
         if key in pol.stats:
             stats[key] = pol.stats[key]
-    return SolveResult(
+    result = SolveResult(
         rotations=pol.rotations, translations=pol.translations, status=pol.status,
         iterations=win.sweeps, energy_history=history, times=times, method="auto",
         num_constraints=graph.num_constraints,
@@ -604,7 +650,19 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
                  "start": sum(c.start_seconds for c in cands),
                  "sweeps": sum(c.sweep_seconds for c in cands), "polish": polish_s,
                  "certificate": float(certificate["seconds"]), "relaxation": relax_s,
-                 "solve": time.perf_counter() - t_origin - t_analyze},
+                 "solve": time.perf_counter() - t_origin - t_analyze,
+                 **({"outliers": sum(misfit_s)} if outliers else {})},
         stats=stats,
     )
+    if outliers:  # robust="auto": the outlier test, and the re-solve when it fails
+        from .robust import exact_resolver, resolve
+
+        result = resolve(graph, result, exact_resolver(cfg.polish, progress, iterate))
+        found = result.stats["outliers"]
+        if found["rejected"] or found["rejected_gps"]:  # the answer is no longer the certified one
+            result.stats["certificate"] = {
+                **_not_computed("outliers rejected: the certificate covers the least-squares fit "
+                                "of every constraint, not the re-solved map"),
+                "least_squares": result.stats["certificate"]}
+    return result
 

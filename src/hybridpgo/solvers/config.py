@@ -23,9 +23,12 @@ if TYPE_CHECKING:
 StepName = Literal["woodbury", "givens"]
 TreeName = Literal["bfs", "mst", "gps"]
 InitName = Literal["tree", "file", "chordal"]
-#: Robust kernels (docs/conventions.md#robust-kernels); the same names as ``_cost.ROBUST_NAMES``
-#: (tested).
-RobustName = Literal["none", "huber", "cauchy", "geman_mcclure"]
+#: ``"auto"`` (least squares, then :mod:`hybridpgo.solvers.robust`'s outlier test and re-solve)
+#: and the robust kernels (docs/conventions.md#robust-kernels), whose names are
+#: ``_cost.ROBUST_NAMES`` (tested).
+RobustName = Literal["auto", "none", "huber", "cauchy", "geman_mcclure"]
+#: Every value ``robust`` accepts: ``"auto"``, then the kernels.
+ROBUST_CHOICES: tuple[str, ...] = get_args(RobustName)
 #: The names a user may give for each choice (derived once from the Literal types).
 STEP_NAMES: tuple[str, ...] = get_args(StepName)
 TREE_NAMES: tuple[str, ...] = get_args(TreeName)
@@ -63,6 +66,18 @@ LINEAR_SOLVERS = ("auto", "cholmod", "splu")
 def check_int(name: str, value: object, minimum: int) -> None:
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+
+
+def check_robust(name: str, scale: float | None, delta: float) -> None:
+    """``robust`` and ``robust_scale``: ``"auto"`` takes no scale, a kernel a delta > 0."""
+    if name == "auto":
+        if scale is not None:
+            raise ValueError(f"robust_scale applies to a named kernel, not to robust='auto', "
+                             f"got {scale!r}")
+        return
+    if name not in ROBUST_CHOICES:
+        raise ValueError(f"robust must be one of {', '.join(ROBUST_CHOICES)}, got {name!r}")
+    robust_kind(name, delta)
 
 
 def check_float(name: str, value: object, *, positive: bool) -> None:
@@ -118,7 +133,10 @@ class GaussNewtonConfig:
     the block Cholesky of :mod:`hybridpgo.linalg._block_cholesky`: 3x faster than CHOLMOD
     there and ~4x less memory, which keeps a 1M-pose polish within 4 GB)."""
     robust: RobustName = "none"
-    """Robust kernel (see ``HybridConfig.robust``); the LM acceptance test uses E_rho."""
+    """Robust kernel (see ``HybridConfig.robust``); the LM acceptance test uses E_rho.
+    ``"auto"``: least squares, then the outlier test and re-solve of
+    :mod:`hybridpgo.solvers.robust` (the default of :func:`hybridpgo.optimize` and the command
+    line; this building block's default is plain least squares)."""
     robust_scale: float | None = None
     """The kernel's delta (> 0) in whitened units (sqrt of χ²): Huber is quadratic for
     ``s <= delta^2``.  GTSAM's ``mEstimator.*(k)`` with ``k = delta`` is the same kernel.
@@ -129,6 +147,11 @@ class GaussNewtonConfig:
     def robust_delta(self) -> float:
         """The robust kernel's delta: ``robust_scale``, or the kernel's default."""
         return default_robust_scale(self.robust, self.robust_scale)
+
+    @property
+    def kernel(self) -> str:
+        """The kernel of the solver's own iterations: ``robust``, ``"none"`` for ``"auto"``."""
+        return "none" if self.robust == "auto" else self.robust
 
     def __post_init__(self) -> None:
         if self.method not in ("gn", "lm"):
@@ -143,7 +166,7 @@ class GaussNewtonConfig:
         if self.linear_solver not in LINEAR_SOLVERS:
             raise ValueError(f"linear_solver must be one of {', '.join(LINEAR_SOLVERS)}, "
                              f"got {self.linear_solver!r}")
-        robust_kind(self.robust, self.robust_delta)
+        check_robust(self.robust, self.robust_scale, self.robust_delta)
 
 
 #: Most sweeps one run may ask for (a sweep visits every constraint once; the paper runs 10).
@@ -190,13 +213,15 @@ class HybridConfig:
     polish_iterations: int = 100
     """Iteration limit of the polish."""
     robust: RobustName = "none"
-    """Robust kernel on every relative constraint's χ² ``s = e^T Omega e``
-    (docs/conventions.md#robust-kernels):
-    ``"none"`` (least squares), ``"huber"``, ``"cauchy"`` or ``"geman_mcclure"`` (g2o's
-    conventions).  The solver minimizes ``E_rho = sum_c rho(s_c)`` (GPS constraints stay
-    quadratic) by iterative reweighting: each step whitens with ``sqrt(w_c) L^T``,
-    ``w_c = rho'(s_c)`` at the current poses.  ``energy_history`` is then E_rho and
-    ``stats["plain_energy_history"]`` the plain E.  The polish uses the same kernel."""
+    """Robust kernel on every constraint's χ² ``s = e^T Omega e`` (relative and GPS;
+    docs/conventions.md#robust-kernels): ``"none"`` (least squares), ``"huber"``,
+    ``"cauchy"`` or ``"geman_mcclure"`` (g2o's conventions).  The solver minimizes
+    ``E_rho = sum_c rho(s_c)`` by iterative reweighting: each step whitens with
+    ``sqrt(w_c) L^T``, ``w_c = rho'(s_c)`` at the current poses.  ``energy_history`` is then
+    E_rho and ``stats["plain_energy_history"]`` the plain E.  The polish uses the same kernel.
+    ``"auto"``: least squares, then the outlier test and re-solve of
+    :mod:`hybridpgo.solvers.robust` (:func:`solve_hybrid`; a
+    :class:`~hybridpgo.solvers.hybrid.HybridSolver` stepped by hand runs least squares)."""
     robust_scale: float | None = None
     """The kernel's delta (> 0) in whitened units (sqrt of χ²); None: the kernel's default
     (:data:`ROBUST_DEFAULT_SCALE`).  The value used is :attr:`robust_delta`."""
@@ -218,6 +243,11 @@ class HybridConfig:
     def robust_delta(self) -> float:
         """The robust kernel's delta: ``robust_scale``, or the kernel's default."""
         return default_robust_scale(self.robust, self.robust_scale)
+
+    @property
+    def kernel(self) -> str:
+        """The kernel of the sweeps themselves: ``robust``, ``"none"`` for ``"auto"``."""
+        return "none" if self.robust == "auto" else self.robust
 
     def __post_init__(self) -> None:
         if self.correction not in ("none", "pcg"):
@@ -250,7 +280,7 @@ class HybridConfig:
         if not isinstance(self.polish, bool):
             raise ValueError(f"polish must be True or False, got {self.polish!r}")
         check_int("polish_iterations", self.polish_iterations, 0)
-        robust_kind(self.robust, self.robust_delta)
+        check_robust(self.robust, self.robust_scale, self.robust_delta)
 
 
 #: The starts :class:`AutoConfig` tries by default, in this order (``"file"`` only when the
@@ -264,11 +294,11 @@ AUTO_POLISH_ITERATIONS = 200
 
 
 def _auto_sweeps() -> HybridConfig:
-    return HybridConfig(sweeps=AUTO_MAX_SWEEPS)
+    return HybridConfig(sweeps=AUTO_MAX_SWEEPS, robust="auto")
 
 
 def _auto_polish() -> GaussNewtonConfig:
-    return GaussNewtonConfig(method="lm", max_iterations=AUTO_POLISH_ITERATIONS)
+    return GaussNewtonConfig(method="lm", max_iterations=AUTO_POLISH_ITERATIONS, robust="auto")
 
 
 @dataclass(frozen=True)
@@ -372,7 +402,7 @@ class AutoConfig:
         if self.polish.method != "lm":
             raise ValueError("the pipeline polishes with Levenberg-Marquardt: polish.method "
                              f"must be 'lm', got {self.polish.method!r}")
-        if (self.sweeps.robust, self.sweeps.robust_delta) != (self.polish.robust,
+        if (self.sweeps.kernel, self.sweeps.robust_delta) != (self.polish.kernel,
                                                              self.polish.robust_delta):
             raise ValueError(
                 f"the sweeps and the polish must use the same robust kernel, got "
@@ -404,7 +434,16 @@ class AutoConfig:
 
     @property
     def robust(self) -> RobustName:
-        """The robust kernel of the sweeps and the polish (the same by construction)."""
+        """The robust kernel of the sweeps and the polish (the same by construction).
+
+        ``"auto"`` (the default, when either nested config says ``"auto"``): the pipeline
+        solves least squares, then tests every constraint and, when the graph is inconsistent
+        (false loop closures, false GPS fixes), re-solves without the outliers
+        (:mod:`hybridpgo.solvers.robust`; ``stats["outliers"]`` lists them).  ``"none"`` in
+        both: least squares only.  A kernel name: that kernel in the sweeps and the polish
+        (``HybridConfig.robust``)."""
+        if "auto" in (self.sweeps.robust, self.polish.robust):
+            return "auto"
         return self.sweeps.robust
 
     @property

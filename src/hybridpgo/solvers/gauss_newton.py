@@ -145,8 +145,9 @@ class ExactSolver:
         self.fixed = default_fixed_nodes(graph)
         check_gauge(graph, self.fixed)
         self.pattern = analyze(graph, self.fixed, reorder=True)
-        self.robust = (_cost.robust_kind(cfg.robust, cfg.robust_delta), float(cfg.robust_delta))
-        """(kernel code, delta) of the robust kernel (docs/conventions.md)."""
+        self.robust = (_cost.robust_kind(cfg.kernel, cfg.robust_delta), float(cfg.robust_delta))
+        """(kernel code, delta) of the robust kernel (docs/conventions.md); least squares for
+        ``robust="auto"``, whose outlier test runs in :func:`solve_exact`."""
         self._backends: dict[tuple[bool, bool], _Backend] = {}
         self.analyze_seconds = time.perf_counter() - t0
         """Seconds of the analysis so far (the gauge, the pattern, each factorization's
@@ -459,7 +460,9 @@ def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
                 iterate: IterateCallback | None = None) -> SolveResult:
     """Minimize E with sparse Gauss-Newton or Levenberg-Marquardt: ``ExactSolver(graph,
     config).solve(rotations, translations)`` (see :meth:`ExactSolver.solve`), with the
-    analysis and compilation counted in the result's ``timings``.
+    analysis and compilation counted in the result's ``timings``.  ``config.robust="auto"``:
+    that solve in least squares, then the outlier test and re-solve of
+    :mod:`hybridpgo.solvers.robust`.
 
     Raises
     ------
@@ -469,6 +472,11 @@ def solve_exact(graph: PoseGraph, rotations: FloatArray | None = None,
         Non-finite initial poses or linearization; a singular system (GN without a gauge); a
         non-finite unguarded GN step.  Never returns non-finite poses.
     """
+    if config is not None and config.robust == "auto":  # least squares, then the outlier test
+        from .robust import solve_exact_auto
+
+        return solve_exact_auto(graph, rotations, translations, config, progress=progress,
+                                iterate=iterate)
     t0 = time.perf_counter()
     initial_poses(graph, rotations, translations)  # bad poses before the analysis
     solver = ExactSolver(graph, config)

@@ -20,6 +20,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ..._cost import ROBUST_NONE, robust_whitening, whiten_residual
 from ..._numba import kernel
 from ..._tree_kernels import global_pose, mul_pose_into
 from ._batch_reduced import reduced_batch
@@ -50,7 +51,8 @@ def _linearize_batch(prob: Problem, state: State, cs: np.ndarray, nb: int, wk: W
     and the global pose ``Y_u`` of every union node (``yr``, ``yt``).
 
     ``A_c`` is ``L^T Jr^-1(e) Ad(Y_b)^-1`` for a relative constraint and ``L^T [I | -[p_n]x]``
-    for GPS (the earth is the root).
+    for GPS (the earth is the root); with a robust kernel ``L^T`` is ``sqrt(w) L^T``, as
+    :func:`._linearize.linearize` whitens.
     """
     nu = yr.shape[0]
     have = np.zeros(nu, np.bool_)
@@ -60,6 +62,7 @@ def _linearize_batch(prob: Problem, state: State, cs: np.ndarray, nb: int, wk: W
     tt_ = np.empty(3)
     adb = np.empty((6, 6))
     blk = np.zeros((3, 6))
+    r0 = np.empty(3)
     r_off[0] = 0
     for q in range(nb):
         c = cs[q]
@@ -84,7 +87,14 @@ def _linearize_batch(prob: Problem, state: State, cs: np.ndarray, nb: int, wk: W
             mul_pose_into(gr, gt, rb, tb, tr_, tt_)  # Y_b = G_root P_b
             relative_factor_into(wk.a, tr_, tt_, adb, amat[q])
         else:  # p_n = pt[0] in the earth frame (G = I)
-            gps_factor_into(prob.gps_lt[c - prob.num_edges], pt[0], blk, amat[q])
+            lt = prob.gps_lt[c - prob.num_edges]
+            gps_factor_into(lt, pt[0], blk, amat[q])
+            if prob.robust_kind != ROBUST_NONE:  # the weight linearize folded into jb, rbuf
+                whiten_residual(lt, wk.e, 3, r0)
+                sw = robust_whitening(prob.robust_kind, prob.robust_scale, r0, 3)
+                for i in range(3):
+                    for j in range(6):
+                        amat[q, i, j] *= sw
 
 
 # --------------------------------------------------------------------------- blocks of B_C

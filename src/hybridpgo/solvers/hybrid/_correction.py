@@ -174,6 +174,12 @@ def linearize_all(prob: Problem, ends: np.ndarray, yr: np.ndarray, yt: np.ndarra
             gps_residual(pn, prob.gps_pos[g], e)
             whiten_residual(prob.gps_lt[g], e, 3, res[c])
             gps_factor_into(prob.gps_lt[g], pn, blk, amat[c])
+            if prob.robust_kind != ROBUST_NONE:  # whiten with sqrt(w) L^T
+                sw = robust_whitening(prob.robust_kind, prob.robust_scale, res[c], 3)
+                for p in range(3):
+                    res[c, p] *= sw
+                    for j in range(6):
+                        amat[c, p, j] *= sw
 
 
 # --------------------------------------------------------------------------- products

@@ -8,10 +8,10 @@ whitened Jacobian block for domain node i is
 
 Both come from products of local transforms along the path only (no global pose is needed),
 so one linearization costs O(d).  The error, ``Jr^-1`` and the whitening come from the cost
-layer (:mod:`hybridpgo._cost`).  With a robust kernel a relative constraint is whitened with
-``sqrt(w) L^T`` in place of ``L^T``, ``w = rho'(s)`` (docs/conventions.md#robust-kernels), so its
-``J_c``, ``r_c`` and its
-contribution to 𝔅(H) all carry the weight.
+layer (:mod:`hybridpgo._cost`).  With a robust kernel a constraint (relative or GPS) is
+whitened with ``sqrt(w) L^T`` in place of ``L^T``, ``w = rho'(s)``
+(docs/conventions.md#robust-kernels), so its ``J_c``, ``r_c`` and its contribution to 𝔅(H) all
+carry the weight.
 """
 
 from __future__ import annotations
@@ -275,6 +275,13 @@ def linearize(prob: Problem, c: int, rot: np.ndarray, trans: np.ndarray, wk: Wor
     gps_residual(wk.path_trans[0], prob.gps_pos[g], wk.e)  # the earth is the identity
     whiten_residual(prob.gps_lt[g], wk.e, 3, wk.r)
     _gps_blocks(prob, c, wk, jac)
+    if prob.robust_kind != ROBUST_NONE:  # whiten with sqrt(w) L^T
+        sw = robust_whitening(prob.robust_kind, prob.robust_scale, wk.r, 3)
+        for p in range(3):
+            wk.r[p] *= sw
+            for k in range(d):
+                for j in range(6):
+                    jac[k, p, j] *= sw
     return 3, na
 
 

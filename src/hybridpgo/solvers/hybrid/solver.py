@@ -110,7 +110,7 @@ class HybridSolver:
             graph.gps_positions, _whitening(graph.gps_information, 3),
             np.bincount(tree.path_node, minlength=tree.num_tree_nodes).astype(np.int64),
             tree.parent, _link_constraints(tree, graph.num_edges), tree.link_forward,
-            robust_kind(cfg.robust, cfg.robust_delta), float(cfg.robust_delta),
+            robust_kind(cfg.kernel, cfg.robust_delta), float(cfg.robust_delta),
         )  # fmt: skip
         self.state = State(  # copies: the sweeps change them in place
             np.array(rot0, np.float64, order="C"), np.array(trans0, np.float64, order="C"),
@@ -171,7 +171,7 @@ class HybridSolver:
         if self.problem.robust_kind == 0:
             e = energy(self.graph, rot, trans)
             return e, e
-        return robust_energy(self.graph, rot, trans, self.config.robust,
+        return robust_energy(self.graph, rot, trans, self.config.kernel,
                              self.config.robust_delta)
 
     # ----------------------------------------------------------------- updates
@@ -423,6 +423,11 @@ def solve_hybrid(graph: PoseGraph, config: HybridConfig | None = None, *,
         When every update of a sweep was rejected as non-finite.
     """
     cfg = config or HybridConfig()
+    if cfg.robust == "auto":  # least squares, then the outlier test (solvers/robust.py)
+        from ..robust import solve_hybrid_auto
+
+        return solve_hybrid_auto(graph, cfg, tree=tree, progress=progress, locals0=locals0,
+                                 iterate=iterate)
     result = HybridSolver(graph, cfg, tree=tree, locals0=locals0).run(progress=progress,
                                                                        iterate=iterate)
     if not cfg.polish:
