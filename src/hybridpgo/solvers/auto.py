@@ -277,7 +277,7 @@ def _relaxation_applies(graph: PoseGraph, cfg: AutoConfig, large: bool) -> str:
         return "not a 2D graph"
     if graph.num_gps:
         return "GPS constraints"
-    if cfg.robust != "none":
+    if cfg.robust not in ("none", "auto"):  # "auto": checks the least-squares fit
         return "robust kernel"
     if graph.fixed_nodes.size > 1:
         return "several fixed poses"
@@ -345,7 +345,8 @@ def _certificate_applies(graph: PoseGraph, cfg: AutoConfig, large: bool) -> str:
         return "large-graph policy"
     from ..certificate import not_applicable
 
-    return not_applicable(graph, cfg.robust)
+    # "auto" certifies the least-squares fit (withdrawn when the outlier test rejects any)
+    return not_applicable(graph, "none" if cfg.robust == "auto" else cfg.robust)
 
 
 def _not_computed(why: str) -> dict[str, Any]:
