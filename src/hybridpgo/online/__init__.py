@@ -1,0 +1,1 @@
+"""The online mode's building blocks (see :mod:`.incremental`)."""
