@@ -391,12 +391,13 @@ def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarra
             hab: np.ndarray, ga: np.ndarray, gb: np.ndarray, hgg: np.ndarray, gg: np.ndarray,
             parent: np.ndarray, col_start: np.ndarray, col_len: np.ndarray,
             row_var: np.ndarray, row_blk: np.ndarray, diag: np.ndarray, y: np.ndarray,
-            slot: np.ndarray, walk: np.ndarray, damping: float) -> int:
+            slot: np.ndarray, walk: np.ndarray, damping: float, work: np.ndarray) -> int:
     """Factor the columns ``order[i0:]`` and their forward substitution ``y`` (module doc).
 
     ``damping``: ``H + damping * diag(H)`` (Levenberg-Marquardt; 0 for Gauss-Newton).  Stops
     after the first column that ends past ``deadline`` (cycle counter); returns the index to
-    resume from (``len(order)`` when done), or ``NOT_SPD`` / ``BROKEN_TREE``.
+    resume from (``len(order)`` when done), or ``NOT_SPD`` / ``BROKEN_TREE``.  ``work`` (2,):
+    += earlier columns applied, += their blocks multiplied.
     """
     d = np.empty((6, 6))
     b = np.empty(6)
@@ -470,6 +471,8 @@ def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarra
                     if p0 < 0:
                         return BROKEN_TREE
                     lj = row_blk[p0]
+                    work[0] += 1
+                    work[1] += kn
                     for a in range(6):
                         s = 0.0
                         for c in range(6):

@@ -68,6 +68,12 @@ class IncrementalConfig:
     """GPS readings after which ``gauge="auto"`` frees the first pose."""
     reorder: bool = True
     """Order each re-eliminated set by AMD (False: keep its old order, new variables last)."""
+    polish_rho: float = 1e-5
+    """When nothing else is left to do, every pose whose step exceeds ``polish_rho`` (metres)
+    or ``polish_phi`` (radians) is relinearized, so an idle solver converges to the optimum
+    (each idle update costs O(poses) to find them, then as much as the poses that move)."""
+    polish_phi: float = 1e-5
+    """See ``polish_rho``."""
 
 
 class IncrementalExact:
@@ -90,15 +96,24 @@ class IncrementalExact:
         self._row_var = np.zeros(self._pool_cap, np.int64)
         self._row_blk = np.zeros((self._pool_cap, 6, 6))
         self._pool_used = np.zeros(2, np.int64)
+        self._work = np.zeros(2, np.int64)
         self._counter = 0  # next elimination position
         self._stamp = 0  # update cycles started
         self._phase = _IDLE
         self._relin_cands = np.zeros(0, np.int64)
         self._first_free = self.config.gauge == "none"
+        self._cycle_cover = (0, 0, 0)
+        self.covered = (0, 0, 0)
+        """(poses, edges, GPS readings) the estimate's last completed update integrated."""
         self.stats: dict[str, Any] = {"cycles": 0, "columns": 0, "relinearized": 0,
-                                      "recomputed": 0, "max_set": 0}
+                                      "recomputed": 0, "max_set": 0, "applied": 0, "products": 0, "seconds": {
+                                          "start": 0.0, "numeric": 0.0, "back": 0.0}}
         """Totals: update cycles completed, columns re-eliminated, poses relinearized,
-        solution entries recomputed; the largest re-eliminated set."""
+        solution entries recomputed; the largest re-eliminated set; earlier columns applied to
+        re-eliminated ones and the blocks they multiplied (the factorization's work); seconds
+        spent starting
+        cycles (integration, linearization, ordering, symbolic), factoring and back
+        substituting."""
 
     # ----------------------------------------------------------------- storage
     def _alloc_poses(self, cap: int) -> None:
@@ -391,17 +406,25 @@ class IncrementalExact:
                     else np.uint64(c0 + int(max(budget_s, 0.0) * cycles_per_second())))
         done = 0
         while True:
+            sec = self.stats["seconds"]
             if self._phase == _IDLE:
                 if max_cycles is not None and done >= max_cycles:
                     return False
-                if not self._start_cycle():
+                t0 = time.perf_counter()
+                started = self._start_cycle()
+                sec["start"] += time.perf_counter() - t0
+                if not started:
                     return True
             if self._phase == _NUMERIC:
+                t0 = time.perf_counter()
                 self._run_numeric(deadline)
+                sec["numeric"] += time.perf_counter() - t0
                 if self._phase == _NUMERIC:
                     return False
             if self._phase == _BACK:
+                t0 = time.perf_counter()
                 self._run_back(deadline)
+                sec["back"] += time.perf_counter() - t0
                 if self._phase == _BACK:
                     return False
                 done += 1
@@ -410,7 +433,24 @@ class IncrementalExact:
 
     def _start_cycle(self) -> bool:
         """Integrate new data, relinearize, choose S and do its symbolic factorization.
-        False when there is nothing to do (converged)."""
+        False when there is nothing to do (converged and polished)."""
+        if self._start_cycle_with(self.config.relinearize_rho, self.config.relinearize_phi):
+            return True
+        cfg = self.config
+        n = self._n_in
+        if n == 0 or (cfg.polish_rho >= cfg.relinearize_rho
+                      and cfg.polish_phi >= cfg.relinearize_phi):
+            return False
+        x = self._x[:n]
+        big = (np.abs(x[:, :3]).max(axis=1) > cfg.polish_rho) | (
+            np.abs(x[:, 3:]).max(axis=1) > cfg.polish_phi)
+        cands = np.flatnonzero(big & self._free[:n])
+        if cands.size == 0:
+            return False
+        self._relin_cands = cands
+        return self._start_cycle_with(cfg.polish_rho, cfg.polish_phi)
+
+    def _start_cycle_with(self, beta_rho: float, beta_phi: float) -> bool:
         cfg = self.config
         n0, n1 = self._n_in, self._n
         m0, m1 = self._m_in, self._m
@@ -426,6 +466,7 @@ class IncrementalExact:
         ik.insert_incidences(m0, m1, self._ab, self._inc_head, self._inc_next)
         ik.insert_gps(g0, g1, self._gnode, self._gps_head, self._gps_next)
         self._n_in, self._m_in, self._g_in = n1, m1, g1
+        self._cycle_cover = (n1, m1, g1)
         freed = np.zeros(0, np.int64)
         if (not self._first_free and cfg.gauge == "auto" and g1 >= cfg.gps_gauge and n1 > 0):
             self._first_free = True
@@ -435,7 +476,7 @@ class IncrementalExact:
         relin = np.zeros(0, np.int64)
         if self._relin_cands.size:
             out = np.empty(self._relin_cands.size, np.int64)
-            k = ik.relinearize(self._relin_cands, cfg.relinearize_rho, cfg.relinearize_phi,
+            k = ik.relinearize(self._relin_cands, beta_rho, beta_phi,
                                self._th_r, self._th_t, self._x, self._est_r, self._est_t, out)
             relin = out[:k]
             self._relin_cands = np.zeros(0, np.int64)
@@ -473,6 +514,7 @@ class IncrementalExact:
         s_vars = s_buf[:ns]
         if ns == 0:  # only constraints between held poses: nothing to factor
             self.stats["cycles"] += 1
+            self.covered = self._cycle_cover
             return True
         orph_buf = np.empty(self._n_in, np.int64)
         no = ik.find_orphans(s_vars, self._in_s, stamp, self._ch_head, self._ch_next,
@@ -535,7 +577,11 @@ class IncrementalExact:
                        self._inc_head, self._inc_next, self._gps_head, self._gps_next,
                        self._haa, self._hbb, self._hab, self._ga, self._gb, self._hgg,
                        self._gg, self._parent, self._col_start, self._col_len, self._row_var,
-                       self._row_blk, self._diag, self._y, self._slot, self._walk, 0.0)
+                       self._row_blk, self._diag, self._y, self._slot, self._walk, 0.0,
+                       self._work)
+        self.stats["applied"] += int(self._work[0])
+        self.stats["products"] += int(self._work[1])
+        self._work[:] = 0
         if r == ik.NOT_SPD:
             raise SolverError("the normal equations are not positive definite (a pose is not "
                               "determined by its constraints, or the gauge is not fixed)")
@@ -563,8 +609,6 @@ class IncrementalExact:
         self._relin_cands = touched
         self.stats["recomputed"] += int(touched.shape[0])
         self.stats["cycles"] += 1
+        self.covered = self._cycle_cover
         self._phase = _IDLE
 
-
-def _now() -> float:
-    return time.perf_counter()
