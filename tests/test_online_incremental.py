@@ -12,16 +12,15 @@ import dataclasses
 
 import numpy as np
 import pytest
+from graphs import random_rotations
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from tolerances import INCREMENTAL_VS_BATCH, SPARSE_VS_DENSE_GN
 
 from hybridpgo.graph import PoseGraph
 from hybridpgo.online.incremental import IncrementalConfig, IncrementalExact
 from hybridpgo.solvers.config import GaussNewtonConfig
 from hybridpgo.solvers.gauss_newton import gn_step, solve_exact
-
-from graphs import random_rotations
-from tolerances import INCREMENTAL_VS_BATCH, SPARSE_VS_DENSE_GN
 
 
 @dataclasses.dataclass
@@ -117,9 +116,10 @@ def _check_gn_step(inc: IncrementalExact) -> None:
 
 
 @settings(max_examples=25, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), n=st.integers(2, 40), loop_p=st.sampled_from([0.0, 0.3, 0.8]),
-       gps_every=st.sampled_from([0, 3, 7]), beta=st.sampled_from([0.0, 1e-3, 0.05]),
-       reorder=st.booleans(), capacity=st.sampled_from([4, 64]))
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(2, 40),
+       loop_p=st.sampled_from([0.0, 0.3, 0.8]), gps_every=st.sampled_from([0, 3, 7]),
+       beta=st.sampled_from([0.0, 1e-3, 0.05]), reorder=st.booleans(),
+       capacity=st.sampled_from([4, 64]))
 def test_every_cycle_solves_the_whole_map_exactly(seed: int, n: int, loop_p: float,
                                                   gps_every: int, beta: float, reorder: bool,
                                                   capacity: int) -> None:

@@ -72,7 +72,7 @@ def linearize_edges(ids: np.ndarray, rot: np.ndarray, trans: np.ndarray, ab: np.
         om = info[c]
         s = chi2(om, e, 6, oe)
         if not math.isfinite(s):
-            return c
+            return int(c)
         chi[c] = s
         _matmul6(om, ja, wa)
         _matmul6(om, jb, wb)
@@ -99,7 +99,7 @@ def linearize_edges(ids: np.ndarray, rot: np.ndarray, trans: np.ndarray, ab: np.
             for r in range(6):
                 if not (math.isfinite(haa[c, p, r]) and math.isfinite(hbb[c, p, r])
                         and math.isfinite(hab[c, p, r])):
-                    return c
+                    return int(c)
     return -1
 
 
@@ -120,7 +120,7 @@ def linearize_gps(ids: np.ndarray, rot: np.ndarray, trans: np.ndarray, node: np.
             e[i] = trans[n, i] - pos[c, i]
         s = chi2(om, e, 3, oe)
         if not math.isfinite(s):
-            return c
+            return int(c)
         chi[c] = s
         for p in range(3):
             gg[c, p] = r[0, p] * oe[0] + r[1, p] * oe[1] + r[2, p] * oe[2]
@@ -358,7 +358,7 @@ def symbolic(order: np.ndarray, i0: int, position: np.ndarray, free: np.ndarray,
             return BROKEN_TREE
         col_len[j] = cnt
         _link(j, best, parent, ch_head, ch_next, ch_prev)
-    return order.shape[0]
+    return int(order.shape[0])
 
 
 # --------------------------------------------------------------------------- numeric
@@ -526,7 +526,7 @@ def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarra
             y[j, c] = s / d[c, c]
         if cycle_counter() > deadline:
             return q + 1
-    return order.shape[0]
+    return int(order.shape[0])
 
 
 # --------------------------------------------------------------------------- back substitution
@@ -581,7 +581,7 @@ def back_substitute(stack: np.ndarray, top: np.ndarray, deadline: np.uint64,
             if dv > dev:
                 dev = dv
             x[j, a] = xn[a]
-        moved = dev > threshold or (threshold <= 0.0 and dev > 0.0)
+        moved = dev > threshold
         if moved:
             changed[j] = stamp
         # exact (threshold 0): every child of a recomputed column is visited
@@ -596,7 +596,7 @@ def back_substitute(stack: np.ndarray, top: np.ndarray, deadline: np.uint64,
                 top[0] += 1
             c = ch_next[c]
         if cycle_counter() > deadline:
-            return top[0] == 0
+            return bool(top[0] == 0)
     return True
 
 
@@ -610,6 +610,23 @@ def publish(vars_: np.ndarray, th_r: np.ndarray, th_t: np.ndarray, x: np.ndarray
     for q in range(vars_.shape[0]):
         v = vars_[q]
         retract_into(th_r[v], th_t[v], x[v], 1.0, est_r[v], est_t[v], er, tmp)
+
+
+@kernel
+def mark_polish(vars_: np.ndarray, x: np.ndarray, beta_rho: float, beta_phi: float,
+                flag: np.ndarray, out: np.ndarray, count: np.ndarray) -> None:
+    """Append to ``out`` (from ``count[0]``) each listed variable whose step exceeds the
+    thresholds and is not listed yet (``flag``)."""
+    for q in range(vars_.shape[0]):
+        v = vars_[q]
+        if flag[v]:
+            continue
+        mr = max(abs(x[v, 0]), abs(x[v, 1]), abs(x[v, 2]))
+        mp = max(abs(x[v, 3]), abs(x[v, 4]), abs(x[v, 5]))
+        if mr > beta_rho or mp > beta_phi:
+            flag[v] = True
+            out[count[0]] = v
+            count[0] += 1
 
 
 @kernel

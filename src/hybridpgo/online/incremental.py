@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -71,7 +71,8 @@ class IncrementalConfig:
     polish_rho: float = 1e-5
     """When nothing else is left to do, every pose whose step exceeds ``polish_rho`` (metres)
     or ``polish_phi`` (radians) is relinearized, so an idle solver converges to the optimum
-    (each idle update costs O(poses) to find them, then as much as the poses that move)."""
+    (such poses are listed as their steps are computed: an idle update costs as much as the
+    poses that move)."""
     polish_phi: float = 1e-5
     """See ``polish_rho``."""
 
@@ -105,9 +106,10 @@ class IncrementalExact:
         self._cycle_cover = (0, 0, 0)
         self.covered = (0, 0, 0)
         """(poses, edges, GPS readings) the estimate's last completed update integrated."""
-        self.stats: dict[str, Any] = {"cycles": 0, "columns": 0, "relinearized": 0,
-                                      "recomputed": 0, "max_set": 0, "applied": 0, "products": 0, "seconds": {
-                                          "start": 0.0, "numeric": 0.0, "back": 0.0}}
+        self.stats: dict[str, Any] = {
+            "cycles": 0, "columns": 0, "relinearized": 0, "recomputed": 0, "max_set": 0,
+            "applied": 0, "products": 0,
+            "seconds": {"start": 0.0, "numeric": 0.0, "back": 0.0}}
         """Totals: update cycles completed, columns re-eliminated, poses relinearized,
         solution entries recomputed; the largest re-eliminated set; earlier columns applied to
         re-eliminated ones and the blocks they multiplied (the factorization's work); seconds
@@ -147,10 +149,14 @@ class IncrementalExact:
         self._local = np.zeros(cap, np.int64)
         self._stack = np.zeros(cap, np.int64)
         self._touched = np.zeros(cap, np.int64)
+        self._pol_flag = np.zeros(cap, np.bool_)
+        self._pol_list = np.zeros(cap, np.int64)
+        self._pol_count = np.zeros(1, np.int64)
 
-    _POSE_FILL = {"_ref": -1, "_position": -1, "_parent": -1, "_ch_head": -1, "_ch_next": -1,
-                  "_ch_prev": -1, "_inc_head": -1, "_gps_head": -1, "_in_s": -1,
-                  "_changed": -1, "_mark": -1, "_walk": -1, "_slot": -1}
+    _POSE_FILL: ClassVar[dict[str, int]] = {
+        "_ref": -1, "_position": -1, "_parent": -1, "_ch_head": -1, "_ch_next": -1,
+        "_ch_prev": -1, "_inc_head": -1, "_gps_head": -1, "_in_s": -1, "_changed": -1,
+        "_mark": -1, "_walk": -1, "_slot": -1}
 
     def _grow_poses(self, need: int) -> None:
         if need <= self._cap_n:
@@ -162,7 +168,7 @@ class IncrementalExact:
                      "_y", "_diag", "_free", "_position", "_parent", "_ch_head", "_ch_next",
                      "_ch_prev", "_col_start", "_col_len", "_col_cap", "_inc_head",
                      "_gps_head", "_in_s", "_changed", "_mark", "_walk", "_slot", "_local",
-                     "_stack", "_touched"):
+                     "_stack", "_touched", "_pol_flag", "_pol_list"):
             old = getattr(self, name)
             fill = self._POSE_FILL.get(name, 0)
             new = np.full((cap, *old.shape[1:]), fill, old.dtype)
@@ -437,16 +443,12 @@ class IncrementalExact:
         if self._start_cycle_with(self.config.relinearize_rho, self.config.relinearize_phi):
             return True
         cfg = self.config
-        n = self._n_in
-        if n == 0 or (cfg.polish_rho >= cfg.relinearize_rho
-                      and cfg.polish_phi >= cfg.relinearize_phi):
+        k = int(self._pol_count[0])
+        if k == 0:
             return False
-        x = self._x[:n]
-        big = (np.abs(x[:, :3]).max(axis=1) > cfg.polish_rho) | (
-            np.abs(x[:, 3:]).max(axis=1) > cfg.polish_phi)
-        cands = np.flatnonzero(big & self._free[:n])
-        if cands.size == 0:
-            return False
+        cands = self._pol_list[:k].copy()
+        self._pol_flag[cands] = False
+        self._pol_count[0] = 0
         self._relin_cands = cands
         return self._start_cycle_with(cfg.polish_rho, cfg.polish_phi)
 
@@ -607,6 +609,10 @@ class IncrementalExact:
         touched = self._touched[: int(self._n_touched[0])].copy()
         ik.publish(touched, self._th_r, self._th_t, self._x, self._est_r, self._est_t)
         self._relin_cands = touched
+        cfg = self.config
+        if cfg.polish_rho < cfg.relinearize_rho or cfg.polish_phi < cfg.relinearize_phi:
+            ik.mark_polish(touched, self._x, cfg.polish_rho, cfg.polish_phi, self._pol_flag,
+                           self._pol_list, self._pol_count)
         self.stats["recomputed"] += int(touched.shape[0])
         self.stats["cycles"] += 1
         self.covered = self._cycle_cover
