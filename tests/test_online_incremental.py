@@ -214,4 +214,11 @@ def test_bad_input_is_rejected_and_changes_nothing() -> None:
         inc.add_edges([0], [3], np.eye(3)[None], np.zeros((1, 3)), np.eye(6)[None])
     with pytest.raises(ValueError, match="already added"):
         inc.add_gps([2], np.zeros((1, 3)), np.eye(3)[None])
-    assert (inc.num_poses, inc.num_edges, inc.num_gps) == (1, 0, 0)
+    inc.add_poses(np.eye(3)[None], np.ones((1, 3)))
+    with pytest.raises(ValueError, match="not finite"):
+        inc.add_edges([0], [1], np.eye(3)[None], np.full((1, 3), np.inf), np.eye(6)[None])
+    with pytest.raises(ValueError, match="positive definite"):
+        inc.add_edges([0], [1], np.eye(3)[None], np.zeros((1, 3)), -np.eye(6)[None])
+    with pytest.raises(ValueError, match="positive definite"):
+        inc.add_gps([1], np.zeros((1, 3)), np.diag([1.0, 0.0, 1.0])[None])
+    assert (inc.num_poses, inc.num_edges, inc.num_gps) == (2, 0, 0)

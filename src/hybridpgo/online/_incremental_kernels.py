@@ -44,8 +44,10 @@ from ..solvers._gn_kernels import _edge_linearization, _matmul6
 NOT_SPD = -2
 #: numeric / symbolic: the elimination tree walk did not reach the column (internal error).
 BROKEN_TREE = -3
-#: symbolic: the row pool is full; grow it and call again from the returned position.
+#: symbolic: the row pool is full; grow it and call again from ``pool_used[1]``.
 POOL_FULL = -4
+#: symbolic: the deadline passed; call again from ``pool_used[1]``.
+PAST_DEADLINE = -5
 
 
 # --------------------------------------------------------------------------- linearization
@@ -276,7 +278,8 @@ def link_orphans(orphans: np.ndarray, position: np.ndarray, col_start: np.ndarra
 
 
 @kernel
-def symbolic(order: np.ndarray, i0: int, position: np.ndarray, free: np.ndarray,
+def symbolic(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarray,
+             free: np.ndarray,
              in_s: np.ndarray, stamp: int, ab: np.ndarray, inc_head: np.ndarray,
              inc_next: np.ndarray, parent: np.ndarray, ch_head: np.ndarray,
              ch_next: np.ndarray, ch_prev: np.ndarray, col_start: np.ndarray,
@@ -284,8 +287,8 @@ def symbolic(order: np.ndarray, i0: int, position: np.ndarray, free: np.ndarray,
              pool_used: np.ndarray, mark: np.ndarray) -> int:
     """Rows, parent and tree links of the columns ``order[i0:]`` (S in its new order; the
     orphans already linked).  A column whose rows do not fit its segment gets a new one at the
-    end of the pool (``pool_used[0]``).  Returns ``len(order)``, or ``POOL_FULL`` with
-    ``pool_used[1]`` set to the index to resume from (nothing of that column written)."""
+    end of the pool (``pool_used[0]``).  Returns ``len(order)``, or ``POOL_FULL`` /
+    ``PAST_DEADLINE`` with ``pool_used[1]`` set to the index to resume from."""
     cap_pool = row_var.shape[0]
     for q in range(i0, order.shape[0]):
         j = order[q]
@@ -358,6 +361,9 @@ def symbolic(order: np.ndarray, i0: int, position: np.ndarray, free: np.ndarray,
             return BROKEN_TREE
         col_len[j] = cnt
         _link(j, best, parent, ch_head, ch_next, ch_prev)
+        if cycle_counter() > deadline and q + 1 < order.shape[0]:
+            pool_used[1] = q + 1
+            return PAST_DEADLINE
     return int(order.shape[0])
 
 

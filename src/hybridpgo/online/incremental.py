@@ -36,7 +36,7 @@ import numpy.typing as npt
 from .. import _cost
 from .._numba import cycles_per_second, read_cycles
 from ..errors import SolverError
-from ..graph import FloatArray
+from ..graph import SYMMETRY_RTOL, FloatArray
 from ..solvers._linear import _fill_reducing_order
 from . import _incremental_kernels as ik
 
@@ -45,7 +45,9 @@ _NO_DEADLINE = np.uint64(np.iinfo(np.uint64).max)
 #: S smaller than this is ordered without AMD (positions: its old order, new variables last).
 _AMD_MIN = 8
 
-_IDLE, _NUMERIC, _BACK = 0, 1, 2
+_IDLE, _LINEARIZE, _SYMBOLIC, _NUMERIC, _BACK = 0, 1, 2, 3, 4
+#: Constraints linearized between two deadline checks.
+_CHUNK = 256
 
 
 @dataclass(frozen=True)
@@ -68,6 +70,9 @@ class IncrementalConfig:
     """GPS readings after which ``gauge="auto"`` frees the first pose."""
     reorder: bool = True
     """Order each re-eliminated set by AMD (False: keep its old order, new variables last)."""
+    reorder_max: int = 4096
+    """Sets larger than this keep their old order (AMD is one call that cannot stop at a
+    deadline; 4096 variables take about 2 ms)."""
     polish_rho: float = 1e-5
     """When nothing else is left to do, every pose whose step exceeds ``polish_rho`` (metres)
     or ``polish_phi`` (radians) is relinearized, so an idle solver converges to the optimum
@@ -75,6 +80,31 @@ class IncrementalConfig:
     poses that move)."""
     polish_phi: float = 1e-5
     """See ``polish_rho``."""
+
+
+def _check_measurements(rot: FloatArray | None, trans: FloatArray, info: FloatArray,
+                        what: str) -> None:
+    """ValueError naming the first measurement that is not finite or whose information is
+    not symmetric positive definite."""
+    k = trans.shape[0]
+    if k == 0:
+        return
+    finite = np.isfinite(trans).all(axis=1) & np.isfinite(info).reshape(k, -1).all(axis=1)
+    if rot is not None:
+        finite &= np.isfinite(rot).reshape(k, -1).all(axis=1)
+    if not finite.all():
+        raise ValueError(f"{what} {int(np.argmin(finite))} (of those added) is not finite")
+    asym = np.abs(info - info.transpose(0, 2, 1)).reshape(k, -1).max(axis=1)
+    scale = np.abs(info).reshape(k, -1).max(axis=1)
+    bad = asym > SYMMETRY_RTOL * np.maximum(scale, 1e-300)
+    if not bad.any():
+        try:
+            np.linalg.cholesky(info)
+        except np.linalg.LinAlgError:
+            bad = ~np.all(np.linalg.eigvalsh(info) > 0.0, axis=1)
+    if bad.any():
+        raise ValueError(f"{what} {int(np.argmax(bad))} (of those added): its information is "
+                         "not symmetric positive definite")
 
 
 class IncrementalExact:
@@ -329,6 +359,7 @@ class IncrementalExact:
         if k and (min(ia.min(), ib.min()) < 0 or max(ia.max(), ib.max()) >= self._n
                   or np.any(ia == ib)):
             raise ValueError("edges must join two different poses already added")
+        _check_measurements(rot, trans, info, "edge")
         self._grow_edges(self._m + k)
         m = self._m
         self._ab[m: m + k, 0] = ia
@@ -347,6 +378,7 @@ class IncrementalExact:
         info = np.ascontiguousarray(information, np.float64).reshape(k, 3, 3)
         if k and (nd.min() < 0 or nd.max() >= self._n):
             raise ValueError("GPS readings must be on poses already added")
+        _check_measurements(None, pos, info, "GPS reading")
         self._grow_gps(self._g + k)
         g = self._g
         self._gnode[g: g + k] = nd
@@ -411,16 +443,22 @@ class IncrementalExact:
         deadline = (_NO_DEADLINE if budget_s is None
                     else np.uint64(c0 + int(max(budget_s, 0.0) * cycles_per_second())))
         done = 0
+        sec = self.stats["seconds"]
         while True:
-            sec = self.stats["seconds"]
+            t0 = time.perf_counter()
             if self._phase == _IDLE:
                 if max_cycles is not None and done >= max_cycles:
                     return False
-                t0 = time.perf_counter()
-                started = self._start_cycle()
-                sec["start"] += time.perf_counter() - t0
-                if not started:
+                if not self._start_cycle():
+                    sec["start"] += time.perf_counter() - t0
                     return True
+            if self._phase == _LINEARIZE:
+                self._run_linearize(deadline)
+            if self._phase == _SYMBOLIC:
+                self._run_symbolic(deadline)
+            sec["start"] += time.perf_counter() - t0
+            if self._phase in (_LINEARIZE, _SYMBOLIC):
+                return False
             if self._phase == _NUMERIC:
                 t0 = time.perf_counter()
                 self._run_numeric(deadline)
@@ -498,17 +536,46 @@ class IncrementalExact:
         ik.incident_factors(touch, self._inc_head, self._inc_next, self._gps_head,
                             self._gps_next, self._e_stamp, self._g_stamp, stamp, e_ids, g_ids,
                             cnt)
-        e_ids, g_ids = e_ids[: cnt[0]], g_ids[: cnt[1]]
-        bad = ik.linearize_edges(e_ids, self._th_r, self._th_t, self._ab, self._zr, self._zt,
-                                 self._info, self._haa, self._hbb, self._hab, self._ga,
-                                 self._gb, self._chi)
-        if bad >= 0:
-            raise SolverError(f"the linearization of edge {bad} is not finite")
-        bad = ik.linearize_gps(g_ids, self._th_r, self._th_t, self._gnode, self._gpos,
-                               self._ginfo, self._hgg, self._gg, self._gchi)
-        if bad >= 0:
-            raise SolverError(f"the linearization of GPS reading {bad} is not finite")
-        # 4. changed columns and S (with their ancestors)
+        self._e_ids, self._g_ids = e_ids[: cnt[0]], g_ids[: cnt[1]]
+        self._touch = touch
+        self._news = (n0, n1, m0, m1, g0, g1)
+        self._lin_i = 0
+        self._phase = _LINEARIZE
+        self.stats["relinearized"] += int(relin.size)
+        return True
+
+    def _run_linearize(self, deadline: np.uint64) -> None:
+        """Linearize the cycle's constraints, a chunk at a time; then choose S."""
+        e_ids, g_ids = self._e_ids, self._g_ids
+        total = e_ids.shape[0] + g_ids.shape[0]
+        while self._lin_i < total:
+            i0 = self._lin_i
+            i1 = min(i0 + _CHUNK, total)
+            ne = e_ids.shape[0]
+            if i0 < ne:
+                i1 = min(i1, ne)
+                bad = ik.linearize_edges(e_ids[i0:i1], self._th_r, self._th_t, self._ab,
+                                         self._zr, self._zt, self._info, self._haa, self._hbb,
+                                         self._hab, self._ga, self._gb, self._chi)
+                if bad >= 0:
+                    raise SolverError(f"the linearization of edge {bad} is not finite")
+            else:
+                bad = ik.linearize_gps(g_ids[i0 - ne: i1 - ne], self._th_r, self._th_t,
+                                       self._gnode, self._gpos, self._ginfo, self._hgg,
+                                       self._gg, self._gchi)
+                if bad >= 0:
+                    raise SolverError(f"the linearization of GPS reading {bad} is not finite")
+            self._lin_i = i1
+            if self._lin_i < total and np.uint64(read_cycles()) > deadline:
+                return
+        self._choose_set()
+
+    def _choose_set(self) -> None:
+        """S (the changed columns and their ancestors), its orphans, its new order; then the
+        symbolic phase."""
+        n0, n1, m0, m1, g0, g1 = self._news
+        stamp = self._stamp
+        e_ids, g_ids, touch = self._e_ids, self._g_ids, self._touch
         cands = np.concatenate([self._ab[e_ids].ravel(), self._gnode[g_ids], touch,
                                 np.arange(n0, n1)])
         s_buf = np.empty(self._n_in, np.int64)
@@ -517,50 +584,54 @@ class IncrementalExact:
         if ns == 0:  # only constraints between held poses: nothing to factor
             self.stats["cycles"] += 1
             self.covered = self._cycle_cover
-            return True
+            self._phase = _IDLE
+            return
         orph_buf = np.empty(self._n_in, np.int64)
         no = ik.find_orphans(s_vars, self._in_s, stamp, self._ch_head, self._ch_next,
                              orph_buf)
         orphans = orph_buf[:no]
-        # 5. the new order of S: AMD on the reduced system, the ends of new constraints last
         newest = np.concatenate([self._ab[m0:m1].ravel(), self._gnode[g0:g1],
                                  np.arange(n0, n1)])
         order = self._order(s_vars, orphans, stamp, np.isin(s_vars, newest))
         self._position[order] = self._counter + np.arange(ns)
         self._counter += ns
-        # 6. symbolic
         ik.detach(s_vars, orphans, self._parent, self._ch_head, self._ch_next, self._ch_prev)
         ik.link_orphans(orphans, self._position, self._col_start, self._col_len,
                         self._row_var, self._parent, self._ch_head, self._ch_next,
                         self._ch_prev)
-        i0 = 0
-        while True:
-            r = ik.symbolic(order, i0, self._position, self._free, self._in_s, stamp,
-                            self._ab, self._inc_head, self._inc_next, self._parent,
-                            self._ch_head, self._ch_next, self._ch_prev, self._col_start,
-                            self._col_len, self._col_cap, self._row_var, self._pool_used,
-                            self._mark)
-            if r == ik.POOL_FULL:
-                i0 = int(self._pool_used[1])
-                self._grow_pool(max(2 * ns, 1024))
-                continue
-            if r < 0:
-                raise SolverError("internal error in the incremental symbolic factorization")
-            break
         self._order_s = order
         self._s_vars = s_vars
         self._i = 0
-        self._phase = _NUMERIC
+        self._phase = _SYMBOLIC
         self.stats["columns"] += ns
-        self.stats["relinearized"] += int(relin.size)
         self.stats["max_set"] = max(self.stats["max_set"], ns)
-        return True
+
+    def _run_symbolic(self, deadline: np.uint64) -> None:
+        order = self._order_s
+        while True:
+            r = ik.symbolic(order, self._i, deadline, self._position, self._free, self._in_s,
+                            self._stamp, self._ab, self._inc_head, self._inc_next,
+                            self._parent, self._ch_head, self._ch_next, self._ch_prev,
+                            self._col_start, self._col_len, self._col_cap, self._row_var,
+                            self._pool_used, self._mark)
+            if r == ik.POOL_FULL:
+                self._i = int(self._pool_used[1])
+                self._grow_pool(max(2 * order.shape[0], 1024))
+                continue
+            if r == ik.PAST_DEADLINE:
+                self._i = int(self._pool_used[1])
+                return
+            if r < 0:
+                raise SolverError("internal error in the incremental symbolic factorization")
+            break
+        self._i = 0
+        self._phase = _NUMERIC
 
     def _order(self, s_vars: IntArray, orphans: IntArray, stamp: int,
                last: npt.NDArray[np.bool_]) -> IntArray:
         """S in its new elimination order (see the module docstring)."""
         ns = s_vars.shape[0]
-        if not self.config.reorder or ns < _AMD_MIN:
+        if not self.config.reorder or ns < _AMD_MIN or ns > self.config.reorder_max:
             pos = self._position[s_vars].astype(np.float64)
             pos[pos < 0] = np.inf  # new variables after the others, in index order
             key = np.lexsort((s_vars, pos, last))
