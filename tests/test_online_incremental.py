@@ -222,3 +222,21 @@ def test_bad_input_is_rejected_and_changes_nothing() -> None:
     with pytest.raises(ValueError, match="positive definite"):
         inc.add_gps([1], np.zeros((1, 3)), np.diag([1.0, 0.0, 1.0])[None])
     assert (inc.num_poses, inc.num_edges, inc.num_gps) == (2, 0, 0)
+
+
+def test_take_changes_lists_every_pose_whose_estimate_moved() -> None:
+    s = _stream(11, 50, 0.5, 6)
+    inc = IncrementalExact()
+    before_r = np.zeros((0, 3, 3))
+    before_t = np.zeros((0, 3))
+    for k in range(s.frames):
+        _feed(inc, s, k)
+        inc.solve(budget_s=0.0 if k % 3 else None)  # some updates stop half-way
+        rot, trans = inc.estimate()
+        n0 = before_r.shape[0]
+        changed = set(inc.take_changes().tolist())
+        moved = ~(np.all(rot[:n0] == before_r, axis=(1, 2)) & np.all(trans[:n0] == before_t,
+                                                                    axis=1))
+        assert set(np.flatnonzero(moved).tolist()) <= changed
+        assert set(range(n0, inc.covered[0])) <= changed  # integrated since: all listed
+        before_r, before_t = rot[: inc.covered[0]], trans[: inc.covered[0]]

@@ -619,10 +619,10 @@ def publish(vars_: np.ndarray, th_r: np.ndarray, th_t: np.ndarray, x: np.ndarray
 
 
 @kernel
-def mark_polish(vars_: np.ndarray, x: np.ndarray, beta_rho: float, beta_phi: float,
-                flag: np.ndarray, out: np.ndarray, count: np.ndarray) -> None:
+def append_moved(vars_: np.ndarray, x: np.ndarray, beta_rho: float, beta_phi: float,
+                 flag: np.ndarray, out: np.ndarray, count: np.ndarray) -> None:
     """Append to ``out`` (from ``count[0]``) each listed variable whose step exceeds the
-    thresholds and is not listed yet (``flag``)."""
+    thresholds (negative thresholds: every one) and is not listed yet (``flag``)."""
     for q in range(vars_.shape[0]):
         v = vars_[q]
         if flag[v]:

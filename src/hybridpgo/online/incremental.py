@@ -182,6 +182,9 @@ class IncrementalExact:
         self._pol_flag = np.zeros(cap, np.bool_)
         self._pol_list = np.zeros(cap, np.int64)
         self._pol_count = np.zeros(1, np.int64)
+        self._chg_flag = np.zeros(cap, np.bool_)
+        self._chg_list = np.zeros(cap, np.int64)
+        self._chg_count = np.zeros(1, np.int64)
 
     _POSE_FILL: ClassVar[dict[str, int]] = {
         "_ref": -1, "_position": -1, "_parent": -1, "_ch_head": -1, "_ch_next": -1,
@@ -198,7 +201,8 @@ class IncrementalExact:
                      "_y", "_diag", "_free", "_position", "_parent", "_ch_head", "_ch_next",
                      "_ch_prev", "_col_start", "_col_len", "_col_cap", "_inc_head",
                      "_gps_head", "_in_s", "_changed", "_mark", "_walk", "_slot", "_local",
-                     "_stack", "_touched", "_pol_flag", "_pol_list"):
+                     "_stack", "_touched", "_pol_flag", "_pol_list", "_chg_flag",
+                     "_chg_list"):
             old = getattr(self, name)
             fill = self._POSE_FILL.get(name, 0)
             new = np.full((cap, *old.shape[1:]), fill, old.dtype)
@@ -413,6 +417,16 @@ class IncrementalExact:
             self._info[:m], self._gnode[:g].astype(np.int32), self._gpos[:g],
             self._ginfo[:g]))
 
+    def take_changes(self) -> IntArray:
+        """The poses whose estimate changed since the last call: those placed (joined the
+        solver) and those moved by a completed update (each once, in no particular order),
+        e.g. to ship only those.  O(poses returned)."""
+        k = int(self._chg_count[0])
+        out = self._chg_list[:k].copy()
+        self._chg_flag[out] = False
+        self._chg_count[0] = 0
+        return out
+
     @property
     def busy(self) -> bool:
         """True while an update cycle is in progress (a :meth:`solve` stopped inside it)."""
@@ -503,6 +517,8 @@ class IncrementalExact:
             self._free[n0:n1] = True
             if n0 == 0 and not self._first_free:
                 self._free[0] = False
+            ik.append_moved(np.arange(n0, n1), self._x, -1.0, -1.0, self._chg_flag,
+                            self._chg_list, self._chg_count)
         ik.insert_incidences(m0, m1, self._ab, self._inc_head, self._inc_next)
         ik.insert_gps(g0, g1, self._gnode, self._gps_head, self._gps_next)
         self._n_in, self._m_in, self._g_in = n1, m1, g1
@@ -680,9 +696,11 @@ class IncrementalExact:
         touched = self._touched[: int(self._n_touched[0])].copy()
         ik.publish(touched, self._th_r, self._th_t, self._x, self._est_r, self._est_t)
         self._relin_cands = touched
+        ik.append_moved(touched, self._x, -1.0, -1.0, self._chg_flag, self._chg_list,
+                        self._chg_count)
         cfg = self.config
         if cfg.polish_rho < cfg.relinearize_rho or cfg.polish_phi < cfg.relinearize_phi:
-            ik.mark_polish(touched, self._x, cfg.polish_rho, cfg.polish_phi, self._pol_flag,
+            ik.append_moved(touched, self._x, cfg.polish_rho, cfg.polish_phi, self._pol_flag,
                            self._pol_list, self._pol_count)
         self.stats["recomputed"] += int(touched.shape[0])
         self.stats["cycles"] += 1
