@@ -70,6 +70,9 @@ class IncrementalConfig:
     """GPS readings after which ``gauge="auto"`` frees the first pose."""
     reorder: bool = True
     """Order each re-eliminated set by AMD (False: keep its old order, new variables last)."""
+    last: Literal["ends", "poses"] = "ends"
+    """Variables the new order of a re-eliminated set puts last (nearest the root): the ends
+    of the constraints that are new in the update (as iSAM2 does), or only the new poses."""
     reorder_max: int = 4096
     """Sets larger than this keep their old order (AMD is one call that cannot stop at a
     deadline; 4096 variables take about 2 ms)."""
@@ -606,8 +609,9 @@ class IncrementalExact:
         no = ik.find_orphans(s_vars, self._in_s, stamp, self._ch_head, self._ch_next,
                              orph_buf)
         orphans = orph_buf[:no]
-        newest = np.concatenate([self._ab[m0:m1].ravel(), self._gnode[g0:g1],
-                                 np.arange(n0, n1)])
+        newest = (np.concatenate([self._ab[m0:m1].ravel(), self._gnode[g0:g1],
+                                  np.arange(n0, n1)]) if self.config.last == "ends"
+                  else np.arange(n0, n1))
         order = self._order(s_vars, orphans, stamp, np.isin(s_vars, newest))
         self._position[order] = self._counter + np.arange(ns)
         self._counter += ns
