@@ -26,11 +26,12 @@ from typing import Any
 import numpy as np
 
 from hybridpgo.graph import PoseGraph
+from hybridpgo.initialization import initial_locals
 from hybridpgo.io import read_graph
 from hybridpgo.solvers import optimize
 from hybridpgo.solvers.config import GaussNewtonConfig
 from hybridpgo.solvers.gauss_newton import solve_exact
-from hybridpgo.tree import build_tree, global_poses, initial_locals
+from hybridpgo.tree import build_tree, global_poses
 
 from .metrics import Metric, info, markdown_table, quality, timing
 

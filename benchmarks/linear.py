@@ -96,13 +96,13 @@ def worker(data_dir: str, case: str, solver: str, max_iterations: int) -> dict[s
         out["final_energy"] = 2.0 * factors.error(result)
         out["iterations"] = int(opt.iterations())
     else:
-        from hybridpgo.solvers import _linear
+        from hybridpgo.linalg import _factor as _linear
         from hybridpgo.solvers.config import GaussNewtonConfig
-        from hybridpgo.solvers.gauss_newton import _ensure_compiled, solve_exact
+        from hybridpgo.solvers.gauss_newton import ensure_compiled, solve_exact
 
         if solver == "splu_mmd":  # the old default: no AMD, SuperLU's MMD on the block graph
-            _linear._cvxopt_available = lambda: False  # type: ignore[attr-defined]
-        _ensure_compiled()
+            _linear.cvxopt_available = lambda: False  # type: ignore[attr-defined]
+        ensure_compiled()
         rss0 = _rss_mb()
         res = solve_exact(graph, rot, trans, GaussNewtonConfig(
             linear_solver="splu" if solver.startswith("splu") else solver,

@@ -26,7 +26,8 @@ import os
 import time
 from typing import Any
 
-from hybridpgo.replay import (
+from hybridpgo.online import OnlineConfig
+from hybridpgo.online.replay import (
     ReplayResult,
     checkpoint_frames,
     energy_ratio,
@@ -35,7 +36,6 @@ from hybridpgo.replay import (
     replay_isam2,
     replay_online,
 )
-from hybridpgo.solvers.online import OnlineConfig
 
 from .metrics import Metric, info, markdown_table, quality, timing
 from .workloads import Context, Result

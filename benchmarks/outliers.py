@@ -30,12 +30,13 @@ import numpy as np
 from hybridpgo.energy import energy, robust_energy, robust_weights
 from hybridpgo.generate import generate_city
 from hybridpgo.graph import PoseGraph
+from hybridpgo.initialization import initial_locals
 from hybridpgo.io import read_graph
 from hybridpgo.metrics import evaluate
 from hybridpgo.solvers.config import GaussNewtonConfig
 from hybridpgo.solvers.gauss_newton import solve_exact
 from hybridpgo.solvers.hybrid import HybridConfig, solve_hybrid
-from hybridpgo.tree import build_tree, global_poses, initial_locals
+from hybridpgo.tree import build_tree, global_poses
 
 from .metrics import Metric, info, markdown_table, quality, timing
 from .workloads import Context, Result, start

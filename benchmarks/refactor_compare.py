@@ -26,7 +26,7 @@ try:
     from hybridpgo.solvers.hybrid.solver import ensure_compiled as hyb
 except ImportError:
     from hybridpgo.solvers.hybrid import _ensure_compiled as hyb
-from hybridpgo.solvers.gauss_newton import _ensure_compiled as ex
+from hybridpgo.solvers.gauss_newton import ensure_compiled as ex
 hyb(); ex()
 compile_s = time.perf_counter() - t0
 from hybridpgo.solvers import optimize

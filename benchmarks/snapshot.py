@@ -92,16 +92,11 @@ def _online(inp: str, out: pathlib.Path, kw: dict[str, object]) -> None:
     """Stream the graph through the online solver with no budget (one update per frame, then
     five more: reproducible), and write the estimate."""
     import hybridpgo
-    from hybridpgo import replay
-
-    try:
-        from hybridpgo.online import OnlineConfig, OnlineSolver
-    except ImportError:
-        from hybridpgo.solvers.online import OnlineConfig, OnlineSolver
+    from hybridpgo.online import OnlineConfig, OnlineSolver, replay
 
     graph = hybridpgo.read_graph(inp)
     stream = replay.make_stream(graph)
-    solver = OnlineSolver(OnlineConfig(**kw))  # type: ignore[arg-type]
+    solver = OnlineSolver(OnlineConfig(**{"background_refine": False, **kw}))  # type: ignore
     for k in range(stream.num_frames):
         replay.feed_frame(solver, stream, k)
         solver.update(None)

@@ -15,11 +15,12 @@ from typing import Any
 import numpy as np
 
 from hybridpgo.graph import PoseGraph
+from hybridpgo.initialization import initial_locals
 from hybridpgo.io import read_graph
 from hybridpgo.solvers.config import GaussNewtonConfig
 from hybridpgo.solvers.gauss_newton import solve_exact
 from hybridpgo.solvers.hybrid import HybridConfig, solve_hybrid
-from hybridpgo.tree import build_tree, global_poses, initial_locals
+from hybridpgo.tree import build_tree, global_poses
 
 from .metrics import Metric, info, markdown_table, quality, timing
 
@@ -647,3 +648,7 @@ WORKLOADS["converge"] = _converge_run
 from .first_run import run as _first_run  # noqa: E402  (issue 11 item 5: cold first run)
 
 WORKLOADS["first_run"] = _first_run
+
+from .covariance import run as _covariance_run  # noqa: E402
+
+WORKLOADS["covariance"] = _covariance_run

@@ -13,9 +13,10 @@ import tempfile
 from pathlib import Path
 
 import hybridpgo as hp
+from hybridpgo.initialization import initial_locals
 from hybridpgo.io import bundled_path
 from hybridpgo.plot import energy_figure, graph_figure, residual_energy_range, save_figure
-from hybridpgo.tree import build_tree, global_poses, initial_locals
+from hybridpgo.tree import build_tree, global_poses
 
 
 def main(out_dir: Path) -> None:

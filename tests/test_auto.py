@@ -16,10 +16,11 @@ import hybridpgo
 from hybridpgo import read_graph
 from hybridpgo.cli import main
 from hybridpgo.energy import energy
-from hybridpgo.solvers import AutoConfig, GaussNewtonConfig, Status, optimize
+from hybridpgo.initialization import initial_locals
+from hybridpgo.solvers import AutoConfig, GaussNewtonConfig, HybridConfig, Status, optimize
 from hybridpgo.solvers.auto import solve_auto
 from hybridpgo.solvers.gauss_newton import solve_exact
-from hybridpgo.tree import build_tree, global_poses, initial_locals
+from hybridpgo.tree import build_tree, global_poses
 
 #: LM that runs to convergence: the reference optimum's solver.
 TIGHT_LM = GaussNewtonConfig(max_iterations=300, energy_tolerance=1e-14)
@@ -40,11 +41,12 @@ def best_known(graph, truth=None) -> float:
     ({"inits": ()}, "inits must be a non-empty tuple"),
     ({"inits": ("tree", "tree")}, "inits must be a non-empty tuple of distinct"),
     ({"inits": ("gps",)}, "inits must be a non-empty tuple"),
-    ({"inits": ["tree"]}, "inits must be a non-empty tuple"),
     ({"finalists": 0}, "finalists must be an integer >= 1"),
-    ({"max_sweeps": -1}, "max_sweeps must be an integer >= 0"),
+    ({"sweeps": -1}, "sweeps must be an integer >= 0"),
     ({"sweep_tolerance": float("nan")}, "sweep_tolerance must be a finite number >= 0"),
-    ({"polish_iterations": 1.5}, "polish_iterations must be an integer >= 0"),
+    ({"max_iterations": 1.5}, "max_iterations must be an integer >= 0"),
+    ({"polish": True}, "polish: not an option of the default pipeline"),
+    ({"sweeps": 101, "robust": "huber", "robust_scale": -1.0}, "robust_scale"),
     ({"tau0": 2.0}, "tau0 must be below 2"),
     ({"step": "cholesky"}, "step must be one of woodbury, givens"),
     ({"robust": "tukey"}, "robust must be one of none, huber"),
@@ -57,19 +59,61 @@ def best_known(graph, truth=None) -> float:
     ({"relaxation_angle": 0.0}, "relaxation_angle must be a finite number > 0"),
 ])
 def test_auto_config_rejects_bad_values(options, message) -> None:
-    with pytest.raises(ValueError, match=message.replace("(", r"\(")):
-        AutoConfig(**options)
+    with pytest.raises((ValueError, TypeError), match=message.replace("(", r"\(")):
+        AutoConfig.from_options(**options)
 
 
-def test_auto_config_builds_the_sweep_and_polish_configs() -> None:
-    cfg = AutoConfig(tau0=0.5, step="givens", tree="mst", robust="huber", robust_scale=2.0,
-                     polish_iterations=7, energy_tolerance=1e-9)
-    hy = cfg.hybrid_config("chordal", 4)
+def test_auto_config_nests_the_sweep_and_polish_configs() -> None:
+    cfg = AutoConfig.from_options(tau0=0.5, step="givens", tree="mst", robust="huber",
+                                  robust_scale=2.0, max_iterations=7, energy_tolerance=1e-9,
+                                  sweeps=4)
+    assert cfg == AutoConfig(
+        sweeps=HybridConfig(sweeps=4, tau0=0.5, step="givens", tree="mst", robust="huber",
+                            robust_scale=2.0),
+        polish=GaussNewtonConfig(max_iterations=7, energy_tolerance=1e-9, robust="huber",
+                                 robust_scale=2.0))
+    with pytest.raises(ValueError, match="inits must be a non-empty tuple"):
+        AutoConfig(inits=["tree"])  # type: ignore[arg-type]  # the constructor takes tuples
+    with pytest.raises(ValueError, match="sweeps must be a HybridConfig"):
+        AutoConfig(sweeps=30)  # type: ignore[arg-type]
+    hy = cfg.hybrid_config("chordal", 3)
     assert (hy.init, hy.sweeps, hy.tau0, hy.step, hy.tree, hy.robust, hy.robust_scale,
-            hy.polish) == ("chordal", 4, 0.5, "givens", "mst", "huber", 2.0, False)
-    lm = cfg.polish_config()
-    assert (lm.method, lm.max_iterations, lm.energy_tolerance, lm.robust) == (
-        "lm", 7, 1e-9, "huber")
+            hy.polish) == ("chordal", 3, 0.5, "givens", "mst", "huber", 2.0, False)
+    # the nested defaults are the solvers' own: nothing is copied, so nothing can drift
+    default = AutoConfig()
+    for name in ("tau0", "tau_decay", "damping", "step", "tree", "gps_batch_size", "dmax",
+                 "robust", "robust_scale"):
+        assert getattr(default.sweeps, name) == getattr(HybridConfig(), name), name
+    for name in ("method", "energy_tolerance", "initial_damping", "linear_solver", "robust",
+                 "robust_scale"):
+        assert getattr(default.polish, name) == getattr(GaussNewtonConfig(), name), name
+
+
+def test_auto_config_needs_one_robust_kernel() -> None:
+    with pytest.raises(ValueError, match="same robust kernel"):
+        AutoConfig(sweeps=HybridConfig(robust="cauchy"), polish=GaussNewtonConfig())
+    with pytest.raises(ValueError, match="same robust kernel"):
+        AutoConfig(sweeps=HybridConfig(robust="cauchy"),
+                   polish=GaussNewtonConfig(robust="cauchy", robust_scale=1.0))
+
+
+@pytest.mark.parametrize("name", ["huber", "cauchy", "geman_mcclure"])
+def test_a_robust_name_means_the_same_scale_under_every_solver(name: str) -> None:
+    """``--robust NAME`` without a scale gives the kernel's documented default scale to the
+    default pipeline (sweeps and polish), the hybrid solver and the exact solver alike."""
+    from hybridpgo._cost import ROBUST_DEFAULT_SCALE
+    from hybridpgo.solvers import config_for
+
+    want = ROBUST_DEFAULT_SCALE[name]
+    auto = config_for("auto", robust=name)
+    assert isinstance(auto, AutoConfig)
+    hybrid = config_for("hybrid", robust=name, polish=True)
+    exact = config_for("exact", robust=name)
+    assert auto.sweeps.robust_delta == auto.polish.robust_delta == want
+    assert hybrid.robust_delta == exact.robust_delta == want  # type: ignore[union-attr]
+    explicit = config_for("auto", robust=name, robust_scale=want)
+    assert isinstance(explicit, AutoConfig)
+    assert explicit.sweeps.robust_delta == explicit.polish.robust_delta == want
 
 
 # ------------------------------------------------------------------------- the optimum
@@ -127,7 +171,7 @@ def test_status_and_stats_describe_the_run(data_dir: Path) -> None:
     # sweeps that raise E are undone and the polish accepts only decreases
     assert np.all(np.diff(result.energy_history) <= 0)
     for c in cands.values():
-        assert c["sweeps"] <= c["sweeps_run"] <= AutoConfig().max_sweeps
+        assert c["sweeps"] <= c["sweeps_run"] <= AutoConfig().sweeps.sweeps
         assert c["energy_after_sweeps"] <= c["initial_energy"]
     assert s["init"] in s["reason"] and "converged" in s["reason"]
     json.dumps(result.summary())  # every stat is JSON-friendly
@@ -144,7 +188,7 @@ def test_no_file_start_without_vertices(tmp_path: Path, data_dir: Path) -> None:
 
 def test_without_sweeps_the_pipeline_is_lm_from_the_start(data_dir: Path) -> None:
     graph = read_graph(data_dir / "smallGrid3D.g2o")
-    result = optimize(graph, "auto", max_sweeps=0, init="tree")
+    result = optimize(graph, "auto", sweeps=0, init="tree")
     direct = optimize(graph, "exact", init="tree")
     assert result.stats["init"] == "tree" and result.iterations == 0
     assert list(result.stats["candidates"]) == ["tree"]
@@ -155,7 +199,7 @@ def test_without_sweeps_the_pipeline_is_lm_from_the_start(data_dir: Path) -> Non
 
 def test_sweeps_stop_when_they_stop_paying(data_dir: Path) -> None:
     graph = read_graph(data_dir / "smallGrid3D.g2o")
-    cfg = AutoConfig(inits=("tree",), sweep_tolerance=0.2, max_sweeps=50)
+    cfg = AutoConfig(inits=("tree",), sweep_tolerance=0.2, sweeps=HybridConfig(sweeps=50))
     c = solve_auto(graph, cfg).stats["candidates"]["tree"]
     hist = optimize(graph, "hybrid", init="tree", sweeps=c["sweeps_run"]).energy_history
     drops = 1 - hist[1:] / hist[:-1]
@@ -172,7 +216,7 @@ def test_one_finalist_polishes_one_start(data_dir: Path) -> None:
 
 def test_an_iteration_limit_shows_in_the_status(data_dir: Path) -> None:
     graph = read_graph(data_dir / "smallGrid3D.g2o")
-    result = optimize(graph, "auto", polish_iterations=1, max_sweeps=0)
+    result = optimize(graph, "auto", max_iterations=1, sweeps=0)
     assert result.status is Status.MAX_ITERATIONS
     assert result.stats["polish_status"] == "max_iterations"
     assert "max_iterations" in result.stats["reason"]
@@ -188,9 +232,15 @@ def test_hybrid_by_name_is_still_the_papers_method(data_dir: Path) -> None:
 
 def test_hybrid_options_without_a_method_name_the_fix(data_dir: Path) -> None:
     graph = read_graph(data_dir / "tinyGrid3D.g2o")
-    with pytest.raises(TypeError, match=r"sweeps: not an option of the default pipeline.*"
+    with pytest.raises(TypeError, match=r"polish: not an option of the default pipeline.*"
                                         r"optimize\(graph, 'hybrid'"):
-        optimize(graph, sweeps=10)
+        optimize(graph, sweeps=10, polish=True)
+    with pytest.raises(TypeError, match=r"finalist: not an option of the default pipeline"):
+        optimize(graph, finalist=2)
+    # sweeps means what --sweeps means on the command line: the most sweeps per start
+    limited = optimize(graph, sweeps=1)
+    assert limited.method == "auto"
+    assert all(c["sweeps_run"] <= 1 for c in limited.stats["candidates"].values())
     with pytest.raises(ValueError, match="fields of its config"):
         optimize(graph, AutoConfig(), init="tree")
 
@@ -261,7 +311,8 @@ def test_a_runner_up_polish_stops_at_its_budget(data_dir: Path,
 
     graph = read_graph(data_dir / "smallGrid3D.g2o")
     monkeypatch.setattr(auto, "MIN_FINALIST_ITERATIONS", 1)
-    cfg = AutoConfig(inits=("tree", "chordal"), max_sweeps=0, finalist_budget=0.01)
+    cfg = AutoConfig(inits=("tree", "chordal"), sweeps=HybridConfig(sweeps=0),
+                     finalist_budget=0.01)
     result = solve_auto(graph, cfg)
     s = result.stats
     assert s["finalists"] == ["chordal", "tree"]  # chordal starts far lower (E0 1189 vs 52044)
@@ -288,16 +339,18 @@ def test_a_continued_polish_is_one_trajectory(data_dir: Path) -> None:
 
 def test_a_swept_start_is_also_polished_from_its_own_poses(data_dir: Path) -> None:
     graph = read_graph(data_dir / "smallGrid3D.g2o")
-    cfg = AutoConfig(inits=("tree",), max_sweeps=3, sweep_tolerance=0.0, finalist_budget=100.0)
+    cfg = AutoConfig(inits=("tree",), sweeps=HybridConfig(sweeps=3), sweep_tolerance=0.0,
+                     finalist_budget=100.0)
     cands = solve_auto(graph, cfg).stats["candidates"]
     swept, raw = cands["tree"], cands["tree, no sweeps"]
     assert swept["sweeps"] == 3 and raw["sweeps"] == raw["sweeps_run"] == 0
     assert raw["initial_energy"] == raw["energy_after_sweeps"] == swept["initial_energy"]
     direct = optimize(graph, "exact", init="tree",
-                      max_iterations=AutoConfig().polish_iterations)
+                      max_iterations=AutoConfig().polish.max_iterations)
     assert raw["final_energy"] == pytest.approx(direct.final_energy, rel=FLOAT64_IDENTITY)
     assert raw["polish_iterations"] == direct.iterations
-    off = solve_auto(graph, AutoConfig(inits=("tree",), max_sweeps=3, polish_unswept=False))
+    off = solve_auto(graph, AutoConfig(inits=("tree",), sweeps=HybridConfig(sweeps=3),
+                                       polish_unswept=False))
     assert list(off.stats["candidates"]) == ["tree"]
 
 

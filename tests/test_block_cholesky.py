@@ -1,4 +1,4 @@
-"""Tests of the block sparse Cholesky (solvers/_block_cholesky.py) against dense linear algebra
+"""Tests of the block sparse Cholesky (linalg/_block_cholesky.py) against dense linear algebra
 and against CHOLMOD inside the exact solver."""
 
 from __future__ import annotations
@@ -11,24 +11,25 @@ from tolerances import FLOAT64_IDENTITY, OPTIMUM_RELATIVE
 from hybridpgo.errors import SolverError
 from hybridpgo.generate import generate_city
 from hybridpgo.graph import PoseGraph
-from hybridpgo.solvers import GaussNewtonConfig
+from hybridpgo.linalg import BlockCholesky
+from hybridpgo.linalg._factor import NotPositiveDefinite, cholmod_available
+from hybridpgo.solvers import GaussNewtonConfig, _normal
 from hybridpgo.solvers import gauss_newton as gn
-from hybridpgo.solvers._block_cholesky import BlockCholesky
-from hybridpgo.solvers._linear import NotPositiveDefinite, _cholmod_available
 
 
 def _system(graph: PoseGraph, fixed: np.ndarray | None = None
-            ) -> tuple[gn._Pattern, np.ndarray, np.ndarray]:
+            ) -> tuple[_normal.Pattern, np.ndarray, np.ndarray]:
     """Pattern (AMD order), lower-triangle values of H and g at the graph's estimate."""
     fx = gn.default_fixed_nodes(graph) if fixed is None else fixed
-    pat = gn._analyze(graph, fx, reorder=True)
+    pat = _normal.analyze(graph, fx, reorder=True)
     data = np.empty(pat.nnz)
     grad = np.empty(pat.dim)
-    gn._assemble(graph, pat, np.array(graph.rotations), np.array(graph.translations), data, grad)
+    _normal.assemble(graph, pat, np.array(graph.rotations), np.array(graph.translations), data,
+                     grad)
     return pat, data, grad
 
 
-def _factorizer(pat: gn._Pattern) -> BlockCholesky:
+def _factorizer(pat: _normal.Pattern) -> BlockCholesky:
     return BlockCholesky(pat.num_vars, pat.block_ptr, pat.block_row, pat.indptr)
 
 
@@ -39,7 +40,7 @@ def test_solve_matches_dense(extra: int, gps: int) -> None:
     pat, data, grad = _system(graph)
     f = _factorizer(pat)
     x = f.solve(data, -grad, check=True)
-    h = gn._lower_to_full(data, pat.lower_indices(), pat.indptr, pat.dim).toarray()
+    h = _normal.lower_to_full(data, pat.lower_indices(), pat.indptr, pat.dim).toarray()
     expected = np.linalg.solve(h, -grad)
     np.testing.assert_allclose(x, expected, rtol=0, atol=FLOAT64_IDENTITY * np.linalg.cond(h)
                                * np.abs(expected).max())
@@ -54,7 +55,7 @@ def test_second_factorization_reuses_the_analysis() -> None:
     f.factor(data)
     data2 = data * 3.0
     x = f.solve(data2, -grad)
-    h = gn._lower_to_full(data2, pat.lower_indices(), pat.indptr, pat.dim).toarray()
+    h = _normal.lower_to_full(data2, pat.lower_indices(), pat.indptr, pat.dim).toarray()
     expected = np.linalg.solve(h, -grad)
     np.testing.assert_allclose(x, expected, rtol=0, atol=FLOAT64_IDENTITY * np.linalg.cond(h)
                                * np.abs(expected).max())
@@ -76,7 +77,7 @@ def test_not_positive_definite_and_singular() -> None:
 
 
 def test_exact_solver_picks_it_on_a_city_and_agrees_with_cholmod() -> None:
-    if not _cholmod_available():
+    if not cholmod_available():
         pytest.skip("cvxopt not installed")
     graph = generate_city(seed=1, num_poses=600, nx=3, ny=3, gps_every=50).graph
     block = gn.solve_exact(graph, config=GaussNewtonConfig(method="lm"))

@@ -14,13 +14,14 @@ from hybridpgo.covariance import marginal_covariances
 from hybridpgo.errors import SolverError
 from hybridpgo.graph import PoseGraph
 from hybridpgo.io import read_graph
-from hybridpgo.solvers._linear import _cholmod_available
+from hybridpgo.linalg._factor import cholmod_available
 from hybridpgo.solvers.config import GaussNewtonConfig
 from hybridpgo.solvers.gauss_newton import normal_equations, solve_exact
 
 BACKENDS = [
+    "auto",  # the block Cholesky and selected inversion
     "splu",
-    pytest.param("cholmod", marks=pytest.mark.skipif(not _cholmod_available(),
+    pytest.param("cholmod", marks=pytest.mark.skipif(not cholmod_available(),
                                                      reason="cvxopt not installed")),
 ]
 #: Our tangent (rho, phi) -> GTSAM Pose3's (rotation, translation).
@@ -96,6 +97,48 @@ def test_gtsam_marginals_on_small_grid(data_dir: Path) -> None:
         expected = theirs[np.ix_(back, back)]
         np.testing.assert_allclose(ours[k], expected, rtol=0,
                                    atol=COVARIANCE_VS_GTSAM * np.abs(expected).max())
+
+
+@pytest.mark.parametrize("gps", [0, 4])
+def test_every_pose_by_default_matches_the_per_pose_solves(gps: int) -> None:
+    """nodes=None: all N poses, by selected inversion; the same as one triangular solve per pose
+    with CHOLMOD or SuperLU (another factorization, another ordering of the work)."""
+    graph, _, _ = random_graph(np.random.default_rng(8), n=60, extra=40, gps=gps)
+    res = solve_exact(graph)
+    cov = marginal_covariances(graph, res.rotations, res.translations)
+    assert cov.shape == (60, 6, 6)
+    backend = "cholmod" if cholmod_available() else "splu"
+    expected = marginal_covariances(graph, res.rotations, res.translations, np.arange(60),
+                                    linear_solver=backend)
+    np.testing.assert_allclose(cov, expected, rtol=0,
+                               atol=SPARSE_VS_DENSE_GN * np.abs(expected).max())
+    np.testing.assert_allclose(cov, _dense_blocks(graph, res.rotations, res.translations,
+                                                  np.arange(60)),
+                               rtol=0, atol=SPARSE_VS_DENSE_GN * np.abs(expected).max())
+
+
+def test_gtsam_marginals_of_every_pose_of_a_city() -> None:
+    """All 400 poses of a generated city (loop closures, so the factor fills in) against
+    gtsam.Marginals, relative to each block's largest entry."""
+    gtsam = pytest.importorskip("gtsam")
+    from hybridpgo.generate import generate_city
+    from hybridpgo.gtsam_bridge import to_gtsam
+
+    graph = generate_city("paris2", seed=2, num_poses=400).graph
+    res = solve_exact(graph, config=GaussNewtonConfig(method="lm"))
+    ours = marginal_covariances(graph, res.rotations, res.translations)
+    fg, values = to_gtsam(graph, res.rotations, res.translations)
+    fg.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(gtsam.Rot3(res.rotations[0]),
+                                                 res.translations[0]),
+                                  gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))  # our gauge
+    marginals = gtsam.Marginals(fg, values)
+    back = np.argsort(_TO_GTSAM)
+    worst = 0.0
+    for n in range(1, graph.num_nodes):
+        theirs = np.asarray(marginals.marginalCovariance(int(graph.node_ids[n])))
+        expected = theirs[np.ix_(back, back)]
+        worst = max(worst, float(np.abs(ours[n] - expected).max() / np.abs(expected).max()))
+    assert worst <= COVARIANCE_VS_GTSAM, worst
 
 
 def test_bad_nodes_raise() -> None:

@@ -68,3 +68,38 @@ def test_doc_pages_link_to_existing_files() -> None:
     for page in DOCS.glob("*.md"):
         for target in re.findall(r"\]\(([^)#:]+)(?:#[^)]*)?\)", page.read_text(encoding="utf-8")):
             assert (page.parent / target).exists(), f"{page.name}: broken link {target}"
+
+
+def _anchors(page: Path) -> set[str]:
+    """The anchors of a page: explicit ``<a id="...">`` and GitHub's heading slugs."""
+    text = page.read_text(encoding="utf-8")
+    found = set(re.findall(r'<a id="([^"]+)"></a>', text))
+    for heading in re.findall(r"^#+ (.+)$", text, re.M):
+        slug = re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+        found.add(slug)
+    return found
+
+
+def _section_links() -> list[tuple[str, Path, str]]:
+    """``(where, page, anchor)`` of every ``page.md#anchor`` link in the pages and every
+    ``docs/page.md#anchor`` reference in the package's sources."""
+    root = DOCS.parent
+    out: list[tuple[str, Path, str]] = []
+    for page in [root / "README.md", *DOCS.glob("*.md")]:
+        text = page.read_text(encoding="utf-8")
+        for target, anchor in re.findall(r"\]\(([^)#:]*)#([^)]+)\)", text):
+            out.append((page.name, (page.parent / target) if target else page, anchor))
+    for src in sorted((root / "src").rglob("*.py")):
+        for target, anchor in re.findall(r"docs/(\w[\w-]*\.md)#([\w-]+)", src.read_text(
+                encoding="utf-8")):
+            out.append((str(src.relative_to(root)), DOCS / target, anchor))
+    return out
+
+
+def test_section_links_name_existing_anchors() -> None:
+    """Every ``page.md#anchor`` of the pages and of the code names an anchor that exists."""
+    links = _section_links()
+    assert links  # the pages do link to sections
+    for where, page, anchor in links:
+        assert page.exists(), f"{where}: {page.name} does not exist"
+        assert anchor in _anchors(page), f"{where}: {page.name} has no anchor #{anchor}"

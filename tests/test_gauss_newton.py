@@ -11,10 +11,11 @@ from hybridpgo import _cost
 from hybridpgo.energy import energy
 from hybridpgo.errors import GraphError, SolverError
 from hybridpgo.graph import PoseGraph
-from hybridpgo.solvers import _gn_kernels
+from hybridpgo.linalg import cholmod_available
+from hybridpgo.solvers import _gn_kernels, _normal, gauss_newton
 from hybridpgo.solvers.config import GaussNewtonConfig
 from hybridpgo.solvers.gauss_newton import (
-    _cholmod_available,
+    ExactSolver,
     default_fixed_nodes,
     gn_step,
     normal_equations,
@@ -322,6 +323,36 @@ def test_gn_and_lm_reach_the_same_stationary_point(num_gps: int) -> None:
             np.testing.assert_array_equal(r.translations[0], g.translations[0])
 
 
+@pytest.mark.parametrize("linear_solver", ["auto", "splu"])
+@pytest.mark.parametrize("num_gps", [0, 3])
+def test_exact_solver_analyzes_once_and_solves_like_fresh_solves(
+        num_gps: int, linear_solver: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """One ExactSolver solving from several starts gives, bit for bit, the poses and energies
+    of a fresh solve_exact from each start, and analyzes the pattern once."""
+    rng = np.random.default_rng(40 + num_gps)
+    g = random_graph(rng, n=20, extra=20, noise=0.05, init_noise=0.3, num_gps=num_gps)
+    starts = [(g.rotations, g.translations)]
+    for scale in (0.1, 0.5):
+        h = random_graph(np.random.default_rng(7), n=20, extra=20, noise=0.05,
+                         init_noise=scale, num_gps=num_gps)
+        starts.append((h.rotations, h.translations))
+    cfg = GaussNewtonConfig(linear_solver=linear_solver)
+    fresh = [solve_exact(g, r, t, cfg) for r, t in starts]
+    calls = []
+    real = _normal.analyze
+    monkeypatch.setattr(gauss_newton, "analyze", lambda *a, **k: calls.append(1) or real(*a, **k))
+    solver = ExactSolver(g, cfg)
+    for (r, t), want in zip(starts, fresh, strict=True):
+        got = solver.solve(r, t)
+        np.testing.assert_array_equal(got.rotations, want.rotations)
+        np.testing.assert_array_equal(got.translations, want.translations)
+        np.testing.assert_array_equal(got.energy_history, want.energy_history)
+        assert got.iterations == want.iterations and got.status is want.status
+    assert len(calls) == 1
+    limited = solver.solve(*starts[1], max_iterations=1)
+    assert limited.iterations == 1
+
+
 @pytest.mark.parametrize("num_gps", [0, 3])
 def test_optimum_energy_unchanged_by_relabelling(num_gps: int) -> None:
     rng = np.random.default_rng(30 + num_gps)
@@ -411,7 +442,7 @@ def test_max_iterations_and_progress_callback(rng: np.random.Generator) -> None:
     assert zero.iterations == 0 and zero.final_energy == pytest.approx(energy(g), rel=1e-12)
 
 
-@pytest.mark.skipif(not _cholmod_available(), reason="scikit-sparse (CHOLMOD) not installed")
+@pytest.mark.skipif(not cholmod_available(), reason="scikit-sparse (CHOLMOD) not installed")
 def test_cholmod_and_superlu_agree(rng: np.random.Generator) -> None:
     g = random_graph(rng, n=20, extra=15)
     a = solve_exact(g, config=GaussNewtonConfig(linear_solver="splu"))

@@ -28,7 +28,7 @@ def test_init_blocks_is_bit_identical_to_the_sweep_kernels_blocks(gps, robust, i
     solver.step(solver.tree.sweep_order, tau=0.6)  # away from the tree start
     prob, st = solver.problem, solver.state
     old = State(st.rot, st.trans, np.full_like(st.bdiag, 7.0), np.full_like(st.contrib, 7.0))
-    _sweep.init_blocks(prob, old, solver.dmax, gps > 0, interpolation)
+    _sweep.init_blocks(prob, old, solver.scratch, gps > 0, interpolation)
     new = State(st.rot.copy(), st.trans.copy(), np.full_like(st.bdiag, np.nan),
                 np.full_like(st.contrib, np.nan))  # garbage in: every entry is overwritten
     _init_blocks.init_blocks(prob, new, solver.dmax)

@@ -9,8 +9,8 @@ import pytest
 from graphs import random_graph
 
 from hybridpgo.energy import energy
-from hybridpgo.initialization import chordal_initialization
-from hybridpgo.tree import build_tree, global_poses, initial_locals
+from hybridpgo.initialization import chordal_initialization, initial_locals
+from hybridpgo.tree import build_tree, global_poses
 
 #: Linear solves of well-conditioned small systems.
 LINEAR_SOLVE = 1e-9

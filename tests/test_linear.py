@@ -1,4 +1,4 @@
-"""Tests of the sparse factorization backends (solvers/_linear.py) against dense linear algebra."""
+"""Tests of the sparse factorization backends (linalg/_factor.py) against dense linear algebra."""
 
 from __future__ import annotations
 
@@ -10,12 +10,12 @@ import scipy.sparse as sp
 from tolerances import FLOAT64_IDENTITY
 
 from hybridpgo.errors import SolverError
-from hybridpgo.solvers import _linear
-from hybridpgo.solvers._linear import _cholmod_available, _fill_reducing_order, _make_factorizer
+from hybridpgo.linalg import _factor as _linear
+from hybridpgo.linalg._factor import cholmod_available, fill_reducing_order, make_factorizer
 
 BACKENDS = [
     "splu",
-    pytest.param("cholmod", marks=pytest.mark.skipif(not _cholmod_available(),
+    pytest.param("cholmod", marks=pytest.mark.skipif(not cholmod_available(),
                                                      reason="cvxopt not installed")),
 ]
 
@@ -65,7 +65,7 @@ def _sparse_spd(rng: np.random.Generator, n: int) -> np.ndarray:
 def test_solve_matches_dense(backend: str, rng: np.random.Generator) -> None:
     a = _sparse_spd(rng, 40)
     pat, values = _pattern_of(a)
-    f = _make_factorizer(pat, backend)
+    f = make_factorizer(pat, backend)
     assert f.name == backend
     for scale in (1.0, 2.0):  # the second numeric factorization reuses the symbolic analysis
         a = a * scale
@@ -85,7 +85,7 @@ def test_inverse_blocks_match_dense_inverse(backend: str, rng: np.random.Generat
                                             monkeypatch: pytest.MonkeyPatch) -> None:
     a = _sparse_spd(rng, 36)
     pat, values = _pattern_of(a)
-    f = _make_factorizer(pat, backend)
+    f = make_factorizer(pat, backend)
     f.factor(values)
     idx = np.array([[0, 1, 2], [33, 34, 35], [12, 5, 20], [3, 4, 7]])
     inv = np.linalg.inv(a)
@@ -106,7 +106,7 @@ def test_singular_matrix_raises_solver_error(backend: str) -> None:
     a[2:, 2:] = [[2.0, 1.0], [1.0, 2.0]]
     pat, values = _pattern_of(a)
     with pytest.raises(SolverError, match="gauge"):
-        _make_factorizer(pat, backend).solve(values, np.ones(4), check=True)
+        make_factorizer(pat, backend).solve(values, np.ones(4), check=True)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -114,7 +114,7 @@ def test_singular_to_rounding_raises_only_when_checked(backend: str) -> None:
     # Pivot 1e-14 of a diagonal entry: positive, so it factors, but below _SINGULAR_PIVOT.
     a = np.array([[1.0, 1.0, 0.0], [1.0, 1.0 + 1e-14, 0.0], [0.0, 0.0, 3.0]])
     pat, values = _pattern_of(a)
-    f = _make_factorizer(pat, backend)
+    f = make_factorizer(pat, backend)
     f.solve(values, np.ones(3))  # unchecked (LM): no error
     with pytest.raises(SolverError, match="singular to rounding"):
         f.solve(values, np.ones(3), check=True)
@@ -123,30 +123,30 @@ def test_singular_to_rounding_raises_only_when_checked(backend: str) -> None:
 @pytest.mark.parametrize("use_cvxopt", [True, False])
 def test_fill_reducing_order_is_a_permutation(use_cvxopt: bool, rng: np.random.Generator,
                                               monkeypatch: pytest.MonkeyPatch) -> None:
-    if use_cvxopt and not _cholmod_available():
+    if use_cvxopt and not cholmod_available():
         pytest.skip("cvxopt not installed")
-    monkeypatch.setattr(_linear, "_cvxopt_available", lambda: use_cvxopt)
+    monkeypatch.setattr(_linear, "cvxopt_available", lambda: use_cvxopt)
     nv = 30
     r = rng.integers(-1, nv, 80)
     c = rng.integers(-1, nv, 80)
     rows = np.concatenate([r, c, np.arange(nv)])
     cols = np.concatenate([c, r, np.arange(nv)])
-    new_pos = _fill_reducing_order(nv, rows, cols)
+    new_pos = fill_reducing_order(nv, rows, cols)
     np.testing.assert_array_equal(np.sort(new_pos), np.arange(nv))
     # An arrow matrix (one node linked to all): minimum degree eliminates the hub last.
     hub = np.zeros(nv - 1, np.int64)
     spokes = np.arange(1, nv)
-    arrow = _fill_reducing_order(nv, np.concatenate([hub, spokes]),
+    arrow = fill_reducing_order(nv, np.concatenate([hub, spokes]),
                                  np.concatenate([spokes, hub]))
     assert arrow[0] == nv - 1
 
 
 def test_cholmod_missing_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(_linear, "_cholmod_available", lambda: False)
+    monkeypatch.setattr(_linear, "cholmod_available", lambda: False)
     pat, _ = _pattern_of(np.eye(3))
-    assert _make_factorizer(pat, "auto").name == "splu"
+    assert make_factorizer(pat, "auto").name == "splu"
     with pytest.raises(SolverError, match="pip install cvxopt"):
-        _make_factorizer(pat, "cholmod")
+        make_factorizer(pat, "cholmod")
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -158,7 +158,7 @@ def test_pattern_must_be_the_lower_triangle(backend: str, rng: np.random.Generat
     indptr = m.indptr.astype(np.int64)
     full = Pattern(indptr, m.indices.astype(np.int64), indptr[:-1], 20)
     with pytest.raises(ValueError, match="lower triangle"):
-        _make_factorizer(full, backend)
+        make_factorizer(full, backend)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -166,7 +166,7 @@ def test_values_buffer_is_used_without_a_copy(backend: str, rng: np.random.Gener
     """Values written into the factorizer's buffer are what it factors."""
     a = _sparse_spd(rng, 30)
     pat, values = _pattern_of(a)
-    f = _make_factorizer(pat, backend)
+    f = make_factorizer(pat, backend)
     buf = f.values_buffer()
     if buf is None:
         assert backend == "splu"

@@ -30,7 +30,8 @@ from graphs import random_graph
 from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver, _init_blocks, _step, _sweep
 
 def signatures():
-    out = {f"{g:d}{i:d}{v:d}": len(k.signatures) for (g, i, v), k in _sweep.SWEEPS.items()}
+    out = {f"{g:d}{i:d}{v:d}{a:d}": len(k.signatures)
+           for (g, i, v, a), k in _sweep.LOOPS.items()}
     out["init"] = len(_init_blocks.init_blocks.signatures)
     out["relax"] = len(_step.relax.signatures)  # the generic one: every branch compiled in
     return {key: n for key, n in out.items() if n}
@@ -67,20 +68,23 @@ def test_each_sweep_variant_calls_only_what_it_needs() -> None:
     from hybridpgo.solvers.hybrid import _batch, _step, _sweep
     from hybridpgo.solvers.hybrid.problem import StepKind
 
-    heavy = {"_flush", "_flush_exact", "relax_interpolated"}
-    for (gps, interp, givens), kern in _sweep.SWEEPS.items():
+    heavy = {"_flush", "_flush_exact", "relax_interpolated", "_relax_group"}
+    for (gps, interp, givens, admission), kern in _sweep.LOOPS.items():
         used = _referenced_globals(kern)
         assert "relax" in used
         relax = kern.py_func.__closure__[kern.py_func.__code__.co_freevars.index("relax")]
-        assert relax.cell_contents is _step.RELAX[gps, StepKind.GIVENS if givens
-                                                  else StepKind.WOODBURY]
+        step = _step.BY_ARGUMENT if admission else (
+            StepKind.GIVENS if givens else StepKind.WOODBURY)
+        assert relax.cell_contents is _step.RELAX[gps, step]
         flush = ("_flush" if interp else "_flush_exact") if gps else None
-        expected = {name for name in (flush, "relax_interpolated" if interp else None) if name}
-        assert used & heavy == expected, (gps, interp)
+        expected = {name for name in (flush, "relax_interpolated" if interp else None,
+                                      "_relax_group" if admission else None) if name}
+        assert used & heavy == expected, (gps, interp, admission)
     for (gps, step), kern in _step.RELAX.items():  # one solve, the GPS linearization if asked
         used = _referenced_globals(kern)
-        assert ("givens_solve" in used, "woodbury_solve" in used) == (
-            (True, False) if step == StepKind.GIVENS else (False, True))
+        assert ("givens_solve" in used, "woodbury_solve" in used) == {
+            StepKind.GIVENS: (True, False), StepKind.WOODBURY: (False, True)}.get(
+            step, (True, True))  # type: ignore[call-overload]
         assert ("linearize" in used) == gps
     assert "batch_relax_exact" in _referenced_globals(_sweep._flush_exact)
     assert "_reduced_batch" not in _referenced_globals(_batch.batch_relax_exact)
@@ -97,8 +101,8 @@ def test_a_solve_compiles_only_the_sweep_variant_it_uses() -> None:
     out = subprocess.run([sys.executable, "-c", SCRIPT, str(TESTS)], env=env, check=True,
                          capture_output=True, text=True).stdout
     no_gps, with_gps = json.loads(out.strip().splitlines()[-1])
-    assert no_gps == {"000": 1}
-    assert with_gps == {"000": 1, "100": 1}
+    assert no_gps == {"0000": 1}
+    assert with_gps == {"0000": 1, "1000": 1}
 
 
 def test_every_sweep_variant_gives_the_plain_sweeps_result_without_gps_and_dmax() -> None:
@@ -115,13 +119,11 @@ def test_every_sweep_variant_gives_the_plain_sweeps_result_without_gps_and_dmax(
     results = []
     for variant in ((False, False), (False, True)):  # Woodbury
         solver = HybridSolver(graph, HybridConfig())
-        nc = solver.num_constraints
         counts = np.zeros(NUM_COUNTS, np.int64)
         for _ in range(3):
-            _sweep._run(_sweep.sweep_kernel(*variant), solver.problem, solver.state,
-                        solver.tree.sweep_order, 0.5, 1e-4, 0, 1, solver.dmax, 0,
-                        np.iinfo(np.uint64).max, np.zeros(nc, np.uint64),
-                        np.zeros(nc, np.uint64), counts, True)
+            _sweep.run_loop(_sweep.loop_kernel(*variant), solver.problem, solver.state,
+                            solver.scratch, solver.tree.sweep_order, 0.5, 1e-4, 0, 1, 0,
+                            np.iinfo(np.uint64).max, counts)
         results.append((solver.state.rot.copy(), solver.state.trans.copy(),
                         solver.state.bdiag.copy()))
     for a, b in zip(results[0], results[1], strict=True):

@@ -18,12 +18,13 @@ from tolerances import (
 
 from hybridpgo.energy import energy
 from hybridpgo.errors import FormatError, GraphError
-from hybridpgo.replay import feed_frame, make_stream, prefix_optima
-from hybridpgo.solvers import _online_kernels as ok
+from hybridpgo.online import OnlineConfig, OnlineSolver
+from hybridpgo.online._link import adopt_result
+from hybridpgo.online.persist import state_arrays
+from hybridpgo.online.replay import feed_frame, make_stream, prefix_optima
 from hybridpgo.solvers.config import GaussNewtonConfig
 from hybridpgo.solvers.gauss_newton import solve_exact
 from hybridpgo.solvers.hybrid import _batch
-from hybridpgo.solvers.online import OnlineConfig, OnlineSolver
 
 # the fixed budget of a deterministic frame (budget_s=None): runs do not depend on timing
 UPDATES = 12
@@ -43,20 +44,15 @@ def _stream(solver: OnlineSolver, graph, frames: range, updates: int | None = UP
 
 
 def _state(s: OnlineSolver) -> dict[str, np.ndarray]:
-    """Every array and counter of the solver (to compare states exactly)."""
-    scratch = ("_xb", "_nodes_buf")  # buffers of the batch kernels, no state
-    out = {k: np.array(v, copy=True) for k, v in vars(s).items()
-           if isinstance(v, np.ndarray) and k not in scratch}
-    out.update({k: np.array(v) for k, v in vars(s).items() if isinstance(v, int)})
-    out["index"] = np.array(sorted(s._index.items()))
-    return out
+    """Every array and counter of the solver's state (what a saved state holds)."""
+    return state_arrays(s)
 
 
 def _same(a: dict[str, np.ndarray], b: dict[str, np.ndarray], timing: bool = True) -> None:
     """Exactly equal states; ``timing=False``: except the cost model, learnt from the clock."""
     assert a.keys() == b.keys()
     for k in a:
-        if k == "_model" and not timing:
+        if k == "model" and not timing:
             continue
         assert a[k].shape == b[k].shape and np.array_equal(a[k], b[k]), k
 
@@ -79,8 +75,8 @@ def test_paths_follow_tree_conventions() -> None:
     g = _graph(gps=4)
     s = OnlineSolver()
     _stream(s, g, range(g.num_nodes))
-    parent = s._parent
-    cm = s._cap_m
+    parent = s.store.parent
+    cm = s.store.cap_m
 
     def up(v: int) -> list[int]:
         out = []
@@ -89,24 +85,24 @@ def test_paths_follow_tree_conventions() -> None:
             v = int(parent[v])
         return out
 
-    count = np.zeros(s._n + 1, np.int64)
+    count = np.zeros(s.store.n + 1, np.int64)
     for c in list(range(s.num_edges)) + [cm + q for q in range(s.num_gps)]:
         if c < cm:
-            a, b = (int(v) + 1 for v in s._edge_ab[c])
+            a, b = (int(v) + 1 for v in s.store.edge_ab[c])
         else:
-            a, b = 0, int(s._gps_node[c - cm]) + 1
+            a, b = 0, int(s.store.gps_node[c - cm]) + 1
         ua, ub = up(a), up(b)
         root = next(v for v in ua if v in ub)
         want = ua[: ua.index(root)] + ub[: ub.index(root)]
         signs = [-1] * ua.index(root) + [1] * ub.index(root)
-        lo, hi = s._ptr[c], s._ptr[c + 1]
-        assert s._path_node[lo:hi].tolist() == want
-        assert s._path_sign[lo:hi].tolist() == signs
+        lo, hi = s.store.ptr[c], s.store.ptr[c + 1]
+        assert s.store.path_node[lo:hi].tolist() == want
+        assert s.store.path_sign[lo:hi].tolist() == signs
         np.add.at(count, want, 1)
-    assert np.array_equal(count, s._path_count[: s._n + 1])
+    assert np.array_equal(count, s.store.path_count[: s.store.n + 1])
     # the tree: parents come first, the first pose hangs from the earth
     assert parent[0] == -1 and parent[1] == 0
-    assert np.all(parent[1: s._n + 1] < np.arange(1, s._n + 1))
+    assert np.all(parent[1: s.store.n + 1] < np.arange(1, s.store.n + 1))
 
 
 def test_oldest_tree_is_shallower_than_the_odometry_chain() -> None:
@@ -169,14 +165,14 @@ def test_gps_poses_hang_from_the_earth() -> None:
     g = _graph(seed=2, n=60, gps=8)
     s = OnlineSolver()
     _stream(s, g, range(g.num_nodes))
-    cm = s._cap_m
-    lengths = np.diff(s._ptr[cm: cm + s.num_gps + 1])
-    nodes = s._gps_node[: s.num_gps] + 1
-    assert np.all(lengths == 1) and np.all(s._parent[nodes] == 0)
+    cm = s.store.cap_m
+    lengths = np.diff(s.store.ptr[cm: cm + s.num_gps + 1])
+    nodes = s.store.gps_node[: s.num_gps] + 1
+    assert np.all(lengths == 1) and np.all(s.store.parent[nodes] == 0)
     off = OnlineSolver(OnlineConfig(gps_link=False))
     _stream(off, g, range(g.num_nodes))
-    cm = off._cap_m
-    assert np.diff(off._ptr[cm: cm + off.num_gps + 1]).max() > 1
+    cm = off.store.cap_m
+    assert np.diff(off.store.ptr[cm: cm + off.num_gps + 1]).max() > 1
 
 
 def _odometry_start(st):  # type: ignore[no-untyped-def]
@@ -217,23 +213,26 @@ def test_first_gps_reading_after_many_poses_moves_the_map() -> None:
 def test_local_batch_is_the_whole_graph_batch_step_without_zero_blocks() -> None:
     """With no node whose constraints are all in the set, batch_relax takes the same segmented
     Woodbury solve: the local batch kernel must give the same poses exactly."""
+    from hybridpgo.solvers.hybrid._admission import local_batch
+    from hybridpgo.solvers.hybrid.problem import NUM_COUNTS
+
     g = _graph(seed=3)
-    a = OnlineSolver()
-    _stream(a, g, range(g.num_nodes))
-    b = OnlineSolver.__new__(OnlineSolver)
-    b.__dict__.update({k: (v.copy() if isinstance(v, np.ndarray) else v)
-                       for k, v in a.__dict__.items()})
-    b._problem = None
+    a, b = OnlineSolver(OnlineConfig(reserve_poses=64)), OnlineSolver(
+        OnlineConfig(reserve_poses=64))
+    for s in (a, b):  # no budget: the two states are the same
+        _stream(s, g, range(g.num_nodes))
     cs = np.array([3, 9, 17, 21], np.int64)
-    pa, sa = a._prob_state()
-    pb, sb = b._prob_state()
-    counts = np.zeros(ok.NUM_C, np.int64)
-    nu = ok.local_batch(pa, sa, cs, 0.7, 1e-6, np.uint64(2**63), a._model, a._slot, a._xb,
-                        a._nodes_buf, counts, a._depth)
-    nu2 = _batch.batch_relax(pb, sb, cs, cs.shape[0], 0.7, 1e-6, b._slot, b._xb, b._nodes_buf)
+    sa, sb = a.store, b.store
+    pa, xa, _ = sa.views()
+    pb, xb, _ = sb.views()
+    counts = np.zeros(NUM_COUNTS, np.int64)
+    nu = local_batch(pa, xa, cs, 0.7, 1e-6, np.uint64(2**63), sa.model, sa.slot, sa.xb,
+                     sa.nodes_buf, counts, sa.depth)
+    nu2 = _batch.batch_relax(pb, xb, cs, cs.shape[0], 0.7, 1e-6, sb.slot, sb.xb, sb.nodes_buf)
     assert nu == nu2 > 0
-    assert np.array_equal(a._rot, b._rot) and np.array_equal(a._trans, b._trans)
-    assert np.array_equal(a._bdiag, b._bdiag)
+    n = sa.placed + 1
+    assert np.array_equal(sa.rot[:n], sb.rot[:n]) and np.array_equal(sa.trans[:n], sb.trans[:n])
+    assert np.array_equal(sa.bdiag[:n], sb.bdiag[:n])
 
 
 def test_local_solve_runs_and_keeps_the_estimate_finite() -> None:
@@ -272,11 +271,11 @@ def test_arrays_grow_without_changing_results() -> None:
     big = OnlineSolver(OnlineConfig(reserve_poses=4096))
     for s in (small, big):
         _stream(s, g, range(g.num_nodes))
-    assert small._cap_n < big._cap_n
+    assert small.store.cap_n < big.store.cap_n
     ra, ta = small.estimate()
     rb, tb = big.estimate()
     assert np.array_equal(ra, rb) and np.array_equal(ta, tb)
-    assert np.array_equal(small._chi2[: small.num_edges], big._chi2[: big.num_edges])
+    assert np.array_equal(small.store.chi2[: small.num_edges], big.store.chi2[: big.num_edges])
 
 
 # --------------------------------------------------------------------------- bad input
@@ -360,7 +359,7 @@ def test_save_is_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None
         raise OSError("disk full")
 
     monkeypatch.setattr(np, "savez", boom)
-    with pytest.raises(OSError, match="disk full"):
+    with pytest.raises(FormatError, match="cannot write the file: disk full"):
         s.save(path)
     assert path.read_bytes() == good
     assert [p.name for p in tmp_path.iterdir()] == ["state.npz"]
@@ -415,7 +414,7 @@ def test_pending_poses_have_an_estimate() -> None:
 # --------------------------------------------------------------------------- iSAM2
 def test_isam2_replay_reaches_the_optimum() -> None:
     pytest.importorskip("gtsam")
-    from hybridpgo.replay import replay_isam2
+    from hybridpgo.online.replay import replay_isam2
 
     g, _, _ = random_graph(np.random.default_rng(9), n=30, extra=15, noise=0.2)
     st = make_stream(g)
@@ -459,7 +458,7 @@ def test_cli_replay_errors(capsys: pytest.CaptureFixture[str], tmp_path: Path,
 
 def test_isam2_replay_time_cap() -> None:
     pytest.importorskip("gtsam")
-    from hybridpgo.replay import replay_isam2
+    from hybridpgo.online.replay import replay_isam2
 
     st = make_stream(_graph(seed=10, n=20, extra=5))
     r = replay_isam2(st, checkpoints=[10, 20], extra_frames=3, max_seconds=0.0)
@@ -516,18 +515,19 @@ def _random_locals(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
 def test_adoption_keeps_newer_poses_relative_to_their_parents() -> None:
     """Naive check of _adopt: the result's poses take its local transforms; every pose added
     after its snapshot keeps its pose relative to its tree parent."""
-    from hybridpgo.solvers._background import Refined
+    from hybridpgo.online.worker import Refined
 
     g = _graph(seed=13, n=40, extra=20)
-    s = OnlineSolver(OnlineConfig(background_rebase=False, background_follow="tree"))
+    s = OnlineSolver(OnlineConfig(background_rebase=False))
     _stream(s, g, range(g.num_nodes))
     rot0, trans0 = s.estimate()
-    parent = s._parent[1: s._n + 1] - 1  # pose index of each pose's tree parent (-1: earth)
+    parent = s.store.parent[1: s.store.n + 1] - 1  # pose index of each tree parent (-1: earth)
     n = 25
     lrot, ltrans = _random_locals(n, seed=0)
-    s._adopt(Refined(n, 30, 0, 0, lrot, ltrans, 0.0, 1, "converged", 0.0))
+    assert adopt_result(s.store, Refined(n, 30, 0, 0, lrot, ltrans, 0.0, 1, "converged", 0.0),
+                        rebase=False)
     rot1, trans1 = s.estimate()
-    for p in range(s._n):
+    for p in range(s.store.n):
         a = int(parent[p])
         if p < n:  # naive composition of the adopted local transforms
             pr, pt = (np.eye(3), np.zeros(3)) if a < 0 else (rot1[a], trans1[a])
@@ -539,51 +539,18 @@ def test_adoption_keeps_newer_poses_relative_to_their_parents() -> None:
             after = (rot1[a].T @ rot1[p], rot1[a].T @ (trans1[p] - trans1[a]))
             assert np.allclose(before[0], after[0], atol=FLOAT64_IDENTITY)
             assert np.allclose(before[1], after[1], atol=FLOAT64_IDENTITY * 100)
-    assert (s._refined_m, s._refined_g) == (30, 0)
-
-
-def test_adoption_moves_newer_poses_with_their_odometry_parents() -> None:
-    """Naive check of _adopt with background_follow="odometry": the result's poses take its
-    local transforms; every pose added after its snapshot keeps its pose relative to its
-    odometry parent (so the odometry's error into the tail is unchanged)."""
-    from hybridpgo.solvers._background import Refined
-
-    g = _graph(seed=13, n=40, extra=20, gps=4)
-    s = OnlineSolver(OnlineConfig(background_rebase=False, background_follow="odometry"))
-    _stream(s, g, range(g.num_nodes))
-    rot0, trans0 = s.estimate()
-    parent = s._parent[1: s._n + 1] - 1
-    n = 25
-    lrot, ltrans = _random_locals(n, seed=1)
-    s._adopt(Refined(n, 30, 0, 0, lrot, ltrans, 0.0, 1, "converged", 0.0))
-    rot1, trans1 = s.estimate()
-    moved = 0
-    for p in range(s._n):
-        if p < n:
-            a = int(parent[p])
-            pr, pt = (np.eye(3), np.zeros(3)) if a < 0 else (rot1[a], trans1[a])
-            assert np.allclose(rot1[p], pr @ lrot[p], atol=FLOAT64_IDENTITY)
-            assert np.allclose(trans1[p], pr @ ltrans[p] + pt, atol=FLOAT64_IDENTITY * 100)
-            continue
-        a = int(s._edge_ab[s._odom[p], 0])  # the odometry parent
-        before = (rot0[a].T @ rot0[p], rot0[a].T @ (trans0[p] - trans0[a]))
-        after = (rot1[a].T @ rot1[p], rot1[a].T @ (trans1[p] - trans1[a]))
-        assert np.allclose(before[0], after[0], atol=FLOAT64_IDENTITY * 100)
-        assert np.allclose(before[1], after[1], atol=FLOAT64_IDENTITY * 1e4)
-        moved += int(parent[p]) != a  # the tree parent is not the odometry parent
-    assert moved > 0  # the test covers poses whose tree parent differs
 
 
 def test_adoption_with_rebase_queues_the_tail_once() -> None:
-    from hybridpgo.solvers._background import Refined
+    from hybridpgo.online.worker import Refined
 
     g = _graph(seed=14, n=30, extra=10)
     s = OnlineSolver()
     _stream(s, g, range(g.num_nodes))
-    rot, trans = s._rot[1:11].copy(), s._trans[1:11].copy()
-    s._push(s._m - 1)  # a queued constraint that is also in the tail
-    s._adopt(Refined(10, 12, 0, 0, rot, trans, 0.0, 1, "converged", 0.0))
-    assert s._queue[s._q_head: s._q_tail].tolist() == list(range(12, s._m_laid))
+    rot, trans = s.store.rot[1:11].copy(), s.store.trans[1:11].copy()
+    s.store.push(s.store.m - 1)  # a queued constraint that is also in the tail
+    adopt_result(s.store, Refined(10, 12, 0, 0, rot, trans, 0.0, 1, "converged", 0.0), True)
+    assert s.store.pending().tolist() == list(range(12, s.store.m_laid))
 
 
 def test_background_rejected_calls_change_nothing() -> None:
@@ -601,30 +568,35 @@ def test_background_rejected_calls_change_nothing() -> None:
         _same(before, _state(s))
 
 
+def _running(pid: int) -> bool:
+    """True while process ``pid`` exists (and has not been reaped)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
 def test_background_worker_stops_cleanly() -> None:
     import gc
 
     g = _graph(seed=16, n=20, extra=5)
     with OnlineSolver(_bg()) as s:
         _stream(s, g, range(g.num_nodes))
-        ref = s._refiner
-        assert ref is not None
-        proc = ref._proc
-        assert proc is not None and proc.poll() is None
-    assert proc.poll() is not None and not ref._sender.is_alive()
-    assert not ref._receiver.is_alive()
+        pid = s.worker_pid
+        assert pid is not None and _running(pid)
+    assert s.worker_pid is None and not _running(pid)
     s.close()  # idempotent
     with pytest.raises(ValueError):
         s.join_refine()
     s.update(None, UPDATES)  # still usable, without the worker
     # dropped without close(): the finalizer stops the worker
     t = OnlineSolver(_bg())
-    ref = t._refiner
-    assert ref is not None
-    proc = ref._proc
+    pid = t.worker_pid
+    assert pid is not None and _running(pid)
     del t
     gc.collect()
-    assert proc is not None and proc.poll() is not None
+    assert not _running(pid)
 
 
 def test_background_state_survives_save_load(tmp_path: Path) -> None:
@@ -693,17 +665,15 @@ def test_background_worker_waits_ready_and_runs_one_thread() -> None:
     """wait_background_ready() returns once the worker has loaded its kernels (False without a
     worker); the worker runs with one BLAS / OpenMP / Numba thread (a second BLAS thread
     fighting the frames for the other core made its solves 4-10x slower)."""
-    from hybridpgo.solvers import _background
+    from hybridpgo.online import worker
 
     assert OnlineSolver(OnlineConfig()).wait_background_ready(1.0) is False
     with OnlineSolver(OnlineConfig(background_refine=True)) as s:
         assert s.wait_background_ready(120.0)
-        ref = s._refiner
-        assert ref is not None and ref._proc is not None
-        environ = Path(f"/proc/{ref._proc.pid}/environ")
+        environ = Path(f"/proc/{s.worker_pid}/environ")
         if environ.exists():  # Linux
             env = dict(v.split("=", 1) for v in environ.read_text().split("\0") if "=" in v)
-            for key, value in _background.WORKER_THREADS.items():
+            for key, value in worker.WORKER_THREADS.items():
                 assert env.get(key) == value, key
 
 
@@ -714,27 +684,29 @@ def test_background_worker_solves_a_planar_map_in_the_plane(data_dir: Path,
     """The worker hands a map without GPS to solve_exact as is_2d, which takes the (x, y, yaw)
     system when the map is exactly planar: same optimum as the 3D solve."""
     from hybridpgo.io import read_graph
-    from hybridpgo.solvers import _background, gauss_newton
+    from hybridpgo.online import worker
+    from hybridpgo.solvers import gauss_newton
 
     g = read_graph(data_dir / "w100_toro.graph")
     st = make_stream(g)
     opt = prefix_optima(st, [st.num_frames])[st.num_frames]
     seen: list[bool] = []
-    real = gauss_newton._is_planar
+    real = gauss_newton.is_planar
 
     def spy(*args: object) -> bool:
         seen.append(real(*args))  # type: ignore[arg-type]
         return seen[-1]
 
-    monkeypatch.setattr(gauss_newton, "_is_planar", spy)
-    s = OnlineSolver(OnlineConfig(background_follow="tree"))
+    monkeypatch.setattr(gauss_newton, "is_planar", spy)
+    s = OnlineSolver(OnlineConfig())
     _stream(s, g, range(g.num_nodes))
-    mp = _background._Map()
-    t = s._placed + 1
-    mp.add({"parent": s._parent[1:t], "rot": s._rot[1:t], "trans": s._trans[1:t],
-            "edge_ab": s._edge_ab[: s._m], "edge_rot": s._edge_rot[: s._m],
-            "edge_trans": s._edge_trans[: s._m], "edge_info": s._edge_info[: s._m],
-            "gps_node": s._gps_node[:0], "gps_pos": s._gps_pos[:0], "gps_info": s._gps_info[:0]})
+    mp = worker._Map()
+    st = s.store
+    t, m = st.placed + 1, st.m
+    mp.add({"parent": st.parent[1:t], "rot": st.rot[1:t], "trans": st.trans[1:t],
+            "edge_ab": st.edge_ab[:m], "edge_rot": st.edge_rot[:m],
+            "edge_trans": st.edge_trans[:m], "edge_info": st.edge_info[:m],
+            "gps_node": st.gps_node[:0], "gps_pos": st.gps_pos[:0], "gps_info": st.gps_info[:0]})
     _, meta = mp.solve(50)
     assert seen and all(seen)
     assert abs(meta["energy"] - opt) <= ONLINE_REFINED * opt

@@ -201,7 +201,8 @@ ok = helper.join(600)
 from hybridpgo.io import read_graph
 from hybridpgo.energy import energy
 from hybridpgo.solvers.gauss_newton import solve_exact
-from hybridpgo.tree import build_tree, global_poses, initial_locals
+from hybridpgo.tree import build_tree, global_poses
+from hybridpgo.initialization import initial_locals
 graph = read_graph(sys.argv[2])
 before = compile_status().compiled
 tree = build_tree(graph)

@@ -14,7 +14,7 @@ from hybridpgo.generate import generate_grid
 from hybridpgo.initialization import PlanarRelaxation, planar_relaxation_start
 from hybridpgo.solvers import AutoConfig, GaussNewtonConfig, optimize
 from hybridpgo.solvers.auto import _Candidate, _relaxation_check
-from hybridpgo.solvers.gauss_newton import solve_exact
+from hybridpgo.solvers.gauss_newton import ExactSolver, solve_exact
 
 
 def _grid(seed: int = 0, rot_sigma: float = 0.05, poses: int = 120):
@@ -140,11 +140,11 @@ def test_a_winner_in_another_basin_is_replaced() -> None:
     win = _Candidate("tree")
     win.polished = fake
     cfg = AutoConfig()
-    out = _relaxation_check(graph, cfg, False, win, 0.0, None, None)
+    out = _relaxation_check(ExactSolver(graph, cfg.polish), cfg, False, win, 0.0, None, None)
     cand = out["candidate"]
     assert out["ran"] and out["polished"] and out["max_angle"] > cfg.relaxation_angle
     ref = solve_exact(graph, made.truth_rotations, made.truth_translations,
-                      dataclasses.replace(cfg.polish_config(), max_iterations=300))
+                      dataclasses.replace(cfg.polish, max_iterations=300))
     assert cand.energy <= ref.final_energy * (1.0 + OPTIMUM_RELATIVE)
     assert cand.energy < fake.final_energy
     assert energy(graph, cand.polished.rotations, cand.polished.translations) == pytest.approx(

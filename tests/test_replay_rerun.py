@@ -12,7 +12,7 @@ from tolerances import FLOAT64_IDENTITY
 
 from hybridpgo.energy import energy
 from hybridpgo.io import read_graph
-from hybridpgo.replay import make_stream, replay_online
+from hybridpgo.online.replay import make_stream, replay_online
 
 
 class _Calls:

@@ -16,14 +16,14 @@ from tolerances import FLOAT64_IDENTITY
 from hybridpgo.energy import constraint_energies, energy
 from hybridpgo.errors import GraphError
 from hybridpgo.graph import PoseGraph
+from hybridpgo.initialization import initial_locals
 from hybridpgo.io import read_graph
 from hybridpgo.solvers.toro import (
     ToroConfig,
     ToroState,
-    build_toro_tree,
     solve_toro,
-    toro_initial_locals,
 )
+from hybridpgo.tree import LINK_EDGE, LINK_GPS, build_tree
 
 # ----------------------------------------------------------------------------- the NumPy twin
 
@@ -103,8 +103,8 @@ def naive_toro_update(parent, rot_l, trans_l, v1, v2, meas_rot, meas_t, rotate, 
 
 
 def _state(graph, tree="toro", init="file", rng=None):
-    t = build_toro_tree(graph, tree)
-    state = ToroState.create(graph, t, *toro_initial_locals(graph, t, init))
+    t = build_tree(graph, tree)
+    state = ToroState.create(graph, t, *initial_locals(graph, t, init))
     if rng is not None:  # arbitrary positive weights exercise the distribution harder
         state.w_rot = rng.uniform(0.2, 2.0, t.num_tree_nodes)
         state.w_trans = rng.uniform(0.2, 2.0, t.num_tree_nodes)
@@ -174,27 +174,28 @@ def _graph(n, pairs, gps_nodes=()):
 def test_toro_tree_parent_is_smallest_id_neighbour():
     rng = np.random.default_rng(5)
     graph, _, _ = random_graph(rng, n=30, extra=25)
-    tree = build_toro_tree(graph, "toro")
+    tree = build_tree(graph, "toro")
     for i in range(1, graph.num_nodes):
         nbrs = [int(b) for a, b in graph.edge_nodes if a == i] + [
             int(a) for a, b in graph.edge_nodes if b == i]
         assert tree.parent[i] == min(nbrs)
     assert tree.parent[0] == -1
     # constraints by increasing depth of their top, paths end below the top
-    d = tree.depth[tree.top[tree.sweep_order]]
+    d = tree.depth[tree.constraint_root[tree.sweep_order]]
     assert np.all(np.diff(d) >= 0)
 
 
 def test_toro_tree_without_smaller_neighbour_and_with_earth():
     # pose 3 reaches the rest only through pose 4; GPS on poses 2 and 4
     graph = _graph(5, [(0, 1), (1, 2), (4, 3), (2, 4)], gps_nodes=(4, 2))
-    tree = build_toro_tree(graph, "toro")
+    tree = build_tree(graph, "toro")
     assert tree.has_earth and tree.root == 5
     # the earth roots the tree below the smallest-id GPS pose; GPS links are avoided elsewhere
     assert tree.parent.tolist() == [1, 2, 5, 4, 2, -1]
-    assert tree.link_gps[2] == 1 and tree.link_edge[3] == 2
+    assert (tree.link_kind[2], tree.link_index[2]) == (LINK_GPS, 1)
+    assert (tree.link_kind[3], tree.link_index[3]) == (LINK_EDGE, 2)
     graph = _graph(4, [(0, 2), (3, 1), (2, 3)])
-    assert build_toro_tree(graph, "toro").parent.tolist() == [-1, 3, 0, 2]
+    assert build_tree(graph, "toro").parent.tolist() == [-1, 3, 0, 2]
 
 
 def test_preconditioner_against_loops():

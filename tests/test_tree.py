@@ -11,8 +11,9 @@ from graphs import random_graph
 from hybridpgo.errors import GraphError
 from hybridpgo.geometry.se3 import compose
 from hybridpgo.graph import PoseGraph
+from hybridpgo.initialization import initial_locals
 from hybridpgo.io import read_graph
-from hybridpgo.tree import LINK_EDGE, LINK_GPS, build_tree, global_poses, initial_locals
+from hybridpgo.tree import LINK_EDGE, LINK_GPS, build_tree, global_poses
 
 #: Products of a few dozen rotations accumulate only rounding.
 ROUNDING = 1e-10

@@ -37,8 +37,8 @@ _LAZY = {
     "SolveResult": ".solvers",
     "optimize": ".solvers",
     "build_tree": ".tree",
-    "OnlineSolver": ".solvers.online",
-    "OnlineConfig": ".solvers.online",
+    "OnlineSolver": ".online",
+    "OnlineConfig": ".online",
 }
 
 __all__ = ["FormatError", "GraphError", "HybridPGOError", "SolverError", *_MODULES, *_LAZY]
@@ -49,13 +49,13 @@ if TYPE_CHECKING:
     from .graph import PoseGraph as PoseGraph
     from .io import read_graph as read_graph
     from .io import write_graph as write_graph
+    from .online import OnlineConfig as OnlineConfig
+    from .online import OnlineSolver as OnlineSolver
     from .solvers import AutoConfig as AutoConfig
     from .solvers import GaussNewtonConfig as GaussNewtonConfig
     from .solvers import HybridConfig as HybridConfig
     from .solvers import SolveResult as SolveResult
     from .solvers import optimize as optimize
-    from .solvers.online import OnlineConfig as OnlineConfig
-    from .solvers.online import OnlineSolver as OnlineSolver
     from .tree import build_tree as build_tree
 
 

@@ -74,7 +74,8 @@ def _finish() -> None:
     import numpy as np
 
     from .energy import energy
-    from .tree import build_tree, global_poses, initial_locals
+    from .initialization import initial_locals
+    from .tree import build_tree, global_poses
 
     graph = _tiny_graph()
     tree = build_tree(graph)
@@ -87,7 +88,8 @@ def _finish() -> None:
 def _starts() -> None:
     """Local transforms from global poses (the ``file`` start; the ``chordal`` one also compiles
     the chordal initialization)."""
-    from .tree import build_tree, initial_locals
+    from .initialization import initial_locals
+    from .tree import build_tree
 
     graph = _tiny_graph()
     tree = build_tree(graph)
@@ -97,9 +99,9 @@ def _starts() -> None:
 
 def _exact() -> None:
     """The exact solver (the default pipeline's polish, ``--polish``, ``--solver exact``)."""
-    from .solvers.gauss_newton import _ensure_compiled
+    from .solvers.gauss_newton import ensure_compiled
 
-    _ensure_compiled()
+    ensure_compiled()
 
 
 def _exact_solve() -> None:
@@ -112,9 +114,9 @@ def _exact_solve() -> None:
 
 def _toro() -> None:
     """The TORO baseline (``--solver toro``, ``hybridpgo warmup``)."""
-    from .solvers.toro import _ensure_compiled
+    from .solvers.toro import ensure_compiled as ensure_toro
 
-    _ensure_compiled()
+    ensure_toro()
 
 
 #: Kernel groups a helper can compile: name -> (function, kernels that tell cold from warm).
@@ -125,7 +127,7 @@ GROUPS: dict[str, tuple[Callable[[], None], tuple[str, ...]]] = {
     "exact": (_exact, ("hybridpgo.solvers._gn_kernels:assemble_normal_equations",
                        "hybridpgo.solvers._gn_kernels:retract",
                        "hybridpgo._cost:total_energy")),
-    "exact-solve": (_exact_solve, ("hybridpgo.solvers._block_cholesky:_numeric",)),
+    "exact-solve": (_exact_solve, ("hybridpgo.linalg._block_cholesky:_numeric",)),
     "toro": (_toro, ("hybridpgo.solvers._toro_kernels:sweep",)),
 }
 

@@ -1,7 +1,7 @@
 """Marginal covariances of selected poses at a solution (Laplace approximation).
 
 Convention.  With measurement information ``Omega_c`` (inverse noise covariance) the energy
-``E = sum_c e_c^T Omega_c e_c`` (no 1/2, DESIGN.md §1) is ``-2 log`` of the likelihood
+``E = sum_c e_c^T Omega_c e_c`` (no 1/2, docs/conventions.md) is ``-2 log`` of the likelihood
 ``exp(-E / 2)``.  Linearized at the poses X with right perturbations ``X_i Exp(delta_i)`` (tangent
 order (rho, phi): translation, then rotation, in the node's own frame), the poses are Gaussian in
 delta with *information* ``H = J^T Omega J`` -- the matrix of the exact solver's normal equations
@@ -13,37 +13,29 @@ Gauge: the same as the exact solver's (:func:`hybridpgo.solvers.gauss_newton.def
 the ``FIX`` nodes, else pose 0, unless the graph has GPS constraints (then the earth frame and no
 pose is fixed).  Covariances are relative to the gauge: a fixed pose has covariance 0.
 
-Cost: one sparse Cholesky factorization of H (as one exact-solver iteration), then per requested
-pose one triangular solve with 6 unit right-hand sides (``~12 nnz(L)`` flops; CHOLMOD:
-``Y = L^-1 P E_i``, block ``= Y^T Y``) -- the inverse is never formed.  Suited to a selection of
-poses; all N blocks would cost N such solves.
+Cost (``linear_solver="auto"``): one block Cholesky factorization of H in 6x6 pose blocks
+(:class:`hybridpgo.linalg.BlockCholesky`, as in an exact-solver iteration), then selected
+inversion (:mod:`hybridpgo.linalg._selinv`): Takahashi's recurrences give ``H^-1``
+on the factor's sparsity pattern, so the diagonal blocks of *every* pose come in about twice the
+factorization's time and in the factor's own memory -- the dense inverse is never formed.  With
+``"cholmod"`` or ``"splu"`` the named library factors H and each requested pose costs one
+triangular solve with 6 unit right-hand sides (``~12 nnz(L)`` flops).
 
 :func:`save_covariances` writes them as ``.npz`` (the layout of ``optimize --covariance``).
 """
 
 from __future__ import annotations
 
-import contextlib
 import os
-import stat
-import tempfile
 from typing import IO
 
 import numpy as np
 import numpy.typing as npt
 
-from .errors import FormatError
+from ._output import write_file
 from .graph import FloatArray, PoseGraph
-from .io._lines import _UMASK
-from .solvers._linear import _make_factorizer
-from .solvers.gauss_newton import (
-    _analyze,
-    _assemble,
-    _check_gauge,
-    _full_system,
-    _initial_poses,
-    default_fixed_nodes,
-)
+from .solvers.config import GaussNewtonConfig
+from .solvers.gauss_newton import ExactSolver
 
 __all__ = ["TANGENT_LABELS", "marginal_covariances", "save_covariances"]
 
@@ -53,9 +45,9 @@ TANGENT_LABELS = ("tx", "ty", "tz", "rx", "ry", "rz")
 
 
 def marginal_covariances(graph: PoseGraph, rotations: FloatArray | None,
-                         translations: FloatArray | None, nodes: npt.ArrayLike, *,
-                         linear_solver: str = "auto") -> FloatArray:
-    """Marginal covariances ``(H^-1)_ii`` of the selected poses (see the module docstring).
+                         translations: FloatArray | None, nodes: npt.ArrayLike | None = None,
+                         *, linear_solver: str = "auto") -> FloatArray:
+    """Marginal covariances ``(H^-1)_ii`` of the poses (see the module docstring).
 
     Parameters
     ----------
@@ -63,10 +55,13 @@ def marginal_covariances(graph: PoseGraph, rotations: FloatArray | None,
     rotations, translations : (N, 3, 3), (N, 3) float64 or None
         The poses to linearize at, normally a solution of :func:`solve_exact` (None: the graph's
         estimate).
-    nodes : array_like of int, shape (k,)
-        Dense indices of the poses (``graph.node_ids`` gives their file ids).
+    nodes : array_like of int, shape (k,), optional
+        Dense indices of the poses (``graph.node_ids`` gives their file ids); None (the
+        default): every pose, ``k = N``.
     linear_solver : {"auto", "cholmod", "splu"}
-        As :attr:`hybridpgo.solvers.config.GaussNewtonConfig.linear_solver`.
+        "auto": the block Cholesky factor and selected inversion (every pose for about the
+        price of two factorizations); "cholmod" or "splu": that library's factorization and
+        one triangular solve per requested pose (an independent route, for checks).
 
     Returns
     -------
@@ -84,36 +79,35 @@ def marginal_covariances(graph: PoseGraph, rotations: FloatArray | None,
         H is singular to rounding (a pose not determined by its constraints) or the
         linearization is not finite.
     """
-    sel = np.asarray(nodes)
+    sel = np.arange(graph.num_nodes) if nodes is None else np.asarray(nodes)
     if sel.ndim != 1 or not (sel.size == 0 or np.issubdtype(sel.dtype, np.integer)):
         raise ValueError(f"nodes must be a 1-D array of dense node indices, got {nodes!r}")
     sel = sel.astype(np.int64)
     if sel.size and (sel.min() < 0 or sel.max() >= graph.num_nodes):
         raise ValueError(f"node indices must lie in 0..{graph.num_nodes - 1}, got "
                          f"{int(sel.min())}..{int(sel.max())}")
-    rot, trans = _initial_poses(graph, rotations, translations)
-    fixed = default_fixed_nodes(graph)
-    _check_gauge(graph, fixed)
-    pat = _analyze(graph, fixed, reorder=True)
+    solver = ExactSolver(graph, GaussNewtonConfig(
+        linear_solver=linear_solver))  # type: ignore[arg-type]  # checked there
     out = np.zeros((sel.shape[0], 6, 6))
-    var = pat.var_of_node[sel]
+    var = solver.pattern.var_of_node[sel]
     free = var >= 0
-    if not free.any():
+    if solver.pattern.num_vars == 0:
         return out
-    data = np.empty(pat.nnz)
-    grad = np.empty(pat.dim)
-    _assemble(graph, pat, rot, trans, data, grad)
-    factorizer = _make_factorizer(_full_system(pat), linear_solver)
-    factorizer.factor(data)
-    factorizer.check()
-    index = 6 * var[free][:, None] + np.arange(6, dtype=np.int64)[None, :]
-    out[free] = factorizer.inverse_blocks(index)
+    if linear_solver == "auto":
+        block = solver.factor(rotations, translations, block=True)
+        out[free] = block.inverse_diagonal_blocks(overwrite=True)[var[free]]
+        return out
+    factorizer = solver.factor(rotations, translations)
+    if free.any():
+        index = 6 * var[free][:, None] + np.arange(6, dtype=np.int64)[None, :]
+        out[free] = factorizer.inverse_blocks(index)
     return out
 
 
 def save_covariances(path: str | os.PathLike[str], ids: npt.ArrayLike,
                      covariances: npt.ArrayLike, *, fixed_ids: npt.ArrayLike = ()) -> None:
-    """Write covariances as an ``.npz`` archive, atomically (temporary file, then rename).
+    """Write covariances as an ``.npz`` archive (the output rules of :mod:`hybridpgo._output`:
+    a temporary file renamed into place, symbolic links written through).
 
     The archive holds ``ids`` (k,) int64 file ids of the poses; ``cov`` (k, 6, 6) float64, the
     covariance of ``delta`` in ``X Exp(delta)`` in tangent order ``tangent`` (``TANGENT_LABELS``:
@@ -139,34 +133,4 @@ def save_covariances(path: str | os.PathLike[str], ids: npt.ArrayLike,
     def dump(fh: IO[bytes]) -> None:
         np.savez(fh, ids=ids_arr, cov=cov, tangent=np.array(TANGENT_LABELS), fixed_ids=fixed)
 
-    target = os.path.realpath(name)  # a symbolic link is written through, as the graph writers
-    try:
-        mode: int | None = os.stat(target).st_mode
-    except FileNotFoundError:
-        mode = None
-    except OSError as exc:
-        raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
-    try:
-        if mode is not None and (stat.S_ISFIFO(mode) or stat.S_ISCHR(mode)):
-            with open(target, "wb") as fh:  # a pipe or /dev/null: cannot be replaced
-                dump(fh)
-            return
-        if mode is not None and not stat.S_ISREG(mode):
-            raise FormatError("cannot write the file: not a regular file, FIFO or device", name)
-    except OSError as exc:
-        raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
-    tmp = ""
-    try:
-        fd, tmp = tempfile.mkstemp(dir=os.path.dirname(target) or ".", prefix=".hybridpgo-",
-                                   suffix=".npz")
-        with os.fdopen(fd, "wb") as fh:
-            dump(fh)
-        os.chmod(tmp, stat.S_IMODE(mode) if mode is not None else 0o666 & ~_UMASK)
-        os.replace(tmp, target)
-        tmp = ""
-    except OSError as exc:
-        raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
-    finally:
-        if tmp:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
+    write_file(name, dump)

@@ -73,7 +73,8 @@ def _resolve_poses(graph: PoseGraph, rotations: FloatArray | None,
     if rotations is None or translations is None:
         if graph.has_estimates:
             return graph.rotations, graph.translations
-        from .tree import build_tree, global_poses, initial_locals
+        from .initialization import initial_locals
+        from .tree import build_tree, global_poses
 
         tree = build_tree(graph, "bfs")
         return global_poses(tree, *initial_locals(graph, tree, "tree"))

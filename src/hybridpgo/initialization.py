@@ -16,12 +16,15 @@ rotation block's diagonal of the information; ``W_c`` is ``R_a Omega_tt R_a^T``.
 
 from __future__ import annotations
 
+import enum
+
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
 from .errors import GraphError, SolverError
 from .graph import FloatArray, PoseGraph
+from .tree import LINK_EDGE, LINK_GPS, PoseTree, locals_from_globals
 
 
 def _project_to_so3(m: FloatArray) -> FloatArray:
@@ -43,7 +46,7 @@ def _solve_blocks(n: int, diag: FloatArray, ea: npt.NDArray[np.int64],
     side.  Only the lower triangle is built, straight in a fill-reducing (AMD, pose graph)
     order, and factored once for the k right-hand sides (CHOLMOD, else SuperLU).
     """
-    from .solvers._linear import _CscPattern, _fill_reducing_order, _make_factorizer
+    from .linalg import CscPattern, fill_reducing_order, make_factorizer
 
     k = rhs.shape[2]
     rhs = rhs.copy()
@@ -64,7 +67,7 @@ def _solve_blocks(n: int, diag: FloatArray, ea: npt.NDArray[np.int64],
     va, vb, off = va[both], vb[both], off[both]
     lo, hi = np.minimum(va, vb), np.maximum(va, vb)
     pairs = np.unique(lo * max(nf, 1) + hi)
-    new = _fill_reducing_order(nf, pairs % max(nf, 1), pairs // max(nf, 1))
+    new = fill_reducing_order(nf, pairs % max(nf, 1), pairs // max(nf, 1))
     del pairs, lo, hi
     pa, pb = new[va], new[vb]
     q3 = np.arange(3)
@@ -90,7 +93,7 @@ def _solve_blocks(n: int, diag: FloatArray, ea: npt.NDArray[np.int64],
     b = np.empty((dim, k))
     b.reshape(nf, 3, k)[new[var[keep]]] = rhs[keep]
     try:
-        x = _make_factorizer(_CscPattern(low), "auto").solve(
+        x = make_factorizer(CscPattern(low), "auto").solve(
             np.asarray(low.data, np.float64), b, check=True)
     except SolverError as exc:
         raise RuntimeError(str(exc)) from exc
@@ -195,7 +198,7 @@ class PlanarRelaxation:
     """
 
     def __init__(self, graph: PoseGraph) -> None:
-        from .solvers._linear import _CscPattern, _fill_reducing_order, _make_factorizer
+        from .linalg import CscPattern, fill_reducing_order, make_factorizer
 
         n = graph.num_nodes
         self.n = n
@@ -229,7 +232,7 @@ class PlanarRelaxation:
         d = sp.csc_matrix(m[keep][:, keep].real)
         # D in a fill-reducing order, lower triangle, for the package's factorizer
         coo = sp.triu(d, k=1).tocoo()
-        self._order = _fill_reducing_order(n - 1, coo.row.astype(np.int64),
+        self._order = fill_reducing_order(n - 1, coo.row.astype(np.int64),
                                            coo.col.astype(np.int64))
         inv = np.empty(n - 1, np.int64)
         inv[self._order] = np.arange(n - 1)
@@ -237,7 +240,7 @@ class PlanarRelaxation:
         low = sp.csc_matrix(sp.tril(perm))
         low.sort_indices()
         self._inv = inv
-        self._solver = _make_factorizer(_CscPattern(low), "auto")
+        self._solver = make_factorizer(CscPattern(low), "auto")
         self._solver.factor(np.asarray(low.data, np.float64))
 
     def _dsolve(self, rhs: ComplexArray) -> ComplexArray:
@@ -378,3 +381,75 @@ def planar_relaxation_start(graph: PoseGraph, rotations: FloatArray, translation
             "iterations": float(its), "max_angle": float(angle.max()),
             "second_singular_value": float(s[1] / s[0]) if s.size > 1 and s[0] > 0 else 0.0}
     return rot, trans, info
+
+
+# --------------------------------------------------------------------------- tree starts
+class InitKind(enum.Enum):
+    """Where the initial local transforms of the tree parametrization come from."""
+
+    TREE = "tree"
+    """Concatenate the tree edges' measurements down from the root (paper III-A)."""
+    FILE = "file"
+    """The file's vertex estimates, ``T_i = X_parent^-1 X_i``."""
+    CHORDAL = "chordal"
+    """Chordal relaxation of the rotations, then linear translations (robust to rotation noise)."""
+
+
+def initial_locals(
+    graph: PoseGraph, tree: PoseTree, init: InitKind | str = InitKind.TREE
+) -> tuple[FloatArray, FloatArray]:
+    """Initial local transforms ``(rot (T,3,3), trans (T,3))`` of every tree node.
+
+    ``init="tree"`` concatenates tree-edge measurements (a GPS link gives the child its measured
+    position and its rotation from the file, or the identity when the file has no vertices);
+    ``init="file"`` uses the file's vertex estimates; ``init="chordal"`` the chordal relaxation
+    (:func:`chordal_initialization`).  The root keeps its file pose (the gauge);
+    the earth is the identity.
+    """
+    init = InitKind(init)
+    if init is InitKind.FILE and not graph.has_estimates:
+        raise GraphError(
+            "init='file' needs vertex estimates, but the file has none "
+            "(iSAM files list only constraints): use init='tree'"
+        )
+    t_nodes = tree.num_tree_nodes
+    rot = np.zeros((t_nodes, 3, 3))
+    trans = np.zeros((t_nodes, 3))
+    rot[:] = np.eye(3)
+    n = graph.num_nodes
+    if init in (InitKind.FILE, InitKind.CHORDAL):
+        if init is InitKind.CHORDAL:
+            grot0, gtr0 = chordal_initialization(graph, None if tree.has_earth else tree.root)
+        else:
+            grot0, gtr0 = graph.rotations, graph.translations
+        grot = (
+            np.concatenate([grot0, np.eye(3)[None]])
+            if tree.has_earth
+            else np.ascontiguousarray(grot0)
+        )
+        gtr = (
+            np.concatenate([gtr0, np.zeros((1, 3))])
+            if tree.has_earth
+            else np.ascontiguousarray(gtr0)
+        )
+        locals_from_globals(tree.parent, grot, gtr, rot, trans)
+        return rot, trans
+    kind = tree.link_kind
+    idx = tree.link_index
+    e = kind == LINK_EDGE
+    ei = idx[e]
+    fwd = tree.link_forward[e]
+    zr = graph.edge_rotations[ei]
+    zt = graph.edge_translations[ei]
+    # forward link (parent, child): T = Z; reversed (child, parent): T = Z^-1
+    rot[e] = np.where(fwd[:, None, None], zr, np.swapaxes(zr, 1, 2))
+    inv_t = -np.einsum("kji,kj->ki", zr, zt)
+    trans[e] = np.where(fwd[:, None], zt, inv_t)
+    gl = kind == LINK_GPS
+    trans[gl] = graph.gps_positions[idx[gl]]
+    if graph.has_estimates:
+        rot[gl] = graph.rotations[np.nonzero(gl)[0]]
+    if not tree.has_earth and tree.root < n:
+        rot[tree.root] = graph.rotations[tree.root]
+        trans[tree.root] = graph.translations[tree.root]
+    return rot, trans

@@ -25,13 +25,13 @@ NaN-separated lines, a few per colour level, so a 40 000-pose graph draws in a f
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .errors import HybridPGOError
+from ._output import Outputs
+from .errors import FormatError, HybridPGOError
 from .graph import FloatArray, PoseGraph
 
 if TYPE_CHECKING:
@@ -127,7 +127,8 @@ def _poses(graph: PoseGraph, rot: FloatArray | None,
         return rot, trans
     if graph.has_estimates:
         return graph.rotations, graph.translations
-    from .tree import build_tree, global_poses, initial_locals
+    from .initialization import initial_locals
+    from .tree import build_tree, global_poses
 
     tree = build_tree(graph, "bfs")
     return global_poses(tree, *initial_locals(graph, tree, "tree"))
@@ -536,20 +537,15 @@ def energy_figure(results: Mapping[str, SolveResult], *, title: str | None = Non
     return fig  # type: ignore[return-value]
 
 
-def _umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
 #: Largest resolution :func:`save_figure` renders: a 2x2-panel figure (13 x 12 in) at 600 dpi
 #: is ~7800 x 7200 pixels, ~225 MB of RGBA (``plot --dpi 100000`` ran out of memory).
 MAX_DPI = 600
 
 
 def save_figure(fig: Figure, path: str | os.PathLike[str], *, dpi: int = 150) -> None:
-    """Write ``fig`` to ``path`` atomically (temporary file in the same directory, then
-    ``os.replace``); the format comes from the extension (``.png`` when there is none).
+    """Write ``fig`` to ``path`` under the output rules of :mod:`hybridpgo._output` (a temporary
+    file renamed into place, symbolic links written through, FIFOs written into); the format
+    comes from the extension (``.png`` when there is none).
 
     Raises
     ------
@@ -566,22 +562,11 @@ def save_figure(fig: Figure, path: str | os.PathLike[str], *, dpi: int = 150) ->
     if ext not in supported:
         raise HybridPGOError(f"{name}: cannot write a figure as .{ext}; supported: "
                              + ", ".join(sorted(supported)))
-    directory = os.path.dirname(os.path.abspath(name))
     try:
-        fd, tmp = tempfile.mkstemp(dir=directory, prefix=".tmp-", suffix="." + ext)
-    except OSError as exc:
-        raise HybridPGOError(f"{name}: cannot write the figure: {exc.strerror or exc}") from exc
-    os.close(fd)
-    try:
-        fig.savefig(tmp, format=ext, dpi=dpi)
-        os.chmod(tmp, 0o666 & ~_umask())  # what open() would give; mkstemp uses 0o600
-        os.replace(tmp, name)
-    except BaseException as exc:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        if isinstance(exc, OSError):
-            raise HybridPGOError(f"{name}: cannot write the figure: "
-                                 f"{exc.strerror or exc}") from exc
-        raise
+        with Outputs([name]) as out:
+            fig.savefig(out.temp(name), format=ext, dpi=dpi)
+            out.commit()
+    except (FormatError, OSError) as exc:
+        why = (exc.problem.removeprefix("cannot write the file: ") if isinstance(exc, FormatError)
+               else exc.strerror or str(exc))
+        raise HybridPGOError(f"{name}: cannot write the figure: {why}") from exc

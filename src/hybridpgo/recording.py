@@ -25,18 +25,15 @@ from __future__ import annotations
 
 import contextlib
 import os
-import shutil
-import stat
-import tempfile
 from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
+from ._output import Outputs
 from .energy import constraint_energies
-from .errors import HybridPGOError
+from .errors import FormatError, HybridPGOError
 from .graph import FloatArray, PoseGraph
-from .io._lines import _UMASK
 
 if TYPE_CHECKING:
     from .solvers.config import Progress
@@ -114,13 +111,13 @@ class RerunRecorder:
         self.path = os.fspath(path)
         self.frames = 0
         """Iterations logged so far."""
-        target = os.path.realpath(self.path)
-        fd, self._tmp = tempfile.mkstemp(dir=os.path.dirname(target) or ".",
-                                         prefix=".hybridpgo-", suffix=".rrd")
-        os.close(fd)
-        self._target = target
+        try:
+            self._out: Outputs | None = Outputs([self.path])
+        except FormatError as exc:
+            raise HybridPGOError(f"{self.path}: cannot write the recording: "
+                                 f"{exc.problem}") from exc
         self._rec = rr.RecordingStream("hybridpgo")
-        self._rec.save(self._tmp)
+        self._rec.save(self._out.temp(self.path))
         self._rec.send_recording_name(name or os.path.basename(self.path))
         self._traj = _trajectory_edges(graph)
 
@@ -190,30 +187,20 @@ class RerunRecorder:
         """Finish the file and move it into place (a FIFO or device is written into)."""
         self._rec.flush()
         self._rec.disconnect()
+        if self._out is None:
+            return
         try:
-            try:
-                mode: int | None = os.stat(self._target).st_mode
-            except FileNotFoundError:
-                mode = None
-            if mode is not None and (stat.S_ISFIFO(mode) or stat.S_ISCHR(mode)):
-                with open(self._tmp, "rb") as src, open(self._target, "wb") as dst:
-                    shutil.copyfileobj(src, dst)
-                os.unlink(self._tmp)
-            else:
-                os.chmod(self._tmp, stat.S_IMODE(mode) if mode is not None
-                         else 0o666 & ~_UMASK)
-                os.replace(self._tmp, self._target)
-        except OSError as exc:
-            self.abort()
+            self._out.commit()
+        except FormatError as exc:
             raise HybridPGOError(f"{self.path}: cannot write the recording: "
-                                 f"{exc.strerror or exc}") from exc
-        self._tmp = ""
+                                 f"{exc.problem}") from exc
+        finally:
+            self._out = None
 
     def abort(self) -> None:
         """Stop recording and remove the temporary file (nothing is written)."""
         with contextlib.suppress(Exception):
             self._rec.disconnect()
-        if self._tmp:
-            with contextlib.suppress(OSError):
-                os.unlink(self._tmp)
-            self._tmp = ""
+        if self._out is not None:
+            self._out.discard()
+            self._out = None

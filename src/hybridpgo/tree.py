@@ -17,13 +17,13 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 
+from . import _tree_kernels as tk
 from ._numba import kernel
 from .errors import GraphError
 from .graph import FloatArray, PoseGraph
@@ -45,17 +45,10 @@ class TreeKind(enum.Enum):
     """Breadth-first from the earth through every GPS reading (each GPS pose a child of the
     earth, the rest reached by relative edges): GPS domains of one node and shallow
     subtrees, so far fewer per-path blocks than one anchor per part (experimental)."""
-
-
-class InitKind(enum.Enum):
-    """Where the initial local transforms come from."""
-
-    TREE = "tree"
-    """Concatenate the tree edges' measurements down from the root (paper III-A)."""
-    FILE = "file"
-    """The file's vertex estimates, ``T_i = X_parent^-1 X_i``."""
-    CHORDAL = "chordal"
-    """Chordal relaxation of the rotations, then linear translations (robust to rotation noise)."""
+    TORO = "toro"
+    """TORO's tree: nodes visited by increasing index from the root, each taking as parent its
+    smallest-index visited neighbour; with GPS readings, a pose hangs from the earth (whose
+    index is the largest) only where no pose reaches it first."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -193,6 +186,8 @@ def build_tree(graph: PoseGraph, kind: TreeKind | str = TreeKind.BFS) -> PoseTre
         ea, eb = ta, tb
         anchor_gps = np.zeros(0, np.int64)
 
+    if kind is TreeKind.TORO:
+        return _toro_tree(graph, root)
     adj = sp.coo_matrix((np.ones(ea.shape[0]), (ea, eb)), shape=(t_nodes, t_nodes)).tocsr()
     order, pred = breadth_first_order(adj, root, directed=False, return_predecessors=True)
     if order.shape[0] != t_nodes:
@@ -200,6 +195,74 @@ def build_tree(graph: PoseGraph, kind: TreeKind | str = TreeKind.BFS) -> PoseTre
         raise GraphError("the graph is not connected")  # pragma: no cover - check_connected raises
     parent = pred.astype(np.int32)
     parent[root] = -1
+    return tree_from_parents(graph, parent, root, order=order.astype(np.int32),
+                             stiffest=kind is TreeKind.MST)
+
+
+def _toro_tree(graph: PoseGraph, root: int) -> PoseTree:
+    """TORO's tree (:data:`TreeKind.TORO`): visit nodes by increasing index from the root, each
+    taking as parent its smallest-index visited neighbour; GPS readings are edges to the
+    earth, whose index is the largest."""
+    from ._tree_kernels import smallest_id_tree
+
+    n, g = graph.num_nodes, graph.num_gps
+    t_nodes = n + int(g > 0)
+    a = np.concatenate([graph.edge_nodes[:, 0].astype(np.int64), np.full(g, n, np.int64)])
+    b = np.concatenate([graph.edge_nodes[:, 1].astype(np.int64),
+                        graph.gps_nodes.astype(np.int64)])
+    src = np.concatenate([a, b])
+    dst = np.concatenate([b, a])
+    srt = np.lexsort((dst, src))  # CSR adjacency, neighbours sorted
+    indptr = np.zeros(t_nodes + 1, np.int64)
+    np.cumsum(np.bincount(src, minlength=t_nodes), out=indptr[1:])
+    parent = np.empty(t_nodes, np.int32)
+    order = np.empty(t_nodes, np.int32)
+    visited = smallest_id_tree(indptr, np.ascontiguousarray(dst[srt]), root, parent, order)
+    if visited != t_nodes:
+        graph.check_connected()
+        raise GraphError("the graph is not connected")  # pragma: no cover
+    return tree_from_parents(graph, parent, root, order=order)
+
+
+def tree_from_parents(graph: PoseGraph, parent: npt.ArrayLike, root: int, *,
+                      order: npt.ArrayLike | None = None, stiffest: bool = False) -> PoseTree:
+    """The :class:`PoseTree` of ``graph`` with the given parent of every tree node.
+
+    Parameters
+    ----------
+    graph : PoseGraph
+    parent : (T,) int
+        Parent of each tree node (T = N, or N + 1 with the earth ``N`` when the graph has GPS
+        readings), -1 at ``root``.  Every child of the earth must have a GPS reading, every
+        other parent link must be a relative edge of the graph.
+    root : int
+    order : (T,) int, optional
+        The nodes with every parent before its children (default: by depth).
+    stiffest : bool
+        A node linked to its parent by parallel edges uses the stiffest (largest information
+        trace) as its link; by default the first in file order.  A GPS link is the node's first
+        reading in file order.
+
+    Raises
+    ------
+    GraphError
+        A parent link that is not a constraint of the graph.
+    """
+    n, m, g = graph.num_nodes, graph.num_edges, graph.num_gps
+    has_earth = g > 0
+    t_nodes = n + int(has_earth)
+    parent = np.ascontiguousarray(parent, np.int32)
+    if parent.shape != (t_nodes,):
+        raise ValueError(f"parent must have shape ({t_nodes},), got {parent.shape}")
+    a = graph.edge_nodes[:, 0].astype(np.int64)
+    b = graph.edge_nodes[:, 1].astype(np.int64)
+    depth = np.zeros(t_nodes, np.int32)
+    if order is None:
+        _depths_unordered(parent, depth)
+        order = np.argsort(depth, kind="stable").astype(np.int32)
+    else:
+        order = np.ascontiguousarray(order, np.int32)
+        tk.depths(order, parent, depth)
 
     # --- which constraint links each node to its parent
     link_kind = np.zeros(t_nodes, np.int8)
@@ -209,42 +272,42 @@ def build_tree(graph: PoseGraph, kind: TreeKind | str = TreeKind.BFS) -> PoseTre
     if has_earth:
         gps_child = child[parent[child] == n]
         child = child[parent[child] != n]
+        first = np.full(n, -1, np.int64)
+        first[graph.gps_nodes[::-1]] = np.arange(g - 1, -1, -1)
+        if np.any(first[gps_child] < 0):
+            raise GraphError("a pose hangs from the earth without a GPS reading")
         link_kind[gps_child] = LINK_GPS
-        if kind is TreeKind.GPS:
-            link_index[gps_child] = first_gps[gps_child]
-        else:
-            link_index[gps_child] = anchor_gps[comp[gps_child]]
+        link_index[gps_child] = first[gps_child]
         link_forward[gps_child] = True
     if child.size:
         key_e = np.minimum(a, b) * t_nodes + np.maximum(a, b)
-        if kind is TreeKind.MST:  # the stiffest of parallel edges
+        if stiffest:  # the stiffest of parallel edges
             srt = np.lexsort((-_stiffness(graph.edge_information), key_e))
         else:  # the first in file order
             srt = np.argsort(key_e, kind="stable")
         p = parent[child].astype(np.int64)
         key_c = np.minimum(p, child) * t_nodes + np.maximum(p, child)
-        pos = np.searchsorted(key_e[srt], key_c)
-        e_idx = srt[pos]
-        assert np.all(key_e[e_idx] == key_c)
+        pos = np.minimum(np.searchsorted(key_e[srt], key_c), max(m - 1, 0))
+        e_idx = srt[pos] if m else np.zeros(0, np.int64)
+        if not m or not np.all(key_e[e_idx] == key_c):
+            raise GraphError("a parent link is not a relative edge of the graph")
         link_kind[child] = LINK_EDGE
         link_index[child] = e_idx
         link_forward[child] = a[e_idx] == p
 
-    depth = np.zeros(t_nodes, np.int32)
-    _depths(order.astype(np.int32), parent, depth)
-
-    c_nodes = np.empty((m + g, 2), np.int32)
-    c_nodes[:m] = graph.edge_nodes
-    c_nodes[m:, 0] = n
-    c_nodes[m:, 1] = graph.gps_nodes
+    # --- the constraint paths (relative edges, then GPS readings from the earth)
+    ends = np.empty((m + g, 2), np.int32)
+    ends[:m] = graph.edge_nodes
+    ends[m:, 0] = n
+    ends[m:, 1] = graph.gps_nodes
     lengths = np.zeros(m + g, np.int64)
     croot = np.zeros(m + g, np.int32)
-    _path_lengths(c_nodes, parent, depth, lengths, croot)
+    tk.path_lengths(ends, parent, depth, lengths, croot)
     ptr = np.zeros(m + g + 1, np.int64)
     np.cumsum(lengths, out=ptr[1:])
     path_node = np.empty(ptr[-1], np.int32)
     path_sign = np.empty(ptr[-1], np.int8)
-    _fill_paths(c_nodes, parent, depth, ptr, path_node, path_sign)
+    tk.fill_paths(ends, parent, croot, ptr[:-1], path_node, path_sign)
     sweep = np.argsort(depth[croot], kind="stable").astype(np.int32)
 
     arrays = dict(
@@ -253,7 +316,7 @@ def build_tree(graph: PoseGraph, kind: TreeKind | str = TreeKind.BFS) -> PoseTre
         link_index=link_index,
         link_forward=link_forward,
         depth=depth,
-        order=order.astype(np.int32),
+        order=order,
         path_ptr=ptr,
         path_node=path_node,
         path_sign=path_sign,
@@ -295,163 +358,25 @@ def _eccentricity_bound(
 
 
 @kernel
-def _depths(order: np.ndarray, parent: np.ndarray, depth: np.ndarray) -> None:
-    for k in range(order.shape[0]):
-        i = order[k]
-        depth[i] = 0 if parent[i] < 0 else depth[parent[i]] + 1
-
-
-@kernel
-def _path_lengths(
-    c_nodes: np.ndarray,
-    parent: np.ndarray,
-    depth: np.ndarray,
-    lengths: np.ndarray,
-    croot: np.ndarray,
-) -> None:
-    for c in range(c_nodes.shape[0]):
-        u = c_nodes[c, 0]
-        v = c_nodes[c, 1]
-        count = 0
-        while depth[u] > depth[v]:
-            u = parent[u]
-            count += 1
-        while depth[v] > depth[u]:
-            v = parent[v]
-            count += 1
-        while u != v:
-            u = parent[u]
-            v = parent[v]
-            count += 2
-        lengths[c] = count
-        croot[c] = u
-
-
-@kernel
-def _fill_paths(
-    c_nodes: np.ndarray,
-    parent: np.ndarray,
-    depth: np.ndarray,
-    ptr: np.ndarray,
-    path_node: np.ndarray,
-    path_sign: np.ndarray,
-) -> None:
-    for c in range(c_nodes.shape[0]):
-        a = c_nodes[c, 0]
-        b = c_nodes[c, 1]
-        # find the root first
-        u, v = a, b
-        while depth[u] > depth[v]:
-            u = parent[u]
-        while depth[v] > depth[u]:
-            v = parent[v]
-        while u != v:
-            u = parent[u]
-            v = parent[v]
-        r = u
-        k = ptr[c]
-        u = a
-        while u != r:
-            path_node[k] = u
-            path_sign[k] = -1
+def _depths_unordered(parent: np.ndarray, depth: np.ndarray) -> None:
+    """Depth of every node from the parent array alone (each walk stops at a known depth)."""
+    known = np.zeros(parent.shape[0], np.bool_)
+    stack = np.empty(parent.shape[0], np.int64)
+    for i in range(parent.shape[0]):
+        k = 0
+        u = i
+        while u >= 0 and not known[u]:
+            stack[k] = u
             k += 1
             u = parent[u]
-        v = b
-        while v != r:
-            path_node[k] = v
-            path_sign[k] = 1
-            k += 1
-            v = parent[v]
+        d = -1 if u < 0 else depth[u]
+        for j in range(k - 1, -1, -1):
+            d += 1
+            depth[stack[j]] = d
+            known[stack[j]] = True
 
 
 # --------------------------------------------------------------------------- poses <-> locals
-def initial_locals(
-    graph: PoseGraph, tree: PoseTree, init: InitKind | str = InitKind.TREE
-) -> tuple[FloatArray, FloatArray]:
-    """Initial local transforms ``(rot (T,3,3), trans (T,3))`` of every tree node.
-
-    ``init="tree"`` concatenates tree-edge measurements (a GPS link gives the child its measured
-    position and its rotation from the file, or the identity when the file has no vertices);
-    ``init="file"`` uses the file's vertex estimates; ``init="chordal"`` the chordal relaxation
-    (:mod:`hybridpgo.initialization`).  The root keeps its file pose (the gauge);
-    the earth is the identity.
-    """
-    init = InitKind(init)
-    if init is InitKind.FILE and not graph.has_estimates:
-        raise GraphError(
-            "init='file' needs vertex estimates, but the file has none "
-            "(iSAM files list only constraints): use init='tree'"
-        )
-    t_nodes = tree.num_tree_nodes
-    rot = np.zeros((t_nodes, 3, 3))
-    trans = np.zeros((t_nodes, 3))
-    rot[:] = np.eye(3)
-    n = graph.num_nodes
-    if init in (InitKind.FILE, InitKind.CHORDAL):
-        if init is InitKind.CHORDAL:
-            from .initialization import chordal_initialization
-
-            grot0, gtr0 = chordal_initialization(graph, None if tree.has_earth else tree.root)
-        else:
-            grot0, gtr0 = graph.rotations, graph.translations
-        grot = (
-            np.concatenate([grot0, np.eye(3)[None]])
-            if tree.has_earth
-            else np.ascontiguousarray(grot0)
-        )
-        gtr = (
-            np.concatenate([gtr0, np.zeros((1, 3))])
-            if tree.has_earth
-            else np.ascontiguousarray(gtr0)
-        )
-        locals_from_globals(tree.parent, grot, gtr, rot, trans)
-        return rot, trans
-    kind = tree.link_kind
-    idx = tree.link_index
-    e = kind == LINK_EDGE
-    ei = idx[e]
-    fwd = tree.link_forward[e]
-    zr = graph.edge_rotations[ei]
-    zt = graph.edge_translations[ei]
-    # forward link (parent, child): T = Z; reversed (child, parent): T = Z^-1
-    rot[e] = np.where(fwd[:, None, None], zr, np.swapaxes(zr, 1, 2))
-    inv_t = -np.einsum("kji,kj->ki", zr, zt)
-    trans[e] = np.where(fwd[:, None], zt, inv_t)
-    gl = kind == LINK_GPS
-    trans[gl] = graph.gps_positions[idx[gl]]
-    if graph.has_estimates:
-        rot[gl] = graph.rotations[np.nonzero(gl)[0]]
-    if not tree.has_earth and tree.root < n:
-        rot[tree.root] = graph.rotations[tree.root]
-        trans[tree.root] = graph.translations[tree.root]
-    return rot, trans
-
-
-def _make_fma() -> Any:
-    """``fma(a, b, c)`` = ``a * b + c`` rounded once (``llvm.fma.f64``) inside kernels."""
-    from llvmlite import ir
-    from numba import types
-    from numba.core import cgutils
-    from numba.extending import intrinsic
-
-    @intrinsic
-    def fma(typingctx: Any, a: Any, b: Any, c: Any) -> Any:
-        sig = types.float64(types.float64, types.float64, types.float64)
-
-        def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-            dbl = ir.DoubleType()
-            fn = cgutils.get_or_insert_function(  # type: ignore[no-untyped-call]
-                builder.module, ir.FunctionType(dbl, [dbl, dbl, dbl]), "llvm.fma.f64")
-            return builder.call(fn, args)
-
-        return sig, codegen
-
-    return fma
-
-
-_fma = _make_fma()
-
-
 def locals_from_globals(parent: np.ndarray, grot: np.ndarray, gtr: np.ndarray,
                         rot: np.ndarray, trans: np.ndarray) -> None:
     """Local transforms ``T_i = G_parent^-1 G_i`` (``rot``, ``trans``: written) of global poses
@@ -460,67 +385,7 @@ def locals_from_globals(parent: np.ndarray, grot: np.ndarray, gtr: np.ndarray,
     ro_rot = np.ascontiguousarray(grot).view()
     ro_tr = np.ascontiguousarray(gtr).view()
     ro_rot.flags.writeable = ro_tr.flags.writeable = False
-    _locals_from_globals(np.ascontiguousarray(parent, np.int32), ro_rot, ro_tr, rot, trans)
-
-
-@kernel
-def _locals_from_globals(
-    parent: np.ndarray, grot: np.ndarray, gtr: np.ndarray, rot: np.ndarray, trans: np.ndarray
-) -> None:
-    """:func:`locals_from_globals` in scalar code: ``G_p^T G_i`` and ``G_p^T (g_i - g_p)`` with
-    the roundings of the ``@`` products this replaced (OpenBLAS's 3x3 kernels: fused
-    multiply-adds in this order), so the starts stay bit-identical; ``@`` pulled Numba's dot
-    machinery into the kernel (~5 s of compilation per signature)."""
-    for i in range(parent.shape[0]):
-        p = parent[i]
-        if p < 0:
-            for a in range(3):
-                trans[i, a] = gtr[i, a]
-                for b in range(3):
-                    rot[i, a, b] = grot[i, a, b]
-            continue
-        d0 = gtr[i, 0] - gtr[p, 0]
-        d1 = gtr[i, 1] - gtr[p, 1]
-        d2 = gtr[i, 2] - gtr[p, 2]
-        for a in range(3):
-            for b in range(3):
-                rot[i, a, b] = _fma(grot[p, 2, a], grot[i, 2, b],
-                                    _fma(grot[p, 1, a], grot[i, 1, b],
-                                         grot[p, 0, a] * grot[i, 0, b]))
-            trans[i, a] = _fma(grot[p, 2, a], d2, _fma(grot[p, 1, a], d1, grot[p, 0, a] * d0))
-
-
-@kernel
-def _globals_from_locals(
-    order: np.ndarray,
-    parent: np.ndarray,
-    rot: np.ndarray,
-    trans: np.ndarray,
-    grot: np.ndarray,
-    gtr: np.ndarray,
-) -> None:
-    """``G_i = G_parent T_i`` down the tree, in scalar code (a BLAS call and two temporary
-    arrays per node cost ~1 us: 1.2 s per call at 1M poses).  The sums are rounded as the
-    ``@`` products this replaced (OpenBLAS's 3x3 dgemm and dgemv kernels, fused multiply-adds
-    in this order), so the poses, and every energy and test computed from them, stay
-    bit-identical to those of ``G_p @ R_i`` and ``G_p @ t_i + g_p``."""
-    for k in range(order.shape[0]):
-        i = order[k]
-        p = parent[i]
-        if p < 0:
-            for a in range(3):
-                gtr[i, a] = trans[i, a]
-                for b in range(3):
-                    grot[i, a, b] = rot[i, a, b]
-            continue
-        for a in range(3):
-            for b in range(3):
-                grot[i, a, b] = _fma(grot[p, a, 2], rot[i, 2, b],
-                                     _fma(grot[p, a, 1], rot[i, 1, b],
-                                          grot[p, a, 0] * rot[i, 0, b]))
-            gtr[i, a] = _fma(grot[p, a, 2], trans[i, 2],
-                             _fma(grot[p, a, 0], trans[i, 0], grot[p, a, 1] * trans[i, 1])
-                             ) + gtr[p, a]
+    tk.locals_from_globals(np.ascontiguousarray(parent, np.int32), ro_rot, ro_tr, rot, trans)
 
 
 def global_poses(
@@ -530,6 +395,6 @@ def global_poses(
     t_nodes = tree.num_tree_nodes
     grot = np.empty((t_nodes, 3, 3))
     gtr = np.empty((t_nodes, 3))
-    _globals_from_locals(tree.order, tree.parent, rot, trans, grot, gtr)
+    tk.globals_from_locals(tree.order, tree.parent, rot, trans, grot, gtr)
     n = tree.num_poses
     return grot[:n].copy(), gtr[:n].copy()

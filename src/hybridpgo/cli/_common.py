@@ -8,14 +8,13 @@ import contextlib
 import contextvars
 import json
 import os
-import stat
 import sys
-import tempfile
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import IO, TYPE_CHECKING, Any
 
-from ..errors import HybridPGOError
+from .._output import check_output, same_file
+from ..errors import FormatError, HybridPGOError
 from ._progress import ProgressBar as ProgressBar
 from ._progress import phase as phase
 
@@ -148,11 +147,12 @@ def check_outputs(inputs: Sequence[str], outputs: Sequence[Output]) -> None:
 
     Refuses (:class:`HybridPGOError`, exit 2): an empty path; ``-`` where standard output is not
     allowed, or for two outputs; two ``-`` inputs (standard input can be read once); an output
-    that is an input (same file, also through a symlink or hard link: no command may destroy
-    an input); two outputs that are one file; an existing directory, socket or block device;
-    a directory that does not exist or where no file can be created (probed by creating and
-    removing a temporary file).  A FIFO or character device (``/dev/null``) is accepted and
-    written directly; a symbolic link is written through (its target is replaced).
+    that is an input (the same file: same device and inode, also through a symbolic or hard
+    link, or the file standard input reads with ``-``: no command may destroy an input); two
+    outputs that are one file; an existing directory, socket or block device; a directory that
+    does not exist or where no file can be created (probed by creating and removing the
+    temporary file the writer will create).  A FIFO or character device (``/dev/null``) is
+    accepted and written into; a symbolic link is written through (its target is replaced).
     """
     if sum(1 for p in inputs if p == STDIO) > 1:
         raise HybridPGOError("standard input ('-') can be read only once: give '-' for at most "
@@ -167,56 +167,44 @@ def check_outputs(inputs: Sequence[str], outputs: Sequence[Output]) -> None:
                              "output can go to standard output ('-')")
     files = [o for o in outputs if o.path not in STDOUT_NAMES]
     real_inputs = [p for p in inputs if p != STDIO]
+    stdin_id = _stdin_identity() if STDIO in inputs else None
     for k, o in enumerate(files):
         if o.path == "":
             raise HybridPGOError(f"{o.option}: the output path is empty")
         for inp in real_inputs:
-            if _same_file(o.path, inp):
+            if same_file(o.path, inp):
                 raise HybridPGOError(f"{o.path}: {o.option} is the input file {inp}; refusing to "
                                      "overwrite it (choose another output name)")
+        if stdin_id is not None and _identity(o.path) == stdin_id:
+            raise HybridPGOError(f"{o.path}: {o.option} is the file standard input reads ('-'); "
+                                 "refusing to overwrite it (choose another output name)")
         for other in files[:k]:
-            if _same_file(o.path, other.path):
+            if same_file(o.path, other.path):
                 raise HybridPGOError(f"{o.path}: would be written twice ({other.option} and "
                                      f"{o.option} name the same file)")
-        _check_writable(o)
+        try:
+            check_output(o.path)
+        except FormatError as exc:
+            why = exc.problem.removeprefix("cannot write the file: ")
+            raise HybridPGOError(f"{o.path}: cannot write {o.option}: {why}") from exc
 
 
-def _same_file(a: str, b: str) -> bool:
-    if os.path.realpath(a) == os.path.realpath(b):
-        return True
+def _identity(path: str) -> tuple[int, int] | None:
+    """(device, inode) of the file at ``path`` (through links), or None."""
     try:
-        return os.path.samefile(a, b)
+        st = os.stat(path)
     except OSError:
-        return False
+        return None
+    return st.st_dev, st.st_ino
 
 
-def _check_writable(o: Output) -> None:
+def _stdin_identity() -> tuple[int, int] | None:
+    """(device, inode) of the file standard input reads, or None (closed, no descriptor)."""
     try:
-        mode: int | None = os.stat(o.path).st_mode  # through symlinks, as the writers do
-    except FileNotFoundError:
-        mode = None
-    except OSError as exc:
-        raise HybridPGOError(f"{o.path}: cannot write: {exc.strerror or exc}") from exc
-    if mode is not None:
-        if stat.S_ISDIR(mode):
-            raise HybridPGOError(f"{o.path}: cannot write {o.option}: it is a directory")
-        if stat.S_ISFIFO(mode) or stat.S_ISCHR(mode):
-            return  # written directly (a pipe, /dev/null)
-        if not stat.S_ISREG(mode):
-            raise HybridPGOError(f"{o.path}: cannot write {o.option}: not a regular file, FIFO "
-                                 "or device")
-    target = os.path.realpath(o.path)  # a symlink's target is replaced, in its directory
-    directory = os.path.dirname(target) or "."
-    if not os.path.isdir(directory):
-        raise HybridPGOError(f"{o.path}: cannot write {o.option}: directory {directory} does "
-                             "not exist")
-    try:  # the real test: create (and remove) a file where the output's temporary file goes
-        fd, probe = tempfile.mkstemp(dir=directory, prefix=".hybridpgo-probe-")
-    except OSError as exc:
-        raise HybridPGOError(f"{o.path}: cannot write {o.option} in {directory}: "
-                             f"{exc.strerror or exc}") from exc
-    os.close(fd)
-    os.unlink(probe)
+        st = os.fstat(sys.stdin.fileno())
+    except (AttributeError, OSError, ValueError):
+        return None
+    return st.st_dev, st.st_ino
 
 
 def command_files(args: Any) -> tuple[list[str], list[Output]]:
@@ -294,7 +282,8 @@ def output_format(path: str, explicit: str | None, graph: PoseGraph, *,
 def tree_initial_poses(graph: PoseGraph, tree_kind: str = "bfs",
                        ) -> tuple[FloatArray, FloatArray]:
     """Global poses of the paper's tree initialization (concatenated tree-edge measurements)."""
-    from ..tree import build_tree, global_poses, initial_locals
+    from ..initialization import initial_locals
+    from ..tree import build_tree, global_poses
 
     tree = build_tree(graph, tree_kind)
     return global_poses(tree, *initial_locals(graph, tree, "tree"))

@@ -56,7 +56,7 @@ def _trees() -> list[str]:
 
 
 def _inits() -> list[str]:
-    from ..tree import InitKind
+    from ..initialization import InitKind
 
     return [k.value for k in InitKind]
 
@@ -119,12 +119,6 @@ _tau = _number(float, lambda v: 0 < v < MAX_TAU, f"a number in (0, {MAX_TAU:g})"
 #: parser light).  A 2x2-panel figure at 600 dpi is ~7800 x 7200 pixels (~225 MB to render).
 MAX_DPI = 600
 _dpi = _number(int, lambda v: 1 <= v <= MAX_DPI, f"an integer in 1..{MAX_DPI}")
-
-#: Largest graph whose every pose ``optimize --covariance`` computes by default; larger graphs
-#: need --covariance-poses.  Each pose costs one triangular solve with 6 right-hand sides, so
-#: all N grow faster than N: measured (CHOLMOD, a loaded 2-core machine) 24 s for all 3500
-#: poses of an M3500-like grid, 144 s for a 10 000-pose city, 1-1.5 s for 100 poses of either.
-COVARIANCE_ALL_MAX = 2000
 
 #: How outputs are written, for the help of every command that writes a file.
 OUTPUT_HELP = ("Outputs are checked before any work and written atomically (temporary file, then "
@@ -284,9 +278,9 @@ def build_parser() -> argparse.ArgumentParser:
                "--max-iterations limits the exact solver, or the "
                "polish with --polish.  --solver auto takes the hybrid options except --polish "
                "(it always polishes): --init is then the only start tried, --sweeps the most "
-               f"sweeps per start (default {au.max_sweeps}), --max-iterations and "
-               f"--tolerance limit each polish (default {au.polish_iterations} and "
-               f"{au.energy_tolerance:g}).  --solver toro (the TORO-style baseline) "
+               f"sweeps per start (default {au.sweeps.sweeps}), --max-iterations and "
+               f"--tolerance limit each polish (default {au.polish.max_iterations} and "
+               f"{au.polish.energy_tolerance:g}).  --solver toro (the TORO-style baseline) "
                "takes --sweeps (its iterations, default 100), --tolerance, --init tree|file "
                "and --tree toro|bfs.  " + OUTPUT_HELP)
     p.add_argument("file", help="pose-graph file (g2o, TORO or iSAM; '-': standard input)")
@@ -368,7 +362,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "radians; the right perturbation in the pose's frame), fixed_ids")
     p.add_argument("--covariance-poses", type=_pose_ids, metavar="IDS",
                    help="the poses of --covariance: 'all', or ids and ranges like 0,5,10..20 "
-                        f"(default: all when the graph has at most {COVARIANCE_ALL_MAX} poses)")
+                        "(default: all; every pose costs about two factorizations of the "
+                        "exact solver in total, by selected inversion of the factor)")
     p.add_argument("--rerun", metavar="RRD",
                    help="record the poses and residuals after every sweep and polish (or exact) "
                         "iteration to RRD, to scrub through in the Rerun viewer ('rerun RRD'; "
@@ -436,7 +431,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="output directory (default: hybridpgo-demo)")
     p.add_argument("--sweeps", type=_sweeps, metavar="N",
                    help="most hybrid sweeps from each start before the polish (default "
-                        f"{au.max_sweeps}; fewer when a sweep stops paying)")
+                        f"{au.sweeps.sweeps}; fewer when a sweep stops paying)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     _add_progress(p)
     _add_common(p)
@@ -618,6 +613,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_format(p)
     p.add_argument("--budget-ms", type=_pos_float, default=5.0, metavar="B",
                    help="time budget of one frame's update in milliseconds (default 5)")
+    p.add_argument("--rate", type=_pos_float, metavar="HZ",
+                   help="frames arrive at this rate (e.g. 10 for a lidar): the time between a "
+                        "frame's work and the next frame goes to the back end (default: back "
+                        "to back, the worst case)")
     p.add_argument("--every", type=_nonneg_int, default=500, metavar="K",
                    help="measure the accuracy every K frames and at the end (default 500; "
                         "0: only the latency, no batch optima)")
@@ -635,9 +634,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="local solve: relax the K newest relative constraints together in every "
                         "frame (default 0: off)")
     p.add_argument("--background-refine", action=argparse.BooleanOptionalAction,
-                   default=False,
+                   default=None,
                    help="run the exact whole-map solve over and over in a worker process and "
-                        "adopt each result in the next frame (default: off)")
+                        "adopt each result in the next frame (default: the library's, "
+                        "OnlineConfig.background_refine)")
     p.add_argument("--plot", metavar="PREFIX",
                    help="write PREFIX_latency.png and PREFIX_energy.png (needs matplotlib)")
     p.add_argument("--rerun", metavar="RRD",

@@ -22,7 +22,7 @@ import json
 import os
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
 
 from ..errors import HybridPGOError
@@ -93,19 +93,6 @@ def _value(text: str) -> Any:
     return text.strip()
 
 
-def _option_fields(method: str) -> list[str]:
-    from ..solvers import AutoConfig, GaussNewtonConfig, HybridConfig
-
-    if method == "auto":
-        return [f.name for f in fields(AutoConfig)]
-    if method == "hybrid":
-        return [f.name for f in fields(HybridConfig)]
-    # GaussNewtonConfig.method ("gn"/"lm") cannot pass through optimize(graph, method, **opts),
-    # whose own first parameter is called method
-    return [f.name for f in fields(GaussNewtonConfig) if f.name not in ("progress", "method")
-            ] + ["init", "tree"]
-
-
 def parse_grid(specs: Sequence[str], method: str) -> list[dict[str, Any]]:
     """``["sweeps=10,40", "tau_decay=0.99"]`` -> every combination as option dicts.
 
@@ -117,9 +104,9 @@ def parse_grid(specs: Sequence[str], method: str) -> list[dict[str, Any]]:
     HybridPGOError
         A malformed item, an unknown or repeated key, or a value the solver rejects.
     """
-    from ..solvers import GaussNewtonConfig, HybridConfig, config_for
+    from ..solvers import config_for, option_names
 
-    allowed = _option_fields(method)
+    allowed = option_names(method)
     axes: dict[str, list[Any]] = {}
     for spec in specs:
         key, sep, values = spec.partition("=")
@@ -138,12 +125,10 @@ def parse_grid(specs: Sequence[str], method: str) -> list[dict[str, Any]]:
     combos = [dict(zip(axes, values, strict=True)) for values in itertools.product(*axes.values())]
     for opts in combos:
         try:
-            if method == "auto":
-                config_for("auto", **opts)
-            elif method == "hybrid":
-                HybridConfig(**opts)
+            if method in ("auto", "hybrid"):
+                config_for(method, **opts)
             else:
-                GaussNewtonConfig(**{k: v for k, v in opts.items() if k not in ("init", "tree")})
+                config_for(method, **{k: v for k, v in opts.items() if k not in ("init", "tree")})
                 if opts.get("init", "file") not in ("tree", "file", "chordal"):
                     raise ValueError(f"init must be 'tree', 'file' or 'chordal', got "
                                      f"{opts['init']!r}")

@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import argparse
 import os
-import tempfile
 from types import TracebackType
 from typing import Any
 
-from ..errors import HybridPGOError
+from .._output import Outputs, same_file
+from ..errors import FormatError, HybridPGOError
 from ._common import FORMAT_FROM_SUFFIX, describe_graph, print_table
 
 #: Extension of the default outliers file (replacing the ground truth's, else the graph's).
@@ -119,91 +119,53 @@ def _grid(args: argparse.Namespace) -> Any:
 
 
 # =========================================================================== all-or-nothing
-def _umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
 class OutputGroup:
-    """Several output files written all or nothing.
+    """Several output files written all or nothing (:class:`hybridpgo._output.Outputs`), with
+    messages that name each output's option.
 
     On entering, every path is checked (no two name the same file, none is a directory) and a
     temporary file is created beside each, so an unwritable output fails before any work.
-    Write each output to :meth:`temp`, then call :meth:`commit` to rename them all into place;
+    Write each output to :meth:`temp`, then call :meth:`commit` to move them all into place;
     leaving the ``with`` block without committing (or with an exception) removes the
     temporaries and leaves existing files untouched.
     """
 
     def __init__(self, outputs: list[tuple[str, str]]) -> None:
         self._outputs = outputs
-        self._temps: dict[str, str] = {}
+        self._out: Outputs | None = None
 
     def __enter__(self) -> OutputGroup:
-        seen: dict[str, tuple[str, str]] = {}
-        for label, path in self._outputs:
-            key = os.path.realpath(path)
-            for other_key, (other_label, other_path) in seen.items():
-                if key == other_key or _same_file(path, other_path):
+        for k, (label, path) in enumerate(self._outputs):
+            for other_label, other_path in self._outputs[:k]:
+                if same_file(path, other_path):
                     raise HybridPGOError(
                         f"{path}: {other_label} and {label} name the same file; give each "
                         "output its own file name")
-            seen[key] = (label, path)
-            if os.path.isdir(path):
-                raise HybridPGOError(f"{path}: cannot write {label}: it is a directory")
         try:
-            for label, path in self._outputs:
-                directory = os.path.dirname(os.path.abspath(path))
-                try:
-                    fd, tmp = tempfile.mkstemp(dir=directory, suffix=".tmp",
-                                               prefix="." + os.path.basename(path) + ".")
-                except OSError as exc:
-                    why = exc.strerror or str(exc)
-                    if not os.path.isdir(directory):
-                        why = f"directory {directory} does not exist"
-                    raise HybridPGOError(f"{path}: cannot write {label}: {why}") from exc
-                os.close(fd)
-                self._temps[path] = tmp
-        except BaseException:
-            self._discard()
-            raise
+            self._out = Outputs([path for _, path in self._outputs])
+        except FormatError as exc:
+            raise self._labelled(exc) from exc
         return self
+
+    def _labelled(self, exc: FormatError) -> HybridPGOError:
+        label = next((lb for lb, p in self._outputs if p == exc.path), "the output")
+        why = exc.problem.removeprefix("cannot write the file: ")
+        return HybridPGOError(f"{exc.path}: cannot write {label}: {why}")
 
     def temp(self, path: str) -> str:
         """The temporary file to write ``path``'s content to."""
-        return self._temps[path]
+        assert self._out is not None
+        return self._out.temp(path)
 
     def commit(self) -> None:
-        """Rename every temporary into place (keeping an existing file's permissions)."""
-        default_mode = 0o666 & ~_umask()
+        """Move every output into place (keeping an existing file's permissions)."""
+        assert self._out is not None
         try:
-            for path, tmp in self._temps.items():
-                try:
-                    mode = os.stat(path).st_mode & 0o777
-                except OSError:
-                    mode = default_mode
-                os.chmod(tmp, mode)
-            for path, tmp in list(self._temps.items()):
-                os.replace(tmp, path)
-                del self._temps[path]
-        except OSError as exc:
-            raise HybridPGOError(f"cannot write the outputs: {exc}") from exc
-
-    def _discard(self) -> None:
-        for tmp in self._temps.values():
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
-        self._temps.clear()
+            self._out.commit()
+        except FormatError as exc:
+            raise self._labelled(exc) from exc
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
-        self._discard()
-
-
-def _same_file(a: str, b: str) -> bool:
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return False
+        if self._out is not None:
+            self._out.discard()

@@ -74,8 +74,9 @@ def graph_info(path: str, fmt: str | None = None, *, tree_kind: str = "bfs",
 
     from ..energy import energy, residuals
     from ..errors import GraphError
+    from ..initialization import initial_locals
     from ..io._lines import write_atomic
-    from ..tree import LINK_EDGE, build_tree, global_poses, initial_locals
+    from ..tree import LINK_EDGE, build_tree, global_poses
 
     graph = read_input(path, fmt, skip_unknown=skip_unknown)
     # odometry: edges between poses adjacent in id order (dense index = rank of the id)

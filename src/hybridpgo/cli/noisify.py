@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import os
 
+from .._output import same_file
 from ..errors import HybridPGOError
 from ._common import describe_graph, log, output_format, read_input
 
@@ -13,8 +13,7 @@ def run(args: argparse.Namespace) -> int:
     from ..generate import noisify
     from ..io import write_graph
 
-    if os.path.realpath(args.output) == os.path.realpath(args.input) or _same_file(
-            args.input, args.output):
+    if same_file(args.input, args.output):
         raise HybridPGOError(f"{args.output}: is the input file; noisify never overwrites its "
                              "input: choose another output")
     graph = read_input(args.input, args.format)
@@ -27,10 +26,3 @@ def run(args: argparse.Namespace) -> int:
         log("hybridpgo: note: the vertex estimates are unchanged and no longer match the "
             "noisy edges; optimize from the tree initialization (--init tree, the default)")
     return 0
-
-
-def _same_file(a: str, b: str) -> bool:
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return False

@@ -50,7 +50,7 @@ class Job:
     covariance: str | None = None
     """``--covariance``: where to write the poses' marginal covariances (.npz)."""
     covariance_poses: tuple[int, ...] | str | None = None
-    """``--covariance-poses``: file ids, ``"all"``, or None (all up to COVARIANCE_ALL_MAX)."""
+    """``--covariance-poses``: file ids, ``"all"``, or None (all)."""
     rerun: str | None = None
     """``--rerun``: where to record the run for the Rerun viewer (.rrd)."""
 
@@ -59,17 +59,11 @@ def _covariance_nodes(job: Job, graph: PoseGraph) -> Any:
     """Dense indices of the poses of ``--covariance`` (checked before the solve), or None."""
     import numpy as np
 
-    from ._parser import COVARIANCE_ALL_MAX
-
     if job.covariance is None:
         if job.covariance_poses is not None:
             raise HybridPGOError("--covariance-poses: give --covariance NPZ too")
         return None
     sel = job.covariance_poses
-    if sel is None and graph.num_nodes > COVARIANCE_ALL_MAX:
-        raise HybridPGOError(f"--covariance: {job.input} has {graph.num_nodes} poses (more than "
-                             f"{COVARIANCE_ALL_MAX}): choose them with --covariance-poses "
-                             "(e.g. 0,100..200, or all)")
     if sel is None or isinstance(sel, str):  # None or "all"
         return np.arange(graph.num_nodes)
     index = graph.index_from_id()
@@ -142,46 +136,30 @@ def _check_auto_options(job: Job, graph: PoseGraph) -> str:
     return init
 
 
-def _auto_options(opts: dict[str, Any]) -> dict[str, Any]:
-    """CLI options -> AutoConfig fields: --init is the only start, --sweeps the most sweeps per
-    start, --max-iterations and --tolerance limit the polish."""
-    out = dict(opts)
-    if "init" in out:
-        out["inits"] = (out.pop("init"),)
-    for cli_key, field_name in (("sweeps", "max_sweeps"), ("max_iterations", "polish_iterations")):
-        if cli_key in out:
-            out[field_name] = out.pop(cli_key)
-    return out
-
-
 def _make_config(job: Job, init: str) -> SolverConfig:
-    """The solver's typed options object, built once from the CLI options."""
+    """The solver's typed options object, built once from the CLI options (whose names
+    :func:`hybridpgo.solvers.config_for` translates)."""
     from ..solvers import config_for
 
     opts = dict(job.options)
-    if job.solver == "auto":
-        opts = _auto_options(opts)
-    elif job.solver == "hybrid":
+    if job.solver in ("hybrid", "toro"):
         opts["init"] = init
-        if "max_iterations" in opts:
-            opts["polish_iterations"] = opts.pop("max_iterations")
-    elif job.solver == "toro":
-        opts["init"] = init
-        if "sweeps" in opts:
-            opts["iterations"] = opts.pop("sweeps")
-    else:
+    elif job.solver == "exact":
         opts.pop("init", None)
         opts.pop("tree", None)
     try:
         return config_for(job.solver, **opts)
-    except ValueError as exc:
+    except (ValueError, TypeError) as exc:
         raise HybridPGOError(f"invalid solver option: {exc}") from exc
 
 
 def _check_writable(path: str) -> None:
-    directory = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(directory):
-        raise HybridPGOError(f"{path}: cannot write: directory {directory} does not exist")
+    """Refuse an output that cannot be written, before the solve (a FormatError)."""
+    from .._output import check_output
+    from ._common import STDOUT_NAMES
+
+    if path not in STDOUT_NAMES:
+        check_output(path)
 
 
 def _plots_possible(job: Job) -> bool:
@@ -203,7 +181,7 @@ def _plots_possible(job: Job) -> bool:
 def _compile_kernels(job: Job, graph: PoseGraph) -> None:
     """Compile (or load from Numba's cache) the kernels this solve uses under a visible phase
     (the GPS batches and interpolated solving only when the graph and options use them)."""
-    from ..solvers.gauss_newton import _ensure_compiled as ensure_exact
+    from ..solvers.gauss_newton import ensure_compiled as ensure_exact
     from ..solvers.hybrid.solver import ensure_compiled as ensure_hybrid
     from ._progress import phase
 
@@ -237,19 +215,10 @@ def _recorder(job: Job, graph: PoseGraph) -> Any:
 
 def _optimize(graph: PoseGraph, config: SolverConfig, progress: Any, init: str | None,
               tree: str | None, iterate: Any) -> SolveResult:
-    """:func:`hybridpgo.optimize`, or with ``iterate`` (``--rerun``) the solver it would run."""
-    from ..solvers import HybridConfig, optimize, solve_hybrid
+    """:func:`hybridpgo.optimize` (``iterate``: the ``--rerun`` recorder, or None)."""
+    from ..solvers import optimize
 
-    if iterate is None:
-        return optimize(graph, config, progress=progress, init=init, tree=tree)
-    if isinstance(config, HybridConfig):
-        return solve_hybrid(graph, config, progress=progress, iterate=iterate)
-    from ..solvers import GaussNewtonConfig, exact_start
-    from ..solvers.gauss_newton import solve_exact
-
-    assert isinstance(config, GaussNewtonConfig)  # --rerun refuses --solver toro
-    return solve_exact(graph, *exact_start(graph, init, tree), config, progress=progress,
-                       iterate=iterate)
+    return optimize(graph, config, progress=progress, iterate=iterate, init=init, tree=tree)
 
 
 def _solve(job: Job, graph: PoseGraph, config: SolverConfig, init: str,
@@ -290,7 +259,6 @@ def _solve_auto(job: Job, graph: PoseGraph, config: Any, recorder: Any = None) -
     """The default pipeline, with one progress bar per start's sweeps and per polish (and every
     start, sweep and polish iteration recorded by ``recorder``, ``--rerun``)."""
     from ..solvers import Progress, optimize
-    from ..solvers.auto import solve_auto
 
     nc = graph.num_constraints
     current: list[Any] = [None, None]  # (phase, detail), its bar
@@ -313,9 +281,7 @@ def _solve_auto(job: Job, graph: PoseGraph, config: Any, recorder: Any = None) -
         current[1].update(p.iteration, p.energy, p.tau)
 
     try:
-        if recorder is not None:
-            return solve_auto(graph, config, progress=report, iterate=recorder)
-        return optimize(graph, config, progress=report)
+        return optimize(graph, config, progress=report, iterate=recorder)
     finally:
         if current[1] is not None:
             current[1].close()
@@ -403,17 +369,12 @@ def run_job(job: Job) -> dict[str, Any]:
 def write_plots(graph: PoseGraph, result: SolveResult, init: str, tree_kind: str,
                 prefix: str, name: str) -> list[str]:
     """PREFIX_before.png (the solver's initial poses), PREFIX_after.png, PREFIX_energy.png."""
+    from ..initialization import initial_locals
     from ..plot import energy_figure, graph_figure, height_scale, save_figure
-    from ..tree import build_tree, global_poses, initial_locals
+    from ..tree import build_tree, global_poses
 
-    if tree_kind == "toro":
-        from ..solvers.toro import ToroState, build_toro_tree, toro_initial_locals
-
-        ttree = build_toro_tree(graph, "toro")
-        before = ToroState.create(graph, ttree, *toro_initial_locals(graph, ttree, init)).poses()
-    else:
-        tree = build_tree(graph, tree_kind)
-        before = global_poses(tree, *initial_locals(graph, tree, init))
+    tree = build_tree(graph, tree_kind)
+    before = global_poses(tree, *initial_locals(graph, tree, init))
     before_title = {"tree": f"{name}: tree initialization", "file": f"{name}: file vertices"
                     }.get(init, f"{name}: {init} initialization")
     paths = [f"{prefix}_before.png", f"{prefix}_after.png", f"{prefix}_energy.png"]

@@ -1,4 +1,5 @@
-"""``hybridpgo replay FILE --budget-ms B``: the graph streamed frame by frame (DESIGN §11)."""
+"""``hybridpgo replay FILE --budget-ms B``: the graph streamed frame by frame
+(docs/mathematics.md, "Online streams")."""
 
 from __future__ import annotations
 
@@ -39,7 +40,7 @@ def _recorder(args: argparse.Namespace, graph: Any) -> Any:
 
 
 def _frame_recorder(recorder: Any, stream: Any, every: int, extra: int) -> Any:
-    """``on_frame`` of :func:`~hybridpgo.replay.replay_online` logging to ``recorder``."""
+    """``on_frame`` of :func:`~hybridpgo.online.replay.replay_online` logging to ``recorder``."""
     nf = stream.num_frames
     total = nf + extra
     every = every or max(1, math.ceil(total / RERUN_MAPS))
@@ -60,8 +61,8 @@ def _frame_recorder(recorder: Any, stream: Any, every: int, extra: int) -> Any:
 
 def replay_file(args: argparse.Namespace) -> dict[str, Any]:
     """Read, stream through the online solver (and iSAM2), measure; the JSON-friendly summary."""
-    from ..replay import checkpoint_frames, make_stream
-    from ..solvers.online import OnlineConfig
+    from ..online import OnlineConfig
+    from ..online.replay import checkpoint_frames, make_stream
 
     _check_outputs(args.plot)
     graph = read_input(args.file, args.format)
@@ -75,9 +76,11 @@ def replay_file(args: argparse.Namespace) -> dict[str, Any]:
         if graph.is_2d and graph.num_gps:
             raise HybridPGOError(f"{args.file}: --compare isam2: GPS readings on a 2D graph")
     try:
-        config = OnlineConfig(tree=args.tree, tau_old=args.tau_old, local_size=args.local_size,
-                              reserve_poses=max(graph.num_nodes, 1),
-                              background_refine=args.background_refine)
+        options: dict[str, Any] = dict(tree=args.tree, tau_old=args.tau_old,
+                                       local_size=args.local_size)
+        if args.background_refine is not None:
+            options["background_refine"] = args.background_refine
+        config = OnlineConfig(**options)
     except ValueError as exc:
         raise HybridPGOError(f"invalid online option: {exc}") from exc
     frames = checkpoint_frames(stream.num_frames, args.every) if args.every else []
@@ -98,13 +101,14 @@ def replay_file(args: argparse.Namespace) -> dict[str, Any]:
 
 def _run(args: argparse.Namespace, graph: Any, stream: Any, config: Any, frames: list[int],
          recorder: Any, say: Any) -> dict[str, Any]:
-    from ..replay import prefix_optima, replay_isam2, replay_online
+    from ..online.replay import prefix_optima, replay_isam2, replay_online
 
     budget = args.budget_ms * 1e-3
     on_frame = (None if recorder is None else
                 _frame_recorder(recorder, stream, args.rerun_every, args.extra_frames))
     runs = [replay_online(stream, config, budget, checkpoints=frames,
-                          extra_frames=args.extra_frames, on_frame=on_frame)]
+                          extra_frames=args.extra_frames, on_frame=on_frame,
+                          rate_hz=args.rate)]
     say(f"  hybridpgo: {runs[0].latency_s.sum():.1f} s in updates")
     if args.compare == "isam2":
         runs.append(replay_isam2(stream, checkpoints=frames, extra_frames=args.extra_frames))
@@ -115,7 +119,7 @@ def _run(args: argparse.Namespace, graph: Any, stream: Any, config: Any, frames:
         optima = prefix_optima(stream, frames)
     out: dict[str, Any] = {
         "path": str(args.file), "graph": describe_graph(graph), "frames": stream.num_frames,
-        "budget_ms": args.budget_ms, "checkpoint_every": args.every,
+        "budget_ms": args.budget_ms, "rate_hz": args.rate, "checkpoint_every": args.every,
         "optima": {str(k): v for k, v in optima.items()},
         "solvers": {r.name: {**r.summary(optima), "info": r.info} for r in runs},
     }
@@ -131,8 +135,8 @@ def _plots(runs: list[Any], optima: dict[int, float], prefix: str, budget_ms: fl
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from ..online.replay import energy_ratio
     from ..plot import save_figure
-    from ..replay import energy_ratio
 
     written = []
     fig, ax = plt.subplots(figsize=(8, 4))
@@ -172,8 +176,9 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print_json(s)
         return 0
-    rows = [("file", f"{s['path']} ({s['graph']})"), ("frames", str(s["frames"])),
-            ("budget", f"{s['budget_ms']} ms per frame")]
+    arrival = "back to back" if s["rate_hz"] is None else f"at {s['rate_hz']:g} Hz"
+    rows = [("file", f"{s['path']} ({s['graph']})"), ("frames", f"{s['frames']}, {arrival}"),
+            ("budget", f"{s['budget_ms']} ms per frame (add_*, update and the pose)")]
     for name, r in s["solvers"].items():
         line = (f"latency mean {r['latency_ms_mean']:.3f} ms, p99 {r['latency_ms_p99']:.3f}, "
                 f"max {r['latency_ms_max']:.3f}, steady max {r['latency_ms_steady_max']:.3f}; "
@@ -187,6 +192,10 @@ def run(args: argparse.Namespace) -> int:
                          f"{r['extra_ratio'][-1]:.4f} (within 1% after "
                          f"{hit if hit is not None else 'never'})")
         rows.append((name, line))
+        for w in r.get("info", {}).get("worst_frames", [])[:3]:
+            rows.append(("  worst frame", f"{w['frame']}: {w['cpu_ms']:.2f} ms CPU "
+                         f"({w['edges']} edge(s), {w['gps']} GPS; relaxed {w['new']} new, "
+                         f"{w['old']} old; {w['backlog']} left for later)"))
     for path in s.get("plots", []):
         rows.append(("plot", path))
     if s.get("rerun"):

@@ -25,10 +25,10 @@ def _compile(target: str) -> float:
         return sum(ensure_compiled(gps, interp, givens) for gps in (False, True)
                    for interp in (False, True) for givens in (False, True))
     if target == "exact":
-        from ..solvers.gauss_newton import _ensure_compiled
+        from ..solvers.gauss_newton import ensure_compiled as ensure_exact
 
-        return _ensure_compiled()
-    from ..solvers.toro import _ensure_compiled as ensure_toro
+        return ensure_exact()
+    from ..solvers.toro import ensure_compiled as ensure_toro
 
     return ensure_toro()
 

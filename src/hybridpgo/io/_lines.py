@@ -13,13 +13,10 @@ Also here: SE(2) angle helpers; the quaternion and Euler conversions are
 
 from __future__ import annotations
 
-import contextlib
 import contextvars
 import math
 import os
-import stat
 import sys
-import tempfile
 import warnings
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -28,6 +25,7 @@ from typing import IO
 import numpy as np
 import numpy.typing as npt
 
+from .._output import Outputs
 from ..errors import FormatError, GraphError, option_hint
 from ..geometry.so3 import euler_rpy_to_matrix as euler_rpy_to_matrix
 from ..geometry.so3 import matrix_to_euler_rpy as matrix_to_euler_rpy
@@ -706,26 +704,14 @@ def fmt_floats(rows: FloatArray) -> list[str]:
     return [" ".join(map(repr, row)) for row in np.asarray(rows, np.float64).tolist()]
 
 
-def _current_umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-_UMASK = _current_umask()  # read once at import (os.umask can only be read by setting it)
-
-
 def write_atomic(path: PathLike, produce: Callable[[], Iterable[str]]) -> None:
     """Write the lines ``produce()`` yields to ``path`` so that a reader never sees half a file.
 
-    * A regular file (or a new one) is written to a temporary file in the same directory, then
-      ``os.replace``-d over ``path``; its permissions are kept.
-    * A symbolic link is written through: the file it points to is replaced as above (a
-      dangling link creates its target) and the link stays a link, as with ``cp`` or ``>``.
-    * A FIFO or character device (``/dev/null``, ``/dev/stdout``) cannot be replaced: the
-      content is written into it in one go.
-    * ``"-"`` (and ``/dev/stdout``) writes to standard output (:data:`STDOUT_TARGET`).
-    * A directory, socket or block device is refused.
+    The rules of :mod:`hybridpgo._output` apply: a regular file (or a new one) is written to a
+    temporary file in the same directory, then renamed over ``path``, keeping its permissions;
+    a symbolic link is written through (its target is replaced); a FIFO or character device
+    (``/dev/null``) is written into; a directory, socket or block device is refused.  ``"-"``
+    (and ``/dev/stdout``) writes to standard output (:data:`STDOUT_TARGET`).
 
     The lines are produced completely before anything is created; if anything fails nothing is
     written (an existing ``path`` is left untouched).  OS errors become :class:`FormatError`
@@ -735,92 +721,26 @@ def write_atomic(path: PathLike, produce: Callable[[], Iterable[str]]) -> None:
 
 
 def write_atomic_all(items: Sequence[tuple[PathLike, Sequence[str]]]) -> None:
-    """Write several files all or nothing: every temporary file is written first, then all are
-    renamed into place (as :func:`write_atomic`, which is the one-file case).  FIFOs, devices
-    and standard output are written last, after the renames."""
-    staged: list[tuple[str, str, str]] = []  # (temporary, target, name)
-    direct: list[tuple[str, str, Sequence[str]]] = []  # (target, name, lines)
-    try:
-        for path, lines in items:
-            name = os.fspath(path)
-            if name == "":
-                raise FormatError("cannot write: the output path is empty")
-            if name in STDOUT_NAMES:
-                direct.append((STDIO, name, lines))
-                continue
-            kind = _existing_kind(name)
-            if kind == "stream":  # opened by name: /dev/stdout -> /proc/self/fd/1 -> a pipe
-                direct.append((name, name, lines))
-                continue
-            target = os.path.realpath(name) if os.path.islink(name) else name
-            staged.append((_write_temporary(target, name, lines, kind), target, name))
-        for k, (tmp, target, name) in enumerate(staged):
+    """Write several files all or nothing (:class:`hybridpgo._output.Outputs`): every temporary
+    file is written first, then all are moved into place (as :func:`write_atomic`, which is the
+    one-file case).  Standard output is written last."""
+    to_stdout = [lines for path, lines in items if os.fspath(path) in STDOUT_NAMES]
+    files = [(os.fspath(path), lines) for path, lines in items
+             if os.fspath(path) not in STDOUT_NAMES]
+    with Outputs([name for name, _ in files]) as out:
+        for name, lines in files:
             try:
-                os.replace(tmp, target)
+                with open(out.temp(name), "w", encoding="utf-8", newline="\n") as fh:
+                    for line in lines:
+                        fh.write(line)
+                        fh.write("\n")
             except OSError as exc:
                 raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
-            staged[k] = ("", target, name)
-    finally:
-        for tmp, _, _ in staged:
-            if tmp:
-                with contextlib.suppress(OSError):
-                    os.unlink(tmp)
-    for target, name, lines in direct:
-        text = "".join(line + "\n" for line in lines)
-        if target == STDIO:
-            stream = STDOUT_TARGET.get() or sys.stdout
-            stream.write(text)
-            stream.flush()
-            continue
-        try:
-            with open(target, "w", encoding="utf-8", newline="\n") as fh:
-                fh.write(text)
-        except OSError as exc:
-            raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
-
-
-def _write_temporary(target: str, name: str, lines: Sequence[str], kind: str) -> str:
-    """A temporary file beside ``target`` holding ``lines``, with ``target``'s permissions."""
-    directory = os.path.dirname(os.path.abspath(target))
-    try:
-        fd, tmp = tempfile.mkstemp(dir=directory, prefix="." + os.path.basename(target) + ".",
-                                   suffix=".tmp")
-    except OSError as exc:
-        raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as fh:
-            for line in lines:
-                fh.write(line)
-                fh.write("\n")
-        mode = 0o666 & ~_UMASK
-        if kind == "file":
-            with contextlib.suppress(OSError):
-                mode = os.stat(target).st_mode & 0o777
-        os.chmod(tmp, mode)
-    except BaseException as exc:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        if isinstance(exc, OSError):
-            raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
-        raise
-    return tmp
-
-
-def _existing_kind(name: str) -> str:
-    """What ``name`` is, following symlinks: "new" (nothing there, or a dangling link), "file"
-    (regular) or "stream" (FIFO, character device); raise for the rest."""
-    try:
-        mode = os.stat(name).st_mode
-    except FileNotFoundError:
-        return "new"
-    except OSError as exc:
-        raise FormatError(f"cannot write the file: {exc.strerror or exc}", name) from exc
-    if stat.S_ISREG(mode):
-        return "file"
-    if stat.S_ISFIFO(mode) or stat.S_ISCHR(mode):
-        return "stream"
-    what = "a directory" if stat.S_ISDIR(mode) else "not a regular file, FIFO or device"
-    raise FormatError(f"cannot write the file: it is {what}", name)
+        out.commit()
+    for lines in to_stdout:
+        stream = STDOUT_TARGET.get() or sys.stdout
+        stream.write("".join(line + "\n" for line in lines))
+        stream.flush()
 
 
 def require_planar(graph: PoseGraph, path: str, fmt: str) -> None:

@@ -1,1 +1,13 @@
-"""The online mode's building blocks (see :mod:`.incremental`)."""
+"""The online mode: a back end fed pose by pose, with a time budget per frame.
+
+:class:`OnlineSolver` (:mod:`.solver`) on the whole-graph solver's kernels; its map in a
+:class:`~.store.MapStore`; a worker process solving the whole map exactly (:mod:`.worker`,
+:mod:`._link`) on an incremental exact solver (:mod:`.incremental`); saved states (:mod:`.persist`); replaying a graph as a stream, beside GTSAM's
+iSAM2 (:mod:`.replay`).
+"""
+
+from .config import OnlineConfig as OnlineConfig
+from .solver import FrameReport as FrameReport
+from .solver import OnlineSolver as OnlineSolver
+
+__all__ = ["FrameReport", "OnlineConfig", "OnlineSolver"]

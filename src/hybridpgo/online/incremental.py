@@ -37,7 +37,7 @@ from .. import _cost
 from .._numba import cycles_per_second, read_cycles
 from ..errors import SolverError
 from ..graph import SYMMETRY_RTOL, FloatArray
-from ..solvers._linear import _fill_reducing_order
+from ..linalg import fill_reducing_order
 from . import _incremental_kernels as ik
 
 IntArray = npt.NDArray[np.int64]
@@ -660,7 +660,7 @@ class IncrementalExact:
         rows, cols = ik.reduced_pattern(s_vars, orphans, self._in_s, stamp, self._local,
                                         self._free, self._ab, self._inc_head, self._inc_next,
                                         self._col_start, self._col_len, self._row_var)
-        new_pos = _fill_reducing_order(ns, rows, cols)
+        new_pos = fill_reducing_order(ns, rows, cols)
         key = np.lexsort((new_pos, last))
         return s_vars[key]
 

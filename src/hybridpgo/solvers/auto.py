@@ -55,9 +55,10 @@ import numpy as np
 
 from ..errors import HybridPGOError, SolverError
 from ..graph import FloatArray, PoseGraph
-from ..tree import build_tree, global_poses, initial_locals
+from ..initialization import initial_locals
+from ..tree import build_tree, global_poses
 from .config import AutoConfig, Progress, ProgressCallback
-from .gauss_newton import IterateCallback, solve_exact
+from .gauss_newton import ExactSolver, IterateCallback
 from .hybrid.solver import HybridSolver
 from .result import SolveResult, Status
 
@@ -125,12 +126,12 @@ def _sweep_candidate(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate, tree: 
                      iterate: IterateCallback | None = None) -> None:
     """Sweeps from one start while they pay; keeps the best poses in ``cand``."""
     t0 = time.perf_counter()
-    if cfg.max_sweeps == 0:  # no hybrid solver (its per-path blocks cost memory): poses, E
+    max_sweeps = cfg.sweeps.sweeps
+    if max_sweeps == 0:  # no hybrid solver (its per-path blocks cost memory): poses, E
         from ..energy import robust_energy
 
         cand.rot, cand.trans = cand.start = global_poses(tree, *locals0)
-        e0 = robust_energy(graph, cand.rot, cand.trans, cfg.robust,
-                           cfg.hybrid_config(cand.init, 0).robust_delta)[0]
+        e0 = robust_energy(graph, cand.rot, cand.trans, cfg.robust, cfg.robust_delta)[0]
         cand.history.append(e0)
         cand.times.append(time.perf_counter() - t_origin)
         if progress is not None:
@@ -139,7 +140,7 @@ def _sweep_candidate(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate, tree: 
             iterate(Progress("start", 0, 0, e0, detail=cand.init), cand.rot, cand.trans)
         cand.sweep_seconds = time.perf_counter() - t0
         return
-    solver = HybridSolver(graph, cfg.hybrid_config(cand.init, cfg.max_sweeps), tree=tree,
+    solver = HybridSolver(graph, cfg.hybrid_config(cand.init, max_sweeps), tree=tree,
                           locals0=locals0)
     e0 = solver.energy()
     cand.rot, cand.trans = cand.start = solver.poses()
@@ -147,12 +148,12 @@ def _sweep_candidate(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate, tree: 
     cand.times.append(time.perf_counter() - t_origin)
     if progress is not None:
         progress(Progress("start", 0, 0, e0, detail=cand.init))
-        if cfg.max_sweeps:
-            progress(Progress("sweeps", 0, cfg.max_sweeps, e0, solver.tau, cand.init))
+        if max_sweeps:
+            progress(Progress("sweeps", 0, max_sweeps, e0, solver.tau, cand.init))
     if iterate is not None:
         iterate(Progress("start", 0, 0, e0, detail=cand.init), cand.rot, cand.trans)
     best = e0
-    for k in range(cfg.max_sweeps):
+    for k in range(max_sweeps):
         if not np.isfinite(best) or best == 0.0:
             break
         try:
@@ -165,9 +166,9 @@ def _sweep_candidate(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate, tree: 
         cand.capped += int(res.stats["capped_steps"])
         cand.rejected += int(res.stats["rejected_steps"])
         if progress is not None:
-            progress(Progress("sweeps", k + 1, cfg.max_sweeps, e, solver.tau, cand.init))
+            progress(Progress("sweeps", k + 1, max_sweeps, e, solver.tau, cand.init))
         if iterate is not None:
-            iterate(Progress("sweeps", k + 1, cfg.max_sweeps, e, solver.tau, cand.init),
+            iterate(Progress("sweeps", k + 1, max_sweeps, e, solver.tau, cand.init),
                     res.rotations, res.translations)
         if e < best:
             cand.rot, cand.trans = res.rotations, res.translations
@@ -180,20 +181,18 @@ def _sweep_candidate(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate, tree: 
     cand.sweep_seconds = time.perf_counter() - t0
 
 
-def _polish(graph: PoseGraph, cfg: AutoConfig, cand: _Candidate,
-            progress: ProgressCallback | None, limit: int,
-            iterate: IterateCallback | None = None) -> None:
+def _polish(exact: ExactSolver, cand: _Candidate, progress: ProgressCallback | None,
+            limit: int, iterate: IterateCallback | None = None) -> None:
     """LM from the candidate's kept poses, at most ``limit`` iterations (more when it is
-    continued: :func:`_continue`)."""
+    continued: :func:`_continue`), with the pipeline's one analyzed exact solver."""
     report = None if progress is None else (
         lambda p: progress(p._replace(phase="polish", detail=cand.label)))
     done = cand.polished
     rot, trans = (cand.rot, cand.trans) if done is None else (done.rotations, done.translations)
-    config = dataclasses.replace(cfg.polish_config(), max_iterations=limit)
     each = None if iterate is None else (
         lambda p, r, t: iterate(p._replace(phase="polish", detail=cand.label), r, t))
     try:
-        more = solve_exact(graph, rot, trans, config, progress=report, iterate=each)
+        more = exact.solve(rot, trans, progress=report, iterate=each, max_iterations=limit)
     except SolverError as exc:
         cand.error = f"polish: {exc}"
         return
@@ -237,7 +236,7 @@ def _relaxation_applies(graph: PoseGraph, cfg: AutoConfig, large: bool) -> str:
     return ""
 
 
-def _relaxation_check(graph: PoseGraph, cfg: AutoConfig, large: bool, win: _Candidate,
+def _relaxation_check(exact: ExactSolver, cfg: AutoConfig, large: bool, win: _Candidate,
                       t_origin: float, progress: ProgressCallback | None,
                       iterate: IterateCallback | None) -> dict[str, Any]:
     """The planar relaxation from the winner's poses (``AutoConfig.relaxation``); its start is
@@ -245,6 +244,7 @@ def _relaxation_check(graph: PoseGraph, cfg: AutoConfig, large: bool, win: _Cand
     from ..energy import robust_energy
     from ..initialization import planar_relaxation_start
 
+    graph = exact.graph
     why = _relaxation_applies(graph, cfg, large)
     if why:
         return {"ran": False, "why": why}
@@ -272,7 +272,7 @@ def _relaxation_check(graph: PoseGraph, cfg: AutoConfig, large: bool, win: _Cand
         progress(Progress("start", 0, 0, e0, detail=cand.init))
     if iterate is not None:
         iterate(Progress("start", 0, 0, e0, detail=cand.init), rot, trans)
-    _polish(graph, cfg, cand, progress, cfg.polish_iterations, iterate)
+    _polish(exact, cand, progress, cfg.polish.max_iterations, iterate)
     out["polished"] = cand.polished is not None
     out["candidate"] = cand
     if cand.polished is not None:
@@ -321,14 +321,15 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     if large:
         policy = (f"large-graph policy ({graph.num_nodes} poses >= {cfg.large_poses}): one "
                   f"start, at most {cfg.large_max_sweeps} sweeps, one polish; ")
-        cfg = dataclasses.replace(cfg, inits=cfg.large_inits, max_sweeps=cfg.large_max_sweeps,
-                                  finalists=1, polish_unswept=False)
-    from .gauss_newton import _ensure_compiled as ensure_exact
+        cfg = dataclasses.replace(
+            cfg, inits=cfg.large_inits, finalists=1, polish_unswept=False,
+            sweeps=dataclasses.replace(cfg.sweeps, sweeps=cfg.large_max_sweeps))
+    from .gauss_newton import ensure_compiled as ensure_exact
     from .hybrid.solver import ensure_compiled as ensure_hybrid
 
     compile_s = ensure_hybrid() + ensure_exact()
     t_origin = time.perf_counter()
-    tree = build_tree(graph, cfg.tree)
+    tree = build_tree(graph, cfg.sweeps.tree)
     t_analyze = time.perf_counter() - t_origin
     inits = [i for i in cfg.inits if i != "file" or graph.has_estimates]
     skipped = [i for i in cfg.inits if i not in inits]
@@ -360,21 +361,22 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
         ranked += sorted((_unswept(c) for c in ranked if c.sweeps), key=lambda c: c.energy)
     finalists = ranked[:cfg.finalists] if cfg.finalists is not None else ranked
     t_polish = time.perf_counter()
+    exact = ExactSolver(graph, cfg.polish)
     best: _Candidate | None = None
     for cand in finalists:
         if best is None or best.polished is None:
-            _polish(graph, cfg, cand, progress, cfg.polish_iterations, iterate)
+            _polish(exact, cand, progress, cfg.polish.max_iterations, iterate)
         else:  # a runner-up: a bounded polish, continued only if it is then the lowest
-            budget = min(cfg.polish_iterations, max(
+            budget = min(cfg.polish.max_iterations, max(
                 math.ceil(cfg.finalist_budget * best.polished.iterations),
                 MIN_FINALIST_ITERATIONS))
-            _polish(graph, cfg, cand, progress, budget, iterate)
+            _polish(exact, cand, progress, budget, iterate)
             pol = cand.polished
             if (pol is not None and pol.status is Status.MAX_ITERATIONS
-                    and pol.final_energy < best.energy and budget < cfg.polish_iterations):
-                _polish(graph, cfg, cand, progress, cfg.polish_iterations - budget, iterate)
+                    and pol.final_energy < best.energy and budget < cfg.polish.max_iterations):
+                _polish(exact, cand, progress, cfg.polish.max_iterations - budget, iterate)
             elif pol is not None and pol.status is Status.MAX_ITERATIONS:
-                cand.cut = budget < cfg.polish_iterations
+                cand.cut = budget < cfg.polish.max_iterations
         if cand.polished is not None and (best is None or cand.energy < best.energy * (
                 1.0 - _TIE)):
             best = cand
@@ -385,7 +387,7 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
                           + "; ".join(f"{c.label}: {c.error}" for c in finalists))
     win = min(polished, key=lambda c: c.energy)
     t_relax = time.perf_counter()
-    relax = _relaxation_check(graph, cfg, large, win, t_origin, progress, iterate)
+    relax = _relaxation_check(exact, cfg, large, win, t_origin, progress, iterate)
     relax_cand = relax.pop("candidate", None)
     if isinstance(relax_cand, _Candidate):
         cands.append(relax_cand)

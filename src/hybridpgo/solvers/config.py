@@ -6,10 +6,11 @@ the field, the value and what is allowed.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal, NamedTuple, get_args
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple, get_args
 
 from .._cost import ROBUST_DEFAULT_SCALE as ROBUST_DEFAULT_SCALE
 from .._cost import ROBUST_NAMES as ROBUST_NAMES
@@ -52,17 +53,17 @@ class Progress(NamedTuple):
 ProgressCallback = Callable[[Progress], None]
 
 #: Sparse linear solvers of the exact solver (``"auto"``: CHOLMOD via cvxopt if importable, else
-#: SuperLU; see :mod:`hybridpgo.solvers._linear`).
+#: SuperLU; see :mod:`hybridpgo.linalg`).
 LINEAR_SOLVERS = ("auto", "cholmod", "splu")
 
 
 
-def _check_int(name: str, value: object, minimum: int) -> None:
+def check_int(name: str, value: object, minimum: int) -> None:
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
 
 
-def _check_float(name: str, value: object, *, positive: bool) -> None:
+def check_float(name: str, value: object, *, positive: bool) -> None:
     if (isinstance(value, bool) or not isinstance(value, (int, float))
             or not math.isfinite(value) or (value <= 0 if positive else value < 0)):
         kind = "a finite number > 0" if positive else "a finite number >= 0"
@@ -111,7 +112,7 @@ class GaussNewtonConfig:
     factorization per iteration), ``"splu"`` (SciPy's SuperLU in symmetric mode with diagonal
     pivots: an LU, 2-5x slower), or ``"auto"`` (CHOLMOD when cvxopt is importable, else
     SuperLU; except that a 3D system whose factor stays sparse, as on city-like graphs, uses
-    the block Cholesky of :mod:`hybridpgo.solvers._block_cholesky`: 3x faster than CHOLMOD
+    the block Cholesky of :mod:`hybridpgo.linalg._block_cholesky`: 3x faster than CHOLMOD
     there and ~4x less memory, which keeps a 1M-pose polish within 4 GB)."""
     robust: RobustName = "none"
     """Robust kernel (see ``HybridConfig.robust``); the LM acceptance test uses E_rho."""
@@ -129,13 +130,13 @@ class GaussNewtonConfig:
     def __post_init__(self) -> None:
         if self.method not in ("gn", "lm"):
             raise ValueError(f"method must be 'gn' or 'lm', got {self.method!r}")
-        _check_int("max_iterations", self.max_iterations, 0)
-        _check_float("energy_tolerance", self.energy_tolerance, positive=False)
-        _check_float("step_tolerance", self.step_tolerance, positive=False)
-        _check_float("initial_damping", self.initial_damping, positive=True)
+        check_int("max_iterations", self.max_iterations, 0)
+        check_float("energy_tolerance", self.energy_tolerance, positive=False)
+        check_float("step_tolerance", self.step_tolerance, positive=False)
+        check_float("initial_damping", self.initial_damping, positive=True)
         if not isinstance(self.step_guard, bool):
             raise ValueError(f"step_guard must be True or False, got {self.step_guard!r}")
-        _check_int("max_step_halvings", self.max_step_halvings, 0)
+        check_int("max_step_halvings", self.max_step_halvings, 0)
         if self.linear_solver not in LINEAR_SOLVERS:
             raise ValueError(f"linear_solver must be one of {', '.join(LINEAR_SOLVERS)}, "
                              f"got {self.linear_solver!r}")
@@ -195,17 +196,6 @@ class HybridConfig:
     """The kernel's delta (> 0) in whitened units (sqrt of χ²); None: the kernel's default
     (:data:`ROBUST_DEFAULT_SCALE`).  The value used is :attr:`robust_delta`."""
 
-    update: Literal["paper", "saga"] = "paper"
-    """``"paper"``: each relative constraint's step solves ``H_c x = J_c^T r_c`` (eq. 25).
-    ``"saga"``: the same hybrid system with an aggregated right-hand side (each constraint's
-    remembered force, balanced per node, is subtracted), so a settled optimum is a fixed point of
-    the sweeps (:mod:`hybridpgo.solvers.hybrid._aggregate`); GPS batches stay the paper's.
-    Needs ``step="woodbury"`` and no ``dmax``.  Experimental: it diverges on generated cities
-    with and without GPS (``benchmarks/sag.py``, ``benchmarks/converge.py``) and is no better
-    than the paper's on M3500_isam.  For sweeps that converge use ``correction="pcg"``."""
-    memory_rate: float = 0.03
-    """``update="saga"``: the memory moves this fraction of the way to each fresh contribution,
-    in (0, 1] (1: SAGA itself, which diverges on M3500_isam; 0.1 diverges on intel)."""
     correction: Literal["none", "pcg"] = "none"
     """``"pcg"``: after every sweep one global truncated Gauss-Newton step:
     ``correction_iterations`` iterations of conjugate gradients on the exact normal equations of
@@ -225,49 +215,55 @@ class HybridConfig:
         return default_robust_scale(self.robust, self.robust_scale)
 
     def __post_init__(self) -> None:
-        if self.update not in ("paper", "saga"):
-            raise ValueError(f"update must be 'paper' or 'saga', got {self.update!r}")
         if self.correction not in ("none", "pcg"):
             raise ValueError(f"correction must be 'none' or 'pcg', got {self.correction!r}")
-        _check_int("correction_iterations", self.correction_iterations, 1)
+        check_int("correction_iterations", self.correction_iterations, 1)
         if not isinstance(self.monotone, bool):
             raise ValueError(f"monotone must be True or False, got {self.monotone!r}")
         if self.monotone and self.correction == "none":
             raise ValueError("monotone=True needs correction='pcg' (an undone sweep alone would "
                              "repeat itself)")
-        rate = self.memory_rate
-        if not (isinstance(rate, (int, float)) and not isinstance(rate, bool) and 0 < rate <= 1):
-            raise ValueError(f"memory_rate must be in (0, 1], got {self.memory_rate!r}")
-        if self.update != "paper" and (self.step != "woodbury" or self.dmax is not None):
-            raise ValueError(f"update={self.update!r} needs step='woodbury' and dmax=None")
-        _check_int("sweeps", self.sweeps, 0)
+        check_int("sweeps", self.sweeps, 0)
         if self.sweeps > MAX_SWEEPS:
             raise ValueError(f"sweeps must be at most {MAX_SWEEPS}, got {self.sweeps!r}")
-        _check_float("tau0", self.tau0, positive=True)
+        check_float("tau0", self.tau0, positive=True)
         if not self.tau0 < MAX_TAU:
             raise ValueError(f"tau0 must be below {MAX_TAU:g} (a larger temperature "
                              f"over-relaxes and the sweeps diverge), got {self.tau0!r}")
         if not (isinstance(self.tau_decay, (int, float)) and 0 < self.tau_decay <= 1):
             raise ValueError(f"tau_decay must be in (0, 1], got {self.tau_decay!r}")
-        _check_float("damping", self.damping, positive=False)
+        check_float("damping", self.damping, positive=False)
         for name, value, allowed in (("step", self.step, STEP_NAMES),
                                      ("tree", self.tree, TREE_NAMES),
                                      ("init", self.init, INIT_NAMES)):
             if value not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {value!r}")
-        _check_int("gps_batch_size", self.gps_batch_size, 1)
+        check_int("gps_batch_size", self.gps_batch_size, 1)
         if self.dmax is not None:
-            _check_int("dmax", self.dmax, 2)  # one node per side of the path at least
-        _check_float("energy_tolerance", self.energy_tolerance, positive=False)
+            check_int("dmax", self.dmax, 2)  # one node per side of the path at least
+        check_float("energy_tolerance", self.energy_tolerance, positive=False)
         if not isinstance(self.polish, bool):
             raise ValueError(f"polish must be True or False, got {self.polish!r}")
-        _check_int("polish_iterations", self.polish_iterations, 0)
+        check_int("polish_iterations", self.polish_iterations, 0)
         robust_kind(self.robust, self.robust_delta)
 
 
 #: The starts :class:`AutoConfig` tries by default, in this order (``"file"`` only when the
 #: file has vertices).
 AUTO_INITS: tuple[InitName, ...] = ("chordal", "tree", "file")
+#: Most sweeps the default pipeline runs from one start (``AutoConfig.sweeps.sweeps``).
+AUTO_MAX_SWEEPS = 30
+#: Iteration limit of each of the default pipeline's polishes
+#: (``AutoConfig.polish.max_iterations``).
+AUTO_POLISH_ITERATIONS = 200
+
+
+def _auto_sweeps() -> HybridConfig:
+    return HybridConfig(sweeps=AUTO_MAX_SWEEPS)
+
+
+def _auto_polish() -> GaussNewtonConfig:
+    return GaussNewtonConfig(method="lm", max_iterations=AUTO_POLISH_ITERATIONS)
 
 
 @dataclass(frozen=True)
@@ -275,14 +271,30 @@ class AutoConfig:
     """Options of the default pipeline :func:`hybridpgo.solvers.auto.solve_auto`.
 
     For every start in ``inits`` (``"file"`` skipped when the file has no vertices): hybrid
-    sweeps while they pay (each sweep must lower the energy by at least ``sweep_tolerance``,
-    relative; the best poses seen are kept, so a sweep that raises E is undone), then the
-    ``finalists`` starts with the lowest energy are polished with Levenberg-Marquardt to
-    convergence (a runner-up within ``finalist_budget``) and the lowest final energy wins.
-    The result's ``stats`` say which start won, how many sweeps and polish iterations it took,
-    and every candidate's energies.
+    sweeps (options ``sweeps``) while they pay (each sweep must lower the energy by at least
+    ``sweep_tolerance``, relative; the best poses seen are kept, so a sweep that raises E is
+    undone), then the ``finalists`` starts with the lowest energy are polished with
+    Levenberg-Marquardt (options ``polish``) to convergence (a runner-up within
+    ``finalist_budget``) and the lowest final energy wins.  The result's ``stats`` say which
+    start won, how many sweeps and polish iterations it took, and every candidate's energies.
+
+    The sweeps and the polish are configured by the two solvers' own option objects, so their
+    defaults are those of :class:`HybridConfig` and :class:`GaussNewtonConfig`; both must use
+    the same robust kernel.  :meth:`from_options` builds one from flat keyword options (the
+    command line's names).
     """
 
+    sweeps: HybridConfig = field(default_factory=_auto_sweeps)
+    """The sweeps from each start: ``sweeps.sweeps`` is the most sweeps from one start (0: no
+    sweeps, LM straight from the start; default :data:`AUTO_MAX_SWEEPS`), the other fields the
+    temperature, damping, step, tree (also of the tree and chordal starts), GPS batches,
+    ``D_max`` and robust kernel.  ``init``, ``polish`` and ``energy_tolerance`` are not used:
+    the pipeline chooses the starts (``inits``), stops sweeping by ``sweep_tolerance`` and
+    polishes itself."""
+    polish: GaussNewtonConfig = field(default_factory=_auto_polish)
+    """The Levenberg-Marquardt polish of each finalist (default: at most
+    :data:`AUTO_POLISH_ITERATIONS` iterations, converged when an accepted step changes E by
+    less than ``polish.energy_tolerance``)."""
     inits: tuple[InitName, ...] = AUTO_INITS
     """Candidate starts, in order of preference on ties: ``"chordal"`` (chordal rotation
     relaxation, then positions), ``"tree"`` (the paper's concatenation of tree-edge
@@ -299,35 +311,10 @@ class AutoConfig:
     """Cost guard: a finalist after the first polished one gets at most ``finalist_budget``
     times the best polish's iterations (at least 20) and is polished on to convergence only if
     it is then below the best; else it is reported as cut (``polish_cut_at_budget``)."""
-    max_sweeps: int = 30
-    """Most sweeps from one start (0: no sweeps, LM straight from the start)."""
     sweep_tolerance: float = 0.05
     """Stop sweeping from a start when a sweep lowers E by less than this fraction (or raises
     it).  Sweeps pay far from the optimum (a tree start: E falls 10-100x in a few sweeps) and
     stop paying near it (the optimum is not a fixed point of the sweeps)."""
-    polish_iterations: int = 200
-    """Iteration limit of each Levenberg-Marquardt polish."""
-    energy_tolerance: float = 1e-10
-    """The polish converges when an accepted step changes E by less than this fraction
-    (``GaussNewtonConfig.energy_tolerance``)."""
-    tree: TreeName = "bfs"
-    """The spanning tree of the sweeps and of the tree/chordal starts (``HybridConfig.tree``)."""
-    tau0: float = 1.0
-    """Initial temperature of the sweeps (``HybridConfig.tau0``)."""
-    tau_decay: float = 0.99
-    """Temperature factor per sweep (``HybridConfig.tau_decay``)."""
-    damping: float = 1e-6
-    """Relative damping of the hybrid Hessian blocks (``HybridConfig.damping``)."""
-    step: StepName = "woodbury"
-    """Single-update solver of the sweeps (``HybridConfig.step``)."""
-    gps_batch_size: int = 40
-    """GPS constraints relaxed together (``HybridConfig.gps_batch_size``)."""
-    dmax: int | None = None
-    """Interpolated solving in the sweeps (``HybridConfig.dmax``)."""
-    robust: RobustName = "none"
-    """Robust kernel of the sweeps and the polish (``HybridConfig.robust``)."""
-    robust_scale: float = 1.0
-    """The kernel's delta (``HybridConfig.robust_scale``)."""
     relaxation: bool = True
     """Planar graphs (2D, no GPS, no robust kernel, at most one FIX node; not under the
     large-graph policy): after the polish, run the rank-2 relaxation of the chordal cost
@@ -361,39 +348,53 @@ class AutoConfig:
     the tree start 13 sweeps (26 s) leave LM 14 iterations where it needs 12 without them."""
 
     def __post_init__(self) -> None:
+        if not isinstance(self.sweeps, HybridConfig):
+            raise ValueError(f"sweeps must be a HybridConfig, got {self.sweeps!r}")
+        if not isinstance(self.polish, GaussNewtonConfig):
+            raise ValueError(f"polish must be a GaussNewtonConfig, got {self.polish!r}")
+        if self.sweeps.polish:
+            raise ValueError("sweeps.polish must be False: the pipeline polishes itself "
+                             "(configure it with polish=GaussNewtonConfig(...))")
+        if self.polish.method != "lm":
+            raise ValueError("the pipeline polishes with Levenberg-Marquardt: polish.method "
+                             f"must be 'lm', got {self.polish.method!r}")
+        if (self.sweeps.robust, self.sweeps.robust_delta) != (self.polish.robust,
+                                                             self.polish.robust_delta):
+            raise ValueError(
+                f"the sweeps and the polish must use the same robust kernel, got "
+                f"{self.sweeps.robust}:{self.sweeps.robust_delta:g} and "
+                f"{self.polish.robust}:{self.polish.robust_delta:g}")
         if self.large_poses is not None:
-            _check_int("large_poses", self.large_poses, 2)
-        if (not isinstance(self.large_inits, tuple) or not self.large_inits
-                or any(i not in INIT_NAMES for i in self.large_inits)
-                or len(set(self.large_inits)) != len(self.large_inits)):
-            raise ValueError(f"large_inits must be a non-empty tuple of distinct names from "
-                             f"{', '.join(INIT_NAMES)}, got {self.large_inits!r}")
-        _check_int("large_max_sweeps", self.large_max_sweeps, 0)
+            check_int("large_poses", self.large_poses, 2)
+        for name, value in (("inits", self.inits), ("large_inits", self.large_inits)):
+            if (not isinstance(value, tuple) or not value
+                    or any(i not in INIT_NAMES for i in value) or len(set(value)) != len(value)):
+                raise ValueError(f"{name} must be a non-empty tuple of distinct names from "
+                                 f"{', '.join(INIT_NAMES)}, got {value!r}")
+        check_int("large_max_sweeps", self.large_max_sweeps, 0)
         if self.large_max_sweeps > MAX_SWEEPS:
             raise ValueError(f"large_max_sweeps must be at most {MAX_SWEEPS}, got "
                              f"{self.large_max_sweeps!r}")
-        if (not isinstance(self.inits, tuple) or not self.inits
-                or any(i not in INIT_NAMES for i in self.inits)
-                or len(set(self.inits)) != len(self.inits)):
-            raise ValueError(f"inits must be a non-empty tuple of distinct names from "
-                             f"{', '.join(INIT_NAMES)}, got {self.inits!r}")
         if self.finalists is not None:
-            _check_int("finalists", self.finalists, 1)
+            check_int("finalists", self.finalists, 1)
         if not isinstance(self.polish_unswept, bool):
             raise ValueError(f"polish_unswept must be True or False, got {self.polish_unswept!r}")
-        _check_float("finalist_budget", self.finalist_budget, positive=True)
-        _check_int("max_sweeps", self.max_sweeps, 0)
-        if self.max_sweeps > MAX_SWEEPS:
-            raise ValueError(f"max_sweeps must be at most {MAX_SWEEPS}, got {self.max_sweeps!r}")
-        _check_float("sweep_tolerance", self.sweep_tolerance, positive=False)
-        _check_int("polish_iterations", self.polish_iterations, 0)
-        _check_float("energy_tolerance", self.energy_tolerance, positive=False)
+        check_float("finalist_budget", self.finalist_budget, positive=True)
+        check_float("sweep_tolerance", self.sweep_tolerance, positive=False)
         if not isinstance(self.relaxation, bool):
             raise ValueError(f"relaxation must be True or False, got {self.relaxation!r}")
-        _check_int("relaxation_iterations", self.relaxation_iterations, 1)
-        _check_float("relaxation_angle", self.relaxation_angle, positive=True)
-        # the sweep options are checked by the HybridConfig they build (same messages)
-        self.hybrid_config("tree", 0)
+        check_int("relaxation_iterations", self.relaxation_iterations, 1)
+        check_float("relaxation_angle", self.relaxation_angle, positive=True)
+
+    @property
+    def robust(self) -> RobustName:
+        """The robust kernel of the sweeps and the polish (the same by construction)."""
+        return self.sweeps.robust
+
+    @property
+    def robust_delta(self) -> float:
+        """The robust kernel's delta (the same in the sweeps and the polish)."""
+        return self.sweeps.robust_delta
 
     def is_large(self, num_poses: int) -> bool:
         """True when a graph of ``num_poses`` poses gets the large-graph policy."""
@@ -401,17 +402,65 @@ class AutoConfig:
 
     def hybrid_config(self, init: str, sweeps: int) -> HybridConfig:
         """The options of one start's sweeps (no polish: the pipeline polishes itself)."""
-        return HybridConfig(sweeps=sweeps, tau0=self.tau0, tau_decay=self.tau_decay,
-                            damping=self.damping, step=self.step, tree=self.tree,
-                            init=init,  # type: ignore[arg-type]
-                            gps_batch_size=self.gps_batch_size, dmax=self.dmax,
-                            robust=self.robust, robust_scale=self.robust_scale)
+        return dataclasses.replace(self.sweeps, init=init,  # type: ignore[arg-type]
+                                   sweeps=sweeps)  # init: checked by HybridConfig
 
-    def polish_config(self) -> GaussNewtonConfig:
-        """The options of the Levenberg-Marquardt polish."""
-        return GaussNewtonConfig(method="lm", max_iterations=self.polish_iterations,
-                                 energy_tolerance=self.energy_tolerance, robust=self.robust,
-                                 robust_scale=self.robust_scale)
+    @classmethod
+    def from_options(cls, **options: Any) -> AutoConfig:
+        """An AutoConfig from flat keyword options, the command line's names: ``sweeps`` (most
+        sweeps per start), ``max_iterations`` and ``energy_tolerance`` (of each polish),
+        ``linear_solver`` and ``initial_damping`` (the polish's), ``robust`` and
+        ``robust_scale`` (both), ``init`` (the only start to try), any other field of
+        :class:`HybridConfig` (the sweeps') or of AutoConfig itself.
+
+        Raises
+        ------
+        TypeError
+            An option that is not one of the default pipeline's.
+        ValueError
+            A value that is not allowed (the field's own message).
+        """
+        opts = dict(options)
+        if isinstance(opts.get("polish"), bool):
+            raise TypeError("polish: not an option of the default pipeline, which always "
+                            "polishes; polish=True is for the paper's method alone: "
+                            "optimize(graph, 'hybrid', polish=True)")
+        if "init" in opts:
+            opts["inits"] = opts.pop("init")
+        inits = opts.get("inits")
+        if isinstance(inits, (list, str)):  # one name (a CLI --init, a batch grid) or a list
+            opts["inits"] = (inits,) if isinstance(inits, str) else tuple(inits)
+        sweeps: dict[str, Any] = {}
+        polish: dict[str, Any] = {}
+        for key in ("robust", "robust_scale"):
+            if key in opts:
+                sweeps[key] = polish[key] = opts.pop(key)
+        for key in ("max_iterations", "energy_tolerance", "linear_solver", "initial_damping"):
+            if key in opts:
+                polish[key] = opts.pop(key)
+        own = set(cls.__dataclass_fields__)
+        for key in list(opts):
+            if key in _HYBRID_SWEEP_FIELDS and key not in own:
+                sweeps[key] = opts.pop(key)
+        if "sweeps" in opts and not isinstance(opts["sweeps"], HybridConfig):
+            sweeps["sweeps"] = opts.pop("sweeps")
+        unknown = sorted(set(opts) - own)
+        if unknown:
+            raise TypeError(f"{', '.join(unknown)}: not an option of the default pipeline "
+                            "(AutoConfig); for the paper's method alone name it: "
+                            "optimize(graph, 'hybrid', ...)")
+        base = cls()
+        if sweeps:
+            opts["sweeps"] = dataclasses.replace(opts.get("sweeps", base.sweeps), **sweeps)
+        if polish:
+            opts["polish"] = dataclasses.replace(opts.get("polish", base.polish), **polish)
+        return cls(**opts)
+
+
+#: HybridConfig fields the default pipeline's flat options pass to its sweeps (``init``,
+#: ``polish``, ``polish_iterations`` and ``energy_tolerance`` are the pipeline's own business).
+_HYBRID_SWEEP_FIELDS = frozenset(HybridConfig.__dataclass_fields__) - {
+    "init", "polish", "polish_iterations", "energy_tolerance", "sweeps"}
 
 
 def default_init(graph: PoseGraph, method: str) -> InitName:

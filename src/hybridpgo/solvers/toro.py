@@ -10,10 +10,11 @@ the "dog-leg" distortion the paper fixes (paper Fig. 2, Fig. 3e/f).
 Summary of the rule (TORO.md):
 
 * **Tree** (``ToroConfig.tree``): ``"toro"`` (default, TORO's): each pose's parent is its
-  smallest-id neighbour, from the smallest-id pose (see :func:`build_toro_tree` for graphs where
-  a pose has no smaller-id neighbour); ``"bfs"``: the hybrid solver's breadth-first tree
-  (:func:`hybridpgo.tree.build_tree`).  Initial guess: tree-edge measurements composed down from
-  the root (``init="tree"``), or the file's vertices (``init="file"``).
+  smallest-id neighbour, from the smallest-id pose (:data:`hybridpgo.tree.TreeKind.TORO` says
+  what happens where a pose has no smaller-id neighbour); ``"bfs"``: the hybrid solver's
+  breadth-first tree.  Both are grown by :func:`hybridpgo.tree.build_tree`.  Initial guess:
+  tree-edge measurements composed down from the root (``init="tree"``), or the file's vertices
+  (``init="file"``).
 * **Order**: constraints by increasing depth of their top node (lowest common ancestor); ties in
   file order (relative edges, then GPS readings).
 * **Preconditioner**, once: ``rho_e`` / ``tau_e`` = smallest diagonal entry of the rotation /
@@ -51,6 +52,8 @@ from .._numba import cycles_per_second
 from ..energy import energy
 from ..errors import GraphError, SolverError
 from ..graph import FloatArray, PoseGraph
+from ..initialization import initial_locals
+from ..tree import PoseTree, build_tree, global_poses
 from . import _toro_kernels as _tk
 from .config import Progress, ProgressCallback
 from .result import SolveResult, Status
@@ -108,211 +111,13 @@ class ToroConfig:
             raise ValueError(f"gps must be True or False, got {self.gps!r}")
 
 
-# ----------------------------------------------------------------------------- the tree
-@dataclass(frozen=True)
-class ToroTree:
-    """A rooted spanning tree and the constraint paths (CSR, as in :mod:`hybridpgo.tree`)."""
-
-    num_poses: int
-    """N."""
-    has_earth: bool
-    """True when node N is the earth (the graph has GPS constraints)."""
-    root: int
-    """The fixed root (N for the earth)."""
-    parent: I32
-    """(T,) parent index, -1 for the root; T = N + has_earth."""
-    order: I32
-    """(T,) nodes with every parent before its children."""
-    depth: I32
-    """(T,) depth below the root."""
-    link_edge: I32
-    """(T,) relative edge joining the node to its parent (first in file order), or -1."""
-    link_gps: I32
-    """(T,) GPS reading joining the node to the earth (first in file order), or -1."""
-    path_ptr: npt.NDArray[np.int64]
-    """(C+1,) CSR offsets; constraints are the M relative edges, then the G GPS readings."""
-    path_node: I32
-    """(nnz,) path nodes: a up to the top (sign -1), then b up to the top (sign +1)."""
-    path_sign: npt.NDArray[np.int8]
-    """(nnz,) -1 on the a (v1) wing, +1 on the b (v2) wing and for GPS."""
-    top: I32
-    """(C,) the top (lowest common ancestor) of every constraint; the earth for GPS."""
-    sweep_order: I32
-    """(C,) constraints by increasing depth of their top (stable)."""
-
-    @property
-    def num_tree_nodes(self) -> int:
-        return int(self.parent.shape[0])
-
-    @property
-    def num_constraints(self) -> int:
-        return int(self.path_ptr.shape[0] - 1)
-
-    def path_lengths(self) -> npt.NDArray[np.int64]:
-        """(C,) path length l of every constraint (nodes other than the top)."""
-        return np.diff(self.path_ptr)
-
-
-def build_toro_tree(graph: PoseGraph, kind: str = "toro") -> ToroTree:
-    """Grow the tree and the constraint paths.
-
-    ``kind="toro"``: nodes are visited by increasing index from the root, each taking as parent
-    its smallest-index visited neighbour (:func:`_toro_kernels.smallest_id_tree`).  When every
-    pose but the root has a smaller-id neighbour this is exactly TORO's rule "the parent is the
-    smallest-id node with an edge into it".  The root is the smallest-id pose (or the pose a FIX
-    line names); with GPS it is the earth, whose index is the largest, so a pose hangs from the
-    earth only where no pose reaches it first (one GPS link per connected part).
-    ``kind="bfs"``: the parents of :func:`hybridpgo.tree.build_tree` (breadth-first).
-
-    Raises
-    ------
-    GraphError
-        The graph is not connected (with GPS: a part has no GPS reading), or it fixes more than
-        one pose.
-    """
-    if kind not in TREES:
-        raise ValueError(f"tree must be one of {', '.join(map(repr, TREES))}, got {kind!r}")
-    n, m, g = graph.num_nodes, graph.num_edges, graph.num_gps
-    has_earth = g > 0
-    t_nodes = n + int(has_earth)
-    a = graph.edge_nodes[:, 0].astype(np.int64)
-    b = graph.edge_nodes[:, 1].astype(np.int64)
-    if has_earth:
-        root = n
-    else:
-        if graph.fixed_nodes.size > 1:
-            raise GraphError(
-                f"the graph fixes {graph.fixed_nodes.size} poses (FIX lines); the TORO tree holds "
-                "exactly one pose fixed, its root: keep one FIX line, or use the exact solver"
-            )
-        root = int(graph.fixed_nodes[0]) if graph.fixed_nodes.size else 0
-
-    if kind == "toro":
-        ea = np.concatenate([a, np.full(g, n, np.int64)])
-        eb = np.concatenate([b, graph.gps_nodes.astype(np.int64)])
-        src = np.concatenate([ea, eb])
-        dst = np.concatenate([eb, ea])
-        srt = np.lexsort((dst, src))  # CSR adjacency, neighbours sorted
-        indptr = np.zeros(t_nodes + 1, np.int64)
-        np.cumsum(np.bincount(src, minlength=t_nodes), out=indptr[1:])
-        parent = np.empty(t_nodes, np.int32)
-        order = np.empty(t_nodes, np.int32)
-        visited = tk.smallest_id_tree(indptr, np.ascontiguousarray(dst[srt]), root, parent, order)
-        if visited != t_nodes:
-            graph.check_connected()
-            raise GraphError("the graph is not connected")  # pragma: no cover
-    else:
-        from ..tree import build_tree
-
-        bt = build_tree(graph, "bfs")
-        parent = np.array(bt.parent, np.int32)
-        order = np.array(bt.order, np.int32)
-        root = bt.root
-
-    # which constraint links each node to its parent (the first in file order)
-    link_edge = np.full(t_nodes, -1, np.int32)
-    link_gps = np.full(t_nodes, -1, np.int32)
-    child = np.nonzero(parent >= 0)[0]
-    if has_earth:
-        gchild = child[parent[child] == n]
-        child = child[parent[child] != n]
-        first = np.full(n, -1, np.int64)
-        first[graph.gps_nodes[::-1]] = np.arange(g - 1, -1, -1)
-        link_gps[gchild] = first[gchild]
-    if child.size:
-        key_e = np.minimum(a, b) * t_nodes + np.maximum(a, b)
-        srt = np.argsort(key_e, kind="stable")
-        p = parent[child].astype(np.int64)
-        key_c = np.minimum(p, child) * t_nodes + np.maximum(p, child)
-        e_idx = srt[np.searchsorted(key_e[srt], key_c)]
-        if not np.all(key_e[e_idx] == key_c):  # pragma: no cover - internal invariant
-            raise AssertionError("a tree link has no edge")
-        link_edge[child] = e_idx
-
-    depth = np.zeros(t_nodes, np.int32)
-    tk.depths(order, parent, depth)
-    c_nodes = np.empty((m + g, 2), np.int32)
-    c_nodes[:m] = graph.edge_nodes
-    c_nodes[m:, 0] = n
-    c_nodes[m:, 1] = graph.gps_nodes
-    lengths = np.zeros(m + g, np.int64)
-    top = np.zeros(m + g, np.int32)
-    tk.path_lengths(c_nodes, parent, depth, lengths, top)
-    ptr = np.zeros(m + g + 1, np.int64)
-    np.cumsum(lengths, out=ptr[1:])
-    path_node = np.empty(int(ptr[-1]), np.int32)
-    path_sign = np.empty(int(ptr[-1]), np.int8)
-    tk.fill_paths(c_nodes, parent, top, ptr, path_node, path_sign)
-    sweep_order = np.argsort(depth[top], kind="stable").astype(np.int32)
-    arrays: dict[str, Any] = dict(
-        parent=parent, order=order, depth=depth, link_edge=link_edge, link_gps=link_gps,
-        path_ptr=ptr, path_node=path_node, path_sign=path_sign, top=top,
-        sweep_order=sweep_order,
-    )
-    for v in arrays.values():
-        v.flags.writeable = False
-    return ToroTree(num_poses=n, has_earth=has_earth, root=root, **arrays)
-
-
-def toro_initial_locals(
-    graph: PoseGraph, tree: ToroTree, init: str = "tree"
-) -> tuple[FloatArray, FloatArray]:
-    """Initial local transforms ``(rot (T,3,3), trans (T,3))`` of every tree node.
-
-    ``"tree"``: each node's local transform is its tree edge's measurement (inverted when the
-    edge points from child to parent); a child of the earth gets its GPS reading's position and
-    its rotation from the file (identity when the file has none); the root pose keeps its file
-    pose.  ``"file"``: ``T_i = X_parent^-1 X_i`` from the file's vertices.  The earth is the
-    identity.
-    """
-    if init not in INITS:
-        raise ValueError(f"init must be one of {', '.join(map(repr, INITS))}, got {init!r}")
-    if init == "file" and not graph.has_estimates:
-        raise GraphError(
-            "init='file' needs vertex estimates, but the file has none "
-            "(iSAM files list only constraints): use init='tree'"
-        )
-    n = graph.num_nodes
-    t_nodes = tree.num_tree_nodes
-    grot = np.tile(np.eye(3), (t_nodes, 1, 1))
-    gtr = np.zeros((t_nodes, 3))
-    grot[:n] = graph.rotations
-    gtr[:n] = graph.translations
-    parent = tree.parent
-    if init == "file":
-        rot = np.array(grot)
-        trans = np.array(gtr)
-        child = np.nonzero(parent >= 0)[0]
-        p = parent[child]
-        rot[child] = np.einsum("kji,kjl->kil", grot[p], grot[child])
-        trans[child] = np.einsum("kji,kj->ki", grot[p], gtr[child] - gtr[p])
-        return rot, trans
-    rot = np.tile(np.eye(3), (t_nodes, 1, 1))
-    trans = np.zeros((t_nodes, 3))
-    e = tree.link_edge >= 0
-    ei = tree.link_edge[e]
-    fwd = graph.edge_nodes[ei, 0] == parent[e]
-    zr = graph.edge_rotations[ei]
-    zt = graph.edge_translations[ei]
-    # forward link (parent, child): T = Z; reversed (child, parent): T = Z^-1
-    rot[e] = np.where(fwd[:, None, None], zr, np.swapaxes(zr, 1, 2))
-    trans[e] = np.where(fwd[:, None], zt, -np.einsum("kji,kj->ki", zr, zt))
-    gl = tree.link_gps >= 0
-    trans[gl] = graph.gps_positions[tree.link_gps[gl]]
-    rot[gl] = grot[gl]
-    if not tree.has_earth:
-        rot[tree.root] = grot[tree.root]
-        trans[tree.root] = gtr[tree.root]
-    return rot, trans
-
-
 # ----------------------------------------------------------------------------- the solver state
 @dataclass
 class ToroState:
     """Mutable solver state: the tree, the preconditioned weights and the local transforms."""
 
     graph: PoseGraph
-    tree: ToroTree
+    tree: PoseTree
     rot: FloatArray
     """(T, 3, 3) local rotations R_parent_node, updated in place."""
     trans: FloatArray
@@ -337,7 +142,7 @@ class ToroState:
     """(C, 3) measured translations, then the GPS positions."""
 
     @classmethod
-    def create(cls, graph: PoseGraph, tree: ToroTree, rot: FloatArray, trans: FloatArray,
+    def create(cls, graph: PoseGraph, tree: PoseTree, rot: FloatArray, trans: FloatArray,
                weights: str = "documented") -> ToroState:
         """Compute the preconditioner (TORO.md, once before the first sweep)."""
         if weights not in WEIGHTS:
@@ -377,7 +182,8 @@ class ToroState:
     def problem(self) -> tuple[Any, ...]:
         """The read-only arrays the kernels take as ``prob`` (see ``_toro_kernels``)."""
         g, t = self.graph, self.tree
-        return (g.num_edges, t.path_ptr, t.path_node, t.path_sign, t.top, g.edge_rotations,
+        return (g.num_edges, t.path_ptr, t.path_node, t.path_sign, t.constraint_root,
+                g.edge_rotations,
                 self.meas_trans, self.rho, self.tau, self.gamma_r, self.gamma_t, self.w_rot,
                 self.w_trans)
 
@@ -397,19 +203,14 @@ class ToroState:
 
     def poses(self) -> tuple[FloatArray, FloatArray]:
         """Global poses ``(R (N,3,3), t (N,3))`` of the N poses."""
-        t_nodes = self.tree.num_tree_nodes
-        grot = np.empty((t_nodes, 3, 3))
-        gtr = np.empty((t_nodes, 3))
-        tk.globals_from_locals(self.tree.order, self.tree.parent, self.rot, self.trans, grot, gtr)
-        n = self.tree.num_poses
-        return grot[:n].copy(), gtr[:n].copy()
+        return global_poses(self.tree, self.rot, self.trans)
 
     def energy(self) -> float:
         return energy(self.graph, *self.poses())
 
 
 # ----------------------------------------------------------------------------- timing
-def _ensure_compiled() -> float:
+def ensure_compiled() -> float:
     """Compile (or load from Numba's cache) every kernel once; returns the seconds spent."""
     if getattr(tk.sweep, "signatures", None):
         return 0.0
@@ -464,15 +265,15 @@ def solve_toro(
             f"{graph.num_gps}: remove them, or accept them with the earth-rooted extension "
             "(ToroConfig(gps=True)), which suffers dog-legs"
         )
-    compile_s = _ensure_compiled()
+    compile_s = ensure_compiled()
     return _solve(graph, cfg, progress, compile_s)
 
 
 def _solve(graph: PoseGraph, cfg: ToroConfig, progress: ProgressCallback | None,
            compile_s: float) -> SolveResult:
     t_start = time.perf_counter()
-    tree = build_toro_tree(graph, cfg.tree)
-    rot0, trans0 = toro_initial_locals(graph, tree, cfg.init)
+    tree = build_tree(graph, cfg.tree)
+    rot0, trans0 = initial_locals(graph, tree, cfg.init)
     state = ToroState.create(graph, tree, rot0, trans0, cfg.weights)
     t_analyze = time.perf_counter() - t_start
 

@@ -20,9 +20,10 @@ import numpy as np
 
 from ..._cost import retract_into, whiten_rows
 from ..._numba import kernel
+from ..._tree_kernels import global_pose, mul_pose_into
 from ._dense import TINY, chol_inplace, chol_solve_cols, regularized_factor, solve_lt
 from ._interpolate import distribute_chain, merged_block
-from ._linearize import endpoints, linearize, mul_pose_into, num_a_side
+from ._linearize import endpoints, linearize, num_a_side
 from ._step import cap_and_apply, step_temperature
 from .problem import (
     BATCH_REJECTED,
@@ -43,28 +44,6 @@ SINGULAR_PIVOT = 1e-12
 
 
 # --------------------------------------------------------------------------- helpers
-@kernel
-def global_pose(i: int, parent: np.ndarray, rot: np.ndarray, trans: np.ndarray, ro: np.ndarray,
-                to: np.ndarray) -> None:
-    """Pose of tree node i in the root's frame (product of locals up the tree), O(depth)."""
-    tmp_r = np.empty((3, 3))
-    tmp_t = np.empty(3)
-    if i < 0:
-        for a in range(3):
-            for b in range(3):
-                ro[a, b] = 1.0 if a == b else 0.0
-            to[a] = 0.0
-        return
-    ro[:] = rot[i]
-    to[:] = trans[i]
-    v = parent[i]
-    while v >= 0:
-        mul_pose_into(rot[v], trans[v], ro, to, tmp_r, tmp_t)
-        ro[:] = tmp_r
-        to[:] = tmp_t
-        v = parent[v]
-
-
 @kernel
 def adjoint_into(r: np.ndarray, t: np.ndarray, out: np.ndarray) -> None:
     """Ad(T) = [[R, [t]x R], [0, R]]."""

@@ -51,6 +51,7 @@ from ..._cost import (
     whiten_rows,
 )
 from ..._numba import kernel
+from ..._tree_kernels import globals_from_locals
 from ...graph import FloatArray, PoseGraph
 from ...tree import PoseTree
 from ._batch import adjoint_into
@@ -134,25 +135,6 @@ def _solve_l(lo: np.ndarray, v: np.ndarray, x: np.ndarray) -> None:
 
 
 # --------------------------------------------------------------------------- linearization
-@kernel
-def global_poses_into(order: np.ndarray, parent: np.ndarray, rot: np.ndarray,
-                      trans: np.ndarray, yr: np.ndarray, yt: np.ndarray) -> None:
-    """Global pose ``Y_i`` of every tree node (products of the locals down the tree)."""
-    for k in range(order.shape[0]):
-        i = order[k]
-        p = parent[i]
-        if p < 0:
-            yr[i] = rot[i]
-            yt[i] = trans[i]
-        else:
-            for a in range(3):
-                for b in range(3):
-                    yr[i, a, b] = (yr[p, a, 0] * rot[i, 0, b] + yr[p, a, 1] * rot[i, 1, b]
-                                   + yr[p, a, 2] * rot[i, 2, b])
-                yt[i, a] = (yr[p, a, 0] * trans[i, 0] + yr[p, a, 1] * trans[i, 1]
-                            + yr[p, a, 2] * trans[i, 2] + yt[p, a])
-
-
 @kernel
 def linearize_all(prob: Problem, ends: np.ndarray, yr: np.ndarray, yt: np.ndarray,
                   amat: np.ndarray, res: np.ndarray) -> None:
@@ -406,7 +388,7 @@ def gauss_newton_step(prob: Problem, state: State, topo: Topology, iterations: i
     nc = topo.ends.shape[0]
     yr = np.empty((nt, 3, 3))
     yt = np.empty((nt, 3))
-    global_poses_into(topo.order, topo.parent, state.rot, state.trans, yr, yt)
+    globals_from_locals(topo.order, topo.parent, state.rot, state.trans, yr, yt)
     amat = np.empty((nc, 6, 6))
     res = np.empty((nc, 6))
     linearize_all(prob, topo.ends, yr, yt, amat, res)

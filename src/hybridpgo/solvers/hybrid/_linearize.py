@@ -27,18 +27,8 @@ from ..._cost import (
     whiten_rows,
 )
 from ..._numba import kernel
+from ..._tree_kernels import mul_pose_into as mul_pose_into
 from .problem import EYE, ZERO, Problem, Workspace, domain, is_gps
-
-
-@kernel
-def mul_pose_into(
-    ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.ndarray, ro: np.ndarray, to: np.ndarray
-) -> None:
-    """(ro, to) = (ra, ta) * (rb, tb) without allocating (outputs must not alias inputs)."""
-    for i in range(3):
-        for j in range(3):
-            ro[i, j] = ra[i, 0] * rb[0, j] + ra[i, 1] * rb[1, j] + ra[i, 2] * rb[2, j]
-        to[i] = ra[i, 0] * tb[0] + ra[i, 1] * tb[1] + ra[i, 2] * tb[2] + ta[i]
 
 
 @kernel

@@ -539,12 +539,13 @@ def _make_relax(with_gps: bool, step: int) -> Any:
 
 
 #: Single updates that compile one solve, by ``(with_gps, step kind)`` (the sweep variants').
+#: -1 (the key ``(with_gps, -1)``): the solve chosen by ``step_kind`` at run time, both compiled.
+BY_ARGUMENT = -1
 RELAX = {(g, int(k)): _make_relax(g, int(k)) for g in (False, True)
-         for k in (StepKind.WOODBURY, StepKind.GIVENS)}
-
+         for k in (StepKind.WOODBURY, StepKind.GIVENS, BY_ARGUMENT)}
 
 #: Relax constraint c (paper eq. 25): linearize, update 𝔅(H), solve, apply ``tau x``.  With
 #: ``apply=False`` only 𝔅(H) and c's contributions are updated.  Returns an ``Update``.  Every
-#: branch compiled in (GPS readings, the solve chosen by ``step_kind``): the online mode's; the
-#: sweeps use the :data:`RELAX` variant they need (the same arithmetic).
-relax = _make_relax(True, -1)
+#: branch compiled in (GPS readings, the solve chosen by ``step_kind``): the budgeted loop's;
+#: the sweeps use the :data:`RELAX` variant they need (the same arithmetic).
+relax = RELAX[True, BY_ARGUMENT]

@@ -1,18 +1,26 @@
-"""Sweeps over the constraints (paper Algorithm 1, III-H).
+"""The relaxation loop over a list of constraints (paper Algorithm 1, III-H).
 
 Constraints are relaxed in the given order (increasing root depth for a full sweep); GPS
 readings are buffered and relaxed together in batches of ``gps_batch_size`` (III-G), the buffer
-being flushed when full and before every relative constraint.  A sweep can stop at a deadline
-on the CPU's cycle counter (the online mode's time budget).
+being flushed when full and before every relative constraint.  The loop stops at a deadline on
+the CPU's cycle counter.
+
+One loop serves the whole-graph solver and the online mode.  Under the *admission policy*
+(:class:`._admission.Admission`, the online mode's frames) an update starts only when its
+predicted cost fits before the deadline, the constraints of a junction group are relaxed
+together as one batch, and every constraint's χ² before its update is recorded.  Each variant
+is compiled separately (:func:`loop_kernel`) so the whole-graph sweeps carry none of it.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from ..._numba import cycle_counter, kernel
+from . import _admission as adm
+from ._admission import Admission
 from ._batch import batch_relax, batch_relax_exact
 from ._interpolate import relax_interpolated
 from ._step import RELAX
@@ -24,10 +32,44 @@ from .problem import (
     State,
     StepKind,
     Update,
+    Workspace,
     domain,
     is_gps,
     new_workspace,
 )
+
+
+class Scratch(NamedTuple):
+    """Buffers of a relaxation loop, owned by its caller and reused from call to call."""
+
+    wk: Workspace
+    """Single updates of domains up to the workspace's capacity."""
+    sub: Workspace
+    """Interpolated solving's reduced updates."""
+    keep: np.ndarray
+    """(d_max,) the kept nodes of an interpolated update."""
+    slot: np.ndarray
+    """(T,) -1 everywhere between batches (the batches' union numbering)."""
+    xb: np.ndarray
+    """(T, 6) a batch's steps."""
+    nodes: np.ndarray
+    """(T,) a batch's union nodes."""
+    buf: np.ndarray
+    """(gps_batch_size,) the GPS buffer."""
+    cycles: np.ndarray
+    """(C,) cycles of each constraint's last update (a batch's shared among its members)."""
+    batch_cycles: np.ndarray
+    """(C,) cycles of a whole batch, at its first member."""
+
+
+def new_scratch(num_tree_nodes: int, num_constraints: int, dmax: int, d_max: int = 0,
+                gps_batch_size: int = 1) -> Scratch:
+    """Scratch for a problem of these sizes (``dmax``: the largest domain)."""
+    return Scratch(new_workspace(max(dmax, 1)), new_workspace(max(min(d_max, dmax), 1)),
+                   np.empty(max(d_max, 1), np.int64), np.full(num_tree_nodes, -1, np.int64),
+                   np.empty((num_tree_nodes, 6)), np.empty(num_tree_nodes, np.int64),
+                   np.empty(max(gps_batch_size, 1), np.int64),
+                   np.zeros(num_constraints, np.uint64), np.zeros(num_constraints, np.uint64))
 
 
 @kernel
@@ -42,9 +84,9 @@ def max_domain(prob: Problem) -> int:
 
 
 @kernel
-def _count_batch(nu: int, t0: np.uint64, buf: np.ndarray, nbuf: int, cycles: np.ndarray,
-                 batch_cycles: np.ndarray, counts: np.ndarray) -> bool:
-    """Book a GPS batch started at cycle ``t0`` that returned ``nu``; True when rejected."""
+def _book_batch(nu: int, t0: np.uint64, buf: np.ndarray, nbuf: int, cycles: np.ndarray,
+                batch_cycles: np.ndarray, counts: np.ndarray) -> bool:
+    """Book a batch started at cycle ``t0`` that returned ``nu``; True when rejected."""
     dc = cycle_counter() - t0
     if dc > counts[Count.MAX_CYCLES]:
         counts[Count.MAX_CYCLES] = dc
@@ -54,168 +96,244 @@ def _count_batch(nu: int, t0: np.uint64, buf: np.ndarray, nbuf: int, cycles: np.
     batch_cycles[buf[0]] = dc
     if nu == BATCH_REJECTED:
         counts[Count.REJECTED] += nbuf
+        if counts[Count.FIRST_REJECTED] == 0:
+            counts[Count.FIRST_REJECTED] = buf[0] + 1
         return True
     return False
 
 
 @kernel
-def _flush(prob: Problem, state: State, buf: np.ndarray, nbuf: int, tau: float, mu: float,
-           slot: np.ndarray, xb: np.ndarray, nodes: np.ndarray, cycles: np.ndarray,
-           batch_cycles: np.ndarray, counts: np.ndarray, d_max: int = 0) -> bool:
+def _flush(prob: Problem, state: State, sc: Scratch, nbuf: int, tau: float, mu: float,
+           counts: np.ndarray, d_max: int) -> float:
     """Relax the buffered GPS readings as one batch (interpolated when ``d_max`` > 0 is below
-    the union's size, III-G); True when the batch was rejected."""
+    the union's size, III-G); returns its cycles."""
     t0 = cycle_counter()
-    nu = batch_relax(prob, state, buf, nbuf, tau, mu, slot, xb, nodes, d_max)
-    return _count_batch(nu, t0, buf, nbuf, cycles, batch_cycles, counts)
+    nu = batch_relax(prob, state, sc.buf, nbuf, tau, mu, sc.slot, sc.xb, sc.nodes, d_max)
+    _book_batch(nu, t0, sc.buf, nbuf, sc.cycles, sc.batch_cycles, counts)
+    return float(cycle_counter() - t0)
 
 
 @kernel
-def _flush_exact(prob: Problem, state: State, buf: np.ndarray, nbuf: int, tau: float, mu: float,
-                 slot: np.ndarray, xb: np.ndarray, nodes: np.ndarray, cycles: np.ndarray,
-                 batch_cycles: np.ndarray, counts: np.ndarray) -> bool:
+def _flush_exact(prob: Problem, state: State, sc: Scratch, nbuf: int, tau: float, mu: float,
+                 counts: np.ndarray) -> float:
     """:func:`_flush` without interpolated solving (``batch_relax_exact``: compiles less)."""
     t0 = cycle_counter()
-    nu = batch_relax_exact(prob, state, buf, nbuf, tau, mu, slot, xb, nodes)
-    return _count_batch(nu, t0, buf, nbuf, cycles, batch_cycles, counts)
+    nu = batch_relax_exact(prob, state, sc.buf, nbuf, tau, mu, sc.slot, sc.xb, sc.nodes)
+    _book_batch(nu, t0, sc.buf, nbuf, sc.cycles, sc.batch_cycles, counts)
+    return float(cycle_counter() - t0)
 
 
-def _make_sweep(with_gps: bool, with_interpolation: bool, givens: bool) -> Any:
-    """The sweep kernel of one variant: GPS batches and interpolated solving are compiled in
-    only when the flag says so (a constant of the closure: Numba prunes the dead branch before
-    typing it, so a plain sweep never compiles the GPS batches (:func:`_flush_exact`,
-    ``batch_relax``) or ``relax_interpolated``, about two thirds of the hybrid solver's compile
-    time, and a sweep without ``d_max`` never the interpolated batch).  Its single updates are
-    the :data:`~._step.RELAX` variant with the GPS linearization only ``with_gps`` and one
-    solve, Givens' when ``givens`` (the ``step_kind`` argument must then agree)."""
-    relax = RELAX[with_gps, int(StepKind.GIVENS if givens else StepKind.WOODBURY)]
+@kernel
+def _group_work(prob: Problem, pol: Admission, grp: int) -> int:
+    """The work of a junction group's batch, in domain-node units."""
+    d = 0
+    for j in range(pol.group_ptr[grp], pol.group_ptr[grp + 1]):
+        d += adm.batch_work(prob, pol.depth, pol.group_members[j])
+    return d
 
-    def sweep_variant(prob: Problem, state: State, order: np.ndarray, tau: float, mu: float,
-                      step_kind: int, gps_batch_size: int, dmax: int, d_max: int,
-                      deadline: np.uint64, cycles: np.ndarray, batch_cycles: np.ndarray,
-                      counts: np.ndarray, apply: bool) -> int:
-        wk = new_workspace(dmax)
-        nt = state.rot.shape[0]
-        if with_interpolation:
-            sub = new_workspace(max(min(d_max, dmax), 1))
-            keep = np.empty(max(d_max, 1), np.int64)
-        if with_gps:
-            slot = np.full(nt, -1, np.int64)
-            xb = np.empty((nt, 6))
-            nodes = np.empty(nt, np.int64)
-            buf = np.empty(max(gps_batch_size, 1), np.int64)
+
+@kernel
+def _relax_group(prob: Problem, state: State, sc: Scratch, pol: Admission, grp: int,
+                 stamp: int, tau: float, mu: float, counts: np.ndarray) -> None:
+    """Relax a junction group's members together as one batch (their χ² recorded first); the
+    group is marked with ``stamp`` (relaxed once per call of the loop)."""
+    lo = pol.group_ptr[grp]
+    nb = pol.group_ptr[grp + 1] - lo
+    pol.group_stamp[grp] = stamp
+    members = pol.group_members[lo: lo + nb]
+    ro = np.empty((3, 3))
+    to = np.empty(3)
+    for j in range(nb):
+        cj = members[j]
+        pol.chi2[cj] = adm.chi2_of(prob, state, cj, sc.wk, ro, to)
+    t0 = cycle_counter()
+    nu = batch_relax_exact(prob, state, members, nb, tau, mu, sc.slot, sc.xb, sc.nodes, 0,
+                           False)
+    adm.learn(pol.model, max(_group_work(prob, pol, grp), 1), float(cycle_counter() - t0), True)
+    _book_batch(nu, t0, members, nb, sc.cycles, sc.batch_cycles, counts)
+
+
+def _make_loop(with_gps: bool, with_interpolation: bool, givens: bool, admission: bool) -> Any:
+    """The loop kernel of one variant: GPS batches, interpolated solving and the admission
+    policy are compiled in only when the flag says so (constants of the closure: Numba prunes
+    the dead branches before typing them, so a plain sweep never compiles the GPS batches or
+    ``relax_interpolated``, about two thirds of the hybrid solver's compile time).  Single
+    updates are the :data:`~._step.RELAX` variant with the GPS linearization only
+    ``with_gps`` and one solve, Givens' when ``givens`` (``step_kind`` must then agree); under
+    the policy the solve is chosen by ``step_kind`` at run time."""
+    relax = RELAX[with_gps, -1 if admission else int(
+        StepKind.GIVENS if givens else StepKind.WOODBURY)]
+
+    def loop_variant(prob: Problem, state: State, sc: Scratch, order: np.ndarray, tau: float,
+                     mu: float, step_kind: int, gps_batch_size: int, d_max: int,
+                     deadline: np.uint64, counts: np.ndarray, apply: bool, pol: Admission,
+                     stamp: int, max_updates: int, force_first: bool, skip: bool) -> int:
+        wk = sc.wk
         nbuf = 0
-        first_bad = -1
+        buf_cost = 0.0
+        started = 0
         n_order = order.shape[0]
+        stop_at = n_order
+        ro = np.empty((3, 3))
+        to = np.empty(3)
         for idx in range(n_order + 1):
             c = order[idx] if idx < n_order else -1
-            if c >= 0 and idx > 0 and cycle_counter() >= deadline:
+            grp = -1
+            if admission and c >= 0:
+                gps = is_gps(prob, c)
+                grp = pol.group_of[c]
+                if grp >= 0 and pol.group_stamp[grp] == stamp:
+                    continue  # relaxed with its group in this call
+                if started >= max_updates:
+                    c = -1
+                    stop_at = idx
+                else:
+                    if grp >= 0:
+                        nb = pol.group_ptr[grp + 1] - pol.group_ptr[grp]
+                        pred = (adm.predict(pol.model, _group_work(prob, pol, grp), True)
+                                + adm.capacitance_cost(nb))
+                    elif gps:
+                        pred = adm.predict(pol.model, domain(prob, c)[1], True) + buf_cost
+                    else:
+                        pred = adm.predict(pol.model, domain(prob, c)[1], False)
+                    late = float(cycle_counter()) + pred > float(deadline)
+                    if late and not (force_first and started == 0):
+                        counts[Count.SKIPPED] += 1
+                        if skip:
+                            continue
+                        c = -1
+                        stop_at = idx
+            elif c >= 0 and idx > 0 and cycle_counter() >= deadline:
                 c = -1
+                stop_at = idx
             if with_gps:
-                gps = c >= 0 and apply and is_gps(prob, c)
+                gps = c >= 0 and apply and is_gps(prob, c) and grp < 0
                 if nbuf > 0 and (not gps or nbuf >= gps_batch_size):
                     if with_interpolation:
-                        bad = _flush(prob, state, buf, nbuf, tau, mu, slot, xb, nodes, cycles,
-                                     batch_cycles, counts, d_max)
+                        dc = _flush(prob, state, sc, nbuf, tau, mu, counts, d_max)
                     else:
-                        bad = _flush_exact(prob, state, buf, nbuf, tau, mu, slot, xb, nodes,
-                                           cycles, batch_cycles, counts)
-                    if bad and first_bad < 0:
-                        first_bad = buf[0]
+                        dc = _flush_exact(prob, state, sc, nbuf, tau, mu, counts)
+                    if admission:
+                        ne = 0
+                        for q in range(nbuf):
+                            ne += domain(prob, sc.buf[q])[1]
+                        adm.learn(pol.model, max(ne, 1), dc, True)
                     nbuf = 0
+                    buf_cost = 0.0
                 if gps:
-                    buf[nbuf] = c
+                    if admission:
+                        started += 1
+                        pol.chi2[c] = adm.gps_chi2(prob, state, c, ro, to)
+                        buf_cost += adm.predict(pol.model, domain(prob, c)[1], True)
+                    sc.buf[nbuf] = c
                     nbuf += 1
                     continue
             if c < 0:
-                counts[Count.DONE] += idx
                 break
+            if admission:
+                started += 1
+                if grp >= 0:
+                    _relax_group(prob, state, sc, pol, grp, stamp, tau, mu, counts)
+                    continue
             t0 = cycle_counter()
             if with_interpolation and apply and 0 < d_max < domain(prob, c)[1]:
-                st = relax_interpolated(prob, state, wk, sub, keep, c, tau, mu, step_kind, d_max)
+                st = relax_interpolated(prob, state, wk, sc.sub, sc.keep, c, tau, mu,
+                                        step_kind, d_max)
             else:
                 st = relax(prob, state, wk, c, tau, mu, step_kind, apply)
             dc = cycle_counter() - t0
-            cycles[c] = dc
+            sc.cycles[c] = dc
             if dc > counts[Count.MAX_CYCLES]:
                 counts[Count.MAX_CYCLES] = dc
+            if admission:
+                s = 0.0
+                for i in range(6):
+                    s += wk.r[i] * wk.r[i]
+                pol.chi2[c] = s
+                adm.learn(pol.model, domain(prob, c)[1], float(dc), False)
             if st == Update.CAPPED:
                 counts[Count.CAPPED] += 1
             elif st == Update.REJECTED:
                 counts[Count.REJECTED] += 1
-                if first_bad < 0:
-                    first_bad = c
-        return first_bad
+                if counts[Count.FIRST_REJECTED] == 0:
+                    counts[Count.FIRST_REJECTED] = c + 1
+        counts[Count.DONE] += started if admission else stop_at
+        return int(stop_at)
 
-    sweep_variant.__qualname__ = sweep_variant.__name__ = (
-        "sweep" + ("_gps" if with_gps else "") + ("_interpolated" if with_interpolation else "")
-        + ("_givens" if givens else ""))
-    return kernel(sweep_variant)
-
-
-#: The sweep kernels by ``(with_gps, with_interpolation, givens)``; each is compiled on first
-#: use.
-SWEEPS = {(g, i, v): _make_sweep(g, i, v) for g in (False, True) for i in (False, True)
-          for v in (False, True)}
+    loop_variant.__qualname__ = loop_variant.__name__ = (
+        "relax_loop" + ("_gps" if with_gps else "")
+        + ("_interpolated" if with_interpolation else "") + ("_givens" if givens else "")
+        + ("_admission" if admission else ""))
+    return kernel(loop_variant)
 
 
-def sweep_kernel(with_gps: bool, with_interpolation: bool, givens: bool = False) -> Any:
-    """The sweep kernel a problem needs: with GPS batches when it has GPS readings, with
+#: The loop kernels by ``(with_gps, with_interpolation, givens, admission)``; each is compiled
+#: on first use.
+LOOPS = {(g, i, v, a): _make_loop(g, i, v, a) for g in (False, True) for i in (False, True)
+         for v in (False, True) for a in (False, True)}
+
+
+def loop_kernel(with_gps: bool, with_interpolation: bool, givens: bool = False,
+                admission: bool = False) -> Any:
+    """The loop kernel a problem needs: with GPS batches when it has GPS readings, with
     interpolated solving when ``d_max`` > 0, with the Givens solve when asked, Woodbury's
-    otherwise (compiling only what is used)."""
-    return SWEEPS[bool(with_gps), bool(with_interpolation), bool(givens)]
+    otherwise, with the admission policy for budgeted frames (compiling only what is used)."""
+    return LOOPS[bool(with_gps), bool(with_interpolation), bool(givens), bool(admission)]
 
 
-def sweep(prob: Problem, state: State, order: np.ndarray, tau: float, mu: float,
-          step_kind: int, gps_batch_size: int, dmax: int, d_max: int, deadline: np.uint64,
-          cycles: np.ndarray, batch_cycles: np.ndarray, counts: np.ndarray) -> int:
-    """One pass over the constraints in ``order`` (paper Algorithm 1).
-
-    ``dmax`` is the largest domain (workspace capacity); ``d_max`` > 0 solves single updates of
-    longer domains, and GPS batches of larger unions, for about ``d_max`` nodes (interpolated
-    solving, III-E, III-G), 0 never.
-
-    ``cycles[c]`` receives the cycle count of constraint c's update (a batch's count is shared
-    among its members, and ``batch_cycles[first member]`` gets the whole batch's count);
-    ``counts`` accumulates the entries named by :class:`Count`.  When the cycle counter passes
-    ``deadline`` no further constraint is started (the GPS buffer is still flushed);
-    ``counts[Count.DONE]`` tells how many were processed.  Returns the first rejected
-    constraint or -1.
-
-    Runs the variant of :func:`sweep_kernel` the problem needs (GPS batches only when it has GPS
-    readings, interpolation only with ``d_max`` > 0).
-    """
-    return _run(sweep_kernel(prob.gps_pos.shape[0] > 0, d_max > 0, step_kind == StepKind.GIVENS),
-                prob, state, order, tau, mu, step_kind, gps_batch_size, dmax, d_max, deadline,
-                cycles, batch_cycles, counts, True)
+#: The admission arrays of a loop without the policy (never read).
+NO_ADMISSION = Admission(np.zeros(3), np.zeros(0), np.zeros(0, np.int64), np.zeros(1, np.int64),
+                         np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int32))
 
 
-def _run(kern: Any, prob: Problem, state: State, order: np.ndarray, tau: float, mu: float,
-         step_kind: int, gps_batch_size: int, dmax: int, d_max: int,
-         deadline: int | np.uint64, cycles: np.ndarray, batch_cycles: np.ndarray,
-         counts: np.ndarray, apply: bool) -> int:
-    """Call a sweep kernel with normalized argument types, so each variant is compiled for one
-    signature only: a writable ``order`` (``step``) and the tree's read-only one (``run``), an
-    IntEnum step kind or a NumPy integer would each compile the whole sweep again."""
+def run_loop(kern: Any, prob: Problem, state: State, sc: Scratch, order: np.ndarray,
+             tau: float, mu: float, step_kind: int, gps_batch_size: int, d_max: int,
+             deadline: int | np.uint64, counts: np.ndarray, apply: bool = True,
+             pol: Admission = NO_ADMISSION, stamp: int = 0, max_updates: int = 1 << 62,
+             force_first: bool = False, skip: bool = False) -> int:
+    """Call a loop kernel with normalized argument types, so each variant is compiled for one
+    signature only (a writable and a read-only ``order``, an IntEnum step kind or a NumPy
+    integer would each compile the whole loop again).  Returns how many leading entries of
+    ``order`` were processed (all of them unless the deadline or ``max_updates`` stopped the
+    loop, or an update did not fit and ``skip`` is False)."""
     order = np.ascontiguousarray(order, dtype=np.int32).view()
     order.flags.writeable = False
-    return int(kern(prob, state, order, float(tau), float(mu), int(step_kind),
-                    int(gps_batch_size), int(dmax), int(d_max), np.uint64(deadline), cycles,
-                    batch_cycles, counts, bool(apply)))
+    return int(kern(prob, state, sc, order, float(tau), float(mu), int(step_kind),
+                    int(gps_batch_size), int(d_max), np.uint64(deadline), counts, bool(apply),
+                    pol, int(stamp), int(max_updates), bool(force_first), bool(skip)))
 
 
-def init_blocks(prob: Problem, state: State, dmax: int, with_gps: bool = False,
+def sweep(prob: Problem, state: State, sc: Scratch, order: np.ndarray, tau: float, mu: float,
+          step_kind: int, gps_batch_size: int, d_max: int, deadline: np.uint64,
+          counts: np.ndarray) -> int:
+    """One pass over the constraints in ``order`` (paper Algorithm 1), no admission policy.
+
+    ``d_max`` > 0 solves single updates of longer domains, and GPS batches of larger unions,
+    for about ``d_max`` nodes (interpolated solving, III-E, III-G), 0 never.  ``sc.cycles[c]``
+    receives the cycle count of constraint c's update (a batch's count is shared among its
+    members, and ``sc.batch_cycles[first member]`` gets the whole batch's count); ``counts``
+    accumulates the entries named by :class:`Count`.  When the cycle counter passes ``deadline``
+    no further constraint is started (the GPS buffer is still flushed).  Returns how many
+    entries of ``order`` were processed.
+    """
+    kern = loop_kernel(prob.gps_pos.shape[0] > 0, d_max > 0, step_kind == StepKind.GIVENS)
+    return run_loop(kern, prob, state, sc, order, tau, mu, step_kind, gps_batch_size, d_max,
+                    deadline, counts)
+
+
+def init_blocks(prob: Problem, state: State, sc: Scratch, with_gps: bool = False,
                 with_interpolation: bool = False, givens: bool = False) -> None:
     """𝔅(H) and every constraint's contribution at the current poses (no step).
 
-    Runs the sweep kernel of the given variant (the one the solve uses: nothing more to
-    compile) with ``apply=False`` over every constraint: every variant then relaxes each
-    constraint, GPS readings one by one, with :func:`relax` (only the blocks are wanted), so
-    the blocks are the same whatever the variant.
+    Runs the loop kernel of the given variant (the one the solve uses: nothing more to compile)
+    with ``apply=False`` over every constraint: every variant then relaxes each constraint, GPS
+    readings one by one, with the single update (only the blocks are wanted), so the blocks are
+    the same whatever the variant.
     """
     state.bdiag[:] = 0.0
     state.contrib[:] = 0.0
     nc = prob.path_ptr.shape[0] - 1
-    _run(sweep_kernel(with_gps, with_interpolation, givens), prob, state,
-         np.arange(nc, dtype=np.int32), 0.0, 0.0,
-         StepKind.GIVENS if givens else StepKind.WOODBURY, 1, dmax, 0, np.iinfo(np.uint64).max,
-         np.zeros(nc, np.uint64), np.zeros(nc, np.uint64), np.zeros(NUM_COUNTS, np.int64), False)
+    run_loop(loop_kernel(with_gps, with_interpolation, givens), prob, state, sc,
+             np.arange(nc, dtype=np.int32), 0.0, 0.0,
+             StepKind.GIVENS if givens else StepKind.WOODBURY, 1, 0, np.iinfo(np.uint64).max,
+             np.zeros(NUM_COUNTS, np.int64), False)

@@ -180,6 +180,10 @@ class Count(enum.IntEnum):
     BATCHES = 3
     DONE = 4
     """Constraints processed (less than asked when a deadline stopped the sweep)."""
+    SKIPPED = 5
+    """Updates not admitted because their predicted cost did not fit (admission policy)."""
+    FIRST_REJECTED = 6
+    """1 + the first constraint whose update was rejected (0: none)."""
 
 
 NUM_COUNTS = len(Count)

@@ -21,10 +21,11 @@ from ..._numba import cycles_per_second, read_cycles
 from ...energy import energy, robust_energy
 from ...errors import SolverError
 from ...graph import FloatArray, PoseGraph
-from ...tree import LINK_EDGE, LINK_GPS, PoseTree, build_tree, global_poses, initial_locals
+from ...initialization import initial_locals
+from ...tree import LINK_EDGE, LINK_GPS, PoseTree, build_tree, global_poses
 from ..config import HybridConfig, Progress, ProgressCallback
 from ..result import SolveResult, Status
-from . import _aggregate, _batch, _correction, _init_blocks, _linearize, _step, _sweep
+from . import _batch, _correction, _init_blocks, _linearize, _step, _sweep
 from .problem import NUM_COUNTS, Count, Problem, State, StepKind, new_workspace
 
 if TYPE_CHECKING:
@@ -95,11 +96,6 @@ class HybridSolver:
                  tree: PoseTree | None = None,
                  locals0: tuple[FloatArray, FloatArray] | None = None) -> None:
         self.config = cfg = config or HybridConfig()
-        if cfg.update != "paper" and graph.num_gps:
-            # measured: diverges on a generated city with GPS (benchmarks/sag.py); the GPS
-            # batches carry no memory, so the optimum is not a fixed point there either
-            raise ValueError(f"update={cfg.update!r} (experimental) does not support GPS "
-                             "constraints; use update='paper'")
         self.compile_seconds = ensure_compiled(graph.num_gps > 0, bool(cfg.dmax),
                                                cfg.step == "givens")
         t0 = time.perf_counter()
@@ -122,21 +118,18 @@ class HybridSolver:
         )
         lengths = tree.path_lengths()
         self.dmax = max(int(lengths.max()) if lengths.size else 1, 1)
+        nc = tree.num_constraints
+        self.scratch = _sweep.new_scratch(tree.num_tree_nodes, nc, self.dmax, cfg.dmax or 0,
+                                          cfg.gps_batch_size)
+        """Buffers of the relaxation loop, reused by every sweep and step."""
         compiled = self.compile_seconds
         self.rebuild_blocks()
         compiled = self.compile_seconds - compiled  # the first large graph's init kernel
-        aggregated = cfg.update != "paper"
-        self.memory = _aggregate.new_memory(int(tree.path_ptr[-1]) if aggregated else 0,
-                                            tree.num_tree_nodes if aggregated else 0)
-        """Remembered forces of ``update="saga"`` (zero: the first visits are the paper's)."""
         self._topology: _correction.Topology | None = None
         self.tau = cfg.tau0
         """The temperature of the next sweep."""
         self.sweeps_done = 0
         self.analyze_seconds = time.perf_counter() - t0 - compiled
-        nc = tree.num_constraints
-        self._cycles = np.zeros(nc, np.uint64)
-        self._batch_cycles = np.zeros(nc, np.uint64)
 
     # ----------------------------------------------------------------- state
     @property
@@ -154,16 +147,9 @@ class HybridSolver:
             self.compile_seconds += _compile_init_kernel()
             _init_blocks.init_blocks(self.problem, self.state, self.dmax)
         else:
-            _sweep.init_blocks(self.problem, self.state, self.dmax,
+            _sweep.init_blocks(self.problem, self.state, self.scratch,
                                self.problem.gps_pos.shape[0] > 0, bool(self.config.dmax),
                                self.config.step == "givens")
-
-    def init_memory(self) -> None:
-        """``update="saga"``: remember every constraint's force at the current poses (a warm
-        restart from a settled estimate; a settled optimum is then a fixed point)."""
-        if self.config.update != "saga":
-            raise ValueError("init_memory needs update='saga'")
-        _aggregate.init_memory(self.problem, self.state, self.memory, self.dmax)
 
     def poses(self) -> tuple[FloatArray, FloatArray]:
         """Global poses ``(R (N,3,3), t (N,3))`` of the current estimate."""
@@ -188,16 +174,13 @@ class HybridSolver:
     # ----------------------------------------------------------------- updates
     def _sweep(self, order: npt.NDArray[Any], tau: float, deadline: int,
                counts: npt.NDArray[np.int64]) -> int:
+        """One relaxation loop over ``order``; returns the first rejected constraint or -1."""
         cfg = self.config
-        if cfg.update == "saga":
-            return int(_aggregate.sweep_aggregated(
-                self.problem, self.state, self.memory, cfg.memory_rate, order, tau, cfg.damping,
-                cfg.gps_batch_size, self.dmax, np.uint64(deadline), self._cycles,
-                self._batch_cycles, counts))
-        return int(_sweep.sweep(self.problem, self.state, order, tau, cfg.damping,
-                                STEP_KINDS[cfg.step], cfg.gps_batch_size, self.dmax,
-                                cfg.dmax or 0, np.uint64(deadline), self._cycles,
-                                self._batch_cycles, counts))
+        counts[Count.FIRST_REJECTED] = 0
+        _sweep.sweep(self.problem, self.state, self.scratch, order, tau, cfg.damping,
+                     STEP_KINDS[cfg.step], cfg.gps_batch_size, cfg.dmax or 0,
+                     np.uint64(deadline), counts)
+        return int(counts[Count.FIRST_REJECTED]) - 1
 
     def step(self, constraints: npt.ArrayLike, budget_s: float | None = None,
              tau: float | None = None) -> StepReport:
@@ -348,11 +331,11 @@ class HybridSolver:
             self.sweeps_done += 1
             if bad >= 0 and first_bad < 0:
                 first_bad = bad
-            sum_cycles += float(self._cycles.sum())
-            np.minimum(steady, self._cycles, out=steady)
-            np.minimum(batch_steady, self._batch_cycles, out=batch_steady)
+            sum_cycles += float(self.scratch.cycles.sum())
+            np.minimum(steady, self.scratch.cycles, out=steady)
+            np.minimum(batch_steady, self.scratch.batch_cycles, out=batch_steady)
             if nc:
-                p999 = max(p999, float(np.quantile(self._cycles, 0.999)))
+                p999 = max(p999, float(np.quantile(self.scratch.cycles, 0.999)))
             poses = self.poses()
             e, e_plain = self._energies_of(*poses)
             history.append(e)

@@ -2,7 +2,7 @@
 
 Frames come in increasing pose id: frame k brings pose k with every relative constraint
 between k and an earlier pose (its odometry first, then the loop closures) and every GPS
-reading on k.  :func:`replay_online` feeds them to :class:`~hybridpgo.solvers.online.OnlineSolver`
+reading on k.  :func:`replay_online` feeds them to :class:`~hybridpgo.online.OnlineSolver`
 and :func:`replay_isam2` to GTSAM's ISAM2 (the optional ``gtsam`` extra), timing one update
 per frame; :func:`prefix_optima` computes the batch optimum of the prefixes the accuracy is
 measured against.
@@ -20,9 +20,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from .energy import energy
-from .errors import GraphError
-from .graph import FloatArray, PoseGraph
+from ..energy import energy
+from ..errors import GraphError
+from ..graph import FloatArray, PoseGraph
 
 IntArray = npt.NDArray[np.int64]
 #: ``on_frame(k, solver, latency_s)`` of :func:`replay_online`: frame k (from 1) is done.
@@ -175,8 +175,8 @@ def prefix_optima(stream: Stream, frames: Sequence[int], max_iterations: int = 1
                   progress: Callable[[int, float], None] | None = None) -> dict[int, float]:
     """Batch optimum (exact LM) of each prefix; each warm-starts from the previous optimum,
     the new poses composed from their odometry (independent of any online solver)."""
-    from .solvers.config import GaussNewtonConfig
-    from .solvers.gauss_newton import solve_exact
+    from ..solvers.config import GaussNewtonConfig
+    from ..solvers.gauss_newton import solve_exact
 
     g = stream.graph
     out: dict[int, float] = {}
@@ -231,9 +231,11 @@ class ReplayResult:
 
     name: str
     latency_s: FloatArray
-    """(F,) wall time of each frame's update plus the current pose's estimate."""
+    """(F,) wall time of each frame's whole work: giving the solver its data (``add_*``), its
+    update and reading the current pose."""
     cpu_s: FloatArray
-    """(F,) process CPU time of the same (not inflated by preemption: the "steady" latency)."""
+    """(F,) the main thread's CPU time of the same (not inflated by preemption or by the
+    background worker: the "steady" latency)."""
     checkpoints: dict[int, float]
     """Energy of the estimate over the prefix, at each checkpoint frame count."""
     extra_energy: list[float] = dataclasses.field(default_factory=list)
@@ -275,11 +277,16 @@ def replay_online(stream: Stream, config: Any = None, budget_s: float | None = 5
                   checkpoints: Sequence[int] = (), extra_frames: int = 0,
                   refine_every: int = 0, refine_offset: int = 0,
                   progress: Callable[[int, float], None] | None = None,
-                  on_frame: FrameCallback | None = None) -> ReplayResult:
+                  on_frame: FrameCallback | None = None,
+                  rate_hz: float | None = None) -> ReplayResult:
     """Stream ``stream`` into an :class:`OnlineSolver`, one :meth:`update` per frame.
 
-    A frame's latency is its ``update`` plus the estimate of the pose it brought (what the
+    A frame's latency is all of its work: giving the solver the frame's pose, edges and GPS
+    readings (``add_*``), its ``update`` and the estimate of the pose it brought (what the
     robot reads); the energy over the prefix is evaluated at ``checkpoints`` outside the timing.
+    Frames come back to back (the worst case), or with ``rate_hz`` at that rate (a lidar: 10):
+    the time between a frame's work and the next frame's arrival goes to
+    :meth:`OnlineSolver.idle` (and to the worker, in its own process), outside the latency.
     With ``refine_every = K``, frames ``k`` with ``k % K == refine_offset`` (counting from 1)
     also run :meth:`OnlineSolver.refine` (the whole-map exact solve), inside their latency.
     ``on_frame(k, solver, latency_s)`` is called after every frame ``k`` (counting from 1, the
@@ -288,7 +295,7 @@ def replay_online(stream: Stream, config: Any = None, budget_s: float | None = 5
     (:meth:`OnlineSolver.wait_background_ready`, as a robot starts its back end before it
     drives); the wait is ``info["background_start_s"]``.
     """
-    from .solvers.online import OnlineSolver
+    from .solver import OnlineSolver
 
     solver = OnlineSolver(config)
     try:
@@ -296,8 +303,10 @@ def replay_online(stream: Stream, config: Any = None, budget_s: float | None = 5
         if solver.config.background_refine:  # started before the drive, as on a robot
             solver.wait_background_ready(BACKGROUND_START_TIMEOUT_S)
         start_s = time.perf_counter() - t0
+        if rate_hz is not None and not (math.isfinite(rate_hz) and rate_hz > 0):
+            raise ValueError(f"rate_hz must be a finite number > 0, got {rate_hz!r}")
         result = _replay_online(solver, stream, budget_s, checkpoints, extra_frames,
-                                refine_every, refine_offset, progress, on_frame)
+                                refine_every, refine_offset, progress, on_frame, rate_hz)
     finally:
         solver.close()
     if solver.config.background_refine:
@@ -305,27 +314,47 @@ def replay_online(stream: Stream, config: Any = None, budget_s: float | None = 5
     return result
 
 
+#: Frames reported in ``ReplayResult.info["worst_frames"]``.
+WORST_FRAMES = 5
+
+
 def _replay_online(solver: Any, stream: Stream, budget_s: float | None,
                    checkpoints: Sequence[int], extra_frames: int, refine_every: int,
                    refine_offset: int, progress: Callable[[int, float], None] | None,
-                   on_frame: FrameCallback | None = None) -> ReplayResult:
+                   on_frame: FrameCallback | None = None,
+                   rate_hz: float | None = None) -> ReplayResult:
     nf = stream.num_frames
     lat = np.empty(nf)
     cpu = np.empty(nf)
+    reports: list[Any] = []
     marks = set(checkpoints)
     energies: dict[int, float] = {}
     ids = stream.graph.node_ids
+    period = None if rate_hz is None else 1.0 / rate_hz
+    clock0 = time.perf_counter()
+    idle_s = 0.0
     for k in range(nf):
-        feed_frame(solver, stream, k)
+        if period is not None:  # the frame arrives at its time; the back end had the wait
+            arrival = clock0 + k * period
+            now = time.perf_counter()
+            if arrival - now > 1e-4:
+                t_idle = time.perf_counter()
+                solver.idle(arrival - now)
+                idle_s += time.perf_counter() - t_idle
+                rest = arrival - time.perf_counter()
+                if rest > 0:
+                    time.sleep(rest)
         pid = int(ids[stream.order[k]])
-        c0 = time.process_time()
+        c0 = time.thread_time()
         t0 = time.perf_counter()
-        solver.update(budget_s)
+        feed_frame(solver, stream, k)
+        rep = solver.update(budget_s)
         if refine_every and (k + 1) % refine_every == refine_offset:
             solver.refine()
         solver.pose(pid)
         lat[k] = time.perf_counter() - t0
-        cpu[k] = time.process_time() - c0
+        cpu[k] = time.thread_time() - c0
+        reports.append(rep)
         if on_frame is not None:
             on_frame(k + 1, solver, float(lat[k]))
         if k + 1 in marks:
@@ -337,6 +366,8 @@ def _replay_online(solver: Any, stream: Stream, budget_s: float | None,
     extra_l: list[float] = []
     last = int(ids[stream.order[nf - 1]])
     for j in range(extra_frames):
+        if period is not None:
+            solver.idle(period)
         t0 = time.perf_counter()
         solver.update(budget_s)
         solver.pose(last)
@@ -347,8 +378,22 @@ def _replay_online(solver: Any, stream: Stream, budget_s: float | None,
     name = f"hybridpgo+refine/{refine_every}" if refine_every else "hybridpgo"
     if solver.config.background_refine:
         name += "+background"
-    return ReplayResult(name, lat, cpu, energies, extra_e, extra_l,
-                        {**solver.stats(), "compile_s": solver.compile_seconds})
+    worst = np.argsort(-cpu, kind="stable")[:WORST_FRAMES]
+    info = {**solver.stats(), "compile_s": solver.compile_seconds,
+            "worst_frames": [_frame_note(stream, int(k), lat, cpu, reports[k]) for k in worst]}
+    if period is not None:
+        info.update(rate_hz=rate_hz, idle_s=idle_s)
+    return ReplayResult(name, lat, cpu, energies, extra_e, extra_l, info)
+
+
+def _frame_note(stream: Stream, k: int, lat: FloatArray, cpu: FloatArray,
+                rep: Any) -> dict[str, Any]:
+    """What frame k brought and what its update did (one of the worst frames)."""
+    return {"frame": k + 1, "cpu_ms": float(cpu[k] * 1e3), "wall_ms": float(lat[k] * 1e3),
+            "edges": int(stream.edge_ptr[k + 1] - stream.edge_ptr[k]),
+            "gps": int(stream.gps_ptr[k + 1] - stream.gps_ptr[k]),
+            "new": int(rep.new), "old": int(rep.old), "backlog": int(rep.backlog),
+            "local_nodes": int(rep.local_nodes), "skipped": int(rep.skipped)}
 
 
 # --------------------------------------------------------------------------- iSAM2

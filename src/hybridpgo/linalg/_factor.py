@@ -22,13 +22,13 @@ its diagonal entry), as :class:`hybridpgo.solvers.gauss_newton` assembles it:
     per factorization, against > 600 s (time limit) with SuperLU's block MMD ordering, the old
     default (108 s on a quiet machine in the issue's measurement).
 
-The fill-reducing ordering (:func:`_fill_reducing_order`) is computed once per solve on the 6x6
+The fill-reducing ordering (:func:`fill_reducing_order`) is computed once per solve on the 6x6
 *block* graph (36x smaller than A): AMD from :mod:`cvxopt.amd` (15 ms on paris2's 42k blocks), or
 SuperLU's MMD when cvxopt is missing.  The exact solver permutes its variables with it, so both
 backends factor a matrix that is already in fill-reducing order and take it as given.
 
 Both backends also give the pivots (for the singular-system check of Gauss-Newton without a
-gauge, :func:`_check_pivots`) and selected diagonal blocks of ``A^-1`` (:meth:`inverse_blocks`,
+gauge, :func:`check_pivots`) and selected diagonal blocks of ``A^-1`` (:meth:`inverse_blocks`,
 used by :mod:`hybridpgo.covariance`).
 """
 
@@ -82,7 +82,7 @@ def _check_lower(pattern: SymmetricPattern) -> None:
 
 
 # --------------------------------------------------------------------------- ordering
-def _cvxopt_available() -> bool:
+def cvxopt_available() -> bool:
     try:
         import cvxopt.amd
         import cvxopt.cholmod  # noqa: F401
@@ -91,12 +91,12 @@ def _cvxopt_available() -> bool:
     return True
 
 
-def _cholmod_available() -> bool:
+def cholmod_available() -> bool:
     """True when CHOLMOD (through cvxopt) can be imported."""
-    return _cvxopt_available()
+    return cvxopt_available()
 
 
-def _fill_reducing_order(nv: int, rows: Int64Array, cols: Int64Array) -> Int64Array:
+def fill_reducing_order(nv: int, rows: Int64Array, cols: Int64Array) -> Int64Array:
     """New position of every variable: a fill-reducing ordering of the block graph.
 
     ``rows, cols`` list the (block row, block column) of every nonzero block; entries < 0 are
@@ -110,7 +110,7 @@ def _fill_reducing_order(nv: int, rows: Int64Array, cols: Int64Array) -> Int64Ar
     r = rows[keep]
     c = cols[keep]
     off = r != c
-    if _cvxopt_available():
+    if cvxopt_available():
         import cvxopt
         import cvxopt.amd
 
@@ -135,7 +135,7 @@ def _fill_reducing_order(nv: int, rows: Int64Array, cols: Int64Array) -> Int64Ar
 
 
 # --------------------------------------------------------------------------- checks
-def _check_pivots(pivots: FloatArray, diagonal: FloatArray) -> None:
+def check_pivots(pivots: FloatArray, diagonal: FloatArray) -> None:
     """Raise SolverError when a pivot is tiny against its diagonal entry (A singular)."""
     ratio = pivots / np.maximum(diagonal, np.finfo(np.float64).tiny)
     if not np.all(ratio >= _SINGULAR_PIVOT):
@@ -149,7 +149,7 @@ class NotPositiveDefinite(SolverError):
     """The factorization met a non-positive pivot."""
 
 
-def _not_positive_definite(detail: str) -> SolverError:
+def not_positive_definite(detail: str) -> SolverError:
     return NotPositiveDefinite(
         f"the normal equations are not positive definite ({detail}): the gauge is not fixed, "
         "or some pose is not determined by its constraints; fix a pose, or use method='lm'")
@@ -197,7 +197,7 @@ class _SuperLU:
         """Raise SolverError when the last factored matrix is singular to rounding."""
         assert self._lu is not None and self._diagonal is not None
         pivots = np.abs(self._lu.U.diagonal())  # U's diagonal, in the order of perm_c
-        _check_pivots(pivots, self._diagonal[np.argsort(self._lu.perm_c)])
+        check_pivots(pivots, self._diagonal[np.argsort(self._lu.perm_c)])
 
     def solve_factored(self, rhs: FloatArray) -> FloatArray:
         """``A^-1 rhs`` with the last factorization (rhs: (dim,) or (dim, k))."""
@@ -295,7 +295,7 @@ class _Cholmod:
             try:
                 cm.numeric(self._matrix, self._factor)
             except ArithmeticError as exc:  # cvxopt: the column where a pivot was <= 0
-                raise _not_positive_definite(f"non-positive pivot in column {exc}") from exc
+                raise not_positive_definite(f"non-positive pivot in column {exc}") from exc
 
     def _permutation(self) -> Int64Array:
         """p with ``(P A P^T)[i, j] = A[p[i], p[j]]``: CHOLMOD's final order (postordered)."""
@@ -311,7 +311,7 @@ class _Cholmod:
         assert self._diagonal is not None
         with _cholmod_options(**_CHOLMOD_OPTIONS) as cm:
             pivots = np.asarray(cm.diag(self._factor), np.float64).ravel() ** 2  # D of L D L^T
-        _check_pivots(pivots, self._diagonal[self._permutation()])
+        check_pivots(pivots, self._diagonal[self._permutation()])
 
     def solve_factored(self, rhs: FloatArray) -> FloatArray:
         """``A^-1 rhs`` with the last factorization (rhs: (dim,) or (dim, k))."""
@@ -355,17 +355,17 @@ class _Cholmod:
         return out
 
 
-def _make_factorizer(pattern: SymmetricPattern, backend: str) -> _SuperLU | _Cholmod:
+def make_factorizer(pattern: SymmetricPattern, backend: str) -> _SuperLU | _Cholmod:
     """The factorizer for ``linear_solver`` (see :data:`config.LINEAR_SOLVERS`)."""
-    if backend == "cholmod" or (backend == "auto" and _cholmod_available()):
-        if not _cholmod_available():
+    if backend == "cholmod" or (backend == "auto" and cholmod_available()):
+        if not cholmod_available():
             raise SolverError("linear_solver='cholmod' needs cvxopt (pip install cvxopt; its "
                               "wheels bundle SuiteSparse's CHOLMOD)")
         return _Cholmod(pattern)
     return _SuperLU(pattern)
 
 
-class _CscPattern:
+class CscPattern:
     """A lower-triangle pattern (:class:`SymmetricPattern`) from a SciPy CSC matrix."""
 
     def __init__(self, low: sp.csc_matrix) -> None:
@@ -382,7 +382,7 @@ def solve_spd(a: sp.spmatrix, rhs: FloatArray, block: int = 1) -> FloatArray:
     """Solve ``A x = rhs`` once for a sparse SPD ``A`` (rhs: (dim,) or (dim, k)).
 
     The unknowns come in blocks of ``block`` (a pose's 3 or 6 entries): they are permuted by a
-    fill-reducing ordering of the block graph (:func:`_fill_reducing_order`), then factored by
+    fill-reducing ordering of the block graph (:func:`fill_reducing_order`), then factored by
     CHOLMOD when cvxopt is available (else SuperLU), one factorization for every right-hand side.
 
     Raises
@@ -402,7 +402,7 @@ def solve_spd(a: sp.spmatrix, rhs: FloatArray, block: int = 1) -> FloatArray:
     lower = br > bc
     key = np.unique(bc[lower] * nb + br[lower])  # each block pair once (block^2 fewer)
     del br, bc, lower
-    new_block = _fill_reducing_order(nb, key % nb, key // nb)
+    new_block = fill_reducing_order(nb, key % nb, key // nb)
     del key
     new_pos = (block * new_block[:, None] + np.arange(block, dtype=np.int64)[None, :]).ravel()
     old_at = np.empty(dim, np.int64)
@@ -410,8 +410,8 @@ def solve_spd(a: sp.spmatrix, rhs: FloatArray, block: int = 1) -> FloatArray:
     low = sp.tril(csc[old_at][:, old_at], format="csc")
     del csc
     low.sort_indices()
-    pattern = _CscPattern(low)
-    factorizer = _make_factorizer(pattern, "auto")
+    pattern = CscPattern(low)
+    factorizer = make_factorizer(pattern, "auto")
     x = factorizer.solve(np.asarray(low.data, np.float64), np.asarray(rhs, np.float64)[old_at],
                          check=True)
     return np.asarray(x[new_pos], np.float64)

@@ -243,7 +243,8 @@ def _solve(nv: int, l_ptr: np.ndarray, l_row: np.ndarray, diag: np.ndarray, off:
 # --------------------------------------------------------------------------- the factorizer
 class BlockCholesky:
     """Analyze once (block structure of L), factor per iteration, solve; the interface of the
-    factorizers of :mod:`._linear` (no :meth:`inverse_blocks`: covariances use CHOLMOD)."""
+    factorizers of :mod:`._linear`, plus the diagonal blocks of the inverse by selected
+    inversion (:meth:`inverse_diagonal_blocks`)."""
 
     name = "block"
 
@@ -273,23 +274,43 @@ class BlockCholesky:
 
     def factor(self, values: FloatArray) -> None:
         """Numeric factorization of A with the given values (the lower-triangle layout)."""
-        from ._linear import _not_positive_definite
+        from ._factor import not_positive_definite
 
+        self._diagonal = None  # no usable factor until this one succeeds
         col = _numeric(self._nv, self._a_ptr, self._a_row, self._indptr, values, self._l_ptr,
                        self._l_row, self._diag, self._off, self._pivots)
         if col >= 0:
-            raise _not_positive_definite(f"non-positive pivot in column {col}")
+            raise not_positive_definite(f"non-positive pivot in column {col}")
         self._diagonal = values[self._indptr[:-1]]
 
     def check(self) -> None:
         """Raise SolverError when the last factored matrix is singular to rounding."""
-        from ._linear import _check_pivots
+        from ._factor import check_pivots
 
         assert self._diagonal is not None
-        _check_pivots(self._pivots, self._diagonal)
+        check_pivots(self._pivots, self._diagonal)
+
+    def inverse_diagonal_blocks(self, *, overwrite: bool = False) -> FloatArray:
+        """(nv, 6, 6) diagonal blocks of ``A^-1`` from the last factorization, by selected
+        inversion (:mod:`._selinv`: about twice the factorization's time).
+
+        ``overwrite=True`` computes them in the factor's own memory (no second factor-sized
+        array); the factorization is then consumed: factor again before the next solve.
+        """
+        from ._selinv import inverse_diagonal_blocks
+
+        if self._diagonal is None:
+            raise SolverError("no factorization to invert: call factor() first")
+        out = inverse_diagonal_blocks(self._l_ptr, self._l_row, self._diag, self._off,
+                                      overwrite=overwrite)
+        if overwrite:
+            self._diagonal = None
+        return out
 
     def solve_factored(self, rhs: FloatArray) -> FloatArray:
         """``A^-1 rhs`` with the last factorization (rhs: (dim,))."""
+        if self._diagonal is None:
+            raise SolverError("no factorization to solve with: call factor() first")
         if rhs.ndim != 1:
             raise SolverError("the block factorization solves one right-hand side at a time")
         out = np.array(rhs, np.float64)

@@ -1,12 +1,13 @@
-"""The online solver's spare-time exact solve, in a worker process (issue 8, "staying accurate").
+"""The online mode's exact solve of the whole map, in a worker process.
 
-:class:`~.online.OnlineSolver` with ``OnlineConfig(background_refine=True)`` ships every pose,
+:class:`~.solver.OnlineSolver` with ``OnlineConfig(background_refine=True)`` ships every pose,
 constraint and GPS reading to a worker process as they are integrated; the worker keeps its own
-copy of the map and runs the exact Levenberg-Marquardt solve (:func:`.gauss_newton.solve_exact`)
+copy of the map and runs the exact Levenberg-Marquardt solve
+(:class:`~hybridpgo.solvers.gauss_newton.ExactSolver`)
 on the newest prefix it has, warm-started from its previous optimum (the poses added since are
 composed onto it with the tree-local transforms the online solver gave them).  Each result comes
 back as *tree-local* transforms (each pose relative to its parent in the online solver's tree,
-which never changes once a pose is placed), so the next :meth:`~.online.OnlineSolver.update`
+which never changes once a pose is placed), so the next :meth:`~.solver.OnlineSolver.update`
 adopts it by one copy of ``(n, 3, 3)`` and ``(n, 3)`` arrays, and the poses added after the
 snapshot move along with their parents.
 
@@ -150,7 +151,8 @@ class BackgroundRefiner:
     everything and is idempotent.
     """
 
-    def __init__(self, max_iterations: int) -> None:
+    def __init__(self, max_iterations: int, robust: str = "none") -> None:
+        """Start the worker (``robust``: ``NAME:DELTA`` of the robust kernel, or ``none``)."""
         import hybridpgo
 
         root = os.path.dirname(os.path.dirname(os.path.abspath(hybridpgo.__file__)))
@@ -158,7 +160,7 @@ class BackgroundRefiner:
         env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
         env.update(WORKER_THREADS)
         self._proc: subprocess.Popen[bytes] | None = subprocess.Popen(
-            [sys.executable, "-m", "hybridpgo.solvers._background", str(max_iterations)],
+            [sys.executable, "-m", "hybridpgo.online.worker", str(max_iterations), robust],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, bufsize=0, env=env)
         self._outbox: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
         self._cond = threading.Condition()
@@ -238,6 +240,11 @@ class BackgroundRefiner:
     @property
     def alive(self) -> bool:
         return self._alive
+
+    @property
+    def pid(self) -> int | None:
+        """The worker process's id (None once closed)."""
+        return None if self._proc is None else self._proc.pid
 
     def wait_ready(self, timeout: float | None = None) -> bool:
         """Block until the worker has loaded its kernels (True), died or ``timeout`` passed."""
@@ -348,19 +355,20 @@ class _Map:
             setattr(self, name, self._append(getattr(self, name), self.g, d[name]))
         self.g += kg
 
-    def solve(self, max_iterations: int) -> tuple[Arrays, dict[str, Any]]:
+    def solve(self, max_iterations: int, robust: tuple[str, float | None] = ("none", None)
+              ) -> tuple[Arrays, dict[str, Any]]:
         """Exact LM over the map from the current estimate; the locals of nodes 1..n."""
         from ..graph import PoseGraph
+        from ..solvers.config import GaussNewtonConfig
+        from ..solvers.gauss_newton import solve_exact
         from ..tree import locals_from_globals
-        from .config import GaussNewtonConfig
-        from .gauss_newton import solve_exact
 
         n, m, g = self.n, self.m, self.g
         if n == 0:
             return {"rot": np.empty((0, 3, 3)), "trans": np.empty((0, 3))}, {
                 "type": "result", "n": 0, "m": m, "g": g, "energy": 0.0, "iterations": 0,
                 "status": "converged", "seconds": 0.0}
-        # the gauge: the first pose until three GPS readings can hold the map (DESIGN §2)
+        # the gauge: the first pose until three GPS readings can hold the map
         fixed = np.zeros(1 if g < 3 else 0, np.int32)
         # is_2d lets solve_exact use the (x, y, yaw) system when the map is exactly planar
         # (it checks every pose, measurement and information exactly, else solves in 3D):
@@ -376,7 +384,9 @@ class _Map:
         t0 = time.perf_counter()
         energy, iterations, status = 0.0, 0, "converged"
         if n >= 2:
-            res = solve_exact(graph, None, None, GaussNewtonConfig(max_iterations=max_iterations))
+            res = solve_exact(graph, None, None, GaussNewtonConfig(
+                max_iterations=max_iterations, robust=robust[0],  # type: ignore[arg-type]
+                robust_scale=robust[1]))
             self.grot[1: n + 1] = res.rotations
             self.gtr[1: n + 1] = res.translations
             energy, iterations, status = (float(res.final_energy), int(res.iterations),
@@ -391,7 +401,7 @@ class _Map:
         return {"rot": lrot[1:], "trans": ltr[1:]}, meta
 
 
-def _worker(max_iterations: int) -> int:
+def _worker(max_iterations: int, robust_spec: str = "none") -> int:
     """The worker process: read messages on stdin, answer on stdout (see the module doc)."""
     inp = os.fdopen(os.dup(0), "rb", buffering=0)
     out = os.fdopen(os.dup(1), "wb", buffering=0)
@@ -418,9 +428,12 @@ def _worker(max_iterations: int) -> int:
                 cond.notify()
 
     threading.Thread(target=reader, daemon=True).start()
-    from .gauss_newton import _ensure_compiled
+    from ..solvers.gauss_newton import ensure_compiled
 
-    _ensure_compiled()  # load the exact solver's kernels while the first frames arrive
+    name, _, scale = robust_spec.partition(":")
+    robust = (name, float(scale) if scale else None)
+
+    ensure_compiled()  # load the exact solver's kernels while the first frames arrive
     try:
         write_all(out, encode({"type": "ready"}, {}))
     except (BrokenPipeError, OSError):
@@ -449,7 +462,7 @@ def _worker(max_iterations: int) -> int:
         if pending <= answered:
             continue
         try:
-            arrays, meta = mp.solve(max_iterations)
+            arrays, meta = mp.solve(max_iterations, robust)
         except Exception as exc:  # report it; the frames go on without refinement
             write_all(out, encode({"type": "error", "req": pending,
                                    "message": f"{type(exc).__name__}: {exc}"}, {}))
@@ -465,4 +478,4 @@ def _worker(max_iterations: int) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover - run as a subprocess
-    sys.exit(_worker(int(sys.argv[1])))
+    sys.exit(_worker(int(sys.argv[1]), sys.argv[2] if len(sys.argv) > 2 else "none"))

@@ -1,0 +1,164 @@
+"""The frames' side of the background worker: what was shipped, asked for and adopted.
+
+:class:`WorkerLink` ships every pose, constraint and GPS reading of a :class:`~.store.MapStore`
+to the worker process of :mod:`.worker` once it is integrated, asks for the optimum of what was
+shipped, and adopts each answer into the store by one copy of the local transforms of the poses
+it covers (the poses added after its snapshot keep their local transforms, so they move along
+with their tree parents).  It also decides when the adopted optimum is still the optimum of
+everything added since (:meth:`WorkerLink.holds`).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from .store import MapStore
+from .worker import BackgroundRefiner, Refined
+
+
+def adopt_result(store: MapStore, res: Refined, rebase: bool) -> bool:
+    """Replace the local transforms of the result's poses (one copy, O(n)); the poses added
+    after its snapshot keep theirs (they move along with their tree parents).  With ``rebase``,
+    the constraints added after the snapshot are queued to be relaxed again first, in arrival
+    order, on top of the optimum.  False (nothing done) for a result of poses not placed."""
+    n = res.n
+    if n > store.placed:  # cannot happen: only placed poses are shipped
+        return False
+    store.rot[1: n + 1] = res.rotations
+    store.trans[1: n + 1] = res.translations
+    if rebase:
+        tail = np.concatenate([np.arange(res.m, store.m_laid, dtype=np.int64),
+                               store.cap_m + np.arange(res.g, store.g_laid, dtype=np.int64)])
+        live = store.pending()
+        store.set_queue(np.concatenate([tail, live[~np.isin(live, tail)]]))
+    return True
+
+
+class WorkerLink:
+    """Bookkeeping of one solver's background worker (module docstring).
+
+    Parameters
+    ----------
+    iterations : int
+        Most LM iterations of one background solve.
+    robust : str
+        ``"none"`` or ``"NAME:DELTA"``: the robust kernel of the worker's solves.
+    """
+
+    def __init__(self, iterations: int, robust: str = "none") -> None:
+        self.refiner = BackgroundRefiner(iterations, robust)
+        self.sent = (0, 0, 0)
+        """Poses placed, edges and GPS readings laid that were shipped."""
+        self.join_req = -1
+        """The outstanding request (-1: none)."""
+        self.adopted = 0
+        self.refined = (0, 0)
+        """Edges and GPS readings covered by the adopted optimum."""
+        # holds(): tree nodes <= tail[0] are the adopted result's; the constraints after it
+        # checked up to (tail[1], tail[2]) keep it the optimum while tail_ok
+        self.tail = (0, 0, 0)
+        self.tail_ok = False
+        self.adopt_s_max = 0.0
+        self.lag_max = 0
+        self._ship_frames: dict[int, int] = {}
+
+    def close(self) -> None:
+        self.refiner.close()
+
+    # ----------------------------------------------------------------- frames
+    def step(self, store: MapStore, frame: int, join: int, rebase: bool) -> None:
+        """Adopt a ready result and ship the new data (``join`` K > 0: only every K-th frame,
+        waiting for the answer to the previous request)."""
+        ref = self.refiner
+        if join == 0:  # asynchronous: one request at a time, adopted when its answer is there
+            if self.join_req >= 0:
+                if not ref.answered(self.join_req):
+                    return
+                res = ref.take()
+                if res is not None:
+                    self.adopt(store, res, frame, rebase)
+            self.request(store, frame)
+        elif frame % join == 0:
+            if self.join_req >= 0:
+                res = ref.wait(self.join_req)
+                if res is not None:
+                    self.adopt(store, res, frame, rebase)
+            self.request(store, frame)
+
+    def request(self, store: MapStore, frame: int) -> None:
+        """Ship the new data and ask for the optimum of everything shipped."""
+        self.ship(store, frame)
+        self.join_req = self.refiner.request()
+
+    def ship(self, store: MapStore, frame: int) -> None:
+        """Send the poses placed, edges and GPS readings laid since the last call (O(new))."""
+        sn, sm, sg = self.sent
+        n, m, g = store.placed, store.m_laid, store.g_laid
+        if (sn, sm, sg) == (n, m, g):
+            return
+        self.refiner.ship({"type": "data"}, {
+            "parent": store.parent[sn + 1: n + 1], "rot": store.rot[sn + 1: n + 1],
+            "trans": store.trans[sn + 1: n + 1],
+            "edge_ab": store.edge_ab[sm:m], "edge_rot": store.edge_rot[sm:m],
+            "edge_trans": store.edge_trans[sm:m], "edge_info": store.edge_info[sm:m],
+            "gps_node": store.gps_node[sg:g], "gps_pos": store.gps_pos[sg:g],
+            "gps_info": store.gps_info[sg:g],
+        })  # fmt: skip
+        self.sent = (n, m, g)
+        self._ship_frames[n] = frame
+
+    def adopt(self, store: MapStore, res: Refined, frame: int, rebase: bool) -> None:
+        """:func:`adopt_result`, and the bookkeeping of :meth:`holds` and :meth:`stats`."""
+        t0 = time.perf_counter()
+        n = res.n
+        if not adopt_result(store, res, rebase):
+            return
+        self.refined = (res.m, res.g)
+        self.tail, self.tail_ok = (n, res.m, res.g), True
+        self.adopted += 1
+        self.adopt_s_max = max(self.adopt_s_max, time.perf_counter() - t0)
+        shipped = self._ship_frames.get(n)
+        if shipped is not None:
+            self.lag_max = max(self.lag_max, frame - shipped)
+        for key in [k for k in self._ship_frames if k < n]:
+            del self._ship_frames[key]
+
+    def holds(self, store: MapStore) -> bool:
+        """True while the adopted optimum is also the optimum of everything added since: each
+        constraint laid after its snapshot is a path of one node, added after it, with no other
+        path through it (a new pose on its odometry or GPS link).  O(constraints since the
+        last call)."""
+        if not self.tail_ok:
+            return False
+        tail_n, tail_m, tail_g = self.tail
+        ptr, node, count = store.ptr, store.path_node, store.path_count
+        cm = store.cap_m
+        for c in (*range(tail_m, store.m_laid), *range(cm + tail_g, cm + store.g_laid)):
+            lo = int(ptr[c])
+            if int(ptr[c + 1]) - lo != 1:
+                self.tail_ok = False
+                return False
+            u = int(node[lo])
+            if u <= tail_n or int(count[u]) != 1:
+                self.tail_ok = False
+                return False
+        self.tail = (tail_n, store.m_laid, store.g_laid)
+        return True
+
+    def join(self, store: MapStore, frame: int, timeout: float | None,
+             rebase: bool) -> bool:
+        """Ship everything, wait for the optimum of it and adopt it (True when it came)."""
+        self.request(store, frame)
+        req = self.join_req
+        res = self.refiner.wait(req, timeout)
+        if res is not None:
+            self.adopt(store, res, frame, rebase)
+        return res is not None and res.req >= req
+
+    def stats(self) -> dict[str, Any]:
+        return {"results_adopted": self.adopted, "adopt_ms_max": self.adopt_s_max * 1e3,
+                "lag_frames_max": self.lag_max, "results_received": self.refiner.results,
+                "error": self.refiner.error}

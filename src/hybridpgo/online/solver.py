@@ -1,0 +1,580 @@
+"""The online mode: a real-time back end fed pose by pose (paper I, III-E/G, IV).
+
+:class:`OnlineSolver` takes poses with their odometry, loop closures and GPS readings as they
+arrive, and :meth:`~OnlineSolver.update` relaxes them within a time budget per frame
+(docs/mathematics.md, "Online streams").  The map lives in a :class:`~.store.MapStore` whose
+arrays grow without copies; the updates are the whole-graph solver's relaxation loop
+(:mod:`hybridpgo.solvers.hybrid._sweep`) under its admission policy:
+
+* **update(budget)** integrates what arrived (places the new poses in the tree, lays the new
+  constraints' paths), relaxes the new constraints first (odometry, then loop closures, GPS
+  batched, junction groups as one batch), optionally solves the newest constraints together as
+  one batch (the local solve, III-G: the far poses are held by their 𝔅(H) blocks), and spends
+  the rest of the budget on older constraints, largest last χ² first among a bounded candidate
+  set (the newest constraints, which act near the robot, and a window that cycles through
+  all).  An update is started only when its predicted cost fits before the deadline.
+* **Staying accurate** (``OnlineConfig.background_refine``): a worker process solves the whole
+  map exactly over and over and each answer is adopted in one copy (:mod:`._link`).
+
+Constraints are numbered in arrival order at the API (relative edges and GPS readings each
+from 0); inside, the store's one index (edges, then GPS readings at the edge capacity).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+import weakref
+from typing import Any, NamedTuple
+
+import numpy as np
+import numpy.typing as npt
+
+from .. import _cost
+from .._numba import cycles_per_second, read_cycles
+from ..errors import GraphError
+from ..graph import FloatArray, PoseGraph
+from ..solvers.config import check_int
+from ..solvers.hybrid import _admission as adm
+from ..solvers.hybrid._sweep import loop_kernel, run_loop
+from ..solvers.hybrid.problem import NUM_COUNTS, Count
+from ..solvers.hybrid.solver import STEP_KINDS, ensure_compiled
+from ._link import WorkerLink
+from ._validate import as_pose, check_id, whitening
+from .config import OnlineConfig
+from .store import MapStore
+
+#: Seconds of every budget kept for the work after the last update (estimate, bookkeeping).
+RESERVE_S = 2e-4
+#: The longest budget a frame may have (a day): longer ones would overflow the cycle counter.
+MAX_BUDGET_S = 86_400.0
+_NO_DEADLINE = np.uint64(np.iinfo(np.uint64).max)
+
+
+class FrameReport(NamedTuple):
+    """What one :meth:`OnlineSolver.update` did."""
+
+    new: int
+    """New constraints relaxed for the first time."""
+    backlog: int
+    """New constraints still waiting (the budget ran out before them)."""
+    old: int
+    """Spare-time updates of older constraints."""
+    local_nodes: int
+    """Poses moved by the local solve (0: off or it did not fit)."""
+    capped: int
+    """Updates whose rotation was capped at pi/8."""
+    rejected: int
+    """Updates rejected as non-finite (nothing applied)."""
+    skipped: int
+    """Candidate updates skipped because their predicted cost did not fit."""
+    seconds: float
+    """Wall time of the call."""
+
+
+def _check_budget(budget_s: object) -> float:
+    if (isinstance(budget_s, bool) or not isinstance(budget_s, (int, float, np.floating))
+            or not np.isfinite(budget_s) or budget_s <= 0):
+        raise ValueError(f"budget_s must be a finite number > 0 (seconds) or None, got "
+                         f"{budget_s!r}")
+    return min(float(budget_s), MAX_BUDGET_S)
+
+
+class OnlineSolver:
+    """A hybrid-Hessian back end that grows with the map (module docstring).
+
+    Poses are identified by the caller's integer ids.  Constraints are kept in arrival order:
+    relative constraints ("edges", the odometry of :meth:`add_pose` included) and GPS readings.
+    Every ``add_*`` call validates its input first and changes nothing when it raises.
+    """
+
+    def __init__(self, config: OnlineConfig | None = None) -> None:
+        self.config = cfg = config or OnlineConfig()
+        self.compile_seconds = ensure_compiled() + _ensure_online_compiled()
+        self._index: dict[int, int] = {}
+        self._edge_keys: dict[tuple[int, int], list[int]] = {}
+        self.frame = 0
+        """Number of :meth:`update` calls so far."""
+        robust = (_cost.robust_kind(cfg.robust, cfg.robust_delta), float(cfg.robust_delta))
+        self._store = MapStore(cfg.reserve_poses, robust, cfg.gps_batch_size)
+        self._wk: Any = None
+        self._cursor = 0
+        self._gps_cursor = 0
+        self._stamp = 0  # one per call of the relaxation loops (junction groups: once each)
+        self._link: WorkerLink | None = None
+        self._finalizer: weakref.finalize[Any, Any] | None = None
+        if cfg.background_refine:
+            spec = "none" if cfg.robust == "none" else f"{cfg.robust}:{cfg.robust_delta!r}"
+            self._link = WorkerLink(cfg.background_iterations, spec)
+            # stops the worker when the solver is collected or at exit, whatever comes first
+            self._finalizer = weakref.finalize(self, self._link.close)
+
+    # ----------------------------------------------------------------- life cycle
+    def close(self) -> None:
+        """Stop the background worker (if any); idempotent.  The solver stays usable, without
+        background refinement."""
+        if self._finalizer is not None:
+            self._finalizer()
+        self._link = None
+        self._finalizer = None
+
+    def __enter__(self) -> OnlineSolver:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ----------------------------------------------------------------- sizes
+    @property
+    def store(self) -> MapStore:
+        """The map's arrays (:class:`~.store.MapStore`: the tree, the paths, 𝔅(H), the
+        priorities) for inspection; change them only through this class."""
+        return self._store
+
+    @property
+    def worker_pid(self) -> int | None:
+        """The background worker's process id (None: no worker, or closed)."""
+        return None if self._link is None else self._link.refiner.pid
+
+    @property
+    def num_poses(self) -> int:
+        return self._store.n
+
+    @property
+    def num_edges(self) -> int:
+        """Relative constraints added (odometry included)."""
+        return self._store.m
+
+    @property
+    def num_gps(self) -> int:
+        return self._store.g
+
+    @property
+    def num_constraints(self) -> int:
+        return self._store.m + self._store.g
+
+    @property
+    def backlog(self) -> int:
+        """Constraints added but not yet relaxed once."""
+        return self._store.q_tail - self._store.q_head
+
+    def pose_ids(self) -> npt.NDArray[np.int64]:
+        """(N,) the pose ids in arrival order (the rows of :meth:`estimate`)."""
+        return self._store.ids[: self._store.n].copy()
+
+    # ----------------------------------------------------------------- input
+    def _pose_index(self, pose_id: object, what: str) -> int:
+        i = check_id(pose_id, what)
+        if i not in self._index:
+            raise GraphError(f"{what}: unknown pose id {i}")
+        return self._index[i]
+
+    def add_pose(self, pose_id: int, parent: int | None = None, measurement: object = None,
+                 information: object = None) -> None:
+        """Add a pose with its odometry ``Z = X_parent^-1 X_pose`` and its (6, 6) information.
+
+        The first pose has no parent: its ``measurement`` (default identity) is its initial pose
+        in the earth frame and ``information`` must be None.  ``measurement`` is a (4, 4)
+        homogeneous matrix or a pair ``(R (3, 3), t (3,))``; information is over (rho, phi).
+
+        Raises
+        ------
+        GraphError
+            Duplicate id, unknown parent, a second pose without parent, a measurement that is
+            not a finite rigid transform, or information that is not SPD.
+        """
+        i = check_id(pose_id, "add_pose: pose id")
+        what = f"add_pose({i})"
+        if i in self._index:
+            raise GraphError(f"{what}: duplicate pose id {i}")
+        st = self._store
+        if parent is None:
+            if st.n > 0:
+                raise GraphError(f"{what}: a pose needs an odometry parent (only the first pose "
+                                 "starts the map)")
+            if information is not None:
+                raise GraphError(f"{what}: the first pose has no odometry, so no information")
+            rot, trans = (np.eye(3), np.zeros(3)) if measurement is None else as_pose(
+                measurement, f"{what}: initial pose")
+            p = st.append_pose(i)
+            self._index[i] = p
+            st.first_rot, st.first_trans = rot, trans
+            return
+        a = self._pose_index(parent, f"{what}: parent")
+        if measurement is None or information is None:
+            raise GraphError(f"{what}: odometry needs a measurement and an information")
+        rot, trans = as_pose(measurement, f"{what}: odometry")
+        info, lt = whitening(information, 6, f"{what}: odometry")
+        p = st.append_pose(i)  # validated: mutate
+        self._index[i] = p
+        st.odom[p] = st.m
+        self._append_edge(a, p, rot, trans, info, lt)
+
+    def add_constraint(self, a: int, b: int, measurement: object, information: object) -> None:
+        """Add a relative constraint (loop closure) ``Z = X_a^-1 X_b`` between known poses.
+
+        Raises
+        ------
+        GraphError
+            Unknown pose, ``a == b``, a measurement that is not a finite rigid transform,
+            information that is not SPD, or the same constraint (endpoints, measurement and
+            information) added before.
+        """
+        what = f"add_constraint({a!r}, {b!r})"
+        ia = self._pose_index(a, f"{what}: a")
+        ib = self._pose_index(b, f"{what}: b")
+        if ia == ib:
+            raise GraphError(f"{what}: a constraint needs two different poses")
+        rot, trans = as_pose(measurement, f"{what}: measurement")
+        info, lt = whitening(information, 6, what)
+        st = self._store
+        for e in self._edge_keys.get((ia, ib), ()):
+            if (np.array_equal(st.edge_rot[e], rot) and np.array_equal(st.edge_trans[e], trans)
+                    and np.array_equal(st.edge_info[e], info)):
+                raise GraphError(f"{what}: duplicate constraint (edge {e} has the same poses, "
+                                 "measurement and information)")
+        self._append_edge(ia, ib, rot, trans, info, lt)
+
+    def _append_edge(self, a: int, b: int, rot: FloatArray, trans: FloatArray,
+                     info: FloatArray, lt: FloatArray) -> None:
+        e = self._store.append_edge(a, b, rot, trans, info, lt)
+        self._edge_keys.setdefault((a, b), []).append(e)
+        self._store.push(e)
+
+    def add_gps(self, pose_id: int, xyz: object, information: object) -> None:
+        """Add a position reading ``g`` (earth frame, metres) of a known pose, (3, 3) information.
+
+        Raises
+        ------
+        GraphError
+            Unknown pose, a non-finite position, or information that is not SPD.
+        """
+        what = f"add_gps({pose_id!r})"
+        n = self._pose_index(pose_id, what)
+        try:
+            pos = np.array(xyz, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError) as exc:
+            raise GraphError(f"{what}: position is not numeric: {exc}") from exc
+        if pos.shape != (3,) or not np.all(np.isfinite(pos)):
+            raise GraphError(f"{what}: position must be 3 finite numbers, got {xyz!r}")
+        info, lt = whitening(information, 3, what)
+        self._store.push(self._store.append_gps(n, pos, info, lt))
+
+    # ----------------------------------------------------------------- integration
+    def _integrate(self) -> None:
+        """Place the new poses in the tree and lay the new constraints' paths (O(new work))."""
+        st = self._store
+        if st.placed < st.n:
+            cfg = self.config
+            st.place_poses(cfg.tree, cfg.gps_link, cfg.junctions)
+        st.lay_paths()
+
+    # ----------------------------------------------------------------- update
+    def update(self, budget_s: float | None = None, max_updates: int | None = None
+               ) -> FrameReport:
+        """One frame: integrate what arrived, relax new constraints, then older ones.
+
+        Parameters
+        ----------
+        budget_s : float, optional
+            Time budget of the call (seconds, > 0).  No update is started whose predicted cost
+            would pass it; the first new constraint is always relaxed.  None: no time limit.
+        max_updates : int, optional
+            Start at most this many updates (counted like the budget; with ``budget_s=None``
+            the frame's work does not depend on timing, so runs are reproducible).
+
+        With neither limit, every new constraint and every spare-time candidate is relaxed once.
+
+        Raises
+        ------
+        ValueError
+            A budget that is not a finite number > 0, or a negative ``max_updates``; nothing
+            is changed.
+        """
+        t0 = time.perf_counter()
+        deadline = self._deadline(budget_s)
+        if max_updates is not None:
+            check_int("max_updates", max_updates, 0)
+        limit = (1 << 62) if max_updates is None else max_updates
+        self._integrate()
+        if self._link is not None:
+            cfg = self.config
+            self._link.step(self._store, self.frame, cfg.background_join,
+                            cfg.background_rebase)
+        report = self._work(deadline, limit, time.perf_counter() - t0)
+        self.frame += 1
+        return report._replace(seconds=time.perf_counter() - t0)
+
+    def idle(self, budget_s: float) -> int:
+        """Use ``budget_s`` seconds between frames for the back end: adopt the worker's
+        results, relax what is still queued, then older constraints, until the time is used or
+        nothing is left to do (the adopted optimum holds, ``background_hold``).  Returns the
+        updates made.  A stream at a real rate calls it after each frame's :meth:`update` with
+        the time until the next frame; a frame's own work stays bounded by its budget.
+
+        Raises
+        ------
+        ValueError
+            A budget that is not a finite number > 0.
+        """
+        t0 = time.perf_counter()
+        deadline = self._deadline(budget_s)
+        self._integrate()
+        done = 0
+        while np.uint64(read_cycles()) < deadline:
+            if self._link is not None and self.config.background_join == 0:
+                self._link.step(self._store, self.frame, 0, self.config.background_rebase)
+            rep = self._work(deadline, 1 << 62, time.perf_counter() - t0)
+            if rep.new + rep.old + rep.local_nodes == 0:
+                break
+            done += rep.new + rep.old
+        return done
+
+    def _deadline(self, budget_s: float | None) -> np.uint64:
+        """The cycle count at which a call with this budget stops starting updates."""
+        c0 = int(read_cycles())
+        if budget_s is None:
+            return _NO_DEADLINE
+        spare = max(_check_budget(budget_s) - RESERVE_S, 0.0)
+        return np.uint64(c0 + int(spare * cycles_per_second()))
+
+    def _work(self, deadline: np.uint64, limit: int, elapsed: float) -> FrameReport:
+        """New constraints in arrival order, the local solve, then spare time (one call of the
+        relaxation loop each, under the admission policy)."""
+        cfg = self.config
+        st = self._store
+        prob, state, pol = st.views()
+        sc = st.scratch(self._wk)
+        self._wk = sc.wk
+        counts = np.zeros(NUM_COUNTS, np.int64)
+        self._stamp += 1
+        stamp = self._stamp
+        n_new = run_loop(loop_kernel(True, False, False, True), prob, state, sc, st.pending(),
+                         cfg.tau_new, cfg.damping, int(STEP_KINDS[cfg.step]), cfg.gps_batch_size,
+                         0, deadline, counts, True, pol, stamp, limit, force_first=True,
+                         skip=False)
+        st.pop(n_new)
+        limit -= int(counts[Count.DONE])
+        local_nodes = self._local_solve(deadline, counts, limit) if cfg.local_size else 0
+        if local_nodes:
+            limit -= 1
+        old = self._spare_time(deadline, counts, limit, stamp)
+        return FrameReport(n_new, self.backlog, old, local_nodes, int(counts[Count.CAPPED]),
+                           int(counts[Count.REJECTED]), int(counts[Count.SKIPPED]), elapsed)
+
+    def _local_solve(self, deadline: np.uint64, counts: npt.NDArray[np.int64],
+                     limit: int) -> int:
+        """The local solve: the newest relative constraints together (III-G)."""
+        st = self._store
+        cfg = self.config
+        if not (st.m_laid and limit > 0 and self.backlog == 0):
+            return 0
+        prob, state, _ = st.views()
+        k = min(cfg.local_size, st.m_laid)
+        cs = np.arange(st.m_laid - k, st.m_laid, dtype=np.int64)
+        return max(int(adm.local_batch(prob, state, cs, cfg.tau_new, cfg.damping, deadline,
+                                       st.model, st.slot, st.xb, st.nodes_buf, counts,
+                                       st.depth)), 0)
+
+    def _spare_time(self, deadline: np.uint64, counts: npt.NDArray[np.int64], limit: int,
+                    stamp: int) -> int:
+        """Older constraints, largest last χ² first, while time remains; the updates made."""
+        st = self._store
+        cfg = self.config
+        link = self._link
+        # with an adopted background optimum, only the constraints it did not cover
+        fm, fg = link.refined if (link is not None and cfg.background_tail_only) else (0, 0)
+        held = cfg.background_hold and link is not None and link.holds(st)
+        if not (limit > 0 and self.backlog == 0 and st.m_laid - fm > 1) or held:
+            return 0
+        cand = np.empty(cfg.recent + cfg.window, np.int64)
+        k = int(adm.candidates(st.chi2, fm, st.m_laid, cfg.recent, cfg.window, self._cursor,
+                               cand))
+        span = max(st.m_laid - cfg.recent - fm, 1)
+        self._cursor = (self._cursor + cfg.window) % span
+        cand = cand[:k]
+        if st.g_laid > fg:  # a cyclic window of GPS readings first, as one batch
+            kg = min(cfg.gps_batch_size, st.g_laid - fg)
+            gw = fg + (self._gps_cursor + np.arange(kg)) % (st.g_laid - fg)
+            self._gps_cursor = int((self._gps_cursor + kg) % (st.g_laid - fg))
+            cand = np.concatenate([st.cap_m + gw, cand])
+        prob, state, pol = st.views()
+        sc = st.scratch(self._wk)
+        done0 = int(counts[Count.DONE])
+        run_loop(loop_kernel(True, False, False, True), prob, state, sc, cand, cfg.tau_old,
+                 cfg.damping, int(STEP_KINDS[cfg.step]), cfg.gps_batch_size, 0, deadline,
+                 counts, True, pol, stamp, limit, force_first=False, skip=True)
+        return int(counts[Count.DONE]) - done0
+
+    # ----------------------------------------------------------------- background refine
+    def join_refine(self, timeout: float | None = None) -> bool:
+        """Ship everything added so far, wait for the worker's optimum of it and adopt it.
+
+        For the end of a stream (or a pause), and for reproducible runs.  Returns True when
+        the answer came (False: ``timeout`` passed, or the worker reported an error:
+        :meth:`stats` ``["background"]["error"]``).
+
+        Raises
+        ------
+        ValueError
+            ``background_refine`` is off.
+        """
+        if self._link is None:
+            raise ValueError("join_refine needs OnlineConfig(background_refine=True) and a "
+                             "solver that is not closed")
+        self._integrate()
+        return self._link.join(self._store, self.frame, timeout, self.config.background_rebase)
+
+    def wait_background_ready(self, timeout: float | None = None) -> bool:
+        """Block until the background worker has started and loaded its kernels (about 1.5 s
+        after the solver is built: a process start, the imports, the cached kernels).
+
+        The frames never wait for the worker; call this before the robot drives (as the replay
+        and its benchmark do) so that the first results are not late by the start-up.  Returns
+        True when the worker is ready (False: ``timeout`` passed or the worker failed); False
+        without waiting when ``background_refine`` is off or the solver is closed.
+        """
+        return self._link is not None and self._link.refiner.wait_ready(timeout)
+
+    # ----------------------------------------------------------------- estimates
+    def pose(self, pose_id: int) -> tuple[FloatArray, FloatArray]:
+        """Current estimate ``(R (3, 3), t (3,))`` of one pose, O(tree depth)."""
+        p = self._pose_index(pose_id, "pose")
+        if p >= self._store.placed:
+            grot, gtr = self.estimate()
+            return grot[p], gtr[p]
+        return self._store.pose(p)
+
+    def estimate(self) -> tuple[FloatArray, FloatArray]:
+        """Global poses ``(R (N, 3, 3), t (N, 3))`` in arrival order (:meth:`pose_ids`), O(N).
+
+        Poses not yet placed in the tree (added since the last :meth:`update`) are their
+        odometry composed onto their parent's estimate.
+        """
+        return self._store.poses()
+
+    def energy(self) -> float:
+        """E of the current estimate over every constraint added so far (docs/conventions.md)."""
+        rot, trans = self.estimate()
+        st = self._store
+        m, g = st.m, st.g
+        return float(_cost.total_energy(
+            rot, trans, st.edge_ab[:m], st.edge_rot[:m], st.edge_trans[:m], st.edge_info[:m],
+            st.gps_node[:g], st.gps_pos[:g], st.gps_info[:g]))
+
+    def to_graph(self) -> PoseGraph:
+        """Everything added so far as a :class:`PoseGraph` at the current estimate (ids sorted)."""
+        rot, trans = self.estimate()
+        st = self._store
+        ids = st.ids[: st.n]
+        perm = np.argsort(ids, kind="stable")
+        rank = np.empty_like(perm)
+        rank[perm] = np.arange(perm.shape[0])
+        m, g = st.m, st.g
+        return PoseGraph(
+            node_ids=ids[perm], rotations=rot[perm], translations=trans[perm],
+            edge_nodes=rank[st.edge_ab[:m]].astype(np.int32), edge_rotations=st.edge_rot[:m],
+            edge_translations=st.edge_trans[:m], edge_information=st.edge_info[:m],
+            gps_nodes=rank[st.gps_node[:g]].astype(np.int32), gps_positions=st.gps_pos[:g],
+            gps_information=st.gps_info[:g],
+        )  # fmt: skip
+
+    def refine(self, max_iterations: int = 10) -> int:
+        """Exact Levenberg-Marquardt over the whole map from the current estimate.
+
+        This is the periodic batch solve of the whole map: it costs a sparse factorization per
+        iteration (O(N) and more, no time budget), so it is not part of :meth:`update`; call it
+        when a frame can afford it (e.g. while the robot stands still).  The gauge is the
+        solver's: the first pose without GPS, the earth with it.  Returns the iterations done.
+        """
+        from ..solvers.config import GaussNewtonConfig
+        from ..solvers.gauss_newton import solve_exact
+        from ..tree import locals_from_globals
+
+        check_int("max_iterations", max_iterations, 1)
+        self._integrate()
+        st = self._store
+        if st.n < 2:
+            return 0
+        graph = self.to_graph()
+        if not st.g:
+            first = int(np.searchsorted(graph.node_ids, st.ids[0]))
+            graph = dataclasses.replace(graph, fixed_nodes=np.array([first], np.int32))
+        cfg = self.config
+        res = solve_exact(graph, None, None, GaussNewtonConfig(
+            max_iterations=max_iterations, robust=cfg.robust, robust_scale=cfg.robust_scale))
+        rank = np.searchsorted(graph.node_ids, st.ids[: st.n])
+        t = st.n + 1
+        grot = np.empty((t, 3, 3))
+        gtr = np.zeros((t, 3))
+        grot[0] = np.eye(3)
+        grot[1:] = res.rotations[rank]
+        gtr[1:] = res.translations[rank]
+        locals_from_globals(st.parent[:t], grot, gtr, st.rot[:t], st.trans[:t])
+        return int(res.iterations)
+
+    def stats(self) -> dict[str, Any]:
+        """Sizes of the tree and the paths."""
+        st = self._store
+        lengths = np.diff(st.ptr[: st.m_laid + 1])
+        return {
+            "poses": st.n, "edges": st.m, "gps": st.g, "frames": self.frame,
+            "tree_max_depth": int(st.depth[: st.placed + 1].max()),
+            "path_length_mean": float(lengths.mean()) if lengths.size else 0.0,
+            "path_length_max": int(st.dmax), "path_entries": st.path_entries(),
+            "gps_links": st.gps_links, "junction_groups": st.ngroups,
+            "model_us": (st.model / cycles_per_second() * 1e6).tolist(),
+            **({"background": self._link.stats()} if self._link is not None else {}),
+        }  # fmt: skip
+
+    # ----------------------------------------------------------------- save / load
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write the whole state to ``path`` (:mod:`.persist`), atomically; :meth:`load` of it,
+        then the same calls, gives the same results as not stopping."""
+        from .persist import save_state
+
+        save_state(self, path)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> OnlineSolver:
+        """Read a state written by :meth:`save`, validated completely (:mod:`.persist`).
+
+        Raises
+        ------
+        FormatError
+            The file is missing, truncated, corrupted, not an online state or of another
+            version, or any of its values breaks an invariant of the solver.
+        """
+        from .persist import load_state
+
+        return load_state(cls, path)
+
+
+#: Set once the online kernels have been compiled (or loaded from the cache) in this process.
+_COMPILED = [False]
+
+
+def _ensure_online_compiled() -> float:
+    """Compile every online kernel once per process on a four-pose stream with GPS, so the
+    first frames of a caller are not timed with compilation in them."""
+    if _COMPILED[0]:
+        return 0.0
+    _COMPILED[0] = True
+    t0 = time.perf_counter()
+    try:
+        s = OnlineSolver(OnlineConfig(local_size=2, reserve_poses=8))
+        s.add_pose(0)
+        step = (np.eye(3), np.array([1.0, 0.0, 0.0]))
+        for i in range(1, 4):
+            s.add_pose(i, i - 1, step, np.eye(6))
+            s.add_gps(i, [float(i), 0.0, 0.0], np.eye(3))
+        s.add_constraint(0, 3, (np.eye(3), np.array([3.0, 0.0, 0.0])), np.eye(6))
+        s.update()
+        s.update(1.0)
+        s.energy()
+        s.pose(3)
+    except BaseException:
+        _COMPILED[0] = False
+        raise
+    return time.perf_counter() - t0
