@@ -1,1 +1,1 @@
-"""hybridpgo benchmarks: ``python -m benchmarks --help`` (STYLE.md §8)."""
+"""hybridpgo benchmarks: ``python -m benchmarks --help`` (docs/contributing.md#benchmarks)."""

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import pathlib
 import sys
 import time
@@ -16,6 +17,11 @@ from .metrics import write_results
 from .workloads import WORKLOADS, Context
 
 HERE = pathlib.Path(__file__).resolve().parent
+#: The environment variable naming the folder of the public benchmark graphs
+#: (benchmarks/README.md lists the files and where they come from).
+DATA_ENV = "HYBRIDPGO_DATASETS"
+#: The graphs shipped with the package (src/hybridpgo/data).
+BUNDLED = HERE.parent / "src" / "hybridpgo" / "data"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -23,8 +29,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--data-dir",
         type=pathlib.Path,
-        default=HERE.parent.parent / "shared" / "datasets",
-        help="folder with the benchmark graphs (default: ../shared/datasets)",
+        default=pathlib.Path(os.environ.get(DATA_ENV) or BUNDLED),
+        help=f"folder with the benchmark graphs (default: ${DATA_ENV}, else the graphs bundled "
+             "with the package: M3500_isam, intel, garage)",
     )
     ap.add_argument("--only", nargs="+", choices=sorted(WORKLOADS), default=None)
     ap.add_argument("--quick", action="store_true", help="fewer sweeps, for a smoke run")

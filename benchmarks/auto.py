@@ -1,4 +1,4 @@
-"""The default pipeline (``--solver auto``) against the best optimum known (issue 11 items 1-2).
+"""The default pipeline (``--solver auto``) against the best optimum known.
 
 Two tables from one set of cases:
 
@@ -37,7 +37,7 @@ from .metrics import Metric, info, markdown_table, quality, timing
 
 #: References: LM run to convergence.
 REF_LM = GaussNewtonConfig(max_iterations=300, energy_tolerance=1e-12)
-#: "Reaches the optimum" (issue 11 item 1) and "reaches the global optimum" (item 2).
+#: "Reaches the optimum" and "reaches the global optimum" (item 2).
 OPTIMUM_REL = 1e-6
 GLOBAL_REL = 1e-3
 

@@ -1,4 +1,4 @@
-"""Per-kernel Numba compile times of one command, from an empty cache (issue 11 item 5).
+"""Per-kernel Numba compile times of one command, from an empty cache.
 
 Usage (from the worktree, PYTHONPATH=src)::
 

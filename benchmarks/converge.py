@@ -1,4 +1,4 @@
-"""Sweeps that converge (issue 11 item 3): the levers against the paper's sweeps.
+"""Sweeps that converge: the levers against the paper's sweeps.
 
 From the paper's setup (tree initialization, BFS tree, tau = 1 x 0.99 per sweep, no polish):
 energy per constraint after 1, 2, 5 and 10 sweeps and the solve time per sweep (sweep plus
@@ -8,7 +8,6 @@ correction) of
 * ``tau 1/(1+k)``: a Robbins-Monro temperature (lever c);
 * ``batches 2^k``: sweep k relaxes the constraints in sweep order in batches of ``2^k`` (at most
   64) with :meth:`HybridSolver.batch_step` (III-F; lever a; M3500 only, it is slow);
-* ``saga``: the aggregated-gradient update (``update="saga"``, no GPS);
 * ``pcg only``: the global correction alone, no sweeps (the baseline the corrections must beat:
   truncated Gauss-Newton by CG in the tree parametrization);
 * ``paper + pcg K``: the paper's sweep, then one correction of K CG iterations
@@ -65,8 +64,6 @@ def _methods(stem: str, gps: bool) -> list[tuple[str, dict[str, Any], str]]:
     ]
     if stem == "M3500_isam":
         rows.append(("batches 2^k", {}, "batches"))
-    if not gps:
-        rows.append(("saga", {"update": "saga"}, "run"))
     iterations = (20, 30) if stem == "M3500_isam" else (30,)
     for k in iterations:
         rows.append((f"pcg only {k}", {"correction_iterations": k}, "pcg_only"))

@@ -1,4 +1,4 @@
-"""First run: cold-cache wall and CPU time of the commands a new user types (issue 11 item 5).
+"""First run: cold-cache wall and CPU time of the commands a new user types.
 
 Each command runs as ``python -m hybridpgo ...`` in its own process with ``NUMBA_CACHE_DIR`` set to
 a fresh empty directory (a first run after ``pip install``), then once more with that cache
@@ -24,7 +24,7 @@ from hybridpgo.io import bundled_path
 from .metrics import Metric, markdown_table, timing
 from .workloads import Context, Result
 
-#: Target of issue 11 item 5 (seconds, cold).
+#: Target of the cold first run (seconds).
 TARGET_S = 30.0
 
 

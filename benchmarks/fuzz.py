@@ -1,4 +1,4 @@
-"""Mutation fuzzing of the readers and writers (issue 9 item 6).
+"""Mutation fuzzing of the readers and writers.
 
 ``python -m benchmarks.fuzz N [--seed S] [--save DIR]`` (or ``python -m benchmarks --only fuzz``,
 100 000 inputs; 2 000 with ``--quick``) mutates small valid files of every format (g2o 2D/3D with

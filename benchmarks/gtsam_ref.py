@@ -1,4 +1,4 @@
-"""GTSAM reference runs on factors built from *our* converted information (DESIGN.md §1) by
+"""GTSAM reference runs on factors built from *our* converted information (docs/conventions.md) by
 :mod:`hybridpgo.gtsam_bridge`.
 
 Built this way, ``2 * graph.error`` equals our energy E, so energies and times compare directly.

@@ -1,4 +1,4 @@
-"""Interpolated solving (paper III-E, issue 7): time per update on valencia for several D_max.
+"""Interpolated solving (paper III-E): time per update on valencia for several D_max.
 
 Run: ``PYTHONPATH=src python -m benchmarks --only interp --run <name>`` (about 2 minutes; the
 same valencia runs as Table I of ``benchmarks/paper.py``, Woodbury step only, plus the GPS

@@ -1,4 +1,4 @@
-"""Exact LM with each sparse factorization backend vs GTSAM's LM (issue 11 item 4).
+"""Exact LM with each sparse factorization backend vs GTSAM's LM.
 
 Every (graph, solver) case runs in its own subprocess so that its peak resident memory
 (``ru_maxrss``, which sees C allocations, unlike tracemalloc) belongs to that case alone.  All

@@ -1,4 +1,4 @@
-"""Micro-benchmark of valencia's longest update (issue 7, Table I's steady max).
+"""Micro-benchmark of valencia's longest update (Table I's steady max).
 
 Run: ``PYTHONPATH=src python -m benchmarks.long_update [--dmax 200] [--repeat 300]
 [--sweeps 10] [--phases]`` (a script, not a registered workload: it prints, writes nothing).

@@ -1,4 +1,4 @@
-"""Benchmark measurements and their JSON / Markdown output (STYLE.md §8)."""
+"""Benchmark measurements and their JSON / Markdown output (docs/contributing.md#benchmarks)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,7 @@
-"""The online mode (issue 8): graphs streamed frame by frame, hybridpgo beside GTSAM's iSAM2.
+"""The online mode: graphs streamed frame by frame, hybridpgo beside GTSAM's iSAM2.
 
-For each graph: frames in increasing pose id (DESIGN §11), one update per frame with a 5 ms
+For each graph: frames in increasing pose id (docs/mathematics.md#frames), one update per frame
+with a 5 ms
 budget, then 100 extra frames with the same budget and no new data.  Accuracy: the energy of the
 estimate over the prefix divided by the batch optimum of that prefix (exact LM, warm-started
 from the previous prefix's optimum) every 500 frames and at the end.  Latency: wall time of the
@@ -16,7 +17,7 @@ is up (``replay_online`` waits, ~1.5 s, reported as ``background_start_s``), as 
 its back end before it drives.  Ratios floor both energies at ``replay.ENERGY_FLOOR`` (1e-6):
 a prefix without a loop closure has the optimum 0 up to rounding.
 
-Targets (issue 8): steady max latency <= B + 1 ms every frame; E / optimum <= 1.05 at every
+Targets: steady max latency <= B + 1 ms every frame; E / optimum <= 1.05 at every
 checkpoint; <= 1.01 at the end after at most 100 extra frames.
 """
 

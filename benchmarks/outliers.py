@@ -1,4 +1,4 @@
-"""Robust kernels against false loop closures (issue 9, item 3).
+"""Robust kernels against false loop closures.
 
 M3500 (``M3500.g2o`` and the bundled ``M3500_isam.txt``, ground truth
 ``M3500_groundtruth_isam.txt``) and a generated city, each with 0, 10, 100 and 1000 random false

@@ -1,4 +1,4 @@
-"""The paper's experiments as one benchmark (issue 7, item 3): Table I, Table II, Fig. 5,
+"""The paper's experiments as one benchmark: Table I, Table II, Fig. 5,
 Fig. 3e/f (the dog-leg), Fig. 6 and Fig. 8 of Grimes, Anguelov & LeCun (IROS 2010), each beside
 the paper's numbers.  docs/paper-reproduction.md discusses the results.
 
@@ -9,7 +9,8 @@ alone).  Figures go to ``results/figures/paper_*``.
 Every run of the hybrid solver here is 10 sweeps from the tree initialization (the paper's
 setting) with the default Woodbury step unless a table says "givens" (the paper timed its
 O(d^2) Givens triangularization; Woodbury is O(d)).  TORO is our TORO-style baseline
-(``solve_toro``, shared/TORO.md), 100 iterations unless said otherwise.  Times come from the
+(``solve_toro``, docs/mathematics.md#toro), 100 iterations unless said otherwise.  Times come from
+the
 same run on the same (shared, loaded) machine: compare them as ratios.  "steady max" is the
 largest over constraints of each constraint's cheapest update over the sweeps (free of the
 scheduler's interruptions); "max" is the largest update seen at all.
@@ -70,7 +71,7 @@ DMAX_GRID = (2, 5, 10, 20, 30, 40, 60, 90, 150, 200, 300)
 #: the full-path (D_max = infinity) result after the same sweeps.
 CONVERGE_FACTOR = 1.25
 MONOTONE_SLACK = 1e-3
-#: Targets of issue 7 item 3.
+#: Targets of the paper's reproduction.
 TARGET_MEAN_US = 10.0
 TARGET_STEADY_MAX_US = 1000.0
 TARGET_TORO_FACTOR = 10.0
@@ -580,7 +581,7 @@ def _targets(ctx: Context, metrics: list[Metric]) -> Result:
                  f"TORO after {TORO_ITERATIONS}: {e_t100 / e_h:.1f}x)",
                  mark(e_t10 / e_h >= TARGET_TORO_FACTOR)])
     if "paper.table2.M3500_isam.min_dmax" not in val:  # Table I / Fig. 5 only (paper_table1)
-        return [], [markdown_table("Targets (issue 7 item 3; Table I and Fig. 5 only)",
+        return [], [markdown_table("Targets (Table I and Fig. 5 only)",
                                    ["target", "measured", "mark"], rows)]
     md = val["paper.table2.M3500_isam.min_dmax"]
     rows.append([f"M3500_isam converges with D_max <= {TARGET_M3500_DMAX}", f"{md:g}",
@@ -591,7 +592,7 @@ def _targets(ctx: Context, metrics: list[Metric]) -> Result:
         rows.append([f"dog-leg, {preset} with GPS: TORO's mean excess misalignment (w=10) >= "
                      f"{TARGET_DOGLEG_RATIO}x the hybrid's", f"{r:.2f}x (p99: {r99:.2f}x)",
                      mark(r >= TARGET_DOGLEG_RATIO)])
-    return [], [markdown_table("Targets (issue 7 item 3)", ["target", "measured", "mark"], rows)]
+    return [], [markdown_table("Targets", ["target", "measured", "mark"], rows)]
 
 
 def run(ctx: Context, table_one_only: bool = False) -> Result:

@@ -1,4 +1,4 @@
-"""Issue 12: update time and cold compile time of two source trees, interleaved in one run.
+"""Update time and cold compile time of two source trees, interleaved in one run.
 
 ``python -m benchmarks.refactor_compare BEFORE_SRC AFTER_SRC [--repeats 3]`` runs each measurement
 in a fresh subprocess per tree (``PYTHONPATH`` = that tree's ``src``), alternating trees, and prints

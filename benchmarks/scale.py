@@ -1,4 +1,4 @@
-"""Scale: generated cities of 100k and 1M poses, with and without GPS (issue 11 item 6).
+"""Scale: generated cities of 100k and 1M poses, with and without GPS.
 
 Each case is generated in one process (``python -m benchmarks.scale generate N GPS PATH``) and
 solved in another (``python -m benchmarks.scale solve PATH``), so the solver's peak memory is
@@ -26,7 +26,7 @@ Phases, timed separately, in order:
 Kernels are compiled (or loaded) before the clock starts.  Each phase's own peak memory is
 recorded (Linux: VmHWM, reset between phases through ``/proc/self/clear_refs``); the pipeline
 runs before the sweep, whose hybrid solver keeps a 6x6 block per constraint-path entry.
-Targets (issue 11): one sweep <= 10 s, pipeline <= 5 min, peak
+Targets: one sweep <= 10 s, pipeline <= 5 min, peak
 <= 4 GB at 1M poses.
 
 Run: ``PYTHONPATH=src python -m benchmarks --only scale --run <name>`` (``--quick``: 20k
@@ -58,7 +58,7 @@ TIMEOUT_S = 3600.0
 #: The one-sweep phase is skipped (and said so) when the hybrid solver's per-path 6x6 blocks
 #: alone would need more than this (measured: a 1M-pose city with GPS grew past 17 GB).
 SWEEP_BLOCKS_LIMIT_GB = 6.0
-#: Targets at 1M poses (issue 11 item 6).
+#: Targets at 1M poses.
 TARGET_SWEEP_S, TARGET_PIPELINE_S, TARGET_PEAK_GB = 10.0, 300.0, 4.0
 
 

@@ -3,7 +3,7 @@
 ``python -m benchmarks.snapshot OUTDIR`` runs ``hybridpgo optimize`` in-process on every case and
 writes ``OUTDIR/<case>.g2o``; comparing two such folders (``--compare A B``) reports, per case,
 whether the files are byte-identical and else the largest relative difference of any number.
-Used to show that a refactoring changes no result (issue 12).
+Used to show that a refactoring changes no result.
 """
 
 from __future__ import annotations

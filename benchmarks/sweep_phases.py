@@ -5,7 +5,7 @@ with the solver's callees wrapped by timers and prints one JSON line: wall and C
 whole call, the solver's ``analyze``/``solve`` timings, and the seconds spent in the tree, the
 initial locals, the whitening, the 𝔅(H) initialization, the sweep kernel, the global poses and
 the energies; the peak RSS (VmHWM) of the call; the load average before and after.  Kernels are
-compiled (or loaded) before the clock starts.  Used for issue 11 item 6 (scale-c notes).
+compiled (or loaded) before the clock starts.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The TORO-style baseline (issue 7, item 2): sanity check on M3500_isam, time per constraint on
+"""The TORO-style baseline: sanity check on M3500_isam, time per constraint on
 the valencia city without GPS (paper Table I), and the dog-leg (paper Fig. 3e/f).
 
 Run: ``PYTHONPATH=src python -m benchmarks --only toro --run <name>``.
@@ -20,7 +20,7 @@ from .metrics import Metric, info, markdown_table, quality, timing
 from .workloads import Context, Result
 
 #: The original TORO binary on M3500_isam.txt, 100 iterations, square-root information
-#: (shared/TORO.md); the paper reports 2.062.
+#: (docs/mathematics.md#toro); the paper reports 2.062.
 TORO_BINARY_M3500 = 2.04
 #: Paper Table I, TORO on valencia: mean and max time per constraint.
 PAPER_TABLE_I_US = (17.5092, 5247.59)
@@ -105,7 +105,7 @@ def _m3500(ctx: Context) -> Result:
                      f"{res.timings['solve']:.2f}", f"{st['us_per_constraint_mean']:.2f}",
                      f"{st['us_per_constraint_max']:.0f}",
                      f"{st['us_per_constraint_max_steady']:.0f}"])
-    rows.append(["original TORO binary (TORO.md)", "-", "-", "-", TORO_BINARY_M3500, "0", "-",
+    rows.append(["original TORO binary", "-", "-", "-", TORO_BINARY_M3500, "0", "-",
                  "-", "-", "-", "-", "-", "-"])
     rows.append(["paper's TORO figure", "-", "-", "-", 2.062, "-", "-", "-", "-", "-", "-", "-",
                  "-"])

@@ -1,7 +1,7 @@
 """Benchmark workloads.  Each returns (metrics, markdown tables).
 
-Datasets are read from ``--data-dir`` (default ``../shared/datasets`` beside the repository);
-the package itself never reads them.  Every number in the issue notes comes from here.
+Datasets are read from ``--data-dir`` (default: ``$HYBRIDPGO_DATASETS``, else the bundled graphs);
+the package itself never reads them.  Every number in the benchmark tables comes from here.
 """
 
 from __future__ import annotations
@@ -34,7 +34,13 @@ class Context:
 
     def graph(self, name: str) -> PoseGraph:
         if name not in self.cache:
-            self.cache[name] = read_graph(self.data_dir / name)
+            path = self.data_dir / name
+            if not path.is_file():
+                raise FileNotFoundError(
+                    f"benchmark graph {path} not found: pass --data-dir DIR or set "
+                    f"HYBRIDPGO_DATASETS to the folder of the public benchmark graphs "
+                    f"(benchmarks/README.md)")
+            self.cache[name] = read_graph(path)
         return self.cache[name]  # type: ignore[no-any-return]
 
     def optimum(self, name: str) -> float:
@@ -63,7 +69,7 @@ def _stem(name: str) -> str:
     return name.split(".")[0]
 
 
-# ------------------------------------------------------------------ exact solver (issue 2)
+# ------------------------------------------------------------------ exact solver
 EXACT_TARGETS = {
     "sphere2500.g2o": 727.285,
     "M3500.g2o": 3549.04,
@@ -150,7 +156,7 @@ def exact(ctx: Context) -> Result:
     return metrics, [table]
 
 
-# ------------------------------------------------------------------ hybrid solver (issue 3)
+# ------------------------------------------------------------------ hybrid solver
 def _hybrid(g: PoseGraph, **kw: Any) -> Any:
     return solve_hybrid(g, HybridConfig(**kw))
 
@@ -475,7 +481,7 @@ WORKLOADS: dict[str, Callable[[Context], Result]] = {
 }
 
 
-# ------------------------------------------------------------------ GPS and the city (issue 4)
+# ------------------------------------------------------------------ GPS and the city
 def _city_figure(c: Any, res: Any, path: pathlib.Path) -> None:
     """Before (tree initialization) / after (hybrid) map with residuals, GPS ones included."""
     try:
@@ -584,16 +590,16 @@ def _toro(ctx: Context) -> Result:
 WORKLOADS["toro"] = _toro
 
 
-# ------------------------------------------------------------------ fuzzing (issue 9 item 6)
+# ------------------------------------------------------------------ fuzzing
 from .fuzz import run as _fuzz  # noqa: E402
 
 WORKLOADS["fuzz"] = _fuzz
 
-from .linear import run as _linear_run  # noqa: E402  (issue 11 item 4)
+from .linear import run as _linear_run  # noqa: E402
 
 WORKLOADS["linear"] = _linear_run
 
-from .paper import run as _paper_run  # noqa: E402  (issue 7 item 3)
+from .paper import run as _paper_run  # noqa: E402
 from .paper import run_table_one as _paper_table1_run  # noqa: E402
 
 WORKLOADS["paper"] = _paper_run
@@ -615,7 +621,7 @@ def _online(ctx: Context) -> Result:
     return run(ctx)
 
 
-def _scale(ctx: Context) -> Result:  # issue 11 item 6
+def _scale(ctx: Context) -> Result:
     from .scale import run
 
     return run(ctx)
@@ -629,23 +635,19 @@ def _auto(ctx: Context) -> Result:
 WORKLOADS["online"] = _online
 
 
-from .interp import run as _interp_run  # noqa: E402  (issue 7: interpolated update times)
+from .interp import run as _interp_run  # noqa: E402  (interpolated update times)
 
 WORKLOADS["interp"] = _interp_run
 
-from .sag import run as _sag_run  # noqa: E402  (issue 11 item 3)
-
-WORKLOADS["sag"] = _sag_run
-
 WORKLOADS["scale"] = _scale
 
-WORKLOADS["auto"] = _auto  # issue 11 items 1-2: the default pipeline and local minima
+WORKLOADS["auto"] = _auto  # the default pipeline and local minima
 
-from .converge import run as _converge_run  # noqa: E402  (issue 11 item 3: levers)
+from .converge import run as _converge_run  # noqa: E402  (levers)
 
 WORKLOADS["converge"] = _converge_run
 
-from .first_run import run as _first_run  # noqa: E402  (issue 11 item 5: cold first run)
+from .first_run import run as _first_run  # noqa: E402  (cold first run)
 
 WORKLOADS["first_run"] = _first_run
 

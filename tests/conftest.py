@@ -1,4 +1,4 @@
-"""Shared fixtures; keep this file small (STYLE.md §7)."""
+"""Shared fixtures; keep this file small (docs/contributing.md#tests)."""
 
 from __future__ import annotations
 

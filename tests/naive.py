@@ -1,4 +1,5 @@
-"""Plain NumPy twins of the Numba kernels, used as test oracles (STYLE.md §3, §7).
+"""Plain NumPy twins of the Numba kernels, used as test oracles (docs/contributing.md#kernels,
+docs/contributing.md#tests).
 
 A twin is slow and obvious and, where possible, *independent* of the kernel it checks (a different
 formula, not a copy): a matrix exponential instead of Rodrigues, an eigenvector instead of
@@ -14,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 import scipy.linalg
+from scipy.spatial.transform import Rotation
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -81,11 +83,6 @@ def _phi_series(a: FloatArray) -> FloatArray:
     return np.asarray(scipy.linalg.expm(big)[:n, n:], dtype=np.float64)
 
 
-def so3_exp(phi: FloatArray) -> FloatArray:
-    """Matrix exponential of [phi]x."""
-    return np.asarray(scipy.linalg.expm(skew(phi)), dtype=np.float64)
-
-
 def matrix_to_quat_xyzw(r: FloatArray) -> FloatArray:
     """Unit quaternion (x, y, z, w), w >= 0: top eigenvector of 4 q q^T - I (Bar-Itzhack)."""
     k = np.array([
@@ -107,15 +104,6 @@ def quat_xyzw_to_matrix(q: FloatArray) -> FloatArray:
     return (w * w - v @ v) * np.eye(3) + 2.0 * np.outer(v, v) + 2.0 * w * skew(v)
 
 
-def so3_log(r: FloatArray) -> FloatArray:
-    """Rotation vector through the quaternion: phi = 2 atan2(|v|, w) v / |v|, |phi| <= pi."""
-    q = matrix_to_quat_xyzw(r)
-    n = np.linalg.norm(q[:3])
-    if n == 0.0:
-        return np.zeros(3)
-    return 2.0 * np.arctan2(n, q[3]) * q[:3] / n
-
-
 def so3_left_jacobian(phi: FloatArray) -> FloatArray:
     """J_l(phi) = sum_n [phi]x^n / (n+1)!."""
     return _phi_series(skew(phi))
@@ -133,7 +121,7 @@ def se3_exp(xi: FloatArray) -> tuple[FloatArray, FloatArray]:
 
 def se3_log(r: FloatArray, t: FloatArray) -> FloatArray:
     """(rho, phi) with phi = Log(R) and rho solving J_l(phi) rho = t."""
-    phi = so3_log(r)
+    phi = Rotation.from_matrix(r).as_rotvec()  # SciPy's Log(R), |phi| <= pi
     rho = np.linalg.solve(so3_left_jacobian(phi), t)
     return np.concatenate([rho, phi])
 
@@ -206,7 +194,7 @@ def between(ra: FloatArray, ta: FloatArray, rb: FloatArray,
 
 
 def relative_error(rz: FloatArray, tz: FloatArray, rab: FloatArray, tab: FloatArray) -> FloatArray:
-    """e = Log(Z^-1 X_ab) (DESIGN.md §1) through 4x4 matrices."""
+    """e = Log(Z^-1 X_ab) (docs/conventions.md) through 4x4 matrices."""
     r, t = from_matrix(np.linalg.inv(to_matrix(rz, tz)) @ to_matrix(rab, tab))
     return se3_log(r, t)
 
@@ -221,7 +209,8 @@ def relative_error(rz: FloatArray, tz: FloatArray, rab: FloatArray, tab: FloatAr
 # linear system is built densely and handed to numpy.linalg.solve / lstsq (no Cholesky of
 # 6x6 blocks, no Woodbury, no Givens, no segments).  A tree is a parent array (-1: root); the
 # root's "local" transform is its global pose, every other node's is relative to its parent.
-# The damping rule is the one of DESIGN §4: each block of B gets mu * tr(B)/6 + tiny * scale on
+# The damping rule is the one of docs/mathematics.md#hybrid-step: each block of B gets mu * tr(B)/6
+# + tiny * scale on
 # its diagonal (``tiny`` is a parameter: twins never import hybridpgo).
 # ============================================================================================
 
@@ -275,7 +264,7 @@ def relative_jacobian(grot: FloatArray, gtr: FloatArray, a: int, b: int, zr: Flo
                       signs: npt.NDArray[np.integer]) -> tuple[FloatArray, FloatArray]:
     """Whitened blocks ``s_i L^T Jr^-1(e) Ad(X_b^-1 X_i)`` (d, 6, 6) and ``r = -L^T e`` (6,).
 
-    ``e = Log(Z^-1 X_a^-1 X_b)`` from global poses (DESIGN §3).
+    ``e = Log(Z^-1 X_a^-1 X_b)`` from global poses (docs/mathematics.md#jacobians).
     """
     rab, tab = between(grot[a], gtr[a], grot[b], gtr[b])
     e = relative_error(zr, zt, rab, tab)
@@ -306,7 +295,8 @@ def own_scale(jac_blocks: FloatArray) -> FloatArray:
 
 
 def damped_block(bc: FloatArray, scale: float, mu: float, tiny: float) -> FloatArray:
-    """sym(B) + (mu * max(tr B, 0)/6 + tiny * scale) I (DESIGN §4, no escalation)."""
+    """sym(B) + (mu * max(tr B, 0)/6 + tiny * scale) I (docs/mathematics.md#hybrid-step, no
+    escalation)."""
     sym = 0.5 * (bc + bc.T)
     damp = mu * max(float(np.trace(bc)), 0.0) / 6.0 + tiny * scale
     return np.asarray(sym + damp * np.eye(6), dtype=np.float64)

@@ -1,8 +1,9 @@
 """Reference SO(3)/SE(3) kernels (allocating, one element at a time), used only by the tests.
 
-They were the package's first kernels; the solvers now use the allocation-free kernels of
-:mod:`hybridpgo.geometry._kernels` (same formulas and thresholds), which the tests check
-against these and against the NumPy twins in ``naive.py``.
+The same formulas and thresholds as the allocation-free kernels of
+:mod:`hybridpgo.geometry._kernels` (whose ``skew_into`` gives the cross-product matrices
+here); the tests check those kernels against these, and these against the independent NumPy
+twins of ``naive.py`` and SciPy.
 
 Conventions: tangent vectors xi = (rho, phi) (translation first); ``Exp(xi)`` is the SE(3)
 exponential; poses are (R, t) pairs of a (3, 3) rotation and a (3,) translation.
@@ -20,20 +21,13 @@ import math
 import numpy as np
 
 from hybridpgo._numba import kernel
-from hybridpgo.geometry._kernels import GIMBAL_LOCK_COS, NEAR_PI, Q_SERIES_ANGLE, SMALL_ANGLE
-
-
-@kernel
-def skew(v: np.ndarray) -> np.ndarray:
-    """[v]x, the (3, 3) cross-product matrix."""
-    s = np.zeros((3, 3))
-    s[0, 1] = -v[2]
-    s[0, 2] = v[1]
-    s[1, 0] = v[2]
-    s[1, 2] = -v[0]
-    s[2, 0] = -v[1]
-    s[2, 1] = v[0]
-    return s
+from hybridpgo.geometry._kernels import (
+    GIMBAL_LOCK_COS,
+    NEAR_PI,
+    Q_SERIES_ANGLE,
+    SMALL_ANGLE,
+    skew_into,
+)
 
 
 @kernel
@@ -47,7 +41,8 @@ def so3_exp(phi: np.ndarray) -> np.ndarray:
     else:
         a = math.sin(th) / th
         b = (1.0 - math.cos(th)) / th2
-    k = skew(phi)
+    k = np.empty((3, 3))
+    skew_into(phi[0], phi[1], phi[2], k)
     out: np.ndarray = np.eye(3) + a * k + b * (k @ k)
     return out
 
@@ -110,7 +105,8 @@ def so3_left_jacobian(phi: np.ndarray) -> np.ndarray:
     """J_l(phi) = V(phi) of SO(3)."""
     th = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
     b, c = _v_coeffs(th)
-    k = skew(phi)
+    k = np.empty((3, 3))
+    skew_into(phi[0], phi[1], phi[2], k)
     out: np.ndarray = np.eye(3) + b * k + c * (k @ k)
     return out
 
@@ -123,7 +119,8 @@ def so3_left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
         c = 1.0 / 12.0 + th * th / 720.0  # + th^4/30240
     else:
         c = 1.0 / (th * th) - math.cos(0.5 * th) / (2.0 * th * math.sin(0.5 * th))
-    k = skew(phi)
+    k = np.empty((3, 3))
+    skew_into(phi[0], phi[1], phi[2], k)
     out: np.ndarray = np.eye(3) - 0.5 * k + c * (k @ k)
     return out
 
@@ -165,8 +162,10 @@ def _q_matrix(rho: np.ndarray, phi: np.ndarray) -> np.ndarray:
         a1 = (th - s) / (th2 * th)
         a2 = (1.0 - 0.5 * th2 - c) / (th2 * th2)
         a3 = (th - s - th2 * th / 6.0) / (th2 * th2 * th)
-    rx = skew(rho)
-    px = skew(phi)
+    rx = np.empty((3, 3))
+    skew_into(rho[0], rho[1], rho[2], rx)
+    px = np.empty((3, 3))
+    skew_into(phi[0], phi[1], phi[2], px)
     pr = px @ rx
     rp = rx @ px
     prp = pr @ px
@@ -191,7 +190,7 @@ def se3_left_jacobian_inv(xi: np.ndarray) -> np.ndarray:
 
 @kernel
 def se3_right_jacobian_inv(xi: np.ndarray) -> np.ndarray:
-    """J_r(xi)^-1 = J_l(-xi)^-1 (DESIGN §3's ``Jr^-1``)."""
+    """J_r(xi)^-1 = J_l(-xi)^-1 (docs/mathematics.md#jacobians's ``Jr^-1``)."""
     return se3_left_jacobian_inv(-xi)
 
 
@@ -201,7 +200,9 @@ def se3_adjoint(r: np.ndarray, t: np.ndarray) -> np.ndarray:
     out = np.zeros((6, 6))
     out[0:3, 0:3] = r
     out[3:6, 3:6] = r
-    out[0:3, 3:6] = skew(t) @ r
+    tx = np.empty((3, 3))
+    skew_into(t[0], t[1], t[2], tx)
+    out[0:3, 3:6] = tx @ r
     return out
 
 

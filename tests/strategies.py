@@ -1,4 +1,4 @@
-"""Hypothesis strategies shared by the test suite (STYLE.md §7).
+"""Hypothesis strategies shared by the test suite (docs/contributing.md#tests).
 
 Rotation angles come in named regimes, because the kernels switch formulas by angle:
 

@@ -1,5 +1,6 @@
 """The ``hybridpgo`` command line: every command in-process through ``main([...])``, the error
-boundary, and one subprocess smoke test of the installed console script (STYLE.md §7, §11)."""
+boundary, and one subprocess smoke test of the installed console script
+(docs/contributing.md#tests, docs/contributing.md#cli)."""
 
 from __future__ import annotations
 
@@ -535,7 +536,7 @@ def test_demo(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
                                            "M3500_energy.png", "M3500_optimized.g2o"]
     g = read_graph(out_dir / "M3500_optimized.g2o")
     assert g.num_nodes == 3500 and g.num_edges == 5598
-    # the polish ends at the optimum: 6532.8 = 1.167 per constraint (DESIGN.md §1)
+    # the polish ends at the optimum: 6532.8 = 1.167 per constraint (docs/conventions.md)
     assert energy(g) / g.num_edges == pytest.approx(1.167, abs=5e-4)
     assert "demo output in" in out and "after sweeps" in out
 
@@ -682,7 +683,7 @@ def test_toro_runs_its_sweeps_as_iterations(capsys: pytest.CaptureFixture[str], 
     assert code == 2 and "--tree toro: only for --solver toro" in err
 
 
-# =========================================================================== bounds (issue 9)
+# =========================================================================== bounds
 def test_sweeps_and_tau0_bounds_match_the_library() -> None:
     from hybridpgo.cli import _parser
     from hybridpgo.solvers import config

@@ -1,4 +1,4 @@
-"""Hostile use of the command line (issue 9 items 4-5, issue 10 item 4).
+"""Hostile use of the command line.
 
 Every test here reproduced a defect first: a traceback (exit 1) on finite input, a file left
 behind or an input destroyed after an error, an output problem found only after the solve.

@@ -1,4 +1,4 @@
-"""Tests of the energy (DESIGN.md §1): E = sum_c e_c^T Omega_c e_c, no 1/2."""
+"""Tests of the energy (docs/conventions.md): E = sum_c e_c^T Omega_c e_c, no 1/2."""
 
 from __future__ import annotations
 
@@ -144,7 +144,8 @@ def test_gps_energy() -> None:
 
 
 def test_pure_translation_error_has_no_half() -> None:
-    """Identity rotations: e = (t_err, 0) exactly and E = e^T Omega e (no 1/2, DESIGN §1)."""
+    """Identity rotations: e = (t_err, 0) exactly and E = e^T Omega e (no 1/2,
+    docs/conventions.md)."""
     rot = np.broadcast_to(np.eye(3), (2, 3, 3))
     trans = np.array([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]])
     om = np.diag([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])

@@ -1,4 +1,4 @@
-"""Bounded fuzzing of the readers and the convert round trip (issue 9 item 6).
+"""Bounded fuzzing of the readers and the convert round trip.
 
 The long run is ``python -m benchmarks.fuzz N`` (``benchmarks/fuzz.py``, whose checker this file
 reuses); here hypothesis drives a few hundred inputs in a few seconds: mutated valid files, and

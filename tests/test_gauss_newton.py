@@ -1,4 +1,5 @@
-"""Tests of the exact solver (DESIGN.md §7): Jacobians, normal equations, GN/LM optima."""
+"""Tests of the exact solver (docs/mathematics.md#exact-solver): Jacobians, normal equations, GN/LM
+optima."""
 
 from __future__ import annotations
 
@@ -197,7 +198,8 @@ def _error_pose(rng: np.random.Generator, regime: str) -> tuple[np.ndarray, np.n
 
 @pytest.mark.parametrize("regime", ["normal", "near_zero", "near_pi", "mid_series"])
 def test_allocation_free_kernels_match_geometry_kernels(regime: str) -> None:
-    """The solver's inner kernels are twins of the reference kernels (DESIGN §1, §3)."""
+    """The solver's inner kernels are twins of the reference kernels
+    (docs/mathematics.md#jacobians)."""
     from ref_kernels import se3_adjoint, se3_right_jacobian_inv
 
     rng = np.random.default_rng(7)

@@ -1,5 +1,5 @@
 """``hybridpgo generate city|grid`` and ``noisify`` on the command line: outputs, outliers
-files, help, and the defects of issues 9/10 (each test reproduced its defect before the fix)."""
+files, help, and the defects found by an audit (each test reproduced its defect before the fix)."""
 
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ def _files(directory: Path) -> list[str]:
     return sorted(p.name for p in directory.iterdir())
 
 
-# =========================================================================== defects (issue 9/10)
+# =========================================================================== defects
 def test_unwritable_ground_truth_fails_before_writing_the_graph(
         capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     """Defect: the graph was written, then the ground truth failed, leaving the graph behind."""

@@ -1,5 +1,5 @@
 """Cross-checks against GTSAM through the bridge ``hybridpgo.gtsam_bridge`` (optional peer;
-DESIGN.md §1 "Comparing with GTSAM").
+docs/conventions.md "Comparing with GTSAM").
 
 The bridge builds GTSAM factors from *our* converted information, reordered to GTSAM's
 (rotation, translation) tangent order; then our E = 2 x ``graph.error`` to rounding.  (GTSAM's own

@@ -171,7 +171,7 @@ def test_incremental_block_diagonal_stays_consistent():
 
 @pytest.mark.parametrize("gps", [0, 3])
 def test_batch_of_all_constraints_is_the_gauss_newton_step(gps):
-    """Paper eq. 37 reduces to eq. 14 when C is every constraint (DESIGN §5)."""
+    """Paper eq. 37 reduces to eq. 14 when C is every constraint (docs/mathematics.md#batches)."""
     rng = np.random.default_rng(6)
     graph, _, _ = random_graph(rng, n=9, extra=8, gps=gps, rot_scale=0.5)
     state = _state(graph)
@@ -210,7 +210,8 @@ def test_same_input_gives_bit_identical_output():
 
 
 def test_never_emits_non_finite_poses_on_degenerate_chain():
-    """A chain whose end nodes only one constraint touches: B_c is singular there (DESIGN §4)."""
+    """A chain whose end nodes only one constraint touches: B_c is singular there
+    (docs/mathematics.md#hybrid-step)."""
     rng = np.random.default_rng(9)
     graph, _, _ = random_graph(rng, n=6, extra=0, rot_scale=1.0)
     res = solve_hybrid(graph, HybridConfig(sweeps=30, init="file"))
@@ -327,7 +328,7 @@ def test_segmented_woodbury_batch_matches_dense_hybrid_system(gps):
 
 @pytest.mark.parametrize("two", [False, True])
 def test_gps_only_graphs_are_solved(two):
-    """Issue 9: one pose with one GPS reading, or two poses each with one and no relative
+    """One pose with one GPS reading, or two poses each with one and no relative
     edge, made every hybrid update non-finite (the batch system is singular in rotation)."""
     from hybridpgo.graph import PoseGraph
 

@@ -1,4 +1,4 @@
-"""𝔅(H) initialization (``_init_blocks``) and the set-up around it (issue 11 item 6).
+"""𝔅(H) initialization (``_init_blocks``) and the set-up around it.
 
 The dedicated kernel must give bit for bit what the sweep kernel with ``apply=False`` gave (the
 set-up it replaced), for relative and GPS constraints, with and without a robust kernel, also

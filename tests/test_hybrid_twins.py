@@ -2,7 +2,8 @@
 behaviour of Algorithm 1 that the kernel-level tests cannot see (GPS buffering, the pi/8 cap,
 damping escalation, the time budget).
 
-Each kernel is compared with a twin built from *global* poses and dense matrices (DESIGN §3-§5):
+Each kernel is compared with a twin built from *global* poses and dense matrices
+(docs/mathematics.md#jacobians, docs/mathematics.md#batches):
 the linearization (:mod:`._linearize`), 𝔅(H) bookkeeping and both single-step solves
 (:mod:`._step`), the capped retraction, batch updates (:mod:`._batch`) and the cost layer
 (:mod:`hybridpgo._cost`), on random graphs with and without GPS, with constraint errors near 0,
@@ -18,6 +19,7 @@ import naive
 import numpy as np
 import pytest
 from graphs import random_graph
+from scipy.spatial.transform import Rotation
 from tolerances import FLOAT64_IDENTITY, SAME_EQUATION, TWIN_JACOBIAN
 
 from hybridpgo import _cost
@@ -314,7 +316,7 @@ def test_rotation_cap_is_exactly_pi_over_8_and_scales_every_node_alike():
         inc = naive.se3_log(*naive.between(rot0[i], trans0[i], s2.state.rot[i],
                                            s2.state.trans[i]))
         assert _rel_err(inc, t * x[k]) <= FLOAT64_IDENTITY * 10
-    turns = [np.linalg.norm(naive.so3_log(rot0[i].T @ s2.state.rot[i])) for i in nodes]
+    turns = [Rotation.from_matrix(rot0[i].T @ s2.state.rot[i]).magnitude() for i in nodes]
     assert abs(max(turns) - math.pi / 8) <= FLOAT64_IDENTITY
     rot_t, trans_t, capped = naive.apply_step(rot0, trans0, nodes, x, 1.0)
     assert capped
@@ -448,7 +450,8 @@ def test_gps_batch_with_a_zero_block_matches_undamped_twin():
 
 @pytest.mark.parametrize("gps", [0, 3])
 def test_batch_of_all_constraints_is_the_twin_gauss_newton_step(gps):
-    """Eq. 37 reduces to eq. 14 (DESIGN §5): against lstsq on the stacked twin Jacobian."""
+    """Eq. 37 reduces to eq. 14 (docs/mathematics.md#batches): against lstsq on the stacked twin
+    Jacobian."""
     solver = _solver(_graph(31, n=9, extra=8, gps=gps))
     doms, jacs, rs = _twin_all(solver)
     free = _free_nodes(solver)
@@ -551,7 +554,8 @@ def test_a_time_budget_stops_the_step_early_and_counts_what_it_did():
 
 # --------------------------------------------------------------------------------- damping
 def _escalated_damping(bc: np.ndarray, scale: float, mu: float, k: int) -> float:
-    """The damping after k tenfold escalations (the rule of DESIGN §4 / _dense)."""
+    """The damping after k tenfold escalations (the rule of docs/mathematics.md#hybrid-step /
+    _dense)."""
     tr = max(float(np.trace(bc)), 0.0)
     damp = mu * tr / 6 + _dense.TINY * scale
     for _ in range(k):
@@ -589,7 +593,8 @@ def test_a_block_that_never_factors_reports_max_escalations():
 def test_a_single_gps_reading_is_relaxed():
     """Was a bug: with one GPS reading the anchor's block of B_C is exactly 0, the undamped
     dense system is singular (a rotation about the reading is free), and every GPS batch was
-    rejected.  The dense branch now falls back to the damped system (DESIGN §4)."""
+    rejected.  The dense branch now falls back to the damped system
+    (docs/mathematics.md#hybrid-step)."""
     graph = _graph(37, n=10, extra=6, gps=1)
     solver = _solver(graph, sweeps=5)
     anchor = int(graph.gps_nodes[0])

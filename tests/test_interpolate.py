@@ -1,4 +1,5 @@
-"""Interpolated solving (paper III-E, DESIGN §6): kept nodes, merged constraints, distribution."""
+"""Interpolated solving (paper III-E, docs/mathematics.md#interpolated-solving): kept nodes, merged
+constraints, distribution."""
 
 from __future__ import annotations
 
@@ -9,7 +10,15 @@ from scipy.spatial.transform import Rotation
 from tolerances import FLOAT64_IDENTITY
 
 from hybridpgo._cost import retract_into
-from hybridpgo.solvers.hybrid import HybridConfig, HybridSolver, _linearize, _step, solve_hybrid
+from hybridpgo.solvers.hybrid import (
+    HybridConfig,
+    HybridSolver,
+    _distribute,
+    _linearize,
+    _merge,
+    _step,
+    solve_hybrid,
+)
 from hybridpgo.solvers.hybrid import _interpolate as ip
 from hybridpgo.solvers.hybrid.problem import State, new_workspace
 
@@ -76,8 +85,8 @@ def test_merged_constraint_composes_its_chain() -> None:
         chain.append(int(tree.parent[chain[-1]]))
     nodes = np.array(chain, np.int64)  # b ... top
     zr, zt, s_beta = np.empty((3, 3)), np.empty(3), np.empty((6, 6))
-    ip.merged_constraint(solver.problem, solver.state, nodes, 0, len(chain), zr, zt, s_beta,
-                         np.empty((5, 3, 3)), np.empty((6, 6)))
+    _merge.merged_constraint(solver.problem, solver.state, nodes, 0, len(chain), zr, zt,
+                             s_beta, np.empty((5, 3, 3)), np.empty((6, 6)))
     r_acc, t_acc = np.eye(3), np.zeros(3)
     frames = []
     for node in chain[::-1]:
@@ -97,7 +106,8 @@ def test_merged_constraint_composes_its_chain() -> None:
 
 
 def _distribute_twin(rot, trans, bdiag, nodes, ra, ta, rb_new, tb_new):
-    """DESIGN §6 in plain NumPy (global frame, 4x4 matrices): rotation about one axis by the
+    """docs/mathematics.md#interpolated-solving in plain NumPy (global frame, 4x4 matrices):
+    rotation about one axis by the
     cumulative-weight profile, then translation on the re-bent chain."""
     k = len(nodes)
     top_down = nodes[::-1]
@@ -142,8 +152,9 @@ def test_distribution_matches_a_numpy_twin(seed: int) -> None:
     rb_new = Rotation.random(random_state=seed + 20).as_matrix()
     tb_new = rng.normal(size=3) * 3
     state = State(rot.copy(), trans.copy(), bdiag, np.zeros((1, 6, 6)))
-    ip.distribute_chain(state, np.concatenate([[0, 8], nodes]), 2, k, ra, ta, rb_new, tb_new,
-                        new_workspace(k))  # the chain starts at an offset, as in a path
+    # the chain starts at an offset, as in a path
+    _distribute.distribute_chain(state, np.concatenate([[0, 8], nodes]), 2, k, ra, ta, rb_new,
+                                 tb_new, new_workspace(k))
     want_r, want_t = _distribute_twin(rot, trans, bdiag, nodes, ra, ta, rb_new, tb_new)
     np.testing.assert_allclose(state.rot, want_r, rtol=0, atol=1e-12)
     np.testing.assert_allclose(state.trans, want_t, rtol=0, atol=1e-11)
@@ -192,8 +203,8 @@ def test_all_chains_at_once_equal_chain_by_chain(d_max: int) -> None:
         roots += end - p > 1 and not end < (na if p < na else d)
         want = state.bdiag[prob.path_node[s + p]] - state.contrib[s + p]
         if end - p > 1:
-            ip.merged_block(prob, state, prob.path_node, s + p, end - p, ra, ta, pr[p].copy(),
-                            pt[p].copy(), want, new_workspace(1))
+            _merge.merged_block(prob, state, prob.path_node, s + p, end - p, ra, ta,
+                                pr[p].copy(), pt[p].copy(), want, new_workspace(1))
         assert np.array_equal(sub.w[j], want)
         chains.append((p, end - p, ra, ta))
     assert any(k > 1 for _, k, _, _ in chains)
@@ -210,7 +221,8 @@ def test_all_chains_at_once_equal_chain_by_chain(d_max: int) -> None:
             continue
         rb, tb = np.empty((3, 3)), np.empty(3)
         retract_into(pr[p], pt[p], x[j], 0.7, rb, tb, er, tmp)
-        ip.distribute_chain(twin, prob.path_node, s + p, k, ra, ta, rb, tb, new_workspace(d))
+        _distribute.distribute_chain(twin, prob.path_node, s + p, k, ra, ta, rb, tb,
+                                     new_workspace(d))
     assert np.array_equal(state.rot, rot0) and np.array_equal(state.trans, trans0)
     assert not np.array_equal(state.trans, before)  # the test can fail
 

@@ -1,4 +1,5 @@
-"""Interpolated GPS batches (paper III-E with III-G, DESIGN §6): kept nodes on the union of the
+"""Interpolated GPS batches (paper III-E with III-G, docs/mathematics.md#interpolated-solving):
+kept nodes on the union of the
 batch's paths, merged chains, the same distribution as single updates."""
 
 from __future__ import annotations

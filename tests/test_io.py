@@ -1,4 +1,5 @@
-"""Tests of the file-format layer ``hybridpgo.io`` (DESIGN.md §1, STYLE.md §5 and §7)."""
+"""Tests of the file-format layer ``hybridpgo.io`` (docs/conventions.md,
+docs/contributing.md#errors and docs/contributing.md#tests)."""
 
 from __future__ import annotations
 
@@ -132,7 +133,8 @@ def test_intel_2d_lift_is_planar_information() -> None:
     info = g.edge_information[0]
     np.testing.assert_array_equal(planar_information(g.edge_information[:1])[0], file_info)
     np.testing.assert_array_equal(info, lift_information_2d(file_info[None])[0])
-    stiff = max(i11, i22, i33)  # DESIGN §1: z, roll, pitch get the largest in-plane diagonal
+    stiff = max(i11, i22, i33)  # docs/conventions.md: z, roll, pitch get the largest in-plane
+    # diagonal
     np.testing.assert_array_equal(np.diag(info)[2:5], [stiff] * 3)
     assert np.count_nonzero(info[2:5, :] - np.diag(np.diag(info))[2:5, :]) == 0
     # Measurements are planar: z = 0, rotation about z only.
@@ -166,7 +168,7 @@ def test_w100_equiv_merge() -> None:
 
 # =========================================================================== conversions
 def test_g2o_3d_information_scaled_by_p(tmp_path: Path) -> None:
-    """DESIGN §1: Omega_phi = P Omega_q P, P = diag(1, 1, 1, 1/2, 1/2, 1/2)."""
+    """docs/conventions.md: Omega_phi = P Omega_q P, P = diag(1, 1, 1, 1/2, 1/2, 1/2)."""
     rng = np.random.default_rng(0)
     a = rng.normal(size=(6, 6))
     omega_q = a @ a.T + 6 * np.eye(6)

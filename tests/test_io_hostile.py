@@ -1,4 +1,4 @@
-"""Hostile input for the readers and writers (issue 9 items 4-5, issue 10 item 4).
+"""Hostile input for the readers and writers.
 
 Each test here reproduced a defect before the fix: a traceback or a wrong result on finite
 input, a misreported line, an unbounded error message, a lenient number parser.

@@ -1,4 +1,4 @@
-"""Tests of the accuracy metrics and trajectory files ``hybridpgo.metrics`` (issue 4)."""
+"""Tests of the accuracy metrics and trajectory files ``hybridpgo.metrics``."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""A solve compiles only the kernels it uses, each for one signature (issue 11: the first run).
+"""A solve compiles only the kernels it uses, each for one signature (the first run).
 
 The sweep of a graph without GPS readings and without interpolated solving must not compile the
 GPS batches (``_flush`` -> ``batch_relax``) or ``relax_interpolated``: together they were about
@@ -64,7 +64,7 @@ def _referenced_globals(kern: object) -> set[str]:
 def test_each_sweep_variant_calls_only_what_it_needs() -> None:
     """The plain sweep never reaches the GPS batches (``_flush*`` -> ``batch_relax*``) or
     ``relax_interpolated``, together about two thirds of the hybrid compile time; a GPS sweep
-    without ``d_max`` never the interpolated batch (``_reduced_batch``)."""
+    without ``d_max`` never the interpolated batch (``reduced_batch``)."""
     from hybridpgo.solvers.hybrid import _batch, _step, _sweep
     from hybridpgo.solvers.hybrid.problem import StepKind
 
@@ -87,8 +87,8 @@ def test_each_sweep_variant_calls_only_what_it_needs() -> None:
             step, (True, True))  # type: ignore[call-overload]
         assert ("linearize" in used) == gps
     assert "batch_relax_exact" in _referenced_globals(_sweep._flush_exact)
-    assert "_reduced_batch" not in _referenced_globals(_batch.batch_relax_exact)
-    assert "_reduced_batch" in _referenced_globals(_batch.batch_relax)
+    assert "reduced_batch" not in _referenced_globals(_batch.batch_relax_exact)
+    assert "reduced_batch" in _referenced_globals(_batch.batch_relax)
 
 
 def test_a_solve_compiles_only_the_sweep_variant_it_uses() -> None:

@@ -1,4 +1,4 @@
-"""The online mode (DESIGN §11): paths, budget, accuracy, bad input, save/load."""
+"""The online mode (docs/mathematics.md#frames): paths, budget, accuracy, bad input, save/load."""
 
 from __future__ import annotations
 
@@ -135,7 +135,7 @@ def test_estimate_approaches_the_batch_optimum() -> None:
 
 
 def test_city_loops_through_stiff_odometry_converge() -> None:
-    """Issue 8's valencia bug on a small city: a revisiting pose hangs from its (soft) loop
+    """The valencia defect on a small city: a revisiting pose hangs from its (soft) loop
     closure, its (stiff) odometry carries the loop's path.  Relaxed one at a time the two only
     trade the error through the junction pose (15x the optimum after 100 extra frames); as a
     junction group (the default) they are solved together."""

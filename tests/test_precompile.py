@@ -1,4 +1,4 @@
-"""Compiling on two cores (hybridpgo._precompile, issue 11 item 5): a helper process fills
+"""Compiling on two cores (hybridpgo._precompile): a helper process fills
 Numba's on-disk cache, this process loads what it saved instead of compiling it again, and a
 helper that fails, is killed or outlives its parent changes nothing but the time.
 

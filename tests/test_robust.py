@@ -1,4 +1,5 @@
-"""Robust kernels (DESIGN.md §10): rho and w, the weighted hybrid step, the exact solver's
+"""Robust kernels (docs/conventions.md#robust-kernels): rho and w, the weighted hybrid step, the
+exact solver's
 gradient, the robust energy against GTSAM, and 'none' leaving every result unchanged."""
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ SAME_EQUATION = 1e-9
 
 
 def rho_reference(name: str, delta: float, s: float) -> float:
-    """g2o's rho(s) written out independently of the kernel (DESIGN §10)."""
+    """g2o's rho(s) written out independently of the kernel (docs/conventions.md#robust-kernels)."""
     d2 = delta * delta
     if name == "none":
         return s
@@ -163,7 +164,8 @@ def _weights(name: str, delta: float, residuals: list[np.ndarray], num_edges: in
 @pytest.mark.parametrize("name", KERNELS)
 def test_weighted_hybrid_step_equals_dense_twin(name: str) -> None:
     """x solves (w J^T J + B_c) x = w J^T r with 𝔅(H) = blockdiag(sum_c w_c J_c^T J_c) and
-    B_c = 𝔅(H) - w_c 𝔅(J_c^T J_c) (DESIGN §4, §10), all built densely from finite differences."""
+    B_c = 𝔅(H) - w_c 𝔅(J_c^T J_c) (docs/mathematics.md#hybrid-step,
+    docs/conventions.md#robust-kernels), all built densely from finite differences."""
     rng = np.random.default_rng(11)
     clean, _, _ = random_graph(rng, n=9, extra=5, gps=2, rot_scale=0.4)
     graph = _with_outliers(rng, clean, 3)

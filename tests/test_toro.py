@@ -56,7 +56,8 @@ def _ancestors(parent, v):
 
 def naive_toro_update(parent, rot_l, trans_l, v1, v2, meas_rot, meas_t, rotate, rho, tau,
                       gamma_r, gamma_t, w_rot, w_trans, k):
-    """TORO.md's per-constraint rule, literally, in the global frame (plain NumPy + SciPy)."""
+    """TORO's per-constraint rule (docs/mathematics.md#toro), literally, in the global frame (plain
+    NumPy + SciPy)."""
     rot_l = rot_l.copy()
     trans_l = trans_l.copy()
     grot, gtr = _naive_globals(parent, rot_l, trans_l)
@@ -142,7 +143,7 @@ def test_update_matches_numpy_twin(tree, k):
 
 
 def test_full_gain_update_satisfies_its_constraint():
-    """With f_R = f_T = 1 a constraint's own update zeroes its error (TORO.md steps 1-2)."""
+    """With f_R = f_T = 1 a constraint's own update zeroes its error (rotation and translation)."""
     rng = np.random.default_rng(3)
     graph, _, _ = random_graph(rng, n=10, extra=8, gps=2, rot_scale=0.5, noise=0.3)
     base = _state(graph, rng=rng)

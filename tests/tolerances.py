@@ -1,4 +1,4 @@
-"""Named tolerances of the test suite (STYLE.md §7).
+"""Named tolerances of the test suite (docs/contributing.md#tests).
 
 Import these instead of typing numbers into tests, and never loosen one to make a test pass:
 a failure is a bug (or a wrong expectation) to understand first.  Unless a name says otherwise a
@@ -20,7 +20,7 @@ CENTRAL_DIFF = 1e-6
 #: Step of central differences: truncation ~ h^2 |f'''| ~ 1e-12, rounding ~ eps |f| / h ~ 1e-9.
 CENTRAL_DIFF_STEP = 1e-6
 
-#: Sparse vs dense Gauss-Newton solution (STYLE.md §7).
+#: Sparse vs dense Gauss-Newton solution (docs/contributing.md#tests).
 SPARSE_VS_DENSE_GN = 1e-9
 
 #: A kernel vs its NumPy twin when the two take different routes through float64 (path products
@@ -47,14 +47,14 @@ REFINE_REPEATED = 1e-10
 
 #: Online hybrid updates alone on a small generated city (stiff odometry, soft loop closures,
 #: 600 poses, 13 loops): energy over the optimum after the stream and 100 extra frames.  Measured
-#: 3.5 with junction groups (the default), 15 without (the valencia bug, issue 8).
+#: 3.5 with junction groups (the default), 15 without (the valencia bug).
 ONLINE_CITY_RATIO = 5.0
 
 #: iSAM2 (relinearization threshold 0.1, its default) vs the batch optimum, relative energy.
 ISAM2_VS_OPTIMUM = 1e-3
 
 #: The default pipeline (``--solver auto``) vs the best optimum known (LM from the truth, the
-#: file, the chordal and the tree starts): issue 11 asks for the optimum to 1e-6 relative.
+#: file, the chordal and the tree starts): the optimum to 1e-6 relative.
 OPTIMUM_RELATIVE = 1e-6
 
 #: The incremental exact solver run to convergence vs the batch exact solver (LM with energy

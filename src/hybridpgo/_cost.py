@@ -1,4 +1,5 @@
-"""The cost layer: one definition of every per-constraint quantity (DESIGN.md §1, §3, §4).
+"""The cost layer: one definition of every per-constraint quantity (docs/conventions.md,
+docs/mathematics.md#jacobians).
 
 Both solvers and :mod:`hybridpgo.energy` compute a constraint's error, its inverse right
 Jacobian, its whitened form, its χ² and the pose retraction through these kernels only, so they
@@ -10,7 +11,8 @@ cannot drift apart:
 * the retraction ``T <- T Exp(s xi)``, followed by one Newton step towards the polar factor.
 
 All kernels are allocation-free: the caller passes scratch buffers, so they can run in a
-per-constraint hot loop (STYLE.md §3).  A robust kernel (DESIGN §10) enters as a weight on the
+per-constraint hot loop (docs/contributing.md#kernels).  A robust kernel
+(docs/conventions.md#robust-kernels) enters as a weight on the
 χ² (exact solver) or on the whitened rows (hybrid solver), computed by :func:`robust_cost`
 only: ``E_rho = sum_c rho(s_c)`` with ``s_c`` the χ² of relative constraint c and the IRLS
 weight ``w_c = rho'(s_c)``.  Position (GPS) constraints keep the quadratic cost ``s_c``.
@@ -28,7 +30,8 @@ from .geometry._kernels import SMALL_ANGLE, edge_error_into, jr_inv_blocks, skew
 #: Scratch (3, 3) matrices :func:`residual_and_jr_inv` needs.
 SCRATCH = 12
 
-#: Robust kernels (DESIGN §10) by code: ``ROBUST_NAMES[code]`` is the name the configs accept.
+#: Robust kernels (docs/conventions.md#robust-kernels) by code: ``ROBUST_NAMES[code]`` is the name
+#: the configs accept.
 ROBUST_NAMES = ("none", "huber", "cauchy", "geman_mcclure")
 ROBUST_NONE = 0
 ROBUST_HUBER = 1
@@ -64,7 +67,8 @@ def robust_kind(name: str, scale: float) -> int:
 
 @kernel
 def robust_cost(kind: int, delta: float, s: float) -> tuple[float, float]:
-    """``(rho(s), w = rho'(s))`` of robust kernel ``kind`` with scale ``delta`` (DESIGN §10).
+    """``(rho(s), w = rho'(s))`` of robust kernel ``kind`` with scale ``delta``
+    (docs/conventions.md#robust-kernels).
 
     ``s = e^T Omega e`` (no 1/2), g2o's conventions, ``d2 = delta^2``:
 
@@ -103,7 +107,8 @@ def robust_costs(kind: int, delta: float, s: np.ndarray, out_rho: np.ndarray,
 @kernel
 def robust_whitening(kind: int, delta: float, r: np.ndarray, n: int) -> float:
     """``sqrt(w)`` for a whitened residual ``r`` (n,): ``s = |r|^2 = e^T Omega e``, so the
-    whitening ``sqrt(w) L^T`` makes a step weigh the constraint as IRLS does (DESIGN §10)."""
+    whitening ``sqrt(w) L^T`` makes a step weigh the constraint as IRLS does
+    (docs/conventions.md#robust-kernels)."""
     s = 0.0
     for i in range(n):
         s += r[i] * r[i]
@@ -155,7 +160,7 @@ def gps_residual(p: np.ndarray, g: np.ndarray, e: np.ndarray) -> None:
 
 @kernel
 def chi2(info: np.ndarray, e: np.ndarray, n: int, oe: np.ndarray) -> float:
-    """``e^T Omega e`` for the leading n entries (no 1/2, DESIGN §1); ``oe`` receives
+    """``e^T Omega e`` for the leading n entries (no 1/2, docs/conventions.md); ``oe`` receives
     ``Omega e`` (the exact solver's gradient needs it)."""
     total = 0.0
     for i in range(n):
@@ -169,7 +174,8 @@ def chi2(info: np.ndarray, e: np.ndarray, n: int, oe: np.ndarray) -> float:
 
 @kernel
 def whiten_residual(lt: np.ndarray, e: np.ndarray, n: int, out: np.ndarray) -> None:
-    """``out = -L^T e`` (n,): the whitened residual ``r`` of the step equations (DESIGN §3)."""
+    """``out = -L^T e`` (n,): the whitened residual ``r`` of the step equations
+    (docs/mathematics.md#jacobians)."""
     for p in range(n):
         acc = 0.0
         for q in range(n):

@@ -1,10 +1,10 @@
-"""The only place Numba options live (STYLE.md §3).
+"""The only place Numba options live (docs/contributing.md#kernels).
 
 ``kernel`` is the decorator every hot loop uses.  ``fastmath`` stays off: it breaks NaN checks
 and bit-reproducibility.
 
 Kernels are optimized at LLVM ``-O1`` (:data:`OPT_LEVEL`) rather than Numba's ``-O3``: measured
-on M3500 (issue 11), the sweeps and the exact solver's assembly run as fast, and a first run
+on M3500, the sweeps and the exact solver's assembly run as fast, and a first run
 compiles about 16% less.  ``NUMBA_OPT``, when set, wins; ``HYBRIDPGO_OPT=3`` restores the default
 for the package alone.
 

@@ -1,7 +1,7 @@
 """Compile on two cores: a helper process fills Numba's cache while this one compiles.
 
-A cold first run spends most of its time compiling kernels, one after the other, on one core
-(issue 11 item 5).  The hybrid sweep alone takes about half of it and must come first; the
+A cold first run spends most of its time compiling kernels, one after the other, on one core.
+The hybrid sweep alone takes about half of it and must come first; the
 kernels a solve needs *after* the sweeps (global poses, energies, the exact solver's polish)
 can be compiled meanwhile by a second process into the same on-disk cache:
 
@@ -54,18 +54,9 @@ IDLE_CORES = 1.0
 # --------------------------------------------------------------------------- the groups
 def _tiny_graph() -> Any:
     """Three poses, three constraints, no GPS: the graph ``ensure_compiled`` solves."""
-    import numpy as np
+    from ._warmup import tiny_graph
 
-    from .graph import PoseGraph
-
-    eye = np.tile(np.eye(3), (3, 1, 1))
-    return PoseGraph(
-        node_ids=np.arange(3), rotations=eye, translations=np.eye(3),
-        edge_nodes=np.array([[0, 1], [1, 2], [0, 2]], np.int32), edge_rotations=eye,
-        edge_translations=np.ones((3, 3)), edge_information=np.tile(np.eye(6), (3, 1, 1)),
-        gps_nodes=np.zeros(0, np.int32), gps_positions=np.zeros((0, 3)),
-        gps_information=np.zeros((0, 3, 3)),
-    )
+    return tiny_graph()
 
 
 def _finish() -> None:

@@ -189,6 +189,16 @@ def smallest_id_tree(
 
 # --------------------------------------------------------------------------- poses
 @kernel
+def _copy_pose(src_r: np.ndarray, src_t: np.ndarray, i: int, dst_r: np.ndarray,
+               dst_t: np.ndarray) -> None:
+    """Node i's pose from ``(src_r, src_t)`` into ``(dst_r, dst_t)``."""
+    for a in range(3):
+        dst_t[i, a] = src_t[i, a]
+        for b in range(3):
+            dst_r[i, a, b] = src_r[i, a, b]
+
+
+@kernel
 def globals_from_locals(order: np.ndarray, parent: np.ndarray, rot: np.ndarray,
                         trans: np.ndarray, grot: np.ndarray, gtr: np.ndarray) -> None:
     """``G_i = G_parent T_i`` for the nodes of ``order`` (parents before children; a node
@@ -197,10 +207,7 @@ def globals_from_locals(order: np.ndarray, parent: np.ndarray, rot: np.ndarray,
         i = order[k]
         p = parent[i]
         if p < 0:
-            for a in range(3):
-                gtr[i, a] = trans[i, a]
-                for b in range(3):
-                    grot[i, a, b] = rot[i, a, b]
+            _copy_pose(rot, trans, i, grot, gtr)
             continue
         for a in range(3):
             for b in range(3):
@@ -220,10 +227,7 @@ def locals_from_globals(parent: np.ndarray, grot: np.ndarray, gtr: np.ndarray,
     for i in range(parent.shape[0]):
         p = parent[i]
         if p < 0:
-            for a in range(3):
-                trans[i, a] = gtr[i, a]
-                for b in range(3):
-                    rot[i, a, b] = grot[i, a, b]
+            _copy_pose(grot, gtr, i, rot, trans)
             continue
         d0 = gtr[i, 0] - gtr[p, 0]
         d1 = gtr[i, 1] - gtr[p, 1]

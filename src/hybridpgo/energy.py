@@ -1,7 +1,8 @@
-"""Energy of a pose graph (DESIGN.md §1): ``E = sum_c e_c^T Omega_c e_c`` (no 1/2).
+"""Energy of a pose graph (docs/conventions.md): ``E = sum_c e_c^T Omega_c e_c`` (no 1/2).
 
 The per-constraint χ² comes from the cost layer (:mod:`hybridpgo._cost`), the same kernels the
-solvers use.  With a robust kernel (DESIGN §10) the robust energy is ``E_rho = sum_c rho(s_c)``
+solvers use.  With a robust kernel (docs/conventions.md#robust-kernels) the robust energy is
+``E_rho = sum_c rho(s_c)``
 over the relative constraints plus the plain χ² of the position (GPS) constraints.
 :func:`residuals` gives every constraint's error vector, whitened error and χ².
 
@@ -64,7 +65,8 @@ def energy(graph: PoseGraph, rotations: FloatArray | None = None,
 def robust_energy(graph: PoseGraph, rotations: FloatArray | None = None,
                   translations: FloatArray | None = None, robust: str = "none",
                   scale: float | None = None) -> tuple[float, float]:
-    """``(E_rho, E)``: the robust and the plain energy at the given poses (DESIGN §10).
+    """``(E_rho, E)``: the robust and the plain energy at the given poses
+    (docs/conventions.md#robust-kernels).
 
     Parameters
     ----------

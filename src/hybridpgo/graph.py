@@ -1,4 +1,4 @@
-"""The pose graph: an immutable struct-of-arrays (STYLE.md §2, DESIGN.md §1, §8).
+"""The pose graph: an immutable struct-of-arrays (docs/contributing.md#data, docs/conventions.md).
 
 Frames and conventions
 ----------------------
@@ -8,7 +8,8 @@ Frames and conventions
   ``e_c = Log(Z_c^-1 X_a^-1 X_b)`` in R^6 ordered (rho, phi) and its energy ``e_c^T Omega_c e_c``.
 * A position-only ("GPS") constraint on node ``n`` measures ``g`` (earth frame) with error
   ``p_n - g`` and a 3x3 information.
-* 2D graphs are lifted into SE(3) (DESIGN §1): ``is_2d`` remembers to write them back as SE(2).
+* 2D graphs are lifted into SE(3) (docs/conventions.md): ``is_2d`` remembers to write them back as
+SE(2).
 """
 
 from __future__ import annotations
@@ -127,7 +128,7 @@ class PoseGraph:
                                  "only for 2D graphs (is_2d=True); a 3D graph needs 6x6 over "
                                  "(rho, phi)")
             _check_entries(info, "edge")
-            info = lift_information_2d(info)  # DESIGN §1
+            info = lift_information_2d(info)  # docs/conventions.md
         object.__setattr__(
             self, "edge_information", _frozen(info, np.float64, (6, 6), "edge_information"),
         )
@@ -319,7 +320,8 @@ def check_information(info: FloatArray, what: str) -> None:
 def lift_information_2d(info3: FloatArray) -> FloatArray:
     """Lift (k, 3, 3) SE(2) information over (x, y, theta) into (k, 6, 6) over (rho, phi).
 
-    DESIGN §1: x, y, yaw go to indices 0, 1, 5; z, roll, pitch get a stiffness equal to the
+    docs/conventions.md: x, y, yaw go to indices 0, 1, 5; z, roll, pitch get a stiffness equal to
+    the
     largest in-plane diagonal entry.
     """
     info3 = np.asarray(info3, dtype=np.float64)

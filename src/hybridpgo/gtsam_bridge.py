@@ -7,7 +7,7 @@
 >>> result = gtsam.LevenbergMarquardtOptimizer(factors, values).optimize()  # doctest: +SKIP
 >>> rotations, translations = from_gtsam(graph, result)                # doctest: +SKIP
 
-Conventions (DESIGN.md §1), chosen so that **our energy E equals 2 x GTSAM's error** at the
+Conventions (docs/conventions.md), chosen so that **our energy E equals 2 x GTSAM's error** at the
 same poses (GTSAM's error carries a 1/2, ours does not):
 
 * **Keys** are the file's node ids (``graph.node_ids``), so ``values.atPose3(7)`` is the pose the
@@ -22,7 +22,7 @@ same poses (GTSAM's error carries a 1/2, ours does not):
   its error ``p_n - g_c`` in the earth frame is ours exactly.
 * **2D graphs** (read from SE(2) files) become ``Pose2`` / ``BetweenFactorPose2`` with the
   (x, y, yaw) block of the information, the natural GTSAM model, and 2D energy equals the lifted
-  3D one exactly (DESIGN.md §1).  A 2D graph with GPS uses Pose3, since a GPS reading is 3D
+  3D one exactly (docs/conventions.md).  A 2D graph with GPS uses Pose3, since a GPS reading is 3D
   (``planar=False`` forces Pose3 for any graph; ``planar=True`` on a graph with GPS is an error).
 * **Gauge**: our solvers hold the root fixed (the ``FIX`` nodes, else the first pose; with GPS
   the earth frame).  GTSAM needs that said with a prior: ``anchor=True`` appends
@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from ._poses import given_or_start
 from .errors import GraphError, HybridPGOError
 from .graph import FloatArray, PoseGraph, planar_information
 
@@ -64,26 +65,6 @@ def _uses_pose2(graph: PoseGraph, planar: bool | None) -> bool:
         raise ValueError("planar=True: GTSAM's Pose2 cannot carry the graph's "
                          f"{graph.num_gps} GPS (3D position) constraints; use planar=False")
     return bool(planar)
-
-
-def _resolve_poses(graph: PoseGraph, rotations: FloatArray | None,
-                   translations: FloatArray | None) -> tuple[FloatArray, FloatArray]:
-    if (rotations is None) != (translations is None):
-        raise ValueError("give both rotations and translations, or neither")
-    if rotations is None or translations is None:
-        if graph.has_estimates:
-            return graph.rotations, graph.translations
-        from .initialization import initial_locals
-        from .tree import build_tree, global_poses
-
-        tree = build_tree(graph, "bfs")
-        return global_poses(tree, *initial_locals(graph, tree, "tree"))
-    rot = np.asarray(rotations, np.float64)
-    trans = np.asarray(translations, np.float64)
-    if rot.shape != (graph.num_nodes, 3, 3) or trans.shape != (graph.num_nodes, 3):
-        raise ValueError(f"poses must have shapes ({graph.num_nodes}, 3, 3) and "
-                         f"({graph.num_nodes}, 3), got {rot.shape} and {trans.shape}")
-    return rot, trans
 
 
 def _keys(graph: PoseGraph) -> list[int]:
@@ -130,7 +111,7 @@ def to_gtsam(graph: PoseGraph, rotations: FloatArray | None = None,
         A node id is negative (GTSAM keys are unsigned).
     """
     gtsam = require_gtsam()
-    rot, trans = _resolve_poses(graph, rotations, translations)
+    rot, trans = given_or_start(graph, rotations, translations)
     pose2 = _uses_pose2(graph, planar)
     keys = _keys(graph)
     values = gtsam.Values()

@@ -1,6 +1,7 @@
 """Chordal initialization (Martinec & Pajdla 2007; Carlone et al., ICRA 2015).
 
-A better start than dead reckoning for graphs with large rotation noise (DESIGN.md §9 names it as
+A better start than dead reckoning for graphs with large rotation noise
+(docs/mathematics.md#lm-damping names it as
 the lever for reaching the global optimum).  Two linear least-squares problems:
 
 1. rotations: minimize sum_c kappa_c ||R_b - R_a Z_c||_F^2 over free 3x3 matrices with the

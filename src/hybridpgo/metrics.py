@@ -1,4 +1,4 @@
-"""Accuracy of an estimated trajectory against ground truth (issue 4), and TUM export.
+"""Accuracy of an estimated trajectory against ground truth, and TUM export.
 
 Example (not a doctest)::
 

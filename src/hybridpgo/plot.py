@@ -116,22 +116,9 @@ def _energy_range(all_energies: Sequence[FloatArray]) -> tuple[float, float]:
 def _poses(graph: PoseGraph, rot: FloatArray | None,
            trans: FloatArray | None) -> tuple[FloatArray, FloatArray]:
     """The poses to draw: the given ones, the file's, or the tree initialization (iSAM)."""
-    if (rot is None) != (trans is None):
-        raise ValueError("give both rot and trans, or neither")
-    if rot is not None and trans is not None:
-        rot = np.asarray(rot, np.float64)
-        trans = np.asarray(trans, np.float64)
-        if rot.shape != (graph.num_nodes, 3, 3) or trans.shape != (graph.num_nodes, 3):
-            raise ValueError(f"poses must have shapes ({graph.num_nodes}, 3, 3) and "
-                             f"({graph.num_nodes}, 3), got {rot.shape} and {trans.shape}")
-        return rot, trans
-    if graph.has_estimates:
-        return graph.rotations, graph.translations
-    from .initialization import initial_locals
-    from .tree import build_tree, global_poses
+    from ._poses import given_or_start
 
-    tree = build_tree(graph, "bfs")
-    return global_poses(tree, *initial_locals(graph, tree, "tree"))
+    return given_or_start(graph, rot, trans, ("rot", "trans"))
 
 
 def _segments(graph: PoseGraph, rot: FloatArray, trans: FloatArray) -> dict[str, Any]:

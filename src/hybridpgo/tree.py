@@ -1,4 +1,5 @@
-"""The pose tree and constraint paths (paper III-A, DESIGN.md §2, §8).
+"""The pose tree and constraint paths (paper III-A, docs/mathematics.md#pose-tree,
+docs/contributing.md#data).
 
 Each non-root node stores its pose relative to its parent (the *local transform*).  A
 constraint's *root* is the lowest common ancestor of its two nodes; its *domain* is every node

@@ -1,4 +1,4 @@
-"""The ``hybridpgo`` command line (STYLE.md §11).
+"""The ``hybridpgo`` command line (docs/contributing.md#cli).
 
 ``main(argv)`` parses the arguments, imports the command's module (heavy imports happen only
 there, after parsing) and runs it inside the one error boundary:

@@ -1,5 +1,6 @@
 """Helpers shared by the CLI commands: reading inputs, choosing output formats, the progress
-bar, and printing summaries.  Results go to stdout, progress and logs to stderr (STYLE.md §11).
+bar, and printing summaries.  Results go to stdout, progress and logs to stderr
+(docs/contributing.md#cli).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The argparse definition of the ``hybridpgo`` command line (STYLE.md §11).
+"""The argparse definition of the ``hybridpgo`` command line (docs/contributing.md#cli).
 
 Every ``choices=`` comes from the list the library itself validates against (formats, solvers,
 step kinds, tree kinds, init kinds, city presets); they are looked up lazily so that building the

@@ -1,4 +1,4 @@
-"""``hybridpgo evaluate OUT --ground-truth GT``: accuracy against ground truth (issue 4)."""
+"""``hybridpgo evaluate OUT --ground-truth GT``: accuracy against ground truth."""
 
 from __future__ import annotations
 

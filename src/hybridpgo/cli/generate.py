@@ -1,5 +1,5 @@
 """``hybridpgo generate city|grid``: synthetic graphs with ground truth and optional false loop
-closures (issues 4, 9, 11).
+closures.
 
 Outputs are all or nothing: every output path is checked (distinct files, writable directories)
 and a temporary file is reserved beside each before any work; the files are written to those

@@ -23,7 +23,8 @@ Frames and conventions
 * Vehicle frame: x forward (direction of travel), y left, z up (the terrain normal
   orthogonalized against x), so roll and pitch are the terrain's cross and along slopes.
 * Relative measurement of edge ``(a, b)``: ``Z = (X_a^-1 X_b) Exp(xi)`` with ``xi = (rho, phi)``
-  ~ N(0, Sigma) in b's frame and information ``Omega = Sigma^-1`` (DESIGN.md §1); so the error of
+  ~ N(0, Sigma) in b's frame and information ``Omega = Sigma^-1`` (docs/conventions.md); so the
+  error of
   the true poses is ``-xi`` and the true poses have energy ~ chi^2 with 6 degrees of freedom per
   relative edge (3 per GPS reading).
 * A sigma of 0 gives an exact measurement; its information uses :data:`MIN_SIGMA` instead (an
@@ -57,8 +58,9 @@ from scipy.spatial import cKDTree
 
 from ..geometry import se3
 from ..graph import FloatArray, IntArray, PoseGraph
-from ._common import chain, diag_information, online_order, perturb
-from .outliers import Outliers, add_outliers, no_outliers
+from ._common import diag_information, perturb
+from ._drive import check_preset, drive_graph, preset_values, with_outliers
+from .outliers import Outliers, no_outliers
 
 __all__ = ["PRESETS", "City", "CityParams", "generate_city", "scale_city"]
 
@@ -268,15 +270,7 @@ def generate_city(preset: str | None = None, *, seed: int = 0, gps_every: int | 
     TypeError
         A parameter name that is not a :class:`CityParams` field.
     """
-    if preset is not None and preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
-    fields = {f.name for f in dataclasses.fields(CityParams)}
-    unknown = sorted(set(params) - fields)
-    if unknown:
-        raise TypeError(f"unknown city parameter(s) {', '.join(unknown)}; valid: "
-                        + ", ".join(sorted(fields)))
-    values: dict[str, Any] = dict(PRESETS[preset]) if preset is not None else {}
-    values.update(params)
+    values = preset_values(PRESETS, preset, params, CityParams, "city", "preset")
     if gps_every is not None:
         values["gps_every"] = gps_every
     p = CityParams(**values)
@@ -304,15 +298,6 @@ def generate_city(preset: str | None = None, *, seed: int = 0, gps_every: int | 
     loop_sigma = np.tile([sig_lt] * 3 + [sig_lr] * 3, (la.shape[0], 1))
     lr, lt = perturb(lr, lt, loop_sigma, loop_rng)
 
-    # Edges in the order they would arrive online: each closure right after its later pose.
-    odo_nodes = np.column_stack([np.arange(n - 1), np.arange(1, n)])
-    nodes = np.concatenate([odo_nodes, np.column_stack([la, lb])]).astype(np.int32)
-    order = online_order(n, lb)
-    sigma = np.concatenate([odom_sigma, loop_sigma])[order]
-    info = diag_information(sigma)
-
-    dr_rot, dr_trans = chain(rot[0], trans[0], zr, zt)
-
     gps_nodes = np.zeros(0, np.int32)
     gps_pos = np.zeros((0, 3))
     gps_info = np.zeros((0, 3, 3))
@@ -322,20 +307,11 @@ def generate_city(preset: str | None = None, *, seed: int = 0, gps_every: int | 
         gps_pos = trans[gps_nodes] + gps_rng.normal(size=(gps_nodes.shape[0], 3)) * gps_sigma
         gps_info = diag_information(np.tile(gps_sigma, (gps_nodes.shape[0], 1)))
 
-    graph = PoseGraph(
-        node_ids=np.arange(n, dtype=np.int64), rotations=dr_rot, translations=dr_trans,
-        edge_nodes=nodes[order], edge_rotations=np.concatenate([zr, lr])[order],
-        edge_translations=np.concatenate([zt, lt])[order], edge_information=info,
-        gps_nodes=gps_nodes, gps_positions=gps_pos, gps_information=gps_info,
-    )
-    outliers = no_outliers()
-    if p.num_outliers:
-        graph, outliers = add_outliers(
-            graph, rot, trans, p.num_outliers, seed=outlier_rng,
-            near_miss_fraction=p.near_miss_fraction, near_miss_min_m=p.near_miss_min_m,
-            near_miss_max_m=p.near_miss_max_m, min_gap=p.loop_min_gap)
-    rot.flags.writeable = False
-    trans.flags.writeable = False
+    # Edges in the order they would arrive online: each closure right after its later pose.
+    graph = drive_graph(rot, trans, (zr, zt), (la, lb, lr, lt),
+                        diag_information(np.concatenate([odom_sigma, loop_sigma])),
+                        gps_nodes=gps_nodes, gps_positions=gps_pos, gps_information=gps_info)
+    graph, outliers = with_outliers(graph, rot, trans, p, outlier_rng)
     return City(graph=graph, truth_rotations=rot, truth_translations=trans,
                 name=preset if preset is not None else "city", params=p, outliers=outliers)
 
@@ -357,8 +333,7 @@ def scale_city(preset: str | None, num_poses: int) -> dict[str, Any]:
     dict
         ``{"num_poses": ..., "nx": ..., "ny": ..., "loop_density": ...}``.
     """
-    if preset is not None and preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    check_preset(PRESETS, preset, "preset")
     if not isinstance(num_poses, int | np.integer) or num_poses < 2:
         raise ValueError(f"num_poses must be an integer >= 2, got {num_poses!r}")
     base = CityParams(**(PRESETS[preset] if preset is not None else {}))

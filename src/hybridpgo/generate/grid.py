@@ -15,7 +15,7 @@ with distance like that (seen in its ground truth: 12% of the coincident pairs c
 Every measurement (odometry and loop closure) gets the same noise: ``Z = (X_a^-1 X_b) Exp(xi)``
 with ``xi`` ~ N(0, diag(trans_sigma_m^2, ..., rot_sigma_rad^2, ...)) over (rho, phi) (2D:
 x, y and yaw only) and the matching information ``diag(1 / sigma^2)`` (2D: lifted as a g2o
-``EDGE_SE2`` is, DESIGN.md §1).  The graph's vertices are the noisy odometry chained from the
+``EDGE_SE2`` is, docs/conventions.md).  The graph's vertices are the noisy odometry chained from the
 true first pose (the poor initial guess of M3500).  A 2D grid is written as ``VERTEX_SE2`` /
 ``EDGE_SE2``.
 
@@ -46,8 +46,9 @@ import numpy as np
 from .._numba import kernel
 from ..geometry import se3
 from ..graph import FloatArray, PoseGraph, lift_information_2d
-from ._common import chain, diag_information, online_order, perturb
-from .outliers import Outliers, add_outliers, no_outliers
+from ._common import diag_information, perturb
+from ._drive import drive_graph, preset_values, with_outliers
+from .outliers import Outliers, no_outliers
 
 __all__ = ["GRID_PRESETS", "Grid", "GridParams", "generate_grid"]
 
@@ -221,16 +222,7 @@ def generate_grid(preset: str | None = None, *, seed: int = 0, **params: Any) ->
     TypeError
         A parameter name that is not a :class:`GridParams` field.
     """
-    if preset is not None and preset not in GRID_PRESETS:
-        raise ValueError(f"unknown grid preset {preset!r}; choose one of "
-                         + ", ".join(GRID_PRESETS))
-    fields = {f.name for f in dataclasses.fields(GridParams)}
-    unknown = sorted(set(params) - fields)
-    if unknown:
-        raise TypeError(f"unknown grid parameter(s) {', '.join(unknown)}; valid: "
-                        + ", ".join(sorted(fields)))
-    values: dict[str, Any] = dict(GRID_PRESETS[preset]) if preset is not None else {}
-    values.update(params)
+    values = preset_values(GRID_PRESETS, preset, params, GridParams, "grid", "grid preset")
     p = GridParams(**values).resolved()
     route_rng, odom_rng, loop_rng, outlier_rng = (
         np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4))
@@ -240,7 +232,7 @@ def generate_grid(preset: str | None = None, *, seed: int = 0, **params: Any) ->
     planar = p.dim == 2
     ts, rs = p.trans_sigma_m, p.rot_sigma_rad
     sigma6 = np.array([ts, ts, 0.0, 0.0, 0.0, rs] if planar else [ts] * 3 + [rs] * 3)
-    if planar:  # information as a g2o EDGE_SE2 line is read (DESIGN.md §1)
+    if planar:  # information as a g2o EDGE_SE2 line is read (docs/conventions.md)
         info1 = lift_information_2d(diag_information(np.array([[ts, ts, rs]])))[0]
     else:
         info1 = diag_information(sigma6[None])[0]
@@ -251,25 +243,10 @@ def generate_grid(preset: str | None = None, *, seed: int = 0, **params: Any) ->
     lr, lt = se3.between(rot[la], trans[la], rot[lb], trans[lb])
     lr, lt = perturb(lr, lt, np.broadcast_to(sigma6, (la.shape[0], 6)), loop_rng)
 
-    order = online_order(n, lb)
-    odo_nodes = np.column_stack([np.arange(n - 1), np.arange(1, n)])
-    nodes = np.concatenate([odo_nodes, np.column_stack([la, lb])]).astype(np.int32)
-    dr_rot, dr_trans = chain(rot[0], trans[0], zr, zt)
-    m = nodes.shape[0]
-    graph = PoseGraph(
-        node_ids=np.arange(n, dtype=np.int64), rotations=dr_rot, translations=dr_trans,
-        edge_nodes=nodes[order], edge_rotations=np.concatenate([zr, lr])[order],
-        edge_translations=np.concatenate([zt, lt])[order],
-        edge_information=np.broadcast_to(info1, (m, 6, 6)), is_2d=planar,
-    )
-    outliers = no_outliers()
-    if p.num_outliers:
-        graph, outliers = add_outliers(
-            graph, rot, trans, p.num_outliers, seed=outlier_rng,
-            near_miss_fraction=p.near_miss_fraction, near_miss_min_m=p.near_miss_min_m,
-            near_miss_max_m=p.near_miss_max_m, min_gap=p.loop_min_gap)
-    rot.flags.writeable = False
-    trans.flags.writeable = False
+    m = n - 1 + la.shape[0]
+    graph = drive_graph(rot, trans, (zr, zt), (la, lb, lr, lt),
+                        np.broadcast_to(info1, (m, 6, 6)), is_2d=planar)
+    graph, outliers = with_outliers(graph, rot, trans, p, outlier_rng)
     return Grid(graph=graph, truth_rotations=rot, truth_translations=trans,
                 name=preset if preset is not None else "grid", params=p, outliers=outliers)
 

@@ -1,5 +1,5 @@
 """False loop closures ("outliers") added to a generated graph, with the list of which edges are
-false (issue 9).
+false.
 
 Two kinds, both with the information of a real loop closure, so that nothing but their
 inconsistency with the rest of the graph gives them away:

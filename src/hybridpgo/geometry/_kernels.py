@@ -52,6 +52,20 @@ def skew_into(v0: float, v1: float, v2: float, out: np.ndarray) -> None:
 
 
 @kernel
+def adjoint_into(r: np.ndarray, t: np.ndarray, out: np.ndarray) -> None:
+    """Ad(T) = [[R, [t]x R], [0, R]] of the pose T = (r, t) into the (6, 6) ``out``."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = r[i, j]
+            out[3 + i, 3 + j] = r[i, j]
+            out[3 + i, j] = 0.0
+    for j in range(3):
+        out[0, 3 + j] = t[1] * r[2, j] - t[2] * r[1, j]
+        out[1, 3 + j] = t[2] * r[0, j] - t[0] * r[2, j]
+        out[2, 3 + j] = t[0] * r[1, j] - t[1] * r[0, j]
+
+
+@kernel
 def so3_log_into(r: np.ndarray, out: np.ndarray) -> None:
     """out[3:6] = Log(R), exactly as geometry's ``so3_log`` (series / generic / near pi)."""
     vx = 0.5 * (r[2, 1] - r[1, 2])

@@ -1,7 +1,8 @@
 """Vectorised SE(3) over stacks of poses: rotations (..., 3, 3) with translations (..., 3).
 
 Pure NumPy, no Python loop per element: for the I/O boundary and for metrics.  Conventions
-(DESIGN.md §1) as in :mod:`hybridpgo.geometry._kernels`: a tangent vector is ``xi = (rho, phi)``
+(docs/conventions.md) as in :mod:`hybridpgo.geometry._kernels`: a tangent vector is ``xi = (rho,
+phi)``
 (translation first), ``Exp(xi) = (Exp_SO3(phi), J_l(phi) rho)``, and a pose ``T_a_b = (R, t)``
 maps b-frame coordinates into frame a: ``p_a = R p_b + t``.
 

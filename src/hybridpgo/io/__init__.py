@@ -1,4 +1,4 @@
-"""Reading and writing pose-graph files: g2o, TORO and iSAM (DESIGN.md §1); TUM trajectories.
+"""Reading and writing pose-graph files: g2o, TORO and iSAM (docs/conventions.md); TUM trajectories.
 
 >>> from hybridpgo.io import read_graph, write_graph, bundled_path
 >>> g = read_graph(bundled_path("M3500_isam.txt"))        # format detected from the content

@@ -5,7 +5,7 @@ Reading is vectorised per tag, so files of millions of lines read quickly: only 
 line is split off in Python, the lines of each tag are joined and converted by one
 :func:`numpy.loadtxt` call (C speed; per-line token lists would cost ~5x more, mostly in the
 garbage collector).  Only when that fails is the group re-parsed line by line, to name the exact
-line and field (STYLE.md §5: errors read like a compiler's).
+line and field (docs/contributing.md#errors: errors read like a compiler's).
 
 Also here: SE(2) angle helpers; the quaternion and Euler conversions are
 :mod:`hybridpgo.geometry.so3`'s (re-exported for the format modules).

@@ -1,4 +1,4 @@
-"""The g2o text format (DESIGN.md §1; line layouts in ``datasets/README.md``).
+"""The g2o text format (docs/conventions.md; line layouts in ``datasets/README.md``).
 
 Supported lines::
 
@@ -71,7 +71,8 @@ TAGS: tuple[str, ...] = tuple(SPECS)
 _TAGS_2D = ("VERTEX_SE2", "EDGE_SE2")
 _TAGS_3D = ("VERTEX_SE3:QUAT", "EDGE_SE3:QUAT", "EDGE_SE3_XYZ_PRIOR")
 
-#: DESIGN §1: information over (t, q_vec) -> over (rho, phi) is P Omega P, P = diag(1,1,1,.5,.5,.5).
+#: docs/conventions.md: information over (t, q_vec) -> over (rho, phi) is P Omega P, P =
+#: diag(1,1,1,.5,.5,.5).
 _P = np.array([1.0, 1.0, 1.0, 0.5, 0.5, 0.5])
 _P_INV = np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0])
 
@@ -200,7 +201,7 @@ def _edges_se3(src: Source, blocks: dict[str, list[Block]], parts: Parts) -> Non
 
 
 def _priors(src: Source, blocks: dict[str, list[Block]], parts: Parts) -> None:
-    # Parameters: only the identity offset is supported (DESIGN §1 position prior).
+    # Parameters: only the identity offset is supported (docs/conventions.md position prior).
     declared: dict[int, int] = {}
     pl, pids, pv = _get(blocks, "PARAMS_SE3OFFSET")
     for k in range(pl.shape[0]):

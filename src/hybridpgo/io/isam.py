@@ -1,4 +1,4 @@
-"""The iSAM text format (DESIGN.md §1; line layouts in ``datasets/README.md``).
+"""The iSAM text format (docs/conventions.md; line layouts in ``datasets/README.md``).
 
 Supported lines (edges only; iSAM files have no vertex lines)::
 
@@ -8,7 +8,7 @@ Supported lines (edges only; iSAM files have no vertex lines)::
 
 The ``s`` values are the upper-triangular **square-root** information ``R`` (row by row), so the
 information is ``Omega = R^T R``, over (x, y, theta) in 2D and over (x, y, z, roll, pitch, yaw)
-in 3D (taken as information over (rho, phi), DESIGN §1).  Rotations: R = Rz(yaw) Ry(pitch)
+in 3D (taken as information over (rho, phi), docs/conventions.md).  Rotations: R = Rz(yaw) Ry(pitch)
 Rx(roll).  The writer writes the upper Cholesky factor of Omega, so a round trip reproduces
 Omega to rounding.  Node ids come from the edges (``has_estimates`` False).
 """

@@ -1,4 +1,4 @@
-"""The TORO ``.graph`` format (DESIGN.md §1; line layouts in ``datasets/README.md``).
+"""The TORO ``.graph`` format (docs/conventions.md; line layouts in ``datasets/README.md``).
 
 Supported lines::
 
@@ -9,7 +9,8 @@ Supported lines::
     EQUIV i j                                            i and j are the same place
 
 2D information is 3x3 over (x, y, theta), lifted like g2o's.  ``EDGE3`` information is taken as
-information over (rho, phi) (DESIGN §1); ``edge3_order="documented"`` reads the 21 values over
+information over (rho, phi) (docs/conventions.md); ``edge3_order="documented"`` reads the 21 values
+over
 (x, y, z, roll, pitch, yaw), ``"code"`` over (roll, pitch, yaw, x, y, z) (TORO's own code).  An
 ``EDGE3`` with no information gets the identity (one warning per file).  ``EQUIV i j`` merges
 vertex j into i: ids are remapped, j's vertex line is dropped, edges that become self-loops are

@@ -4,7 +4,7 @@ CHOLMOD through cvxopt needs, per stored scalar entry of the lower triangle of H
 copy of the matrix (16 bytes: values and 64-bit row indices), the symbolic factor (~10), and at
 each numeric factorization a packed copy and a transposed one (16 + 16, transient), on top of
 the factor (~19 on a city graph) and the caller's values (8): ~100 bytes per entry at the peak,
-6 GB for a 1M-pose city (57 M entries), over the 4 GB target (issue 11 item 6).
+6 GB for a 1M-pose city (57 M entries), over a 4 GB memory target.
 
 This factorization works on the 6x6 *blocks* instead, straight from the values the assembly
 kernel writes (the lower-triangle layout of :mod:`._gn_kernels`, no copy): its row structure is
@@ -36,6 +36,7 @@ import numpy.typing as npt
 from .._numba import kernel
 from ..errors import SolverError
 from ..graph import FloatArray
+from ._factor import Factorizer, check_pivots, not_positive_definite
 
 Int64Array = npt.NDArray[np.int64]
 
@@ -241,9 +242,9 @@ def _solve(nv: int, l_ptr: np.ndarray, l_row: np.ndarray, diag: np.ndarray, off:
 
 
 # --------------------------------------------------------------------------- the factorizer
-class BlockCholesky:
-    """Analyze once (block structure of L), factor per iteration, solve; the interface of the
-    factorizers of :mod:`._linear`, plus the diagonal blocks of the inverse by selected
+class BlockCholesky(Factorizer):
+    """Analyze once (block structure of L), factor per iteration, solve: a
+    :class:`~._factor.Factorizer`, plus the diagonal blocks of the inverse by selected
     inversion (:meth:`inverse_diagonal_blocks`)."""
 
     name = "block"
@@ -274,8 +275,6 @@ class BlockCholesky:
 
     def factor(self, values: FloatArray) -> None:
         """Numeric factorization of A with the given values (the lower-triangle layout)."""
-        from ._factor import not_positive_definite
-
         self._diagonal = None  # no usable factor until this one succeeds
         col = _numeric(self._nv, self._a_ptr, self._a_row, self._indptr, values, self._l_ptr,
                        self._l_row, self._diag, self._off, self._pivots)
@@ -285,8 +284,6 @@ class BlockCholesky:
 
     def check(self) -> None:
         """Raise SolverError when the last factored matrix is singular to rounding."""
-        from ._factor import check_pivots
-
         assert self._diagonal is not None
         check_pivots(self._pivots, self._diagonal)
 
@@ -317,11 +314,5 @@ class BlockCholesky:
         _solve(self._nv, self._l_ptr, self._l_row, self._diag, self._off, out)
         return out
 
-    def solve(self, values: FloatArray, rhs: FloatArray, check: bool = False) -> FloatArray:
-        """Solve ``A x = rhs`` for the system matrix A with the given values."""
-        if self._nv == 0:
-            return np.zeros(0)
-        self.factor(values)
-        if check:
-            self.check()
-        return self.solve_factored(rhs)
+    def is_empty(self) -> bool:
+        return self._nv == 0

@@ -163,8 +163,40 @@ def _unit_batches(dim: int, block_index: Int64Array) -> Iterator[tuple[int, int]
         yield lo, min(k, lo + per)
 
 
+# --------------------------------------------------------------------------- the interface
+class Factorizer:
+    """What every factorizer shares: analyze once (in the constructor), then per matrix
+    :meth:`factor` its values, :meth:`check` it (optional), :meth:`solve_factored`; :meth:`solve`
+    does the three."""
+
+    def factor(self, values: FloatArray) -> None:
+        """Numeric factorization of A with the given values (in the pattern's order)."""
+        raise NotImplementedError
+
+    def check(self) -> None:
+        """Raise SolverError when the last factored matrix is singular to rounding."""
+        raise NotImplementedError
+
+    def solve_factored(self, rhs: FloatArray) -> FloatArray:
+        """``A^-1 rhs`` with the last factorization."""
+        raise NotImplementedError
+
+    def is_empty(self) -> bool:
+        """True for a 0 x 0 system (solved without a factorization)."""
+        return False
+
+    def solve(self, values: FloatArray, rhs: FloatArray, check: bool = False) -> FloatArray:
+        """Solve ``A x = rhs`` for the system matrix A with the given values."""
+        if self.is_empty():
+            return np.zeros(0)
+        self.factor(values)
+        if check:
+            self.check()
+        return self.solve_factored(rhs)
+
+
 # --------------------------------------------------------------------------- SuperLU
-class _SuperLU:
+class _SuperLU(Factorizer):
     """SuperLU on the pre-ordered SPD matrix: natural column order, diagonal pivots."""
 
     name = "splu"
@@ -204,13 +236,6 @@ class _SuperLU:
         assert self._lu is not None
         return np.asarray(self._lu.solve(np.ascontiguousarray(rhs, np.float64)), np.float64)
 
-    def solve(self, values: FloatArray, rhs: FloatArray, check: bool = False) -> FloatArray:
-        """Solve ``A x = rhs`` for the system matrix A with the given values."""
-        self.factor(values)
-        if check:
-            self.check()
-        return self.solve_factored(rhs)
-
     def inverse_blocks(self, block_index: Int64Array) -> FloatArray:
         """(k, b, b) blocks ``A^-1[idx, idx]`` for each row ``idx`` of ``block_index`` (k, b).
 
@@ -249,7 +274,7 @@ def _cholmod_options(**options: int) -> Iterator[Any]:
 _CHOLMOD_OPTIONS = {"supernodal": 2, "nmethods": 1}
 
 
-class _Cholmod:
+class _Cholmod(Factorizer):
     """CHOLMOD (cvxopt): symbolic analysis once, numeric factorization per iteration."""
 
     name = "cholmod"
@@ -321,14 +346,8 @@ class _Cholmod:
         out = np.asarray(b, np.float64)
         return out.ravel() if rhs.ndim == 1 else out
 
-    def solve(self, values: FloatArray, rhs: FloatArray, check: bool = False) -> FloatArray:
-        """Solve ``A x = rhs`` for the system matrix A with the given values."""
-        if self._dim == 0:
-            return np.zeros(0)
-        self.factor(values)
-        if check:
-            self.check()
-        return self.solve_factored(rhs)
+    def is_empty(self) -> bool:
+        return self._dim == 0
 
     def inverse_blocks(self, block_index: Int64Array) -> FloatArray:
         """(k, b, b) blocks ``A^-1[idx, idx]`` for each row ``idx`` of ``block_index`` (k, b).

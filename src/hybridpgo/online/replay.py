@@ -1,4 +1,4 @@
-"""Replaying a pose graph as a robot would have produced it (DESIGN.md §11).
+"""Replaying a pose graph as a robot would have produced it (docs/mathematics.md#frames).
 
 Frames come in increasing pose id: frame k brings pose k with every relative constraint
 between k and an earlier pose (its odometry first, then the loop closures) and every GPS
@@ -31,7 +31,8 @@ FrameCallback = Callable[[int, Any, float], None]
 
 @dataclass(frozen=True)
 class Stream:
-    """The frames of a graph (DESIGN §11), as index arrays into the graph's constraints."""
+    """The frames of a graph (docs/mathematics.md#frames), as index arrays into the graph's
+    constraints."""
 
     graph: PoseGraph
     order: IntArray
@@ -75,7 +76,7 @@ class Stream:
 
 
 def make_stream(graph: PoseGraph) -> Stream:
-    """Split ``graph`` into frames (DESIGN §11).
+    """Split ``graph`` into frames (docs/mathematics.md#frames).
 
     A pose's odometry is its edge to the latest earlier pose (normally the previous one).
 
@@ -425,7 +426,8 @@ def replay_isam2(stream: Stream, *, checkpoints: Sequence[int] = (), extra_frame
                  progress: Callable[[int, float], None] | None = None) -> ReplayResult:
     """The same stream through GTSAM's ISAM2, one ``update`` per frame.
 
-    Factors are built from *our* information (DESIGN §1: the tangent order permuted to GTSAM's
+    Factors are built from *our* information (docs/conventions.md: the tangent order permuted to
+    GTSAM's
     (rotation, translation)), so ``2 * error`` is our energy.  The first pose gets a tight prior
     when the graph has no GPS (the gauge our solver also fixes); with GPS it gets a weak prior
     (1e3 m, 1e3 rad), because GTSAM needs a gauge before the readings define one.  A frame's

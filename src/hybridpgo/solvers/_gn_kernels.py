@@ -1,4 +1,4 @@
-"""Numba kernels of the exact solver (DESIGN.md §1, §7).
+"""Numba kernels of the exact solver (docs/mathematics.md#exact-solver).
 
 Global parametrization, right perturbation ``X_i <- X_i Exp(delta_i)``, tangent order (rho, phi):
 
@@ -7,7 +7,8 @@ Global parametrization, right perturbation ``X_i <- X_i Exp(delta_i)``, tangent 
 * position constraint: ``e = p_n - g``, ``de/d delta_n = [R_n | 0]``.
 
 The normal equations ``H = J^T Omega J``, ``g = J^T Omega e`` (with a robust kernel
-``H = sum_c w_c J_c^T Omega_c J_c``, ``g = sum_c w_c J_c^T Omega_c e_c``, DESIGN §10) are
+``H = sum_c w_c J_c^T Omega_c J_c``, ``g = sum_c w_c J_c^T Omega_c e_c``,
+docs/conventions.md#robust-kernels) are
 written straight into the value array of the *lower triangle* of H in CSC form, whose pattern
 was computed once (the "analyze" step in :mod:`hybridpgo.solvers.gauss_newton`): the layout
 CHOLMOD factors, so no copy or transpose of H is ever made.  Scalar column ``6 j + q`` of block
@@ -21,7 +22,7 @@ variables ``va, vb`` touches the diagonal blocks of both and one lower block, in
 
 The error, ``Jr^-1``, χ², energy and retraction come from the cost layer
 (:mod:`hybridpgo._cost`), shared with the hybrid solver and :mod:`hybridpgo.energy`; they are
-allocation-free (STYLE.md §3).  The drivers allocate one scratch buffer per call.
+allocation-free (docs/contributing.md#kernels).  The drivers allocate one scratch buffer per call.
 ``tests/test_gauss_newton.py`` checks them against ``tests/ref_kernels.py`` to float64 rounding.
 """
 

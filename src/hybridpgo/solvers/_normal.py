@@ -137,7 +137,8 @@ def lower_to_full(values: FloatArray, indices: Int64Array, indptr: Int64Array,
     return full
 
 
-#: Lifted-2D graphs (DESIGN §1): the tangent entries x, y, yaw.  At planar poses with planar
+#: Lifted-2D graphs (docs/conventions.md): the tangent entries x, y, yaw.  At planar poses with
+#: planar
 #: measurements and block-separable information, H and g do not couple them with z, roll,
 #: pitch (every Jacobian keeps the parity of in-plane vs out-of-plane components) and g is 0
 #: there, so the step's out-of-plane part is exactly 0: only the (x, y, yaw) system is solved.
@@ -285,7 +286,8 @@ def normal_equations(graph: PoseGraph, rotations: FloatArray | None = None,
     fixed : array_like of int, optional
         Dense indices held constant (default: :func:`default_fixed_nodes`).
     robust, robust_scale : str, float
-        Robust kernel and its delta (DESIGN §10; as in :class:`GaussNewtonConfig`): each
+        Robust kernel and its delta (docs/conventions.md#robust-kernels; as in
+        :class:`GaussNewtonConfig`): each
         relative constraint's terms are weighted by ``w_c = rho'(s_c)`` (IRLS).
     """
     kind = _cost.robust_kind(robust, robust_scale)

@@ -1,6 +1,7 @@
-"""Numba kernels of the TORO-style baseline (``hybridpgo.solvers.toro``; shared/TORO.md).
+"""Numba kernels of the TORO-style baseline (``hybridpgo.solvers.toro``, docs/mathematics.md#toro).
 
-Layout (DESIGN.md §8): tree nodes ``0..N-1`` are the poses, node ``N`` the earth when the graph
+Layout (docs/contributing.md#data): tree nodes ``0..N-1`` are the poses, node ``N`` the earth when
+the graph
 has GPS constraints.  Constraints are the M relative edges, then the G GPS readings (constraint
 ``M + g`` joins the earth to ``gps_nodes[g]``).  Paths are CSR: the a-side nodes from a up to
 (excluding) the top with sign -1, then the b-side nodes from b up with sign +1.
@@ -9,7 +10,8 @@ Every constraint update works in the frame of the constraint's *top* (its lowest
 ancestor): the poses of the path nodes relative to the top are composed from the local
 transforms along the path, the update is made there, and the path's local transforms are
 rewritten.  The top and everything outside the path keep their local transforms, so this is the
-global-frame rule of TORO.md exactly (a rotation about the global axis ``a`` is a rotation about
+global-frame rule of docs/mathematics.md#toro exactly (a rotation about the global axis ``a`` is a
+rotation about
 ``R_top^T a`` in the top's frame), at O(path length) cost and without stale global poses.
 """
 
@@ -93,6 +95,66 @@ def _rotate_left(ax: float, ay: float, az: float, angle: float, q: np.ndarray,
     q[:, :] = tmp
 
 
+# ----------------------------------------------------------------------------- one wing
+# A wing is the path positions ``lo .. hi-1`` of one side, listed from its endpoint up to the
+# node below the top (position ``hi - 1``); the kernels below walk it from the top down.
+
+
+@kernel
+def _wing_poses(path_node: np.ndarray, s0: int, lo: int, hi: int, rot: np.ndarray,
+                trans: np.ndarray, wq: np.ndarray, wp: np.ndarray, eye: np.ndarray,
+                zero: np.ndarray) -> None:
+    """Poses ``(wq[j], wp[j])`` of the wing's nodes relative to the top, composed from the
+    local transforms downwards."""
+    for j in range(hi - 1, lo - 1, -1):
+        node = path_node[s0 + j]
+        if j == hi - 1:
+            _compose_into(eye, zero, rot[node], trans[node], wq[j], wp[j])
+        else:
+            _compose_into(wq[j + 1], wp[j + 1], rot[node], trans[node], wq[j], wp[j])
+
+
+@kernel
+def _rotate_wing(path_node: np.ndarray, s0: int, lo: int, hi: int, w_rot: np.ndarray,
+                 ax: float, ay: float, az: float, step: float, wq: np.ndarray,
+                 tmp: np.ndarray) -> None:
+    """Turn node j's rotation about the axis a by ``step`` times the cumulative weight from
+    the top to j."""
+    cum = 0.0
+    for j in range(hi - 1, lo - 1, -1):
+        cum += w_rot[path_node[s0 + j]]
+        _rotate_left(ax, ay, az, step * cum, wq[j], tmp)
+
+
+@kernel
+def _rebend_wing(path_node: np.ndarray, s0: int, lo: int, hi: int, trans: np.ndarray,
+                 wq: np.ndarray, wp: np.ndarray) -> None:
+    """Positions ``wp`` of the wing's nodes from their (turned) rotations ``wq`` and the kept
+    local translations."""
+    for j in range(hi - 1, lo - 1, -1):
+        node = path_node[s0 + j]
+        if j == hi - 1:
+            for r in range(3):
+                wp[j, r] = trans[node, r]
+        else:
+            for r in range(3):
+                wp[j, r] = wp[j + 1, r] + (wq[j + 1, r, 0] * trans[node, 0]
+                                           + wq[j + 1, r, 1] * trans[node, 1]
+                                           + wq[j + 1, r, 2] * trans[node, 2])
+
+
+@kernel
+def _shift_wing(path_node: np.ndarray, s0: int, lo: int, hi: int, w_trans: np.ndarray,
+                gain: float, t0: float, t1: float, t2: float, wp: np.ndarray) -> None:
+    """Move node j by ``gain`` times the cumulative weight from the top to j times ``t``."""
+    cum = 0.0
+    for j in range(hi - 1, lo - 1, -1):
+        cum += w_trans[path_node[s0 + j]]
+        wp[j, 0] += gain * cum * t0
+        wp[j, 1] += gain * cum * t1
+        wp[j, 2] += gain * cum * t2
+
+
 # ----------------------------------------------------------------------------- the update
 
 
@@ -100,7 +162,8 @@ def _rotate_left(ax: float, ay: float, az: float, angle: float, q: np.ndarray,
 def update_constraint(
     c: int, k: float, prob: tuple[Any, ...], state: tuple[Any, ...], work: tuple[Any, ...]
 ) -> int:
-    """Relax constraint ``c`` once with sweep counter ``k`` (TORO.md, steps 1 and 2).
+    """Relax constraint ``c`` once with sweep counter ``k`` (docs/mathematics.md#toro: the
+    rotation, then the translation).
 
     ``prob = (num_edges, path_ptr, path_node, path_sign, top, meas_rot, meas_trans, rho, tau,
     gamma_r, gamma_t, w_rot, w_trans)``: ``meas_trans`` has M + G rows (a GPS constraint's row
@@ -123,18 +186,8 @@ def update_constraint(
     while na < ell and path_sign[s0 + na] < 0:
         na += 1
     # poses of the path nodes relative to the top, composed down each wing from the top
-    for j in range(na - 1, -1, -1):
-        node = path_node[s0 + j]
-        if j == na - 1:
-            _compose_into(eye, zero, rot[node], trans[node], wq[j], wp[j])
-        else:
-            _compose_into(wq[j + 1], wp[j + 1], rot[node], trans[node], wq[j], wp[j])
-    for j in range(ell - 1, na - 1, -1):
-        node = path_node[s0 + j]
-        if j == ell - 1:
-            _compose_into(eye, zero, rot[node], trans[node], wq[j], wp[j])
-        else:
-            _compose_into(wq[j + 1], wp[j + 1], rot[node], trans[node], wq[j], wp[j])
+    _wing_poses(path_node, s0, 0, na, rot, trans, wq, wp, eye, zero)
+    _wing_poses(path_node, s0, na, ell, rot, trans, wq, wp, eye, zero)
 
     rotated = False
     if c < num_edges:
@@ -166,35 +219,11 @@ def update_constraint(
             f_r = min(1.0, math.sqrt(ell) * rho[c] / (gamma_r * k))
             step = f_r * theta / wsum
             # C(n) - C(top): minus the cumulative weight from the top on the v1 wing, plus on v2
-            cum = 0.0
-            for j in range(na - 1, -1, -1):
-                cum += w_rot[path_node[s0 + j]]
-                _rotate_left(ax, ay, az, -step * cum, wq[j], tmp)
-            cum = 0.0
-            for j in range(ell - 1, na - 1, -1):
-                cum += w_rot[path_node[s0 + j]]
-                _rotate_left(ax, ay, az, step * cum, wq[j], tmp)
+            _rotate_wing(path_node, s0, 0, na, w_rot, ax, ay, az, -step, wq, tmp)
+            _rotate_wing(path_node, s0, na, ell, w_rot, ax, ay, az, step, wq, tmp)
             # re-bend the path: local translations are kept
-            for j in range(na - 1, -1, -1):
-                node = path_node[s0 + j]
-                if j == na - 1:
-                    for r in range(3):
-                        wp[j, r] = trans[node, r]
-                else:
-                    for r in range(3):
-                        wp[j, r] = wp[j + 1, r] + (wq[j + 1, r, 0] * trans[node, 0]
-                                                   + wq[j + 1, r, 1] * trans[node, 1]
-                                                   + wq[j + 1, r, 2] * trans[node, 2])
-            for j in range(ell - 1, na - 1, -1):
-                node = path_node[s0 + j]
-                if j == ell - 1:
-                    for r in range(3):
-                        wp[j, r] = trans[node, r]
-                else:
-                    for r in range(3):
-                        wp[j, r] = wp[j + 1, r] + (wq[j + 1, r, 0] * trans[node, 0]
-                                                   + wq[j + 1, r, 1] * trans[node, 1]
-                                                   + wq[j + 1, r, 2] * trans[node, 2])
+            _rebend_wing(path_node, s0, 0, na, trans, wq, wp)
+            _rebend_wing(path_node, s0, na, ell, trans, wq, wp)
 
     # 2. translation on the re-bent path: t_R = (T_v1 T_e).t - t_v2
     qv1 = wq[0] if na > 0 else eye
@@ -212,18 +241,9 @@ def update_constraint(
     if wsum > 0.0:
         f_t = min(1.0, ell * tau[c] / (gamma_t * k))
         g = f_t / wsum
-        cum = 0.0
-        for j in range(na - 1, -1, -1):
-            cum += w_trans[path_node[s0 + j]]
-            wp[j, 0] -= g * cum * t0
-            wp[j, 1] -= g * cum * t1
-            wp[j, 2] -= g * cum * t2
-        cum = 0.0
-        for j in range(ell - 1, na - 1, -1):
-            cum += w_trans[path_node[s0 + j]]
-            wp[j, 0] += g * cum * t0
-            wp[j, 1] += g * cum * t1
-            wp[j, 2] += g * cum * t2
+        # (-g) c t is -(g c t) exactly, so the v1 wing moves by exactly minus the v2 rule
+        _shift_wing(path_node, s0, 0, na, w_trans, -g, t0, t1, t2, wp)
+        _shift_wing(path_node, s0, na, ell, w_trans, g, t0, t1, t2, wp)
 
     # rewrite the path's local transforms (rotations only when they turned)
     for j in range(ell):

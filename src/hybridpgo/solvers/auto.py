@@ -56,8 +56,8 @@ import numpy as np
 from ..errors import HybridPGOError, SolverError
 from ..graph import FloatArray, PoseGraph
 from ..initialization import initial_locals
-from ..tree import build_tree, global_poses
-from .config import AutoConfig, Progress, ProgressCallback
+from ..tree import PoseTree, build_tree, global_poses
+from .config import AutoConfig, InitName, Progress, ProgressCallback
 from .gauss_newton import ExactSolver, IterateCallback
 from .hybrid.solver import HybridSolver
 from .result import SolveResult, Status
@@ -287,6 +287,94 @@ def _relaxation_check(exact: ExactSolver, cfg: AutoConfig, large: bool, win: _Ca
     return out
 
 
+def _swept_starts(graph: PoseGraph, cfg: AutoConfig, tree: PoseTree, inits: list[InitName],
+                  large: bool, t_origin: float, progress: ProgressCallback | None,
+                  iterate: IterateCallback | None) -> list[_Candidate]:
+    """Every start of ``inits`` computed and swept while the sweeps pay (the large-graph
+    policy: only the first that could be computed)."""
+    cands: list[_Candidate] = []
+    for init in inits:
+        cand = _Candidate(init)
+        t0 = time.perf_counter()
+        try:
+            locals0 = initial_locals(graph, tree, init)
+        except (HybridPGOError, ValueError, np.linalg.LinAlgError, RuntimeError) as exc:
+            cand.error = f"start: {exc}"
+            cands.append(cand)
+            continue
+        cand.start_seconds = time.perf_counter() - t0
+        _sweep_candidate(graph, cfg, cand, tree, locals0, t_origin, progress, iterate)
+        del locals0
+        cands.append(cand)
+        if large and cand.rot is not None and np.isfinite(cand.energy):
+            break  # the large-graph policy: the first start that could be computed
+    return cands
+
+
+def _polish_finalists(exact: ExactSolver, cfg: AutoConfig, finalists: list[_Candidate],
+                      progress: ProgressCallback | None,
+                      iterate: IterateCallback | None) -> None:
+    """Polish the finalists in rank order: the first to convergence, each runner-up within its
+    budget (``finalist_budget``), continued to convergence only if it is then the lowest."""
+    best: _Candidate | None = None
+    for cand in finalists:
+        if best is None or best.polished is None:
+            _polish(exact, cand, progress, cfg.polish.max_iterations, iterate)
+        else:  # a runner-up: a bounded polish, continued only if it is then the lowest
+            budget = min(cfg.polish.max_iterations, max(
+                math.ceil(cfg.finalist_budget * best.polished.iterations),
+                MIN_FINALIST_ITERATIONS))
+            _polish(exact, cand, progress, budget, iterate)
+            pol = cand.polished
+            if (pol is not None and pol.status is Status.MAX_ITERATIONS
+                    and pol.final_energy < best.energy and budget < cfg.polish.max_iterations):
+                _polish(exact, cand, progress, cfg.polish.max_iterations - budget, iterate)
+            elif pol is not None and pol.status is Status.MAX_ITERATIONS:
+                cand.cut = budget < cfg.polish.max_iterations
+        if cand.polished is not None and (best is None or cand.energy < best.energy * (
+                1.0 - _TIE)):
+            best = cand
+
+
+def _stats(win: _Candidate, cands: list[_Candidate], ranked: list[_Candidate],
+           finalists: list[_Candidate], polished: list[_Candidate], relax: dict[str, Any],
+           skipped: list[InitName], policy: str, large: bool) -> dict[str, Any]:
+    """The result's ``stats``: the winner, every candidate (``cands``) and the one-line
+    ``reason``."""
+    assert win.polished is not None
+    pol = win.polished
+    others = ", ".join(f"{c.label} {c.energy:.6g}" for c in polished if c is not win)
+    cut = [c.label for c in finalists if c.cut]
+    swept = (f"{win.sweeps} sweep(s) kept of {win.sweeps_run} run" if win.label == win.init
+             else "its own poses, no sweeps")
+    reason = (f"{policy}start {win.init}: {swept}, then "
+              f"{pol.iterations} LM iteration(s), {pol.status.value}")
+    if others:
+        reason += f"; other polished start(s): {others}"
+    if relax.get("ran"):
+        reason += "; " + str(relax["summary"])
+    if cut:
+        reason += (f"; polish of {', '.join(cut)} stopped at its budget above the best "
+                   f"({', '.join(f'{c.energy:.6g}' for c in ranked if c.cut)})")
+    return {
+        "policy": "large" if large else "full",
+        "init": win.init,
+        "start": win.label,
+        "sweeps": win.sweeps,
+        "polish_iterations": pol.iterations,
+        "polish_status": pol.status.value,
+        "energy_after_sweeps": min(win.history),
+        "reason": reason,
+        "candidates": {c.label: c.summary() for c in cands},
+        "skipped_inits": skipped,
+        "finalists": [c.label for c in finalists],
+        "linear_solver": pol.stats.get("linear_solver"),
+        "relaxation": relax,
+        "capped_steps": win.capped,
+        "rejected_steps": win.rejected,
+    }
+
+
 def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
                progress: ProgressCallback | None = None,
                iterate: IterateCallback | None = None) -> SolveResult:
@@ -336,22 +424,7 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     if not inits:
         raise SolverError("no start applies: the file has no vertices; add 'tree' or 'chordal' "
                           "to the starts")
-    cands: list[_Candidate] = []
-    for init in inits:
-        cand = _Candidate(init)
-        t0 = time.perf_counter()
-        try:
-            locals0 = initial_locals(graph, tree, init)
-        except (HybridPGOError, ValueError, np.linalg.LinAlgError, RuntimeError) as exc:
-            cand.error = f"start: {exc}"
-            cands.append(cand)
-            continue
-        cand.start_seconds = time.perf_counter() - t0
-        _sweep_candidate(graph, cfg, cand, tree, locals0, t_origin, progress, iterate)
-        del locals0
-        cands.append(cand)
-        if large and cand.rot is not None and np.isfinite(cand.energy):
-            break  # the large-graph policy: the first start that could be computed
+    cands = _swept_starts(graph, cfg, tree, inits, large, t_origin, progress, iterate)
     usable = [c for c in cands if c.rot is not None and np.isfinite(c.energy)]
     if not usable:
         raise SolverError("no start gave finite poses: "
@@ -362,24 +435,7 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     finalists = ranked[:cfg.finalists] if cfg.finalists is not None else ranked
     t_polish = time.perf_counter()
     exact = ExactSolver(graph, cfg.polish)
-    best: _Candidate | None = None
-    for cand in finalists:
-        if best is None or best.polished is None:
-            _polish(exact, cand, progress, cfg.polish.max_iterations, iterate)
-        else:  # a runner-up: a bounded polish, continued only if it is then the lowest
-            budget = min(cfg.polish.max_iterations, max(
-                math.ceil(cfg.finalist_budget * best.polished.iterations),
-                MIN_FINALIST_ITERATIONS))
-            _polish(exact, cand, progress, budget, iterate)
-            pol = cand.polished
-            if (pol is not None and pol.status is Status.MAX_ITERATIONS
-                    and pol.final_energy < best.energy and budget < cfg.polish.max_iterations):
-                _polish(exact, cand, progress, cfg.polish.max_iterations - budget, iterate)
-            elif pol is not None and pol.status is Status.MAX_ITERATIONS:
-                cand.cut = budget < cfg.polish.max_iterations
-        if cand.polished is not None and (best is None or cand.energy < best.energy * (
-                1.0 - _TIE)):
-            best = cand
+    _polish_finalists(exact, cfg, finalists, progress, iterate)
     polish_s = time.perf_counter() - t_polish
     polished = [c for c in finalists if c.polished is not None and not c.cut]
     if not polished:
@@ -401,36 +457,8 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     offset = win.times[-1]
     history = np.concatenate([win.history, pol.energy_history[1:]])
     times = np.concatenate([win.times, offset + np.asarray(pol.times[1:])])
-    others = ", ".join(f"{c.label} {c.energy:.6g}" for c in polished if c is not win)
-    cut = [c.label for c in finalists if c.cut]
-    swept = (f"{win.sweeps} sweep(s) kept of {win.sweeps_run} run" if win.label == win.init
-             else "its own poses, no sweeps")
-    reason = (f"{policy}start {win.init}: {swept}, then "
-              f"{pol.iterations} LM iteration(s), {pol.status.value}")
-    if others:
-        reason += f"; other polished start(s): {others}"
-    if relax.get("ran"):
-        reason += "; " + str(relax["summary"])
-    if cut:
-        reason += (f"; polish of {', '.join(cut)} stopped at its budget above the best "
-                   f"({', '.join(f'{c.energy:.6g}' for c in ranked if c.cut)})")
-    stats: dict[str, Any] = {
-        "policy": "large" if large else "full",
-        "init": win.init,
-        "start": win.label,
-        "sweeps": win.sweeps,
-        "polish_iterations": pol.iterations,
-        "polish_status": pol.status.value,
-        "energy_after_sweeps": min(win.history),
-        "reason": reason,
-        "candidates": {c.label: c.summary() for c in cands + ranked[len(usable):]},
-        "skipped_inits": skipped,
-        "finalists": [c.label for c in finalists],
-        "linear_solver": pol.stats.get("linear_solver"),
-        "relaxation": relax,
-        "capped_steps": win.capped,
-        "rejected_steps": win.rejected,
-    }
+    stats = _stats(win, cands + ranked[len(usable):], ranked, finalists, polished, relax,
+                   skipped, policy, large)
     for key in ("robust", "robust_scale", "plain_energy"):
         if key in pol.stats:
             stats[key] = pol.stats[key]

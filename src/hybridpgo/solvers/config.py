@@ -1,4 +1,5 @@
-"""Solver options: frozen dataclasses validated once in ``__post_init__`` (STYLE.md §6).
+"""Solver options: frozen dataclasses validated once in ``__post_init__``
+(docs/contributing.md#solver-api).
 
 Every field's docstring states its exact meaning.  Invalid values raise ``ValueError`` naming
 the field, the value and what is allowed.
@@ -22,7 +23,8 @@ if TYPE_CHECKING:
 StepName = Literal["woodbury", "givens"]
 TreeName = Literal["bfs", "mst", "gps"]
 InitName = Literal["tree", "file", "chordal"]
-#: Robust kernels (DESIGN §10); the same names as ``_cost.ROBUST_NAMES`` (tested).
+#: Robust kernels (docs/conventions.md#robust-kernels); the same names as ``_cost.ROBUST_NAMES``
+#: (tested).
 RobustName = Literal["none", "huber", "cauchy", "geman_mcclure"]
 #: The names a user may give for each choice (derived once from the Literal types).
 STEP_NAMES: tuple[str, ...] = get_args(StepName)
@@ -72,7 +74,8 @@ def check_float(name: str, value: object, *, positive: bool) -> None:
 
 @dataclass(frozen=True)
 class GaussNewtonConfig:
-    """Options of the exact solver :func:`hybridpgo.solvers.gauss_newton.solve_exact` (DESIGN §7).
+    """Options of the exact solver :func:`hybridpgo.solvers.gauss_newton.solve_exact`
+    (docs/mathematics.md#exact-solver).
 
     The energy is ``E = sum_c e_c^T Omega_c e_c`` (no 1/2).  The solver stops at the first of:
     the energy criterion, the step criterion, or ``max_iterations``.
@@ -102,7 +105,7 @@ class GaussNewtonConfig:
     step_guard: bool = True
     """GN only: when a full step raises the energy, halve it until it does not (up to
     ``max_step_halvings`` times; then stop as STALLED).  ``False``: plain Gauss-Newton, every step
-    is taken.  (DESIGN §9: unguarded GN from outside the basin diverges.)"""
+    is taken.  (docs/mathematics.md#lm-damping: unguarded GN from outside the basin diverges.)"""
     max_step_halvings: int = 30
     """GN with ``step_guard``: at most this many halvings of one step."""
     linear_solver: Literal["auto", "cholmod", "splu"] = "auto"
@@ -163,7 +166,8 @@ class HybridConfig:
     tau_decay: float = 0.99
     """tau is multiplied by this after each sweep (paper III-H)."""
     damping: float = 1e-6
-    """mu: each block of B_c gets ``mu * trace(B)/6`` added to its diagonal (DESIGN §4)."""
+    """mu: each block of B_c gets ``mu * trace(B)/6`` added to its diagonal
+    (docs/mathematics.md#hybrid-step)."""
     step: StepName = "woodbury"
     """``"woodbury"`` (O(d), default) or ``"givens"`` (the paper's O(d^2) triangularization)."""
     tree: TreeName = "bfs"
@@ -186,7 +190,8 @@ class HybridConfig:
     polish_iterations: int = 100
     """Iteration limit of the polish."""
     robust: RobustName = "none"
-    """Robust kernel on every relative constraint's χ² ``s = e^T Omega e`` (DESIGN §10):
+    """Robust kernel on every relative constraint's χ² ``s = e^T Omega e``
+    (docs/conventions.md#robust-kernels):
     ``"none"`` (least squares), ``"huber"``, ``"cauchy"`` or ``"geman_mcclure"`` (g2o's
     conventions).  The solver minimizes ``E_rho = sum_c rho(s_c)`` (GPS constraints stay
     quadratic) by iterative reweighting: each step whitens with ``sqrt(w_c) L^T``,

@@ -1,4 +1,4 @@
-"""Solver results (STYLE.md §6)."""
+"""Solver results (docs/contributing.md#solver-api)."""
 
 from __future__ import annotations
 

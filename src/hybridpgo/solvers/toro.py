@@ -1,5 +1,5 @@
-"""A TORO-style baseline (Grisetti et al.'s tree-based network optimizer), written from the rule
-in ``shared/TORO.md`` (TORO's own code was not read).
+"""A TORO-style baseline (Grisetti et al.'s tree-based network optimizer), written from its
+published update rule (docs/mathematics.md#toro; TORO's own code was not read).
 
 TORO relaxes one constraint at a time in a tree parametrization, like the hybrid solver, but
 corrects rotation and translation *separately*: the rotational residual is spread over the path
@@ -7,7 +7,7 @@ as rotations about one global axis, then the translational residual (on the re-b
 pure translations.  A translation error is never turned into a rotation, which is what produces
 the "dog-leg" distortion the paper fixes (paper Fig. 2, Fig. 3e/f).
 
-Summary of the rule (TORO.md):
+Summary of the rule (docs/mathematics.md#toro):
 
 * **Tree** (``ToroConfig.tree``): ``"toro"`` (default, TORO's): each pose's parent is its
   smallest-id neighbour, from the smallest-id pose (:data:`hybridpgo.tree.TreeKind.TORO` says
@@ -49,6 +49,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .._numba import cycles_per_second
+from .._warmup import tiny_graph
 from ..energy import energy
 from ..errors import GraphError, SolverError
 from ..graph import FloatArray, PoseGraph
@@ -75,7 +76,7 @@ class ToroConfig:
 
     iterations: int = 100
     """Number of sweeps over all constraints (TORO's default: 100).  Sweep s uses the counter
-    ``k = s + 1`` in the gains (TORO.md: k starts at 2)."""
+    ``k = s + 1`` in the gains (k starts at 2)."""
     tree: str = "toro"
     """``"toro"``: each pose's parent is its smallest-id neighbour (TORO's default, shallow when
     loop closures reach old poses); ``"bfs"``: the hybrid solver's breadth-first tree."""
@@ -144,7 +145,7 @@ class ToroState:
     @classmethod
     def create(cls, graph: PoseGraph, tree: PoseTree, rot: FloatArray, trans: FloatArray,
                weights: str = "documented") -> ToroState:
-        """Compute the preconditioner (TORO.md, once before the first sweep)."""
+        """Compute the preconditioner (once before the first sweep)."""
         if weights not in WEIGHTS:
             raise ValueError(f"weights must be one of {', '.join(map(repr, WEIGHTS))}, "
                              f"got {weights!r}")
@@ -215,15 +216,7 @@ def ensure_compiled() -> float:
     if getattr(tk.sweep, "signatures", None):
         return 0.0
     t0 = time.perf_counter()
-    eye = np.tile(np.eye(3), (3, 1, 1))
-    tiny = PoseGraph(
-        node_ids=np.arange(3), rotations=eye, translations=np.eye(3),
-        edge_nodes=np.array([[0, 1], [1, 2], [0, 2]], np.int32), edge_rotations=eye,
-        edge_translations=np.ones((3, 3)), edge_information=np.tile(np.eye(6), (3, 1, 1)),
-        gps_nodes=np.array([2], np.int32), gps_positions=np.ones((1, 3)),
-        gps_information=np.eye(3)[None],
-    )
-    _solve(tiny, ToroConfig(iterations=1), None, compile_s=0.0)
+    _solve(tiny_graph(gps=True), ToroConfig(iterations=1), None, compile_s=0.0)
     cycles_per_second()
     return time.perf_counter() - t0
 
@@ -232,7 +225,7 @@ def ensure_compiled() -> float:
 def solve_toro(
     graph: PoseGraph, config: ToroConfig | None = None, progress: ProgressCallback | None = None
 ) -> SolveResult:
-    """Optimize ``graph`` with the TORO-style baseline (module docstring, shared/TORO.md).
+    """Optimize ``graph`` with the TORO-style baseline (module docstring, docs/mathematics.md#toro).
 
     Parameters
     ----------
@@ -293,7 +286,7 @@ def _solve(graph: PoseGraph, cfg: ToroConfig, progress: ProgressCallback | None,
     done = 0
     for it in range(1, cfg.iterations + 1):
         t0 = time.perf_counter()
-        bad = state.sweep(float(it + 1), cycles)  # TORO.md: the counter k starts at 2
+        bad = state.sweep(float(it + 1), cycles)  # the counter k starts at 2
         solve_time += time.perf_counter() - t0
         done = it
         if bad >= 0 and first_bad < 0:

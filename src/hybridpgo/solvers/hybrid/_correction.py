@@ -1,8 +1,8 @@
 """A global correction between sweeps: a truncated Gauss-Newton step by preconditioned CG.
 
 The single updates of a sweep are local: each one moves only its constraint's domain, and at the
-optimum the single forces ``J_c^T r_c`` do not vanish, so the sweeps hover around it (issue 11,
-item 3).  After each sweep :func:`correct` takes one *global* step: a few iterations of conjugate
+optimum the single forces ``J_c^T r_c`` do not vanish, so the sweeps hover around it.
+After each sweep :func:`correct` takes one *global* step: a few iterations of conjugate
 gradients on the exact Gauss-Newton system of the tree parametrization (paper eq. 11, the step
 the batch of every constraint would take, III-F)
 
@@ -52,10 +52,11 @@ from ..._cost import (
 )
 from ..._numba import kernel
 from ..._tree_kernels import globals_from_locals
+from ...geometry._kernels import adjoint_into
 from ...graph import FloatArray, PoseGraph
 from ...tree import PoseTree
-from ._batch import adjoint_into
 from ._dense import MAX_DAMPING_ESCALATIONS, regularized_factor, solve_lt
+from ._linearize import gps_factor_into, relative_factor_into
 from ._step import step_temperature
 from .problem import Problem, State, Update
 
@@ -159,32 +160,20 @@ def linearize_all(prob: Problem, ends: np.ndarray, yr: np.ndarray, yt: np.ndarra
             lt = prob.edge_lt[c]
             whiten_residual(lt, e, 6, res[c])
             whiten_rows(lt, jri, 6, a0)
-            if prob.robust_kind != ROBUST_NONE:  # whiten with sqrt(w) L^T (DESIGN §10)
+            if prob.robust_kind != ROBUST_NONE:  # whiten with sqrt(w) L^T
+            # (docs/conventions.md#robust-kernels)
                 sw = robust_whitening(prob.robust_kind, prob.robust_scale, res[c], 6)
                 for p in range(6):
                     res[c, p] *= sw
                     for j in range(6):
                         a0[p, j] *= sw
-            rinv = yr[b].T.copy()  # Ad(Y_b)^-1 = Ad(Y_b^-1)
-            tinv = -(rinv @ yt[b])
-            adjoint_into(rinv, tinv, adb)
-            amat[c] = a0 @ adb
+            relative_factor_into(a0, yr[b], yt[b], adb, amat[c])
         else:
             g = c - prob.num_edges
             pn = yt[b]  # the earth is the identity
             gps_residual(pn, prob.gps_pos[g], e)
             whiten_residual(prob.gps_lt[g], e, 3, res[c])
-            for i in range(3):
-                for j in range(6):
-                    blk[i, j] = 0.0
-                blk[i, i] = 1.0
-            blk[0, 4] = pn[2]  # -[p_n]x
-            blk[0, 5] = -pn[1]
-            blk[1, 3] = -pn[2]
-            blk[1, 5] = pn[0]
-            blk[2, 3] = pn[1]
-            blk[2, 4] = -pn[0]
-            whiten_rows(prob.gps_lt[g], blk, 3, amat[c])
+            gps_factor_into(prob.gps_lt[g], pn, blk, amat[c])
 
 
 # --------------------------------------------------------------------------- products
@@ -313,7 +302,8 @@ def pcg_step(topo: Topology, num_edges: int, yr: np.ndarray, yt: np.ndarray,
              amat: np.ndarray, res: np.ndarray, mu: float, iterations: int,
              x: np.ndarray) -> int:
     """At most ``iterations`` of CG on ``H x = J^T r`` from ``x = 0``, preconditioned by 𝔅(H)
-    (each block damped as the hybrid step's, DESIGN §4).  Returns the iterations run."""
+    (each block damped as the hybrid step's, docs/mathematics.md#hybrid-step).  Returns the
+    iterations run."""
     parent = topo.parent
     nt = parent.shape[0]
     nc = topo.ends.shape[0]

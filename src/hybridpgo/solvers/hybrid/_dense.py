@@ -1,6 +1,7 @@
 """Small dense linear algebra of the hybrid steps: Cholesky and the damped factor of 𝔅 blocks.
 
-Fixed-size loops over caller-provided arrays (STYLE.md §3); divisions are hoisted because they
+Fixed-size loops over caller-provided arrays (docs/contributing.md#kernels); divisions are hoisted
+because they
 dominate the cost of 6x6 factorizations.
 """
 
@@ -12,7 +13,8 @@ import numpy as np
 
 from ..._numba import kernel
 
-#: A block of B_c is damped by ``mu * trace(B)/6 + TINY * scale`` (DESIGN §4); ``scale`` is the
+#: A block of B_c is damped by ``mu * trace(B)/6 + TINY * scale``
+#: (docs/mathematics.md#hybrid-step); ``scale`` is the
 #: trace of the constraint's own block, so a node that only constraint c touches still gets a
 #: finite, well-scaled step.
 TINY = 1e-9
@@ -70,7 +72,8 @@ def solve_lt(lo: np.ndarray, v: np.ndarray, x: np.ndarray) -> None:
 
 @kernel
 def regularized_factor(bc: np.ndarray, scale: float, mu: float, out: np.ndarray) -> int:
-    """``out`` = lower Cholesky factor of sym(bc) + (mu tr(bc)/6 + TINY scale) I (DESIGN §4).
+    """``out`` = lower Cholesky factor of sym(bc) + (mu tr(bc)/6 + TINY scale) I
+    (docs/mathematics.md#hybrid-step).
 
     Rounding in ``bdiag - old`` can leave ``bc`` slightly indefinite; the damping is raised
     tenfold until the factorization succeeds.  Returns the number of escalations (0: the first

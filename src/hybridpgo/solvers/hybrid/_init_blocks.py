@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from ..._numba import kernel
 from ._linearize import linearize, relative_linearization
+from ._step import accumulate_path
 from .problem import Problem, State, domain, is_gps, new_workspace
 
 
@@ -33,22 +34,12 @@ def init_blocks(prob: Problem, state: State, dmax: int) -> None:
             continue
         if is_gps(prob, c):
             kr = linearize(prob, c, state.rot, state.trans, wk, jac)[0]
-        else:  # as relax() does: the arrays one by one (no NamedTuple per call, DESIGN §8)
+        else:  # as relax() does: the arrays one by one (no NamedTuple per call,
+        # docs/contributing.md#data)
             kr = 6
             relative_linearization(path_node, prob.path_sign, s, d, prob.edge_rot[c],
                                    prob.edge_trans[c], prob.edge_lt[c], prob.robust_kind,
                                    prob.robust_scale, state.rot, state.trans, wk.path_rot,
                                    wk.path_trans, wk.iws, wk.ws, wk.e, wk.r, wk.jri, wk.a, jac)
-        for k in range(d):
-            i = path_node[s + k]
-            e = s + k
-            for p in range(6):
-                for q in range(p, 6):
-                    acc = 0.0
-                    for t in range(kr):
-                        acc += jac[k, t, p] * jac[k, t, q]
-                    v = bdiag[i, p, q] + acc
-                    bdiag[i, p, q] = v
-                    bdiag[i, q, p] = v
-                    contrib[e, p, q] = acc
-                    contrib[e, q, p] = acc
+        contrib[s:s + d] = 0.0  # no old contribution: 𝔅(H) += acc - 0.0, which is acc
+        accumulate_path(path_node, s, d, kr, jac, bdiag, contrib, 0.0, wk.lfac, wk.bc, False)

@@ -1,4 +1,4 @@
-"""Linearization in the tree parametrization (paper III-B; DESIGN.md §3).
+"""Linearization in the tree parametrization (paper III-B; docs/mathematics.md#jacobians).
 
 Perturbing every local transform on the right, ``T_i <- T_i Exp(delta_i)``, constraint c's
 whitened Jacobian block for domain node i is
@@ -9,7 +9,8 @@ whitened Jacobian block for domain node i is
 Both come from products of local transforms along the path only (no global pose is needed),
 so one linearization costs O(d).  The error, ``Jr^-1`` and the whitening come from the cost
 layer (:mod:`hybridpgo._cost`).  With a robust kernel a relative constraint is whitened with
-``sqrt(w) L^T`` in place of ``L^T``, ``w = rho'(s)`` (DESIGN §10), so its ``J_c``, ``r_c`` and its
+``sqrt(w) L^T`` in place of ``L^T``, ``w = rho'(s)`` (docs/conventions.md#robust-kernels), so its
+``J_c``, ``r_c`` and its
 contribution to 𝔅(H) all carry the weight.
 """
 
@@ -28,6 +29,7 @@ from ..._cost import (
 )
 from ..._numba import kernel
 from ..._tree_kernels import mul_pose_into as mul_pose_into
+from ...geometry._kernels import adjoint_into
 from .problem import EYE, ZERO, Problem, Workspace, domain, is_gps
 
 
@@ -218,7 +220,7 @@ def relative_setup(path_node: np.ndarray, path_sign: np.ndarray, s: int, d: int,
     jr_inv_matrix(ws, jri)
     whiten_residual(lt, e, 6, r)
     whiten_rows(lt, jri, 6, a)
-    if robust_kind != ROBUST_NONE:  # whiten with sqrt(w) L^T (DESIGN §10)
+    if robust_kind != ROBUST_NONE:  # whiten with sqrt(w) L^T (docs/conventions.md#robust-kernels)
         sw = robust_whitening(robust_kind, robust_scale, r, 6)
         for p in range(6):
             r[p] *= sw
@@ -274,3 +276,33 @@ def linearize(prob: Problem, c: int, rot: np.ndarray, trans: np.ndarray, wk: Wor
     whiten_residual(prob.gps_lt[g], wk.e, 3, wk.r)
     _gps_blocks(prob, c, wk, jac)
     return 3, na
+
+
+# --------------------------------------------------------------------------- J = s A_c Ad(Y)
+@kernel
+def relative_factor_into(a: np.ndarray, rb: np.ndarray, tb: np.ndarray, adb: np.ndarray,
+                         out: np.ndarray) -> None:
+    """``A_c = a Ad(Y_b)^-1`` of a relative constraint (``a = L^T Jr^-1(e)``, ``(rb, tb)`` the
+    global pose ``Y_b``), so that ``J_{c,u} = s_{c,u} A_c Ad(Y_u)`` (the batch solve and the
+    global correction use this factorization); ``adb`` (6, 6) scratch."""
+    rinv = rb.T.copy()  # Ad(Y_b)^-1 = Ad(Y_b^-1)
+    tinv = -(rinv @ tb)
+    adjoint_into(rinv, tinv, adb)
+    out[:] = a @ adb
+
+
+@kernel
+def gps_factor_into(lt: np.ndarray, pn: np.ndarray, blk: np.ndarray, out: np.ndarray) -> None:
+    """``A_c = L^T [I | -[p_n]x]`` of a GPS reading on a node at ``pn`` (the earth is the root)
+    into rows 0..2 of ``out``, as :func:`relative_factor_into`; ``blk`` (3, 6) scratch."""
+    for i in range(3):
+        for j in range(6):
+            blk[i, j] = 0.0
+        blk[i, i] = 1.0
+    blk[0, 4] = pn[2]  # -[p_n]x
+    blk[0, 5] = -pn[1]
+    blk[1, 3] = -pn[2]
+    blk[1, 5] = pn[0]
+    blk[2, 3] = pn[1]
+    blk[2, 4] = -pn[0]
+    whiten_rows(lt, blk, 3, out)

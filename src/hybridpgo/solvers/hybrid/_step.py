@@ -1,4 +1,5 @@
-"""The hybrid Hessian step of one constraint (paper III-C, III-D, III-H; DESIGN.md §4).
+"""The hybrid Hessian step of one constraint (paper III-C, III-D, III-H;
+docs/mathematics.md#hybrid-step).
 
 𝔅(H) is the block diagonal of ``H = sum_c J_c^T J_c``; every constraint remembers the blocks it
 last added (eq. 24), so relaxing c updates 𝔅(H) in O(d).  The step solves
@@ -59,6 +60,8 @@ def accumulate_path(path_node: np.ndarray, s: int, d: int, kr: int, jac: np.ndar
             regularized_factor(bc, scale, mu, lfac[k])
 
 
+# Long on purpose (speed): the hottest loop of a sweep, written out so that Ad(M_k), the 6x6
+# Jacobian block and J^T J stay in scalar locals (no scratch array reloaded after a store).
 @kernel
 def linearize_accumulate(path_node: np.ndarray, path_sign: np.ndarray, s: int, d: int, na: int,
                          pr: np.ndarray, pt: np.ndarray, a: np.ndarray, jac: np.ndarray,
@@ -337,7 +340,8 @@ def accumulate_blocks(prob: Problem, state: State, c: int, kr: int, jac: np.ndar
 @kernel
 def woodbury_solve(d: int, kr: int, jac: np.ndarray, lfac: np.ndarray, r: np.ndarray,
                    y: np.ndarray, x: np.ndarray, smat: np.ndarray, sv: np.ndarray) -> None:
-    """x = B^-1 J^T (I + J B^-1 J^T)^-1 r with B = blockdiag(L_k L_k^T): O(d) (DESIGN §4).
+    """x = B^-1 J^T (I + J B^-1 J^T)^-1 r with B = blockdiag(L_k L_k^T): O(d)
+    (docs/mathematics.md#hybrid-step).
 
     With W_k = L_k^-1 J_k^T (forward substitution), S = I + sum_k W_k^T W_k and
     x_k = L_k^-T W_k S^-1 r.  ``y`` holds the W_k; ``smat`` (6, 6) and ``sv`` (2, 6) scratch.

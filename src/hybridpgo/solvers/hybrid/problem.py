@@ -26,7 +26,7 @@ class Problem(NamedTuple):
     num_edges: int
     """M: constraints ``c < M`` are relative edges, ``c >= M`` are GPS readings ``c - M``."""
     path_ptr: npt.NDArray[np.int64]
-    """(C+1,) CSR offsets of the constraint domains (tree paths, DESIGN §2)."""
+    """(C+1,) CSR offsets of the constraint domains (tree paths, docs/mathematics.md#pose-tree)."""
     path_node: npt.NDArray[np.int32]
     """(nnz,) domain nodes: the a side from a upwards, then the b side from b upwards."""
     path_sign: npt.NDArray[np.int8]
@@ -51,7 +51,8 @@ class Problem(NamedTuple):
     link_forward: npt.NDArray[np.bool_]
     """(T,) True when the linking edge is stored as (parent, child)."""
     robust_kind: int = 0
-    """Robust kernel code (:data:`hybridpgo._cost.ROBUST_NAMES`; 0: none, DESIGN §10)."""
+    """Robust kernel code (:data:`hybridpgo._cost.ROBUST_NAMES`; 0: none,
+    docs/conventions.md#robust-kernels)."""
     robust_scale: float = 1.0
     """The robust kernel's delta."""
 
@@ -193,6 +194,6 @@ class StepKind(enum.IntEnum):
     """How the single-constraint system (paper eq. 25) is solved."""
 
     WOODBURY = 0
-    """O(d): ``x = B^-1 J^T (I + J B^-1 J^T)^-1 r`` (DESIGN §4, default)."""
+    """O(d): ``x = B^-1 J^T (I + J B^-1 J^T)^-1 r`` (docs/mathematics.md#hybrid-step, default)."""
     GIVENS = 1
     """O(d^2): the paper's Givens triangularization (eq. 29-30)."""

@@ -18,6 +18,7 @@ import numpy.typing as npt
 
 from ..._cost import robust_kind
 from ..._numba import cycles_per_second, read_cycles
+from ..._warmup import tiny_graph
 from ...energy import energy, robust_energy
 from ...errors import SolverError
 from ...graph import FloatArray, PoseGraph
@@ -50,7 +51,8 @@ class StepReport(NamedTuple):
 
 
 def _whitening(information: FloatArray, k: int) -> FloatArray:
-    """``L^T`` (upper triangular) of every information matrix, ``Omega = L L^T`` (DESIGN §1).
+    """``L^T`` (upper triangular) of every information matrix, ``Omega = L L^T``
+    (docs/conventions.md).
 
     A diagonal matrix (most generated and many file informations) gets ``sqrt`` of its
     diagonal, which is what the Cholesky factorization computes for it; the others are
@@ -62,7 +64,7 @@ def _whitening(information: FloatArray, k: int) -> FloatArray:
     diag = information.reshape(m, k * k)[:, :: k + 1]
     if np.count_nonzero(information) != np.count_nonzero(diag) or not np.all(diag > 0.0):
         out = np.ascontiguousarray(np.swapaxes(np.linalg.cholesky(information), 1, 2))
-        return out  # (not positive definite: LAPACK's error, as before)
+        return out  # (not positive definite: LAPACK's error)
     lt = np.zeros((m, k, k))
     lt.reshape(m, k * k)[:, :: k + 1] = np.sqrt(diag)
     return lt
@@ -156,7 +158,8 @@ class HybridSolver:
         return global_poses(self.tree, self.state.rot, self.state.trans)
 
     def energy(self) -> float:
-        """E of the current estimate (E_rho with a robust kernel, DESIGN §10)."""
+        """E of the current estimate (E_rho with a robust kernel,
+        docs/conventions.md#robust-kernels)."""
         return self.energies()[0]
 
     def energies(self) -> tuple[float, float]:
@@ -488,7 +491,8 @@ def ensure_compiled(gps: bool = False, interpolate: bool = False,
     """Compile (or load from Numba's cache) the kernels a solve uses; returns the seconds spent.
 
     Runs a three-pose graph once per process and variant, so a caller's ``analyze`` and
-    ``solve`` times are not inflated by compilation (STYLE.md §6).  Only what is asked is
+    ``solve`` times are not inflated by compilation (docs/contributing.md#solver-api).  Only what
+    is asked is
     compiled: the sweep variant of ``(gps, interpolate, givens)`` (which also builds 𝔅(H)
     below :data:`INIT_KERNEL_ENTRIES`); the GPS batches (III-G) with ``gps``, interpolated
     solving (III-E) with ``interpolate``, the Givens solve instead of Woodbury's with
@@ -501,20 +505,9 @@ def ensure_compiled(gps: bool = False, interpolate: bool = False,
         return 0.0
     _COMPILED.update(todo)  # first: the tiny solves below construct solvers too
     t0 = time.perf_counter()
-    eye = np.tile(np.eye(3), (3, 1, 1))
-    tiny = PoseGraph(
-        node_ids=np.arange(3), rotations=eye, translations=np.eye(3),
-        edge_nodes=np.array([[0, 1], [1, 2], [0, 2]], np.int32), edge_rotations=eye,
-        edge_translations=np.ones((3, 3)), edge_information=np.tile(np.eye(6), (3, 1, 1)),
-        gps_nodes=np.array([2], np.int32), gps_positions=np.ones((1, 3)),
-        gps_information=np.eye(3)[None],
-    )
-    no_gps = dataclasses.replace(tiny, gps_nodes=np.zeros(0, np.int32),
-                                 gps_positions=np.zeros((0, 3)),
-                                 gps_information=np.zeros((0, 3, 3)))
     try:
         for with_gps, with_interp, with_givens in todo:
-            HybridSolver(tiny if with_gps else no_gps,
+            HybridSolver(tiny_graph(gps=with_gps),
                          HybridConfig(sweeps=1, init="tree", dmax=2 if with_interp else None,
                                       step="givens" if with_givens else "woodbury")).run()
     except BaseException:
