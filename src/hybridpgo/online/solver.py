@@ -13,8 +13,9 @@ arrays grow without copies; the updates are the whole-graph solver's relaxation 
   the rest of the budget on older constraints, largest last χ² first among a bounded candidate
   set (the newest constraints, which act near the robot, and a window that cycles through
   all).  An update is started only when its predicted cost fits before the deadline.
-* **Staying accurate** (``OnlineConfig.background_refine``): a worker process solves the whole
-  map exactly over and over and each answer is adopted in one copy (:mod:`._link`).
+* **Staying accurate** (``OnlineConfig.background_refine``, on by default): a worker process
+  keeps the whole map at its optimum with an incremental exact solver and each answer is
+  adopted in one copy (:mod:`._link`, :mod:`.worker`).
 
 Constraints are numbered in arrival order at the API (relative edges and GPS readings each
 from 0); inside, the store's one index (edges, then GPS readings at the edge capacity).
