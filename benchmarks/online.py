@@ -167,7 +167,8 @@ def _targets(name: str, runs: dict[str, ReplayResult], optima: dict[int, float]
                    f"CPU max {rcpu:.1f})")
     else:
         row.append("-")
-    isam = runs.get("isam2")
+    # "isam2", or "isam2 (stopped at frame F)" when ISAM2_MAX_S cut it short
+    isam = next((r for k, r in runs.items() if k.startswith("isam2")), None)
     if isam is not None:
         ratio = float(isam.cpu_s.max() / bg.cpu_s.max())
         theirs = isam.summary(optima)["energy_ratio"]
