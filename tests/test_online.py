@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -72,7 +73,7 @@ def test_stream_frames_bring_each_edge_once_odometry_first() -> None:
 def test_paths_follow_tree_conventions() -> None:
     """a side from a upward (-1), b side from b upward (+1), LCA excluded; GPS: n upward."""
     g = _graph(gps=4)
-    s = OnlineSolver()
+    s = OnlineSolver(OnlineConfig(background_refine=False))
     _stream(s, g, range(g.num_nodes))
     parent = s.store.parent
     cm = s.store.cap_m
@@ -108,7 +109,7 @@ def test_oldest_tree_is_shallower_than_the_odometry_chain() -> None:
     g = _graph(n=60, extra=40)
     depth = {}
     for tree in ("oldest", "odometry"):
-        s = OnlineSolver(OnlineConfig(tree=tree))
+        s = OnlineSolver(OnlineConfig(background_refine=False, tree=tree))
         _stream(s, g, range(g.num_nodes))
         depth[tree] = s.stats()["path_entries"]
         # whatever the tree, the estimate explains the same constraints
@@ -122,7 +123,7 @@ def test_estimate_approaches_the_batch_optimum() -> None:
     g = _graph(seed=1)
     st = make_stream(g)
     opt = prefix_optima(st, [st.num_frames])[st.num_frames]
-    s = OnlineSolver()
+    s = OnlineSolver(OnlineConfig(background_refine=False))
     _stream(s, g, range(g.num_nodes), updates=None)
     for _ in range(50):
         s.update(None, None)
@@ -147,7 +148,7 @@ def test_city_loops_through_stiff_odometry_converge() -> None:
     opt = prefix_optima(st, [n])[n]
     ratios = {}
     for junctions in (True, False):
-        s = OnlineSolver(OnlineConfig(junctions=junctions))
+        s = OnlineSolver(OnlineConfig(background_refine=False, junctions=junctions))
         for k in range(n):
             feed_frame(s, st, k)
             s.update(None, 40)
@@ -162,20 +163,20 @@ def test_gps_poses_hang_from_the_earth() -> None:
     """gps_link: a pose whose frame brings a GPS reading hangs from the earth, so the reading's
     domain is that one node (no GPS frame pays for a path to the start of the map)."""
     g = _graph(seed=2, n=60, gps=8)
-    s = OnlineSolver()
+    s = OnlineSolver(OnlineConfig(background_refine=False))
     _stream(s, g, range(g.num_nodes))
     cm = s.store.cap_m
     lengths = np.diff(s.store.ptr[cm: cm + s.num_gps + 1])
     nodes = s.store.gps_node[: s.num_gps] + 1
     assert np.all(lengths == 1) and np.all(s.store.parent[nodes] == 0)
-    off = OnlineSolver(OnlineConfig(gps_link=False))
+    off = OnlineSolver(OnlineConfig(background_refine=False, gps_link=False))
     _stream(off, g, range(g.num_nodes))
     cm = off.store.cap_m
     assert np.diff(off.store.ptr[cm: cm + off.num_gps + 1]).max() > 1
 
 
 def _odometry_start(st):  # type: ignore[no-untyped-def]
-    s = OnlineSolver()
+    s = OnlineSolver(OnlineConfig(background_refine=False))
     for k in range(st.num_frames):
         feed_frame(s, st, k)
     return s.estimate()
@@ -185,7 +186,7 @@ def test_first_gps_reading_after_many_poses_moves_the_map() -> None:
     """The earth is the root from the start: the first pose stays put until GPS arrives."""
     g = _graph(seed=2, n=40, gps=0)
     st = make_stream(g)
-    s = OnlineSolver()
+    s = OnlineSolver(OnlineConfig(background_refine=False))
     _stream(s, g, range(30), updates=None)
     r0, t0 = s.pose(int(g.node_ids[st.order[0]]))
     assert np.array_equal(r0, np.eye(3)) and np.array_equal(t0, np.zeros(3))
@@ -216,8 +217,8 @@ def test_local_batch_is_the_whole_graph_batch_step_without_zero_blocks() -> None
     from hybridpgo.solvers.hybrid.problem import NUM_COUNTS
 
     g = _graph(seed=3)
-    a, b = OnlineSolver(OnlineConfig(reserve_poses=64)), OnlineSolver(
-        OnlineConfig(reserve_poses=64))
+    a, b = OnlineSolver(OnlineConfig(background_refine=False, reserve_poses=64)), OnlineSolver(
+        OnlineConfig(background_refine=False, reserve_poses=64))
     for s in (a, b):  # no budget: the two states are the same
         _stream(s, g, range(g.num_nodes))
     cs = np.array([3, 9, 17, 21], np.int64)
@@ -236,7 +237,7 @@ def test_local_batch_is_the_whole_graph_batch_step_without_zero_blocks() -> None
 
 def test_local_solve_runs_and_keeps_the_estimate_finite() -> None:
     g = _graph(seed=4)
-    s = OnlineSolver(OnlineConfig(local_size=6))
+    s = OnlineSolver(OnlineConfig(background_refine=False, local_size=6))
     st = make_stream(g)
     moved = 0
     for k in range(st.num_frames):
@@ -249,7 +250,7 @@ def test_local_solve_runs_and_keeps_the_estimate_finite() -> None:
 def test_update_stops_early_on_a_backlog() -> None:
     g = _graph(n=120, extra=60)
     st = make_stream(g)
-    s = OnlineSolver()
+    s = OnlineSolver(OnlineConfig(background_refine=False))
     for k in range(st.num_frames):
         feed_frame(s, st, k)
     total = s.backlog
@@ -266,8 +267,8 @@ def test_update_stops_early_on_a_backlog() -> None:
 def test_arrays_grow_without_changing_results() -> None:
     """Capacity doubling (edges, GPS, paths, queue) gives bit-identical results."""
     g = _graph(seed=5, n=50, extra=30, gps=6)
-    small = OnlineSolver(OnlineConfig(reserve_poses=1))
-    big = OnlineSolver(OnlineConfig(reserve_poses=4096))
+    small = OnlineSolver(OnlineConfig(background_refine=False, reserve_poses=1))
+    big = OnlineSolver(OnlineConfig(background_refine=False, reserve_poses=4096))
     for s in (small, big):
         _stream(s, g, range(g.num_nodes))
     assert small.store.cap_n < big.store.cap_n
@@ -281,8 +282,8 @@ def test_arrays_grow_without_changing_results() -> None:
 def test_rejected_calls_change_nothing() -> None:
     g = _graph(seed=6, gps=3)
     st = make_stream(g)
-    ref = OnlineSolver()
-    s = OnlineSolver()
+    ref = OnlineSolver(OnlineConfig(background_refine=False))
+    s = OnlineSolver(OnlineConfig(background_refine=False))
     _stream(ref, g, range(20))
     _stream(s, g, range(20))
     before = _state(s)
@@ -325,8 +326,8 @@ def test_rejected_calls_change_nothing() -> None:
 def test_save_load_continue_is_bit_identical(tmp_path: Path) -> None:
     g = _graph(seed=7, n=60, extra=30, gps=5)
     st = make_stream(g)
-    ref = OnlineSolver(OnlineConfig(local_size=3, reserve_poses=8))
-    s = OnlineSolver(OnlineConfig(local_size=3, reserve_poses=8))
+    ref = OnlineSolver(OnlineConfig(background_refine=False, local_size=3, reserve_poses=8))
+    s = OnlineSolver(OnlineConfig(background_refine=False, local_size=3, reserve_poses=8))
     _stream(ref, g, range(25))
     _stream(s, g, range(25))
     feed_frame(s, st, 25)  # pending input is saved too
@@ -348,7 +349,7 @@ def test_save_load_continue_is_bit_identical(tmp_path: Path) -> None:
 
 
 def test_save_is_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    s = OnlineSolver()
+    s = OnlineSolver(OnlineConfig(background_refine=False))
     _stream(s, _graph(), range(10))
     path = tmp_path / "state.npz"
     s.save(path)
@@ -365,7 +366,7 @@ def test_save_is_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None
 
 
 def test_load_rejects_truncated_and_foreign_files(tmp_path: Path) -> None:
-    s = OnlineSolver()
+    s = OnlineSolver(OnlineConfig(background_refine=False))
     _stream(s, _graph(), range(10))
     path = tmp_path / "state.npz"
     s.save(path)
@@ -400,7 +401,7 @@ def test_config_is_checked() -> None:
 def test_pending_poses_have_an_estimate() -> None:
     g = _graph(seed=8)
     st = make_stream(g)
-    s = OnlineSolver()
+    s = OnlineSolver(OnlineConfig(background_refine=False))
     for k in range(5):
         feed_frame(s, st, k)
     _rot, trans = s.estimate()  # nothing placed yet: the odometry chain from the identity
@@ -435,8 +436,9 @@ def test_cli_replay_json(capsys: pytest.CaptureFixture[str], data_dir: Path) -> 
                "--extra-frames", "3", "--json", "--quiet"])
     assert rc == 0
     out = json.loads(capsys.readouterr().out)
-    r = out["solvers"]["hybridpgo"]
+    r = out["solvers"]["hybridpgo+background"]  # the worker runs by default
     assert out["frames"] == r["frames"] == 9
+    assert r["info"]["background"]["error"] is None
     assert set(out["optima"]) == {"4", "8", "9"}
     assert len(r["extra_ratio"]) == 3 and r["latency_ms_max"] >= r["latency_ms_mean"] > 0
 
@@ -517,7 +519,7 @@ def test_adoption_keeps_newer_poses_relative_to_their_parents() -> None:
     from hybridpgo.online.worker import Refined
 
     g = _graph(seed=13, n=40, extra=20)
-    s = OnlineSolver(OnlineConfig(background_rebase=False))
+    s = OnlineSolver(OnlineConfig(background_refine=False, background_rebase=False))
     _stream(s, g, range(g.num_nodes))
     rot0, trans0 = s.estimate()
     parent = s.store.parent[1: s.store.n + 1] - 1  # pose index of each tree parent (-1: earth)
@@ -544,7 +546,7 @@ def test_adoption_with_rebase_queues_the_tail_once() -> None:
     from hybridpgo.online.worker import Refined
 
     g = _graph(seed=14, n=30, extra=10)
-    s = OnlineSolver()
+    s = OnlineSolver(OnlineConfig(background_refine=False))
     _stream(s, g, range(g.num_nodes))
     rot, trans = s.store.rot[1:11].copy(), s.store.trans[1:11].copy()
     s.store.push(s.store.m - 1)  # a queued constraint that is also in the tail
@@ -666,9 +668,10 @@ def test_background_worker_waits_ready_and_runs_one_thread() -> None:
     fighting the frames for the other core made its solves 4-10x slower)."""
     from hybridpgo.online import worker
 
-    assert OnlineSolver(OnlineConfig()).wait_background_ready(1.0) is False
-    with OnlineSolver(OnlineConfig(background_refine=True)) as s:
-        assert s.wait_background_ready(120.0)
+    assert OnlineSolver(OnlineConfig(background_refine=False)).wait_background_ready(1.0) is False
+    assert OnlineConfig().background_refine  # on by default
+    with OnlineSolver() as s:
+        assert s.worker_pid is not None and s.wait_background_ready(120.0)
         environ = Path(f"/proc/{s.worker_pid}/environ")
         if environ.exists():  # Linux
             env = dict(v.split("=", 1) for v in environ.read_text().split("\0") if "=" in v)
@@ -676,14 +679,27 @@ def test_background_worker_waits_ready_and_runs_one_thread() -> None:
                 assert env.get(key) == value, key
 
 
-@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
-def test_background_worker_solves_a_planar_map_in_the_plane(data_dir: Path,
-                                                            monkeypatch: pytest.MonkeyPatch
-                                                            ) -> None:
-    """The worker hands a map without GPS to solve_exact as is_2d, which takes the (x, y, yaw)
-    system when the map is exactly planar: same optimum as the 3D solve."""
-    from hybridpgo.io import read_graph
+def _worker_map(s: OnlineSolver, robust: tuple[str, float | None]) -> Any:
+    """A worker's map (:class:`hybridpgo.online.worker._Map`) holding all of ``s``'s map."""
     from hybridpgo.online import worker
+
+    mp = worker._Map(robust)
+    st = s.store
+    t, m = st.placed + 1, st.m
+    mp.add({"parent": st.parent[1:t], "rot": st.rot[1:t], "trans": st.trans[1:t],
+            "edge_ab": st.edge_ab[:m], "edge_rot": st.edge_rot[:m],
+            "edge_trans": st.edge_trans[:m], "edge_info": st.edge_info[:m],
+            "gps_node": st.gps_node[:0], "gps_pos": st.gps_pos[:0], "gps_info": st.gps_info[:0]})
+    return mp
+
+
+@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
+def test_background_worker_robust_solves_a_planar_map_in_the_plane(
+        data_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With a robust kernel the worker hands a map without GPS to solve_exact as is_2d, which
+    takes the (x, y, yaw) system when the map is exactly planar (Huber with a delta above every
+    residual: the optimum of the squared loss)."""
+    from hybridpgo.io import read_graph
     from hybridpgo.solvers import gauss_newton
 
     g = read_graph(data_dir / "w100_toro.graph")
@@ -697,15 +713,10 @@ def test_background_worker_solves_a_planar_map_in_the_plane(data_dir: Path,
         return seen[-1]
 
     monkeypatch.setattr(gauss_newton, "is_planar", spy)
-    s = OnlineSolver(OnlineConfig())
+    s = OnlineSolver(OnlineConfig(background_refine=False))
     _stream(s, g, range(g.num_nodes))
-    mp = worker._Map()
-    st = s.store
-    t, m = st.placed + 1, st.m
-    mp.add({"parent": st.parent[1:t], "rot": st.rot[1:t], "trans": st.trans[1:t],
-            "edge_ab": st.edge_ab[:m], "edge_rot": st.edge_rot[:m],
-            "edge_trans": st.edge_trans[:m], "edge_info": st.edge_info[:m],
-            "gps_node": st.gps_node[:0], "gps_pos": st.gps_pos[:0], "gps_info": st.gps_info[:0]})
+    mp = _worker_map(s, ("huber", 1e6))
+    assert mp.inc is None
     _, meta = mp.solve(50)
     assert seen and all(seen)
     assert abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
@@ -716,10 +727,75 @@ def test_a_budget_beyond_the_clock_is_no_deadline() -> None:
     frame as ``update(None)``."""
     g = _graph()
     st = make_stream(g)
-    a, b = OnlineSolver(), OnlineSolver()
+    cfg = OnlineConfig(background_refine=False)
+    a, b = OnlineSolver(cfg), OnlineSolver(cfg)
     for k in range(st.num_frames):
         feed_frame(a, st, k)
         feed_frame(b, st, k)
         a.update(1e12, UPDATES)
         b.update(None, UPDATES)
     _same(_state(a), _state(b), timing=False)
+
+
+@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
+def test_background_worker_falls_back_to_lm_when_the_incremental_solve_fails(
+        data_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An incremental solve that raises (a factorization that is not positive definite) hands
+    the map to the LM solve, which still reaches the optimum, and says why."""
+    from hybridpgo.errors import SolverError
+    from hybridpgo.io import read_graph
+
+    g = read_graph(data_dir / "w100_toro.graph")
+    st = make_stream(g)
+    opt = prefix_optima(st, [st.num_frames])[st.num_frames]
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    _stream(s, g, range(g.num_nodes))
+    mp = _worker_map(s, ("none", None))
+
+    def broken(*args: object, **kwargs: object) -> bool:
+        raise SolverError("normal equations are not positive definite")
+
+    monkeypatch.setattr(mp.inc, "solve", broken)
+    _, meta = mp.solve(50)
+    assert mp.inc is None and not meta["incremental"]
+    assert "not positive definite" in meta["fallback"]
+    assert abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
+    _, meta = mp.solve(50)  # later requests stay on LM
+    assert not meta["incremental"] and abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
+
+
+@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
+def test_background_worker_incremental_reaches_the_optimum(data_dir: Path) -> None:
+    """Without a robust kernel the worker's map is an IncrementalExact: one request on the
+    whole map, then more data and a second request, each ends at the prefix optimum, and the
+    locals it returns compose to poses of that energy."""
+    from hybridpgo.io import read_graph
+
+    g = read_graph(data_dir / "w100_toro.graph")
+    st = make_stream(g)
+    half = g.num_nodes // 2
+    opts = prefix_optima(st, [half, st.num_frames])
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    _stream(s, g, range(half))
+    mp = _worker_map(s, ("none", None))
+    assert mp.inc is not None
+    _, meta = mp.solve(50)
+    assert meta["n"] == s.store.placed
+    assert abs(meta["energy"] - opts[half]) <= ONLINE_REFINED * opts[half]
+    _stream(s, g, range(half, g.num_nodes))
+    store = s.store
+    n0, m0 = mp.n, mp.m
+    t, m = store.placed + 1, store.m
+    mp.add({"parent": store.parent[n0 + 1:t], "rot": store.rot[n0 + 1:t],
+            "trans": store.trans[n0 + 1:t], "edge_ab": store.edge_ab[m0:m],
+            "edge_rot": store.edge_rot[m0:m], "edge_trans": store.edge_trans[m0:m],
+            "edge_info": store.edge_info[m0:m], "gps_node": store.gps_node[:0],
+            "gps_pos": store.gps_pos[:0], "gps_info": store.gps_info[:0]})
+    arrays, meta = mp.solve(50)
+    opt = opts[st.num_frames]
+    assert meta["status"] == "converged" and meta["iterations"] >= 1
+    assert abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
+    # the locals returned are the estimate's: adopted into the store, the same energy
+    store.rot[1: meta["n"] + 1] = arrays["rot"]
+    store.trans[1: meta["n"] + 1] = arrays["trans"]
+    assert abs(s.energy() - meta["energy"]) <= 1e-9 * opt

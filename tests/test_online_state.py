@@ -22,7 +22,7 @@ from hybridpgo.online.replay import feed_frame, make_stream
 
 def _solver(n: int = 10, gps: int = 3, seed: int = 0) -> OnlineSolver:
     g, _, _ = random_graph(np.random.default_rng(seed), n=n + 6, extra=8, gps=gps, noise=0.02)
-    s = OnlineSolver(OnlineConfig(reserve_poses=64))
+    s = OnlineSolver(OnlineConfig(reserve_poses=64, background_refine=False))
     st = make_stream(g)
     for k in range(n):
         feed_frame(s, st, k)

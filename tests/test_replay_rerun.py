@@ -12,6 +12,7 @@ from tolerances import FLOAT64_IDENTITY
 
 from hybridpgo.energy import energy
 from hybridpgo.io import read_graph
+from hybridpgo.online import OnlineConfig
 from hybridpgo.online.replay import make_stream, replay_online
 
 
@@ -43,7 +44,8 @@ def test_frame_recorder_logs_the_prefix_at_the_current_estimate(tiny: Path) -> N
         kk = min(k, stream.num_frames)
         robots[k] = solver.pose(int(graph.node_ids[stream.order[kk - 1]]))[1]  # type: ignore
 
-    res = replay_online(stream, None, 5e-3, extra_frames=3, on_frame=both)
+    res = replay_online(stream, OnlineConfig(background_refine=False), 5e-3, extra_frames=3,
+                        on_frame=both)
     nf = stream.num_frames
     assert [c[0] for c in rec.calls] == list(range(1, nf + 4))
     maps = {c[0]: c[3] for c in rec.calls if c[3] is not None}
@@ -78,6 +80,7 @@ def test_replay_rerun_records_every_frame(capsys: pytest.CaptureFixture[str], ti
     pytest.importorskip("rerun")
     rrd = tmp_path / "run.rrd"
     code, out, err = run_cli(capsys, "replay", tiny, "--every", "0", "--extra-frames", "3",
+                             "--no-background-refine",
                              "--rerun", rrd, "--rerun-every", every, "--json", "--quiet")
     assert code == 0, err
     summary = json.loads(out)

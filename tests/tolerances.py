@@ -56,3 +56,7 @@ ISAM2_VS_OPTIMUM = 1e-3
 #: The default pipeline (``--solver auto``) vs the best optimum known (LM from the truth, the
 #: file, the chordal and the tree starts): the optimum to 1e-6 relative.
 OPTIMUM_RELATIVE = 1e-6
+
+#: The incremental exact solver run to convergence vs the batch exact solver (LM with energy
+#: tolerance 1e-15) on the same graph, relative energy.
+INCREMENTAL_VS_BATCH = 1e-9

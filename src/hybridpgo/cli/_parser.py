@@ -674,9 +674,10 @@ def _build_parser() -> argparse.ArgumentParser:
                         "frame (default 0: off)")
     p.add_argument("--background-refine", action=argparse.BooleanOptionalAction,
                    default=None,
-                   help="run the exact whole-map solve over and over in a worker process and "
-                        "adopt each result in the next frame (default: the library's, "
-                        "OnlineConfig.background_refine)")
+                   help="keep the whole map at its optimum in a worker process (an "
+                        "incremental exact solver) and adopt each answer in the next frame "
+                        "(default: on, the library's OnlineConfig.background_refine; "
+                        "--no-background-refine: no worker process)")
     p.add_argument("--plot", metavar="PREFIX",
                    help="write PREFIX_latency.png and PREFIX_energy.png (needs matplotlib)")
     p.add_argument("--rerun", metavar="RRD",

@@ -17,8 +17,9 @@ arrays grow without copies; the updates are the whole-graph solver's relaxation 
   update); what does not fit stays queued for the next frames, in arrival order.  Building the
   first solver of a process freezes the objects alive then (:func:`gc.freeze`), so no frame
   pays for a full garbage collection of the compiled kernels.
-* **Staying accurate** (``OnlineConfig.background_refine``): a worker process solves the whole
-  map exactly over and over and each answer is adopted in one copy (:mod:`._link`).
+* **Staying accurate** (``OnlineConfig.background_refine``, on by default): a worker process
+  keeps the whole map at its optimum with an incremental exact solver and each answer is
+  adopted in one copy (:mod:`._link`, :mod:`.worker`).
 
 Constraints are numbered in arrival order at the API (relative edges and GPS readings each
 from 0); inside, the store's one index (edges, then GPS readings at the edge capacity).

@@ -1,0 +1,738 @@
+"""Kernels of the incremental exact solver (:mod:`.incremental`).
+
+The normal equations ``H delta = -g`` of the map linearized at the linearization point theta
+(right perturbations, tangent order (rho, phi), ``E = sum_c e_c^T Omega_c e_c``: the exact
+solver's conventions, :mod:`hybridpgo.solvers._gn_kernels`) are kept factored, ``H = L L^T``,
+by 6x6 blocks, one block column per free pose ("variable").  The elimination order is a
+position per variable (a stamp that only grows: a variable re-eliminated later gets a larger
+one), the elimination tree ``parent`` is the smallest-position row of each column.  A column
+stores its rows (variables, in no particular order) and their blocks in a pool; the factored
+diagonal block apart.
+
+One update ("cycle") re-eliminates only the set S of columns whose values changed (the ends
+of the constraints that are new or were relinearized) and all their ancestors in the
+elimination tree: every other column of L, and its forward-substitution value ``y = L^-1 (-g)``,
+stays as it is, since a column depends only on its descendants.  S is given fresh positions
+after every other column, in a new fill-reducing order; the columns hanging below S (the
+"orphans") keep their blocks, and only their parent pointer changes.  Then
+
+* :func:`symbolic` computes the rows of each column of S (its constraints to later variables
+  of S, and its children's rows), its parent and the children lists;
+* :func:`numeric` factors the columns of S in order, left-looking: column j takes the update of
+  every earlier column k with a block in row j (found by walking the elimination tree up from
+  j's constraint neighbours, "ereach"), including the unchanged ones below S; the forward
+  substitution ``y_j`` is computed in the same pass;
+* :func:`back_substitute` solves ``L^T x = y`` from the roots down, recomputing a column when it
+  is in S or one of its rows changed by more than a threshold (0: exact), so the unchanged
+  rest of the map is not visited.
+
+Resumable: :func:`numeric` and :func:`back_substitute` stop when the cycle counter passes a
+deadline and are called again from where they stopped.  Status codes instead of exceptions.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .._cost import SCRATCH, chi2, retract_into
+from .._numba import cycle_counter, kernel
+from ..solvers._gn_kernels import _edge_linearization, _matmul6
+
+#: numeric: a pivot of a diagonal block was not positive (the system is not SPD).
+NOT_SPD = -2
+#: numeric / symbolic: the elimination tree walk did not reach the column (internal error).
+BROKEN_TREE = -3
+#: symbolic: the row pool is full; grow it and call again from ``pool_used[1]``.
+POOL_FULL = -4
+#: symbolic: the deadline passed; call again from ``pool_used[1]``.
+PAST_DEADLINE = -5
+
+
+# --------------------------------------------------------------------------- linearization
+@kernel
+def linearize_edges(ids: np.ndarray, rot: np.ndarray, trans: np.ndarray, ab: np.ndarray,
+                    zr: np.ndarray, zt: np.ndarray, info: np.ndarray, haa: np.ndarray,
+                    hbb: np.ndarray, hab: np.ndarray, ga: np.ndarray, gb: np.ndarray,
+                    chi: np.ndarray) -> int:
+    """Each listed edge's blocks of H and g at the poses ``rot, trans`` (the linearization
+    point): ``haa = Ja^T W Ja``, ``hbb = Jb^T W Jb``, ``hab = Ja^T W Jb`` (block (a, b)),
+    ``ga = Ja^T W e``, ``gb = Jb^T W e``, its χ².  Returns -1, or the first non-finite edge."""
+    w = np.empty((SCRATCH, 3, 3))
+    e = np.empty(6)
+    oe = np.empty(6)
+    ja = np.empty((6, 6))
+    jb = np.empty((6, 6))
+    wa = np.empty((6, 6))
+    wb = np.empty((6, 6))
+    for q in range(ids.shape[0]):
+        c = ids[q]
+        a = ab[c, 0]
+        b = ab[c, 1]
+        _edge_linearization(rot[a], trans[a], rot[b], trans[b], zr[c], zt[c], e, ja, jb, w)
+        om = info[c]
+        s = chi2(om, e, 6, oe)
+        if not math.isfinite(s):
+            return int(c)
+        chi[c] = s
+        _matmul6(om, ja, wa)
+        _matmul6(om, jb, wb)
+        for p in range(6):
+            sa = 0.0
+            sb = 0.0
+            for k in range(6):
+                sa += ja[k, p] * oe[k]
+                sb += jb[k, p] * oe[k]
+            ga[c, p] = sa
+            gb[c, p] = sb
+            for r in range(6):
+                s1 = 0.0
+                s2 = 0.0
+                s3 = 0.0
+                for k in range(6):
+                    s1 += ja[k, p] * wa[k, r]
+                    s2 += jb[k, p] * wb[k, r]
+                    s3 += ja[k, p] * wb[k, r]
+                haa[c, p, r] = s1
+                hbb[c, p, r] = s2
+                hab[c, p, r] = s3
+        for p in range(6):
+            for r in range(6):
+                if not (math.isfinite(haa[c, p, r]) and math.isfinite(hbb[c, p, r])
+                        and math.isfinite(hab[c, p, r])):
+                    return int(c)
+    return -1
+
+
+@kernel
+def linearize_gps(ids: np.ndarray, rot: np.ndarray, trans: np.ndarray, node: np.ndarray,
+                  pos: np.ndarray, info: np.ndarray, hgg: np.ndarray, gg: np.ndarray,
+                  chi: np.ndarray) -> int:
+    """Position constraints ``e = t_n - g``, ``J = [R_n | 0]``: ``hgg = R^T Omega R`` (the
+    (rho, rho) block of H), ``gg = R^T Omega e``, χ².  Returns -1, or the first non-finite."""
+    e = np.empty(3)
+    oe = np.empty(3)
+    for q in range(ids.shape[0]):
+        c = ids[q]
+        n = node[c]
+        r = rot[n]
+        om = info[c]
+        for i in range(3):
+            e[i] = trans[n, i] - pos[c, i]
+        s = chi2(om, e, 3, oe)
+        if not math.isfinite(s):
+            return int(c)
+        chi[c] = s
+        for p in range(3):
+            gg[c, p] = r[0, p] * oe[0] + r[1, p] * oe[1] + r[2, p] * oe[2]
+            for qq in range(3):
+                acc = 0.0
+                for k in range(3):
+                    for m in range(3):
+                        acc += r[k, p] * om[k, m] * r[m, qq]
+                hgg[c, p, qq] = acc
+    return -1
+
+
+# --------------------------------------------------------------------------- the set S
+@kernel
+def ancestor_closure(cands: np.ndarray, free: np.ndarray, parent: np.ndarray,
+                     in_s: np.ndarray, stamp: int, out: np.ndarray) -> int:
+    """S: the free candidates and all their ancestors (each once; ``in_s[v] = stamp`` marks
+    them).  Writes S to ``out`` and returns its size."""
+    k = 0
+    for q in range(cands.shape[0]):
+        v = cands[q]
+        while v >= 0 and free[v] and in_s[v] != stamp:
+            in_s[v] = stamp
+            out[k] = v
+            k += 1
+            v = parent[v]
+    return k
+
+
+@kernel
+def find_orphans(s_vars: np.ndarray, in_s: np.ndarray, stamp: int, ch_head: np.ndarray,
+                 ch_next: np.ndarray, out: np.ndarray) -> int:
+    """The columns outside S whose parent is in S; returns how many were written to ``out``."""
+    k = 0
+    for q in range(s_vars.shape[0]):
+        c = ch_head[s_vars[q]]
+        while c >= 0:
+            if in_s[c] != stamp:
+                out[k] = c
+                k += 1
+            c = ch_next[c]
+    return k
+
+
+@kernel
+def reduced_pattern(s_vars: np.ndarray, orphans: np.ndarray, in_s: np.ndarray, stamp: int,
+                    local: np.ndarray, free: np.ndarray, ab: np.ndarray, inc_head: np.ndarray,
+                    inc_next: np.ndarray, col_start: np.ndarray, col_len: np.ndarray,
+                    row_var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The block pattern of the system S is re-eliminated from (local indices ``local[v]``):
+    the constraints between variables of S, and a clique over the rows of each orphan (its
+    subtree's Schur complement).  Both orientations of each pair (duplicates allowed)."""
+    cap = 64
+    for q in range(s_vars.shape[0]):
+        v = s_vars[q]
+        i = inc_head[v]
+        while i >= 0:
+            cap += 2
+            i = inc_next[i]
+    for q in range(orphans.shape[0]):
+        n = col_len[orphans[q]]
+        cap += n * n
+    rows = np.empty(cap, np.int64)
+    cols = np.empty(cap, np.int64)
+    k = 0
+    for q in range(s_vars.shape[0]):
+        v = s_vars[q]
+        i = inc_head[v]
+        while i >= 0:
+            c = i >> 1
+            u = ab[c, 1 - (i & 1)]
+            if u != v and free[u] and in_s[u] == stamp:
+                rows[k] = local[v]
+                cols[k] = local[u]
+                k += 1
+            i = inc_next[i]
+    for q in range(orphans.shape[0]):
+        o = orphans[q]
+        s0 = col_start[o]
+        n = col_len[o]
+        for x in range(n):
+            for y in range(n):
+                if x != y:
+                    rows[k] = local[row_var[s0 + x]]
+                    cols[k] = local[row_var[s0 + y]]
+                    k += 1
+    return rows[:k], cols[:k]
+
+
+# --------------------------------------------------------------------------- tree lists
+@kernel
+def _unlink(v: int, parent: np.ndarray, ch_head: np.ndarray, ch_next: np.ndarray,
+            ch_prev: np.ndarray) -> None:
+    p = parent[v]
+    if p < 0:
+        return
+    nx = ch_next[v]
+    pv = ch_prev[v]
+    if pv >= 0:
+        ch_next[pv] = nx
+    else:
+        ch_head[p] = nx
+    if nx >= 0:
+        ch_prev[nx] = pv
+    ch_next[v] = -1
+    ch_prev[v] = -1
+
+
+@kernel
+def _link(v: int, p: int, parent: np.ndarray, ch_head: np.ndarray, ch_next: np.ndarray,
+          ch_prev: np.ndarray) -> None:
+    parent[v] = p
+    ch_prev[v] = -1
+    if p < 0:
+        ch_next[v] = -1
+        return
+    h = ch_head[p]
+    ch_next[v] = h
+    if h >= 0:
+        ch_prev[h] = v
+    ch_head[p] = v
+
+
+# --------------------------------------------------------------------------- symbolic
+@kernel
+def detach(s_vars: np.ndarray, orphans: np.ndarray, parent: np.ndarray, ch_head: np.ndarray,
+           ch_next: np.ndarray, ch_prev: np.ndarray) -> None:
+    """Take S and the orphans out of the tree lists (S's own lists emptied), before
+    :func:`symbolic` links them again at their new parents."""
+    for q in range(orphans.shape[0]):
+        _unlink(orphans[q], parent, ch_head, ch_next, ch_prev)
+        parent[orphans[q]] = -1
+    for q in range(s_vars.shape[0]):
+        _unlink(s_vars[q], parent, ch_head, ch_next, ch_prev)
+        parent[s_vars[q]] = -1
+    for q in range(s_vars.shape[0]):
+        ch_head[s_vars[q]] = -1
+
+
+@kernel
+def link_orphans(orphans: np.ndarray, position: np.ndarray, col_start: np.ndarray,
+                 col_len: np.ndarray, row_var: np.ndarray, parent: np.ndarray,
+                 ch_head: np.ndarray, ch_next: np.ndarray, ch_prev: np.ndarray) -> None:
+    """Each orphan's new parent: its row with the smallest (new) position."""
+    for q in range(orphans.shape[0]):
+        o = orphans[q]
+        best = -1
+        for t in range(col_start[o], col_start[o] + col_len[o]):
+            r = row_var[t]
+            if best < 0 or position[r] < position[best]:
+                best = r
+        _link(o, best, parent, ch_head, ch_next, ch_prev)
+
+
+@kernel
+def symbolic(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarray,
+             free: np.ndarray,
+             in_s: np.ndarray, stamp: int, ab: np.ndarray, inc_head: np.ndarray,
+             inc_next: np.ndarray, parent: np.ndarray, ch_head: np.ndarray,
+             ch_next: np.ndarray, ch_prev: np.ndarray, col_start: np.ndarray,
+             col_len: np.ndarray, col_cap: np.ndarray, row_var: np.ndarray,
+             pool_used: np.ndarray, mark: np.ndarray) -> int:
+    """Rows, parent and tree links of the columns ``order[i0:]`` (S in its new order; the
+    orphans already linked).  A column whose rows do not fit its segment gets a new one at the
+    end of the pool (``pool_used[0]``).  Returns ``len(order)``, or ``POOL_FULL`` /
+    ``PAST_DEADLINE`` with ``pool_used[1]`` set to the index to resume from."""
+    cap_pool = row_var.shape[0]
+    for q in range(i0, order.shape[0]):
+        j = order[q]
+        tag = position[j]
+        mark[j] = tag
+        cnt = 0
+        # count first: rows from the constraints to later variables of S and from the children
+        i = inc_head[j]
+        while i >= 0:
+            u = ab[i >> 1, 1 - (i & 1)]
+            if free[u] and in_s[u] == stamp and position[u] > tag and mark[u] != tag:
+                mark[u] = tag
+                cnt += 1
+            i = inc_next[i]
+        c = ch_head[j]
+        while c >= 0:
+            for t in range(col_start[c], col_start[c] + col_len[c]):
+                r = row_var[t]
+                if mark[r] != tag:
+                    mark[r] = tag
+                    cnt += 1
+            c = ch_next[c]
+        if cnt > col_cap[j]:
+            need = max(2 * cnt, 4)
+            if pool_used[0] + need > cap_pool:
+                # undo the marks of this column (it is redone after the pool grows)
+                mark[j] = -1
+                i = inc_head[j]
+                while i >= 0:
+                    u = ab[i >> 1, 1 - (i & 1)]
+                    if mark[u] == tag:
+                        mark[u] = -1
+                    i = inc_next[i]
+                c = ch_head[j]
+                while c >= 0:
+                    for t in range(col_start[c], col_start[c] + col_len[c]):
+                        mark[row_var[t]] = -1
+                    c = ch_next[c]
+                pool_used[1] = q
+                return POOL_FULL
+            col_start[j] = pool_used[0]
+            col_cap[j] = need
+            pool_used[0] += need
+        # write (the marks are set: collect them again in the same order)
+        s0 = col_start[j]
+        k = 0
+        best = -1
+        i = inc_head[j]
+        while i >= 0:
+            u = ab[i >> 1, 1 - (i & 1)]
+            if mark[u] == tag and u != j:
+                mark[u] = -1 - tag  # consumed
+                row_var[s0 + k] = u
+                k += 1
+                if best < 0 or position[u] < position[best]:
+                    best = u
+            i = inc_next[i]
+        c = ch_head[j]
+        while c >= 0:
+            for t in range(col_start[c], col_start[c] + col_len[c]):
+                r = row_var[t]
+                if mark[r] == tag and r != j:
+                    mark[r] = -1 - tag
+                    row_var[s0 + k] = r
+                    k += 1
+                    if best < 0 or position[r] < position[best]:
+                        best = r
+            c = ch_next[c]
+        if k != cnt:
+            return BROKEN_TREE
+        col_len[j] = cnt
+        _link(j, best, parent, ch_head, ch_next, ch_prev)
+        if cycle_counter() > deadline and q + 1 < order.shape[0]:
+            pool_used[1] = q + 1
+            return PAST_DEADLINE
+    return int(order.shape[0])
+
+
+# --------------------------------------------------------------------------- numeric
+@kernel
+def _chol6(d: np.ndarray) -> bool:
+    """In-place lower Cholesky of a (6, 6) block (upper part zeroed); False: not SPD."""
+    for c in range(6):
+        s = d[c, c]
+        for t in range(c):
+            s -= d[c, t] * d[c, t]
+        if not (s > 0.0):
+            return False
+        lc = math.sqrt(s)
+        d[c, c] = lc
+        for r in range(c + 1, 6):
+            s2 = d[r, c]
+            for t in range(c):
+                s2 -= d[r, t] * d[c, t]
+            d[r, c] = s2 / lc
+    for c in range(6):
+        for r in range(c):
+            d[r, c] = 0.0
+    return True
+
+
+@kernel
+def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarray,
+            free: np.ndarray, ab: np.ndarray, inc_head: np.ndarray, inc_next: np.ndarray,
+            gps_head: np.ndarray, gps_next: np.ndarray, haa: np.ndarray, hbb: np.ndarray,
+            hab: np.ndarray, ga: np.ndarray, gb: np.ndarray, hgg: np.ndarray, gg: np.ndarray,
+            parent: np.ndarray, col_start: np.ndarray, col_len: np.ndarray,
+            row_var: np.ndarray, row_blk: np.ndarray, diag: np.ndarray, y: np.ndarray,
+            slot: np.ndarray, walk: np.ndarray, damping: float, work: np.ndarray) -> int:
+    """Factor the columns ``order[i0:]`` and their forward substitution ``y`` (module doc).
+
+    ``damping``: ``H + damping * diag(H)`` (Levenberg-Marquardt; 0 for Gauss-Newton).  Stops
+    after the first column that ends past ``deadline`` (cycle counter); returns the index to
+    resume from (``len(order)`` when done), or ``NOT_SPD`` / ``BROKEN_TREE``.  ``work`` (2,):
+    += earlier columns applied, += their blocks multiplied.
+    """
+    d = np.empty((6, 6))
+    b = np.empty(6)
+    acc = np.empty((6, 6))
+    for q in range(i0, order.shape[0]):
+        j = order[q]
+        tag = position[j]
+        s0 = col_start[j]
+        n = col_len[j]
+        for t in range(s0, s0 + n):
+            slot[row_var[t]] = t
+            for a in range(6):
+                for c in range(6):
+                    row_blk[t, a, c] = 0.0
+        for a in range(6):
+            b[a] = 0.0
+            for c in range(6):
+                d[a, c] = 0.0
+        # A's column j: the constraints' diagonal blocks, gradients and blocks to later rows
+        i = inc_head[j]
+        while i >= 0:
+            e = i >> 1
+            side = i & 1
+            u = ab[e, 1 - side]
+            if side == 0:
+                for a in range(6):
+                    b[a] -= ga[e, a]
+                    for c in range(6):
+                        d[a, c] += haa[e, a, c]
+            else:
+                for a in range(6):
+                    b[a] -= gb[e, a]
+                    for c in range(6):
+                        d[a, c] += hbb[e, a, c]
+            if free[u] and position[u] > tag:
+                t = slot[u]
+                if side == 0:  # block (row b, column a) = hab^T
+                    for a in range(6):
+                        for c in range(6):
+                            row_blk[t, a, c] += hab[e, c, a]
+                else:  # block (row a, column b) = hab
+                    for a in range(6):
+                        for c in range(6):
+                            row_blk[t, a, c] += hab[e, a, c]
+            i = inc_next[i]
+        i = gps_head[j]
+        while i >= 0:
+            for a in range(3):
+                b[a] -= gg[i, a]
+                for c in range(3):
+                    d[a, c] += hgg[i, a, c]
+            i = gps_next[i]
+        if damping > 0.0:
+            for a in range(6):
+                d[a, a] *= 1.0 + damping
+        # updates of the earlier columns with a block in row j (ereach)
+        walk[j] = tag
+        i = inc_head[j]
+        while i >= 0:
+            k = ab[i >> 1, 1 - (i & 1)]
+            if free[k] and position[k] < tag:
+                while walk[k] != tag:
+                    walk[k] = tag
+                    k0 = col_start[k]
+                    kn = col_len[k]
+                    p0 = -1
+                    for t in range(k0, k0 + kn):
+                        if row_var[t] == j:
+                            p0 = t
+                            break
+                    if p0 < 0:
+                        return BROKEN_TREE
+                    lj = row_blk[p0]
+                    work[0] += 1
+                    work[1] += kn
+                    for a in range(6):
+                        s = 0.0
+                        for c in range(6):
+                            s += lj[a, c] * y[k, c]
+                        b[a] -= s
+                        for c in range(a + 1):
+                            s = 0.0
+                            for m in range(6):
+                                s += lj[a, m] * lj[c, m]
+                            d[a, c] -= s
+                    for t in range(k0, k0 + kn):
+                        r = row_var[t]
+                        if position[r] > tag:
+                            lr = row_blk[t]
+                            for a in range(6):
+                                for c in range(6):
+                                    s = 0.0
+                                    for m in range(6):
+                                        s += lr[a, m] * lj[c, m]
+                                    acc[a, c] = s
+                            tt = slot[r]
+                            for a in range(6):
+                                for c in range(6):
+                                    row_blk[tt, a, c] -= acc[a, c]
+                    k = parent[k]
+                    if k < 0:
+                        return BROKEN_TREE
+            i = inc_next[i]
+        for a in range(6):
+            for c in range(a):
+                d[c, a] = d[a, c]
+        if not _chol6(d):
+            return NOT_SPD
+        for a in range(6):
+            for c in range(6):
+                diag[j, a, c] = d[a, c]
+        # off-diagonal blocks: X L_d^T = B; y_j = L_d^-1 b
+        for t in range(s0, s0 + n):
+            x = row_blk[t]
+            for a in range(6):
+                for c in range(6):
+                    s = x[a, c]
+                    for m in range(c):
+                        s -= x[a, m] * d[c, m]
+                    x[a, c] = s / d[c, c]
+            slot[row_var[t]] = -1
+        for c in range(6):
+            s = b[c]
+            for m in range(c):
+                s -= d[c, m] * y[j, m]
+            y[j, c] = s / d[c, c]
+        if cycle_counter() > deadline:
+            return q + 1
+    return int(order.shape[0])
+
+
+# --------------------------------------------------------------------------- back substitution
+@kernel
+def back_substitute(stack: np.ndarray, top: np.ndarray, deadline: np.uint64,
+                    in_s: np.ndarray, stamp: int, changed: np.ndarray, threshold: float,
+                    ch_head: np.ndarray, ch_next: np.ndarray, col_start: np.ndarray,
+                    col_len: np.ndarray, row_var: np.ndarray, row_blk: np.ndarray,
+                    diag: np.ndarray, y: np.ndarray, x: np.ndarray, touched: np.ndarray,
+                    n_touched: np.ndarray) -> bool:
+    """``L^T x = y`` from the roots down (the caller pushes S's roots on ``stack``).
+
+    A popped column is recomputed when it is in S or one of its rows changed in this cycle
+    (``changed[r] == stamp``); it is marked changed when its x moved by more than
+    ``threshold`` (inf-norm).  Children are pushed when the column is in S or changed, and a
+    child of S is pushed always.  Recomputed columns are appended to ``touched``.  Returns True
+    when the stack is empty, False when stopped at ``deadline`` (call again).
+    """
+    xn = np.empty(6)
+    while top[0] > 0:
+        top[0] -= 1
+        j = stack[top[0]]
+        s0 = col_start[j]
+        n = col_len[j]
+        need = in_s[j] == stamp
+        if not need:
+            for t in range(s0, s0 + n):
+                if changed[row_var[t]] == stamp:
+                    need = True
+                    break
+        if not need:
+            continue
+        for a in range(6):
+            xn[a] = y[j, a]
+        for t in range(s0, s0 + n):
+            r = row_var[t]
+            blk = row_blk[t]
+            for a in range(6):
+                s = 0.0
+                for m in range(6):
+                    s += blk[m, a] * x[r, m]
+                xn[a] -= s
+        dj = diag[j]
+        for c in range(5, -1, -1):
+            s = xn[c]
+            for m in range(c + 1, 6):
+                s -= dj[m, c] * xn[m]
+            xn[c] = s / dj[c, c]
+        dev = 0.0
+        for a in range(6):
+            dv = abs(xn[a] - x[j, a])
+            if dv > dev:
+                dev = dv
+            x[j, a] = xn[a]
+        moved = dev > threshold
+        if moved:
+            changed[j] = stamp
+        # exact (threshold 0): every child of a recomputed column is visited
+        touched[n_touched[0]] = j
+        n_touched[0] += 1
+        c = ch_head[j]
+        while c >= 0:
+            if moved or threshold <= 0.0 or in_s[c] == stamp:
+                if top[0] >= stack.shape[0]:
+                    return False  # cannot happen: the stack holds every variable
+                stack[top[0]] = c
+                top[0] += 1
+            c = ch_next[c]
+        if cycle_counter() > deadline:
+            return bool(top[0] == 0)
+    return True
+
+
+# --------------------------------------------------------------------------- poses
+@kernel
+def publish(vars_: np.ndarray, th_r: np.ndarray, th_t: np.ndarray, x: np.ndarray,
+            est_r: np.ndarray, est_t: np.ndarray) -> None:
+    """The estimate ``theta_v Exp(x_v)`` of each listed variable."""
+    er = np.empty((3, 3))
+    tmp = np.empty((3, 3))
+    for q in range(vars_.shape[0]):
+        v = vars_[q]
+        retract_into(th_r[v], th_t[v], x[v], 1.0, est_r[v], est_t[v], er, tmp)
+
+
+@kernel
+def append_moved(vars_: np.ndarray, x: np.ndarray, beta_rho: float, beta_phi: float,
+                 flag: np.ndarray, out: np.ndarray, count: np.ndarray) -> None:
+    """Append to ``out`` (from ``count[0]``) each listed variable whose step exceeds the
+    thresholds (negative thresholds: every one) and is not listed yet (``flag``)."""
+    for q in range(vars_.shape[0]):
+        v = vars_[q]
+        if flag[v]:
+            continue
+        mr = max(abs(x[v, 0]), abs(x[v, 1]), abs(x[v, 2]))
+        mp = max(abs(x[v, 3]), abs(x[v, 4]), abs(x[v, 5]))
+        if mr > beta_rho or mp > beta_phi:
+            flag[v] = True
+            out[count[0]] = v
+            count[0] += 1
+
+
+@kernel
+def relinearize(vars_: np.ndarray, beta_rho: float, beta_phi: float, th_r: np.ndarray,
+                th_t: np.ndarray, x: np.ndarray, est_r: np.ndarray, est_t: np.ndarray,
+                out: np.ndarray) -> int:
+    """Move the linearization point of each listed variable whose step exceeds the thresholds
+    (translation part > ``beta_rho`` or rotation part > ``beta_phi``, inf-norm) to its
+    estimate, its step to 0.  Writes those variables to ``out``; returns how many."""
+    k = 0
+    for q in range(vars_.shape[0]):
+        v = vars_[q]
+        mr = max(abs(x[v, 0]), abs(x[v, 1]), abs(x[v, 2]))
+        mp = max(abs(x[v, 3]), abs(x[v, 4]), abs(x[v, 5]))
+        if mr > beta_rho or mp > beta_phi:
+            for a in range(3):
+                th_t[v, a] = est_t[v, a]
+                for c in range(3):
+                    th_r[v, a, c] = est_r[v, a, c]
+            for a in range(6):
+                x[v, a] = 0.0
+            out[k] = v
+            k += 1
+    return k
+
+
+@kernel
+def incident_factors(vars_: np.ndarray, inc_head: np.ndarray, inc_next: np.ndarray,
+                     gps_head: np.ndarray, gps_next: np.ndarray, e_stamp: np.ndarray,
+                     g_stamp: np.ndarray, stamp: int, out_e: np.ndarray,
+                     out_g: np.ndarray, counts: np.ndarray) -> None:
+    """The edges and GPS readings touching the listed variables, each once (appended to
+    ``out_e``/``out_g`` from ``counts[0]``/``counts[1]``)."""
+    for q in range(vars_.shape[0]):
+        v = vars_[q]
+        i = inc_head[v]
+        while i >= 0:
+            e = i >> 1
+            if e_stamp[e] != stamp:
+                e_stamp[e] = stamp
+                out_e[counts[0]] = e
+                counts[0] += 1
+            i = inc_next[i]
+        i = gps_head[v]
+        while i >= 0:
+            if g_stamp[i] != stamp:
+                g_stamp[i] = stamp
+                out_g[counts[1]] = i
+                counts[1] += 1
+            i = gps_next[i]
+
+
+# --------------------------------------------------------------------------- integration
+@kernel
+def insert_incidences(e0: int, e1: int, ab: np.ndarray, inc_head: np.ndarray,
+                      inc_next: np.ndarray) -> None:
+    """Link edges ``e0..e1-1`` into their ends' incidence lists (incidence ``2 e + side``)."""
+    for e in range(e0, e1):
+        for side in range(2):
+            v = ab[e, side]
+            i = 2 * e + side
+            inc_next[i] = inc_head[v]
+            inc_head[v] = i
+
+
+@kernel
+def insert_gps(g0: int, g1: int, node: np.ndarray, gps_head: np.ndarray,
+               gps_next: np.ndarray) -> None:
+    """Link GPS readings ``g0..g1-1`` into their poses' lists."""
+    for g in range(g0, g1):
+        v = node[g]
+        gps_next[g] = gps_head[v]
+        gps_head[v] = g
+
+
+@kernel
+def place_poses(p0: int, p1: int, ref: np.ndarray, rel_r: np.ndarray, rel_t: np.ndarray,
+                est_r: np.ndarray, est_t: np.ndarray, th_r: np.ndarray,
+                th_t: np.ndarray) -> None:
+    """Initial estimate (and linearization point) of poses ``p0..p1-1``: ``rel`` composed onto
+    the current estimate of pose ``ref[p]`` (< p), or ``rel`` itself when ``ref[p] < 0``."""
+    for p in range(p0, p1):
+        r = ref[p]
+        if r < 0:
+            for a in range(3):
+                est_t[p, a] = rel_t[p, a]
+                for c in range(3):
+                    est_r[p, a, c] = rel_r[p, a, c]
+        else:
+            for a in range(3):
+                s = est_t[r, a]
+                for m in range(3):
+                    s += est_r[r, a, m] * rel_t[p, m]
+                est_t[p, a] = s
+                for c in range(3):
+                    s = 0.0
+                    for m in range(3):
+                        s += est_r[r, a, m] * rel_r[p, m, c]
+                    est_r[p, a, c] = s
+        for a in range(3):
+            th_t[p, a] = est_t[p, a]
+            for c in range(3):
+                th_r[p, a, c] = est_r[p, a, c]

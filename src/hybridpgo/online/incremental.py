@@ -1,0 +1,725 @@
+"""An incremental exact solver for a growing pose graph, resumable in time slices.
+
+:class:`IncrementalExact` keeps the Gauss-Newton normal equations of the map factored
+(``H = L L^T`` by 6x6 blocks, :mod:`._incremental_kernels`) and, when poses and constraints are
+appended, re-eliminates only the columns that changed and their ancestors in the elimination
+tree, in a fresh fill-reducing order (AMD on the reduced system, with the ends of the new
+constraints last so that the next frame's changes stay near the root).  The linearization point
+moves only for the poses whose step exceeds a threshold ("fluid relinearization"), and the
+solution is propagated down the tree only where it changes ("wildfire" back substitution).
+This is the incremental scheme of iSAM2 (Kaess et al., IJRR 2012) written as a left-looking
+block Cholesky on the elimination tree instead of a Bayes tree of cliques.
+
+With both thresholds 0 every update is an exact Gauss-Newton step of the whole map, and
+repeated :meth:`~IncrementalExact.solve` calls converge to the same optimum as the batch exact
+solver (:func:`hybridpgo.solvers.gauss_newton.solve_exact`).
+
+Every piece of work is bounded: :meth:`~IncrementalExact.solve` takes a deadline and returns
+when it passes, between two columns of the factorization or of the back substitution; the next
+call resumes there.  Data appended meanwhile waits for the next update cycle.  The estimate
+(:meth:`~IncrementalExact.estimate`) is always the last completed cycle's.
+
+Gauge: with ``gauge="auto"`` the first pose is held until ``gps_gauge`` position readings exist,
+then the earth frame is the gauge (as the online solver's worker does); ``"first"`` always holds
+it, ``"none"`` never.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from .. import _cost
+from .._numba import cycles_per_second, read_cycles
+from ..errors import SolverError
+from ..graph import SYMMETRY_RTOL, FloatArray
+from ..linalg import fill_reducing_order
+from . import _incremental_kernels as ik
+
+IntArray = npt.NDArray[np.int64]
+_NO_DEADLINE = np.uint64(np.iinfo(np.uint64).max)
+#: S smaller than this is ordered without AMD (positions: its old order, new variables last).
+_AMD_MIN = 8
+
+_IDLE, _LINEARIZE, _SYMBOLIC, _NUMERIC, _BACK = 0, 1, 2, 3, 4
+#: Constraints linearized between two deadline checks.
+_CHUNK = 256
+
+
+@dataclass(frozen=True)
+class IncrementalConfig:
+    """Options of :class:`IncrementalExact`."""
+
+    relinearize_rho: float = 1e-3
+    """A pose's linearization point moves to its estimate when the translation part of its
+    step exceeds this (inf-norm, metres) ..."""
+    relinearize_phi: float = 1e-3
+    """... or the rotation part exceeds this (radians).  Both 0: every step relinearizes
+    (exact Gauss-Newton)."""
+    wildfire: float = 0.0
+    """The back substitution stops below a column whose solution moved by at most this
+    (inf-norm); 0: the whole solution is exact."""
+    gauge: Literal["auto", "first", "none"] = "auto"
+    """``"auto"``: the first pose is held until ``gps_gauge`` GPS readings exist; ``"first"``:
+    always; ``"none"``: never (GPS must fix the gauge)."""
+    gps_gauge: int = 3
+    """GPS readings after which ``gauge="auto"`` frees the first pose."""
+    reorder: bool = True
+    """Order each re-eliminated set by AMD (False: keep its old order, new variables last)."""
+    last: Literal["ends", "poses"] = "ends"
+    """Variables the new order of a re-eliminated set puts last (nearest the root): the ends
+    of the constraints that are new in the update (as iSAM2 does), or only the new poses."""
+    reorder_max: int = 4096
+    """Sets larger than this keep their old order (AMD is one call that cannot stop at a
+    deadline; 4096 variables take about 2 ms)."""
+    polish_rho: float = 1e-5
+    """When nothing else is left to do, every pose whose step exceeds ``polish_rho`` (metres)
+    or ``polish_phi`` (radians) is relinearized, so an idle solver converges to the optimum
+    (such poses are listed as their steps are computed: an idle update costs as much as the
+    poses that move)."""
+    polish_phi: float = 1e-5
+    """See ``polish_rho``."""
+
+
+def _check_measurements(rot: FloatArray | None, trans: FloatArray, info: FloatArray,
+                        what: str) -> None:
+    """ValueError naming the first measurement that is not finite or whose information is
+    not symmetric positive definite."""
+    k = trans.shape[0]
+    if k == 0:
+        return
+    finite = np.isfinite(trans).all(axis=1) & np.isfinite(info).reshape(k, -1).all(axis=1)
+    if rot is not None:
+        finite &= np.isfinite(rot).reshape(k, -1).all(axis=1)
+    if not finite.all():
+        raise ValueError(f"{what} {int(np.argmin(finite))} (of those added) is not finite")
+    asym = np.abs(info - info.transpose(0, 2, 1)).reshape(k, -1).max(axis=1)
+    scale = np.abs(info).reshape(k, -1).max(axis=1)
+    bad = asym > SYMMETRY_RTOL * np.maximum(scale, 1e-300)
+    if not bad.any():
+        try:
+            np.linalg.cholesky(info)
+        except np.linalg.LinAlgError:
+            bad = ~np.all(np.linalg.eigvalsh(info) > 0.0, axis=1)
+    if bad.any():
+        raise ValueError(f"{what} {int(np.argmax(bad))} (of those added): its information is "
+                         "not symmetric positive definite")
+
+
+class IncrementalExact:
+    """A pose graph that grows by appended arrays, kept at its Gauss-Newton solution by
+    bounded incremental updates (module docstring).
+
+    Poses are dense indices ``0, 1, ...`` in the order they are added.
+    """
+
+    def __init__(self, config: IncrementalConfig | None = None, capacity: int = 1024) -> None:
+        self.config = config or IncrementalConfig()
+        cap = max(int(capacity), 4)
+        self._n = self._n_in = 0  # poses added / integrated
+        self._m = self._m_in = 0  # edges
+        self._g = self._g_in = 0  # GPS readings
+        self._alloc_poses(cap)
+        self._alloc_edges(2 * cap)
+        self._alloc_gps(max(cap // 16, 8))
+        self._pool_cap = 8 * cap
+        self._row_var = np.zeros(self._pool_cap, np.int64)
+        self._row_blk = np.zeros((self._pool_cap, 6, 6))
+        self._pool_used = np.zeros(2, np.int64)
+        self._work = np.zeros(2, np.int64)
+        self._counter = 0  # next elimination position
+        self._stamp = 0  # update cycles started
+        self._phase = _IDLE
+        self._relin_cands = np.zeros(0, np.int64)
+        self._first_free = self.config.gauge == "none"
+        self._cycle_cover = (0, 0, 0)
+        self.covered = (0, 0, 0)
+        """(poses, edges, GPS readings) the estimate's last completed update integrated."""
+        self.stats: dict[str, Any] = {
+            "cycles": 0, "columns": 0, "relinearized": 0, "recomputed": 0, "max_set": 0,
+            "applied": 0, "products": 0,
+            "seconds": {"start": 0.0, "numeric": 0.0, "back": 0.0}}
+        """Totals: update cycles completed, columns re-eliminated, poses relinearized,
+        solution entries recomputed; the largest re-eliminated set; earlier columns applied to
+        re-eliminated ones and the blocks they multiplied (the factorization's work); seconds
+        spent starting
+        cycles (integration, linearization, ordering, symbolic), factoring and back
+        substituting."""
+
+    # ----------------------------------------------------------------- storage
+    def _alloc_poses(self, cap: int) -> None:
+        self._cap_n = cap
+        self._ref = np.full(cap, -1, np.int64)
+        self._rel_r = np.zeros((cap, 3, 3))
+        self._rel_t = np.zeros((cap, 3))
+        self._th_r = np.zeros((cap, 3, 3))
+        self._th_t = np.zeros((cap, 3))
+        self._est_r = np.zeros((cap, 3, 3))
+        self._est_t = np.zeros((cap, 3))
+        self._x = np.zeros((cap, 6))
+        self._y = np.zeros((cap, 6))
+        self._diag = np.zeros((cap, 6, 6))
+        self._free = np.zeros(cap, np.bool_)
+        self._position = np.full(cap, -1, np.int64)
+        self._parent = np.full(cap, -1, np.int64)
+        self._ch_head = np.full(cap, -1, np.int64)
+        self._ch_next = np.full(cap, -1, np.int64)
+        self._ch_prev = np.full(cap, -1, np.int64)
+        self._col_start = np.zeros(cap, np.int64)
+        self._col_len = np.zeros(cap, np.int64)
+        self._col_cap = np.zeros(cap, np.int64)
+        self._inc_head = np.full(cap, -1, np.int64)
+        self._gps_head = np.full(cap, -1, np.int64)
+        self._in_s = np.full(cap, -1, np.int64)
+        self._changed = np.full(cap, -1, np.int64)
+        self._mark = np.full(cap, -1, np.int64)
+        self._walk = np.full(cap, -1, np.int64)
+        self._slot = np.full(cap, -1, np.int64)
+        self._local = np.zeros(cap, np.int64)
+        self._stack = np.zeros(cap, np.int64)
+        self._touched = np.zeros(cap, np.int64)
+        self._pol_flag = np.zeros(cap, np.bool_)
+        self._pol_list = np.zeros(cap, np.int64)
+        self._pol_count = np.zeros(1, np.int64)
+        self._chg_flag = np.zeros(cap, np.bool_)
+        self._chg_list = np.zeros(cap, np.int64)
+        self._chg_count = np.zeros(1, np.int64)
+
+    _POSE_FILL: ClassVar[dict[str, int]] = {
+        "_ref": -1, "_position": -1, "_parent": -1, "_ch_head": -1, "_ch_next": -1,
+        "_ch_prev": -1, "_inc_head": -1, "_gps_head": -1, "_in_s": -1, "_changed": -1,
+        "_mark": -1, "_walk": -1, "_slot": -1}
+
+    def _grow_poses(self, need: int) -> None:
+        if need <= self._cap_n:
+            return
+        cap = self._cap_n
+        while cap < need:
+            cap *= 2
+        for name in ("_ref", "_rel_r", "_rel_t", "_th_r", "_th_t", "_est_r", "_est_t", "_x",
+                     "_y", "_diag", "_free", "_position", "_parent", "_ch_head", "_ch_next",
+                     "_ch_prev", "_col_start", "_col_len", "_col_cap", "_inc_head",
+                     "_gps_head", "_in_s", "_changed", "_mark", "_walk", "_slot", "_local",
+                     "_stack", "_touched", "_pol_flag", "_pol_list", "_chg_flag",
+                     "_chg_list"):
+            old = getattr(self, name)
+            fill = self._POSE_FILL.get(name, 0)
+            new = np.full((cap, *old.shape[1:]), fill, old.dtype)
+            new[: self._cap_n] = old
+            setattr(self, name, new)
+        self._cap_n = cap
+
+    def _alloc_edges(self, cap: int) -> None:
+        self._cap_m = cap
+        self._ab = np.zeros((cap, 2), np.int64)
+        self._zr = np.zeros((cap, 3, 3))
+        self._zt = np.zeros((cap, 3))
+        self._info = np.zeros((cap, 6, 6))
+        self._haa = np.zeros((cap, 6, 6))
+        self._hbb = np.zeros((cap, 6, 6))
+        self._hab = np.zeros((cap, 6, 6))
+        self._ga = np.zeros((cap, 6))
+        self._gb = np.zeros((cap, 6))
+        self._chi = np.zeros(cap)
+        self._inc_next = np.full(2 * cap, -1, np.int64)
+        self._e_stamp = np.full(cap, -1, np.int64)
+
+    def _grow_edges(self, need: int) -> None:
+        if need <= self._cap_m:
+            return
+        cap = self._cap_m
+        while cap < need:
+            cap *= 2
+        for name in ("_ab", "_zr", "_zt", "_info", "_haa", "_hbb", "_hab", "_ga", "_gb",
+                     "_chi", "_e_stamp"):
+            old = getattr(self, name)
+            new = np.full((cap, *old.shape[1:]), -1 if name == "_e_stamp" else 0, old.dtype)
+            new[: self._cap_m] = old
+            setattr(self, name, new)
+        nxt = np.full(2 * cap, -1, np.int64)
+        nxt[: 2 * self._cap_m] = self._inc_next
+        self._inc_next = nxt
+        self._cap_m = cap
+
+    def _alloc_gps(self, cap: int) -> None:
+        self._cap_g = cap
+        self._gnode = np.zeros(cap, np.int64)
+        self._gpos = np.zeros((cap, 3))
+        self._ginfo = np.zeros((cap, 3, 3))
+        self._hgg = np.zeros((cap, 3, 3))
+        self._gg = np.zeros((cap, 3))
+        self._gchi = np.zeros(cap)
+        self._gps_next = np.full(cap, -1, np.int64)
+        self._g_stamp = np.full(cap, -1, np.int64)
+
+    def _grow_gps(self, need: int) -> None:
+        if need <= self._cap_g:
+            return
+        cap = self._cap_g
+        while cap < need:
+            cap *= 2
+        for name in ("_gnode", "_gpos", "_ginfo", "_hgg", "_gg", "_gchi", "_gps_next",
+                     "_g_stamp"):
+            old = getattr(self, name)
+            fill = -1 if name in ("_gps_next", "_g_stamp") else 0
+            new = np.full((cap, *old.shape[1:]), fill, old.dtype)
+            new[: self._cap_g] = old
+            setattr(self, name, new)
+        self._cap_g = cap
+
+    def _grow_pool(self, need: int) -> None:
+        """Room for ``need`` more rows after a compaction (dead segments dropped); the pool
+        doubles unless at least half of it was dead."""
+        n = self._n_in
+        live = int(self._col_cap[:n].sum())
+        used = int(self._pool_used[0])
+        cap = self._pool_cap
+        if used - live < used // 2:
+            cap *= 2
+        while cap < live + need:
+            cap *= 2
+        self._compact(cap)
+
+    def _compact(self, cap: int) -> None:
+        """Copy every column's segment into a new pool of ``cap`` rows, back to back."""
+        n = self._n_in
+        caps = self._col_cap[:n]
+        lens = self._col_len[:n]
+        new_start = np.zeros(n, np.int64)
+        if n > 1:
+            np.cumsum(caps[:-1], out=new_start[1:])
+        total_len = int(lens.sum())
+        offs = np.arange(total_len) - np.repeat(np.cumsum(lens) - lens, lens)
+        src = np.repeat(self._col_start[:n], lens) + offs
+        dst = np.repeat(new_start, lens) + offs
+        row_var = np.zeros(cap, np.int64)
+        row_blk = np.zeros((cap, 6, 6))
+        row_var[dst] = self._row_var[src]
+        row_blk[dst] = self._row_blk[src]
+        self._row_var, self._row_blk = row_var, row_blk
+        self._col_start[:n] = new_start
+        self._pool_used[0] = int(caps.sum())
+        self._pool_cap = cap
+
+    # ----------------------------------------------------------------- input
+    @property
+    def num_poses(self) -> int:
+        return self._n
+
+    @property
+    def num_edges(self) -> int:
+        return self._m
+
+    @property
+    def num_gps(self) -> int:
+        return self._g
+
+    def add_poses(self, rotations: FloatArray, translations: FloatArray,
+                  parents: npt.ArrayLike | None = None) -> None:
+        """Append poses with their initial estimates.
+
+        Parameters
+        ----------
+        rotations, translations : (k, 3, 3), (k, 3) float64
+            Global poses (``parents`` None) or poses relative to each parent's estimate at the
+            time the pose joins the solver (its next update): ``X = X_parent Z``.
+        parents : (k,) int, optional
+            Dense index of each new pose's parent (an earlier pose); -1: global.
+        """
+        rot = np.ascontiguousarray(rotations, np.float64).reshape(-1, 3, 3)
+        trans = np.ascontiguousarray(translations, np.float64).reshape(-1, 3)
+        k = rot.shape[0]
+        if trans.shape[0] != k:
+            raise ValueError("rotations and translations must have the same length")
+        ref = (np.full(k, -1, np.int64) if parents is None
+               else np.asarray(parents, np.int64).reshape(-1))
+        if ref.shape[0] != k:
+            raise ValueError("parents must have one entry per pose")
+        idx = self._n + np.arange(k)
+        if np.any(ref >= idx) or np.any(ref < -1):
+            raise ValueError("a parent must be an earlier pose (or -1)")
+        if not (np.all(np.isfinite(rot)) and np.all(np.isfinite(trans))):
+            raise ValueError("poses must be finite")
+        self._grow_poses(self._n + k)
+        n = self._n
+        self._rel_r[n: n + k] = rot
+        self._rel_t[n: n + k] = trans
+        self._ref[n: n + k] = ref
+        self._n = n + k
+
+    def add_edges(self, a: npt.ArrayLike, b: npt.ArrayLike, rotations: FloatArray,
+                  translations: FloatArray, information: FloatArray) -> None:
+        """Append relative constraints ``Z = X_a^-1 X_b`` with (6, 6) information over
+        (rho, phi) between poses already added."""
+        ia = np.asarray(a, np.int64).reshape(-1)
+        ib = np.asarray(b, np.int64).reshape(-1)
+        k = ia.shape[0]
+        rot = np.ascontiguousarray(rotations, np.float64).reshape(k, 3, 3)
+        trans = np.ascontiguousarray(translations, np.float64).reshape(k, 3)
+        info = np.ascontiguousarray(information, np.float64).reshape(k, 6, 6)
+        if ib.shape[0] != k:
+            raise ValueError("a and b must have the same length")
+        if k and (min(ia.min(), ib.min()) < 0 or max(ia.max(), ib.max()) >= self._n
+                  or np.any(ia == ib)):
+            raise ValueError("edges must join two different poses already added")
+        _check_measurements(rot, trans, info, "edge")
+        self._grow_edges(self._m + k)
+        m = self._m
+        self._ab[m: m + k, 0] = ia
+        self._ab[m: m + k, 1] = ib
+        self._zr[m: m + k] = rot
+        self._zt[m: m + k] = trans
+        self._info[m: m + k] = info
+        self._m = m + k
+
+    def add_gps(self, nodes: npt.ArrayLike, positions: FloatArray,
+                information: FloatArray) -> None:
+        """Append position readings ``t_n = g`` (earth frame) with (3, 3) information."""
+        nd = np.asarray(nodes, np.int64).reshape(-1)
+        k = nd.shape[0]
+        pos = np.ascontiguousarray(positions, np.float64).reshape(k, 3)
+        info = np.ascontiguousarray(information, np.float64).reshape(k, 3, 3)
+        if k and (nd.min() < 0 or nd.max() >= self._n):
+            raise ValueError("GPS readings must be on poses already added")
+        _check_measurements(None, pos, info, "GPS reading")
+        self._grow_gps(self._g + k)
+        g = self._g
+        self._gnode[g: g + k] = nd
+        self._gpos[g: g + k] = pos
+        self._ginfo[g: g + k] = info
+        self._g = g + k
+
+    # ----------------------------------------------------------------- estimates
+    def estimate(self) -> tuple[FloatArray, FloatArray]:
+        """Global poses ``(R (n, 3, 3), t (n, 3))`` of every pose added: the last completed
+        update's solution; poses not integrated yet are composed onto their parents."""
+        n, n_in = self._n, self._n_in
+        rot = np.empty((n, 3, 3))
+        trans = np.empty((n, 3))
+        rot[:n_in] = self._est_r[:n_in]
+        trans[:n_in] = self._est_t[:n_in]
+        for p in range(n_in, n):  # O(poses added since the last update)
+            r = int(self._ref[p])
+            if r < 0:
+                rot[p], trans[p] = self._rel_r[p], self._rel_t[p]
+            else:
+                rot[p] = rot[r] @ self._rel_r[p]
+                trans[p] = rot[r] @ self._rel_t[p] + trans[r]
+        return rot, trans
+
+    def energy(self) -> float:
+        """E of :meth:`estimate` over every constraint added."""
+        rot, trans = self.estimate()
+        m, g = self._m, self._g
+        return float(_cost.total_energy(
+            rot, trans, self._ab[:m].astype(np.int32), self._zr[:m], self._zt[:m],
+            self._info[:m], self._gnode[:g].astype(np.int32), self._gpos[:g],
+            self._ginfo[:g]))
+
+    def take_changes(self) -> IntArray:
+        """The poses whose estimate changed since the last call: those placed (joined the
+        solver) and those moved by a completed update (each once, in no particular order),
+        e.g. to ship only those.  O(poses returned)."""
+        k = int(self._chg_count[0])
+        out = self._chg_list[:k].copy()
+        self._chg_flag[out] = False
+        self._chg_count[0] = 0
+        return out
+
+    @property
+    def busy(self) -> bool:
+        """True while an update cycle is in progress (a :meth:`solve` stopped inside it)."""
+        return self._phase != _IDLE
+
+    @property
+    def pending(self) -> bool:
+        """True when data was added that no update has integrated yet."""
+        return (self._n_in, self._m_in, self._g_in) != (self._n, self._m, self._g)
+
+    # ----------------------------------------------------------------- solving
+    def relinearize_all(self) -> None:
+        """Make every pose a relinearization candidate at the next update cycle (those whose
+        step exceeds the thresholds move their linearization point).  Poses whose step was
+        below the thresholds when last computed are otherwise never looked at again: with the
+        thresholds lowered (0: Gauss-Newton), this lets :meth:`solve` reach the batch
+        optimum.  O(poses)."""
+        self._relin_cands = np.union1d(self._relin_cands, np.arange(self._n_in))
+
+    def solve(self, budget_s: float | None = None, max_cycles: int | None = None) -> bool:
+        """Run update cycles until converged, ``budget_s`` seconds have passed, or
+        ``max_cycles`` cycles were completed; resumable.
+
+        Returns True when it found nothing left to do: everything added is integrated and no
+        pose's step exceeds the relinearization thresholds.
+        """
+        c0 = int(read_cycles())
+        deadline = (_NO_DEADLINE if budget_s is None
+                    else np.uint64(c0 + int(max(budget_s, 0.0) * cycles_per_second())))
+        done = 0
+        sec = self.stats["seconds"]
+        while True:
+            t0 = time.perf_counter()
+            if self._phase == _IDLE:
+                if max_cycles is not None and done >= max_cycles:
+                    return False
+                if not self._start_cycle():
+                    sec["start"] += time.perf_counter() - t0
+                    return True
+            if self._phase == _LINEARIZE:
+                self._run_linearize(deadline)
+            if self._phase == _SYMBOLIC:
+                self._run_symbolic(deadline)
+            sec["start"] += time.perf_counter() - t0
+            if self._phase in (_LINEARIZE, _SYMBOLIC):
+                return False
+            if self._phase == _NUMERIC:
+                t0 = time.perf_counter()
+                self._run_numeric(deadline)
+                sec["numeric"] += time.perf_counter() - t0
+                if self._phase == _NUMERIC:
+                    return False
+            if self._phase == _BACK:
+                t0 = time.perf_counter()
+                self._run_back(deadline)
+                sec["back"] += time.perf_counter() - t0
+                if self._phase == _BACK:
+                    return False
+                done += 1
+            if np.uint64(read_cycles()) > deadline:
+                return False
+
+    def _start_cycle(self) -> bool:
+        """Integrate new data, relinearize, choose S and do its symbolic factorization.
+        False when there is nothing to do (converged and polished)."""
+        if self._start_cycle_with(self.config.relinearize_rho, self.config.relinearize_phi):
+            return True
+        cfg = self.config
+        k = int(self._pol_count[0])
+        if k == 0:
+            return False
+        cands = self._pol_list[:k].copy()
+        self._pol_flag[cands] = False
+        self._pol_count[0] = 0
+        self._relin_cands = cands
+        return self._start_cycle_with(cfg.polish_rho, cfg.polish_phi)
+
+    def _start_cycle_with(self, beta_rho: float, beta_phi: float) -> bool:
+        cfg = self.config
+        n0, n1 = self._n_in, self._n
+        m0, m1 = self._m_in, self._m
+        g0, g1 = self._g_in, self._g
+        stamp = self._stamp + 1
+        # 1. new poses and constraints
+        if n1 > n0:
+            ik.place_poses(n0, n1, self._ref, self._rel_r, self._rel_t, self._est_r,
+                           self._est_t, self._th_r, self._th_t)
+            self._free[n0:n1] = True
+            if n0 == 0 and not self._first_free:
+                self._free[0] = False
+            ik.append_moved(np.arange(n0, n1), self._x, -1.0, -1.0, self._chg_flag,
+                            self._chg_list, self._chg_count)
+        ik.insert_incidences(m0, m1, self._ab, self._inc_head, self._inc_next)
+        ik.insert_gps(g0, g1, self._gnode, self._gps_head, self._gps_next)
+        self._n_in, self._m_in, self._g_in = n1, m1, g1
+        self._cycle_cover = (n1, m1, g1)
+        freed = np.zeros(0, np.int64)
+        if (not self._first_free and cfg.gauge == "auto" and g1 >= cfg.gps_gauge and n1 > 0):
+            self._first_free = True
+            self._free[0] = True
+            freed = np.zeros(1, np.int64)
+        # 2. relinearization
+        relin = np.zeros(0, np.int64)
+        if self._relin_cands.size:
+            out = np.empty(self._relin_cands.size, np.int64)
+            k = ik.relinearize(self._relin_cands, beta_rho, beta_phi,
+                               self._th_r, self._th_t, self._x, self._est_r, self._est_t, out)
+            relin = out[:k]
+            self._relin_cands = np.zeros(0, np.int64)
+        if n1 == n0 and m1 == m0 and g1 == g0 and relin.size == 0 and freed.size == 0:
+            return False
+        self._stamp = stamp
+        # 3. the constraints to linearize: the new ones and those of relinearized poses
+        e_ids = np.empty(m1, np.int64)  # np.empty: no O(M) work
+        g_ids = np.empty(g1, np.int64)
+        cnt = np.zeros(2, np.int64)
+        e_ids[: m1 - m0] = np.arange(m0, m1)
+        g_ids[: g1 - g0] = np.arange(g0, g1)
+        self._e_stamp[m0:m1] = stamp
+        self._g_stamp[g0:g1] = stamp
+        cnt[:] = (m1 - m0, g1 - g0)
+        touch = np.concatenate([relin, freed])
+        ik.incident_factors(touch, self._inc_head, self._inc_next, self._gps_head,
+                            self._gps_next, self._e_stamp, self._g_stamp, stamp, e_ids, g_ids,
+                            cnt)
+        self._e_ids, self._g_ids = e_ids[: cnt[0]], g_ids[: cnt[1]]
+        self._touch = touch
+        self._news = (n0, n1, m0, m1, g0, g1)
+        self._lin_i = 0
+        self._phase = _LINEARIZE
+        self.stats["relinearized"] += int(relin.size)
+        return True
+
+    def _run_linearize(self, deadline: np.uint64) -> None:
+        """Linearize the cycle's constraints, a chunk at a time; then choose S."""
+        e_ids, g_ids = self._e_ids, self._g_ids
+        total = e_ids.shape[0] + g_ids.shape[0]
+        while self._lin_i < total:
+            i0 = self._lin_i
+            i1 = min(i0 + _CHUNK, total)
+            ne = e_ids.shape[0]
+            if i0 < ne:
+                i1 = min(i1, ne)
+                bad = ik.linearize_edges(e_ids[i0:i1], self._th_r, self._th_t, self._ab,
+                                         self._zr, self._zt, self._info, self._haa, self._hbb,
+                                         self._hab, self._ga, self._gb, self._chi)
+                if bad >= 0:
+                    raise SolverError(f"the linearization of edge {bad} is not finite")
+            else:
+                bad = ik.linearize_gps(g_ids[i0 - ne: i1 - ne], self._th_r, self._th_t,
+                                       self._gnode, self._gpos, self._ginfo, self._hgg,
+                                       self._gg, self._gchi)
+                if bad >= 0:
+                    raise SolverError(f"the linearization of GPS reading {bad} is not finite")
+            self._lin_i = i1
+            if self._lin_i < total and np.uint64(read_cycles()) > deadline:
+                return
+        self._choose_set()
+
+    def _choose_set(self) -> None:
+        """S (the changed columns and their ancestors), its orphans, its new order; then the
+        symbolic phase."""
+        n0, n1, m0, m1, g0, g1 = self._news
+        stamp = self._stamp
+        e_ids, g_ids, touch = self._e_ids, self._g_ids, self._touch
+        cands = np.concatenate([self._ab[e_ids].ravel(), self._gnode[g_ids], touch,
+                                np.arange(n0, n1)])
+        s_buf = np.empty(self._n_in, np.int64)
+        ns = ik.ancestor_closure(cands, self._free, self._parent, self._in_s, stamp, s_buf)
+        s_vars = s_buf[:ns]
+        if ns == 0:  # only constraints between held poses: nothing to factor
+            self.stats["cycles"] += 1
+            self.covered = self._cycle_cover
+            self._phase = _IDLE
+            return
+        orph_buf = np.empty(self._n_in, np.int64)
+        no = ik.find_orphans(s_vars, self._in_s, stamp, self._ch_head, self._ch_next,
+                             orph_buf)
+        orphans = orph_buf[:no]
+        newest = (np.concatenate([self._ab[m0:m1].ravel(), self._gnode[g0:g1],
+                                  np.arange(n0, n1)]) if self.config.last == "ends"
+                  else np.arange(n0, n1))
+        order = self._order(s_vars, orphans, stamp, np.isin(s_vars, newest))
+        self._position[order] = self._counter + np.arange(ns)
+        self._counter += ns
+        ik.detach(s_vars, orphans, self._parent, self._ch_head, self._ch_next, self._ch_prev)
+        ik.link_orphans(orphans, self._position, self._col_start, self._col_len,
+                        self._row_var, self._parent, self._ch_head, self._ch_next,
+                        self._ch_prev)
+        self._order_s = order
+        self._s_vars = s_vars
+        self._i = 0
+        self._phase = _SYMBOLIC
+        self.stats["columns"] += ns
+        self.stats["max_set"] = max(self.stats["max_set"], ns)
+
+    def _run_symbolic(self, deadline: np.uint64) -> None:
+        order = self._order_s
+        while True:
+            r = ik.symbolic(order, self._i, deadline, self._position, self._free, self._in_s,
+                            self._stamp, self._ab, self._inc_head, self._inc_next,
+                            self._parent, self._ch_head, self._ch_next, self._ch_prev,
+                            self._col_start, self._col_len, self._col_cap, self._row_var,
+                            self._pool_used, self._mark)
+            if r == ik.POOL_FULL:
+                self._i = int(self._pool_used[1])
+                self._grow_pool(max(2 * order.shape[0], 1024))
+                continue
+            if r == ik.PAST_DEADLINE:
+                self._i = int(self._pool_used[1])
+                return
+            if r < 0:
+                raise SolverError("internal error in the incremental symbolic factorization")
+            break
+        self._i = 0
+        self._phase = _NUMERIC
+
+    def _order(self, s_vars: IntArray, orphans: IntArray, stamp: int,
+               last: npt.NDArray[np.bool_]) -> IntArray:
+        """S in its new elimination order (see the module docstring)."""
+        ns = s_vars.shape[0]
+        if not self.config.reorder or ns < _AMD_MIN or ns > self.config.reorder_max:
+            pos = self._position[s_vars].astype(np.float64)
+            pos[pos < 0] = np.inf  # new variables after the others, in index order
+            key = np.lexsort((s_vars, pos, last))
+            return s_vars[key]
+        self._local[s_vars] = np.arange(ns)
+        rows, cols = ik.reduced_pattern(s_vars, orphans, self._in_s, stamp, self._local,
+                                        self._free, self._ab, self._inc_head, self._inc_next,
+                                        self._col_start, self._col_len, self._row_var)
+        new_pos = fill_reducing_order(ns, rows, cols)
+        key = np.lexsort((new_pos, last))
+        return s_vars[key]
+
+    def _run_numeric(self, deadline: np.uint64) -> None:
+        order = self._order_s
+        r = ik.numeric(order, self._i, deadline, self._position, self._free, self._ab,
+                       self._inc_head, self._inc_next, self._gps_head, self._gps_next,
+                       self._haa, self._hbb, self._hab, self._ga, self._gb, self._hgg,
+                       self._gg, self._parent, self._col_start, self._col_len, self._row_var,
+                       self._row_blk, self._diag, self._y, self._slot, self._walk, 0.0,
+                       self._work)
+        self.stats["applied"] += int(self._work[0])
+        self.stats["products"] += int(self._work[1])
+        self._work[:] = 0
+        if r == ik.NOT_SPD:
+            raise SolverError("the normal equations are not positive definite (a pose is not "
+                              "determined by its constraints, or the gauge is not fixed)")
+        if r < 0:
+            raise SolverError("internal error in the incremental factorization")
+        self._i = r
+        if r == order.shape[0]:
+            s = self._s_vars
+            roots = s[self._parent[s] < 0]
+            self._stack[: roots.shape[0]] = roots
+            self._top = np.array([roots.shape[0]], np.int64)
+            self._n_touched = np.zeros(1, np.int64)
+            self._phase = _BACK
+
+    def _run_back(self, deadline: np.uint64) -> None:
+        done = ik.back_substitute(self._stack, self._top, deadline, self._in_s, self._stamp,
+                                  self._changed, self.config.wildfire, self._ch_head,
+                                  self._ch_next, self._col_start, self._col_len,
+                                  self._row_var, self._row_blk, self._diag, self._y, self._x,
+                                  self._touched, self._n_touched)
+        if not done:
+            return
+        touched = self._touched[: int(self._n_touched[0])].copy()
+        ik.publish(touched, self._th_r, self._th_t, self._x, self._est_r, self._est_t)
+        self._relin_cands = touched
+        ik.append_moved(touched, self._x, -1.0, -1.0, self._chg_flag, self._chg_list,
+                        self._chg_count)
+        cfg = self.config
+        if cfg.polish_rho < cfg.relinearize_rho or cfg.polish_phi < cfg.relinearize_phi:
+            ik.append_moved(touched, self._x, cfg.polish_rho, cfg.polish_phi, self._pol_flag,
+                           self._pol_list, self._pol_count)
+        self.stats["recomputed"] += int(touched.shape[0])
+        self.stats["cycles"] += 1
+        self.covered = self._cycle_cover
+        self._phase = _IDLE
+
+
+
+def ensure_compiled() -> None:
+    """Load (or compile, once) the kernels of :class:`IncrementalExact` by solving a chain of
+    three poses with a loop closure."""
+    inc = IncrementalExact(capacity=4)
+    eye = np.tile(np.eye(3), (3, 1, 1))
+    inc.add_poses(eye, np.eye(3))
+    inc.add_edges([0, 1, 0], [1, 2, 2], eye, np.ones((3, 3)), np.tile(np.eye(6), (3, 1, 1)))
+    inc.add_gps([0], np.zeros((1, 3)), np.eye(3)[None])
+    inc.solve()
+    inc.energy()

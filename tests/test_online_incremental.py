@@ -1,0 +1,242 @@
+"""The incremental exact solver (hybridpgo.online.incremental) against the batch exact solver.
+
+Oracles: after every completed update cycle the solution is the Gauss-Newton step of the whole
+map at the linearization point (``gauss_newton.gn_step``, a fresh batch factorization); run to
+convergence the estimate is the batch optimum (``solve_exact``); work sliced by deadlines gives
+bit for bit the answer of unsliced work.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from graphs import random_rotations
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from tolerances import INCREMENTAL_VS_BATCH, SPARSE_VS_DENSE_GN
+
+from hybridpgo.graph import PoseGraph
+from hybridpgo.online.incremental import IncrementalConfig, IncrementalExact
+from hybridpgo.solvers.config import GaussNewtonConfig
+from hybridpgo.solvers.gauss_newton import gn_step, solve_exact
+
+
+@dataclasses.dataclass
+class _Stream:
+    """Frames of a random drive: frame k brings pose k (odometry from k-1), loop closures from
+    k to earlier poses, and maybe a GPS reading of k."""
+
+    odo_r: np.ndarray
+    odo_t: np.ndarray
+    loops: list[list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]]
+    gps: list[list[tuple[np.ndarray, np.ndarray]]]
+    odo_info: np.ndarray
+
+    @property
+    def frames(self) -> int:
+        return len(self.loops)
+
+
+def _stream(seed: int, n: int, loop_p: float, gps_every: int, noise: float = 0.05) -> _Stream:
+    rng = np.random.default_rng(seed)
+    rot = np.empty((n, 3, 3))
+    trans = np.empty((n, 3))
+    rot[0] = np.eye(3)
+    trans[0] = 0.0
+    steps = random_rotations(rng, n, 0.3)
+    for k in range(1, n):
+        rot[k] = rot[k - 1] @ steps[k]
+        trans[k] = trans[k - 1] + rot[k - 1] @ np.array([1.0, 0.0, 0.0])
+
+    def measure(a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        zr = rot[a].T @ rot[b] @ random_rotations(rng, 1, noise)[0]
+        zt = rot[a].T @ (trans[b] - trans[a]) + rng.normal(scale=noise, size=3)
+        return zr, zt
+
+    def info6() -> np.ndarray:
+        q = rng.normal(size=(6, 6))
+        return q @ q.T + 6.0 * np.eye(6)
+
+    odo_r = np.empty((n, 3, 3))
+    odo_t = np.empty((n, 3))
+    odo_info = np.empty((n, 6, 6))
+    loops: list[list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]] = []
+    gps: list[list[tuple[np.ndarray, np.ndarray]]] = []
+    for k in range(n):
+        if k:
+            odo_r[k], odo_t[k] = measure(k - 1, k)
+            odo_info[k] = info6()
+        frame = []
+        if k >= 3 and rng.random() < loop_p:
+            a = int(rng.integers(0, k - 1))
+            zr, zt = measure(a, k)
+            frame.append((a, zr, zt, info6()))
+        loops.append(frame)
+        g = []
+        if gps_every and k % gps_every == gps_every - 1:
+            q = rng.normal(size=(3, 3))
+            g.append((trans[k] + rng.normal(scale=noise, size=3), q @ q.T + 3.0 * np.eye(3)))
+        gps.append(g)
+    return _Stream(odo_r, odo_t, loops, gps, odo_info)
+
+
+def _feed(inc: IncrementalExact, s: _Stream, k: int) -> None:
+    if k == 0:
+        inc.add_poses(np.eye(3)[None], np.zeros((1, 3)))
+    else:
+        inc.add_poses(s.odo_r[k][None], s.odo_t[k][None], [k - 1])
+        inc.add_edges([k - 1], [k], s.odo_r[k][None], s.odo_t[k][None], s.odo_info[k][None])
+    for a, zr, zt, info in s.loops[k]:
+        inc.add_edges([a], [k], zr[None], zt[None], info[None])
+    for pos, info3 in s.gps[k]:
+        inc.add_gps([k], pos[None], info3[None])
+
+
+def _graph(inc: IncrementalExact, rot: np.ndarray, trans: np.ndarray) -> PoseGraph:
+    """Everything integrated, at the given poses, with the solver's gauge."""
+    n, m, g = inc._n_in, inc._m_in, inc._g_in
+    return PoseGraph(
+        node_ids=np.arange(n), rotations=rot[:n], translations=trans[:n],
+        edge_nodes=inc._ab[:m].astype(np.int32), edge_rotations=inc._zr[:m],
+        edge_translations=inc._zt[:m], edge_information=inc._info[:m],
+        gps_nodes=inc._gnode[:g].astype(np.int32), gps_positions=inc._gpos[:g],
+        gps_information=inc._ginfo[:g],
+        fixed_nodes=np.zeros(0 if inc._free[0] else 1, np.int32))  # fmt: skip
+
+
+def _check_gn_step(inc: IncrementalExact) -> None:
+    n = inc._n_in
+    graph = _graph(inc, inc._th_r, inc._th_t)
+    ref = gn_step(graph, inc._th_r[:n], inc._th_t[:n], graph.fixed_nodes)
+    got = np.where(inc._free[:n, None], inc._x[:n], 0.0)
+    scale = max(1.0, float(np.abs(ref).max()))
+    assert np.abs(got - ref).max() <= SPARSE_VS_DENSE_GN * scale
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(2, 40),
+       loop_p=st.sampled_from([0.0, 0.3, 0.8]), gps_every=st.sampled_from([0, 3, 7]),
+       beta=st.sampled_from([0.0, 1e-3, 0.05]), reorder=st.booleans(),
+       capacity=st.sampled_from([4, 64]))
+def test_every_cycle_solves_the_whole_map_exactly(seed: int, n: int, loop_p: float,
+                                                  gps_every: int, beta: float, reorder: bool,
+                                                  capacity: int) -> None:
+    """After each completed cycle, x is the batch Gauss-Newton step at the linearization point,
+    whatever was re-eliminated (partial refactorization, orphans, reordering, pool growth)."""
+    s = _stream(seed, n, loop_p, gps_every)
+    cfg = IncrementalConfig(relinearize_rho=beta, relinearize_phi=beta, reorder=reorder)
+    inc = IncrementalExact(cfg, capacity=capacity)
+    rng = np.random.default_rng(seed + 1)
+    for k in range(s.frames):
+        _feed(inc, s, k)
+        for _ in range(int(rng.integers(1, 4))):
+            before = inc.stats["cycles"]
+            inc.solve(max_cycles=1)
+            if inc.stats["cycles"] > before:
+                _check_gn_step(inc)
+
+
+@pytest.mark.parametrize(("seed", "gps_every"), [(0, 0), (1, 5)])
+def test_an_idle_solver_reaches_the_batch_optimum(seed: int, gps_every: int) -> None:
+    """Streamed with the default thresholds, then updated with nothing new: the polish
+    relinearizes what still moves, down to the batch optimum."""
+    s = _stream(seed, 120, 0.3, gps_every)
+    inc = IncrementalExact()
+    for k in range(s.frames):
+        _feed(inc, s, k)
+        inc.solve()
+    while not inc.solve():
+        pass
+    rot, trans = inc.estimate()
+    graph = _graph(inc, rot, trans)
+    ref = solve_exact(graph, rot, trans,
+                      GaussNewtonConfig(max_iterations=100, energy_tolerance=1e-15))
+    assert abs(inc.energy() - ref.final_energy) <= INCREMENTAL_VS_BATCH * ref.final_energy
+
+
+def test_gauss_newton_thresholds_reach_the_batch_optimum() -> None:
+    """Thresholds 0 after a stream: every update is a Gauss-Newton step of the whole map."""
+    s = _stream(4, 80, 0.4, 0)
+    inc = IncrementalExact()
+    for k in range(s.frames):
+        _feed(inc, s, k)
+        inc.solve(max_cycles=1)
+    inc.config = dataclasses.replace(inc.config, relinearize_rho=0.0, relinearize_phi=0.0)
+    inc.relinearize_all()
+    for _ in range(50):
+        inc.solve(max_cycles=1)
+        if np.abs(inc._x[: inc.num_poses]).max() < 1e-13:
+            break
+    rot, trans = inc.estimate()
+    ref = solve_exact(_graph(inc, rot, trans), rot, trans,
+                      GaussNewtonConfig(max_iterations=100, energy_tolerance=1e-15))
+    assert abs(inc.energy() - ref.final_energy) <= INCREMENTAL_VS_BATCH * ref.final_energy
+
+
+def test_deadline_slices_give_the_same_answer_bit_for_bit() -> None:
+    s = _stream(7, 60, 0.5, 4)
+    whole = IncrementalExact()
+    sliced = IncrementalExact()
+    calls = 0
+    for k in range(s.frames):
+        _feed(whole, s, k)
+        _feed(sliced, s, k)
+        whole.solve()
+        while not sliced.solve(budget_s=0.0):  # one column or one solution entry per call
+            calls += 1
+    assert calls > 10 * s.frames  # the slices did split the work
+    for a, b in zip(whole.estimate(), sliced.estimate(), strict=True):
+        assert np.array_equal(a, b)
+
+
+def test_estimate_composes_poses_added_since_the_last_update() -> None:
+    s = _stream(3, 10, 0.0, 0)
+    inc = IncrementalExact()
+    for k in range(5):
+        _feed(inc, s, k)
+    inc.solve()
+    _feed(inc, s, 5)
+    rot, trans = inc.estimate()
+    assert np.allclose(rot[5], rot[4] @ s.odo_r[5], atol=1e-15)
+    assert np.allclose(trans[5], rot[4] @ s.odo_t[5] + trans[4], atol=1e-15)
+
+
+def test_bad_input_is_rejected_and_changes_nothing() -> None:
+    inc = IncrementalExact()
+    inc.add_poses(np.eye(3)[None], np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="earlier pose"):
+        inc.add_poses(np.eye(3)[None], np.zeros((1, 3)), [1])
+    with pytest.raises(ValueError, match="finite"):
+        inc.add_poses(np.eye(3)[None], np.full((1, 3), np.nan))
+    with pytest.raises(ValueError, match="already added"):
+        inc.add_edges([0], [3], np.eye(3)[None], np.zeros((1, 3)), np.eye(6)[None])
+    with pytest.raises(ValueError, match="already added"):
+        inc.add_gps([2], np.zeros((1, 3)), np.eye(3)[None])
+    inc.add_poses(np.eye(3)[None], np.ones((1, 3)))
+    with pytest.raises(ValueError, match="not finite"):
+        inc.add_edges([0], [1], np.eye(3)[None], np.full((1, 3), np.inf), np.eye(6)[None])
+    with pytest.raises(ValueError, match="positive definite"):
+        inc.add_edges([0], [1], np.eye(3)[None], np.zeros((1, 3)), -np.eye(6)[None])
+    with pytest.raises(ValueError, match="positive definite"):
+        inc.add_gps([1], np.zeros((1, 3)), np.diag([1.0, 0.0, 1.0])[None])
+    assert (inc.num_poses, inc.num_edges, inc.num_gps) == (2, 0, 0)
+
+
+def test_take_changes_lists_every_pose_whose_estimate_moved() -> None:
+    s = _stream(11, 50, 0.5, 6)
+    inc = IncrementalExact()
+    before_r = np.zeros((0, 3, 3))
+    before_t = np.zeros((0, 3))
+    for k in range(s.frames):
+        _feed(inc, s, k)
+        inc.solve(budget_s=0.0 if k % 3 else None)  # some updates stop half-way
+        rot, trans = inc.estimate()
+        n0 = before_r.shape[0]
+        changed = set(inc.take_changes().tolist())
+        moved = ~(np.all(rot[:n0] == before_r, axis=(1, 2)) & np.all(trans[:n0] == before_t,
+                                                                    axis=1))
+        assert set(np.flatnonzero(moved).tolist()) <= changed
+        assert set(range(n0, inc.covered[0])) <= changed  # integrated since: all listed
+        before_r, before_t = rot[: inc.covered[0]], trans[: inc.covered[0]]
