@@ -685,11 +685,11 @@ def test_toro_runs_its_sweeps_as_iterations(capsys: pytest.CaptureFixture[str], 
 
 # =========================================================================== bounds
 def test_sweeps_and_tau0_bounds_match_the_library() -> None:
-    from hybridpgo.cli import _parser
+    from hybridpgo.cli import _options
     from hybridpgo.solvers import config
 
-    assert _parser.MAX_SWEEPS == config.MAX_SWEEPS
-    assert _parser.MAX_TAU == config.MAX_TAU
+    assert _options.MAX_SWEEPS == config.MAX_SWEEPS
+    assert _options.MAX_TAU == config.MAX_TAU
 
 
 @pytest.mark.parametrize(("argv", "message"), [

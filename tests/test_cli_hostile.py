@@ -124,7 +124,7 @@ def test_plot_dpi_is_bounded(capsys: pytest.CaptureFixture[str], g2d: Path,
     assert code == 2 and "--dpi: must be an integer in 1..600" in err
     assert not out.exists()
     pytest.importorskip("matplotlib")
-    from hybridpgo.cli._parser import MAX_DPI
+    from hybridpgo.cli._options import MAX_DPI
     from hybridpgo.errors import HybridPGOError
     from hybridpgo.plot import MAX_DPI as PLOT_MAX_DPI
     from hybridpgo.plot import graph_figure, save_figure

@@ -9,226 +9,42 @@ parser imports nothing heavy.  Numeric options are checked here, so a bad value 
 from __future__ import annotations
 
 import argparse
-import math
-from collections.abc import Callable
 from typing import Any
 
 from ._common import LazyChoices
+from ._options import (
+    MAX_DPI,
+    MAX_TAU,
+    OUTPUT_HELP,
+    add_common,
+    add_format,
+    add_generate_common,
+    add_progress,
+    any_int,
+    at_least_2,
+    auto_defaults,
+    decay,
+    dpi,
+    grid_presets,
+    inits,
+    methods,
+    nonneg_float,
+    nonneg_int,
+    number,
+    pos_float,
+    pos_int,
+    pose_ids,
+    presets,
+    probability,
+    robust,
+    solver_defaults,
+    steps,
+    sweeps,
+    tau,
+    trees,
+)
 
 __all__ = ["build_parser"]
-
-
-# --------------------------------------------------------------------------- real choice lists
-def _formats() -> list[str]:
-    from ..io import FORMATS
-
-    return list(FORMATS)
-
-
-def _write_formats() -> list[str]:
-    from ..io import WRITE_FORMATS
-
-    return list(WRITE_FORMATS)
-
-
-def _fix_policies() -> list[str]:
-    from ..io import FIX_INFORMATION
-
-    return list(FIX_INFORMATION)
-
-
-def _methods() -> list[str]:
-    from ..solvers import METHODS
-
-    return list(METHODS)
-
-
-def _steps() -> list[str]:
-    from ..solvers.config import STEP_NAMES
-
-    return list(STEP_NAMES)
-
-
-def _trees() -> list[str]:
-    from ..solvers import TREES
-
-    return list(TREES)
-
-
-def _inits() -> list[str]:
-    from ..initialization import InitKind
-
-    return [k.value for k in InitKind]
-
-
-def _presets() -> list[str]:
-    from ..generate import PRESETS
-
-    return sorted(PRESETS)
-
-
-def _grid_presets() -> list[str]:
-    from ..generate import GRID_PRESETS
-
-    return list(GRID_PRESETS)
-
-
-def _solver_defaults() -> tuple[Any, Any]:
-    """Default configs, so that --help shows the solvers' real defaults."""
-    from ..solvers import GaussNewtonConfig, HybridConfig
-
-    return HybridConfig(), GaussNewtonConfig()
-
-
-def _auto_defaults() -> Any:
-    """The default pipeline's config, so that --help shows its real defaults."""
-    from ..solvers import AutoConfig
-
-    return AutoConfig()
-
-
-# --------------------------------------------------------------------------- value checks
-def _number(kind: Callable[[str], float | int], test: Callable[[float], bool],
-            what: str) -> Callable[[str], float | int]:
-    def convert(text: str) -> float | int:
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}") from None
-        if not (math.isfinite(value) and test(value)):
-            raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
-        return value
-
-    convert.__name__ = what  # shown by argparse in "invalid <name> value" messages
-    return convert
-
-
-_nonneg_int = _number(int, lambda v: v >= 0, "an integer >= 0")
-_pos_int = _number(int, lambda v: v >= 1, "an integer >= 1")
-_any_int = _number(int, lambda v: True, "an integer")
-_nonneg_float = _number(float, lambda v: v >= 0, "a number >= 0")
-_pos_float = _number(float, lambda v: v > 0, "a number > 0")
-_decay = _number(float, lambda v: 0 < v <= 1, "a number in (0, 1]")
-#: --sweeps and --tau0 bounds: the library's (solvers.config.MAX_SWEEPS, MAX_TAU), repeated
-#: here to keep the parser light; tests/test_cli.py checks that they agree.
-MAX_SWEEPS = 1_000_000
-MAX_TAU = 2.0
-_sweeps = _number(int, lambda v: 0 <= v <= MAX_SWEEPS, f"an integer in 0..{MAX_SWEEPS}")
-_tau = _number(float, lambda v: 0 < v < MAX_TAU, f"a number in (0, {MAX_TAU:g})")
-#: Largest ``plot --dpi`` (the same as ``hybridpgo.plot.MAX_DPI``; not imported, to keep the
-#: parser light).  A 2x2-panel figure at 600 dpi is ~7800 x 7200 pixels (~225 MB to render).
-MAX_DPI = 600
-_dpi = _number(int, lambda v: 1 <= v <= MAX_DPI, f"an integer in 1..{MAX_DPI}")
-
-#: How outputs are written, for the help of every command that writes a file.
-OUTPUT_HELP = ("Outputs are checked before any work and written atomically (temporary file, then "
-               "rename), so a command writes all its files or none; an output may not be one of "
-               "the inputs.  A symbolic link is written through (its target is replaced, the "
-               "link kept); a FIFO or character device (/dev/null) is written directly.")
-
-
-def _pose_ids(text: str) -> tuple[int, ...] | str:
-    """``--covariance-poses``: ``all``, or ids and inclusive ranges ``A..B``, comma-separated."""
-    if text.strip() == "all":
-        return "all"
-    ids: list[int] = []
-    for part in text.split(","):
-        lo, sep, hi = part.strip().partition("..")
-        try:
-            first = int(lo)
-            last = int(hi) if sep else first
-        except ValueError:
-            raise argparse.ArgumentTypeError(
-                f"must be 'all' or pose ids and ranges like 0,5,10..20, got {text!r}") from None
-        if last < first or last - first >= 100_000_000:
-            raise argparse.ArgumentTypeError(f"bad range {part.strip()!r} in {text!r}")
-        ids.extend(range(first, last + 1))
-    return tuple(dict.fromkeys(ids))
-
-
-_pose_ids.__name__ = "IDS"
-
-
-_probability = _number(float, lambda v: 0 <= v <= 1, "a number in [0, 1]")
-_at_least_2 = _number(int, lambda v: v >= 2, "an integer >= 2")
-
-
-def _robust(text: str) -> tuple[str, float | None]:
-    """``auto``, ``none`` or ``NAME[:SCALE]`` of ``--robust`` -> (name, delta or None for the
-    kernel's default)."""
-    from ..solvers.config import ROBUST_CHOICES
-
-    name, sep, scale = text.partition(":")
-    if name not in ROBUST_CHOICES:
-        raise argparse.ArgumentTypeError(
-            f"must be auto, none or a kernel ({', '.join(ROBUST_CHOICES[2:])}, optionally "
-            f"NAME:SCALE), got {name!r}")
-    if not sep:
-        return name, None
-    if name in ("auto", "none"):
-        raise argparse.ArgumentTypeError(f"{name} takes no scale, got {text!r}")
-    return name, float(_pos_float(scale))
-
-
-_robust.__name__ = "NAME[:SCALE]"
-
-
-# --------------------------------------------------------------------------- parser
-def _add_format(p: argparse.ArgumentParser, *, out: bool = False) -> None:
-    p.add_argument("--format", choices=LazyChoices(_formats),
-                   help="input format (default: detected from the content)")
-    if out:
-        p.add_argument("--out-format", choices=LazyChoices(_write_formats),
-                       help="output format (default: from the output's extension, .tum -> tum, "
-                            "else the input's format); tum writes the poses only")
-    p.add_argument("--fix-information", choices=LazyChoices(_fix_policies),
-                   help="information matrices that are not positive definite: 'nearest' "
-                        "projects each onto the nearest positive definite matrix (eigenvalues "
-                        "clipped at 1e-9 x the largest), 'skip' drops those constraints; both "
-                        "warn with the count (default: error)")
-
-
-def _add_common(p: argparse.ArgumentParser) -> None:
-    # SUPPRESS: "hybridpgo --debug CMD" and "hybridpgo CMD --debug" both work
-    p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
-                   help="show a traceback for every error")
-
-
-def _add_progress(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--progress", action="store_true",
-                   help="draw progress even when stderr is not a terminal (default: only on a "
-                        "terminal; --quiet turns it off)")
-
-
-def _add_generate_common(p: argparse.ArgumentParser, kind: str) -> None:
-    """Outliers, seed and outputs of ``generate city`` and ``generate grid``."""
-    p.add_argument("--outliers", type=_nonneg_int, default=0, metavar="N",
-                   help="add N false loop closures with the information of real ones: random "
-                        "pose pairs and near misses (poses a few metres apart with a wrong "
-                        "relative pose) (default 0)")
-    p.add_argument("--near-miss-fraction", type=_probability, metavar="F",
-                   help="fraction of the outliers that are near misses (default 0.5)")
-    p.add_argument("--outlier-pattern", default="mixed",
-                   choices=("mixed", "random", "local", "random-grouped", "local-grouped"),
-                   help="'mixed': random pairs and near misses (--near-miss-fraction); else "
-                        "Suenderhauf and Protzel's patterns, every false edge claiming its two "
-                        "poses are at the same place: between random poses, between a pose and "
-                        "one of the 20 after it ('local'), or in groups of 10 consecutive "
-                        "mutually consistent edges (default mixed)")
-    p.add_argument("--outliers-out", metavar="CSV",
-                   help="where to list the false edges: CSV with columns edge_index (0-based "
-                        "among the file's edge lines), id_a, id_b, kind (random, near_miss or "
-                        "aliased_<pattern>), true_distance_m (default with --outliers: GT, else "
-                        "OUT, with its extension replaced by .outliers.csv)")
-    p.add_argument("--seed", type=_any_int, default=0, help="random seed (default 0)")
-    p.add_argument("-o", "--output", required=True, metavar="OUT",
-                   help="graph file to write (g2o, or TORO for a .graph name; vertices are the "
-                        "noisy odometry chained from the true first pose)")
-    p.add_argument("--ground-truth", metavar="GT",
-                   help="also write the ground truth: the same graph with the true poses as "
-                        "vertices (g2o)")
-    _add_common(p)
-    p.set_defaults(command="generate", kind=kind)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -256,7 +72,22 @@ def _build_parser() -> argparse.ArgumentParser:
                         help="show a traceback for every error")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    # ---------------------------------------------------------------- info
+    _info(sub)
+    _optimize(sub)
+    _convert(sub)
+    _plot(sub)
+    _demo(sub)
+    _warmup(sub)
+    _generate(sub)
+    _noisify(sub)
+    _evaluate(sub)
+    _batch(sub)
+    _replay(sub)
+    return parser
+
+
+def _info(sub: Any) -> None:
+    """The ``info`` command."""
     p = sub.add_parser("info", help="counts, tree statistics and energies of a graph file",
                        description="Counts by constraint type, dimension, pose-tree depth and "
                                    "constraint path lengths, the energy at the file's "
@@ -264,8 +95,8 @@ def _build_parser() -> argparse.ArgumentParser:
                                    "five constraints with the largest chi2.",
                        epilog=OUTPUT_HELP)
     p.add_argument("file", help="pose-graph file (g2o, TORO or iSAM; '-': standard input)")
-    _add_format(p)
-    p.add_argument("--tree", choices=LazyChoices(_trees), default="bfs",
+    add_format(p)
+    p.add_argument("--tree", choices=LazyChoices(trees), default="bfs",
                    help="spanning tree to analyze (default: bfs, the paper's)")
     p.add_argument("--skip-unknown", action="store_true",
                    help="skip lines with unsupported tags (one warning) instead of failing")
@@ -278,12 +109,14 @@ def _build_parser() -> argparse.ArgumentParser:
                         "e_ry e_rz (tangent order translation, rotation; metres, radians) and "
                         "the whitened error w1..w6 (L^T e with Omega = L L^T); '-': standard "
                         "output")
-    _add_common(p)
+    add_common(p)
     p.set_defaults(command="info")
 
-    # ---------------------------------------------------------------- optimize
-    hy, gn = _solver_defaults()
-    au = _auto_defaults()
+
+def _optimize(sub: Any) -> None:
+    """The ``optimize`` command."""
+    hy, gn = solver_defaults()
+    au = auto_defaults()
     p = sub.add_parser(
         "optimize", help="optimize a graph and write the result",
         description="Optimize a pose graph and write the optimized graph.  The default "
@@ -308,35 +141,35 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, metavar="OUT",
                    help="where to write the optimized graph ('-': standard output, the summary "
                         "then goes to stderr)")
-    _add_format(p, out=True)
-    p.add_argument("--solver", choices=LazyChoices(_methods), default="auto",
+    add_format(p, out=True)
+    p.add_argument("--solver", choices=LazyChoices(methods), default="auto",
                    help="solver: 'auto' (start, sweeps while they pay, LM polish to "
                         "convergence), 'hybrid' (the paper's sweeps alone), 'exact' (sparse "
                         "LM), 'toro' (the TORO-style baseline) (default: auto)")
-    p.add_argument("--init", choices=LazyChoices(_inits),
+    p.add_argument("--init", choices=LazyChoices(inits),
                    help="initial poses: 'tree' concatenates the tree edges' measurements (the "
                         "paper), 'file' uses the file's vertices, 'chordal' a chordal "
                         "relaxation (default: auto tries all and keeps the best; tree for hybrid; "
                         "file for exact when the file has vertices)")
-    p.add_argument("--sweeps", type=_sweeps, metavar="N",
+    p.add_argument("--sweeps", type=sweeps, metavar="N",
                    help=f"hybrid: number of sweeps over all constraints (default {hy.sweeps})")
-    p.add_argument("--tau0", type=_tau, metavar="TAU",
+    p.add_argument("--tau0", type=tau, metavar="TAU",
                    help=f"hybrid: initial temperature, below {MAX_TAU:g} (default {hy.tau0:g})")
-    p.add_argument("--tau-decay", type=_decay, metavar="F",
+    p.add_argument("--tau-decay", type=decay, metavar="F",
                    help=f"hybrid: temperature factor per sweep (default {hy.tau_decay:g})")
-    p.add_argument("--damping", type=_nonneg_float, metavar="MU",
+    p.add_argument("--damping", type=nonneg_float, metavar="MU",
                    help="hybrid: relative damping of the hybrid Hessian blocks "
                         f"(default {hy.damping:g})")
-    p.add_argument("--step", choices=LazyChoices(_steps),
+    p.add_argument("--step", choices=LazyChoices(steps),
                    help="hybrid: 'woodbury' solves each step in O(d), 'givens' is the paper's "
                         f"O(d^2) triangularization (default {hy.step})")
-    p.add_argument("--tree", choices=LazyChoices(_trees),
+    p.add_argument("--tree", choices=LazyChoices(trees),
                    help="spanning tree: 'bfs' breadth-first (the paper's), 'mst' "
                         f"maximum-stiffness (default {hy.tree}); 'toro': each pose hangs from "
                         "its smallest-id neighbour (--solver toro's default)")
-    p.add_argument("--gps-batch-size", type=_pos_int, metavar="N",
+    p.add_argument("--gps-batch-size", type=pos_int, metavar="N",
                    help=f"hybrid: GPS constraints relaxed together (default {hy.gps_batch_size})")
-    p.add_argument("--dmax", type=_number(int, lambda v: v >= 2, "an integer >= 2"), metavar="N",
+    p.add_argument("--dmax", type=number(int, lambda v: v >= 2, "an integer >= 2"), metavar="N",
                    help="hybrid: interpolated solving (paper III-E): solve each update for at "
                         "most N nodes of its path and distribute the rest (default: the whole "
                         "path)")
@@ -345,27 +178,27 @@ def _build_parser() -> argparse.ArgumentParser:
                         "by conjugate gradients preconditioned by the hybrid Hessian's block "
                         "diagonal, taken when it lowers the energy ('pcg'), or none (the "
                         f"paper's sweeps alone; default {hy.correction})")
-    p.add_argument("--correction-iterations", type=_pos_int, metavar="N",
+    p.add_argument("--correction-iterations", type=pos_int, metavar="N",
                    help="hybrid: CG iterations of one --correction pcg step "
                         f"(default {hy.correction_iterations})")
     p.add_argument("--monotone", action="store_true",
                    help="hybrid with --correction pcg: undo a sweep that raises the energy, so "
                         "every iteration lowers it and the optimum is a fixed point")
-    p.add_argument("--tolerance", type=_nonneg_float, metavar="TOL",
+    p.add_argument("--tolerance", type=nonneg_float, metavar="TOL",
                    help="stop when an iteration lowers the energy by less than this fraction "
                         f"(hybrid default {hy.energy_tolerance:g}, where 0 runs all sweeps; "
                         f"exact default {gn.energy_tolerance:g})")
     p.add_argument("--polish", action="store_true",
                    help="hybrid: finish with the exact Levenberg-Marquardt solver")
-    p.add_argument("--fix", type=_any_int, action="append", metavar="ID",
+    p.add_argument("--fix", type=any_int, action="append", metavar="ID",
                    help="hold pose ID fixed (the gauge), as a 'FIX ID' line in the file would; "
                         "may be repeated (the hybrid solver holds exactly one pose fixed)")
-    p.add_argument("--max-iterations", type=_nonneg_int, metavar="N",
+    p.add_argument("--max-iterations", type=nonneg_int, metavar="N",
                    help=f"iteration limit of the exact solver (default {gn.max_iterations}) or of "
                         f"the polish (default {hy.polish_iterations})")
     from ..solvers.config import ROBUST_DEFAULT_SCALE
 
-    p.add_argument("--robust", type=_robust, metavar="auto|none|NAME[:SCALE]",
+    p.add_argument("--robust", type=robust, metavar="auto|none|NAME[:SCALE]",
                    help="outliers (auto, hybrid, exact): 'auto' solves least squares, tests "
                         "every constraint's chi2 and, when some false loop closure or false "
                         "GPS fix makes the graph inconsistent, solves again without them and "
@@ -391,7 +224,7 @@ def _build_parser() -> argparse.ArgumentParser:
                         "the exact solver's; a robust kernel's weights are not applied) to NPZ: "
                         "ids (k,), cov (k, 6, 6) in tangent order tx ty tz rx ry rz (metres, "
                         "radians; the right perturbation in the pose's frame), fixed_ids")
-    p.add_argument("--covariance-poses", type=_pose_ids, metavar="IDS",
+    p.add_argument("--covariance-poses", type=pose_ids, metavar="IDS",
                    help="the poses of --covariance: 'all', or ids and ranges like 0,5,10..20 "
                         "(default: all; every pose costs about two factorizations of the "
                         "exact solver in total, by selected inversion of the factor)")
@@ -405,11 +238,13 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true",
                    help="print the summary as JSON instead of text")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    _add_progress(p)
-    _add_common(p)
+    add_progress(p)
+    add_common(p)
     p.set_defaults(command="optimize")
 
-    # ---------------------------------------------------------------- convert
+
+def _convert(sub: Any) -> None:
+    """The ``convert`` command."""
     p = sub.add_parser("convert", help="convert a graph between g2o, TORO and iSAM",
                        description="Convert a graph file.  The output format comes from "
                                    "--out-format, else OUT's extension (.g2o -> g2o, .graph -> "
@@ -420,13 +255,15 @@ def _build_parser() -> argparse.ArgumentParser:
                        epilog=OUTPUT_HELP)
     p.add_argument("input", metavar="IN", help="pose-graph file to read ('-': standard input)")
     p.add_argument("output", metavar="OUT", help="file to write ('-': standard output)")
-    _add_format(p, out=True)
+    add_format(p, out=True)
     p.add_argument("--skip-unknown", action="store_true",
                    help="skip lines with unsupported tags (one warning) instead of failing")
-    _add_common(p)
+    add_common(p)
     p.set_defaults(command="convert")
 
-    # ---------------------------------------------------------------- plot
+
+def _plot(sub: Any) -> None:
+    """The ``plot`` command."""
     p = sub.add_parser(
         "plot", help="draw a graph with its constraint residuals",
         description="Draw the trajectory top-down (plus an oblique 3D view for 3D graphs) with "
@@ -440,18 +277,21 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="an optimized version of FILE (same pose ids): draw it beside FILE")
     p.add_argument("-o", "--output", required=True, metavar="FIG",
                    help="image to write (.png, .pdf, .svg; written atomically)")
-    _add_format(p)
+    add_format(p)
     p.add_argument("--no-residuals", action="store_true", help="draw the trajectory only")
     p.add_argument("--shared-scale", action="store_true",
                    help="with --optimized: one energy colour scale for both maps (default: each "
                         "map its own, so each shows its worst residuals in red)")
-    p.add_argument("--dpi", type=_dpi, default=150,
+    p.add_argument("--dpi", type=dpi, default=150,
                    help=f"resolution, 1..{MAX_DPI} (default 150)")
-    _add_progress(p)
-    _add_common(p)
+    add_progress(p)
+    add_common(p)
     p.set_defaults(command="plot")
 
-    # ---------------------------------------------------------------- demo
+
+def _demo(sub: Any) -> None:
+    """The ``demo`` command."""
+    au = auto_defaults()
     p = sub.add_parser(
         "demo", help="optimize the bundled Manhattan graph (M3500) and write plots",
         description="Run the default pipeline (as 'hybridpgo optimize' does: the best start, "
@@ -460,15 +300,17 @@ def _build_parser() -> argparse.ArgumentParser:
                     "before/after/energy plots into DIR.")
     p.add_argument("-o", "--output-dir", default="hybridpgo-demo", metavar="DIR",
                    help="output directory (default: hybridpgo-demo)")
-    p.add_argument("--sweeps", type=_sweeps, metavar="N",
+    p.add_argument("--sweeps", type=sweeps, metavar="N",
                    help="most hybrid sweeps from each start before the polish (default "
                         f"{au.sweeps.sweeps}; fewer when a sweep stops paying)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    _add_progress(p)
-    _add_common(p)
+    add_progress(p)
+    add_common(p)
     p.set_defaults(command="demo")
 
-    # ---------------------------------------------------------------- warmup
+
+def _warmup(sub: Any) -> None:
+    """The ``warmup`` command."""
     p = sub.add_parser(
         "warmup", help="compile the solvers' Numba kernels now (first run only; then cached)",
         description="Compile every Numba kernel of the solvers now, or load them from the "
@@ -478,11 +320,13 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--solver", choices=["all", "hybrid", "exact", "toro"], default="all",
                    help="which solver's kernels (default: all)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress and no summary")
-    _add_progress(p)
-    _add_common(p)
+    add_progress(p)
+    add_common(p)
     p.set_defaults(command="warmup")
 
-    # ---------------------------------------------------------------- generate
+
+def _generate(sub: Any) -> None:
+    """The ``generate`` command."""
     p = sub.add_parser(
         "generate", help="generate a synthetic graph with ground truth",
         description="Generate a synthetic pose graph with ground truth.  'city': a street-grid "
@@ -494,7 +338,7 @@ def _build_parser() -> argparse.ArgumentParser:
         epilog="Run 'hybridpgo generate city --help' or 'hybridpgo generate grid --help' for "
                "their options.")
     kinds = p.add_subparsers(dest="kind", metavar="KIND", required=True)
-    _add_common(p)
+    add_common(p)
     p.set_defaults(command="generate")
 
     c = kinds.add_parser(
@@ -503,13 +347,13 @@ def _build_parser() -> argparse.ArgumentParser:
                     "graph has odometry, loop closures detected with some probability when it "
                     "revisits a street, and optional GPS readings.  The file's vertices are "
                     "dead reckoning (the noisy odometry chained from the true first pose).")
-    c.add_argument("--preset", choices=LazyChoices(_presets),
+    c.add_argument("--preset", choices=LazyChoices(presets),
                    help="size and shape like the paper's Table II graphs (default: the "
                         "generator's default city, 2000 poses)")
-    c.add_argument("--poses", type=_at_least_2, metavar="N",
+    c.add_argument("--poses", type=at_least_2, metavar="N",
                    help="number of poses; the street grid grows with N so that the density of "
                         "loop closures stays the preset's (default: the preset's)")
-    c.add_argument("--gps-outliers", type=_nonneg_int, default=0, metavar="N",
+    c.add_argument("--gps-outliers", type=nonneg_int, default=0, metavar="N",
                    help="move N GPS readings by a multipath jump of 20-60 m in a random "
                         "horizontal direction (false fixes; default 0)")
     c.add_argument("--gps-outliers-out", metavar="CSV",
@@ -517,10 +361,10 @@ def _build_parser() -> argparse.ArgumentParser:
                         "among the file's GPS lines), id, jump_m, dx, dy, dz (default with "
                         "--gps-outliers: GT, else OUT, with its extension replaced by "
                         ".gps_outliers.csv)")
-    c.add_argument("--gps-every", type=_nonneg_int, metavar="K",
+    c.add_argument("--gps-every", type=nonneg_int, metavar="K",
                    help="a GPS reading on every K-th pose (the paper: 100); 0: no GPS "
                         "(default: no GPS)")
-    _add_generate_common(c, "city")
+    add_generate_common(c, "city")
 
     g = kinds.add_parser(
         "grid", help="a Manhattan world after Olson (M3500-like), 2D or 3D",
@@ -535,35 +379,37 @@ def _build_parser() -> argparse.ArgumentParser:
                "0.1, 0.2, 0.3 rad; for a family vary --rot-sigma and --seed, e.g. "
                "'for s in 0.1 0.2 0.3 0.5; do hybridpgo generate grid --rot-sigma $s --seed 1 "
                "-o m_$s.g2o --ground-truth m_${s}_gt.g2o; done'.")
-    g.add_argument("--preset", choices=LazyChoices(_grid_presets),
+    g.add_argument("--preset", choices=LazyChoices(grid_presets),
                    help="m3500 (the default: 3500 poses, sigma 0.0224 m and rad like M3500), "
                         "m3500a/b/c (rotation sigma 0.1/0.2/0.3 rad), grid3d (3D)")
-    g.add_argument("--poses", type=_at_least_2, metavar="N",
+    g.add_argument("--poses", type=at_least_2, metavar="N",
                    help="number of poses (default 3500); the grid grows with N unless --nx is "
                         "given")
     g.add_argument("--3d", dest="three_d", action="store_true",
                    help="a 3D lattice (turns up and down too), written as g2o SE3:QUAT")
-    g.add_argument("--nx", type=_pos_int, metavar="B",
+    g.add_argument("--nx", type=pos_int, metavar="B",
                    help="blocks along x (default: 0.73 sqrt(N) in 2D, 0.86 N^(1/3) in 3D)")
-    g.add_argument("--ny", type=_pos_int, metavar="B", help="blocks along y (default: as --nx)")
-    g.add_argument("--nz", type=_pos_int, metavar="B",
+    g.add_argument("--ny", type=pos_int, metavar="B", help="blocks along y (default: as --nx)")
+    g.add_argument("--nz", type=pos_int, metavar="B",
                    help="3D: blocks along z (default: as --nx)")
-    g.add_argument("--street-spacing", type=_pos_int, metavar="K",
+    g.add_argument("--street-spacing", type=pos_int, metavar="K",
                    help="unit steps between intersections (default 1: turn at any step)")
-    g.add_argument("--rot-sigma", type=_nonneg_float, metavar="RAD",
+    g.add_argument("--rot-sigma", type=nonneg_float, metavar="RAD",
                    help="rotation noise of every measurement, radians per axis (default: the "
                         "preset's, 0.0224 for m3500)")
-    g.add_argument("--trans-sigma", type=_nonneg_float, metavar="M",
+    g.add_argument("--trans-sigma", type=nonneg_float, metavar="M",
                    help="translation noise of every measurement, metres per axis (default "
                         "0.0224)")
-    g.add_argument("--p-loop", type=_probability, metavar="P",
+    g.add_argument("--p-loop", type=probability, metavar="P",
                    help="probability of closing a pair of poses at the same place (default "
                         "0.12; falls off with distance)")
-    g.add_argument("--loop-radius", type=_nonneg_float, metavar="M",
+    g.add_argument("--loop-radius", type=nonneg_float, metavar="M",
                    help="only poses within this distance are closed (default 3)")
-    _add_generate_common(g, "grid")
+    add_generate_common(g, "grid")
 
-    # ---------------------------------------------------------------- noisify
+
+def _noisify(sub: Any) -> None:
+    """The ``noisify`` command."""
     p = sub.add_parser(
         "noisify", help="perturb every edge rotation about its local up axis (paper Fig. 8)",
         description="Multiply every relative constraint's rotation by a rotation about the "
@@ -573,14 +419,16 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, metavar="OUT",
                    help="file to write (format: --out-format, else OUT's extension, else IN's; "
                         "'-': standard output)")
-    _add_format(p, out=True)
-    p.add_argument("--yaw-sigma-deg", type=_nonneg_float, default=3.0, metavar="DEG",
+    add_format(p, out=True)
+    p.add_argument("--yaw-sigma-deg", type=nonneg_float, default=3.0, metavar="DEG",
                    help="standard deviation of the yaw noise in degrees (default 3)")
-    p.add_argument("--seed", type=_any_int, default=0, help="random seed (default 0)")
-    _add_common(p)
+    p.add_argument("--seed", type=any_int, default=0, help="random seed (default 0)")
+    add_common(p)
     p.set_defaults(command="noisify")
 
-    # ---------------------------------------------------------------- evaluate
+
+def _evaluate(sub: Any) -> None:
+    """The ``evaluate`` command."""
     p = sub.add_parser(
         "evaluate", help="accuracy of an optimized graph against ground truth",
         description="Position error, rotation error (full 3D angle) and heading error (yaw "
@@ -595,17 +443,19 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ground-truth", required=True, metavar="GT",
                    help="ground-truth file: g2o/TORO vertices or a TUM trajectory ('-': "
                         "standard input)")
-    _add_format(p)
+    add_format(p)
     p.add_argument("--align", choices=["auto", "yes", "no"], default="auto",
                    help="rigid alignment before comparing (default auto: only without GPS)")
     p.add_argument("--tum", metavar="PATH",
                    help="also write the estimate to PATH and the ground truth to "
                         "PATH_gt (TUM trajectory format, for evo); both or neither is written")
     p.add_argument("--json", action="store_true", help="print a JSON object instead of text")
-    _add_common(p)
+    add_common(p)
     p.set_defaults(command="evaluate")
 
-    # ---------------------------------------------------------------- batch
+
+def _batch(sub: Any) -> None:
+    """The ``batch`` command."""
     p = sub.add_parser(
         "batch", help="optimize many graphs, or one over a grid of options, on Dask",
         description="Optimize every INPUT with every combination of the --grid options, each "
@@ -621,7 +471,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output-dir", required=True, metavar="OUTDIR",
                    help="directory for the optimized graphs and the summary (created if "
                         "missing; its parent must exist)")
-    p.add_argument("--solver", choices=LazyChoices(_methods), default="hybrid",
+    p.add_argument("--solver", choices=LazyChoices(methods), default="hybrid",
                    help="solver (default: hybrid)")
     p.add_argument("--grid", action="append", metavar="KEY=V1,V2",
                    help="a solver option and its values (repeatable; every combination runs). "
@@ -630,16 +480,18 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="address of a running Dask scheduler, e.g. tcp://10.0.0.5:8786 "
                         "(default: start a local cluster)")
-    p.add_argument("--workers", type=_pos_int, metavar="N",
+    p.add_argument("--workers", type=pos_int, metavar="N",
                    help="local cluster: number of worker processes (default: one per core)")
     p.add_argument("--json", action="store_true",
                    help="print the summary as JSON instead of a table")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or log lines")
-    _add_progress(p)
-    _add_common(p)
+    add_progress(p)
+    add_common(p)
     p.set_defaults(command="batch")
 
-    # ---------------------------------------------------------------- replay
+
+def _replay(sub: Any) -> None:
+    """The ``replay`` command."""
     p = sub.add_parser(
         "replay", help="stream a graph frame by frame through the online solver",
         description="Replay a graph as a robot would have produced it (frames in increasing "
@@ -649,17 +501,17 @@ def _build_parser() -> argparse.ArgumentParser:
                     "time, not inflated by preemption) and the energy of the estimate over "
                     "the prefix divided by the prefix's batch optimum (exact LM).")
     p.add_argument("file", metavar="FILE", help="pose-graph file to replay")
-    _add_format(p)
-    p.add_argument("--budget-ms", type=_pos_float, default=5.0, metavar="B",
+    add_format(p)
+    p.add_argument("--budget-ms", type=pos_float, default=5.0, metavar="B",
                    help="time budget of one frame's update in milliseconds (default 5)")
-    p.add_argument("--rate", type=_pos_float, metavar="HZ",
+    p.add_argument("--rate", type=pos_float, metavar="HZ",
                    help="frames arrive at this rate (e.g. 10 for a lidar): the time between a "
                         "frame's work and the next frame goes to the back end (default: back "
                         "to back, the worst case)")
-    p.add_argument("--every", type=_nonneg_int, default=500, metavar="K",
+    p.add_argument("--every", type=nonneg_int, default=500, metavar="K",
                    help="measure the accuracy every K frames and at the end (default 500; "
                         "0: only the latency, no batch optima)")
-    p.add_argument("--extra-frames", type=_nonneg_int, default=100, metavar="N",
+    p.add_argument("--extra-frames", type=nonneg_int, default=100, metavar="N",
                    help="after the last frame, N more updates with the same budget and no new "
                         "data (default 100)")
     p.add_argument("--compare", choices=["isam2"],
@@ -667,9 +519,9 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tree", choices=["oldest", "odometry"], default="oldest",
                    help="parent of a new pose: the oldest pose it is constrained to in its "
                         "frame (default) or its odometry parent")
-    p.add_argument("--tau-old", type=_pos_float, default=0.3, metavar="T",
+    p.add_argument("--tau-old", type=pos_float, default=0.3, metavar="T",
                    help="temperature of spare-time updates of older constraints (default 0.3)")
-    p.add_argument("--local-size", type=_nonneg_int, default=0, metavar="K",
+    p.add_argument("--local-size", type=nonneg_int, default=0, metavar="K",
                    help="local solve: relax the K newest relative constraints together in every "
                         "frame (default 0: off)")
     p.add_argument("--background-refine", action=argparse.BooleanOptionalAction,
@@ -686,12 +538,10 @@ def _build_parser() -> argparse.ArgumentParser:
                         "latency, and the map so far (poses, residuals, energy) every "
                         "--rerun-every frames and at the last one; recorded outside the "
                         "timing; needs: pip install hybridpgo[rerun]")
-    p.add_argument("--rerun-every", type=_nonneg_int, default=0, metavar="K",
+    p.add_argument("--rerun-every", type=nonneg_int, default=0, metavar="K",
                    help="with --rerun: the map every K frames (default 0: about 300 maps over "
                         "the run, every frame for runs of at most 300 frames)")
     p.add_argument("--json", action="store_true", help="print a JSON object instead of text")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
-    _add_common(p)
+    add_common(p)
     p.set_defaults(command="replay")
-
-    return parser
