@@ -6,8 +6,8 @@ incremental exact solver (:mod:`.worker`, :mod:`._link`, :mod:`.incremental`); s
 (:mod:`.persist`); replaying a graph as a stream, beside GTSAM's iSAM2 (:mod:`.replay`).
 """
 
+from ._frame import FrameReport as FrameReport
 from .config import OnlineConfig as OnlineConfig
-from .solver import FrameReport as FrameReport
 from .solver import OnlineSolver as OnlineSolver
 
 __all__ = ["FrameReport", "OnlineConfig", "OnlineSolver"]

@@ -28,13 +28,11 @@ from 0); inside, the store's one index (edges, then GPS readings at the edge cap
 from __future__ import annotations
 
 import dataclasses
-import functools
 import gc
 import os
 import time
 import weakref
-from collections.abc import Callable
-from typing import Any, NamedTuple, TypeVar
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -48,63 +46,12 @@ from ..solvers.hybrid import _admission as adm
 from ..solvers.hybrid._sweep import loop_kernel, run_loop
 from ..solvers.hybrid.problem import NUM_COUNTS, Count
 from ..solvers.hybrid.solver import STEP_KINDS, ensure_compiled
+from ._frame import MAX_BUDGET_S as MAX_BUDGET_S
+from ._frame import NO_DEADLINE, RESERVE_S, FrameReport, charged, check_budget
 from ._link import WorkerLink
 from ._validate import as_pose, check_id, whitening
 from .config import OnlineConfig
 from .store import MapStore
-
-#: Seconds of every budget kept for the work after the last update (estimate, bookkeeping).
-RESERVE_S = 2e-4
-#: The longest budget a frame may have (a day): longer ones would overflow the cycle counter.
-MAX_BUDGET_S = 86_400.0
-_NO_DEADLINE = np.uint64(np.iinfo(np.uint64).max)
-
-
-class FrameReport(NamedTuple):
-    """What one :meth:`OnlineSolver.update` did."""
-
-    new: int
-    """New constraints relaxed for the first time."""
-    backlog: int
-    """New constraints still waiting (the budget ran out before them)."""
-    old: int
-    """Spare-time updates of older constraints."""
-    local_nodes: int
-    """Poses moved by the local solve (0: off or it did not fit)."""
-    capped: int
-    """Updates whose rotation was capped at pi/8."""
-    rejected: int
-    """Updates rejected as non-finite (nothing applied)."""
-    skipped: int
-    """Candidate updates skipped because their predicted cost did not fit."""
-    seconds: float
-    """Wall time of the call."""
-
-
-_F = TypeVar("_F", bound=Callable[..., Any])
-
-
-def _charged(method: _F) -> _F:
-    """An ``add_*`` method whose cycles count against the next :meth:`OnlineSolver.update`'s
-    budget (they are part of that frame's work)."""
-
-    @functools.wraps(method)
-    def charged(self: OnlineSolver, *args: Any, **kwargs: Any) -> Any:
-        c0 = int(read_cycles())
-        try:
-            return method(self, *args, **kwargs)
-        finally:
-            self._input_cycles += int(read_cycles()) - c0
-
-    return charged  # type: ignore[return-value]
-
-
-def _check_budget(budget_s: object) -> float:
-    if (isinstance(budget_s, bool) or not isinstance(budget_s, (int, float, np.floating))
-            or not np.isfinite(budget_s) or budget_s <= 0):
-        raise ValueError(f"budget_s must be a finite number > 0 (seconds) or None, got "
-                         f"{budget_s!r}")
-    return min(float(budget_s), MAX_BUDGET_S)
 
 
 class OnlineSolver:
@@ -197,7 +144,7 @@ class OnlineSolver:
             raise GraphError(f"{what}: unknown pose id {i}")
         return self._index[i]
 
-    @_charged
+    @charged
     def add_pose(self, pose_id: int, parent: int | None = None, measurement: object = None,
                  information: object = None) -> None:
         """Add a pose with its odometry ``Z = X_parent^-1 X_pose`` and its (6, 6) information.
@@ -239,7 +186,7 @@ class OnlineSolver:
         st.odom[p] = st.m
         self._append_edge(a, p, rot, trans, info, lt)
 
-    @_charged
+    @charged
     def add_constraint(self, a: int, b: int, measurement: object, information: object) -> None:
         """Add a relative constraint (loop closure) ``Z = X_a^-1 X_b`` between known poses.
 
@@ -271,7 +218,7 @@ class OnlineSolver:
         self._edge_keys.setdefault((a, b), []).append(e)
         self._store.push(e)
 
-    @_charged
+    @charged
     def add_gps(self, pose_id: int, xyz: object, information: object) -> None:
         """Add a position reading ``g`` (earth frame, metres) of a known pose, (3, 3) information.
 
@@ -368,8 +315,8 @@ class OnlineSolver:
         cycles of it being used already."""
         c0 = int(read_cycles()) - spent
         if budget_s is None:
-            return _NO_DEADLINE
-        spare = max(_check_budget(budget_s) - RESERVE_S, 0.0)
+            return NO_DEADLINE
+        spare = max(check_budget(budget_s) - RESERVE_S, 0.0)
         return np.uint64(max(c0 + int(spare * cycles_per_second()), 0))
 
     def _work(self, deadline: np.uint64, limit: int, elapsed: float) -> FrameReport:

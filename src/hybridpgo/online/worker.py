@@ -55,6 +55,10 @@ import numpy as np
 
 from ..errors import HybridPGOError
 
+#: The worker process's program: this module imported as part of its package (``-m`` would run
+#: it a second time as ``__main__`` beside the package's copy, with a warning).
+_ENTRY = ("import sys; from hybridpgo.online.worker import _worker; "
+          "sys.exit(_worker(int(sys.argv[1]), sys.argv[2]))")
 #: Niceness added to the worker process (the frames get the CPU first on a busy machine).
 WORKER_NICE = 5
 #: The worker's environment: one thread for BLAS (CHOLMOD's supernodes), OpenMP and Numba.  The
@@ -166,7 +170,7 @@ class BackgroundRefiner:
         env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
         env.update(WORKER_THREADS)
         self._proc: subprocess.Popen[bytes] | None = subprocess.Popen(
-            [sys.executable, "-m", "hybridpgo.online.worker", str(max_iterations), robust],
+            [sys.executable, "-c", _ENTRY, str(max_iterations), robust],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, bufsize=0, env=env)
         self._outbox: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
         self._cond = threading.Condition()

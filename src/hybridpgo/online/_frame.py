@@ -1,0 +1,65 @@
+"""A frame's time: the budget's checks and bounds, the clock that charges ``add_*`` calls to
+their frame, and :class:`FrameReport`, what one :meth:`OnlineSolver.update` did."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import Any, NamedTuple, TypeVar
+
+import numpy as np
+
+from .._numba import read_cycles
+
+#: Seconds of every budget kept for the work after the last update (estimate, bookkeeping).
+RESERVE_S = 2e-4
+#: The longest budget a frame may have (a day): longer ones would overflow the cycle counter.
+MAX_BUDGET_S = 86_400.0
+NO_DEADLINE = np.uint64(np.iinfo(np.uint64).max)
+
+
+class FrameReport(NamedTuple):
+    """What one :meth:`OnlineSolver.update` did."""
+
+    new: int
+    """New constraints relaxed for the first time."""
+    backlog: int
+    """New constraints still waiting (the budget ran out before them)."""
+    old: int
+    """Spare-time updates of older constraints."""
+    local_nodes: int
+    """Poses moved by the local solve (0: off or it did not fit)."""
+    capped: int
+    """Updates whose rotation was capped at pi/8."""
+    rejected: int
+    """Updates rejected as non-finite (nothing applied)."""
+    skipped: int
+    """Candidate updates skipped because their predicted cost did not fit."""
+    seconds: float
+    """Wall time of the call."""
+
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def charged(method: _F) -> _F:
+    """An ``add_*`` method whose cycles count against the next :meth:`OnlineSolver.update`'s
+    budget (they are part of that frame's work)."""
+
+    @functools.wraps(method)
+    def charged(self: Any, *args: Any, **kwargs: Any) -> Any:
+        c0 = int(read_cycles())
+        try:
+            return method(self, *args, **kwargs)
+        finally:
+            self._input_cycles += int(read_cycles()) - c0
+
+    return charged  # type: ignore[return-value]
+
+
+def check_budget(budget_s: object) -> float:
+    if (isinstance(budget_s, bool) or not isinstance(budget_s, (int, float, np.floating))
+            or not np.isfinite(budget_s) or budget_s <= 0):
+        raise ValueError(f"budget_s must be a finite number > 0 (seconds) or None, got "
+                         f"{budget_s!r}")
+    return min(float(budget_s), MAX_BUDGET_S)
