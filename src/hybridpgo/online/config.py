@@ -5,11 +5,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from .._cost import default_robust_scale
 from ..solvers.config import (
     STEP_NAMES,
     HybridConfig,
     RobustName,
+    RobustOptions,
     StepName,
     check_float,
     check_int,
@@ -21,7 +21,7 @@ ONLINE_TREES: tuple[str, ...] = ("oldest", "odometry")
 
 
 @dataclass(frozen=True)
-class OnlineConfig:
+class OnlineConfig(RobustOptions):
     """Options of :class:`OnlineSolver` (checked once here)."""
 
     damping: float = HybridConfig.damping
@@ -124,16 +124,6 @@ class OnlineConfig:
     background_iterations: int = 20
     """Most LM iterations of one background solve (an unconverged solve is continued)."""
 
-    @property
-    def robust_delta(self) -> float:
-        """The robust kernel's delta: ``robust_scale``, or the kernel's default."""
-        return default_robust_scale(self.robust, self.robust_scale)
-
-    @property
-    def kernel(self) -> str:
-        """The kernel of the updates and the worker's solves: ``robust``, ``"none"`` for
-        ``"auto"``."""
-        return "none" if self.robust == "auto" else self.robust
 
     def __post_init__(self) -> None:
         check_float("damping", self.damping, positive=False)

@@ -87,8 +87,26 @@ def check_float(name: str, value: object, *, positive: bool) -> None:
         raise ValueError(f"{name} must be {kind}, got {value!r}")
 
 
+class RobustOptions:
+    """What every solver's config derives from its ``robust`` and ``robust_scale`` fields."""
+
+    robust: str
+    robust_scale: float | None
+
+    @property
+    def robust_delta(self) -> float:
+        """The robust kernel's delta: ``robust_scale``, or the kernel's default."""
+        return default_robust_scale(self.robust, self.robust_scale)
+
+    @property
+    def kernel(self) -> str:
+        """The kernel of the solver's own iterations: ``robust``, ``"none"`` for ``"auto"``
+        (least squares first, the outlier test after)."""
+        return "none" if self.robust == "auto" else self.robust
+
+
 @dataclass(frozen=True)
-class GaussNewtonConfig:
+class GaussNewtonConfig(RobustOptions):
     """Options of the exact solver :func:`hybridpgo.solvers.gauss_newton.solve_exact`
     (docs/mathematics.md#exact-solver).
 
@@ -143,16 +161,6 @@ class GaussNewtonConfig:
     None: the kernel's default (:data:`ROBUST_DEFAULT_SCALE`); the value used is
     :attr:`robust_delta`."""
 
-    @property
-    def robust_delta(self) -> float:
-        """The robust kernel's delta: ``robust_scale``, or the kernel's default."""
-        return default_robust_scale(self.robust, self.robust_scale)
-
-    @property
-    def kernel(self) -> str:
-        """The kernel of the solver's own iterations: ``robust``, ``"none"`` for ``"auto"``."""
-        return "none" if self.robust == "auto" else self.robust
-
     def __post_init__(self) -> None:
         if self.method not in ("gn", "lm"):
             raise ValueError(f"method must be 'gn' or 'lm', got {self.method!r}")
@@ -178,7 +186,7 @@ MAX_TAU = 2.0
 
 
 @dataclass(frozen=True)
-class HybridConfig:
+class HybridConfig(RobustOptions):
     """Options of the hybrid solver (paper Algorithm 1); every field is checked once here."""
 
     sweeps: int = 10
@@ -238,16 +246,6 @@ class HybridConfig:
     """With ``correction="pcg"``: a sweep that raises the energy is undone (the correction
     still follows), so every iteration lowers E and a stationary point is a fixed point of the
     iterations (the paper's sweeps near the optimum raise E: it is not one of theirs)."""
-
-    @property
-    def robust_delta(self) -> float:
-        """The robust kernel's delta: ``robust_scale``, or the kernel's default."""
-        return default_robust_scale(self.robust, self.robust_scale)
-
-    @property
-    def kernel(self) -> str:
-        """The kernel of the sweeps themselves: ``robust``, ``"none"`` for ``"auto"``."""
-        return "none" if self.robust == "auto" else self.robust
 
     def __post_init__(self) -> None:
         if self.correction not in ("none", "pcg"):
