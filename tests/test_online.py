@@ -741,7 +741,11 @@ def test_a_budget_beyond_the_clock_is_no_deadline() -> None:
 def test_background_worker_falls_back_to_lm_when_the_incremental_solve_fails(
         data_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """An incremental solve that raises (a factorization that is not positive definite) hands
-    the map to the LM solve, which still reaches the optimum, and says why."""
+    the request to the LM solve, which still reaches the optimum, and says why; a new
+    incremental solver starts at that optimum and answers the next request; after MAX_RESETS
+    failures the map stays with LM."""
+    from hybridpgo.online import worker
+
     from hybridpgo.errors import SolverError
     from hybridpgo.io import read_graph
 
@@ -757,11 +761,39 @@ def test_background_worker_falls_back_to_lm_when_the_incremental_solve_fails(
 
     monkeypatch.setattr(mp.inc, "solve", broken)
     _, meta = mp.solve(50)
-    assert mp.inc is None and not meta["incremental"]
+    assert not meta["incremental"] and meta["resets"] == 1
     assert "not positive definite" in meta["fallback"]
     assert abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
-    _, meta = mp.solve(50)  # later requests stay on LM
+    _, meta = mp.solve(50)  # the new incremental solver, started at the optimum
+    assert meta["incremental"] and abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
+    for _ in range(worker.MAX_RESETS):
+        monkeypatch.setattr(mp.inc, "solve", broken)
+        _, meta = mp.solve(50)
+    assert mp.inc is None and meta["resets"] == worker.MAX_RESETS + 1
+    _, meta = mp.solve(50)  # LM from then on
     assert not meta["incremental"] and abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
+
+
+@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
+def test_background_worker_refuses_an_incremental_answer_above_its_start(
+        data_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An incremental answer whose energy is above the estimate it started from is not
+    adopted: LM answers from that estimate instead."""
+    from hybridpgo.io import read_graph
+
+    g = read_graph(data_dir / "w100_toro.graph")
+    st = make_stream(g)
+    opt = prefix_optima(st, [st.num_frames])[st.num_frames]
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    _stream(s, g, range(g.num_nodes))
+    mp = _worker_map(s, ("none", None))
+    rot, trans = mp.inc.estimate()
+    worse = trans + 10.0 * np.arange(trans.shape[0])[:, None]  # a map torn apart
+    monkeypatch.setattr(mp.inc, "solve", lambda *a, **k: True)
+    monkeypatch.setattr(mp.inc, "estimate", lambda: (rot, worse))
+    _, meta = mp.solve(50)
+    assert not meta["incremental"] and "raised E" in meta["fallback"]
+    assert abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
 
 
 @pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines

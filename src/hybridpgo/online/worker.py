@@ -59,6 +59,8 @@ from ..errors import HybridPGOError
 #: it a second time as ``__main__`` beside the package's copy, with a warning).
 _ENTRY = ("import sys; from hybridpgo.online.worker import _worker; "
           "sys.exit(_worker(int(sys.argv[1]), sys.argv[2]))")
+#: Failed incremental solves after which the worker's map stays with LM.
+MAX_RESETS = 3
 #: Niceness added to the worker process (the frames get the CPU first on a busy machine).
 WORKER_NICE = 5
 #: The worker's environment: one thread for BLAS (CHOLMOD's supernodes), OpenMP and Numba.  The
@@ -342,9 +344,10 @@ class _Map:
     :class:`~hybridpgo.online.incremental.IncrementalExact` does not have) each request runs
     the exact Levenberg-Marquardt solve
     (:func:`~hybridpgo.solvers.gauss_newton.solve_exact`) over the whole map, warm-started from
-    the previous optimum.  When an incremental solve fails (an error of the factorization or
-    the arithmetic) the map continues with the LM solve for the rest of the worker's life
-    (``fallback`` says why).
+    the previous optimum.  When an incremental solve fails (an error of the factorization, or
+    an energy above the one it started from) LM answers that request from the last good
+    estimate and a new incremental solver starts there; after :data:`MAX_RESETS` failures the
+    map stays with LM (``fallback`` says why, ``resets`` how often).
     """
 
     def __init__(self, robust: tuple[str, float | None] = ("none", None)) -> None:
@@ -355,8 +358,10 @@ class _Map:
         self.parent = np.full(1, -1, np.int64)  # tree nodes, 0 = the earth
         self.inc = (IncrementalExact(IncrementalConfig(**INCREMENTAL))  # type: ignore[arg-type]
                     if robust[0] == "none" else None)
-        #: why the incremental solver was given up for LM ("" while it runs)
+        #: why the last incremental solve failed ("" when none has)
         self.fallback = ""
+        #: failed incremental solves so far (each answered by LM, then the solver started again)
+        self.resets = 0
         # the LM path's copy: global poses of tree nodes (the estimate) and the measurements
         self.grot = np.eye(3)[None].copy()
         self.gtr = np.zeros((1, 3))
@@ -416,7 +421,9 @@ class _Map:
         n, m, g = self.n, self.m, self.g
         t0 = time.perf_counter()
         energy, iterations, status = 0.0, 0, "converged"
+        failed = False
         if self.inc is not None:
+            e_start = self._energy()
             try:
                 cycles = int(self.inc.stats["cycles"])
                 if not self.inc.solve(SOLVE_CAP_S):
@@ -424,16 +431,21 @@ class _Map:
                 iterations = int(self.inc.stats["cycles"]) - cycles
                 rot, trans = self.inc.estimate()
                 energy = self.inc.energy()
+                if not energy <= e_start * (1.0 + 1e-9) + 1e-12:  # NaN fails too
+                    raise ArithmeticError(f"the incremental solve raised E from {e_start:.6g} "
+                                          f"to {energy:.6g}")
                 self.grot = self._append(self.grot, 1, rot)
                 self.gtr = self._append(self.gtr, 1, trans)
             except (HybridPGOError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
-                # e.g. an undamped step from a poor estimate made the normal equations
-                # indefinite: the map goes on with LM (damped) from the last good estimate
-                self.inc = None
+                # e.g. an undamped step from a poor estimate: LM (damped) solves this request
+                # from the last good estimate, and the incremental solver starts again there
                 self.fallback = f"{type(exc).__name__}: {exc}"
-                energy, iterations, status = 0.0, 0, "converged"
-        if self.inc is None and n >= 2:
+                self.resets += 1
+                failed = True
+        if (self.inc is None or failed) and n >= 2:
             energy, iterations, status = self._solve_lm(max_iterations)
+        if failed:
+            self._reseed()
         seconds = time.perf_counter() - t0
         lrot = np.empty((n + 1, 3, 3))
         ltr = np.empty((n + 1, 3))
@@ -441,8 +453,36 @@ class _Map:
                             lrot, ltr)
         meta = {"type": "result", "n": n, "m": m, "g": g, "energy": energy,
                 "iterations": iterations, "status": status, "seconds": seconds,
-                "incremental": self.inc is not None, "fallback": self.fallback}
+                "incremental": self.inc is not None and not failed, "fallback": self.fallback,
+                "resets": self.resets}
         return {"rot": lrot[1:], "trans": ltr[1:]}, meta
+
+    def _energy(self) -> float:
+        """E at the current estimate of the whole map (the LM path's copy)."""
+        from .. import _cost
+
+        n, m, g = self.n, self.m, self.g
+        return float(_cost.total_energy(
+            self.grot[1: n + 1], self.gtr[1: n + 1], self.edge_ab[:m].astype(np.int32),
+            self.edge_rot[:m], self.edge_trans[:m], self.edge_info[:m],
+            self.gps_node[:g].astype(np.int32), self.gps_pos[:g], self.gps_info[:g]))
+
+    def _reseed(self) -> None:
+        """A new incremental solver holding the whole map at the current estimate (after an
+        incremental solve failed and LM solved the request), or none after
+        :data:`MAX_RESETS` failures (LM from then on)."""
+        from .incremental import IncrementalConfig, IncrementalExact
+
+        if self.resets > MAX_RESETS:
+            self.inc = None
+            return
+        n, m, g = self.n, self.m, self.g
+        inc = IncrementalExact(IncrementalConfig(**INCREMENTAL))  # type: ignore[arg-type]
+        inc.add_poses(self.grot[1: n + 1], self.gtr[1: n + 1])  # global poses
+        inc.add_edges(self.edge_ab[:m, 0], self.edge_ab[:m, 1], self.edge_rot[:m],
+                      self.edge_trans[:m], self.edge_info[:m])
+        inc.add_gps(self.gps_node[:g], self.gps_pos[:g], self.gps_info[:g])
+        self.inc = inc
 
     def _solve_lm(self, max_iterations: int) -> tuple[float, int, str]:
         """Exact LM over the map (robust kernel ``self.robust``) from the current estimate."""
