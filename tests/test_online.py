@@ -744,10 +744,9 @@ def test_background_worker_falls_back_to_lm_when_the_incremental_solve_fails(
     the request to the LM solve, which still reaches the optimum, and says why; a new
     incremental solver starts at that optimum and answers the next request; after MAX_RESETS
     failures the map stays with LM."""
-    from hybridpgo.online import worker
-
     from hybridpgo.errors import SolverError
     from hybridpgo.io import read_graph
+    from hybridpgo.online import worker
 
     g = read_graph(data_dir / "w100_toro.graph")
     st = make_stream(g)
