@@ -245,3 +245,15 @@ def test_a_warm_cache_is_told_by_the_first_group_only(monkeypatch):
     assert not _precompile._cold(["finish", "exact-solve"])  # exact-solve's probe: not cached
     cached["hybridpgo._cost:constraint_energies"] = False
     assert _precompile._cold(["finish", "exact-solve"])
+
+
+def test_every_group_names_kernels_that_exist() -> None:
+    """Each group's cold/warm probes resolve to cached kernels: a probe that names a moved or
+    renamed kernel made the first run on a fresh machine fail (AttributeError) before any
+    kernel was compiled."""
+    for name, (fn, probes) in _precompile.GROUPS.items():
+        assert callable(fn), name
+        assert probes, name
+        for ref in probes:
+            obj = _precompile._resolve(ref)
+            assert hasattr(obj, "_cache"), f"{name}: {ref} is not a cached kernel"

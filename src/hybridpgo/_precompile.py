@@ -112,9 +112,9 @@ def _toro() -> None:
 
 #: Kernel groups a helper can compile: name -> (function, kernels that tell cold from warm).
 GROUPS: dict[str, tuple[Callable[[], None], tuple[str, ...]]] = {
-    "finish": (_finish, ("hybridpgo.tree:_globals_from_locals",
+    "finish": (_finish, ("hybridpgo._tree_kernels:globals_from_locals",
                          "hybridpgo._cost:constraint_energies")),
-    "starts": (_starts, ("hybridpgo.tree:_locals_from_globals",)),
+    "starts": (_starts, ("hybridpgo._tree_kernels:locals_from_globals",)),
     "exact": (_exact, ("hybridpgo.solvers._gn_kernels:assemble_normal_equations",
                        "hybridpgo.solvers._gn_kernels:retract",
                        "hybridpgo._cost:total_energy")),
