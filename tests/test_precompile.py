@@ -238,7 +238,7 @@ def test_a_warm_cache_is_told_by_the_first_group_only(monkeypatch):
     never reached) must not make every warm run start a helper."""
     from hybridpgo import _numba, _precompile
 
-    cached = {"hybridpgo.tree:_globals_from_locals": True,
+    cached = {"hybridpgo._tree_kernels:globals_from_locals": True,
               "hybridpgo._cost:constraint_energies": True}
     monkeypatch.setattr(_precompile, "_resolve", lambda ref: ref)
     monkeypatch.setattr(_numba, "is_cached", lambda ref: cached.get(ref, False))
