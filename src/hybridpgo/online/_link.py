@@ -70,10 +70,17 @@ class WorkerLink:
 
     # ----------------------------------------------------------------- frames
     def step(self, store: MapStore, frame: int, join: int, rebase: bool) -> None:
-        """Adopt a ready result and ship the new data (``join`` K > 0: only every K-th frame,
-        waiting for the answer to the previous request)."""
+        """Adopt a ready result and ask again (``join`` K > 0: only every K-th frame,
+        waiting for the answer to the previous request).
+
+        Asynchronous (``join`` 0), the frame's new data goes every frame, while a request is
+        outstanding too (the worker queues it for its next solve): each frame encodes only its
+        own poses and constraints, never the backlog of the frames a long solve took.  With
+        ``join`` K the data goes with each request, so that what a request covers does not
+        depend on timing."""
         ref = self.refiner
         if join == 0:  # asynchronous: one request at a time, adopted when its answer is there
+            self.ship(store, frame)
             if self.join_req >= 0:
                 if not ref.answered(self.join_req):
                     return

@@ -60,11 +60,9 @@ def _constraint_names(name: str, names: np.ndarray, m: int, g: int) -> None:
         raise ValueError(f"{name} names a constraint that does not exist")
 
 
-def restore(st: MapStore, meta: dict[str, Any], d: dict[str, np.ndarray]
-            ) -> dict[tuple[int, int], list[int]]:
-    """Fill the new, empty store ``st`` from the members ``d``, checking every value first.
-
-    Returns the index of the edges by their pose pair (the solver's duplicate check)."""
+def restore(st: MapStore, meta: dict[str, Any], d: dict[str, np.ndarray]) -> None:
+    """Fill the new, empty store ``st`` from the members ``d``, checking every value first
+    (the index of the edges by their pose pair, the solver's duplicate check, included)."""
     sz = {k: int(meta[k]) for k in ("n", "placed", "m", "m_laid", "g", "g_laid", "frame",
                                     "ngroups")}
     n, placed, m, m_laid, g, g_laid = (sz[k] for k in ("n", "placed", "m", "m_laid", "g",
@@ -141,11 +139,8 @@ def restore(st: MapStore, meta: dict[str, Any], d: dict[str, np.ndarray]
         raise ValueError("the cost model is not positive")
     st.model[:] = model
     st.gps_links = int(meta["gps_links"])
-    edge_keys: dict[tuple[int, int], list[int]] = {}
-    for e in range(m):
-        edge_keys.setdefault((int(edge_ab[e, 0]), int(edge_ab[e, 1])), []).append(e)
+    st.index_pairs()
     st._views = None
-    return edge_keys
 
 
 def _lay(st: Any, m_laid: int, g_laid: int) -> None:

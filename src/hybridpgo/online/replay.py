@@ -327,7 +327,9 @@ def _replay_online(solver: Any, stream: Stream, budget_s: float | None,
     nf = stream.num_frames
     lat = np.empty(nf)
     cpu = np.empty(nf)
-    reports: list[Any] = []
+    # what each frame's update did (FrameReport's counts), in an array: a list of one object
+    # per frame would lengthen every full garbage collection as the stream goes on
+    done = np.zeros((nf, len(_REPORT_FIELDS)), np.int64)
     marks = set(checkpoints)
     energies: dict[int, float] = {}
     ids = stream.graph.node_ids
@@ -355,7 +357,7 @@ def _replay_online(solver: Any, stream: Stream, budget_s: float | None,
         solver.pose(pid)
         lat[k] = time.perf_counter() - t0
         cpu[k] = time.thread_time() - c0
-        reports.append(rep)
+        done[k] = [getattr(rep, f) for f in _REPORT_FIELDS]
         if on_frame is not None:
             on_frame(k + 1, solver, float(lat[k]))
         if k + 1 in marks:
@@ -381,20 +383,24 @@ def _replay_online(solver: Any, stream: Stream, budget_s: float | None,
         name += "+background"
     worst = np.argsort(-cpu, kind="stable")[:WORST_FRAMES]
     info = {**solver.stats(), "compile_s": solver.compile_seconds,
-            "worst_frames": [_frame_note(stream, int(k), lat, cpu, reports[k]) for k in worst]}
+            "worst_frames": [_frame_note(stream, int(k), lat, cpu, done[k]) for k in worst]}
     if period is not None:
         info.update(rate_hz=rate_hz, idle_s=idle_s)
     return ReplayResult(name, lat, cpu, energies, extra_e, extra_l, info)
 
 
+#: The counts of :class:`~hybridpgo.online.FrameReport` a replay keeps per frame.
+_REPORT_FIELDS = ("new", "old", "backlog", "local_nodes", "skipped")
+
+
 def _frame_note(stream: Stream, k: int, lat: FloatArray, cpu: FloatArray,
-                rep: Any) -> dict[str, Any]:
-    """What frame k brought and what its update did (one of the worst frames)."""
+                done: npt.NDArray[np.int64]) -> dict[str, Any]:
+    """What frame k brought and what its update did (one of the worst frames; ``done``: its
+    :data:`_REPORT_FIELDS`)."""
     return {"frame": k + 1, "cpu_ms": float(cpu[k] * 1e3), "wall_ms": float(lat[k] * 1e3),
             "edges": int(stream.edge_ptr[k + 1] - stream.edge_ptr[k]),
             "gps": int(stream.gps_ptr[k + 1] - stream.gps_ptr[k]),
-            "new": int(rep.new), "old": int(rep.old), "backlog": int(rep.backlog),
-            "local_nodes": int(rep.local_nodes), "skipped": int(rep.skipped)}
+            **{f: int(v) for f, v in zip(_REPORT_FIELDS, done, strict=True)}}
 
 
 # --------------------------------------------------------------------------- iSAM2

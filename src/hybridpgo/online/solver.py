@@ -66,7 +66,6 @@ class OnlineSolver:
         self.config = cfg = config or OnlineConfig()
         self.compile_seconds = ensure_compiled() + _ensure_online_compiled()
         self._index: dict[int, int] = {}
-        self._edge_keys: dict[tuple[int, int], list[int]] = {}
         self.frame = 0
         """Number of :meth:`update` calls so far."""
         robust = (_cost.robust_kind(cfg.kernel, cfg.robust_delta), float(cfg.robust_delta))
@@ -205,7 +204,7 @@ class OnlineSolver:
         rot, trans = as_pose(measurement, f"{what}: measurement")
         info, lt = whitening(information, 6, what)
         st = self._store
-        for e in self._edge_keys.get((ia, ib), ()):
+        for e in st.edges_between(ia, ib):
             if (np.array_equal(st.edge_rot[e], rot) and np.array_equal(st.edge_trans[e], trans)
                     and np.array_equal(st.edge_info[e], info)):
                 raise GraphError(f"{what}: duplicate constraint (edge {e} has the same poses, "
@@ -214,9 +213,7 @@ class OnlineSolver:
 
     def _append_edge(self, a: int, b: int, rot: FloatArray, trans: FloatArray,
                      info: FloatArray, lt: FloatArray) -> None:
-        e = self._store.append_edge(a, b, rot, trans, info, lt)
-        self._edge_keys.setdefault((a, b), []).append(e)
-        self._store.push(e)
+        self._store.push(self._store.append_edge(a, b, rot, trans, info, lt))
 
     @charged
     def add_gps(self, pose_id: int, xyz: object, information: object) -> None:
@@ -543,7 +540,7 @@ class OnlineSolver:
         config, meta, members = read_state(path)
         solver = cls(config)
         try:
-            solver._edge_keys = restore(solver._store, meta, members)
+            restore(solver._store, meta, members)
         except (GraphError, ValueError, IndexError) as exc:
             solver.close()
             raise FormatError(f"not a valid online solver state: {exc}",

@@ -61,7 +61,7 @@ _NODE_ARRAYS: _Spec = (
     ("group_ptr", (), np.int64))
 _EDGE_ARRAYS: _Spec = (("edge_ab", (2,), np.int32), ("edge_rot", (3, 3), np.float64),
                 ("edge_trans", (3,), np.float64), ("edge_info", (6, 6), np.float64),
-                ("edge_lt", (6, 6), np.float64))
+                ("edge_lt", (6, 6), np.float64), ("edge_prev", (), np.int64))
 _GPS_ARRAYS: _Spec = (("gps_node", (), np.int32), ("gps_pos", (3,), np.float64),
                ("gps_info", (3, 3), np.float64), ("gps_lt", (3, 3), np.float64))
 _POOL_ARRAYS: _Spec = (("path_node", (), np.int32), ("path_sign", (), np.int8),
@@ -99,6 +99,7 @@ class MapStore:
     edge_trans: np.ndarray
     edge_info: np.ndarray
     edge_lt: np.ndarray
+    edge_prev: np.ndarray
     gps_node: np.ndarray
     gps_pos: np.ndarray
     gps_info: np.ndarray
@@ -130,6 +131,10 @@ class MapStore:
         self.q_head = self.q_tail = 0
         self.first_rot = np.eye(3)
         self.first_trans = np.zeros(3)
+        self.pair_last: dict[int, int] = {}
+        """``a * 2**32 + b`` -> the newest edge from pose a to pose b; ``edge_prev[e]`` is the
+        one before e with the same poses (-1: none).  Integer keys and values: the garbage
+        collector does not track them, so the index costs no frame a longer collection."""
         self.allocate(nodes=r + 2, edges=2 * r + 1, gps=max(r // 16, 8), pool_e=16 * r,
                       pool_g=max(r, 64))
         self.parent[0] = -1  # the earth: tree node 0, the fixed root
@@ -305,8 +310,28 @@ class MapStore:
         self.edge_info[e] = info
         self.edge_lt[e] = lt
         self.group_of[e] = -1
+        key = (a << 32) | b
+        self.edge_prev[e] = self.pair_last.get(key, -1)
+        self.pair_last[key] = e
         self.m = e + 1
         return e
+
+    def edges_between(self, a: int, b: int) -> list[int]:
+        """The edges from pose a to pose b, newest first."""
+        out = []
+        e = self.pair_last.get((a << 32) | b, -1)
+        while e >= 0:
+            out.append(e)
+            e = int(self.edge_prev[e])
+        return out
+
+    def index_pairs(self) -> None:
+        """Rebuild :attr:`pair_last` and ``edge_prev`` from ``edge_ab`` (after a restore)."""
+        self.pair_last = {}
+        for e in range(self.m):
+            key = (int(self.edge_ab[e, 0]) << 32) | int(self.edge_ab[e, 1])
+            self.edge_prev[e] = self.pair_last.get(key, -1)
+            self.pair_last[key] = e
 
     def append_gps(self, n: int, pos: np.ndarray, info: np.ndarray, lt: np.ndarray) -> int:
         """A new GPS reading of pose n; returns its constraint index ``cap_m + g``."""
