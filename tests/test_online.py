@@ -134,6 +134,56 @@ def test_estimate_approaches_the_batch_optimum() -> None:
     assert abs(s.energy() - opt) <= ONLINE_REFINED * opt
 
 
+def test_planar_data_is_planar_measurements_and_decoupled_information() -> None:
+    """``planar_data`` (refine() solves and tests such a map as 2D): every measurement in the
+    xy-plane and no information coupling in-plane with out-of-plane coordinates, GPS included;
+    the poses do not matter."""
+    import dataclasses
+
+    from hybridpgo.generate import generate_grid
+    from hybridpgo.online.solver import planar_data
+
+    flat = generate_grid("m3500", seed=1, num_poses=30).graph
+    assert flat.is_2d and planar_data(flat)
+    assert not planar_data(generate_grid("grid3d", seed=1, num_poses=30).graph)
+    plain = dataclasses.replace(flat, is_2d=False)
+    assert planar_data(plain)  # the flag does not matter, the data do
+    tilted = np.array(plain.rotations)
+    tilted[:, :, :] = [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]
+    assert planar_data(dataclasses.replace(plain, rotations=tilted))  # poses are not checked
+
+    lifted = np.array(plain.edge_translations)
+    lifted[3, 2] = 1e-12
+    assert not planar_data(dataclasses.replace(plain, edge_translations=lifted))
+    c, s = np.cos(1e-9), np.sin(1e-9)
+    roll = np.array(plain.edge_rotations)
+    roll[5] = roll[5] @ np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    assert not planar_data(dataclasses.replace(plain, edge_rotations=roll))
+    info = np.array(plain.edge_information)
+    info[7, 0, 2] = info[7, 2, 0] = 1e-6 * info[7, 0, 0]  # x with z
+    assert not planar_data(dataclasses.replace(plain, edge_information=info))
+    info = np.array(plain.edge_information)
+    info[7, 3, 5] = 1e-12 * info[7, 5, 5]  # roll with yaw, on one side (within symmetry)
+    assert not planar_data(dataclasses.replace(plain, edge_information=info))
+
+    nodes = np.array([4, 9, 20], np.int32)
+    gps = dataclasses.replace(plain, gps_nodes=nodes,
+                              gps_positions=np.array(plain.translations)[nodes],
+                              gps_information=np.broadcast_to(np.eye(3), (3, 3, 3)).copy())
+    assert planar_data(gps)
+    pos = np.array(gps.gps_positions)
+    pos[1, 2] = 0.5
+    assert not planar_data(dataclasses.replace(gps, gps_positions=pos))
+    ginfo = np.array(gps.gps_information)
+    ginfo[2, 1, 2] = ginfo[2, 2, 1] = 0.1
+    assert not planar_data(dataclasses.replace(gps, gps_information=ginfo))
+    lone = dataclasses.replace(plain, edge_nodes=np.zeros((0, 2), np.int32),
+                               edge_rotations=np.zeros((0, 3, 3)),
+                               edge_translations=np.zeros((0, 3)),
+                               edge_information=np.zeros((0, 6, 6)))
+    assert not planar_data(lone)
+
+
 def test_city_loops_through_stiff_odometry_converge() -> None:
     """The valencia defect on a small city: a revisiting pose hangs from its (soft) loop
     closure, its (stiff) odometry carries the loop's path.  Relaxed one at a time the two only

@@ -465,8 +465,15 @@ class OnlineSolver:
         when a frame can afford it (e.g. while the robot stands still).  The gauge is the
         solver's: the first pose without GPS, the earth with it.  With ``robust="auto"`` (the
         default) the least-squares solve is followed by the outlier test and, when it fails,
-        the re-solve without the outliers (:mod:`hybridpgo.solvers.robust`).  Returns the
-        iterations done.
+        the re-solve without the outliers (:mod:`hybridpgo.solvers.robust`).
+
+        The map is solved as the graph :func:`~hybridpgo.solvers.gauss_newton.solve_exact`
+        would get from a file of the same data: when the data are planar
+        (:func:`planar_data`, e.g. a stream of a 2D graph) it is marked ``is_2d``, so the
+        outlier test counts 3 degrees of freedom per relative constraint, as for a 2D file,
+        not 6 of which 3 are exactly 0 (that halves the estimated scale and hides a map folded
+        by false loop closures), and the solve uses the (x, y, yaw) system when the estimate
+        is exactly planar too.  Returns the iterations done.
         """
         from ..solvers.config import GaussNewtonConfig
         from ..solvers.gauss_newton import solve_exact
@@ -478,6 +485,9 @@ class OnlineSolver:
         if st.n < 2:
             return 0
         graph = self.to_graph()
+        # a planar map is solved and tested as the 2D graph it is (``is_2d``: the outlier
+        # test's degrees of freedom, the planar reduction of the solve)
+        graph = dataclasses.replace(graph, is_2d=planar_data(graph))
         if not st.g:
             first = int(np.searchsorted(graph.node_ids, st.ids[0]))
             graph = dataclasses.replace(graph, fixed_nodes=np.array([first], np.int32))
@@ -555,6 +565,49 @@ class OnlineSolver:
         if solver._link is not None:  # the new worker gets the whole map
             solver._link.ship(st, solver.frame)
         return solver
+
+
+#: In-plane (x, y, yaw) and out-of-plane (z, roll, pitch) coordinates of the tangent over
+#: (rho, phi) (docs/conventions.md).
+_IN_PLANE = np.array([0, 1, 5])
+_OUT_OF_PLANE = np.array([2, 3, 4])
+
+
+def planar_data(graph: PoseGraph) -> bool:
+    """True when the graph's data are planar data lifted into 3D.
+
+    Every relative measurement is a motion in the xy-plane (``R e3 = e3``, ``t_z = 0``), every
+    GPS reading lies in it (``z = 0``), and no information couples an in-plane coordinate
+    (x, y, yaw; a GPS reading's x, y) with an out-of-plane one (z, roll, pitch; its z).  Then
+    a map whose poses share a plane has no out-of-plane error, nor a step out of its plane,
+    and its least-squares optimum is planar: each relative constraint's χ² has 3 degrees of
+    freedom, as in a 2D file (``PoseGraph.is_2d``).  The poses are not checked: the first
+    pose may put the plane anywhere without GPS.  Exact comparisons, as the solver's check of
+    its planar reduction.
+
+    Parameters
+    ----------
+    graph : PoseGraph
+
+    Returns
+    -------
+    bool
+        False for a graph without relative constraints.
+    """
+    if graph.num_edges == 0:
+        return False
+    e3 = np.array([0.0, 0.0, 1.0])
+    rot, trans = graph.edge_rotations, graph.edge_translations
+    if not (np.all(rot[:, 2, :] == e3) and np.all(rot[:, :, 2] == e3)
+            and np.all(trans[:, 2] == 0.0)):
+        return False
+    info = graph.edge_information  # both blocks: the input is symmetric only to a tolerance
+    if (np.any(info[:, _IN_PLANE[:, None], _OUT_OF_PLANE[None, :]] != 0.0)
+            or np.any(info[:, _OUT_OF_PLANE[:, None], _IN_PLANE[None, :]] != 0.0)):
+        return False
+    gps = graph.gps_information
+    return bool(np.all(graph.gps_positions[:, 2] == 0.0) and np.all(gps[:, :2, 2] == 0.0)
+                and np.all(gps[:, 2, :2] == 0.0))
 
 
 #: Set once the online kernels have been compiled (or loaded from the cache) in this process.

@@ -6,7 +6,10 @@ optimize``, :func:`hybridpgo.optimize` and :class:`~hybridpgo.solvers.config.Aut
 
 **The test.**  For correct information a constraint's whitened error ``L^T e`` is a standard
 normal vector, so its χ² ``s = e^T Omega e`` (our energy has no 1/2) follows χ²(d), d its
-degrees of freedom (6; 3 for a planar graph's relative constraints and for GPS).  Files get
+degrees of freedom (6; 3 for a planar graph's relative constraints and for GPS).  A graph is
+planar when it is marked ``is_2d`` (a 2D file; :meth:`~hybridpgo.online.OnlineSolver.refine`
+marks a map whose data are planar); planar data given in 3D form are counted with d = 6, of
+which 3 are exactly 0 at the optimum, and so get half their scale.  Files get
 the information's scale wrong both ways (``garage.g2o``'s errors are 4.5e-5 of what its
 information claims, ``sphere_bignoise`` 20x), so the scale is estimated:
 
