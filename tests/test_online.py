@@ -141,7 +141,7 @@ def test_planar_data_is_planar_measurements_and_decoupled_information() -> None:
     import dataclasses
 
     from hybridpgo.generate import generate_grid
-    from hybridpgo.online.solver import planar_data
+    from hybridpgo.graph import planar_data
 
     flat = generate_grid("m3500", seed=1, num_poses=30).graph
     assert flat.is_2d and planar_data(flat)

@@ -244,8 +244,8 @@ def test_online_refine_of_a_clean_map_is_least_squares(preset: str) -> None:
     """Without outliers ``refine()`` under ``"auto"`` leaves the poses ``"none"`` does, bit for
     bit (the test passes the least-squares optimum unchanged), on a planar map (solved and
     tested as 2D) and a 3D one."""
+    from hybridpgo.graph import planar_data
     from hybridpgo.online import OnlineConfig
-    from hybridpgo.online.solver import planar_data
 
     made = generate_grid(preset, seed=4, num_poses=120)
     poses = {}

@@ -382,3 +382,46 @@ def planar_information(info6: FloatArray) -> FloatArray:
     """Inverse of :func:`lift_information_2d`: the (x, y, yaw) block of (k, 6, 6) information."""
     idx = np.array([0, 1, 5])
     return np.ascontiguousarray(np.asarray(info6)[:, idx[:, None], idx[None, :]])
+
+
+#: In-plane (x, y, yaw) and out-of-plane (z, roll, pitch) coordinates of the tangent over
+#: (rho, phi) (docs/conventions.md).
+IN_PLANE = np.array([0, 1, 5])
+OUT_OF_PLANE = np.array([2, 3, 4])
+
+
+def planar_data(graph: PoseGraph) -> bool:
+    """True when the graph's data are planar data lifted into 3D.
+
+    Every relative measurement is a motion in the xy-plane (``R e3 = e3``, ``t_z = 0``), every
+    GPS reading lies in it (``z = 0``), and no information couples an in-plane coordinate
+    (x, y, yaw; a GPS reading's x, y) with an out-of-plane one (z, roll, pitch; its z).  Then
+    a map whose poses share a plane has no out-of-plane error, nor a step out of its plane,
+    and its least-squares optimum is planar: each relative constraint's χ² has 3 degrees of
+    freedom, as in a 2D file (``PoseGraph.is_2d``).  The poses are not checked: the first
+    pose may put the plane anywhere without GPS.  Exact comparisons, as the solver's check of
+    its planar reduction.
+
+    Parameters
+    ----------
+    graph : PoseGraph
+
+    Returns
+    -------
+    bool
+        False for a graph without relative constraints.
+    """
+    if graph.num_edges == 0:
+        return False
+    e3 = np.array([0.0, 0.0, 1.0])
+    rot, trans = graph.edge_rotations, graph.edge_translations
+    if not (np.all(rot[:, 2, :] == e3) and np.all(rot[:, :, 2] == e3)
+            and np.all(trans[:, 2] == 0.0)):
+        return False
+    info = graph.edge_information  # both blocks: the input is symmetric only to a tolerance
+    if (np.any(info[:, IN_PLANE[:, None], OUT_OF_PLANE[None, :]] != 0.0)
+            or np.any(info[:, OUT_OF_PLANE[:, None], IN_PLANE[None, :]] != 0.0)):
+        return False
+    gps = graph.gps_information
+    return bool(np.all(graph.gps_positions[:, 2] == 0.0) and np.all(gps[:, :2, 2] == 0.0)
+                and np.all(gps[:, 2, :2] == 0.0))

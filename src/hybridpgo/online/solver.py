@@ -40,7 +40,7 @@ import numpy.typing as npt
 from .. import _cost
 from .._numba import cycles_per_second, read_cycles
 from ..errors import FormatError, GraphError
-from ..graph import FloatArray, PoseGraph
+from ..graph import FloatArray, PoseGraph, planar_data
 from ..solvers.config import check_int
 from ..solvers.hybrid import _admission as adm
 from ..solvers.hybrid._sweep import loop_kernel, run_loop
@@ -565,49 +565,6 @@ class OnlineSolver:
         if solver._link is not None:  # the new worker gets the whole map
             solver._link.ship(st, solver.frame)
         return solver
-
-
-#: In-plane (x, y, yaw) and out-of-plane (z, roll, pitch) coordinates of the tangent over
-#: (rho, phi) (docs/conventions.md).
-_IN_PLANE = np.array([0, 1, 5])
-_OUT_OF_PLANE = np.array([2, 3, 4])
-
-
-def planar_data(graph: PoseGraph) -> bool:
-    """True when the graph's data are planar data lifted into 3D.
-
-    Every relative measurement is a motion in the xy-plane (``R e3 = e3``, ``t_z = 0``), every
-    GPS reading lies in it (``z = 0``), and no information couples an in-plane coordinate
-    (x, y, yaw; a GPS reading's x, y) with an out-of-plane one (z, roll, pitch; its z).  Then
-    a map whose poses share a plane has no out-of-plane error, nor a step out of its plane,
-    and its least-squares optimum is planar: each relative constraint's χ² has 3 degrees of
-    freedom, as in a 2D file (``PoseGraph.is_2d``).  The poses are not checked: the first
-    pose may put the plane anywhere without GPS.  Exact comparisons, as the solver's check of
-    its planar reduction.
-
-    Parameters
-    ----------
-    graph : PoseGraph
-
-    Returns
-    -------
-    bool
-        False for a graph without relative constraints.
-    """
-    if graph.num_edges == 0:
-        return False
-    e3 = np.array([0.0, 0.0, 1.0])
-    rot, trans = graph.edge_rotations, graph.edge_translations
-    if not (np.all(rot[:, 2, :] == e3) and np.all(rot[:, :, 2] == e3)
-            and np.all(trans[:, 2] == 0.0)):
-        return False
-    info = graph.edge_information  # both blocks: the input is symmetric only to a tolerance
-    if (np.any(info[:, _IN_PLANE[:, None], _OUT_OF_PLANE[None, :]] != 0.0)
-            or np.any(info[:, _OUT_OF_PLANE[:, None], _IN_PLANE[None, :]] != 0.0)):
-        return False
-    gps = graph.gps_information
-    return bool(np.all(graph.gps_positions[:, 2] == 0.0) and np.all(gps[:, :2, 2] == 0.0)
-                and np.all(gps[:, 2, :2] == 0.0))
 
 
 #: Set once the online kernels have been compiled (or loaded from the cache) in this process.

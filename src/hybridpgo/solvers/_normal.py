@@ -26,7 +26,7 @@ import scipy.sparse as sp
 
 from .. import _cost
 from ..errors import GraphError, SolverError
-from ..graph import FloatArray, PoseGraph
+from ..graph import IN_PLANE, FloatArray, PoseGraph, planar_data
 from ..linalg import fill_reducing_order, make_factorizer
 from . import _gn_kernels as _k
 
@@ -142,8 +142,7 @@ def lower_to_full(values: FloatArray, indices: Int64Array, indptr: Int64Array,
 #: measurements and block-separable information, H and g do not couple them with z, roll,
 #: pitch (every Jacobian keeps the parity of in-plane vs out-of-plane components) and g is 0
 #: there, so the step's out-of-plane part is exactly 0: only the (x, y, yaw) system is solved.
-_PLANAR_DOFS = np.array([0, 1, 5])
-_OUT_OF_PLANE_DOFS = np.array([2, 3, 4])
+_PLANAR_DOFS = IN_PLANE
 
 
 @dataclass(frozen=True, slots=True)
@@ -205,16 +204,13 @@ def planar_system(pat: Pattern) -> System:
 
 
 def is_planar(graph: PoseGraph, rot: FloatArray, trans: FloatArray) -> bool:
-    """True when the (x, y, yaw) reduction is exact (see ``_PLANAR_DOFS``)."""
-    if not graph.is_2d or graph.num_gps or graph.num_edges == 0:
+    """True when the (x, y, yaw) reduction is exact (see ``_PLANAR_DOFS``): a 2D graph without
+    GPS whose data (:func:`~hybridpgo.graph.planar_data`) and poses are planar."""
+    if not graph.is_2d or graph.num_gps or not planar_data(graph):
         return False
     e3 = np.array([0.0, 0.0, 1.0])
-    for r, t in ((rot, trans), (graph.edge_rotations, graph.edge_translations)):
-        if not (np.all(r[:, 2, :] == e3) and np.all(r[:, :, 2] == e3) and np.all(t[:, 2] == 0.0)):
-            return False
-    info = graph.edge_information
-    return bool(np.all(info[:, _PLANAR_DOFS[:, None], _OUT_OF_PLANE_DOFS[None, :]] == 0.0))
-
+    return bool(np.all(rot[:, 2, :] == e3) and np.all(rot[:, :, 2] == e3)
+                and np.all(trans[:, 2] == 0.0))
 
 
 # --------------------------------------------------------------------------- linearize
