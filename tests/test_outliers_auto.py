@@ -409,3 +409,18 @@ def test_cli_generate_gps_outliers_and_patterns(capsys: pytest.CaptureFixture[st
     code, _, err = _cli(capsys, "generate", "grid", "--outliers", "5", "--outlier-pattern",
                         "local", "--near-miss-fraction", "0.3", "-o", tmp_path / "g.g2o")
     assert code == 2 and "--near-miss-fraction: only for --outlier-pattern mixed" in err
+
+
+def test_planar_data_in_3d_form_are_tested_as_planar() -> None:
+    """A planar graph written in 3D form (``is_2d`` False) gets the 2D file's verdict: its
+    out-of-plane errors are exactly 0 at the optimum, so counting them as degrees of freedom
+    would halve the scale and hide the 10 false loop closures (scale 174 against 347)."""
+    made = _grid(seed=3, n=200)
+    g0 = made.graph
+    g, _ = add_pattern_outliers(g0, made.truth_translations, 10, "random", seed=5)
+    lifted = dataclasses.replace(g, is_2d=False)
+    res = solve_exact(lifted, None, None, GaussNewtonConfig(max_iterations=100, robust="auto"))
+    assert res.stats["outliers"]["rejected"] == 10
+    ref = _lm(g0, (made.truth_rotations, made.truth_translations))
+    e = energy(g0, res.rotations, res.translations)
+    assert e == pytest.approx(ref.final_energy, rel=SPARSE_VS_DENSE_GN)

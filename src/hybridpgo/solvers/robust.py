@@ -7,9 +7,10 @@ optimize``, :func:`hybridpgo.optimize` and :class:`~hybridpgo.solvers.config.Aut
 **The test.**  For correct information a constraint's whitened error ``L^T e`` is a standard
 normal vector, so its χ² ``s = e^T Omega e`` (our energy has no 1/2) follows χ²(d), d its
 degrees of freedom (6; 3 for a planar graph's relative constraints and for GPS).  A graph is
-planar when it is marked ``is_2d`` (a 2D file; :meth:`~hybridpgo.online.OnlineSolver.refine`
-marks a map whose data are planar); planar data given in 3D form are counted with d = 6, of
-which 3 are exactly 0 at the optimum, and so get half their scale.  Files get
+planar when it is marked ``is_2d`` (a 2D file) or its data are planar
+(:func:`~hybridpgo.graph.planar_data`: a 2D graph written in 3D form, an online map of a
+planar stream): the out-of-plane half of each error is exactly 0 at the optimum, and counting
+it would halve the scale.  Files get
 the information's scale wrong both ways (``garage.g2o``'s errors are 4.5e-5 of what its
 information claims, ``sphere_bignoise`` 20x), so the scale is estimated:
 
@@ -74,7 +75,7 @@ from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 
 from ..energy import constraint_energies
 from ..errors import GraphError
-from ..graph import FloatArray, PoseGraph
+from ..graph import FloatArray, PoseGraph, planar_data
 from .config import GaussNewtonConfig, HybridConfig, ProgressCallback, RobustName
 from .result import SolveResult
 
@@ -145,7 +146,7 @@ class Consistency:
 
 def _dof(graph: PoseGraph) -> int:
     """Degrees of freedom of a relative constraint (a planar graph's: x, y, yaw)."""
-    return 3 if graph.is_2d else 6
+    return 3 if graph.is_2d or planar_data(graph) else 6
 
 
 def _relative_scale(graph: PoseGraph, s: FloatArray, trim: bool) -> float:
