@@ -70,7 +70,7 @@ class OnlineSolver:
         """Number of :meth:`update` calls so far."""
         robust = (_cost.robust_kind(cfg.kernel, cfg.robust_delta), float(cfg.robust_delta))
         self._store = MapStore(cfg.reserve_poses, robust, cfg.gps_batch_size)
-        self._wk: Any = None
+        self._wk: Any = self._store.scratch(None).wk
         self._cursor = 0
         self._gps_cursor = 0
         self._stamp = 0  # one per call of the relaxation loops (junction groups: once each)

@@ -46,6 +46,11 @@ JUNCTION_RATIO = 10.0
 #: Poses reserved when the arrays can be reserved as address space only (else 1024).
 RESERVE_POSES = 1 << 20
 
+#: Domain nodes the first workspace holds (about 1.1 kB each, written when the solver is
+#: built): a longer path grows it, in the frame that lays the path (valencia's longest path
+#: has 2 368 nodes; a new workspace faulted in by its first update took 3.6 ms of that frame).
+WORKSPACE_NODES = 4096
+
 #: Problem.link_* placeholders: the online mode has no interpolated solving, no kernel reads them.
 _NO_LINKS = np.empty(0, np.int64)
 _NO_FORWARD = np.empty(0, np.bool_)
@@ -282,9 +287,13 @@ class MapStore:
         return self._views
 
     def scratch(self, wk: Any) -> Scratch:
-        """The loop's buffers over the store's arrays, with the workspace ``wk``."""
+        """The loop's buffers over the store's arrays, with the workspace ``wk`` (a new one,
+        its pages written once, when ``wk`` is None or too small for the longest path)."""
         if wk is None or wk.x.shape[0] < self.dmax:
-            wk = new_workspace(capacity(self.dmax, 16))
+            wk = new_workspace(capacity(self.dmax, WORKSPACE_NODES))
+            for arr in wk:  # fault the pages in now, not in the update that first uses them
+                if arr.size > 1024:
+                    arr.fill(0.0)
         return Scratch(wk, wk, np.empty(1, np.int64), self.slot, self.xb, self.nodes_buf,
                        np.empty(max(self.gps_batch_size, 1), np.int64), self.cycles,
                        self.batch_cycles)
