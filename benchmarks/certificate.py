@@ -1,5 +1,4 @@
-"""SE-Sync's certificate on the benchmark files, against SE-Sync's published optima (issue 21
-items 1-2).
+"""SE-Sync's certificate on the benchmark files, against SE-Sync's published optima.
 
 For every file: the chordal start, then :func:`hybridpgo.certificate.sesync_certificate`
 (Newton's method on SE-Sync's objective F from there, then the certificate); its F, verdict,

@@ -1,4 +1,4 @@
-"""Sparse direct solvers with permissive licences and wheels, against CHOLMOD (issue 21 item 4).
+"""Sparse direct solvers with permissive licences and wheels, against CHOLMOD.
 
 The exact solver's Levenberg-Marquardt system (H + mu diag(H), mu = 1e-8, at the file's
 vertices / the city's dead reckoning; the (x, y, yaw) system of a planar graph) of each case of
