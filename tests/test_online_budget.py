@@ -121,24 +121,3 @@ def test_frames_leave_nothing_for_the_garbage_collector() -> None:
     grown = len(gc.get_objects()) - before
     assert grown < 50, f"{grown} tracked objects after {st.num_frames - 100} frames"
     assert not gc.is_tracked(s.store.pair_last)  # integer keys and values only
-
-
-def test_an_update_is_predicted_at_least_at_its_own_last_cost() -> None:
-    """A spare-time update that took longer than the frame's budget before is not started
-    again within a budget (the model's mean says it is cheap; its own last cost says not)."""
-    from hybridpgo._numba import cycles_per_second
-
-    g = _graph(seed=2)
-    st = make_stream(g)
-    s = OnlineSolver(OnlineConfig(background_refine=False))
-    for k in range(st.num_frames):
-        feed_frame(s, st, k)
-        s.update(None)
-    store = s.store
-    m = store.m_laid
-    assert s.update(1.0).old > 0  # a budget of a second fits the spare-time updates
-    store.cycles[:m] = np.uint64(10 * cycles_per_second())  # as if each had taken 10 s
-    rep = s.update(1.0)
-    assert rep.old == 0 and rep.skipped > 0
-    store.cycles[:m] = 0  # forgotten: the model alone admits them again
-    assert s.update(1.0).old > 0

@@ -8,11 +8,7 @@ later frames.  This module holds what that policy decides with:
 
 * the cost model: cycles of an update's base, per domain node of a single update and per
   domain entry of a batch (:func:`predict`, learnt by :func:`learn` from the cycle counts of
-  earlier updates), and the bound on a dense capacitance factorization.  An update (or a
-  junction group) done before is predicted at least at its own last cost times
-  :data:`MODEL_MARGIN`: the model is a mean, and the rare longest paths, whose nodes miss the
-  cache, cost up to ten times its cost per node (paris2: one spare-time update of 5.6 ms
-  where the model said 0.4 ms); the same update costs about the same again;
+  earlier updates), and the bound on a dense capacitance factorization;
 * :class:`Admission`, the arrays the loop of :mod:`._sweep` reads and writes under the policy;
 * :func:`gps_chi2` / :func:`edge_chi2`: a constraint's χ² at the current estimate, from its path;
 * :func:`candidates` (the bounded set of spare-time updates, largest χ² first) and

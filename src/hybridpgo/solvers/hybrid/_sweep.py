@@ -206,12 +206,6 @@ def _make_loop(with_gps: bool, with_interpolation: bool, givens: bool, admission
                         pred = adm.predict(pol.model, domain(prob, c)[1], True) + buf_cost
                     else:
                         pred = adm.predict(pol.model, domain(prob, c)[1], False)
-                    if not gps:  # its own last cost, when the model says less (_admission)
-                        last = adm.MODEL_MARGIN * float(
-                            sc.batch_cycles[pol.group_members[pol.group_ptr[grp]]]
-                            if grp >= 0 else sc.cycles[c])
-                        if last > pred:
-                            pred = last
                     late = float(cycle_counter()) + pred > float(deadline)
                     if late and not (force_first and started == 0):
                         counts[Count.SKIPPED] += 1
