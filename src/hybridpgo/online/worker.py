@@ -53,6 +53,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from .._tree_kernels import globals_from_locals
 from ..errors import HybridPGOError
 
 #: The worker process's program: this module imported as part of its package (``-m`` would run
@@ -355,7 +356,7 @@ class _Map:
 
         self.robust = robust
         self.n = self.m = self.g = 0
-        self.parent = np.full(1, -1, np.int64)  # tree nodes, 0 = the earth
+        self.parent = np.full(1, -1, np.int32)  # tree nodes, 0 = the earth
         self.inc = (IncrementalExact(IncrementalConfig(**INCREMENTAL))  # type: ignore[arg-type]
                     if robust[0] == "none" else None)
         #: why the last incremental solve failed ("" when none has)
@@ -365,6 +366,9 @@ class _Map:
         # the LM path's copy: global poses of tree nodes (the estimate) and the measurements
         self.grot = np.eye(3)[None].copy()
         self.gtr = np.zeros((1, 3))
+        # the local transforms of the tree nodes as shipped (read for the nodes being added)
+        self.lrot = np.eye(3)[None].copy()
+        self.ltr = np.zeros((1, 3))
         self.edge_ab = np.zeros((0, 2), np.int32)
         self.edge_rot = np.zeros((0, 3, 3))
         self.edge_trans = np.zeros((0, 3))
@@ -386,7 +390,7 @@ class _Map:
     def add(self, d: Arrays) -> None:
         k = d["parent"].shape[0]
         t0 = self.n + 1
-        self.parent = self._append(self.parent, t0, d["parent"].astype(np.int64))
+        self.parent = self._append(self.parent, t0, d["parent"].astype(np.int32))
         ke, kg = d["edge_ab"].shape[0], d["gps_node"].shape[0]
         if self.inc is not None:
             # local transforms onto the parents' estimates (the earth's children: global)
@@ -396,13 +400,13 @@ class _Map:
             self.inc.add_gps(d["gps_node"], d["gps_pos"], d["gps_info"])
         # the LM path's copy, kept in both modes so that a failed incremental solve can fall
         # back to it
+        self.lrot = self._append(self.lrot, t0, d["rot"])
+        self.ltr = self._append(self.ltr, t0, d["trans"])
         self.grot = self._append(self.grot, t0, d["rot"])
         self.gtr = self._append(self.gtr, t0, d["trans"])
-        for t in range(t0, t0 + k):  # local -> global, parents first (a parent is older)
-            p = self.parent[t]
-            lr, lt = self.grot[t].copy(), self.gtr[t].copy()
-            self.grot[t] = self.grot[p] @ lr
-            self.gtr[t] = self.grot[p] @ lt + self.gtr[p]
+        # local -> global onto the parents' estimates, parents first (a parent is older)
+        globals_from_locals(np.arange(t0, t0 + k, dtype=np.int32), self.parent, self.lrot,
+                            self.ltr, self.grot, self.gtr)
         self.n += k
         for name in ("edge_ab", "edge_rot", "edge_trans", "edge_info"):
             setattr(self, name, self._append(getattr(self, name), self.m, d[name]))
