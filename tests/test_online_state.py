@@ -293,3 +293,31 @@ def test_idle_uses_the_time_between_frames() -> None:
         resting.idle(0.002)
     assert busy.backlog > 0 and resting.backlog == 0
     assert resting.energy() < busy.energy()
+
+
+def test_the_duplicate_check_knows_every_parallel_constraint_after_growth_and_load(
+        tmp_path: Path) -> None:
+    """Three constraints on one pose pair, added while the edge arrays grow (a reserve of 2
+    poses) and before and after a save and load: every one of them, the oldest included, is
+    refused when added again; a fourth, different one is taken."""
+    s = OnlineSolver(OnlineConfig(reserve_poses=2, background_refine=False))
+    step = (np.eye(3), np.array([1.0, 0.0, 0.0]))
+    s.add_pose(0)
+    for i in range(1, 8):
+        s.add_pose(i, i - 1, step, np.eye(6))
+    loops = [(np.eye(3), np.array([7.0 + 0.1 * k, 0.0, 0.0])) for k in range(4)]
+    s.add_constraint(0, 7, loops[0], np.eye(6))
+    s.update(None)
+    for i in range(8, 40):  # the edge capacity doubles several times
+        s.add_pose(i, i - 1, step, np.eye(6))
+    s.add_constraint(0, 7, loops[1], np.eye(6))
+    s.update(None)
+    s.save(tmp_path / "s.npz")
+    t = OnlineSolver.load(tmp_path / "s.npz")
+    t.add_constraint(0, 7, loops[2], np.eye(6))
+    for k in range(3):
+        with pytest.raises(GraphError, match="duplicate constraint"):
+            t.add_constraint(0, 7, loops[k], np.eye(6))
+    t.add_constraint(0, 7, loops[3], np.eye(6))
+    t.add_constraint(7, 0, loops[0], np.eye(6))  # the other direction is another pair
+    assert t.num_edges == 39 + 5

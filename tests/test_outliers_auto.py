@@ -424,3 +424,24 @@ def test_planar_data_in_3d_form_are_tested_as_planar() -> None:
     ref = _lm(g0, (made.truth_rotations, made.truth_translations))
     e = energy(g0, res.rotations, res.translations)
     assert e == pytest.approx(ref.final_energy, rel=SPARSE_VS_DENSE_GN)
+
+
+def test_gps_scale_counts_the_degrees_of_freedom_of_the_readings() -> None:
+    """The GPS scale is the median χ² over the median of χ²(d): d = 3, or 2 for planar data
+    (readings at z = 0 have no height error); both medians are χ²'s own."""
+    from scipy.stats import chi2
+
+    from hybridpgo.solvers import robust
+
+    assert robust._CHI2_3_MEDIAN == pytest.approx(chi2(3).median(), rel=FLOAT64_IDENTITY)
+    assert robust._CHI2_2_MEDIAN == pytest.approx(chi2(2).median(), rel=FLOAT64_IDENTITY)
+    rng = np.random.default_rng(7)
+    for dof in (2, 3):
+        s = 4.0 * rng.chisquare(dof, 200_000)  # errors twice the stated sigma
+        # the sample median of 2e5 draws is within 1% of the true one (> 10 standard errors)
+        assert robust._gps_scale(s, dof) == pytest.approx(4.0, rel=0.01)
+        assert abs(robust._gps_scale(s, 5 - dof) - 4.0) > 0.4  # the other d is far off
+    made = _grid(seed=3, n=40)
+    assert robust._gps_dof(made.graph) == 2 and robust._gps_dof(
+        dataclasses.replace(made.graph, edge_translations=made.graph.edge_translations + 0.1)
+    ) == 3

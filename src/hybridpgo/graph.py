@@ -360,6 +360,12 @@ def check_information(info: FloatArray, what: str) -> None:
         )
 
 
+#: In-plane (x, y, yaw) and out-of-plane (z, roll, pitch) coordinates of the tangent over
+#: (rho, phi) (docs/conventions.md).
+IN_PLANE = np.array([0, 1, 5])
+OUT_OF_PLANE = np.array([2, 3, 4])
+
+
 def lift_information_2d(info3: FloatArray) -> FloatArray:
     """Lift (k, 3, 3) SE(2) information over (x, y, theta) into (k, 6, 6) over (rho, phi).
 
@@ -370,8 +376,7 @@ def lift_information_2d(info3: FloatArray) -> FloatArray:
     info3 = np.asarray(info3, dtype=np.float64)
     k = info3.shape[0]
     out = np.zeros((k, 6, 6))
-    idx = np.array([0, 1, 5])
-    out[:, idx[:, None], idx[None, :]] = info3
+    out[:, IN_PLANE[:, None], IN_PLANE[None, :]] = info3
     stiff = np.max(np.diagonal(info3, axis1=1, axis2=2), axis=1)
     for j in (2, 3, 4):
         out[:, j, j] = stiff
@@ -380,14 +385,15 @@ def lift_information_2d(info3: FloatArray) -> FloatArray:
 
 def planar_information(info6: FloatArray) -> FloatArray:
     """Inverse of :func:`lift_information_2d`: the (x, y, yaw) block of (k, 6, 6) information."""
-    idx = np.array([0, 1, 5])
-    return np.ascontiguousarray(np.asarray(info6)[:, idx[:, None], idx[None, :]])
+    return np.ascontiguousarray(np.asarray(info6)[:, IN_PLANE[:, None], IN_PLANE[None, :]])
 
 
-#: In-plane (x, y, yaw) and out-of-plane (z, roll, pitch) coordinates of the tangent over
-#: (rho, phi) (docs/conventions.md).
-IN_PLANE = np.array([0, 1, 5])
-OUT_OF_PLANE = np.array([2, 3, 4])
+def planar_motions(rotations: FloatArray, translations: FloatArray) -> bool:
+    """True when every transform ``(R, t)`` keeps the xy-plane: ``R e3 = e3`` and ``t_z = 0``,
+    compared exactly."""
+    e3 = np.array([0.0, 0.0, 1.0])
+    return bool(np.all(rotations[:, 2, :] == e3) and np.all(rotations[:, :, 2] == e3)
+                and np.all(translations[:, 2] == 0.0))
 
 
 def planar_data(graph: PoseGraph) -> bool:
@@ -411,12 +417,8 @@ def planar_data(graph: PoseGraph) -> bool:
     bool
         False for a graph without relative constraints.
     """
-    if graph.num_edges == 0:
-        return False
-    e3 = np.array([0.0, 0.0, 1.0])
-    rot, trans = graph.edge_rotations, graph.edge_translations
-    if not (np.all(rot[:, 2, :] == e3) and np.all(rot[:, :, 2] == e3)
-            and np.all(trans[:, 2] == 0.0)):
+    if graph.num_edges == 0 or not planar_motions(graph.edge_rotations,
+                                                  graph.edge_translations):
         return False
     info = graph.edge_information  # both blocks: the input is symmetric only to a tolerance
     if (np.any(info[:, IN_PLANE[:, None], OUT_OF_PLANE[None, :]] != 0.0)

@@ -290,9 +290,10 @@ class MapStore:
         """The loop's buffers over the store's arrays, with the workspace ``wk`` (a new one,
         its pages written once, when ``wk`` is None or too small for the longest path)."""
         if wk is None or wk.x.shape[0] < self.dmax:
-            wk = new_workspace(capacity(self.dmax, WORKSPACE_NODES))
-            for arr in wk:  # fault the pages in now, not in the update that first uses them
-                if arr.size > 1024:
+            cap = capacity(self.dmax, WORKSPACE_NODES)
+            wk = new_workspace(cap)
+            for arr in wk:  # fault the per-node arrays in now, not in their first update
+                if arr.shape[0] >= cap:
                     arr.fill(0.0)
         return Scratch(wk, wk, np.empty(1, np.int64), self.slot, self.xb, self.nodes_buf,
                        np.empty(max(self.gps_batch_size, 1), np.int64), self.cycles,

@@ -26,7 +26,7 @@ import scipy.sparse as sp
 
 from .. import _cost
 from ..errors import GraphError, SolverError
-from ..graph import IN_PLANE, FloatArray, PoseGraph, planar_data
+from ..graph import IN_PLANE, FloatArray, PoseGraph, planar_data, planar_motions
 from ..linalg import fill_reducing_order, make_factorizer
 from . import _gn_kernels as _k
 
@@ -137,12 +137,11 @@ def lower_to_full(values: FloatArray, indices: Int64Array, indptr: Int64Array,
     return full
 
 
-#: Lifted-2D graphs (docs/conventions.md): the tangent entries x, y, yaw.  At planar poses with
-#: planar
-#: measurements and block-separable information, H and g do not couple them with z, roll,
-#: pitch (every Jacobian keeps the parity of in-plane vs out-of-plane components) and g is 0
-#: there, so the step's out-of-plane part is exactly 0: only the (x, y, yaw) system is solved.
-_PLANAR_DOFS = IN_PLANE
+# Lifted-2D graphs (docs/conventions.md): at planar poses with planar measurements and
+# block-separable information, H and g do not couple the tangent entries x, y, yaw
+# (graph.IN_PLANE) with z, roll, pitch (every Jacobian keeps the parity of in-plane vs
+# out-of-plane components) and g is 0 there, so the step's out-of-plane part is exactly 0:
+# only the (x, y, yaw) system is solved.
 
 
 @dataclass(frozen=True, slots=True)
@@ -190,7 +189,7 @@ def full_system(pat: Pattern) -> System:
 
 def planar_system(pat: Pattern) -> System:
     """The (x, y, yaw) rows and columns of H, with a value map computed once."""
-    keep = (6 * np.arange(pat.num_vars)[:, None] + _PLANAR_DOFS[None, :]).ravel()
+    keep = (6 * np.arange(pat.num_vars)[:, None] + IN_PLANE[None, :]).ravel()
     ids = sp.csc_matrix((np.arange(1, pat.nnz + 1, dtype=np.float64), pat.lower_indices(),
                          pat.indptr), shape=(pat.dim, pat.dim))
     sub = ids[keep][:, keep].tocsc()
@@ -204,13 +203,12 @@ def planar_system(pat: Pattern) -> System:
 
 
 def is_planar(graph: PoseGraph, rot: FloatArray, trans: FloatArray) -> bool:
-    """True when the (x, y, yaw) reduction is exact (see ``_PLANAR_DOFS``): a 2D graph without
-    GPS whose data (:func:`~hybridpgo.graph.planar_data`) and poses are planar."""
+    """True when the (x, y, yaw) reduction is exact (the note above :func:`planar_system`):
+    a 2D graph without GPS whose data (:func:`~hybridpgo.graph.planar_data`) and poses are
+    planar."""
     if not graph.is_2d or graph.num_gps or not planar_data(graph):
         return False
-    e3 = np.array([0.0, 0.0, 1.0])
-    return bool(np.all(rot[:, 2, :] == e3) and np.all(rot[:, :, 2] == e3)
-                and np.all(trans[:, 2] == 0.0))
+    return planar_motions(rot, trans)
 
 
 # --------------------------------------------------------------------------- linearize

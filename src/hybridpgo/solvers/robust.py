@@ -18,7 +18,8 @@ information claims, ``sphere_bignoise`` 20x), so the scale is estimated:
   left after the poses (at the optimum a constraint's χ² is reduced by its leverage, which
   the total accounts for: sparse graphs, whose chains absorb most of the error, are scaled as
   dense ones are), trimmed of the constraints beyond the threshold (iterated);
-* GPS readings: the median χ² over χ²(3)'s median (a reading's leverage is small).
+* GPS readings: the median χ² over χ²(3)'s median (a reading's leverage is small; χ²(2)'s
+  for planar data, whose readings have no height error).
 
 Each χ² is divided by ``nu = max(1, scale)``: an underconfident file is tested against its
 stated information, an overconfident one against the data.  The graph is inconsistent when
@@ -100,8 +101,10 @@ GM_SIGMAS = 10.0
 MAX_ROUNDS = 6
 #: Fewer GPS readings than this are not tested (their median says nothing about their scale).
 MIN_GPS = 5
-#: The median of χ²(3) (the GPS scale's reference).
+#: The medians of χ²(3) and χ²(2) (the GPS scale's reference; a reading of planar data has
+#: no height error, :func:`_gps_dof`).
 _CHI2_3_MEDIAN = 2.365973884375338
+_CHI2_2_MEDIAN = 1.386294361119891
 
 #: ``solve(graph, rotations, translations, robust, robust_scale)``: the caller's solver from
 #: the given poses, with the given kernel (``"none"`` or ``"geman_mcclure"``).
@@ -174,10 +177,17 @@ def _relative_scale(graph: PoseGraph, s: FloatArray, trim: bool) -> float:
         nu = max(1.0, scale)
 
 
-def _gps_scale(s_gps: FloatArray) -> float:
+def _gps_dof(graph: PoseGraph) -> int:
+    """Degrees of freedom of a GPS reading: 3, or 2 when the data are planar
+    (:func:`~hybridpgo.graph.planar_data`: readings at z = 0 whose information does not
+    couple z with x, y), whose height error is exactly 0 at the optimum."""
+    return 2 if planar_data(graph) else 3
+
+
+def _gps_scale(s_gps: FloatArray, dof: int = 3) -> float:
     if s_gps.shape[0] < MIN_GPS:
         return math.nan
-    return float(np.median(s_gps)) / _CHI2_3_MEDIAN
+    return float(np.median(s_gps)) / (_CHI2_2_MEDIAN if dof == 2 else _CHI2_3_MEDIAN)
 
 
 def _nu(scale: float) -> float:
@@ -212,7 +222,7 @@ def check_consistency(graph: PoseGraph, rotations: FloatArray, translations: Flo
     """
     s, s_gps = constraint_energies(graph, rotations, translations)
     scale = _relative_scale(graph, s, trim)
-    gps_scale = _gps_scale(s_gps)
+    gps_scale = _gps_scale(s_gps, _gps_dof(graph))
     return Consistency(scale, gps_scale, _sigmas(s, scale, math.isfinite(scale)),
                        _sigmas(s_gps, gps_scale, math.isfinite(gps_scale)))
 
@@ -484,7 +494,7 @@ def _rescaled(graph: PoseGraph, kept: npt.NDArray[np.int64], kept_gps: npt.NDArr
     kept ones (untrimmed: they are the inliers)."""
     s, s_gps = constraint_energies(graph, rot, trans)
     scale = _relative_scale(graph, s[kept], False)
-    gps_scale = _gps_scale(s_gps[kept_gps])
+    gps_scale = _gps_scale(s_gps[kept_gps], _gps_dof(graph))
     return Consistency(scale, gps_scale, _sigmas(s, scale, math.isfinite(scale)),
                        _sigmas(s_gps, gps_scale, math.isfinite(gps_scale)))
 
