@@ -240,6 +240,7 @@ def run(ctx: Context) -> Result:
                     info(f"{key}.background_start_s", r.info.get("background_start_s", 0.0),
                          "s"),
                     info(f"{key}.results_adopted", bgi["results_adopted"]),
+                    info(f"{key}.results_stale", bgi.get("results_stale", 0)),
                     info(f"{key}.lag_frames_max", bgi["lag_frames_max"]),
                     timing(f"{key}.adopt_ms_max", bgi["adopt_ms_max"], "ms"),
                 ]
@@ -254,8 +255,8 @@ def run(ctx: Context) -> Result:
                  f"{s['extra_ratio'][-1]:.4g} ({len(s['extra_ratio'])})"
                  if s.get("extra_ratio") else "-"),
                 hit if hit is not None else "never",
-                (f"{bgi['results_adopted']} / {bgi['lag_frames_max']} / "
-                 f"{bgi['adopt_ms_max']:.2f}" if bgi else "-"),
+                (f"{bgi['results_adopted']} ({bgi.get('results_stale', 0)} stale) / "
+                 f"{bgi['lag_frames_max']} / {bgi['adopt_ms_max']:.2f}" if bgi else "-"),
             ])
         tm, trow = _targets(name, {r.name: r for r in runs}, optima)
         metrics += tm
@@ -273,7 +274,7 @@ def run(ctx: Context) -> Result:
             ["graph", "poses", "edges", "GPS", "solver", "mean", "p99", "max", "CPU max",
              f"frames > {BUDGET_S * 1e3 + 1:.0f} ms CPU", "worst frames (frame:CPU ms)",
              "worst E/opt", "end E/opt", "extra E/opt 10 / N (N)", "extra frames to 1%",
-             "background: results / lag max (frames) / adopt max (ms)"],
+             "background: adopted (stale) / lag max (frames) / adopt max (ms)"],
             rows,
         ),
         markdown_table(

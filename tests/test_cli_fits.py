@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from cli_helpers import run_cli
-from tolerances import FLOAT64_IDENTITY, SPARSE_VS_DENSE_GN
+from tolerances import COVARIANCE_ROUTES, FLOAT64_IDENTITY, SPARSE_VS_DENSE_GN
 
 from hybridpgo.energy import residuals
 from hybridpgo.io import read_graph
@@ -193,7 +193,7 @@ def test_optimize_covariance_every_pose_of_a_larger_graph(capsys: pytest.Capture
     sel = np.array([1, 700, 2499])  # the per-pose CHOLMOD route, an independent factorization
     expected = marginal_covariances(solved, None, None, sel, linear_solver="splu")
     np.testing.assert_allclose(np.load(npz)["cov"][sel], expected, rtol=0,
-                               atol=SPARSE_VS_DENSE_GN * np.abs(expected).max())
+                               atol=COVARIANCE_ROUTES * np.abs(expected).max())
 
 
 @pytest.mark.parametrize(("argv", "message"), [

@@ -880,3 +880,19 @@ def test_background_worker_incremental_reaches_the_optimum(data_dir: Path) -> No
     store.rot[1: meta["n"] + 1] = arrays["rot"]
     store.trans[1: meta["n"] + 1] = arrays["trans"]
     assert abs(s.energy() - meta["energy"]) <= 1e-9 * opt
+
+
+def test_an_answer_older_than_the_tail_limit_is_not_adopted() -> None:
+    """An asynchronous answer is adopted only while at most MAX_TAIL constraints were laid
+    after its snapshot; a staler one is counted and left."""
+    from types import SimpleNamespace
+
+    from hybridpgo.online._link import MAX_TAIL, WorkerLink
+
+    link = WorkerLink.__new__(WorkerLink)  # the bookkeeping only, no worker process
+    link.stale = 0
+    store = SimpleNamespace(m_laid=MAX_TAIL + 50, g_laid=10)
+    assert link.fresh(store, SimpleNamespace(m=50, g=10))  # a tail of exactly MAX_TAIL
+    assert not link.fresh(store, SimpleNamespace(m=50, g=9))  # one more (a GPS reading)
+    assert not link.fresh(store, SimpleNamespace(m=0, g=0))
+    assert link.stale == 2
