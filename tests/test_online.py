@@ -882,6 +882,46 @@ def test_background_worker_incremental_reaches_the_optimum(data_dir: Path) -> No
     assert abs(s.energy() - meta["energy"]) <= 1e-9 * opt
 
 
+@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
+def test_a_capped_incremental_answer_says_which_constraints_it_holds(data_dir: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch
+                                                                    ) -> None:
+    """An incremental solve stopped by its cap before completing an update cycle answers with
+    the last completed cycle's estimate, and its ``m`` says which edges that estimate holds
+    (not every edge shipped): adopted with rebase, the frames queue the edges it lacks."""
+    from hybridpgo.io import read_graph
+    from hybridpgo.online.worker import Refined
+
+    g = read_graph(data_dir / "w100_toro.graph")
+    half = g.num_nodes // 2
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    _stream(s, g, range(half))
+    mp = _worker_map(s, ("none", None))
+    _, meta = mp.solve(50)
+    m_half = meta["m"]
+    assert m_half == mp.m == s.store.m_laid
+    _stream(s, g, range(half, g.num_nodes))
+    store = s.store
+    n0, m0 = mp.n, mp.m
+    t, m = store.placed + 1, store.m
+    mp.add({"parent": store.parent[n0 + 1:t], "rot": store.rot[n0 + 1:t],
+            "trans": store.trans[n0 + 1:t], "edge_ab": store.edge_ab[m0:m],
+            "edge_rot": store.edge_rot[m0:m], "edge_trans": store.edge_trans[m0:m],
+            "edge_info": store.edge_info[m0:m], "gps_node": store.gps_node[:0],
+            "gps_pos": store.gps_pos[:0], "gps_info": store.gps_info[:0]})
+    assert mp.m > m_half
+    monkeypatch.setattr(mp.inc, "solve", lambda *a, **k: False)  # no cycle completed
+    arrays, meta = mp.solve(50)
+    assert meta["status"] == "max_time" and meta["incremental"]
+    assert meta["n"] == mp.n and (meta["m"], meta["g"]) == (m_half, 0)
+    res = Refined(meta["n"], meta["m"], meta["g"], 0, arrays["rot"], arrays["trans"],
+                  meta["energy"], meta["iterations"], meta["status"], meta["seconds"])
+    store.set_queue(np.zeros(0, np.int64))
+    assert adopt_result(store, res, rebase=True)
+    queued = store.pending()
+    assert np.array_equal(np.sort(queued), np.arange(m_half, store.m_laid))
+
+
 def test_an_answer_older_than_the_tail_limit_is_not_adopted() -> None:
     """An asynchronous answer is adopted only while at most MAX_TAIL constraints were laid
     after its snapshot; a staler one is counted and left."""

@@ -30,7 +30,11 @@ and the arrays' raw bytes in order.  Main -> worker: ``data`` (new tree nodes wi
 and local transform, new edges, new GPS readings), ``solve`` (answer request ``req`` with the
 optimum of everything shipped so far), EOF to stop.  Worker -> main: ``ready`` once its kernels
 are loaded (:meth:`BackgroundRefiner.wait_ready`), then ``result`` (``n`` tree nodes below the
-earth, their local transforms, the iterations, energy and status) or ``error``.
+earth, their local transforms, ``m`` and ``g`` the edges and GPS readings the estimate holds,
+the iterations, energy and status) or ``error``.  An incremental solve stopped by
+:data:`SOLVE_CAP_S` answers with the last completed update cycle's estimate: its ``m`` and ``g``
+are then those that cycle integrated, fewer than were shipped, and the frames relax the rest
+again on top of it (``OnlineConfig.background_rebase``).
 
 The worker solves only on request.  The asynchronous mode keeps one request outstanding and
 makes the next as soon as the answer is adopted, so which prefix each answer covers depends on
@@ -143,7 +147,10 @@ class Refined:
     n: int
     """Tree nodes below the earth covered (= poses of the prefix)."""
     m: int
+    """Edges the estimate holds (the first ``m`` laid; fewer than shipped when the solve was
+    stopped by its cap)."""
     g: int
+    """GPS readings the estimate holds, likewise."""
     req: int
     """The highest solve request answered (-1: none)."""
     rotations: np.ndarray
@@ -435,11 +442,15 @@ class _Map:
                 iterations = int(self.inc.stats["cycles"]) - cycles
                 rot, trans = self.inc.estimate()
                 energy = self.inc.energy()
+                # the estimate is the last completed update cycle's: the constraints laid
+                # after the ones it integrated are not in it (a solve stopped by the cap)
+                _, m_est, g_est = self.inc.covered
                 if not energy <= e_start * (1.0 + 1e-9) + 1e-12:  # NaN fails too
                     raise ArithmeticError(f"the incremental solve raised E from {e_start:.6g} "
                                           f"to {energy:.6g}")
                 self.grot = self._append(self.grot, 1, rot)
                 self.gtr = self._append(self.gtr, 1, trans)
+                m, g = m_est, g_est
             except (HybridPGOError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
                 # e.g. an undamped step from a poor estimate: LM (damped) solves this request
                 # from the last good estimate, and the incremental solver starts again there
