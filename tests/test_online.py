@@ -922,6 +922,67 @@ def test_a_capped_incremental_answer_says_which_constraints_it_holds(data_dir: P
     assert np.array_equal(np.sort(queued), np.arange(m_half, store.m_laid))
 
 
+def _ship(mp: Any, s: OnlineSolver) -> None:
+    """Ship to the worker's map ``mp`` what ``s`` placed and laid since the last call."""
+    st = s.store
+    n0, m0, g0 = mp.n, mp.m, mp.g
+    t, m, g = st.placed + 1, st.m_laid, st.g_laid
+    mp.add({"parent": st.parent[n0 + 1:t], "rot": st.rot[n0 + 1:t], "trans": st.trans[n0 + 1:t],
+            "edge_ab": st.edge_ab[m0:m], "edge_rot": st.edge_rot[m0:m],
+            "edge_trans": st.edge_trans[m0:m], "edge_info": st.edge_info[m0:m],
+            "gps_node": st.gps_node[g0:g], "gps_pos": st.gps_pos[g0:g],
+            "gps_info": st.gps_info[g0:g]})
+
+
+def test_the_worker_solves_the_gauge_switch_to_gps_with_lm() -> None:
+    """Before GPS_GAUGE readings the worker holds the first pose (its answers are not adopted
+    then); the request that brings the GPS_GAUGE-th reading is solved by LM, not by an
+    undamped incremental step from the estimate in the old gauge (which raised E there), and
+    its answer is the prefix optimum; the incremental solver starts again there."""
+    from hybridpgo.generate import generate_city
+    from hybridpgo.online import worker
+
+    g = generate_city(None, seed=0, num_poses=400, gps_every=20).graph
+    st = make_stream(g)
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    mp = worker._Map(("none", None))
+    k = 0
+    while st.gps_ptr[k + 1] < worker.GPS_GAUGE - 1:
+        feed_frame(s, st, k)
+        s.update(None, UPDATES)
+        k += 1
+    _ship(mp, s)
+    _, meta = mp.solve(50)  # readings, but fewer than GPS_GAUGE: the first pose held
+    assert 0 < meta["g"] < worker.GPS_GAUGE and not mp.earth
+    switch = int(np.searchsorted(st.gps_ptr, worker.GPS_GAUGE))  # frames to hold that many
+    end = switch + 5
+    opt = prefix_optima(st, [end])[end]
+    for f in range(k, end):
+        feed_frame(s, st, f)
+        s.update(None, UPDATES)
+    _ship(mp, s)
+    _, meta = mp.solve(50)
+    assert mp.earth and meta["g"] >= worker.GPS_GAUGE
+    assert not meta["incremental"] and meta["resets"] == 0, meta["fallback"]
+    assert abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
+    assert mp.inc is not None  # the incremental solver, started again at that optimum
+
+
+def test_an_answer_in_the_first_poses_gauge_is_not_adopted_once_gps_moves_the_map() -> None:
+    """An answer holding 1 .. GPS_GAUGE-1 readings was solved with the first pose held, the
+    frames' map with it free: not adopted, counted; no reading or enough of them: adopted."""
+    from types import SimpleNamespace
+
+    from hybridpgo.online import worker
+    from hybridpgo.online._link import WorkerLink
+
+    link = WorkerLink.__new__(WorkerLink)  # the bookkeeping only, no worker process
+    link.other_gauge = 0
+    for g in range(1, worker.GPS_GAUGE):
+        assert not link.adopt(SimpleNamespace(), SimpleNamespace(n=5, m=4, g=g), 7, True)
+    assert link.other_gauge == worker.GPS_GAUGE - 1
+
+
 def test_an_answer_older_than_the_tail_limit_is_not_adopted() -> None:
     """An asynchronous answer is adopted only while at most MAX_TAIL constraints were laid
     after its snapshot; a staler one is counted and left."""

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from .store import MapStore
-from .worker import BackgroundRefiner, Refined
+from .worker import GPS_GAUGE, BackgroundRefiner, Refined
 
 
 def adopt_result(store: MapStore, res: Refined, rebase: bool) -> bool:
@@ -73,6 +73,9 @@ class WorkerLink:
         self.lag_max = 0
         self.stale = 0
         """Answers not adopted: their snapshot was older than :data:`MAX_TAIL` constraints."""
+        self.other_gauge = 0
+        """Answers not adopted: solved with the first pose held while the frames' map has GPS
+        readings (fewer than :data:`~.worker.GPS_GAUGE`)."""
         self._ship_frames: dict[int, int] = {}
 
     def close(self) -> None:
@@ -136,12 +139,21 @@ class WorkerLink:
         self.sent = (n, m, g)
         self._ship_frames[n] = frame
 
-    def adopt(self, store: MapStore, res: Refined, frame: int, rebase: bool) -> None:
-        """:func:`adopt_result`, and the bookkeeping of :meth:`holds` and :meth:`stats`."""
+    def adopt(self, store: MapStore, res: Refined, frame: int, rebase: bool) -> bool:
+        """:func:`adopt_result`, and the bookkeeping of :meth:`holds` and :meth:`stats`; False
+        when the answer is not adopted.
+
+        An answer that holds GPS readings but fewer than :data:`~.worker.GPS_GAUGE` is not
+        adopted: the worker held the first pose where the stream started, while from the first
+        reading the frames let the readings move the whole map (into the readings' frame,
+        which may lie kilometres away): the two maps are in different gauges."""
         t0 = time.perf_counter()
         n = res.n
+        if 0 < res.g < GPS_GAUGE:
+            self.other_gauge += 1
+            return False
         if not adopt_result(store, res, rebase):
-            return
+            return False
         self.refined = (res.m, res.g)
         self.tail, self.tail_ok = (n, res.m, res.g), True
         self.adopted += 1
@@ -151,6 +163,7 @@ class WorkerLink:
             self.lag_max = max(self.lag_max, frame - shipped)
         for key in [k for k in self._ship_frames if k < n]:
             del self._ship_frames[key]
+        return True
 
     def holds(self, store: MapStore) -> bool:
         """True while the adopted optimum is also the optimum of everything added since: each
@@ -180,12 +193,12 @@ class WorkerLink:
         self.request(store, frame)
         req = self.join_req
         res = self.refiner.wait(req, timeout)
-        if res is not None:
-            self.adopt(store, res, frame, rebase)
-        return res is not None and res.req >= req
+        return (res is not None and self.adopt(store, res, frame, rebase)
+                and res.req >= req)
 
     def stats(self) -> dict[str, Any]:
         return {"results_adopted": self.adopted, "results_stale": self.stale,
+                "results_other_gauge": self.other_gauge,
                 "adopt_ms_max": self.adopt_s_max * 1e3,
                 "lag_frames_max": self.lag_max, "results_received": self.refiner.results,
                 "error": self.refiner.error}

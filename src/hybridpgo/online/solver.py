@@ -389,8 +389,10 @@ class OnlineSolver:
         """Ship everything added so far, wait for the worker's optimum of it and adopt it.
 
         For the end of a stream (or a pause), and for reproducible runs.  Returns True when
-        the answer came (False: ``timeout`` passed, or the worker reported an error:
-        :meth:`stats` ``["background"]["error"]``).
+        the answer came and was adopted (False: ``timeout`` passed, the worker reported an
+        error: :meth:`stats` ``["background"]["error"]``, or the map has GPS readings but
+        fewer than :data:`~hybridpgo.online.worker.GPS_GAUGE`, whose answer is in another
+        gauge than the frames' map).
 
         Raises
         ------

@@ -328,13 +328,19 @@ class BackgroundRefiner:
 
 
 # --------------------------------------------------------------------------- worker side
+#: GPS readings from which the worker's solves take the earth as the gauge (before: the first
+#: pose is held).  The frames free the first pose from the first reading, so an answer with
+#: fewer readings (but some) is in another gauge and is not adopted
+#: (:meth:`~._link.WorkerLink.adopt`).
+GPS_GAUGE = 3
 #: Options of the worker's incremental solver: a pose's linearization point moves once its step
 #: exceeds 0.1 (m or rad), the back substitution stops below columns that moved by at most
 #: 1e-4, and the idle polish (``IncrementalConfig.polish_rho``) then takes every pose still
 #: moving to the optimum.  Measured on M3500_isam with an incremental solver fed every frame
 #: and its estimate adopted by the frames: worst checkpoint 1.002-1.007x the prefix optimum
 #: (valencia: 1.011x), against 1.233x (valencia: 121.8x) without a worker.
-INCREMENTAL = {"relinearize_rho": 0.1, "relinearize_phi": 0.1, "wildfire": 1e-4}
+INCREMENTAL = {"relinearize_rho": 0.1, "relinearize_phi": 0.1, "wildfire": 1e-4,
+               "gps_gauge": GPS_GAUGE}
 #: Seconds of one request's incremental solve at most (an unfinished solve resumes at the next
 #: request; the answer is the last completed update cycle's estimate, the poses it does not
 #: cover yet composed onto their parents).  M3500_isam streamed back to back on a loaded 2-core
@@ -370,6 +376,8 @@ class _Map:
         self.fallback = ""
         #: failed incremental solves so far (each answered by LM, then the solver started again)
         self.resets = 0
+        #: whether the gauge is the earth (:data:`GPS_GAUGE` readings; before: the first pose)
+        self.earth = False
         # the LM path's copy: global poses of tree nodes (the estimate) and the measurements
         self.grot = np.eye(3)[None].copy()
         self.gtr = np.zeros((1, 3))
@@ -433,7 +441,13 @@ class _Map:
         t0 = time.perf_counter()
         energy, iterations, status = 0.0, 0, "converged"
         failed = False
-        if self.inc is not None:
+        # GPS_GAUGE readings: the gauge becomes the earth.  The estimate was solved with the
+        # first pose held where the stream started; the readings' frame may lie far from it,
+        # and an undamped Gauss-Newton step that far need not lower E: this request is solved
+        # by LM (damped), and the incremental solver starts again at its optimum
+        switch = not self.earth and g >= GPS_GAUGE
+        self.earth = self.earth or switch
+        if self.inc is not None and not switch:
             e_start = self._energy()
             try:
                 cycles = int(self.inc.stats["cycles"])
@@ -457,10 +471,12 @@ class _Map:
                 self.fallback = f"{type(exc).__name__}: {exc}"
                 self.resets += 1
                 failed = True
-        if (self.inc is None or failed) and n >= 2:
+        if (self.inc is None or failed or switch) and n >= 2:
             energy, iterations, status = self._solve_lm(max_iterations)
         if failed:
             self._reseed()
+        elif switch and self.inc is not None:
+            self.inc = self._incremental_here()
         seconds = time.perf_counter() - t0
         lrot = np.empty((n + 1, 3, 3))
         ltr = np.empty((n + 1, 3))
@@ -468,7 +484,8 @@ class _Map:
                             lrot, ltr)
         meta = {"type": "result", "n": n, "m": m, "g": g, "energy": energy,
                 "iterations": iterations, "status": status, "seconds": seconds,
-                "incremental": self.inc is not None and not failed, "fallback": self.fallback,
+                "incremental": self.inc is not None and not (failed or switch),
+                "fallback": self.fallback,
                 "resets": self.resets}
         return {"rot": lrot[1:], "trans": ltr[1:]}, meta
 
@@ -486,18 +503,20 @@ class _Map:
         """A new incremental solver holding the whole map at the current estimate (after an
         incremental solve failed and LM solved the request), or none after
         :data:`MAX_RESETS` failures (LM from then on)."""
+        self.inc = None if self.resets > MAX_RESETS else self._incremental_here()
+
+    def _incremental_here(self) -> Any:
+        """An :class:`~hybridpgo.online.incremental.IncrementalExact` holding the whole map
+        at the current estimate."""
         from .incremental import IncrementalConfig, IncrementalExact
 
-        if self.resets > MAX_RESETS:
-            self.inc = None
-            return
         n, m, g = self.n, self.m, self.g
         inc = IncrementalExact(IncrementalConfig(**INCREMENTAL))  # type: ignore[arg-type]
         inc.add_poses(self.grot[1: n + 1], self.gtr[1: n + 1])  # global poses
         inc.add_edges(self.edge_ab[:m, 0], self.edge_ab[:m, 1], self.edge_rot[:m],
                       self.edge_trans[:m], self.edge_info[:m])
         inc.add_gps(self.gps_node[:g], self.gps_pos[:g], self.gps_info[:g])
-        self.inc = inc
+        return inc
 
     def _solve_lm(self, max_iterations: int) -> tuple[float, int, str]:
         """Exact LM over the map (robust kernel ``self.robust``) from the current estimate."""
@@ -506,8 +525,8 @@ class _Map:
         from ..solvers.gauss_newton import solve_exact
 
         n, m, g = self.n, self.m, self.g
-        # the gauge: the first pose until three GPS readings can hold the map
-        fixed = np.zeros(1 if g < 3 else 0, np.int32)
+        # the gauge: the first pose until GPS_GAUGE readings can hold the map
+        fixed = np.zeros(0 if self.earth else 1, np.int32)
         # is_2d lets solve_exact use the (x, y, yaw) system when the map is exactly planar
         # (it checks every pose, measurement and information exactly, else solves in 3D):
         # half the unknowns (M3500_isam, a warm solve: 0.10-0.14 s against 0.23-0.25 s)
