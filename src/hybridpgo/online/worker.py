@@ -361,7 +361,9 @@ class _Map:
     the previous optimum.  When an incremental solve fails (an error of the factorization, or
     an energy above the one it started from) LM answers that request from the last good
     estimate and a new incremental solver starts there; after :data:`MAX_RESETS` failures the
-    map stays with LM (``fallback`` says why, ``resets`` how often).
+    map stays with LM (``fallback`` says why, ``resets`` how often).  The request that brings
+    the :data:`GPS_GAUGE`-th GPS reading is solved by LM too (the gauge moves from the first
+    pose to the earth), and the incremental solver starts again at its optimum.
     """
 
     def __init__(self, robust: tuple[str, float | None] = ("none", None)) -> None:
