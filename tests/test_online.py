@@ -883,13 +883,16 @@ def test_background_worker_incremental_reaches_the_optimum(data_dir: Path) -> No
 
 
 @pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
-def test_a_capped_incremental_answer_says_which_constraints_it_holds(data_dir: Path,
-                                                                    monkeypatch: pytest.MonkeyPatch
-                                                                    ) -> None:
+def test_a_capped_incremental_answer_says_which_constraints_it_holds(
+        data_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """An incremental solve stopped by its cap before completing an update cycle answers with
-    the last completed cycle's estimate, and its ``m`` says which edges that estimate holds
-    (not every edge shipped): adopted with rebase, the frames queue the edges it lacks."""
+    the last completed cycle's estimate, and says which edges that estimate holds (``held``)
+    beside those shipped: the missing ones count in the answer's age (MAX_TAIL)."""
+    import dataclasses
+    from types import SimpleNamespace
+
     from hybridpgo.io import read_graph
+    from hybridpgo.online import _link
     from hybridpgo.online.worker import Refined
 
     g = read_graph(data_dir / "w100_toro.graph")
@@ -899,7 +902,7 @@ def test_a_capped_incremental_answer_says_which_constraints_it_holds(data_dir: P
     mp = _worker_map(s, ("none", None))
     _, meta = mp.solve(50)
     m_half = meta["m"]
-    assert m_half == mp.m == s.store.m_laid
+    assert m_half == meta["m_held"] == mp.m == s.store.m_laid
     _stream(s, g, range(half, g.num_nodes))
     store = s.store
     n0, m0 = mp.n, mp.m
@@ -913,13 +916,20 @@ def test_a_capped_incremental_answer_says_which_constraints_it_holds(data_dir: P
     monkeypatch.setattr(mp.inc, "solve", lambda *a, **k: False)  # no cycle completed
     arrays, meta = mp.solve(50)
     assert meta["status"] == "max_time" and meta["incremental"]
-    assert meta["n"] == mp.n and (meta["m"], meta["g"]) == (m_half, 0)
+    assert (meta["n"], meta["m"], meta["g"]) == (mp.n, mp.m, 0)
+    assert (meta["m_held"], meta["g_held"]) == (m_half, 0)
     res = Refined(meta["n"], meta["m"], meta["g"], 0, arrays["rot"], arrays["trans"],
-                  meta["energy"], meta["iterations"], meta["status"], meta["seconds"])
-    store.set_queue(np.zeros(0, np.int64))
-    assert adopt_result(store, res, rebase=True)
-    queued = store.pending()
-    assert np.array_equal(np.sort(queued), np.arange(m_half, store.m_laid))
+                  meta["energy"], meta["iterations"], meta["status"], meta["seconds"],
+                  (meta["m_held"], meta["g_held"]))
+    link = _link.WorkerLink.__new__(_link.WorkerLink)  # the bookkeeping only
+    link.stale = 0
+    missing = store.m_laid - m_half
+    monkeypatch.setattr(_link, "MAX_TAIL", missing)
+    assert link.fresh(store, res)
+    monkeypatch.setattr(_link, "MAX_TAIL", missing - 1)  # one more missing than allowed
+    assert not link.fresh(store, res) and link.stale == 1
+    assert link.fresh(SimpleNamespace(m_laid=store.m_laid, g_laid=0),
+                      dataclasses.replace(res, held=None))  # all shipped held: fresh
 
 
 def _ship(mp: Any, s: OnlineSolver) -> None:
@@ -993,7 +1003,7 @@ def test_an_answer_older_than_the_tail_limit_is_not_adopted() -> None:
     link = WorkerLink.__new__(WorkerLink)  # the bookkeeping only, no worker process
     link.stale = 0
     store = SimpleNamespace(m_laid=MAX_TAIL + 50, g_laid=10)
-    assert link.fresh(store, SimpleNamespace(m=50, g=10))  # a tail of exactly MAX_TAIL
-    assert not link.fresh(store, SimpleNamespace(m=50, g=9))  # one more (a GPS reading)
-    assert not link.fresh(store, SimpleNamespace(m=0, g=0))
+    assert link.fresh(store, SimpleNamespace(holds_all=(50, 10)))  # exactly MAX_TAIL
+    assert not link.fresh(store, SimpleNamespace(holds_all=(50, 9)))  # one GPS more
+    assert not link.fresh(store, SimpleNamespace(holds_all=(0, 0)))
     assert link.stale == 2

@@ -109,9 +109,11 @@ class WorkerLink:
             self.request(store, frame)
 
     def fresh(self, store: MapStore, res: Refined) -> bool:
-        """True when at most :data:`MAX_TAIL` constraints were laid after the answer's
-        snapshot (else it is counted in ``stale`` and not adopted)."""
-        tail = store.m_laid - res.m + store.g_laid - res.g
+        """True when at most :data:`MAX_TAIL` constraints laid are missing from the answer's
+        estimate (laid after its snapshot, or shipped but not yet integrated by a solve
+        stopped by its cap); else it is counted in ``stale`` and not adopted."""
+        hm, hg = res.holds_all
+        tail = store.m_laid - hm + store.g_laid - hg
         if tail <= MAX_TAIL:
             return True
         self.stale += 1
@@ -154,8 +156,8 @@ class WorkerLink:
             return False
         if not adopt_result(store, res, rebase):
             return False
-        self.refined = (res.m, res.g)
-        self.tail, self.tail_ok = (n, res.m, res.g), True
+        self.refined = res.holds_all
+        self.tail, self.tail_ok = (n, *res.holds_all), True
         self.adopted += 1
         self.adopt_s_max = max(self.adopt_s_max, time.perf_counter() - t0)
         shipped = self._ship_frames.get(n)

@@ -30,11 +30,11 @@ and the arrays' raw bytes in order.  Main -> worker: ``data`` (new tree nodes wi
 and local transform, new edges, new GPS readings), ``solve`` (answer request ``req`` with the
 optimum of everything shipped so far), EOF to stop.  Worker -> main: ``ready`` once its kernels
 are loaded (:meth:`BackgroundRefiner.wait_ready`), then ``result`` (``n`` tree nodes below the
-earth, their local transforms, ``m`` and ``g`` the edges and GPS readings the estimate holds,
-the iterations, energy and status) or ``error``.  An incremental solve stopped by
-:data:`SOLVE_CAP_S` answers with the last completed update cycle's estimate: its ``m`` and ``g``
-are then those that cycle integrated, fewer than were shipped, and the frames relax the rest
-again on top of it (``OnlineConfig.background_rebase``).
+earth, their local transforms, ``m`` and ``g`` the edges and GPS readings shipped, ``m_held``
+and ``g_held`` those the estimate holds, the iterations, energy and status) or ``error``.  An
+incremental solve stopped by :data:`SOLVE_CAP_S` answers with the last completed update
+cycle's estimate, which holds fewer constraints than were shipped: the frames count the
+missing ones in the answer's age (:data:`~._link.MAX_TAIL`).
 
 The worker solves only on request.  The asynchronous mode keeps one request outstanding and
 makes the next as soon as the answer is adopted, so which prefix each answer covers depends on
@@ -147,10 +147,9 @@ class Refined:
     n: int
     """Tree nodes below the earth covered (= poses of the prefix)."""
     m: int
-    """Edges the estimate holds (the first ``m`` laid; fewer than shipped when the solve was
-    stopped by its cap)."""
+    """Edges shipped to the worker when it answered (the first ``m`` laid)."""
     g: int
-    """GPS readings the estimate holds, likewise."""
+    """GPS readings shipped, likewise."""
     req: int
     """The highest solve request answered (-1: none)."""
     rotations: np.ndarray
@@ -162,6 +161,14 @@ class Refined:
     status: str
     seconds: float
     """Wall time of the worker's solve."""
+    held: tuple[int, int] | None = None
+    """Edges and GPS readings the estimate holds: fewer than shipped when the incremental
+    solve was stopped by its cap (None: all of them)."""
+
+    @property
+    def holds_all(self) -> tuple[int, int]:
+        """(edges, GPS readings) the estimate holds."""
+        return (self.m, self.g) if self.held is None else self.held
 
 
 class BackgroundRefiner:
@@ -235,7 +242,8 @@ class BackgroundRefiner:
                             int(meta["n"]), int(meta["m"]), int(meta["g"]), int(meta["req"]),
                             arrays["rot"], arrays["trans"], float(meta["energy"]),
                             int(meta["iterations"]), str(meta["status"]),
-                            float(meta["seconds"]))
+                            float(meta["seconds"]),
+                            (int(meta["m_held"]), int(meta["g_held"])))
                         self.results += 1
                         self._answered = max(self._answered, int(meta["req"]))
                     else:
@@ -443,6 +451,7 @@ class _Map:
         t0 = time.perf_counter()
         energy, iterations, status = 0.0, 0, "converged"
         failed = False
+        held = (m, g)
         # GPS_GAUGE readings: the gauge becomes the earth.  The estimate was solved with the
         # first pose held where the stream started; the readings' frame may lie far from it,
         # and an undamped Gauss-Newton step that far need not lower E: this request is solved
@@ -466,7 +475,7 @@ class _Map:
                                           f"to {energy:.6g}")
                 self.grot = self._append(self.grot, 1, rot)
                 self.gtr = self._append(self.gtr, 1, trans)
-                m, g = m_est, g_est
+                held = (m_est, g_est)
             except (HybridPGOError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
                 # e.g. an undamped step from a poor estimate: LM (damped) solves this request
                 # from the last good estimate, and the incremental solver starts again there
@@ -484,7 +493,10 @@ class _Map:
         ltr = np.empty((n + 1, 3))
         locals_from_globals(self.parent[: n + 1], self.grot[: n + 1], self.gtr[: n + 1],
                             lrot, ltr)
-        meta = {"type": "result", "n": n, "m": m, "g": g, "energy": energy,
+        if failed or switch:
+            held = (m, g)
+        meta = {"type": "result", "n": n, "m": m, "g": g, "m_held": held[0],
+                "g_held": held[1], "energy": energy,
                 "iterations": iterations, "status": status, "seconds": seconds,
                 "incremental": self.inc is not None and not (failed or switch),
                 "fallback": self.fallback,
