@@ -734,13 +734,20 @@ def _worker_map(s: OnlineSolver, robust: tuple[str, float | None]) -> Any:
     from hybridpgo.online import worker
 
     mp = worker._Map(robust)
-    st = s.store
-    t, m = st.placed + 1, st.m
-    mp.add({"parent": st.parent[1:t], "rot": st.rot[1:t], "trans": st.trans[1:t],
-            "edge_ab": st.edge_ab[:m], "edge_rot": st.edge_rot[:m],
-            "edge_trans": st.edge_trans[:m], "edge_info": st.edge_info[:m],
-            "gps_node": st.gps_node[:0], "gps_pos": st.gps_pos[:0], "gps_info": st.gps_info[:0]})
+    _ship(mp, s)
     return mp
+
+
+def _ship(mp: Any, s: OnlineSolver) -> None:
+    """Ship to the worker's map ``mp`` what ``s`` placed and laid since the last call."""
+    st = s.store
+    n0, m0, g0 = mp.n, mp.m, mp.g
+    t, m, g = st.placed + 1, st.m_laid, st.g_laid
+    mp.add({"parent": st.parent[n0 + 1:t], "rot": st.rot[n0 + 1:t], "trans": st.trans[n0 + 1:t],
+            "edge_ab": st.edge_ab[m0:m], "edge_rot": st.edge_rot[m0:m],
+            "edge_trans": st.edge_trans[m0:m], "edge_info": st.edge_info[m0:m],
+            "gps_node": st.gps_node[g0:g], "gps_pos": st.gps_pos[g0:g],
+            "gps_info": st.gps_info[g0:g]})
 
 
 @pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
@@ -865,13 +872,7 @@ def test_background_worker_incremental_reaches_the_optimum(data_dir: Path) -> No
     assert abs(meta["energy"] - opts[half]) <= ONLINE_REFINED * opts[half]
     _stream(s, g, range(half, g.num_nodes))
     store = s.store
-    n0, m0 = mp.n, mp.m
-    t, m = store.placed + 1, store.m
-    mp.add({"parent": store.parent[n0 + 1:t], "rot": store.rot[n0 + 1:t],
-            "trans": store.trans[n0 + 1:t], "edge_ab": store.edge_ab[m0:m],
-            "edge_rot": store.edge_rot[m0:m], "edge_trans": store.edge_trans[m0:m],
-            "edge_info": store.edge_info[m0:m], "gps_node": store.gps_node[:0],
-            "gps_pos": store.gps_pos[:0], "gps_info": store.gps_info[:0]})
+    _ship(mp, s)
     arrays, meta = mp.solve(50)
     opt = opts[st.num_frames]
     assert meta["status"] == "converged" and meta["iterations"] >= 1
@@ -905,13 +906,7 @@ def test_a_capped_incremental_answer_says_which_constraints_it_holds(
     assert m_half == meta["m_held"] == mp.m == s.store.m_laid
     _stream(s, g, range(half, g.num_nodes))
     store = s.store
-    n0, m0 = mp.n, mp.m
-    t, m = store.placed + 1, store.m
-    mp.add({"parent": store.parent[n0 + 1:t], "rot": store.rot[n0 + 1:t],
-            "trans": store.trans[n0 + 1:t], "edge_ab": store.edge_ab[m0:m],
-            "edge_rot": store.edge_rot[m0:m], "edge_trans": store.edge_trans[m0:m],
-            "edge_info": store.edge_info[m0:m], "gps_node": store.gps_node[:0],
-            "gps_pos": store.gps_pos[:0], "gps_info": store.gps_info[:0]})
+    _ship(mp, s)
     assert mp.m > m_half
     monkeypatch.setattr(mp.inc, "solve", lambda *a, **k: False)  # no cycle completed
     arrays, meta = mp.solve(50)
@@ -930,18 +925,6 @@ def test_a_capped_incremental_answer_says_which_constraints_it_holds(
     assert not link.fresh(store, res) and link.stale == 1
     assert link.fresh(SimpleNamespace(m_laid=store.m_laid, g_laid=0),
                       dataclasses.replace(res, held=None))  # all shipped held: fresh
-
-
-def _ship(mp: Any, s: OnlineSolver) -> None:
-    """Ship to the worker's map ``mp`` what ``s`` placed and laid since the last call."""
-    st = s.store
-    n0, m0, g0 = mp.n, mp.m, mp.g
-    t, m, g = st.placed + 1, st.m_laid, st.g_laid
-    mp.add({"parent": st.parent[n0 + 1:t], "rot": st.rot[n0 + 1:t], "trans": st.trans[n0 + 1:t],
-            "edge_ab": st.edge_ab[m0:m], "edge_rot": st.edge_rot[m0:m],
-            "edge_trans": st.edge_trans[m0:m], "edge_info": st.edge_info[m0:m],
-            "gps_node": st.gps_node[g0:g], "gps_pos": st.gps_pos[g0:g],
-            "gps_info": st.gps_info[g0:g]})
 
 
 def test_the_worker_solves_the_gauge_switch_to_gps_with_lm() -> None:

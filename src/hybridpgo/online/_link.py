@@ -72,7 +72,7 @@ class WorkerLink:
         self.adopt_s_max = 0.0
         self.lag_max = 0
         self.stale = 0
-        """Answers not adopted: their snapshot was older than :data:`MAX_TAIL` constraints."""
+        """Answers not adopted: their estimate missed more than :data:`MAX_TAIL` constraints."""
         self.other_gauge = 0
         """Answers not adopted: solved with the first pose held while the frames' map has GPS
         readings (fewer than :data:`~.worker.GPS_GAUGE`)."""

@@ -493,8 +493,6 @@ class _Map:
         ltr = np.empty((n + 1, 3))
         locals_from_globals(self.parent[: n + 1], self.grot[: n + 1], self.gtr[: n + 1],
                             lrot, ltr)
-        if failed or switch:
-            held = (m, g)
         meta = {"type": "result", "n": n, "m": m, "g": g, "m_held": held[0],
                 "g_held": held[1], "energy": energy,
                 "iterations": iterations, "status": status, "seconds": seconds,
