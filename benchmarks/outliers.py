@@ -27,6 +27,13 @@ optimum its whitened error is within the test's threshold
 the rest of the graph agrees with it; recall is also given over the distinguishable ones.
 
 Run: ``PYTHONPATH=src python -m benchmarks --only outliers --run <name>``.
+
+**Online** (``--only outliers-online``, :func:`run_online`): rows of the same graphs streamed
+frame by frame through ``OnlineSolver()`` (the default: ``robust="auto"``, the background
+worker on), 5 ms per frame back to back, the ``add_*`` calls included; the largest frame CPU
+time; the RMSE after the last frame (what the robot has while it drives on) and after
+``join_refine()`` (the end of the stream); precision and recall of the rejected set
+(``OnlineSolver.outliers()``); and ``robust="none"`` on the same stream as the contrast.
 """
 
 from __future__ import annotations
@@ -332,4 +339,95 @@ def run_clean(ctx: Context, *, log: Callable[[str], None] | None = None) -> Resu
              "(robust='none'), same run.  Targets: energies equal to 1e-9, nothing rejected, "
              "the test's own time at most 10% of the least-squares time (the wall-time ratio "
              "beside it moves with the machine's load)")
+    return metrics, [markdown_table(title, header, table)]
+
+
+#: Rows streamed by :func:`run_online`: (graph, row label).
+ONLINE_ROWS = (("grid 2D (M3500-like)", "random 100"),
+               ("grid 2D (M3500-like)", "local-grouped 100"), ("grid 3D", "random 100"),
+               ("city + GPS", "random 100"), ("city + GPS", "GPS 5%"))
+#: The online rows' frame budget (seconds).
+ONLINE_BUDGET_S = 5e-3
+
+
+def _stream_online(row: Row, robust: str) -> dict[str, Any]:
+    """``row``'s graph streamed through ``OnlineSolver(OnlineConfig(robust=robust))``: the
+    frames' largest CPU time, the poses after the last frame and after ``join_refine()``
+    (id order), the rejected sets (the graph's edge and GPS order)."""
+    from hybridpgo.online import OnlineConfig, OnlineSolver
+    from hybridpgo.online.replay import feed_frame, make_stream
+
+    st = make_stream(row.graph)
+    cpu = np.zeros(st.num_frames)
+    with OnlineSolver(OnlineConfig(robust=robust)) as s:  # type: ignore[arg-type]
+        s.wait_background_ready(60.0)
+        t0 = time.perf_counter()
+        for k in range(st.num_frames):
+            c0 = time.thread_time()
+            feed_frame(s, st, k)
+            s.update(ONLINE_BUDGET_S)
+            cpu[k] = time.thread_time() - c0
+        seconds = time.perf_counter() - t0
+        last = s.to_graph()
+        t1 = time.perf_counter()
+        joined = s.join_refine(600.0)
+        join_s = time.perf_counter() - t1
+        end = s.to_graph()
+        edges, gps = s.outliers()
+    rej = np.zeros(row.graph.num_edges, bool)
+    rej[st.edges[edges]] = True  # arrival order -> the graph's edge order
+    rej_gps = np.zeros(row.graph.num_gps, bool)
+    rej_gps[st.gps[gps]] = True
+    return {"cpu_max_ms": float(cpu.max() * 1e3), "over_6ms": int((cpu > 6e-3).sum()),
+            "seconds": seconds, "join_s": join_s, "joined": joined, "last": last,
+            "end": end, "rej": rej, "rej_gps": rej_gps}
+
+
+def run_online(ctx: Context, *, log: Callable[[str], None] | None = None) -> Result:
+    """:data:`ONLINE_ROWS` streamed with ``robust="auto"`` (the default) and ``"none"``."""
+    say = log or (lambda text: print(text, file=sys.stderr, flush=True))
+    metrics: list[Metric] = []
+    table: list[list[Any]] = []
+    for base in BASES:
+        labels = [lab for name, lab in ONLINE_ROWS if name == base.name]
+        if not labels or (ctx.quick and base is not BASES[0]):
+            continue
+        made = base.make()
+        g0 = made.graph
+        ref = solve_exact(g0, made.truth_rotations, made.truth_translations,
+                          GaussNewtonConfig(max_iterations=300, energy_tolerance=1e-12))
+        gps = g0.num_gps > 0
+        rmse_ref = _rmse(made, ref.rotations, ref.translations, gps)
+        for row in _rows(made, False):
+            if row.label.split(" (")[0] not in labels:
+                continue
+            cells = [base.name, row.label]
+            for robust in ("auto", "none"):
+                r = _stream_online(row, robust)
+                sc = _scores(r["rej"], r["rej_gps"], row, row.false_edges, row.false_gps)
+                last = _rmse(made, r["last"].rotations, r["last"].translations, gps) / rmse_ref
+                end = _rmse(made, r["end"].rotations, r["end"].translations, gps) / rmse_ref
+                cells += [_fmt(last), _fmt(end)]
+                if robust == "auto":
+                    cells += [f"{_fmt(sc['precision'])} / {_fmt(sc['recall'])} "
+                              f"({sc['rejected']})", f"{r['cpu_max_ms']:.1f} ({r['over_6ms']})",
+                              f"{r['seconds']:.1f} + {r['join_s']:.1f}"]
+                    key = ("outliers_online." + base.name.split()[0] + "_"
+                           + base.name.split()[1] + "."
+                           + row.label.split(" (")[0].replace(" ", "_").replace("%", "pct"))
+                    metrics += [quality(key + ".end_rmse_ratio", end),
+                                info(key + ".last_frame_rmse_ratio", last),
+                                info(key + ".precision", sc["precision"]),
+                                info(key + ".recall", sc["recall"]),
+                                info(key + ".cpu_max_ms", r["cpu_max_ms"], "ms")]
+            cells.append(f"{os.getloadavg()[0]:.1f}")
+            table.append(cells)
+            say("[outliers-online] " + " | ".join(cells))
+    header = ["graph", "outliers", "auto: RMSE / optimum after the last frame",
+              "auto: after join_refine()", "auto: precision / recall (rejected)",
+              "auto: max frame CPU ms (frames > 6 ms)", "auto: stream s + join s",
+              "none: after the last frame", "none: after join_refine()", "load"]
+    title = ("False loop closures and GPS fixes, streamed: OnlineSolver() (robust='auto', the "
+             "worker on) against robust='none', 5 ms per frame back to back.  RMSE: aligned "
+             "position error against the ground truth over the outlier-free optimum's")
     return metrics, [markdown_table(title, header, table)]

@@ -578,6 +578,12 @@ def _outliers_clean(ctx: Context) -> Result:
     return run_clean(ctx)
 
 
+def _outliers_online(ctx: Context) -> Result:
+    from .outliers import run_online
+
+    return run_online(ctx)
+
+
 def _outlier_kernels(ctx: Context) -> Result:
     from .outlier_kernels import run
 
@@ -586,6 +592,7 @@ def _outlier_kernels(ctx: Context) -> Result:
 
 WORKLOADS["outliers"] = _outliers
 WORKLOADS["outliers-clean"] = _outliers_clean
+WORKLOADS["outliers-online"] = _outliers_online
 WORKLOADS["outlier-kernels"] = _outlier_kernels
 
 

@@ -297,6 +297,63 @@ def test_local_solve_runs_and_keeps_the_estimate_finite() -> None:
 
 
 # --------------------------------------------------------------------------- budget
+def _twin_with_rejected(measurement: np.ndarray) -> OnlineSolver:
+    """A 40-pose stream with GPS, then one more frame whose loop closure (the given
+    translation) is laid and rejected before any update relaxes it."""
+    g = _graph(seed=5, gps=8)
+    s = OnlineSolver(OnlineConfig(background_refine=False, reserve_poses=64))
+    _stream(s, g, range(30))
+    ids = s.pose_ids()
+    s.add_constraint(int(ids[2]), int(ids[-1]), (np.eye(3), measurement), 4.0 * np.eye(6))
+    s._integrate()
+    st = s.store
+    e = st.m - 1
+    assert st.set_rejected(np.array([e]), np.array([1]), (st.m_laid, st.g_laid)) == (2, 0)
+    return s
+
+
+def test_a_rejected_constraint_moves_nothing_and_leaves_the_preconditioner() -> None:
+    """``MapStore.set_rejected``: the rejected constraints' whitening is zero, their
+    contributions are out of 𝔅(H) (which stays the sum of the others'), they are not queued;
+    the updates that follow do not depend on their measurements at all (two solvers that
+    differ only in a rejected measurement stay bit-identical); re-admitted, a constraint gets
+    its whitening back and is queued."""
+    a = _twin_with_rejected(np.array([1.0, 2.0, 0.0]))
+    b = _twin_with_rejected(np.array([-40.0, 25.0, 3.0]))
+    st = a.store
+    e = st.m - 1
+    cm = st.cap_m
+    assert not st.edge_lt[e].any() and not st.gps_lt[1].any()
+    for c in (e, cm + 1):
+        assert c not in st.pending()
+        assert not st.contrib[st.ptr[c]: st.ptr[c + 1]].any()
+    for s in (a, b):
+        for _ in range(6):
+            s.update(None)
+    np.testing.assert_array_equal(a.estimate()[1], b.estimate()[1])
+    np.testing.assert_array_equal(a.estimate()[0], b.estimate()[0])
+    assert a.store.chi2[e] == 0.0 and a.store.chi2[cm + 1] == 0.0
+    # 𝔅(H) is the sum of the contributions of the constraints' path entries
+    laid = np.concatenate([np.arange(st.ptr[st.m_laid]),
+                           np.arange(st.ptr[cm], st.ptr[cm + st.g_laid])])
+    naive = np.zeros_like(st.bdiag[: st.placed + 1])
+    np.add.at(naive, st.path_node[laid], st.contrib[laid])
+    scale = float(np.abs(naive).max())
+    np.testing.assert_allclose(st.bdiag[: st.placed + 1], naive, rtol=0,
+                               atol=FLOAT64_IDENTITY * scale)
+    assert not st.contrib[st.ptr[e]: st.ptr[e + 1]].any()
+    np.testing.assert_array_equal(a.outliers()[0], [e])
+    np.testing.assert_array_equal(a.outliers()[1], [1])
+    # re-admitted: whitening from the information, queued as new, counted out
+    assert st.set_rejected(np.zeros(0, np.int64), np.zeros(0, np.int64),
+                           (st.m_laid, st.g_laid)) == (0, 2)
+    np.testing.assert_array_equal(st.edge_lt[e], np.linalg.cholesky(st.edge_info[e]).T)
+    np.testing.assert_array_equal(st.gps_lt[1], np.linalg.cholesky(st.gps_info[1]).T)
+    assert set(st.pending().tolist()) == {e, cm + 1} and st.num_rejected == 0
+    a.update(None)
+    assert st.contrib[st.ptr[e]: st.ptr[e + 1]].any()
+
+
 def test_update_stops_early_on_a_backlog() -> None:
     g = _graph(n=120, extra=60)
     st = make_stream(g)
@@ -491,6 +548,36 @@ def test_cli_replay_json(capsys: pytest.CaptureFixture[str], data_dir: Path) -> 
     assert r["info"]["background"]["error"] is None
     assert set(out["optima"]) == {"4", "8", "9"}
     assert len(r["extra_ratio"]) == 3 and r["latency_ms_max"] >= r["latency_ms_mean"] > 0
+
+
+def test_cli_replay_robust_option(capsys: pytest.CaptureFixture[str], data_dir: Path,
+                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """``replay --robust`` takes what ``optimize --robust`` takes and reaches the solver's
+    configuration (default ``auto``)."""
+    import json
+
+    import hybridpgo.online as online
+    from hybridpgo.cli import main
+
+    made: list[OnlineConfig] = []
+
+    def config(**kw: Any) -> OnlineConfig:
+        made.append(OnlineConfig(**kw))
+        return made[-1]
+
+    monkeypatch.setattr(online, "OnlineConfig", config)
+    path = str(data_dir / "tinyGrid3D.g2o")
+    for spec, want in (([], ("auto", None)), (["--robust", "none"], ("none", None)),
+                       (["--robust", "cauchy:2"], ("cauchy", 2.0))):
+        assert main(["replay", path, *spec, "--no-background-refine", "--every", "3",
+                     "--extra-frames", "0", "--json", "--quiet"]) == 0
+        out = json.loads(capsys.readouterr().out)
+        r = out["solvers"]["hybridpgo"]
+        assert r["info"]["rejected"] == 0 and set(out["optima"]) == {"3", "6", "9"}
+        assert (made[-1].robust, made[-1].robust_scale) == want
+    assert main(["replay", path, "--robust", "bogus"]) == 2
+    assert "--robust" in capsys.readouterr().err
+    assert main(["replay", path, "--robust", "auto:2"]) == 2
 
 
 def test_cli_replay_errors(capsys: pytest.CaptureFixture[str], tmp_path: Path,

@@ -239,6 +239,48 @@ def test_online_refine_gives_robust_auto_the_same_meaning(robust: RobustName) ->
         assert e > 10.0 * ref.final_energy
 
 
+def _arrival(graph: PoseGraph, edges: np.ndarray) -> np.ndarray:
+    """The stream's arrival indices of the graph's edges ``edges`` (sorted)."""
+    from hybridpgo.online.replay import make_stream
+
+    order = make_stream(graph).edges
+    where = np.empty_like(order)
+    where[order] = np.arange(order.shape[0])
+    return np.sort(where[edges])
+
+
+@pytest.mark.parametrize("robust", ["auto", "none"])
+def test_the_online_worker_rejects_false_closures_as_they_arrive(robust: RobustName) -> None:
+    """The default online solver (worker included; deterministic with ``background_join``):
+    each answer of the worker is tested, the false loop closures are rejected as they arrive
+    (the frames stop relaxing them), and the end of the stream is the clean graph's optimum;
+    with ``"none"`` the closures fold the map."""
+    from hybridpgo.online import OnlineConfig
+
+    made = _grid(seed=3, n=200)
+    g0 = made.graph
+    g, out = add_pattern_outliers(g0, made.truth_translations, 10, "random", seed=5)
+    s = _online(g, OnlineConfig(robust=robust, background_join=25))
+    assert s.join_refine(timeout=120.0)
+    edges, gps = s.outliers()
+    s.close()
+    o = s.to_graph()
+    ref = _lm(g0, (made.truth_rotations, made.truth_translations))
+    e = energy(g0, o.rotations, o.translations)
+    if robust == "auto":
+        np.testing.assert_array_equal(edges, _arrival(g, np.flatnonzero(out.mask(g.num_edges))))
+        assert gps.size == 0
+        assert e == pytest.approx(ref.final_energy, rel=ONLINE_REFINED)
+        assert s.energy() == pytest.approx(e, rel=FLOAT64_IDENTITY)  # rejected: left out
+        # the gauge: the first pose stays where the stream started it (the re-solve's answer
+        # is moved back rigidly)
+        np.testing.assert_allclose(o.translations[0], 0.0, atol=SAME_OPTIMUM_M)
+        np.testing.assert_allclose(o.rotations[0], np.eye(3), atol=SAME_OPTIMUM_M)
+    else:
+        assert edges.size == 0
+        assert e > 10.0 * ref.final_energy
+
+
 @pytest.mark.parametrize("preset", ["m3500", "grid3d"])
 def test_online_refine_of_a_clean_map_is_least_squares(preset: str) -> None:
     """Without outliers ``refine()`` under ``"auto"`` leaves the poses ``"none"`` does, bit for

@@ -524,6 +524,13 @@ def _replay(sub: Any) -> None:
     p.add_argument("--local-size", type=nonneg_int, default=0, metavar="K",
                    help="local solve: relax the K newest relative constraints together in every "
                         "frame (default 0: off)")
+    p.add_argument("--robust", type=robust, default=("auto", None),
+                   metavar="auto|none|NAME[:SCALE]",
+                   help="outliers, as for optimize: 'auto' (default) keeps least squares, "
+                        "the background worker tests its answers and re-solves without the "
+                        "false loop closures and GPS fixes it finds, and the frames stop "
+                        "relaxing them (counted as 'rejected'); 'none' is least squares "
+                        "only; a kernel name robustifies every update and the worker's solves")
     p.add_argument("--background-refine", action=argparse.BooleanOptionalAction,
                    default=None,
                    help="keep the whole map at its optimum in a worker process (an "

@@ -77,7 +77,8 @@ def replay_file(args: argparse.Namespace) -> dict[str, Any]:
             raise HybridPGOError(f"{args.file}: --compare isam2: GPS readings on a 2D graph")
     try:
         options: dict[str, Any] = dict(tree=args.tree, tau_old=args.tau_old,
-                                       local_size=args.local_size)
+                                       local_size=args.local_size, robust=args.robust[0],
+                                       robust_scale=args.robust[1])
         if args.background_refine is not None:
             options["background_refine"] = args.background_refine
         config = OnlineConfig(**options)
@@ -116,7 +117,9 @@ def _run(args: argparse.Namespace, graph: Any, stream: Any, config: Any, frames:
     optima: dict[int, float] = {}
     if frames:
         say(f"  batch optima of {len(frames)} prefixes (exact LM)...")
-        optima = prefix_optima(stream, frames)
+        # with --robust auto, each prefix as the whole-graph default solves it
+        optima = prefix_optima(stream, frames,
+                               robust="auto" if config.robust == "auto" else "none")
     out: dict[str, Any] = {
         "path": str(args.file), "graph": describe_graph(graph), "frames": stream.num_frames,
         "budget_ms": args.budget_ms, "rate_hz": args.rate, "checkpoint_every": args.every,
@@ -191,6 +194,8 @@ def run(args: argparse.Namespace) -> int:
                 line += (f", after {len(r['extra_ratio'])} extra frames "
                          f"{r['extra_ratio'][-1]:.4f} (within 1% after "
                          f"{hit if hit is not None else 'never'})")
+        if r.get("info", {}).get("rejected"):
+            line += f"; {r['info']['rejected']} constraint(s) rejected as outliers"
         rows.append((name, line))
         for w in r.get("info", {}).get("worst_frames", [])[:3]:
             rows.append(("  worst frame", f"{w['frame']}: {w['cpu_ms']:.2f} ms CPU "

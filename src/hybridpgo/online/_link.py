@@ -29,6 +29,8 @@ def adopt_result(store: MapStore, res: Refined, rebase: bool) -> bool:
         return False
     store.rot[1: n + 1] = res.rotations
     store.trans[1: n + 1] = res.translations
+    if res.rejected is not None:  # robust="auto": the worker's verdict on what it holds
+        store.set_rejected(*res.rejected, res.holds_all)
     if rebase:
         tail = np.concatenate([np.arange(res.m, store.m_laid, dtype=np.int64),
                                store.cap_m + np.arange(res.g, store.g_laid, dtype=np.int64)])
@@ -119,10 +121,11 @@ class WorkerLink:
         self.stale += 1
         return False
 
-    def request(self, store: MapStore, frame: int) -> None:
-        """Ship the new data and ask for the optimum of everything shipped."""
+    def request(self, store: MapStore, frame: int, thorough: bool = False) -> None:
+        """Ship the new data and ask for the optimum of everything shipped (``thorough``:
+        :meth:`~.worker.BackgroundRefiner.request`)."""
         self.ship(store, frame)
-        self.join_req = self.refiner.request()
+        self.join_req = self.refiner.request(thorough)
 
     def ship(self, store: MapStore, frame: int) -> None:
         """Send the poses placed, edges and GPS readings laid since the last call (O(new))."""
@@ -191,8 +194,9 @@ class WorkerLink:
 
     def join(self, store: MapStore, frame: int, timeout: float | None,
              rebase: bool) -> bool:
-        """Ship everything, wait for the optimum of it and adopt it (True when it came)."""
-        self.request(store, frame)
+        """Ship everything, wait for the optimum of it and adopt it (True when it came); with
+        ``robust="auto"`` every constraint is tested, as a whole-graph solve tests them."""
+        self.request(store, frame, thorough=True)
         req = self.join_req
         res = self.refiner.wait(req, timeout)
         return (res is not None and self.adopt(store, res, frame, rebase)

@@ -141,6 +141,11 @@ def restore(st: MapStore, meta: dict[str, Any], d: dict[str, np.ndarray]) -> Non
     st.gps_links = int(meta["gps_links"])
     st.index_pairs()
     st._views = None
+    rejected = d["rejected"].astype(np.int64)
+    _constraint_names("rejected", rejected, m_laid, g_laid)
+    if np.unique(rejected).size != rejected.size:
+        raise ValueError("rejected lists a constraint twice")
+    st.set_rejected(rejected[rejected >= 0], -rejected[rejected < 0] - 1, (m_laid, g_laid))
 
 
 def _lay(st: Any, m_laid: int, g_laid: int) -> None:

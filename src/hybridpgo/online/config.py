@@ -34,11 +34,12 @@ class OnlineConfig(RobustOptions):
     robust: RobustName = "auto"
     """Robust kernel on every constraint, relative and GPS, as :attr:`HybridConfig.robust`
     (the updates and the worker's exact solves use it).  ``"auto"`` (the default, as in every
-    solver): the updates and the worker's solves are least squares, and
-    :meth:`OnlineSolver.refine` runs the outlier test and re-solve of
-    :mod:`hybridpgo.solvers.robust` after its least-squares solve (the map it leaves is the
-    optimum of the kept constraints; the updates that follow still see every constraint);
-    ``"none"``: least squares only."""
+    solver): the updates and the worker's solves are least squares; the worker screens its
+    answers with the outlier test of :mod:`hybridpgo.solvers.robust` and, when it fails, runs
+    the robust re-solve; the constraints it rejects are left alone by the updates from the
+    answer's adoption on (:meth:`OnlineSolver.outliers`; docs/mathematics.md, "Outliers
+    online").  :meth:`OnlineSolver.refine` tests and re-solves likewise (without a worker,
+    the only place the test runs).  ``"none"``: least squares only."""
     robust_scale: float | None = HybridConfig.robust_scale
     """The kernel's delta; None: the kernel's default, as everywhere
     (:attr:`robust_delta`)."""

@@ -4,9 +4,9 @@ Format (:data:`FORMAT`, :data:`VERSION`): a NumPy ``.npz`` archive (a zip of ``.
 no pickled object: :func:`numpy.load` reads it with ``allow_pickle=False``).  ``meta`` holds a
 JSON object (the config, the counters); the other members are plain numeric arrays: the inputs
 (pose ids, odometry, edges, GPS readings), the tree (parents, local transforms), 𝔅(H) and each
-constraint's last contribution, the priorities, the queue, the junction groups and the cost
-model.  Constraints are named in arrival order (an edge ``e``; a GPS reading ``g`` as
-``-(g + 1)``), never by the store's internal index.
+constraint's last contribution, the priorities, the queue, the constraints rejected as outliers,
+the junction groups and the cost model.  Constraints are named in arrival order (an edge
+``e``; a GPS reading ``g`` as ``-(g + 1)``), never by the store's internal index.
 
 Loading never trusts the file: every member must have the expected dtype and shape, every
 index must be in range, every matrix finite (rotations orthonormal, information SPD), the tree
@@ -35,7 +35,9 @@ if TYPE_CHECKING:
 
 #: File format tag and version.
 FORMAT = "hybridpgo-online"
-VERSION = 2
+VERSION = 3
+#: Versions read: 2 lacks ``rejected`` (read as none rejected).
+READABLE = (2, 3)
 #: Counters in ``meta`` (each an integer >= 0 unless said otherwise).
 _COUNTERS = ("n", "placed", "m", "m_laid", "g", "g_laid", "frame", "ngroups", "cursor",
              "gps_cursor", "gps_links")
@@ -53,6 +55,7 @@ _MEMBERS: dict[str, tuple[str, tuple[str | int, ...]]] = {
     "contrib_e": ("f", ("E", 6, 6)), "contrib_g": ("f", ("G", 6, 6)),
     "chi2_e": ("f", ("m",)), "chi2_g": ("f", ("g",)),
     "queue": ("i", ("Q",)),
+    "rejected": ("i", ("R",)),
     "group_ptr": ("i", ("ngroups+1",)), "group_members": ("i", ("K",)),
     "group_stamp": ("i", ("ngroups",)),
     "model": ("f", (3,)),
@@ -91,6 +94,7 @@ def state_arrays(st: MapStore, config: OnlineConfig, counters: dict[str, int]
         "contrib_e": st.contrib[:pe], "contrib_g": st.contrib[g0:g1],
         "chi2_e": st.chi2[: st.m], "chi2_g": st.chi2[cm: cm + st.g],
         "queue": st.arrival_names(st.pending()),
+        "rejected": np.concatenate([st.rejected_names()[0], -st.rejected_names()[1] - 1]),
         "group_ptr": st.group_ptr[: st.ngroups + 1],
         "group_members": st.arrival_names(st.group_members[:k]),
         "group_stamp": st.group_stamp[: st.ngroups],
@@ -169,9 +173,10 @@ def _meta(name: str, raw: np.ndarray | None) -> dict[str, Any]:
     if meta.get("format") != FORMAT:
         raise FormatError(f"not an online solver state (format {meta.get('format')!r}, "
                           f"expected {FORMAT!r})", path=name)
-    if meta.get("version") != VERSION:
+    if meta.get("version") not in READABLE:
         raise FormatError(f"online solver state of version {meta.get('version')!r}; this "
-                          f"hybridpgo reads version {VERSION}", path=name)
+                          f"hybridpgo reads versions {', '.join(map(str, READABLE))}",
+                          path=name)
     for key in _COUNTERS:
         v = meta.get(key)
         if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < 1 << 40:
@@ -187,12 +192,14 @@ def _shapes(meta: dict[str, Any], d: dict[str, np.ndarray]) -> dict[str, int]:
     sizes["P"] = sizes["placed"] + 1
     sizes["ngroups+1"] = sizes["ngroups"] + 1
     for key, sym in (("contrib_e", "E"), ("contrib_g", "G"), ("queue", "Q"),
-                     ("group_members", "K")):
+                     ("group_members", "K"), ("rejected", "R")):
         sizes[sym] = int(d[key].shape[0]) if key in d and d[key].ndim else -1
     return sizes
 
 
 def _check_members(name: str, meta: dict[str, Any], d: dict[str, np.ndarray]) -> None:
+    if meta["version"] == 2 and "rejected" not in d:
+        d["rejected"] = np.zeros(0, np.int64)
     sizes = _shapes(meta, d)
     for key, (kind, shape) in _MEMBERS.items():
         if key not in d:
@@ -228,5 +235,5 @@ def read_state(path: str | os.PathLike[str]
     return config, meta, members
 
 
-__all__ = ["FORMAT", "MAX_MEMBER_BYTES", "ROTATION_TOL", "VERSION", "read_state",
+__all__ = ["FORMAT", "MAX_MEMBER_BYTES", "READABLE", "ROTATION_TOL", "VERSION", "read_state",
            "state_arrays", "write_state"]

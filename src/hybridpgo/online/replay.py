@@ -15,7 +15,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -173,9 +173,13 @@ def checkpoint_frames(num_frames: int, every: int) -> list[int]:
 
 
 def prefix_optima(stream: Stream, frames: Sequence[int], max_iterations: int = 100,
-                  progress: Callable[[int, float], None] | None = None) -> dict[int, float]:
+                  progress: Callable[[int, float], None] | None = None,
+                  robust: Literal["none", "auto"] = "none") -> dict[int, float]:
     """Batch optimum (exact LM) of each prefix; each warm-starts from the previous optimum,
-    the new poses composed from their odometry (independent of any online solver)."""
+    the new poses composed from their odometry (independent of any online solver).
+    ``robust="auto"``: each prefix is solved as the exact solver's default would, the
+    outlier test and re-solve included, and its optimum is the energy of the constraints
+    kept (what :meth:`~hybridpgo.online.OnlineSolver.energy` counts)."""
     from ..solvers.config import GaussNewtonConfig
     from ..solvers.gauss_newton import solve_exact
 
@@ -205,7 +209,8 @@ def prefix_optima(stream: Stream, frames: Sequence[int], max_iterations: int = 1
             r[k] = r[ka] @ zr
             t[k] = r[ka] @ zt + t[ka]
         pg = stream.prefix(f, r, t)
-        res = solve_exact(pg, r, t, GaussNewtonConfig(max_iterations=max_iterations))
+        res = solve_exact(pg, r, t, GaussNewtonConfig(max_iterations=max_iterations,
+                                                      robust=robust))
         rot, trans = res.rotations, res.translations
         out[f] = float(res.final_energy)
         if progress:

@@ -20,6 +20,9 @@ arrays grow without copies; the updates are the whole-graph solver's relaxation 
 * **Staying accurate** (``OnlineConfig.background_refine``, on by default): a worker process
   keeps the whole map at its optimum with an incremental exact solver and each answer is
   adopted in one copy (:mod:`._link`, :mod:`.worker`).
+* **Outliers** (``OnlineConfig.robust="auto"``, the default): the worker screens its answers
+  for false loop closures and GPS fixes; the constraints it rejects get zero whitening and no
+  share of 𝔅(H) in the frames (:meth:`~.store.MapStore.set_rejected`, :meth:`outliers`).
 
 Constraints are numbered in arrival order at the API (relative edges and GPS readings each
 from 0); inside, the store's one index (edges, then GPS readings at the edge capacity).
@@ -78,7 +81,8 @@ class OnlineSolver:
         self._link: WorkerLink | None = None
         self._finalizer: weakref.finalize[Any, Any] | None = None
         if cfg.background_refine:
-            spec = "none" if cfg.kernel == "none" else f"{cfg.kernel}:{cfg.robust_delta!r}"
+            spec = (cfg.robust if cfg.robust in ("auto", "none")
+                    else f"{cfg.kernel}:{cfg.robust_delta!r}")
             self._link = WorkerLink(cfg.background_iterations, spec)
             # stops the worker when the solver is collected or at exit, whatever comes first
             self._finalizer = weakref.finalize(self, self._link.close)
@@ -350,6 +354,8 @@ class OnlineSolver:
         prob, state, _ = st.views()
         k = min(cfg.local_size, st.m_laid)
         cs = np.arange(st.m_laid - k, st.m_laid, dtype=np.int64)
+        if st.num_rejected:
+            cs = cs[~st.rejected[cs]]
         return max(int(adm.local_batch(prob, state, cs, cfg.tau_new, cfg.damping, deadline,
                                        st.model, st.slot, st.xb, st.nodes_buf, counts,
                                        st.depth)), 0)
@@ -376,6 +382,8 @@ class OnlineSolver:
             gw = fg + (self._gps_cursor + np.arange(kg)) % (st.g_laid - fg)
             self._gps_cursor = int((self._gps_cursor + kg) % (st.g_laid - fg))
             cand = np.concatenate([st.cap_m + gw, cand])
+        if st.num_rejected:
+            cand = cand[~st.rejected[cand]]
         prob, state, pol = st.views()
         sc = st.scratch(self._wk)
         done0 = int(counts[Count.DONE])
@@ -434,13 +442,28 @@ class OnlineSolver:
         return self._store.poses()
 
     def energy(self) -> float:
-        """E of the current estimate over every constraint added so far (docs/conventions.md)."""
+        """E of the current estimate over every constraint added so far but those rejected as
+        outliers (:meth:`outliers`; docs/conventions.md)."""
         rot, trans = self.estimate()
         st = self._store
         m, g = st.m, st.g
+        e: Any = slice(0, m)
+        k: Any = slice(0, g)
+        if st.num_rejected:
+            e = np.flatnonzero(~st.rejected[:m])
+            k = np.flatnonzero(~st.rejected[st.cap_m: st.cap_m + g])
         return float(_cost.total_energy(
-            rot, trans, st.edge_ab[:m], st.edge_rot[:m], st.edge_trans[:m], st.edge_info[:m],
-            st.gps_node[:g], st.gps_pos[:g], st.gps_info[:g]))
+            rot, trans, st.edge_ab[e], st.edge_rot[e], st.edge_trans[e], st.edge_info[e],
+            st.gps_node[k], st.gps_pos[k], st.gps_info[k]))
+
+    def outliers(self) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+        """The constraints rejected as outliers (``robust="auto"``): ``(edges, gps)``, each
+        an increasing array of indices in arrival order (edges counted with the odometry of
+        :meth:`add_pose`).  The worker's outlier test decides them on each answer it adopts,
+        :meth:`refine` on its solve; a rejected constraint stays in the map's data
+        (:meth:`to_graph`) but no update relaxes it and :meth:`energy` leaves it out.  A later
+        verdict may re-admit it."""
+        return self._store.rejected_names()
 
     def to_graph(self) -> PoseGraph:
         """Everything added so far as a :class:`PoseGraph` at the current estimate (ids sorted)."""
@@ -466,8 +489,10 @@ class OnlineSolver:
         iteration (O(N) and more, no time budget), so it is not part of :meth:`update`; call it
         when a frame can afford it (e.g. while the robot stands still).  The gauge is the
         solver's: the first pose without GPS, the earth with it.  With ``robust="auto"`` (the
-        default) the least-squares solve is followed by the outlier test and, when it fails,
-        the re-solve without the outliers (:mod:`hybridpgo.solvers.robust`).
+        default) the least-squares solve of every constraint (those rejected before included)
+        is followed by the outlier test and, when it fails, the re-solve without the outliers
+        (:mod:`hybridpgo.solvers.robust`); its verdict becomes the rejected set
+        (:meth:`outliers`), which the updates leave alone from then on.
 
         The map is solved as the graph :func:`~hybridpgo.solvers.gauss_newton.solve_exact`
         would get from a file of the same data: when the data are planar
@@ -496,6 +521,13 @@ class OnlineSolver:
         cfg = self.config
         res = solve_exact(graph, None, None, GaussNewtonConfig(
             max_iterations=max_iterations, robust=cfg.robust, robust_scale=cfg.robust_scale))
+        report = res.stats.get("outliers")
+        if report is not None:  # robust="auto": the verdict over every constraint
+            rows = report["rejected_constraints"]
+            st.set_rejected(
+                np.array([r["index"] for r in rows if r["kind"] == "edge"], np.int64),
+                np.array([r["index"] for r in rows if r["kind"] == "gps"], np.int64),
+                (st.m, st.g))
         rank = np.searchsorted(graph.node_ids, st.ids[: st.n])
         t = st.n + 1
         grot = np.empty((t, 3, 3))
@@ -516,6 +548,7 @@ class OnlineSolver:
             "path_length_mean": float(lengths.mean()) if lengths.size else 0.0,
             "path_length_max": int(st.dmax), "path_entries": st.path_entries(),
             "gps_links": st.gps_links, "junction_groups": st.ngroups,
+            "rejected": st.num_rejected,
             "model_us": (st.model / cycles_per_second() * 1e6).tolist(),
             **({"background": self._link.stats()} if self._link is not None else {}),
         }  # fmt: skip

@@ -19,6 +19,10 @@ Problem`, :class:`~..solvers.hybrid.problem.State`) for a map that grows pose by
 * **Paths** are laid when a constraint is first integrated, by a walk to the lowest common
   ancestor (:mod:`hybridpgo._tree_kernels`), O(d), into a pool whose edge part and GPS part
   grow separately.
+* **Rejected constraints** (outliers found by the outlier test, ``robust="auto"``) stay in the
+  arrays with their data, but their whitening is zero and their contributions to 𝔅(H) are
+  taken out, so no update moves a pose for them; :meth:`MapStore.set_rejected` rejects and
+  re-admits.
 * **Junction groups**: the constraints that joined a pose to the map in its frame, when their
   stiffness differs by more than :data:`JUNCTION_RATIO`, are relaxed together as one batch.
 
@@ -74,7 +78,7 @@ _POOL_ARRAYS: _Spec = (("path_node", (), np.int32), ("path_sign", (), np.int8),
 #: Arrays per constraint (edges, then GPS readings at ``cap_m``).
 _CONSTRAINT_ARRAYS: _Spec = (
     ("ptr", (), np.int64), ("chi2", (), np.float64), ("group_of", (), np.int64),
-    ("cycles", (), np.uint64), ("batch_cycles", (), np.uint64))
+    ("cycles", (), np.uint64), ("batch_cycles", (), np.uint64), ("rejected", (), np.bool_))
 
 
 class MapStore:
@@ -117,6 +121,7 @@ class MapStore:
     group_of: np.ndarray
     cycles: np.ndarray
     batch_cycles: np.ndarray
+    rejected: np.ndarray
 
     def __init__(self, reserve_poses: int | None, robust: tuple[int, float] = (0, 1.0),
                  gps_batch_size: int = 1) -> None:
@@ -127,6 +132,8 @@ class MapStore:
         self.gps_batch_size = gps_batch_size
         self.n = self.placed = self.m = self.m_laid = self.g = self.g_laid = 0
         self.ngroups = 0
+        self.num_rejected = 0
+        """Constraints rejected as outliers (:meth:`set_rejected`)."""
         self.gps_links = 0
         """Poses hung from the earth by a GPS reading."""
         self.dmax = 1
@@ -452,6 +459,55 @@ class MapStore:
         if lengths.size:
             self.dmax = max(self.dmax, int(lengths.max()))
         self.m_laid, self.g_laid = m1, g1
+
+    # ----------------------------------------------------------------- outliers
+    def set_rejected(self, edges: np.ndarray, gps: np.ndarray, judged: tuple[int, int]
+                     ) -> tuple[int, int]:
+        """Make the rejected constraints among the first ``judged`` (edges, GPS readings, all
+        laid) exactly ``edges`` and ``gps`` (arrival order); returns (rejected, re-admitted).
+
+        A newly rejected constraint's whitening becomes zero (its residual and Jacobian
+        vanish, so an update of it, alone or in its junction group, moves nothing), its
+        contributions to 𝔅(H) are taken out and it leaves the queue.  A re-admitted one gets
+        its whitening back from its information and is queued to be relaxed as a new one
+        (its contributions return with that update).  O(paths of the constraints changed)."""
+        jm, jg = judged
+        cm = self.cap_m
+        want = np.zeros(jm + jg, np.bool_)
+        want[np.asarray(edges, np.int64)] = True
+        want[jm + np.asarray(gps, np.int64)] = True
+        idx = np.concatenate([np.arange(jm, dtype=np.int64), cm + np.arange(jg, dtype=np.int64)])
+        have = self.rejected[idx]
+        new = idx[want & ~have]
+        back = idx[have & ~want]
+        if new.size:
+            lo, hi = self.ptr[new], self.ptr[new + 1]
+            lens = hi - lo
+            ent = np.repeat(lo - np.cumsum(lens) + lens, lens) + np.arange(int(lens.sum()))
+            np.subtract.at(self.bdiag, self.path_node[ent], self.contrib[ent])
+            self.contrib[ent] = 0.0
+            e, g = new[new < cm], new[new >= cm] - cm
+            self.edge_lt[e] = 0.0
+            self.gps_lt[g] = 0.0
+            self.chi2[new] = 0.0
+            self.rejected[new] = True
+            live = self.pending()
+            self.set_queue(live[~self.rejected[live]])
+        if back.size:
+            e, g = back[back < cm], back[back >= cm] - cm
+            self.edge_lt[e] = np.linalg.cholesky(self.edge_info[e]).transpose(0, 2, 1)
+            self.gps_lt[g] = np.linalg.cholesky(self.gps_info[g]).transpose(0, 2, 1)
+            self.rejected[back] = False
+            for c in back.tolist():
+                self.push(c)
+        self.num_rejected += int(new.size) - int(back.size)
+        return int(new.size), int(back.size)
+
+    def rejected_names(self) -> tuple[np.ndarray, np.ndarray]:
+        """The rejected edges and GPS readings (arrival order, increasing)."""
+        cm = self.cap_m
+        return (np.flatnonzero(self.rejected[: self.m]),
+                np.flatnonzero(self.rejected[cm: cm + self.g]))
 
     # ----------------------------------------------------------------- estimates
     def pose(self, p: int) -> tuple[np.ndarray, np.ndarray]:

@@ -9,7 +9,11 @@ answers with its optimum of everything shipped (the poses added since the last a
 composed onto their parents with the tree-local transforms the online solver gave them).  With a
 robust kernel, which the incremental solver does not have, each request runs the exact
 Levenberg-Marquardt solve (:func:`~hybridpgo.solvers.gauss_newton.solve_exact`) of the whole
-map instead, warm-started from its previous optimum.  Each result comes
+map instead, warm-started from its previous optimum.  With ``robust="auto"`` the solves are
+least squares and each answer is screened for outliers (:meth:`_Map._screen`): when the outlier
+test of :mod:`hybridpgo.solvers.robust` fails, the robust re-solve of the whole map decides
+which constraints are rejected, the incremental solver starts again without them, and every
+answer names them (the frames stop relaxing them).  Each result comes
 back as *tree-local* transforms (each pose relative to its parent in the online solver's tree,
 which never changes once a pose is placed), so the next :meth:`~.solver.OnlineSolver.update`
 adopts it by one copy of ``(n, 3, 3)`` and ``(n, 3)`` arrays, and the poses added after the
@@ -28,10 +32,12 @@ Protocol (both directions, binary on the worker's stdin and stdout): an 8-byte l
 length of a JSON header, the header (``{"type": ..., "arrays": [[name, dtype, shape], ...], ...}``)
 and the arrays' raw bytes in order.  Main -> worker: ``data`` (new tree nodes with their parent
 and local transform, new edges, new GPS readings), ``solve`` (answer request ``req`` with the
-optimum of everything shipped so far), EOF to stop.  Worker -> main: ``ready`` once its kernels
+optimum of everything shipped so far; ``thorough``: screen every constraint, those rejected
+before included), EOF to stop.  Worker -> main: ``ready`` once its kernels
 are loaded (:meth:`BackgroundRefiner.wait_ready`), then ``result`` (``n`` tree nodes below the
 earth, their local transforms, ``m`` and ``g`` the edges and GPS readings shipped, ``m_held``
-and ``g_held`` those the estimate holds, the iterations, energy and status) or ``error``.  An
+and ``g_held`` those the estimate holds, ``rejected_m`` and ``rejected_g`` the rejected ones
+among those held, the iterations, energy and status) or ``error``.  An
 incremental solve stopped by :data:`SOLVE_CAP_S` answers with the last completed update
 cycle's estimate, which holds fewer constraints than were shipped: the frames count the
 missing ones in the answer's age (:data:`~._link.MAX_TAIL`).
@@ -164,6 +170,9 @@ class Refined:
     held: tuple[int, int] | None = None
     """Edges and GPS readings the estimate holds: fewer than shipped when the incremental
     solve was stopped by its cap (None: all of them)."""
+    rejected: tuple[np.ndarray, np.ndarray] | None = None
+    """``robust="auto"``: the edges and GPS readings among those held that the worker's
+    outlier test rejected (arrival order; None: no verdict)."""
 
     @property
     def holds_all(self) -> tuple[int, int]:
@@ -180,7 +189,8 @@ class BackgroundRefiner:
     """
 
     def __init__(self, max_iterations: int, robust: str = "none") -> None:
-        """Start the worker (``robust``: ``NAME:DELTA`` of the robust kernel, or ``none``)."""
+        """Start the worker (``robust``: ``NAME:DELTA`` of the robust kernel, ``none`` or
+        ``auto``)."""
         # the folder that holds the package (this file is <root>/hybridpgo/online/worker.py)
         root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
         env = dict(os.environ)
@@ -243,7 +253,8 @@ class BackgroundRefiner:
                             arrays["rot"], arrays["trans"], float(meta["energy"]),
                             int(meta["iterations"]), str(meta["status"]),
                             float(meta["seconds"]),
-                            (int(meta["m_held"]), int(meta["g_held"])))
+                            (int(meta["m_held"]), int(meta["g_held"])),
+                            (arrays["rejected_m"], arrays["rejected_g"]))
                         self.results += 1
                         self._answered = max(self._answered, int(meta["req"]))
                     else:
@@ -285,10 +296,12 @@ class BackgroundRefiner:
         if self._alive:
             self._outbox.put(encode(meta, arrays))
 
-    def request(self) -> int:
-        """Ask for the optimum of everything shipped so far; the request's id."""
+    def request(self, thorough: bool = False) -> int:
+        """Ask for the optimum of everything shipped so far; the request's id.  ``thorough``
+        (``robust="auto"``): test every constraint, those rejected before included
+        (:meth:`_Map.solve`)."""
         self._req += 1
-        self.ship({"type": "solve", "req": self._req}, {})
+        self.ship({"type": "solve", "req": self._req, "thorough": thorough}, {})
         return self._req
 
     def answered(self, req: int) -> bool:
@@ -378,10 +391,17 @@ class _Map:
         from .incremental import IncrementalConfig, IncrementalExact
 
         self.robust = robust
+        #: ``robust="auto"``: least squares, each converged answer screened for outliers
+        self.auto = robust[0] == "auto"
         self.n = self.m = self.g = 0
         self.parent = np.full(1, -1, np.int32)  # tree nodes, 0 = the earth
         self.inc = (IncrementalExact(IncrementalConfig(**INCREMENTAL))  # type: ignore[arg-type]
-                    if robust[0] == "none" else None)
+                    if robust[0] in ("none", "auto") else None)
+        #: the constraints solved (False: rejected as outliers by the screening)
+        self.keep_m = np.ones(0, np.bool_)
+        self.keep_g = np.ones(0, np.bool_)
+        #: screenings that found the map inconsistent (each ran the robust re-solve)
+        self.rescreens = 0
         #: why the last incremental solve failed ("" when none has)
         self.fallback = ""
         #: failed incremental solves so far (each answered by LM, then the solver started again)
@@ -435,16 +455,36 @@ class _Map:
         self.n += k
         for name in ("edge_ab", "edge_rot", "edge_trans", "edge_info"):
             setattr(self, name, self._append(getattr(self, name), self.m, d[name]))
+        self.keep_m = self._append(self.keep_m, self.m, np.ones(ke, np.bool_))
         self.m += ke
         for name in ("gps_node", "gps_pos", "gps_info"):
             setattr(self, name, self._append(getattr(self, name), self.g, d[name]))
+        self.keep_g = self._append(self.keep_g, self.g, np.ones(kg, np.bool_))
         self.g += kg
 
-    def solve(self, max_iterations: int) -> tuple[Arrays, dict[str, Any]]:
+    @staticmethod
+    def _held(keep: np.ndarray, k: int) -> int:
+        """The constraints of the map (all, rejected ones included) up to the ``k``-th one
+        solved: the incremental solver holds the solved ones only, in order."""
+        kept = np.flatnonzero(keep)
+        return keep.shape[0] if k >= kept.shape[0] else int(kept[k - 1]) + 1 if k else 0
+
+    def _kept(self) -> tuple[Any, Any]:
+        """Indices of the edges and GPS readings solved (slices while none is rejected)."""
+        m, g = self.m, self.g
+        km, kg = self.keep_m[:m], self.keep_g[:g]
+        return (slice(0, m) if km.all() else np.flatnonzero(km),
+                slice(0, g) if kg.all() else np.flatnonzero(kg))
+
+    def solve(self, max_iterations: int, thorough: bool = False
+              ) -> tuple[Arrays, dict[str, Any]]:
         """The optimum of the map from the current estimate; the locals of nodes 1..n.
 
         Incremental: update cycles until nothing is left to do (or :data:`SOLVE_CAP_S`);
-        ``iterations`` counts them.  LM (robust kernel): at most ``max_iterations``."""
+        ``iterations`` counts them.  LM (robust kernel): at most ``max_iterations``.
+        ``robust="auto"``: the answer is screened for outliers (:meth:`_screen`; ``thorough``:
+        every constraint is tested, those rejected before included, as a whole-graph solve
+        tests them)."""
         from ..tree import locals_from_globals
 
         n, m, g = self.n, self.m, self.g
@@ -475,7 +515,7 @@ class _Map:
                                           f"to {energy:.6g}")
                 self.grot = self._append(self.grot, 1, rot)
                 self.gtr = self._append(self.gtr, 1, trans)
-                held = (m_est, g_est)
+                held = (self._held(self.keep_m[:m], m_est), self._held(self.keep_g[:g], g_est))
             except (HybridPGOError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
                 # e.g. an undamped step from a poor estimate: LM (damped) solves this request
                 # from the last good estimate, and the incremental solver starts again there
@@ -484,9 +524,16 @@ class _Map:
                 failed = True
         if (self.inc is None or failed or switch) and n >= 2:
             energy, iterations, status = self._solve_lm(max_iterations)
+        # screened at every answer that holds everything shipped, converged or not (false
+        # closures slow the least-squares solve down: M3500 with 100 of them, streamed, hit
+        # the time cap at most answers); a false alarm costs a re-solve that rejects nothing
+        screened = (self.auto and n >= 2 and held == (m, g)
+                    and self._screen(max_iterations, thorough))
+        if screened:
+            energy = self._energy()
         if failed:
             self._reseed()
-        elif switch and self.inc is not None:
+        elif (switch or screened) and self.inc is not None:
             self.inc = self._incremental_here()
         seconds = time.perf_counter() - t0
         lrot = np.empty((n + 1, 3, 3))
@@ -496,20 +543,83 @@ class _Map:
         meta = {"type": "result", "n": n, "m": m, "g": g, "m_held": held[0],
                 "g_held": held[1], "energy": energy,
                 "iterations": iterations, "status": status, "seconds": seconds,
-                "incremental": self.inc is not None and not (failed or switch),
+                "incremental": self.inc is not None and not (failed or switch or screened),
                 "fallback": self.fallback,
-                "resets": self.resets}
-        return {"rot": lrot[1:], "trans": ltr[1:]}, meta
+                "resets": self.resets, "rescreens": self.rescreens,
+                "thorough": self.auto and thorough and held == (m, g)}
+        return {"rot": lrot[1:], "trans": ltr[1:],
+                "rejected_m": np.flatnonzero(~self.keep_m[: held[0]]),
+                "rejected_g": np.flatnonzero(~self.keep_g[: held[1]])}, meta
+
+    def _graph(self, kept: bool) -> Any:
+        """The map as a :class:`~hybridpgo.graph.PoseGraph` at the current estimate: the
+        constraints solved (``kept``) or all of them; the first pose held until the gauge is
+        the earth."""
+        from ..graph import PoseGraph
+
+        n, m, g = self.n, self.m, self.g
+        e, k = self._kept() if kept else (slice(0, m), slice(0, g))
+        return PoseGraph(
+            node_ids=np.arange(n, dtype=np.int64), rotations=self.grot[1: n + 1],
+            translations=self.gtr[1: n + 1], edge_nodes=self.edge_ab[e],
+            edge_rotations=self.edge_rot[e], edge_translations=self.edge_trans[e],
+            edge_information=self.edge_info[e], gps_nodes=self.gps_node[k],
+            gps_positions=self.gps_pos[k], gps_information=self.gps_info[k],
+            fixed_nodes=np.zeros(0 if self.earth else 1, np.int32), is_2d=g == 0)  # fmt: skip
+
+    def _screen(self, max_iterations: int, thorough: bool = False) -> bool:
+        """``robust="auto"``: the outlier test of the solved constraints at the estimate (their
+        least-squares optimum, or the way to it); when it finds them inconsistent, the robust
+        re-solve of the whole map (every constraint shipped, those rejected before included)
+        replaces the estimate and the rejected set (:mod:`hybridpgo.solvers.robust`).  True
+        when the re-solve changed the estimate.  Before the gauge is the earth, the answer is
+        moved rigidly so that the first pose stays where the estimate held it.
+
+        ``thorough`` tests every constraint, those rejected before too, so the re-solve runs
+        whenever one is rejected: its verdict is then the one a whole-graph solve of the map
+        gives.  A false closure that arrives near the end of the drive is one the test of
+        the solved constraints can miss: the poses since the last loop bend to absorb it at
+        their least-squares optimum (little redundancy), until later loops contradict it."""
+        from ..solvers.config import GaussNewtonConfig
+        from ..solvers.result import SolveResult, Status
+        from ..solvers.robust import check_consistency, exact_resolver, resolve
+
+        n, m, g = self.n, self.m, self.g
+        rot, trans = self.grot[1: n + 1], self.gtr[1: n + 1]
+        if not check_consistency(self._graph(not thorough), rot, trans).inconsistent:
+            return False
+        self.rescreens += 1
+        graph = self._graph(False)
+        start = SolveResult(rot.copy(), trans.copy(), Status.CONVERGED, 0,
+                            np.array([self._energy()]), np.zeros(1), "worker", m + g)
+        res = resolve(graph, start, exact_resolver(GaussNewtonConfig(
+            max_iterations=max_iterations)))
+        rows = res.stats["outliers"]["rejected_constraints"]
+        if not rows and self.keep_m[:m].all() and self.keep_g[:g].all():
+            return False  # a false alarm: nothing rejected, the estimate is the input's
+        self.keep_m[:m] = True
+        self.keep_g[:g] = True
+        for row in rows:
+            (self.keep_m if row["kind"] == "edge" else self.keep_g)[row["index"]] = False
+        r_new, t_new = res.rotations, res.translations
+        if not self.earth:  # the gauge: the first pose where the estimate held it
+            turn = rot[0] @ r_new[0].T
+            r_new = np.einsum("ij,njk->nik", turn, r_new)
+            t_new = (t_new - t_new[0]) @ turn.T + trans[0]
+        self.grot[1: n + 1] = r_new
+        self.gtr[1: n + 1] = t_new
+        return True
 
     def _energy(self) -> float:
         """E at the current estimate of the whole map (the LM path's copy)."""
         from .. import _cost
 
-        n, m, g = self.n, self.m, self.g
+        n = self.n
+        e, k = self._kept()
         return float(_cost.total_energy(
-            self.grot[1: n + 1], self.gtr[1: n + 1], self.edge_ab[:m].astype(np.int32),
-            self.edge_rot[:m], self.edge_trans[:m], self.edge_info[:m],
-            self.gps_node[:g].astype(np.int32), self.gps_pos[:g], self.gps_info[:g]))
+            self.grot[1: n + 1], self.gtr[1: n + 1], self.edge_ab[e].astype(np.int32),
+            self.edge_rot[e], self.edge_trans[e], self.edge_info[e],
+            self.gps_node[k].astype(np.int32), self.gps_pos[k], self.gps_info[k]))
 
     def _reseed(self) -> None:
         """A new incremental solver holding the whole map at the current estimate (after an
@@ -522,37 +632,32 @@ class _Map:
         at the current estimate."""
         from .incremental import IncrementalConfig, IncrementalExact
 
-        n, m, g = self.n, self.m, self.g
+        n = self.n
+        e, k = self._kept()
         inc = IncrementalExact(IncrementalConfig(**INCREMENTAL))  # type: ignore[arg-type]
         inc.add_poses(self.grot[1: n + 1], self.gtr[1: n + 1])  # global poses
-        inc.add_edges(self.edge_ab[:m, 0], self.edge_ab[:m, 1], self.edge_rot[:m],
-                      self.edge_trans[:m], self.edge_info[:m])
-        inc.add_gps(self.gps_node[:g], self.gps_pos[:g], self.gps_info[:g])
+        ab = self.edge_ab[e]
+        inc.add_edges(ab[:, 0], ab[:, 1], self.edge_rot[e], self.edge_trans[e],
+                      self.edge_info[e])
+        inc.add_gps(self.gps_node[k], self.gps_pos[k], self.gps_info[k])
         return inc
 
     def _solve_lm(self, max_iterations: int) -> tuple[float, int, str]:
-        """Exact LM over the map (robust kernel ``self.robust``) from the current estimate."""
-        from ..graph import PoseGraph
+        """Exact LM over the constraints solved (robust kernel ``self.robust``; least
+        squares with ``"auto"``) from the current estimate."""
         from ..solvers.config import GaussNewtonConfig
         from ..solvers.gauss_newton import solve_exact
 
-        n, m, g = self.n, self.m, self.g
-        # the gauge: the first pose until GPS_GAUGE readings can hold the map
-        fixed = np.zeros(0 if self.earth else 1, np.int32)
-        # is_2d lets solve_exact use the (x, y, yaw) system when the map is exactly planar
-        # (it checks every pose, measurement and information exactly, else solves in 3D):
-        # half the unknowns (M3500_isam, a warm solve: 0.10-0.14 s against 0.23-0.25 s)
-        planar = g == 0
-        graph = PoseGraph(
-            node_ids=np.arange(n, dtype=np.int64), rotations=self.grot[1: n + 1],
-            translations=self.gtr[1: n + 1], edge_nodes=self.edge_ab[:m],
-            edge_rotations=self.edge_rot[:m], edge_translations=self.edge_trans[:m],
-            edge_information=self.edge_info[:m], gps_nodes=self.gps_node[:g],
-            gps_positions=self.gps_pos[:g], gps_information=self.gps_info[:g],
-            fixed_nodes=fixed, is_2d=planar)  # fmt: skip
+        n = self.n
+        # the gauge: the first pose until GPS_GAUGE readings can hold the map (_graph); its
+        # is_2d (no GPS) lets solve_exact use the (x, y, yaw) system when the map is exactly
+        # planar (it checks every pose, measurement and information exactly, else solves in
+        # 3D): half the unknowns (M3500_isam, a warm solve: 0.10-0.14 s against 0.23-0.25 s)
+        graph = self._graph(True)
+        kernel = "none" if self.auto else self.robust[0]
         res = solve_exact(graph, None, None, GaussNewtonConfig(
-            max_iterations=max_iterations, robust=self.robust[0],  # type: ignore[arg-type]
-            robust_scale=self.robust[1]))
+            max_iterations=max_iterations, robust=kernel,  # type: ignore[arg-type]
+            robust_scale=None if self.auto else self.robust[1]))
         self.grot[1: n + 1] = res.rotations
         self.gtr[1: n + 1] = res.translations
         return float(res.final_energy), int(res.iterations), res.status.value
@@ -588,7 +693,7 @@ def _worker(max_iterations: int, robust_spec: str = "none") -> int:
     name, _, scale = robust_spec.partition(":")
     robust = (name, float(scale) if scale else None)
     # load the solver's kernels while the first frames arrive
-    if name == "none":
+    if name in ("none", "auto"):
         from .incremental import ensure_compiled as ensure_incremental
 
         ensure_incremental()
@@ -602,6 +707,7 @@ def _worker(max_iterations: int, robust_spec: str = "none") -> int:
     mp = _Map(robust)
     pending = -1  # highest request received
     answered = -1
+    thorough = False  # a pending request asks for every constraint to be tested
     stop = False
     while not stop:
         with cond:
@@ -618,12 +724,14 @@ def _worker(max_iterations: int, robust_spec: str = "none") -> int:
                 mp.add(arrays)
             elif meta["type"] == "solve":
                 pending = max(pending, int(meta["req"]))
+                thorough = thorough or bool(meta.get("thorough", False))
         if stop:
             break
         if pending <= answered:
             continue
         try:
-            arrays, meta = mp.solve(max_iterations)
+            arrays, meta = mp.solve(max_iterations, thorough)
+            thorough = thorough and not meta["thorough"]  # else: at the next answer
         except Exception as exc:  # report it; the frames go on without refinement
             write_all(out, encode({"type": "error", "req": pending,
                                    "message": f"{type(exc).__name__}: {exc}"}, {}))
