@@ -201,15 +201,20 @@ def test_every_solver_gives_robust_auto_the_same_meaning() -> None:
         energy(made.graph, hybrid.rotations, hybrid.translations), rel=1e-8)
 
 
-def _online(graph: PoseGraph, config: OnlineConfig) -> OnlineSolver:
-    """The online solver fed ``graph`` frame by frame, 4 updates per frame."""
+def _online(graph: PoseGraph, config: OnlineConfig,
+            first: tuple[np.ndarray, np.ndarray] | None = None) -> OnlineSolver:
+    """The online solver fed ``graph`` frame by frame, 4 updates per frame (``first``: the
+    first pose's initial pose, default identity)."""
     from hybridpgo.online import OnlineSolver
     from hybridpgo.online.replay import feed_frame, make_stream
 
     s = OnlineSolver(config)
     st = make_stream(graph)
     for k in range(st.num_frames):
-        feed_frame(s, st, k)
+        if k == 0 and first is not None:
+            s.add_pose(int(graph.node_ids[st.order[0]]), None, first)
+        else:
+            feed_frame(s, st, k)
         s.update(None, 4)
     return s
 
@@ -260,7 +265,9 @@ def test_the_online_worker_rejects_false_closures_as_they_arrive(robust: RobustN
     made = _grid(seed=3, n=200)
     g0 = made.graph
     g, out = add_pattern_outliers(g0, made.truth_translations, 10, "random", seed=5)
-    s = _online(g, OnlineConfig(robust=robust, background_join=25))
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    start = np.array([30.0, -20.0, 0.0])
+    s = _online(g, OnlineConfig(robust=robust, background_join=25), (turn, start))
     assert s.join_refine(timeout=120.0)
     edges, gps = s.outliers()
     s.close()
@@ -274,8 +281,8 @@ def test_the_online_worker_rejects_false_closures_as_they_arrive(robust: RobustN
         assert s.energy() == pytest.approx(e, rel=FLOAT64_IDENTITY)  # rejected: left out
         # the gauge: the first pose stays where the stream started it (the re-solve's answer
         # is moved back rigidly)
-        np.testing.assert_allclose(o.translations[0], 0.0, atol=SAME_OPTIMUM_M)
-        np.testing.assert_allclose(o.rotations[0], np.eye(3), atol=SAME_OPTIMUM_M)
+        np.testing.assert_allclose(o.translations[0], start, atol=SAME_OPTIMUM_M)
+        np.testing.assert_allclose(o.rotations[0], turn, atol=SAME_OPTIMUM_M)
     else:
         assert edges.size == 0
         assert e > 10.0 * ref.final_energy

@@ -572,8 +572,9 @@ class _Map:
         least-squares optimum, or the way to it); when it finds them inconsistent, the robust
         re-solve of the whole map (every constraint shipped, those rejected before included)
         replaces the estimate and the rejected set (:mod:`hybridpgo.solvers.robust`).  True
-        when the re-solve changed the estimate.  Before the gauge is the earth, the answer is
-        moved rigidly so that the first pose stays where the estimate held it.
+        when the re-solve changed the estimate.  Before the gauge is the earth, the first
+        pose stays where the estimate held it (the graph fixes it, and the re-solve's start
+        chains the odometry from it).
 
         ``thorough`` tests every constraint, those rejected before too, so the re-solve runs
         whenever one is rejected: its verdict is then the one a whole-graph solve of the map
@@ -601,13 +602,9 @@ class _Map:
         self.keep_g[:g] = True
         for row in rows:
             (self.keep_m if row["kind"] == "edge" else self.keep_g)[row["index"]] = False
-        r_new, t_new = res.rotations, res.translations
-        if not self.earth:  # the gauge: the first pose where the estimate held it
-            turn = rot[0] @ r_new[0].T
-            r_new = np.einsum("ij,njk->nik", turn, r_new)
-            t_new = (t_new - t_new[0]) @ turn.T + trans[0]
-        self.grot[1: n + 1] = r_new
-        self.gtr[1: n + 1] = t_new
+        # the gauge is kept: the first pose is fixed in every solve of the re-solve
+        self.grot[1: n + 1] = res.rotations
+        self.gtr[1: n + 1] = res.translations
         return True
 
     def _energy(self) -> float:
