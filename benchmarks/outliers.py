@@ -399,7 +399,7 @@ def run_online(ctx: Context, *, log: Callable[[str], None] | None = None) -> Res
         gps = g0.num_gps > 0
         rmse_ref = _rmse(made, ref.rotations, ref.translations, gps)
         for row in _rows(made, False):
-            if row.label.split(" (")[0] not in labels:
+            if row.label.split(" (")[0] not in labels or not _selected(base.name, row.label):
                 continue
             cells = [base.name, row.label]
             for robust in ("auto", "none"):

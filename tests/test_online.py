@@ -688,7 +688,41 @@ def test_adoption_with_rebase_queues_the_tail_once() -> None:
     rot, trans = s.store.rot[1:11].copy(), s.store.trans[1:11].copy()
     s.store.push(s.store.m - 1)  # a queued constraint that is also in the tail
     adopt_result(s.store, Refined(10, 12, 0, 0, rot, trans, 0.0, 1, "converged", 0.0), True)
-    assert s.store.pending().tolist() == list(range(12, s.store.m_laid))
+    # relaxed before: requeued; still waiting for its first update: stays a new one
+    assert s.store.requeue.tolist() == list(range(12, s.store.m_laid - 1))
+    assert s.store.pending().tolist() == [s.store.m - 1]
+
+
+def test_a_requeued_constraint_is_started_only_when_it_fits() -> None:
+    """After an adopted answer the constraints laid since are relaxed again (requeued), but
+    none is started whatever its cost, as the first new constraint of a frame is: in a frame
+    whose budget is spent nothing of them starts, and none is lost; one that does not fit a
+    whole frame is dropped (spare time revisits it), at most ``MAX_DROPS`` per frame; with no
+    limit every one is relaxed in arrival order."""
+    from hybridpgo.online.solver import MAX_DROPS
+    from hybridpgo.online.worker import Refined
+
+    g = _graph(seed=14, n=30, extra=10)
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    _stream(s, g, range(g.num_nodes))
+    st = s.store
+    rot, trans = st.rot[1:11].copy(), st.trans[1:11].copy()
+    adopt_result(st, Refined(10, 12, 0, 0, rot, trans, 0.0, 1, "converged", 0.0), True)
+    tail = st.requeue.copy()
+    assert tail.size > MAX_DROPS + 1 and s.backlog == 0
+    s._input_cycles = 1 << 62  # this frame's add_* calls used its budget
+    before = s.estimate()
+    r = s.update(5e-3)
+    assert r.old == 0 and np.array_equal(st.requeue, tail)  # not started, not dropped
+    for a, b in zip(before, s.estimate(), strict=True):
+        np.testing.assert_array_equal(a, b)
+    model = st.model.copy()
+    st.model[:] = 1e12  # every update predicted longer than a whole frame
+    r = s.update(5e-3)
+    assert r.old == 0 and np.array_equal(st.requeue, tail[MAX_DROPS:])
+    st.model[:] = model
+    r = s.update(None)
+    assert st.requeue.size == 0 and r.old >= tail.size - MAX_DROPS
 
 
 def test_background_rejected_calls_change_nothing() -> None:

@@ -22,8 +22,10 @@ from .worker import GPS_GAUGE, BackgroundRefiner, Refined
 def adopt_result(store: MapStore, res: Refined, rebase: bool) -> bool:
     """Replace the local transforms of the result's poses (one copy, O(n)); the poses added
     after its snapshot keep theirs (they move along with their tree parents).  With ``rebase``,
-    the constraints added after the snapshot are queued to be relaxed again first, in arrival
-    order, on top of the optimum.  False (nothing done) for a result of poses not placed."""
+    the constraints laid after the snapshot that were relaxed before are queued to be relaxed
+    again first, in arrival order, on top of the optimum (``store.requeue``: each started only
+    when it fits the frame; those still waiting for their first update keep their place in
+    the queue of new ones).  False (nothing done) for a result of poses not placed."""
     n = res.n
     if n > store.placed:  # cannot happen: only placed poses are shipped
         return False
@@ -34,8 +36,7 @@ def adopt_result(store: MapStore, res: Refined, rebase: bool) -> bool:
     if rebase:
         tail = np.concatenate([np.arange(res.m, store.m_laid, dtype=np.int64),
                                store.cap_m + np.arange(res.g, store.g_laid, dtype=np.int64)])
-        live = store.pending()
-        store.set_queue(np.concatenate([tail, live[~np.isin(live, tail)]]))
+        store.requeue = tail[~np.isin(tail, store.pending())]
     return True
 
 

@@ -146,6 +146,11 @@ def restore(st: MapStore, meta: dict[str, Any], d: dict[str, np.ndarray]) -> Non
     if np.unique(rejected).size != rejected.size:
         raise ValueError("rejected lists a constraint twice")
     st.set_rejected(rejected[rejected >= 0], -rejected[rejected < 0] - 1, (m_laid, g_laid))
+    requeue = d["requeue"].astype(np.int64)
+    _constraint_names("requeue", requeue, m_laid, g_laid)
+    if np.unique(requeue).size != requeue.size:
+        raise ValueError("the requeue lists a constraint twice")
+    st.requeue = st.store_indices(requeue)
 
 
 def _lay(st: Any, m_laid: int, g_laid: int) -> None:

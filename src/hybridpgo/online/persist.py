@@ -4,7 +4,7 @@ Format (:data:`FORMAT`, :data:`VERSION`): a NumPy ``.npz`` archive (a zip of ``.
 no pickled object: :func:`numpy.load` reads it with ``allow_pickle=False``).  ``meta`` holds a
 JSON object (the config, the counters); the other members are plain numeric arrays: the inputs
 (pose ids, odometry, edges, GPS readings), the tree (parents, local transforms), 𝔅(H) and each
-constraint's last contribution, the priorities, the queue, the constraints rejected as outliers,
+constraint's last contribution, the priorities, the queues, the constraints rejected as outliers,
 the junction groups and the cost model.  Constraints are named in arrival order (an edge
 ``e``; a GPS reading ``g`` as ``-(g + 1)``), never by the store's internal index.
 
@@ -36,7 +36,7 @@ if TYPE_CHECKING:
 #: File format tag and version.
 FORMAT = "hybridpgo-online"
 VERSION = 3
-#: Versions read: 2 lacks ``rejected`` (read as none rejected).
+#: Versions read: 2 lacks ``rejected`` and ``requeue`` (read as empty).
 READABLE = (2, 3)
 #: Counters in ``meta`` (each an integer >= 0 unless said otherwise).
 _COUNTERS = ("n", "placed", "m", "m_laid", "g", "g_laid", "frame", "ngroups", "cursor",
@@ -55,7 +55,7 @@ _MEMBERS: dict[str, tuple[str, tuple[str | int, ...]]] = {
     "contrib_e": ("f", ("E", 6, 6)), "contrib_g": ("f", ("G", 6, 6)),
     "chi2_e": ("f", ("m",)), "chi2_g": ("f", ("g",)),
     "queue": ("i", ("Q",)),
-    "rejected": ("i", ("R",)),
+    "rejected": ("i", ("R",)), "requeue": ("i", ("RQ",)),
     "group_ptr": ("i", ("ngroups+1",)), "group_members": ("i", ("K",)),
     "group_stamp": ("i", ("ngroups",)),
     "model": ("f", (3,)),
@@ -94,6 +94,7 @@ def state_arrays(st: MapStore, config: OnlineConfig, counters: dict[str, int]
         "contrib_e": st.contrib[:pe], "contrib_g": st.contrib[g0:g1],
         "chi2_e": st.chi2[: st.m], "chi2_g": st.chi2[cm: cm + st.g],
         "queue": st.arrival_names(st.pending()),
+        "requeue": st.arrival_names(st.requeue),
         "rejected": np.concatenate([st.rejected_names()[0], -st.rejected_names()[1] - 1]),
         "group_ptr": st.group_ptr[: st.ngroups + 1],
         "group_members": st.arrival_names(st.group_members[:k]),
@@ -192,14 +193,15 @@ def _shapes(meta: dict[str, Any], d: dict[str, np.ndarray]) -> dict[str, int]:
     sizes["P"] = sizes["placed"] + 1
     sizes["ngroups+1"] = sizes["ngroups"] + 1
     for key, sym in (("contrib_e", "E"), ("contrib_g", "G"), ("queue", "Q"),
-                     ("group_members", "K"), ("rejected", "R")):
+                     ("group_members", "K"), ("rejected", "R"), ("requeue", "RQ")):
         sizes[sym] = int(d[key].shape[0]) if key in d and d[key].ndim else -1
     return sizes
 
 
 def _check_members(name: str, meta: dict[str, Any], d: dict[str, np.ndarray]) -> None:
-    if meta["version"] == 2 and "rejected" not in d:
-        d["rejected"] = np.zeros(0, np.int64)
+    for key in ("rejected", "requeue"):  # members of version 3
+        if meta["version"] == 2 and key not in d:
+            d[key] = np.zeros(0, np.int64)
     sizes = _shapes(meta, d)
     for key, (kind, shape) in _MEMBERS.items():
         if key not in d:

@@ -14,7 +14,9 @@ arrays grow without copies; the updates are the whole-graph solver's relaxation 
   set (the newest constraints, which act near the robot, and a window that cycles through
   all).  An update is started only when its predicted cost fits before the deadline.
 * **The frame's budget** covers its ``add_*`` calls too (their cycles are charged to the next
-  update); what does not fit stays queued for the next frames, in arrival order.  Building the
+  update); what does not fit stays queued for the next frames, in arrival order.  Only the
+  first new constraint of a frame is started whatever its cost; constraints queued again
+  after an adopted answer (relaxed before) start only when they fit.  Building the
   first solver of a process freezes the objects alive then (:func:`gc.freeze`), so no frame
   pays for a full garbage collection of the compiled kernels.
 * **Staying accurate** (``OnlineConfig.background_refine``, on by default): a worker process
@@ -55,6 +57,10 @@ from ._link import WorkerLink
 from ._validate import as_pose, check_id, whitening
 from .config import OnlineConfig
 from .store import MapStore
+
+#: Requeued constraints a frame drops at most when they do not fit
+#: (:meth:`OnlineSolver._requeued`).
+MAX_DROPS = 4
 
 
 class OnlineSolver:
@@ -282,7 +288,7 @@ class OnlineSolver:
             cfg = self.config
             self._link.step(self._store, self.frame, cfg.background_join,
                             cfg.background_rebase)
-        report = self._work(deadline, limit, time.perf_counter() - t0)
+        report = self._work(deadline, limit, time.perf_counter() - t0, first=True)
         self.frame += 1
         return report._replace(seconds=time.perf_counter() - t0)
 
@@ -320,29 +326,65 @@ class OnlineSolver:
         spare = max(check_budget(budget_s) - RESERVE_S, 0.0)
         return np.uint64(max(c0 + int(spare * cycles_per_second()), 0))
 
-    def _work(self, deadline: np.uint64, limit: int, elapsed: float) -> FrameReport:
-        """New constraints in arrival order, the local solve, then spare time (one call of the
-        relaxation loop each, under the admission policy)."""
+    def _work(self, deadline: np.uint64, limit: int, elapsed: float, first: bool = False
+              ) -> FrameReport:
+        """Requeued constraints, new constraints in arrival order, the local solve, then spare
+        time (one call of the relaxation loop each, under the admission policy; ``first``: the
+        frame's own work, :meth:`_requeued`)."""
         cfg = self.config
         st = self._store
-        prob, state, pol = st.views()
-        sc = st.scratch(self._wk)
-        self._wk = sc.wk
         counts = np.zeros(NUM_COUNTS, np.int64)
         self._stamp += 1
         stamp = self._stamp
+        n_re = self._requeued(deadline, counts, limit, stamp, first) if st.requeue.size else 0
+        limit -= int(counts[Count.DONE])
+        prob, state, pol = st.views()
+        sc = st.scratch(self._wk)
+        self._wk = sc.wk
+        done0 = int(counts[Count.DONE])
         n_new = run_loop(loop_kernel(True, False, False, True), prob, state, sc, st.pending(),
                          cfg.tau_new, cfg.damping, int(STEP_KINDS[cfg.step]), cfg.gps_batch_size,
                          0, deadline, counts, True, pol, stamp, limit, force_first=True,
                          skip=False)
         st.pop(n_new)
-        limit -= int(counts[Count.DONE])
+        limit -= int(counts[Count.DONE]) - done0
         local_nodes = self._local_solve(deadline, counts, limit) if cfg.local_size else 0
         if local_nodes:
             limit -= 1
-        old = self._spare_time(deadline, counts, limit, stamp)
+        old = n_re + self._spare_time(deadline, counts, limit, stamp)
         return FrameReport(n_new, self.backlog, old, local_nodes, int(counts[Count.CAPPED]),
                            int(counts[Count.REJECTED]), int(counts[Count.SKIPPED]), elapsed)
+
+    def _requeued(self, deadline: np.uint64, counts: npt.NDArray[np.int64], limit: int,
+                  stamp: int, first: bool) -> int:
+        """The requeued constraints (relaxed before; ``store.requeue``) in arrival order, each
+        started only when its predicted cost fits: unlike a new constraint, none is started
+        whatever its cost.  In a frame's own work (``first``: nothing else ran before) one
+        that does not fit is dropped, at most :data:`MAX_DROPS` per frame, so that none holds
+        the others back; spare time revisits it.  Returns the updates made."""
+        st = self._store
+        cfg = self.config
+        done = drops = 0
+        while st.requeue.size and limit > 0:
+            prob, state, pol = st.views()
+            sc = st.scratch(self._wk)
+            self._wk = sc.wk
+            d0 = int(counts[Count.DONE])
+            k = run_loop(loop_kernel(True, False, False, True), prob, state, sc, st.requeue,
+                         cfg.tau_new, cfg.damping, int(STEP_KINDS[cfg.step]),
+                         cfg.gps_batch_size, 0, deadline, counts, True, pol, stamp, limit,
+                         force_first=False, skip=False)
+            made = int(counts[Count.DONE]) - d0
+            limit -= made
+            done += made
+            if (k == 0 and first and drops < MAX_DROPS
+                    and np.uint64(read_cycles()) < deadline):  # no room in the frame's budget
+                k, drops = 1, drops + 1
+                st.requeue = st.requeue[k:]
+                continue
+            st.requeue = st.requeue[k:]
+            break
+        return done
 
     def _local_solve(self, deadline: np.uint64, counts: npt.NDArray[np.int64],
                      limit: int) -> int:

@@ -141,6 +141,9 @@ class MapStore:
         self.queue = np.zeros(64, np.int64)
         """Constraints waiting for their first update, ``queue[q_head:q_tail]``."""
         self.q_head = self.q_tail = 0
+        self.requeue = np.zeros(0, np.int64)
+        """Constraints relaxed before and queued again (the constraints laid after an adopted
+        answer's snapshot), in arrival order: each is started only when it fits."""
         self.first_rot = np.eye(3)
         self.first_trans = np.zeros(3)
         self.pair_last: dict[int, int] = {}
@@ -209,7 +212,8 @@ class MapStore:
             setattr(self, name, new)
         shift = cap_m - om
         k = int(self.group_ptr[self.ngroups])
-        for ids in (self.group_members[:k], self.queue[self.q_head: self.q_tail]):
+        for ids in (self.group_members[:k], self.queue[self.q_head: self.q_tail],
+                    self.requeue):
             ids[ids >= om] += shift
         self.cap_m, self.cap_g = cap_m, cap_g
         self._views = None
@@ -493,6 +497,7 @@ class MapStore:
             self.rejected[new] = True
             live = self.pending()
             self.set_queue(live[~self.rejected[live]])
+            self.requeue = self.requeue[~self.rejected[self.requeue]]
         if back.size:
             e, g = back[back < cm], back[back >= cm] - cm
             self.edge_lt[e] = np.linalg.cholesky(self.edge_info[e]).transpose(0, 2, 1)

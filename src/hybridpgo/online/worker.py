@@ -522,8 +522,13 @@ class _Map:
                 self.fallback = f"{type(exc).__name__}: {exc}"
                 self.resets += 1
                 failed = True
-        if (self.inc is None or failed or switch) and n >= 2:
+        # a thorough screening needs the optimum of everything shipped: an incremental solve
+        # stopped by its cap (false closures slow it down) is finished by LM
+        finish = (thorough and self.auto and self.inc is not None and not (failed or switch)
+                  and (held != (m, g) or status != "converged"))
+        if (self.inc is None or failed or switch or finish) and n >= 2:
             energy, iterations, status = self._solve_lm(max_iterations)
+            held = (m, g)
         # screened at every answer that holds everything shipped, converged or not (false
         # closures slow the least-squares solve down: M3500 with 100 of them, streamed, hit
         # the time cap at most answers); a false alarm costs a re-solve that rejects nothing
@@ -533,7 +538,7 @@ class _Map:
             energy = self._energy()
         if failed:
             self._reseed()
-        elif (switch or screened) and self.inc is not None:
+        elif (switch or screened or finish) and self.inc is not None:
             self.inc = self._incremental_here()
         seconds = time.perf_counter() - t0
         lrot = np.empty((n + 1, 3, 3))
@@ -543,7 +548,8 @@ class _Map:
         meta = {"type": "result", "n": n, "m": m, "g": g, "m_held": held[0],
                 "g_held": held[1], "energy": energy,
                 "iterations": iterations, "status": status, "seconds": seconds,
-                "incremental": self.inc is not None and not (failed or switch or screened),
+                "incremental": self.inc is not None and not (failed or switch or screened
+                                                             or finish),
                 "fallback": self.fallback,
                 "resets": self.resets, "rescreens": self.rescreens,
                 "thorough": self.auto and thorough and held == (m, g)}
