@@ -240,3 +240,25 @@ def test_take_changes_lists_every_pose_whose_estimate_moved() -> None:
         assert set(np.flatnonzero(moved).tolist()) <= changed
         assert set(range(n0, inc.covered[0])) <= changed  # integrated since: all listed
         before_r, before_t = rot[: inc.covered[0]], trans[: inc.covered[0]]
+
+
+def test_fill_beyond_max_fill_is_an_error_not_a_huge_allocation(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A factor whose fill-in would pass ``max_fill`` blocks per pose and constraint raises
+    SolverError before allocating (a map kept in a poor elimination order asked for 36 GiB);
+    with room for it the same stream solves."""
+    from hybridpgo.errors import SolverError
+    from hybridpgo.online import incremental
+
+    monkeypatch.setattr(incremental, "POOL_FLOOR", 64)
+    s = _stream(seed=4, n=120, loop_p=0.8, gps_every=0)
+    tight = IncrementalExact(IncrementalConfig(max_fill=1, reorder=False), capacity=4)
+    roomy = IncrementalExact(IncrementalConfig(reorder=False), capacity=4)
+    with pytest.raises(SolverError, match="max_fill=1"):
+        for k in range(s.frames):
+            _feed(tight, s, k)
+            tight.solve()
+    for k in range(s.frames):
+        _feed(roomy, s, k)
+        roomy.solve()
+    assert np.all(np.isfinite(roomy.estimate()[1]))

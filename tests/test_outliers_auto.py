@@ -288,6 +288,28 @@ def test_the_online_worker_rejects_false_closures_as_they_arrive(robust: RobustN
         assert e > 10.0 * ref.final_energy
 
 
+def test_a_thorough_screening_finishes_a_capped_solve(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The worker's map (in this process) of a stream with false closures, its incremental
+    solve stopped by the time cap at every request: an ordinary answer holds too little to be
+    screened; the thorough one (``join_refine``) finishes the solve by LM and rejects exactly
+    the false closures."""
+    from test_online import _worker_map
+
+    from hybridpgo.online import OnlineConfig, worker
+
+    made = _grid(seed=3, n=200)
+    g, out = add_pattern_outliers(made.graph, made.truth_translations, 10, "random", seed=5)
+    s = _online(g, OnlineConfig(background_refine=False, robust="none"))
+    monkeypatch.setattr(worker, "SOLVE_CAP_S", 0.0)
+    mp = _worker_map(s, ("auto", None))
+    arrays, meta = mp.solve(20)
+    assert meta["m_held"] < meta["m"] and arrays["rejected_m"].size == 0
+    arrays, meta = mp.solve(20, thorough=True)
+    assert meta["thorough"] and meta["m_held"] == meta["m"]
+    np.testing.assert_array_equal(arrays["rejected_m"],
+                                  _arrival(g, np.flatnonzero(out.mask(g.num_edges))))
+
+
 @pytest.mark.parametrize("preset", ["m3500", "grid3d"])
 def test_online_refine_of_a_clean_map_is_least_squares(preset: str) -> None:
     """Without outliers ``refine()`` under ``"auto"`` leaves the poses ``"none"`` does, bit for

@@ -80,6 +80,8 @@ class WorkerLink:
         """Answers not adopted: solved with the first pose held while the frames' map has GPS
         readings (fewer than :data:`~.worker.GPS_GAUGE`)."""
         self._ship_frames: dict[int, int] = {}
+        self.rescreens = 0
+        """The newest answer's count of screenings that ran the robust re-solve."""
 
     def close(self) -> None:
         self.refiner.close()
@@ -161,6 +163,7 @@ class WorkerLink:
         if not adopt_result(store, res, rebase):
             return False
         self.refined = res.holds_all
+        self.rescreens = res.rescreens
         self.tail, self.tail_ok = (n, *res.holds_all), True
         self.adopted += 1
         self.adopt_s_max = max(self.adopt_s_max, time.perf_counter() - t0)
@@ -205,7 +208,7 @@ class WorkerLink:
 
     def stats(self) -> dict[str, Any]:
         return {"results_adopted": self.adopted, "results_stale": self.stale,
-                "results_other_gauge": self.other_gauge,
+                "results_other_gauge": self.other_gauge, "rescreens": self.rescreens,
                 "adopt_ms_max": self.adopt_s_max * 1e3,
                 "lag_frames_max": self.lag_max, "results_received": self.refiner.results,
                 "error": self.refiner.error}

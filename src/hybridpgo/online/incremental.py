@@ -83,6 +83,11 @@ class IncrementalConfig:
     poses that move)."""
     polish_phi: float = 1e-5
     """See ``polish_rho``."""
+    max_fill: int = 128
+    """The factor's pool holds at most this many 6x6 blocks per pose and constraint (at least
+    :data:`POOL_FLOOR`): an update whose fill-in needs more raises :class:`SolverError` (a poor
+    elimination order, e.g. large sets kept in their old order: paris2 asked for 36 GiB).
+    The caller can start again or solve in batch."""
 
 
 def _check_measurements(rot: FloatArray | None, trans: FloatArray, info: FloatArray,
@@ -108,6 +113,10 @@ def _check_measurements(rot: FloatArray | None, trans: FloatArray, info: FloatAr
     if bad.any():
         raise ValueError(f"{what} {int(np.argmax(bad))} (of those added): its information is "
                          "not symmetric positive definite")
+
+
+#: The factor's pool may always hold this many 6x6 blocks (``IncrementalConfig.max_fill``).
+POOL_FLOOR = 1 << 20
 
 
 class IncrementalExact:
@@ -282,6 +291,12 @@ class IncrementalExact:
             cap *= 2
         while cap < live + need:
             cap *= 2
+        limit = max(self.config.max_fill * (self._n + self._m + self._g), POOL_FLOOR)
+        cap = max(min(cap, limit), self._pool_cap)
+        if live + need > limit:
+            raise SolverError(f"the incremental factor's fill-in needs {live + need} blocks, "
+                              f"more than max_fill={self.config.max_fill} per pose and "
+                              f"constraint ({limit})")
         self._compact(cap)
 
     def _compact(self, cap: int) -> None:

@@ -173,6 +173,9 @@ class Refined:
     rejected: tuple[np.ndarray, np.ndarray] | None = None
     """``robust="auto"``: the edges and GPS readings among those held that the worker's
     outlier test rejected (arrival order; None: no verdict)."""
+    rescreens: int = 0
+    """``robust="auto"``: the worker's screenings so far that found its map inconsistent
+    (each ran the robust re-solve)."""
 
     @property
     def holds_all(self) -> tuple[int, int]:
@@ -254,7 +257,8 @@ class BackgroundRefiner:
                             int(meta["iterations"]), str(meta["status"]),
                             float(meta["seconds"]),
                             (int(meta["m_held"]), int(meta["g_held"])),
-                            (arrays["rejected_m"], arrays["rejected_g"]))
+                            (arrays["rejected_m"], arrays["rejected_g"]),
+                            int(meta["rescreens"]))
                         self.results += 1
                         self._answered = max(self._answered, int(meta["req"]))
                     else:
@@ -360,8 +364,20 @@ GPS_GAUGE = 3
 #: moving to the optimum.  Measured on M3500_isam with an incremental solver fed every frame
 #: and its estimate adopted by the frames: worst checkpoint 1.002-1.007x the prefix optimum
 #: (valencia: 1.011x), against 1.233x (valencia: 121.8x) without a worker.
+#: Every re-eliminated set is ordered by AMD (``reorder_max``): the worker has no frame
+#: deadline, and a large set kept in its old order fills in without bound.  Measured on
+#: paris2 fed in chunks of 50 frames: with the default limit (4 096 variables) the factor's
+#: pool reached 4.2 M blocks and a solve 0.74 s on average by frame 7 549 (and asked for
+#: 36 GiB further on); with every set reordered, 0.13-0.5 M blocks and 0.06-0.36 s up to
+#: frame 17 549.
 INCREMENTAL = {"relinearize_rho": 0.1, "relinearize_phi": 0.1, "wildfire": 1e-4,
-               "gps_gauge": GPS_GAUGE}
+               "gps_gauge": GPS_GAUGE, "reorder_max": 1 << 62}
+#: The screening for outliers (``robust="auto"``) takes at most this share of the worker's time:
+#: an answer is screened only when the time since the last screening ended is at least
+#: ``1 / SCREEN_SHARE - 1`` times what that screening took (the test of M3500_isam's map:
+#: about 4 ms, where an incremental answer takes 1-3 ms; a re-solve, 0.1-1 s, delays the next
+#: screening accordingly).  A thorough request is always screened.
+SCREEN_SHARE = 0.2
 #: Seconds of one request's incremental solve at most (an unfinished solve resumes at the next
 #: request; the answer is the last completed update cycle's estimate, the poses it does not
 #: cover yet composed onto their parents).  M3500_isam streamed back to back on a loaded 2-core
@@ -391,7 +407,7 @@ class _Map:
         from .incremental import IncrementalConfig, IncrementalExact
 
         self.robust = robust
-        #: ``robust="auto"``: least squares, each converged answer screened for outliers
+        #: ``robust="auto"``: least squares, each answer screened for outliers (:meth:`_screen`)
         self.auto = robust[0] == "auto"
         self.n = self.m = self.g = 0
         self.parent = np.full(1, -1, np.int32)  # tree nodes, 0 = the earth
@@ -402,6 +418,9 @@ class _Map:
         self.keep_g = np.ones(0, np.bool_)
         #: screenings that found the map inconsistent (each ran the robust re-solve)
         self.rescreens = 0
+        #: when the last screening ended and how long it took (perf_counter seconds)
+        self._screened_at = -np.inf
+        self._screen_cost = 0.0
         #: why the last incremental solve failed ("" when none has)
         self.fallback = ""
         #: failed incremental solves so far (each answered by LM, then the solver started again)
@@ -516,7 +535,8 @@ class _Map:
                 self.grot = self._append(self.grot, 1, rot)
                 self.gtr = self._append(self.gtr, 1, trans)
                 held = (self._held(self.keep_m[:m], m_est), self._held(self.keep_g[:g], g_est))
-            except (HybridPGOError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
+            except (HybridPGOError, ValueError, ArithmeticError, MemoryError,
+                    np.linalg.LinAlgError) as exc:
                 # e.g. an undamped step from a poor estimate: LM (damped) solves this request
                 # from the last good estimate, and the incremental solver starts again there
                 self.fallback = f"{type(exc).__name__}: {exc}"
@@ -532,8 +552,10 @@ class _Map:
         # screened at every answer that holds everything shipped, converged or not (false
         # closures slow the least-squares solve down: M3500 with 100 of them, streamed, hit
         # the time cap at most answers); a false alarm costs a re-solve that rejects nothing
-        screened = (self.auto and n >= 2 and held == (m, g)
-                    and self._screen(max_iterations, thorough))
+        due = (time.perf_counter() - self._screened_at
+               >= self._screen_cost * (1.0 / SCREEN_SHARE - 1.0))
+        screened = (self.auto and n >= 2 and held == (m, g) and (due or thorough)
+                    and self._screen(thorough))
         if screened:
             energy = self._energy()
         if failed:
@@ -560,20 +582,27 @@ class _Map:
     def _graph(self, kept: bool) -> Any:
         """The map as a :class:`~hybridpgo.graph.PoseGraph` at the current estimate: the
         constraints solved (``kept``) or all of them; the first pose held until the gauge is
-        the earth."""
-        from ..graph import PoseGraph
+        the earth; ``is_2d`` when the data are planar and there is no GPS reading
+        (:func:`~hybridpgo.graph.planar_data`: LM takes the (x, y, yaw) system when the
+        estimate is planar too; the outlier test counts 3 degrees of freedom per relative
+        constraint for planar data in any case)."""
+        import dataclasses
+
+        from ..graph import PoseGraph, planar_data
 
         n, m, g = self.n, self.m, self.g
         e, k = self._kept() if kept else (slice(0, m), slice(0, g))
-        return PoseGraph(
+        graph = PoseGraph(
             node_ids=np.arange(n, dtype=np.int64), rotations=self.grot[1: n + 1],
             translations=self.gtr[1: n + 1], edge_nodes=self.edge_ab[e],
             edge_rotations=self.edge_rot[e], edge_translations=self.edge_trans[e],
             edge_information=self.edge_info[e], gps_nodes=self.gps_node[k],
             gps_positions=self.gps_pos[k], gps_information=self.gps_info[k],
-            fixed_nodes=np.zeros(0 if self.earth else 1, np.int32), is_2d=g == 0)  # fmt: skip
+            fixed_nodes=np.zeros(0 if self.earth else 1, np.int32))  # fmt: skip
+        planar = g == 0 and planar_data(graph)  # the planar reduction has no GPS terms
+        return dataclasses.replace(graph, is_2d=True) if planar else graph
 
-    def _screen(self, max_iterations: int, thorough: bool = False) -> bool:
+    def _screen(self, thorough: bool = False) -> bool:
         """``robust="auto"``: the outlier test of the solved constraints at the estimate (their
         least-squares optimum, or the way to it); when it finds them inconsistent, the robust
         re-solve of the whole map (every constraint shipped, those rejected before included)
@@ -586,7 +615,19 @@ class _Map:
         whenever one is rejected: its verdict is then the one a whole-graph solve of the map
         gives.  A false closure that arrives near the end of the drive is one the test of
         the solved constraints can miss: the poses since the last loop bend to absorb it at
-        their least-squares optimum (little redundancy), until later loops contradict it."""
+        their least-squares optimum (little redundancy), until later loops contradict it.
+
+        An answer is screened only when the last screening is long enough ago
+        (:data:`SCREEN_SHARE`)."""
+        t0 = time.perf_counter()
+        try:
+            return self._screen_now(thorough)
+        finally:
+            self._screened_at = time.perf_counter()
+            self._screen_cost = self._screened_at - t0
+
+    def _screen_now(self, thorough: bool) -> bool:
+        """:meth:`_screen` itself."""
         from ..solvers.config import GaussNewtonConfig
         from ..solvers.result import SolveResult, Status
         from ..solvers.robust import check_consistency, exact_resolver, resolve
@@ -599,8 +640,8 @@ class _Map:
         graph = self._graph(False)
         start = SolveResult(rot.copy(), trans.copy(), Status.CONVERGED, 0,
                             np.array([self._energy()]), np.zeros(1), "worker", m + g)
-        res = resolve(graph, start, exact_resolver(GaussNewtonConfig(
-            max_iterations=max_iterations)))
+        # the re-solve's solves with the exact solver's defaults, as a whole-graph solve's
+        res = resolve(graph, start, exact_resolver(GaussNewtonConfig()))
         rows = res.stats["outliers"]["rejected_constraints"]
         if not rows and self.keep_m[:m].all() and self.keep_g[:g].all():
             return False  # a false alarm: nothing rejected, the estimate is the input's
@@ -614,7 +655,7 @@ class _Map:
         return True
 
     def _energy(self) -> float:
-        """E at the current estimate of the whole map (the LM path's copy)."""
+        """E of the constraints solved at the current estimate of the whole map."""
         from .. import _cost
 
         n = self.n
