@@ -66,17 +66,20 @@ def test_a_saved_state_loads_and_continues_like_the_original(tmp_path: Path) -> 
 
 
 def test_rejected_constraints_survive_save_and_load(tmp_path: Path) -> None:
-    """The constraints rejected as outliers are saved; the loaded solver has them rejected
-    (no whitening, no contributions) and continues exactly like the original."""
+    """The constraints rejected as outliers and the requeued ones are saved; the loaded solver
+    has them rejected (no whitening, no contributions) and queued again, and continues exactly
+    like the original."""
     s = _solver()
     st = s.store
     s.store.set_rejected(np.array([3, 7]), np.array([0]), (st.m_laid, st.g_laid))
+    st.requeue = np.array([1, 2, 4], np.int64)  # relaxed before, queued again
     path = tmp_path / "state.npz"
     s.save(path)
     t = OnlineSolver.load(path)
     for a, b in zip(s.outliers(), t.outliers(), strict=True):
         np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(t.outliers()[0], [3, 7])
+    np.testing.assert_array_equal(t.store.requeue, [1, 2, 4])
     assert not t.store.edge_lt[[3, 7]].any() and not t.store.gps_lt[0].any()
     for solver in (s, t):
         solver.update(None, 12)
@@ -99,11 +102,13 @@ def test_a_state_of_version_2_loads_with_nothing_rejected(tmp_path: Path) -> Non
     _exercise(t)
 
 
-@pytest.mark.parametrize("rejected", [[10**9], [-10**9], [2, 2], [-1, -1]])
-def test_a_crafted_rejected_list_is_refused(tmp_path: Path, rejected: list[int]) -> None:
+@pytest.mark.parametrize("key", ["rejected", "requeue"])
+@pytest.mark.parametrize("names", [[10**9], [-10**9], [2, 2], [-1, -1]])
+def test_a_crafted_rejected_list_or_requeue_is_refused(tmp_path: Path, key: str,
+                                                      names: list[int]) -> None:
     s = _solver()
     members = s.state_arrays()
-    members["rejected"] = np.array(rejected, np.int64)
+    members[key] = np.array(names, np.int64)
     path = tmp_path / "crafted.npz"
     _write(path, members)
     with pytest.raises(FormatError, match=r"crafted\.npz"):
