@@ -49,6 +49,15 @@ def _exercise(s: OnlineSolver) -> None:
     s.energy()
 
 
+def _continues_alike(s: OnlineSolver, t: OnlineSolver) -> None:
+    """After the same update, ``s`` and ``t`` hold the same state."""
+    for solver in (s, t):
+        solver.update(None, 12)
+    a, b = s.state_arrays(), t.state_arrays()
+    for k in a:  # the cost model learns from the clock: not reproducible
+        assert k == "model" or np.array_equal(a[k], b[k]), k
+
+
 def test_a_saved_state_loads_and_continues_like_the_original(tmp_path: Path) -> None:
     s = _solver()
     path = tmp_path / "state.npz"
@@ -58,11 +67,7 @@ def test_a_saved_state_loads_and_continues_like_the_original(tmp_path: Path) -> 
     assert a.keys() == b.keys()
     for k in a:
         assert np.array_equal(a[k], b[k]), k
-    for solver in (s, t):
-        solver.update(None, 12)
-    a, b = s.state_arrays(), t.state_arrays()
-    for k in a:  # the cost model learns from the clock: not reproducible
-        assert k == "model" or np.array_equal(a[k], b[k]), k
+    _continues_alike(s, t)
 
 
 def test_rejected_constraints_survive_save_and_load(tmp_path: Path) -> None:
@@ -81,11 +86,7 @@ def test_rejected_constraints_survive_save_and_load(tmp_path: Path) -> None:
     np.testing.assert_array_equal(t.outliers()[0], [3, 7])
     np.testing.assert_array_equal(t.store.requeue, [1, 2, 4])
     assert not t.store.edge_lt[[3, 7]].any() and not t.store.gps_lt[0].any()
-    for solver in (s, t):
-        solver.update(None, 12)
-    a, b = s.state_arrays(), t.state_arrays()
-    for k in a:  # the cost model learns from the clock: not reproducible
-        assert k == "model" or np.array_equal(a[k], b[k]), k
+    _continues_alike(s, t)
 
 
 def test_a_state_of_version_2_loads_with_nothing_rejected(tmp_path: Path) -> None:

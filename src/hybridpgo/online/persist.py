@@ -95,7 +95,8 @@ def state_arrays(st: MapStore, config: OnlineConfig, counters: dict[str, int]
         "chi2_e": st.chi2[: st.m], "chi2_g": st.chi2[cm: cm + st.g],
         "queue": st.arrival_names(st.pending()),
         "requeue": st.arrival_names(st.requeue),
-        "rejected": np.concatenate([st.rejected_names()[0], -st.rejected_names()[1] - 1]),
+        "rejected": st.arrival_names(np.concatenate([
+            np.flatnonzero(st.rejected[: st.m]), cm + np.flatnonzero(st.rejected[cm: cm + st.g])])),
         "group_ptr": st.group_ptr[: st.ngroups + 1],
         "group_members": st.arrival_names(st.group_members[:k]),
         "group_stamp": st.group_stamp[: st.ngroups],
