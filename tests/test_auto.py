@@ -71,7 +71,10 @@ def test_auto_config_nests_the_sweep_and_polish_configs() -> None:
         sweeps=HybridConfig(sweeps=4, tau0=0.5, step="givens", tree="mst", robust="huber",
                             robust_scale=2.0),
         polish=GaussNewtonConfig(max_iterations=7, energy_tolerance=1e-9, robust="huber",
-                                 robust_scale=2.0))
+                                 robust_scale=2.0),
+        certify_first=False)  # sweeps asked for are run
+    assert AutoConfig.from_options(sweeps=0).certify_first  # LM from the start: it may certify
+    assert AutoConfig.from_options(sweeps=4, certify_first=True).certify_first
     with pytest.raises(ValueError, match="inits must be a non-empty tuple"):
         AutoConfig(inits=["tree"])  # type: ignore[arg-type]  # the constructor takes tuples
     with pytest.raises(ValueError, match="sweeps must be a HybridConfig"):
@@ -214,7 +217,7 @@ def test_no_file_start_without_vertices(tmp_path: Path, data_dir: Path) -> None:
     graph = read_graph(data_dir / "tinyGrid3D.g2o")
     isam = tmp_path / "tiny.txt"
     hybridpgo.write_graph(graph, isam, "isam")
-    result = optimize(read_graph(isam))
+    result = optimize(read_graph(isam), certify_first=False)  # every start that applies
     assert result.stats["skipped_inits"] == ["file"]
     assert [k for k in result.stats["candidates"] if "no sweeps" not in k] == ["chordal", "tree"]
 
@@ -243,7 +246,7 @@ def test_sweeps_stop_when_they_stop_paying(data_dir: Path) -> None:
 
 def test_one_finalist_polishes_one_start(data_dir: Path) -> None:
     graph = read_graph(data_dir / "smallGrid3D.g2o")
-    s = optimize(graph, "auto", finalists=1).stats
+    s = optimize(graph, "auto", finalists=1, certify_first=False).stats
     assert [k for k, c in s["candidates"].items() if "final_energy" in c] == [s["init"]]
 
 

@@ -1,5 +1,7 @@
-"""The default pipeline's certificate (``AutoConfig.certify``): the first polished start is
-certified and, when it is, no other start is polished; the result is the one every start gives;
+"""The default pipeline's certificate (``AutoConfig.certify``, ``certify_first``): the first
+start is certified before any sweep and, when it is, LM from the certified start is the answer;
+without the early try the first polished start is certified and, when it is, no other start is
+polished; the result is the one every start gives;
 a start in a local minimum is not certified and the other starts run; the certificate's
 eigenvalue agrees with a dense decomposition."""
 
@@ -40,11 +42,43 @@ def _dense_lambda_min(graph: PoseGraph, rotations: np.ndarray) -> tuple[float, f
     return float(vals[0]), float(np.abs(vals).max())
 
 
-@pytest.mark.parametrize("make", [_grid2d, lambda: read_graph(
+GRAPHS = pytest.mark.parametrize("make", [_grid2d, lambda: read_graph(
     Path(__file__).parent / "data" / "smallGrid3D.g2o")], ids=["grid2d", "smallGrid3D"])
-def test_a_certified_start_is_the_only_one_polished(make) -> None:
+
+
+@GRAPHS
+def test_the_default_certifies_its_first_start_before_any_sweep(make) -> None:
+    """The early try: the chordal start's rotations refined on F and certified, LM from the
+    certified start is the answer: no sweep, no other start, the energy every start gives."""
     graph = make()
     res = solve_auto(graph)
+    every = solve_auto(graph, AutoConfig(certify=False))
+    cert = res.stats["certificate"]
+    assert cert["computed"] and cert["certified"], cert["summary"]
+    assert cert["summary"].startswith("certified global optimum (gap ≤ ")
+    assert 0.0 <= cert["relative_gap"] <= 1e-6
+    assert cert["start"] == "chordal" and cert["polished_before"] == 0
+    assert res.stats["start"] == "certified start" and res.stats["init"] == "chordal"
+    assert res.stats["finalists"] == ["certified start"] and res.stats["polished_starts"] == 1
+    assert set(res.stats["candidates"]) == {"chordal", "certified start"}
+    assert res.stats["sweeps"] == 0 and res.timings["sweeps"] == 0.0
+    assert res.stats["relaxation"] == {"ran": False, "why": "the winner is certified"}
+    assert "no other start polished" in res.stats["reason"]
+    assert abs(cert["polish_energy"] - res.final_energy) == 0.0
+    assert abs(res.final_energy - every.final_energy) <= SAME * every.final_energy
+    assert every.stats["polished_starts"] > 1
+    # the eigenvalue the certificate found, against a dense decomposition of S
+    exact, norm = _dense_lambda_min(graph, res.rotations)
+    assert cert["lambda_min"] == pytest.approx(exact, abs=1e-9 * norm)
+    assert res.timings["certificate"] == cert["seconds"] > 0.0
+
+
+@GRAPHS
+def test_a_certified_start_is_the_only_one_polished(make) -> None:
+    """Without the early try: the starts are swept, the first polished one is certified and no
+    other is polished."""
+    graph = make()
+    res = solve_auto(graph, AutoConfig(certify_first=False))
     every = solve_auto(graph, AutoConfig(certify=False))
     cert = res.stats["certificate"]
     assert cert["computed"] and cert["certified"], cert["summary"]
@@ -94,6 +128,8 @@ def test_a_start_in_a_local_minimum_is_not_certified_and_the_others_run() -> Non
     trapped, optimum, local = _trapped(120, 0.15)
     res = solve_auto(trapped, _no_sweeps("file", "tree"))
     cert = res.stats["certificate"]
+    assert cert["early"]["start"] == "file"  # the early try from the first start fails
+    assert cert["early"]["summary"].startswith("not certified (λ_min = -")
     assert res.stats["finalists"] == ["file", "tree"]  # the trapped start ranks first
     assert cert["first"]["start"] == "file"
     assert cert["first"]["summary"].startswith("not certified (λ_min = -")
@@ -109,13 +145,19 @@ def test_a_certified_start_whose_polish_ends_lower_is_the_solution() -> None:
     and LM from there ends below the file's polish: that polish is the result, certified,
     and no other start is polished."""
     trapped, optimum, _ = _trapped(60, 0.2)
-    res = solve_auto(trapped, _no_sweeps("file", "chordal", "tree"))
+    late = dataclasses.replace(_no_sweeps("file", "chordal", "tree"), certify_first=False)
+    res = solve_auto(trapped, late)
     cert = res.stats["certificate"]
     assert res.stats["finalists"] == ["file"] and res.stats["polished_starts"] == 1
     assert cert["certified"] and cert["start"] == "certified start"
     assert res.stats["start"] == "certified start" and "certified start" in res.stats["reason"]
     assert abs(res.final_energy - optimum) <= SAME * optimum
     assert res.stats["candidates"]["file"]["final_energy"] > 1.5 * optimum
+    # the early try reaches the same certified start first: the file's poses never polished
+    early = solve_auto(trapped, _no_sweeps("file", "chordal", "tree"))
+    assert early.stats["start"] == "certified start" and early.stats["certificate"]["certified"]
+    assert early.final_energy == pytest.approx(res.final_energy, rel=SAME)
+    assert "final_energy" not in early.stats["candidates"]["file"]
 
 
 def test_the_large_graph_policy_and_other_models_say_why_not() -> None:

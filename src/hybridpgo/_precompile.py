@@ -103,6 +103,14 @@ def _exact_solve() -> None:
     solve_exact(_tiny_graph())
 
 
+def _sweep() -> None:
+    """The hybrid sweep without GPS (the default pipeline's sweeps when its early try, a
+    certified start, fails)."""
+    from .solvers.hybrid.solver import ensure_compiled as ensure_hybrid
+
+    ensure_hybrid()
+
+
 def _toro() -> None:
     """The TORO baseline (``--solver toro``, ``hybridpgo warmup``)."""
     from .solvers.toro import ensure_compiled as ensure_toro
@@ -120,6 +128,7 @@ GROUPS: dict[str, tuple[Callable[[], None], tuple[str, ...]]] = {
                        "hybridpgo._cost:total_energy")),
     "exact-solve": (_exact_solve, ("hybridpgo.linalg._block_cholesky:_numeric",)),
     "toro": (_toro, ("hybridpgo.solvers._toro_kernels:sweep",)),
+    "sweep": (_sweep, ("hybridpgo.solvers.hybrid._step:woodbury_solve",)),
 }
 
 

@@ -69,8 +69,8 @@ import scipy.sparse as sp
 from .errors import HybridPGOError
 from .graph import FloatArray, PoseGraph
 
-__all__ = ["Certificate", "SyncProblem", "certify", "sesync_certificate", "sesync_weights",
-           "staircase_start"]
+__all__ = ["Certificate", "SyncProblem", "certify", "ensure_compiled", "sesync_certificate",
+           "sesync_weights", "staircase_start"]
 
 ComplexArray = npt.NDArray[np.complex128]
 Array = npt.NDArray[Any]
@@ -778,6 +778,31 @@ class Certificate:
         if np.isfinite(self.lambda_min):
             return f"not certified (λ_min = {self.lambda_min:.3g}): {self.reason}"
         return f"not certified: {self.reason}"
+
+
+_COMPILED: set[bool] = set()
+
+
+def ensure_compiled(planar: bool) -> float:
+    """Compile (or load from Numba's cache) the kernels of F for planar graphs (the complex
+    form) or 3D ones, once per process: a certificate of a three-pose loop.  Returns the
+    seconds spent (0 when already done)."""
+    if planar in _COMPILED:
+        return 0.0
+    t0 = time.perf_counter()
+    c, s_ = np.cos(0.3), np.sin(0.3)
+    turn = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    rot = np.stack([np.eye(3), turn, turn @ turn])
+    step = np.array([1.0, 0.0, 0.0 if planar else 0.5])
+    graph = PoseGraph(
+        node_ids=np.arange(3), rotations=rot, translations=np.cumsum([0 * step, step, step], 0),
+        edge_nodes=np.array([[0, 1], [1, 2], [0, 2]], np.int32),
+        edge_rotations=np.stack([turn, turn, turn @ turn]),
+        edge_translations=np.stack([step, step, step + turn @ step]),
+        edge_information=np.tile(np.eye(6), (3, 1, 1)), is_2d=planar)
+    sesync_certificate(graph, graph.rotations, graph.translations)
+    _COMPILED.add(planar)
+    return time.perf_counter() - t0
 
 
 def not_applicable(graph: PoseGraph, robust: str = "none") -> str:

@@ -120,7 +120,10 @@ def _optimize(sub: Any) -> None:
     p = sub.add_parser(
         "optimize", help="optimize a graph and write the result",
         description="Optimize a pose graph and write the optimized graph.  The default "
-                    "(--solver auto) chooses the start (chordal, tree or the file's vertices), "
+                    "(--solver auto) polishes with Levenberg-Marquardt from a certified start "
+                    "where SE-Sync's certificate holds at the chordal start (no GPS, no robust "
+                    "kernel); otherwise it "
+                    "chooses the start (chordal, tree or the file's vertices), "
                     "runs hybrid sweeps while they lower the energy by "
                     f"{au.sweep_tolerance:.0%} or more per sweep, and polishes with "
                     "Levenberg-Marquardt to convergence from each (and from each swept start's "
@@ -152,7 +155,9 @@ def _optimize(sub: Any) -> None:
                         "relaxation (default: auto tries all and keeps the best; tree for hybrid; "
                         "file for exact when the file has vertices)")
     p.add_argument("--sweeps", type=sweeps, metavar="N",
-                   help=f"hybrid: number of sweeps over all constraints (default {hy.sweeps})")
+                   help=f"hybrid: number of sweeps over all constraints (default {hy.sweeps}); "
+                        "auto: most sweeps from each start (given, they run even where a "
+                        "certified start exists)")
     p.add_argument("--tau0", type=tau, metavar="TAU",
                    help=f"hybrid: initial temperature, below {MAX_TAU:g} (default {hy.tau0:g})")
     p.add_argument("--tau-decay", type=decay, metavar="F",
@@ -294,15 +299,17 @@ def _demo(sub: Any) -> None:
     au = auto_defaults()
     p = sub.add_parser(
         "demo", help="optimize the bundled Manhattan graph (M3500) and write plots",
-        description="Run the default pipeline (as 'hybridpgo optimize' does: the best start, "
-                    "hybrid sweeps while they pay, an exact polish) on the bundled "
+        description="Run the default pipeline (as 'hybridpgo optimize' does: a certified "
+                    "start where the certificate holds, else the best start after hybrid "
+                    "sweeps while they pay; an exact polish) on the bundled "
                     "M3500_isam.txt, the paper's Manhattan graph; write the optimized graph and "
                     "before/after/energy plots into DIR.")
     p.add_argument("-o", "--output-dir", default="hybridpgo-demo", metavar="DIR",
                    help="output directory (default: hybridpgo-demo)")
     p.add_argument("--sweeps", type=sweeps, metavar="N",
                    help="most hybrid sweeps from each start before the polish (default "
-                        f"{au.sweeps.sweeps}; fewer when a sweep stops paying)")
+                        f"{au.sweeps.sweeps}, run only when no certified start is found; "
+                        "given, they run; fewer when a sweep stops paying)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_progress(p)
     add_common(p)

@@ -37,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
               quiet=args.quiet)
     if not args.quiet:
         log(f"hybridpgo demo: {DEMO_GRAPH} (the paper's Manhattan graph), the default "
-            "pipeline: starts chordal and tree, hybrid sweeps while they pay, an exact polish")
+            "pipeline (--solver hybrid runs the paper's method alone)")
     summary = run_job(job)
     print_summary(summary)
     print(f"\ndemo output in {os.path.abspath(out_dir)}/ (the exact optimum is 1.167 per "

@@ -205,12 +205,23 @@ def _compile_kernels(job: Job, graph: PoseGraph) -> None:
     from ._progress import phase
 
     exact = job.solver in ("exact", "auto") or bool(job.options.get("polish"))
+    # the default pipeline's early try (a certified start) needs no sweep: its kernels come
+    # first, and a second core compiles the sweep's in case the certificate fails
+    early = (job.solver == "auto" and graph.num_gps == 0 and not job.options.get("sweeps")
+             and job.options.get("robust", "auto") in ("auto", "none"))
     if job.solver in ("hybrid", "auto"):  # a second core compiles what comes after the sweep
         from .._precompile import start
 
         # in the order the solve needs them: after the sweep, the polish, the starts
-        start(["finish", "exact", "starts", "exact-solve"] if exact else ["finish", "starts"])
+        start(["sweep", "finish"] if early else
+              ["finish", "exact", "starts", "exact-solve"] if exact else ["finish", "starts"])
     with phase("compiling kernels (first run only)", enabled=not job.quiet):
+        if early:
+            from ..certificate import ensure_compiled as ensure_certificate
+
+            ensure_exact()
+            ensure_certificate(graph.is_2d)
+            return
         if job.solver in ("hybrid", "auto"):
             ensure_hybrid(graph.num_gps > 0, bool(job.options.get("dmax")),
                           job.options.get("step") == "givens")

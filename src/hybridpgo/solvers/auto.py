@@ -1,8 +1,19 @@
-"""The default pipeline: choose a start, sweep while it pays, polish to convergence.
+"""The default pipeline: a certified start when there is one, else choose a start, sweep while
+it pays, polish to convergence.
 
 :func:`solve_auto` is what ``hybridpgo optimize`` and :func:`hybridpgo.optimize` run when no
 solver is named (``--solver auto``).  The paper's pure method stays ``--solver hybrid``.
 
+0. **Early try** (``AutoConfig.certify_first``, where the certificate (5) applies): the first
+   start of ``inits`` (the chordal one by default) alone; Newton's method on SE-Sync's
+   objective F refines its rotations (:func:`hybridpgo.certificate.sesync_certificate`), the
+   certificate tests F's global minimum there and, when it holds, LM from that certified start
+   is the answer: no sweep, no other start, no relaxation check (``stats["start"]`` is
+   ``"certified start"``; certified by construction: the polish from F's certified minimum).
+   On every benchmark file this is the whole solve (one factorization of F's Newton system on
+   most, then LM's usual iterations).  When the certificate fails (or the polish does not
+   converge), 1-5 run, the start already computed is reused, and
+   ``stats["certificate"]["early"]`` keeps the try's verdict and seconds.
 1. **Starts.**  Every start of ``AutoConfig.inits`` that applies is computed: the chordal
    relaxation (one sparse factorization for the rotations, one for the positions), the tree
    concatenation (the paper's, free) and the file's vertices (when the file has them).
@@ -111,6 +122,8 @@ class _Candidate:
         self.rejected = 0
         self.start: tuple[FloatArray, FloatArray] = (np.zeros((0, 3, 3)), np.zeros((0, 3)))
         """The start's poses (before any sweep)."""
+        self.locals: tuple[FloatArray, FloatArray] | None = None
+        """The start's local transforms, when computed before the sweeps (the early try)."""
         self.polished: SolveResult | None = None
         self.cut = False
         """A runner-up whose polish stopped at its budget, above the best."""
@@ -355,6 +368,66 @@ def _not_computed(why: str) -> dict[str, Any]:
             "why": why, "seconds": 0.0}
 
 
+def _certificate_info(cert: Any, start: str) -> dict[str, Any]:
+    """``stats["certificate"]`` of a :class:`hybridpgo.certificate.Certificate` computed at
+    the candidate labelled ``start``."""
+    return {
+        "computed": True, "certified": bool(cert.certified), "summary": cert.summary(),
+        "start": start, "lambda_min": float(cert.lambda_min), "gap": float(cert.gap),
+        "relative_gap": float(cert.relative_gap), "objective": float(cert.objective),
+        "seconds": float(cert.seconds), "reason": cert.reason,
+        **{k: float(v) for k, v in cert.stats.items()}}
+
+
+def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: InitName,
+                     t_origin: float, progress: ProgressCallback | None,
+                     iterate: IterateCallback | None
+                     ) -> tuple[_Candidate, _Candidate | None, dict[str, Any]]:
+    """The early try (``AutoConfig.certify_first``): start ``init``, its rotations refined by
+    Newton's method on SE-Sync's objective and certified, and, when certified, LM from there.
+
+    Returns the start's candidate (its poses, no sweeps; ``locals`` kept for the sweeps when
+    the try fails), the certified start's candidate (None when the certificate failed) and
+    the try's ``stats["certificate"]``; ``certified`` there means the polish converged too."""
+    from ..certificate import sesync_certificate
+    from ..energy import robust_energy
+
+    graph = exact.graph
+    cand = _Candidate(init)
+    t0 = time.perf_counter()
+    try:
+        cand.locals = initial_locals(graph, tree, init)
+    except (HybridPGOError, ValueError, np.linalg.LinAlgError, RuntimeError) as exc:
+        cand.error = f"start: {exc}"
+        return cand, None, _not_computed(f"the start {init} failed: {exc}")
+    cand.rot, cand.trans = cand.start = global_poses(tree, *cand.locals)
+    cand.start_seconds = time.perf_counter() - t0
+    cand.history.append(robust_energy(graph, cand.rot, cand.trans)[0])
+    cand.times.append(time.perf_counter() - t_origin)
+    if progress is not None:
+        progress(Progress("start", 0, 0, cand.history[0], detail=init))
+    if iterate is not None:
+        iterate(Progress("start", 0, 0, cand.history[0], detail=init), cand.rot, cand.trans)
+    cert = sesync_certificate(graph, cand.rot, cand.trans)
+    info = _certificate_info(cert, init)
+    if not cert.certified:
+        return cand, None, info
+    check = _Candidate(init, "certified start")
+    check.rot, check.trans = check.start = cert.rotations, cert.translations
+    check.history = [robust_energy(graph, check.rot, check.trans)[0]]
+    check.times = [time.perf_counter() - t_origin]
+    _polish(exact, check, progress, cfg.polish.max_iterations, iterate)
+    pol = check.polished
+    if pol is None or pol.status is not Status.CONVERGED:
+        why = check.error or f"its polish ended {pol.status.value if pol else 'nowhere'}"
+        info.update(certified=False, summary=f"not certified: {why}",
+                    reason=f"{cert.reason}; the polish from the certified start: {why}")
+        return cand, check, info
+    info.update(reason=f"{cert.reason}; the polish from there (LM) is the solution",
+                polish_energy=pol.final_energy, polished_before=0)
+    return cand, check, info
+
+
 def _certify(exact: ExactSolver, cfg: AutoConfig, win: _Candidate,
              progress: ProgressCallback | None,
              iterate: IterateCallback | None) -> tuple[dict[str, Any], _Candidate]:
@@ -379,12 +452,7 @@ def _certify(exact: ExactSolver, cfg: AutoConfig, win: _Candidate,
 
     cert = certify(exact.graph, win.polished.rotations, win.polished.translations,
                    energy=win.energy, polish=polish)
-    info: dict[str, Any] = {
-        "computed": True, "certified": bool(cert.certified), "summary": cert.summary(),
-        "start": win.label, "lambda_min": float(cert.lambda_min), "gap": float(cert.gap),
-        "relative_gap": float(cert.relative_gap), "objective": float(cert.objective),
-        "seconds": float(cert.seconds), "reason": cert.reason,
-        **{k: float(v) for k, v in cert.stats.items()}}
+    info = _certificate_info(cert, win.label)
     if (not cert.certified and np.isfinite(cert.gap) and check.polished is not None
             and check.polished.status is Status.CONVERGED
             and check.energy < win.energy * (1.0 - _TIE)):
@@ -398,15 +466,24 @@ def _certify(exact: ExactSolver, cfg: AutoConfig, win: _Candidate,
 
 def _swept_starts(graph: PoseGraph, cfg: AutoConfig, tree: PoseTree, inits: list[InitName],
                   large: bool, t_origin: float, progress: ProgressCallback | None,
-                  iterate: IterateCallback | None) -> list[_Candidate]:
+                  iterate: IterateCallback | None,
+                  ready: _Candidate | None = None) -> list[_Candidate]:
     """Every start of ``inits`` computed and swept while the sweeps pay (the large-graph
-    policy: only the first that could be computed)."""
+    policy: only the first that could be computed).  ``ready``: a start already computed
+    (the early try's), swept from its local transforms."""
     cands: list[_Candidate] = []
     for init in inits:
         cand = _Candidate(init)
         t0 = time.perf_counter()
+        if ready is not None and ready.init == init and ready.error:
+            cands.append(ready)
+            continue
         try:
-            locals0 = initial_locals(graph, tree, init)
+            if ready is not None and ready.init == init and ready.locals is not None:
+                locals0, ready.locals = ready.locals, None
+                t0 -= ready.start_seconds
+            else:
+                locals0 = initial_locals(graph, tree, init)
         except (HybridPGOError, ValueError, np.linalg.LinAlgError, RuntimeError) as exc:
             cand.error = f"start: {exc}"
             cands.append(cand)
@@ -508,6 +585,109 @@ def _stats(win: _Candidate, cands: list[_Candidate], ranked: list[_Candidate],
     }
 
 
+def _full_pipeline(graph: PoseGraph, exact: ExactSolver | None, cfg: AutoConfig,
+                   tree: PoseTree, inits: list[InitName], why: str, large: bool,
+                   early: tuple[_Candidate, _Candidate | None, dict[str, Any]] | None,
+                   outliers: bool, t_origin: float, progress: ProgressCallback | None,
+                   iterate: IterateCallback | None) -> tuple[Any, ...]:
+    """Steps 2-5 of the module docstring: every start swept, the finalists polished and
+    certified, the relaxation check.  ``early``: the early try that did not certify (its
+    start is swept from its poses; its certified start's polish, when it converged, is a
+    candidate like the certificate's own polishes).  Returns the winner, the candidate
+    lists, ``stats["certificate"]``, ``stats["relaxation"]`` and the seconds of the polish,
+    relaxation, outlier checks and hybrid kernels' compilation."""
+    from .hybrid.solver import ensure_compiled as ensure_hybrid
+
+    hybrid_s = ensure_hybrid()
+    t_start = time.perf_counter()
+    cands = _swept_starts(graph, cfg, tree, inits, large, t_origin, progress, iterate,
+                          None if early is None else early[0])
+    usable = [c for c in cands if c.rot is not None and np.isfinite(c.energy)]
+    if not usable:
+        raise SolverError("no start gave finite poses and a finite energy: "
+                          + "; ".join(f"{c.init}: {_failure(c)}" for c in cands))
+    ranked = sorted(usable, key=lambda c: c.energy)  # stable: ties keep the order of inits
+    if cfg.polish_unswept:  # each swept start also as it was: the sweeps may leave its basin
+        ranked += sorted((_unswept(c) for c in ranked if c.sweeps), key=lambda c: c.energy)
+    finalists = ranked[:cfg.finalists] if cfg.finalists is not None else ranked
+    t_polish = time.perf_counter()
+    if exact is None:
+        exact = ExactSolver(graph, cfg.polish)
+    checks: list[_Candidate] = []
+    early_s = 0.0
+    if early is not None:
+        early_s = float(early[2]["seconds"])
+        if early[1] is not None:
+            checks.append(early[1])
+            early_s = t_start - t_origin - early[0].times[0]
+    misfit_s: list[float] = []  # robust="auto": seconds of each misfit check
+
+    def misfit(cand: _Candidate) -> bool:
+        t_check = time.perf_counter()
+        bad = _misfit(graph, cand)
+        misfit_s.append(time.perf_counter() - t_check)
+        return bad
+
+    finalists, first = _polish_finalists(exact, cfg, finalists,
+                                         _not_computed(why) if why else None, checks,
+                                         progress, iterate, misfit if outliers else None)
+    polished = [c for c in finalists if c.polished is not None and not c.cut]
+    if not polished:
+        raise SolverError("the polish failed from every start: "
+                          + "; ".join(f"{c.label}: {_failure(c)}" for c in finalists))
+    win = min(polished, key=lambda c: c.energy)
+    if first is not None and not (first["computed"] and not first["certified"]
+                                  and first["start"] != win.label):
+        certificate = first
+    else:  # certify the winner
+        certificate, check = _certify(exact, cfg, win, progress, iterate)
+        certificate["polished_before"] = len(finalists)
+        checks.append(check)
+        if first is not None:
+            certificate["first"] = {"start": first["start"], "summary": first["summary"]}
+            certificate["seconds"] += first["seconds"]
+    if early is not None:  # the early try's cost and verdict
+        certificate["early"] = {"start": early[2]["start"], "summary": early[2]["summary"],
+                                "seconds": early_s}
+        certificate["seconds"] += early_s
+    for check in checks:  # the certificate's own polish: a candidate only when it wins
+        if check.polished is not None and check.polished.status is Status.CONVERGED and (
+                check.energy < win.energy * (1.0 - _TIE)):
+            cands.append(check)
+            win = check
+    polish_s = (time.perf_counter() - t_polish - float(certificate["seconds"]) + early_s
+                - sum(misfit_s))
+    t_relax = time.perf_counter()
+    folded = outliers and _misfit(graph, win)
+    if certificate["certified"]:
+        relax = {"ran": False, "why": "the winner is certified"}
+    elif folded:
+        relax = {"ran": False, "why": "outliers"}
+    else:
+        relax = _relaxation_check(exact, cfg, large, win, t_origin, progress, iterate)
+    relax_cand = relax.pop("candidate", None)
+    if isinstance(relax_cand, _Candidate):
+        cands.append(relax_cand)
+        if relax_cand.polished is not None:
+            polished.append(relax_cand)
+            if relax_cand.energy < win.energy * (1.0 - _TIE):
+                win = relax_cand
+    relax_s = time.perf_counter() - t_relax
+    if win is relax_cand and certificate["computed"]:  # a new winner: certify it
+        before = certificate
+        certificate, check = _certify(exact, cfg, win, progress, iterate)
+        certificate["polished_before"] = before["polished_before"]
+        certificate["first"] = {"start": before["start"], "summary": before["summary"]}
+        certificate["seconds"] += before["seconds"]
+        checks.append(check)
+        if check.polished is not None and check.polished.status is Status.CONVERGED and (
+                check.energy < win.energy * (1.0 - _TIE)):
+            cands.append(check)
+            win = check
+    return (win, cands + ranked[len(usable):], ranked, finalists, polished, checks,
+            certificate, relax, polish_s, relax_s, sum(misfit_s), hybrid_s)
+
+
 def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
                progress: ProgressCallback | None = None,
                iterate: IterateCallback | None = None) -> SolveResult:
@@ -549,9 +729,8 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
             cfg, inits=cfg.large_inits, finalists=1, polish_unswept=False,
             sweeps=dataclasses.replace(cfg.sweeps, sweeps=cfg.large_max_sweeps))
     from .gauss_newton import ensure_compiled as ensure_exact
-    from .hybrid.solver import ensure_compiled as ensure_hybrid
 
-    compile_s = ensure_hybrid() + ensure_exact()
+    compile_s = ensure_exact()
     t_origin = time.perf_counter()
     tree = build_tree(graph, cfg.sweeps.tree)
     t_analyze = time.perf_counter() - t_origin
@@ -560,85 +739,39 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     if not inits:
         raise SolverError("no start applies: the file has no vertices; add 'tree' or 'chordal' "
                           "to the starts")
-    cands = _swept_starts(graph, cfg, tree, inits, large, t_origin, progress, iterate)
-    usable = [c for c in cands if c.rot is not None and np.isfinite(c.energy)]
-    if not usable:
-        raise SolverError("no start gave finite poses and a finite energy: "
-                          + "; ".join(f"{c.init}: {_failure(c)}" for c in cands))
-    ranked = sorted(usable, key=lambda c: c.energy)  # stable: ties keep the order of inits
-    if cfg.polish_unswept:  # each swept start also as it was: the sweeps may leave its basin
-        ranked += sorted((_unswept(c) for c in ranked if c.sweeps), key=lambda c: c.energy)
-    finalists = ranked[:cfg.finalists] if cfg.finalists is not None else ranked
     t_polish = time.perf_counter()
-    exact = ExactSolver(graph, cfg.polish)
     why = _certificate_applies(graph, cfg, large)
-    checks: list[_Candidate] = []
-    misfit_s: list[float] = []  # robust="auto": seconds of each misfit check
+    early: tuple[_Candidate, _Candidate | None, dict[str, Any]] | None = None
+    exact = None  # built once, before the first polish (the sweeps' memory comes first)
+    if not why and cfg.certify_first:
+        from ..certificate import ensure_compiled as ensure_certificate
 
-    def misfit(cand: _Candidate) -> bool:
-        t_check = time.perf_counter()
-        bad = _misfit(graph, cand)
-        misfit_s.append(time.perf_counter() - t_check)
-        return bad
-
-    finalists, first = _polish_finalists(exact, cfg, finalists,
-                                         _not_computed(why) if why else None, checks,
-                                         progress, iterate, misfit if outliers else None)
-    polished = [c for c in finalists if c.polished is not None and not c.cut]
-    if not polished:
-        raise SolverError("the polish failed from every start: "
-                          + "; ".join(f"{c.label}: {_failure(c)}" for c in finalists))
-    win = min(polished, key=lambda c: c.energy)
-    if first is not None and not (first["computed"] and not first["certified"]
-                                  and first["start"] != win.label):
-        certificate = first
-    else:  # certify the winner
-        certificate, check = _certify(exact, cfg, win, progress, iterate)
-        certificate["polished_before"] = len(finalists)
-        checks.append(check)
-        if first is not None:
-            certificate["first"] = {"start": first["start"], "summary": first["summary"]}
-            certificate["seconds"] += first["seconds"]
-    for check in checks:  # the certificate's own polish: a candidate only when it wins
-        if check.polished is not None and check.polished.status is Status.CONVERGED and (
-                check.energy < win.energy * (1.0 - _TIE)):
-            cands.append(check)
-            win = check
-    polish_s = (time.perf_counter() - t_polish - float(certificate["seconds"])
-                - sum(misfit_s))
-    t_relax = time.perf_counter()
-    folded = outliers and _misfit(graph, win)
-    if certificate["certified"]:
-        relax = {"ran": False, "why": "the winner is certified"}
-    elif folded:
-        relax = {"ran": False, "why": "outliers"}
+        t_compile = time.perf_counter()
+        compile_s += ensure_certificate(graph.is_2d)
+        t_origin += time.perf_counter() - t_compile  # compilation is not the solve's time
+        exact = ExactSolver(graph, cfg.polish)
+        early = _certified_start(exact, cfg, tree, inits[0], t_origin, progress, iterate)
+    if early is not None and early[2]["certified"]:
+        ready, win, certificate = early
+        assert win is not None
+        cands = [ready, win]
+        ranked = finalists = polished = checks = [win]
+        relax: dict[str, Any] = {"ran": False, "why": "the winner is certified"}
+        polish_s = time.perf_counter() - t_polish - certificate["seconds"] - ready.start_seconds
+        relax_s = 0.0
+        outliers_s = 0.0
     else:
-        relax = _relaxation_check(exact, cfg, large, win, t_origin, progress, iterate)
-    relax_cand = relax.pop("candidate", None)
-    if isinstance(relax_cand, _Candidate):
-        cands.append(relax_cand)
-        if relax_cand.polished is not None:
-            polished.append(relax_cand)
-            if relax_cand.energy < win.energy * (1.0 - _TIE):
-                win = relax_cand
-    relax_s = time.perf_counter() - t_relax
-    if win is relax_cand and certificate["computed"]:  # a new winner: certify it
-        before = certificate
-        certificate, check = _certify(exact, cfg, win, progress, iterate)
-        certificate["polished_before"] = before["polished_before"]
-        certificate["first"] = {"start": before["start"], "summary": before["summary"]}
-        certificate["seconds"] += before["seconds"]
-        checks.append(check)
-        if check.polished is not None and check.polished.status is Status.CONVERGED and (
-                check.energy < win.energy * (1.0 - _TIE)):
-            cands.append(check)
-            win = check
+        (win, cands, ranked, finalists, polished, checks, certificate, relax, polish_s,
+         relax_s, outliers_s, hybrid_s) = _full_pipeline(
+            graph, exact, cfg, tree, inits, why, large, early, outliers, t_origin, progress,
+            iterate)
+        compile_s += hybrid_s
     assert win.polished is not None
     pol = win.polished
     offset = win.times[-1]
     history = np.concatenate([win.history, pol.energy_history[1:]])
     times = np.concatenate([win.times, offset + np.asarray(pol.times[1:])])
-    stats = _stats(win, cands + ranked[len(usable):], ranked, finalists, polished, relax,
+    stats = _stats(win, cands, ranked, finalists, polished, relax,
                    skipped, policy, large, certificate, checks)
     for key in ("robust", "robust_scale", "plain_energy"):
         if key in pol.stats:
@@ -652,7 +785,7 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
                  "sweeps": sum(c.sweep_seconds for c in cands), "polish": polish_s,
                  "certificate": float(certificate["seconds"]), "relaxation": relax_s,
                  "solve": time.perf_counter() - t_origin - t_analyze,
-                 **({"outliers": sum(misfit_s)} if outliers else {})},
+                 **({"outliers": outliers_s} if outliers else {})},
         stats=stats,
     )
     if outliers:  # robust="auto": the outlier test, and the re-solve when it fails

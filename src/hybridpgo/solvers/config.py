@@ -357,6 +357,14 @@ class AutoConfig:
     SE-Sync's model describes the graph (no GPS, no robust kernel, at most one FIX node,
     connected) and not under the large-graph policy.  ``stats["certificate"]`` says what was
     certified, or why not.  False: every finalist is polished, no certificate."""
+    certify_first: bool = True
+    """Before any sweep, try the first start of ``inits`` that applies (``"chordal"`` by
+    default) alone: Newton's method on SE-Sync's objective refines its rotations, the
+    certificate tests that objective's global minimum there, and when it holds, LM from the
+    certified start is the answer (no sweeps, no other start: ``stats["start"]`` is
+    ``"certified start"``).  When the certificate fails or does not apply, the pipeline runs
+    as with ``False`` (sweeps, finalists, ``certify``) and ``stats["certificate"]["early"]``
+    says what the early try found.  Needs ``certify``."""
     relaxation: bool = True
     """Planar graphs (2D, no GPS, no robust kernel, at most one FIX node; not under the
     large-graph policy): after the polish, run the rank-2 relaxation of the chordal cost
@@ -425,6 +433,8 @@ class AutoConfig:
         check_float("sweep_tolerance", self.sweep_tolerance, positive=False)
         if not isinstance(self.certify, bool):
             raise ValueError(f"certify must be True or False, got {self.certify!r}")
+        if not isinstance(self.certify_first, bool):
+            raise ValueError(f"certify_first must be True or False, got {self.certify_first!r}")
         if not isinstance(self.relaxation, bool):
             raise ValueError(f"relaxation must be True or False, got {self.relaxation!r}")
         check_int("relaxation_iterations", self.relaxation_iterations, 1)
@@ -464,7 +474,8 @@ class AutoConfig:
         sweeps per start), ``max_iterations`` and ``energy_tolerance`` (of each polish),
         ``linear_solver`` and ``initial_damping`` (the polish's), ``robust`` and
         ``robust_scale`` (both), ``init`` (the only start to try), any other field of
-        :class:`HybridConfig` (the sweeps') or of AutoConfig itself.
+        :class:`HybridConfig` (the sweeps') or of AutoConfig itself.  A positive ``sweeps``
+        turns ``certify_first`` off unless it is given too: sweeps asked for are run.
 
         Raises
         ------
@@ -497,6 +508,8 @@ class AutoConfig:
                 sweeps[key] = opts.pop(key)
         if "sweeps" in opts and not isinstance(opts["sweeps"], HybridConfig):
             sweeps["sweeps"] = opts.pop("sweeps")
+            if sweeps["sweeps"] and "certify_first" not in opts:  # asked for sweeps: they run
+                opts["certify_first"] = False
         unknown = sorted(set(opts) - own)
         if unknown:
             raise TypeError(f"{', '.join(unknown)}: not an option of the default pipeline "
