@@ -178,3 +178,31 @@ def test_the_cli_summary_says_whether_it_is_certified(capsys, data_dir: Path,
     assert code == 0, err
     line = next(ln for ln in out.splitlines() if ln.strip().startswith("certificate"))
     assert "certified global optimum (gap ≤ " in line
+
+
+def test_a_city_with_little_noise_is_certified_at_the_smallest_shift() -> None:
+    """A generated city: F is small next to M's entries (F/(d n) ~ 0.03, information ~1e6),
+    so no shift the factorization resolves bounds the gap within 1e-6 of F; the smallest one
+    certifies within FLOOR_GAP_TOLERANCE (the gap the summary reports), the early try's polish
+    is the answer and a dense decomposition agrees that S has no negative eigenvalue."""
+    from hybridpgo.certificate import FLOOR_GAP_TOLERANCE, GAP_TOLERANCE
+
+    graph = generate_city(None, seed=0, gps_every=0, num_poses=800).graph
+    assert graph.num_edges > graph.num_nodes  # loops: F is not 0
+    res = solve_auto(graph)
+    cert = res.stats["certificate"]
+    assert cert["certified"] and res.stats["start"] == "certified start", cert["summary"]
+    assert GAP_TOLERANCE < cert["relative_gap"] <= FLOOR_GAP_TOLERANCE
+    every = solve_auto(graph, AutoConfig(certify=False))
+    assert abs(res.final_energy - every.final_energy) <= SAME * every.final_energy
+    exact, norm = _dense_lambda_min(graph, res.rotations)
+    assert exact >= -1e-12 * norm
+
+
+def test_a_graph_without_loops_says_why_it_is_not_certified() -> None:
+    """A tree of constraints: F's minimum is 0 up to rounding, so no gap relative to it."""
+    graph = generate_city(None, seed=0, gps_every=0, num_poses=200).graph
+    assert graph.num_edges == graph.num_nodes - 1
+    cert = solve_auto(graph).stats["certificate"]
+    assert not cert["certified"]
+    assert "positive semidefinite as far as float64 resolves" in cert["summary"]
