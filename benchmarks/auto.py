@@ -216,6 +216,9 @@ def run(ctx: Any, *, log: Callable[[str], None] | None = None) -> tuple[list[Met
         warm = next((c for c in files if c.graph.is_2d == planar), None)
         if warm is not None:
             _measure(warm)
+    gps = next((c for c in cases if not isinstance(c, Case) and c[5]), None)
+    if gps is not None:  # the sweeps' GPS kernels
+        _measure(_generated_case(*gps))
     for item in cases:
         case = item if isinstance(item, Case) else _generated_case(*item)
         t0 = time.perf_counter()

@@ -126,10 +126,9 @@ def test_a_start_in_a_local_minimum_is_not_certified_and_the_others_run() -> Non
     first; F refined from there is not F's minimum: its certificate fails with a negative
     eigenvalue, the tree start is polished too and the winner is certified."""
     trapped, optimum, local = _trapped(120, 0.15)
-    res = solve_auto(trapped, _no_sweeps("file", "tree"))
+    late = dataclasses.replace(_no_sweeps("file", "tree"), certify_first=False)
+    res = solve_auto(trapped, late)
     cert = res.stats["certificate"]
-    assert cert["early"]["start"] == "file"  # the early try from the first start fails
-    assert cert["early"]["summary"].startswith("not certified (λ_min = -")
     assert res.stats["finalists"] == ["file", "tree"]  # the trapped start ranks first
     assert cert["first"]["start"] == "file"
     assert cert["first"]["summary"].startswith("not certified (λ_min = -")
@@ -138,6 +137,11 @@ def test_a_start_in_a_local_minimum_is_not_certified_and_the_others_run() -> Non
     assert abs(res.final_energy - optimum) <= SAME * optimum
     exact, norm = _dense_lambda_min(trapped, local)
     assert exact < -1e-6 * norm  # the dense decomposition agrees: S is indefinite there
+    # the early try from the same start: the staircase escapes F's local minimum
+    early = solve_auto(trapped, _no_sweeps("file", "tree"))
+    assert early.stats["start"] == "certified start"
+    assert early.stats["certificate"]["staircase"]["certified"]
+    assert abs(early.final_energy - optimum) <= SAME * optimum
 
 
 def test_a_certified_start_whose_polish_ends_lower_is_the_solution() -> None:
@@ -162,9 +166,14 @@ def test_a_certified_start_whose_polish_ends_lower_is_the_solution() -> None:
 
 def test_the_large_graph_policy_and_other_models_say_why_not() -> None:
     graph = _grid2d()
-    large = solve_auto(graph, AutoConfig(large_poses=10))
+    large = solve_auto(graph, AutoConfig(large_poses=10, certify_first=False))
     assert large.stats["certificate"]["why"] == "large-graph policy"
     assert large.stats["polished_starts"] == 1
+    # the early try runs under the large-graph policy too: its certified start is the answer
+    early = solve_auto(graph, AutoConfig(large_poses=10))
+    assert early.stats["policy"] == "large" and early.stats["start"] == "certified start"
+    assert early.stats["certificate"]["certified"]
+    assert early.final_energy == pytest.approx(large.final_energy, rel=SAME)
     gps = solve_auto(generate_city(None, seed=0, gps_every=50, num_poses=50).graph)
     assert gps.stats["certificate"]["summary"] == (
         "not certified: GPS constraints (not in SE-Sync's model)")
@@ -206,3 +215,30 @@ def test_a_graph_without_loops_says_why_it_is_not_certified() -> None:
     cert = solve_auto(graph).stats["certificate"]
     assert not cert["certified"]
     assert "positive semidefinite as far as float64 resolves" in cert["summary"]
+
+
+def test_the_staircase_certifies_a_start_that_newton_leaves_in_a_local_minimum() -> None:
+    """Large rotation noise: Newton's method on F from the chordal start ends in a local
+    minimum of F (a negative eigenvalue); SE-Sync's staircase escapes it at rank 2 and its
+    certified rounding is the certified start, reaching what every start polished reaches."""
+    graph = generate_grid("m3500b", seed=0, num_poses=400).graph
+    res = solve_auto(graph)
+    cert = res.stats["certificate"]
+    assert cert["certified"] and res.stats["start"] == "certified start", cert["summary"]
+    stair = cert["staircase"]
+    assert stair["certified"] and stair["rank"] == 2
+    assert stair["rank_d"].startswith("not certified (λ_min = -")  # rank d: a local minimum
+    assert "Riemannian staircase to rank 2" in res.stats["reason"]
+    every = solve_auto(graph, AutoConfig(certify=False))
+    assert res.final_energy <= every.final_energy * (1.0 + SAME)
+
+
+def test_a_failed_staircase_leaves_the_pipeline_to_the_starts() -> None:
+    graph = generate_grid("m3500c", seed=1, num_poses=400).graph
+    res = solve_auto(graph)
+    early = res.stats["certificate"]["early"]
+    assert early["summary"].startswith("not certified (λ_min = -")
+    assert early["staircase"]["certified"] is False and early["staircase"]["rank"] > 2
+    assert res.stats["start"] != "certified start" and res.stats["polished_starts"] > 1
+    every = solve_auto(graph, AutoConfig(certify=False))
+    assert abs(res.final_energy - every.final_energy) <= SAME * every.final_energy

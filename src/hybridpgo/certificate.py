@@ -881,6 +881,7 @@ def sesync_certificate(graph: PoseGraph, rotations: FloatArray,
         ok, spec.lambda_min, gap if ok else float("inf"), rel if ok else float("inf"), f,
         time.perf_counter() - t0, reason, rot, trans,
         {"newton_iterations": its, "factorizations": spec.factorizations, "shift": spec.shift,
+         "shift_floor": spec.floor,
          "seconds_setup": t1 - t0, "seconds_refine": t2 - t1, "seconds_spectrum": t3 - t2,
          "objective_before_refine": prob.cost(prob.to_y(rotations))})
 

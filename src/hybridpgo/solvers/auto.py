@@ -10,6 +10,11 @@ solver is named (``--solver auto``).  The paper's pure method stays ``--solver h
    certificate tests F's global minimum there and, when it holds, LM from that certified start
    is the answer: no sweep, no other start, no relaxation check (``stats["start"]`` is
    ``"certified start"``; certified by construction: the polish from F's certified minimum).
+   When Newton's method ends in a local minimum of F (the certificate matrix has a negative
+   eigenvalue: generated grids with large rotation noise), SE-Sync's Riemannian staircase
+   (:func:`hybridpgo.certificate.staircase_start`) escapes it through ranks d+1.. d+3 and a
+   certified rounding is the certified start (``stats["certificate"]["staircase"]``; not under
+   the large-graph policy, where one rank's minimization costs minutes).
    On every benchmark file this is the whole solve (one factorization of F's Newton system on
    most, then LM's usual iterations).  When the certificate fails (or the polish does not
    converge), 1-5 run, the start already computed is reused, and
@@ -60,7 +65,8 @@ solver is named (``--solver auto``).  The paper's pure method stays ``--solver h
 **Large graphs** (``AutoConfig.large_poses``, default 200 000 poses and more): every start,
 sweep and polish costs seconds to minutes, so only the first start of ``large_inits`` that can
 be computed is used, with at most ``large_max_sweeps`` sweeps and one polish (no runner-up, no
-unswept twin, no certificate); ``stats["policy"]`` is ``"large"`` (else ``"full"``) and the
+unswept twin, no certificate after the polish; the early try (0) runs, with that start);
+``stats["policy"]`` is ``"large"`` (else ``"full"``) and the
 reason says so.
 benchmarks/scale.py measures what this costs against the full policy on a 100k-pose city.
 
@@ -379,12 +385,50 @@ def _certificate_info(cert: Any, start: str) -> dict[str, Any]:
         **{k: float(v) for k, v in cert.stats.items()}}
 
 
+def _staircase(graph: PoseGraph, cand: _Candidate, cert: Any,
+               info: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
+    """The early try's second chance: :func:`hybridpgo.certificate.staircase_start` from the
+    start, then the certificate of its rounded, Newton-refined rotations.  Returns the
+    certificate and ``stats["certificate"]`` (with ``staircase``: its ranks, seconds, verdict;
+    ``seconds`` counts the staircase)."""
+    from ..certificate import sesync_certificate, staircase_start
+
+    t0 = time.perf_counter()
+    assert cand.rot is not None and cand.trans is not None
+    try:
+        with np.errstate(over="raise", invalid="raise", divide="raise"):
+            rot, trans, stair = staircase_start(graph, cand.rot, cand.trans)
+    except (HybridPGOError, ValueError, np.linalg.LinAlgError, RuntimeError,
+            FloatingPointError) as exc:
+        info["staircase"] = {"certified": False, "error": str(exc),
+                             "seconds": time.perf_counter() - t0}
+        info["seconds"] += info["staircase"]["seconds"]
+        return cert, info
+    summary = {"certified": bool(stair["certified"]), "rank": int(stair["rank"]),
+               "objective": float(stair["objective"]),
+               "ranks": [{k: float(v) for k, v in r.items()} for r in stair["ranks"]]}
+    if stair["certified"]:
+        rounded = sesync_certificate(graph, rot, trans)
+        if rounded.certified:
+            out = _certificate_info(rounded, cand.init)
+            out["seconds"] = info["seconds"] + time.perf_counter() - t0
+            out["staircase"] = {**summary, "seconds": time.perf_counter() - t0,
+                                "rank_d": info["summary"]}
+            return rounded, out
+        summary["certified"] = False
+    info["staircase"] = {**summary, "seconds": time.perf_counter() - t0}
+    info["seconds"] += info["staircase"]["seconds"]
+    return cert, info
+
+
 def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: InitName,
-                     t_origin: float, progress: ProgressCallback | None,
+                     large: bool, t_origin: float, progress: ProgressCallback | None,
                      iterate: IterateCallback | None
                      ) -> tuple[_Candidate, _Candidate | None, dict[str, Any]]:
     """The early try (``AutoConfig.certify_first``): start ``init``, its rotations refined by
-    Newton's method on SE-Sync's objective and certified, and, when certified, LM from there.
+    Newton's method on SE-Sync's objective and certified (when that finds a local minimum of
+    the objective, and not under the large-graph policy: SE-Sync's Riemannian staircase from
+    there, :func:`_staircase`), and, when certified, LM from the certified start.
 
     Returns the start's candidate (its poses, no sweeps; ``locals`` kept for the sweeps when
     the try fails), the certified start's candidate (None when the certificate failed) and
@@ -410,6 +454,11 @@ def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: 
         iterate(Progress("start", 0, 0, cand.history[0], detail=init), cand.rot, cand.trans)
     cert = sesync_certificate(graph, cand.rot, cand.trans)
     info = _certificate_info(cert, init)
+    floor = cert.stats.get("shift_floor", 0.0)
+    if not cert.certified and cert.lambda_min < -floor and not large:
+        # F's local minimum (a negative eigenvalue): SE-Sync's Riemannian staircase escapes it
+        # through higher ranks; a certified rounding is the certified start
+        cert, info = _staircase(graph, cand, cert, info)
     if not cert.certified:
         return cand, None, info
     check = _Candidate(init, "certified start")
@@ -549,9 +598,13 @@ def _stats(win: _Candidate, cands: list[_Candidate], ranked: list[_Candidate],
     pol = win.polished
     others = ", ".join(f"{c.label} {c.energy:.6g}" for c in polished if c is not win)
     cut = [c.label for c in finalists if c.cut]
+    stair = certificate.get("staircase", {})
+    how = (f"SE-Sync's Riemannian staircase to rank {stair['rank']}, rounded and refined by "
+           "Newton's method" if stair.get("certified") and win.label == "certified start"
+           else "its rotations refined by Newton's method on SE-Sync's objective")
     swept = (f"{win.sweeps} sweep(s) kept of {win.sweeps_run} run" if win.label == win.init
-             else "its certified start (its rotations refined by Newton's method on SE-Sync's "
-             "objective)" if win in checks else "its own poses, no sweeps")
+             else f"its certified start ({how})" if win in checks
+             else "its own poses, no sweeps")
     reason = (f"{policy}start {win.init}: {swept}, then "
               f"{pol.iterations} LM iteration(s), {pol.status.value}")
     if others:
@@ -646,17 +699,12 @@ def _full_pipeline(graph: PoseGraph, exact: ExactSolver | None, cfg: AutoConfig,
         if first is not None:
             certificate["first"] = {"start": first["start"], "summary": first["summary"]}
             certificate["seconds"] += first["seconds"]
-    if early is not None:  # the early try's cost and verdict
-        certificate["early"] = {"start": early[2]["start"], "summary": early[2]["summary"],
-                                "seconds": early_s}
-        certificate["seconds"] += early_s
     for check in checks:  # the certificate's own polish: a candidate only when it wins
         if check.polished is not None and check.polished.status is Status.CONVERGED and (
                 check.energy < win.energy * (1.0 - _TIE)):
             cands.append(check)
             win = check
-    polish_s = (time.perf_counter() - t_polish - float(certificate["seconds"]) + early_s
-                - sum(misfit_s))
+    polish_s = time.perf_counter() - t_polish - float(certificate["seconds"]) - sum(misfit_s)
     t_relax = time.perf_counter()
     folded = outliers and _misfit(graph, win)
     if certificate["certified"]:
@@ -684,6 +732,11 @@ def _full_pipeline(graph: PoseGraph, exact: ExactSolver | None, cfg: AutoConfig,
                 check.energy < win.energy * (1.0 - _TIE)):
             cands.append(check)
             win = check
+    if early is not None:  # the early try's cost and verdict
+        certificate["early"] = {
+            "start": early[2]["start"], "summary": early[2]["summary"], "seconds": early_s,
+            **({"staircase": early[2]["staircase"]} if "staircase" in early[2] else {})}
+        certificate["seconds"] += early_s
     return (win, cands + ranked[len(usable):], ranked, finalists, polished, checks,
             certificate, relax, polish_s, relax_s, sum(misfit_s), hybrid_s)
 
@@ -743,14 +796,15 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     why = _certificate_applies(graph, cfg, large)
     early: tuple[_Candidate, _Candidate | None, dict[str, Any]] | None = None
     exact = None  # built once, before the first polish (the sweeps' memory comes first)
-    if not why and cfg.certify_first:
+    if cfg.certify_first and not _certificate_applies(graph, cfg, False):  # also when large
         from ..certificate import ensure_compiled as ensure_certificate
 
         t_compile = time.perf_counter()
         compile_s += ensure_certificate(graph.is_2d)
         t_origin += time.perf_counter() - t_compile  # compilation is not the solve's time
         exact = ExactSolver(graph, cfg.polish)
-        early = _certified_start(exact, cfg, tree, inits[0], t_origin, progress, iterate)
+        early = _certified_start(exact, cfg, tree, inits[0], large, t_origin, progress,
+                                 iterate)
     if early is not None and early[2]["certified"]:
         ready, win, certificate = early
         assert win is not None
