@@ -224,7 +224,7 @@ def test_no_file_start_without_vertices(tmp_path: Path, data_dir: Path) -> None:
 
 def test_without_sweeps_the_pipeline_is_lm_from_the_start(data_dir: Path) -> None:
     graph = read_graph(data_dir / "smallGrid3D.g2o")
-    result = optimize(graph, "auto", sweeps=0, init="tree")
+    result = optimize(graph, "auto", sweeps=0, init="tree", certify_first=False)
     direct = optimize(graph, "exact", init="tree")
     assert result.stats["init"] == "tree" and result.iterations == 0
     assert list(result.stats["candidates"]) == ["tree"]
@@ -235,7 +235,8 @@ def test_without_sweeps_the_pipeline_is_lm_from_the_start(data_dir: Path) -> Non
 
 def test_sweeps_stop_when_they_stop_paying(data_dir: Path) -> None:
     graph = read_graph(data_dir / "smallGrid3D.g2o")
-    cfg = AutoConfig(inits=("tree",), sweep_tolerance=0.2, sweeps=HybridConfig(sweeps=50))
+    cfg = AutoConfig(inits=("tree",), sweep_tolerance=0.2, sweeps=HybridConfig(sweeps=50),
+                     certify_first=False)
     c = solve_auto(graph, cfg).stats["candidates"]["tree"]
     hist = optimize(graph, "hybrid", init="tree", sweeps=c["sweeps_run"]).energy_history
     drops = 1 - hist[1:] / hist[:-1]
@@ -386,7 +387,7 @@ def test_a_swept_start_is_also_polished_from_its_own_poses(data_dir: Path) -> No
     assert raw["final_energy"] == pytest.approx(direct.final_energy, rel=FLOAT64_IDENTITY)
     assert raw["polish_iterations"] == direct.iterations
     off = solve_auto(graph, AutoConfig(inits=("tree",), sweeps=HybridConfig(sweeps=3),
-                                       polish_unswept=False))
+                                       polish_unswept=False, certify_first=False))
     assert list(off.stats["candidates"]) == ["tree"]
 
 
@@ -399,7 +400,7 @@ def test_large_graph_policy_one_start_no_sweeps_one_polish(gps: int) -> None:
     assert not AutoConfig(large_poses=None).is_large(10**9)
     full = optimize(graph)
     assert full.stats["policy"] == "full"
-    large = optimize(graph, AutoConfig(large_poses=graph.num_nodes))
+    large = optimize(graph, AutoConfig(large_poses=graph.num_nodes, certify_first=False))
     assert large.stats["policy"] == "large"
     assert large.stats["reason"].startswith("large-graph policy")
     assert list(large.stats["candidates"]) == ["chordal"]  # the first of large_inits
@@ -416,7 +417,8 @@ def test_large_graph_policy_one_start_no_sweeps_one_polish(gps: int) -> None:
 
 def test_large_graph_policy_falls_back_to_the_next_start() -> None:
     graph, _, _ = random_graph(np.random.default_rng(9), n=20, extra=10)
-    cfg = AutoConfig(large_poses=2, large_inits=("file", "tree"), large_max_sweeps=2)
+    cfg = AutoConfig(large_poses=2, large_inits=("file", "tree"), large_max_sweeps=2,
+                     certify_first=False)
     res = optimize(graph, cfg)
     assert list(res.stats["candidates"]) == ["file"]
     assert res.stats["candidates"]["file"]["sweeps_run"] <= 2
