@@ -122,7 +122,8 @@ class GaussNewtonConfig(RobustOptions):
     counts, and so does a GN step together with its halvings."""
     energy_tolerance: float = 1e-10
     """Stop (converged) when an accepted step changes the energy by ``|dE| / E < energy_tolerance``
-    (or when E reaches exactly 0)."""
+    and the geometric tail at the last two steps' rate would too (or when E reaches exactly 0);
+    LM that converges while damped above ``initial_damping`` goes on once from there."""
     step_tolerance: float = 1e-12
     """Stop (converged) when the accepted step satisfies
     ``max_i |delta_i|_inf < step_tolerance * (1 + max_i |t_i|_inf)`` (delta in (rho, phi) units:

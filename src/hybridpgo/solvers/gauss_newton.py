@@ -392,6 +392,8 @@ def _iterate(run: _Run, limit: int, t_start: float, t_analyze: float,
     mu = cfg.initial_damping
     nu = 2.0
     accepted = rejected = halvings = 0
+    undamped = False  # LM: the convergence test has restarted from the initial damping
+    last_drop = np.inf  # the last accepted step's decrease of E
     status = Status.MAX_ITERATIONS
     iteration = 0
     if run.pat.num_vars == 0 or e_cur == 0.0:
@@ -421,8 +423,22 @@ def _iterate(run: _Run, limit: int, t_start: float, t_analyze: float,
             run.accept()
             e_prev = e_cur
             e_cur = run.assemble()
-            if e_cur == 0.0 or abs(e_prev - e_cur) <= cfg.energy_tolerance * e_prev:
-                status = Status.CONVERGED
+            drop = e_prev - e_cur
+            rate = drop / last_drop if 0.0 < drop < last_drop else 0.0 if drop <= 0.0 else 1.0
+            last_drop = drop
+            # converged: this change, and what the next ones would add if E kept falling at
+            # this rate (a geometric tail: large-residual graphs converge linearly, each step
+            # changing E by less than the tolerance while far more of it remains)
+            ahead = abs(drop) * rate / (1.0 - rate) if rate < 1.0 else np.inf
+            if e_cur == 0.0 or (abs(drop) <= cfg.energy_tolerance * e_prev
+                                and ahead <= cfg.energy_tolerance * e_prev):
+                if cfg.method == "lm" and mu > cfg.initial_damping and not undamped:
+                    # a small change under heavy damping can be slow progress (ill-conditioned
+                    # graphs: linear convergence at mu ~ 1e-3): once, go on from the initial
+                    # damping; where the optimum is reached the next step confirms it
+                    mu, nu, undamped = cfg.initial_damping, 2.0, True
+                else:
+                    status = Status.CONVERGED
             elif step_small and scale == 1.0:
                 status = Status.CONVERGED
         else:
