@@ -13,8 +13,7 @@ solver is named (``--solver auto``).  The paper's pure method stays ``--solver h
    When Newton's method ends in a local minimum of F (the certificate matrix has a negative
    eigenvalue: generated grids with large rotation noise), SE-Sync's Riemannian staircase
    (:func:`hybridpgo.certificate.staircase_start`) escapes it through ranks d+1.. d+3 and a
-   certified rounding is the certified start (``stats["certificate"]["staircase"]``; not under
-   the large-graph policy, where one rank's minimization costs minutes).
+   certified rounding is the certified start (``stats["certificate"]["staircase"]``).
    On every benchmark file this is the whole solve (one factorization of F's Newton system on
    most, then LM's usual iterations).  When the certificate fails (or the polish does not
    converge), 1-5 run, the start already computed is reused, and
@@ -65,7 +64,8 @@ solver is named (``--solver auto``).  The paper's pure method stays ``--solver h
 **Large graphs** (``AutoConfig.large_poses``, default 200 000 poses and more): every start,
 sweep and polish costs seconds to minutes, so only the first start of ``large_inits`` that can
 be computed is used, with at most ``large_max_sweeps`` sweeps and one polish (no runner-up, no
-unswept twin, no certificate after the polish; the early try (0) runs, with that start);
+unswept twin, no certificate, no early try: measured on a 1M-pose city, the early try did not
+certify and cost two more minutes and a peak of 12 GB);
 ``stats["policy"]`` is ``"large"`` (else ``"full"``) and the
 reason says so.
 benchmarks/scale.py measures what this costs against the full policy on a 100k-pose city.
@@ -422,13 +422,13 @@ def _staircase(graph: PoseGraph, cand: _Candidate, cert: Any,
 
 
 def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: InitName,
-                     large: bool, t_origin: float, progress: ProgressCallback | None,
+                     t_origin: float, progress: ProgressCallback | None,
                      iterate: IterateCallback | None
                      ) -> tuple[_Candidate, _Candidate | None, dict[str, Any]]:
     """The early try (``AutoConfig.certify_first``): start ``init``, its rotations refined by
     Newton's method on SE-Sync's objective and certified (when that finds a local minimum of
-    the objective, and not under the large-graph policy: SE-Sync's Riemannian staircase from
-    there, :func:`_staircase`), and, when certified, LM from the certified start.
+    the objective: SE-Sync's Riemannian staircase from there, :func:`_staircase`), and, when
+    certified, LM from the certified start.
 
     Returns the start's candidate (its poses, no sweeps; ``locals`` kept for the sweeps when
     the try fails), the certified start's candidate (None when the certificate failed) and
@@ -455,7 +455,7 @@ def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: 
     cert = sesync_certificate(graph, cand.rot, cand.trans)
     info = _certificate_info(cert, init)
     floor = cert.stats.get("shift_floor", 0.0)
-    if not cert.certified and cert.lambda_min < -floor and not large:
+    if not cert.certified and cert.lambda_min < -floor:
         # F's local minimum (a negative eigenvalue): SE-Sync's Riemannian staircase escapes it
         # through higher ranks; a certified rounding is the certified start
         cert, info = _staircase(graph, cand, cert, info)
@@ -796,15 +796,14 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     why = _certificate_applies(graph, cfg, large)
     early: tuple[_Candidate, _Candidate | None, dict[str, Any]] | None = None
     exact = None  # built once, before the first polish (the sweeps' memory comes first)
-    if cfg.certify_first and not _certificate_applies(graph, cfg, False):  # also when large
+    if cfg.certify_first and not why:
         from ..certificate import ensure_compiled as ensure_certificate
 
         t_compile = time.perf_counter()
         compile_s += ensure_certificate(graph.is_2d)
         t_origin += time.perf_counter() - t_compile  # compilation is not the solve's time
         exact = ExactSolver(graph, cfg.polish)
-        early = _certified_start(exact, cfg, tree, inits[0], large, t_origin, progress,
-                                 iterate)
+        early = _certified_start(exact, cfg, tree, inits[0], t_origin, progress, iterate)
     if early is not None and early[2]["certified"]:
         ready, win, certificate = early
         assert win is not None

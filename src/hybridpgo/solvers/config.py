@@ -365,8 +365,7 @@ class AutoConfig:
     certified start is the answer (no sweeps, no other start: ``stats["start"]`` is
     ``"certified start"``).  When the certificate fails or does not apply, the pipeline runs
     as with ``False`` (sweeps, finalists, ``certify``) and ``stats["certificate"]["early"]``
-    says what the early try found.  Needs ``certify``; runs under the large-graph policy too
-    (with its first start)."""
+    says what the early try found.  Needs ``certify``; not under the large-graph policy."""
     relaxation: bool = True
     """Planar graphs (2D, no GPS, no robust kernel, at most one FIX node; not under the
     large-graph policy): after the polish, run the rank-2 relaxation of the chordal cost
@@ -388,8 +387,8 @@ class AutoConfig:
     every start, sweep and polish costs seconds to minutes there (a 1M-pose city: one sweep
     20-40 s, one LM iteration ~10 s): only the first applicable start of ``large_inits``, at
     most ``large_max_sweeps`` sweeps, one polish (``finalists=1``, no ``polish_unswept``, no
-    certificate after the polish; ``certify_first`` still tries that start first).  The
-    result's ``stats["policy"]`` and its ``reason`` say which policy ran."""
+    certificate, no early try).  The result's ``stats["policy"]`` and its ``reason`` say which
+    policy ran."""
     large_inits: tuple[InitName, ...] = ("chordal", "file", "tree")
     """Starts of the large-graph policy, in order of preference: the first that applies (and
     can be computed) is the only one swept and polished."""
