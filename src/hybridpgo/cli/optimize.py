@@ -201,19 +201,20 @@ def _compile_kernels(job: Job, graph: PoseGraph) -> None:
     """Compile (or load from Numba's cache) the kernels this solve uses under a visible phase
     (the GPS batches and interpolated solving only when the graph and options use them)."""
     from ..solvers.gauss_newton import ensure_compiled as ensure_exact
-    from ..solvers.hybrid.solver import ensure_compiled as ensure_hybrid
     from ._progress import phase
 
     exact = job.solver in ("exact", "auto") or bool(job.options.get("polish"))
     # the default pipeline's early try (a certified start) needs no sweep: its kernels come
-    # first, and a second core compiles the sweep's in case the certificate fails
+    # first, and a second core compiles the sweep's in case the certificate fails (the cold
+    # cache is probed by "finish", whose modules are imported anyway: "sweep"'s probe would
+    # import the hybrid solver on every warm run)
     early = (job.solver == "auto" and graph.num_gps == 0 and not job.options.get("sweeps")
              and job.options.get("robust", "auto") in ("auto", "none"))
     if job.solver in ("hybrid", "auto"):  # a second core compiles what comes after the sweep
         from .._precompile import start
 
         # in the order the solve needs them: after the sweep, the polish, the starts
-        start(["sweep", "finish"] if early else
+        start(["finish", "sweep"] if early else
               ["finish", "exact", "starts", "exact-solve"] if exact else ["finish", "starts"])
     with phase("compiling kernels (first run only)", enabled=not job.quiet):
         if early:
@@ -223,6 +224,8 @@ def _compile_kernels(job: Job, graph: PoseGraph) -> None:
             ensure_certificate(graph.is_2d)
             return
         if job.solver in ("hybrid", "auto"):
+            from ..solvers.hybrid.solver import ensure_compiled as ensure_hybrid
+
             ensure_hybrid(graph.num_gps > 0, bool(job.options.get("dmax")),
                           job.options.get("step") == "givens")
         if exact:
