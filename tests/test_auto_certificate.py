@@ -241,3 +241,39 @@ def test_a_failed_staircase_leaves_the_pipeline_to_the_starts() -> None:
     assert res.stats["start"] != "certified start" and res.stats["polished_starts"] > 1
     every = solve_auto(graph, AutoConfig(certify=False))
     assert abs(res.final_energy - every.final_energy) <= SAME * every.final_energy
+
+
+def test_an_early_try_that_fails_leaves_the_pipeline_to_the_starts(monkeypatch) -> None:
+    """A certificate that raises, or a first start that cannot be computed: the early try says
+    why and the starts run; the answer is the every-start pipeline's."""
+    import hybridpgo.certificate as certificate
+    import hybridpgo.solvers.auto as auto
+
+    graph = _grid2d()
+    every = solve_auto(graph, AutoConfig(certify=False))
+
+    def broken(*args, **kwargs):
+        raise ValueError("no factorization today")
+
+    certificate.ensure_compiled(graph.is_2d)  # its warm-up certifies a tiny graph
+    with monkeypatch.context() as m:
+        m.setattr(certificate, "sesync_certificate", broken)
+        res = solve_auto(graph)
+    assert res.stats["certificate"]["early"]["summary"] == (
+        "not certified: the certificate failed: no factorization today")
+    assert res.stats["start"] != "certified start" and res.stats["polished_starts"] >= 1
+    assert abs(res.final_energy - every.final_energy) <= SAME * every.final_energy
+
+    real = auto.initial_locals
+
+    def no_chordal(graph, tree, init="tree"):
+        if init == "chordal":
+            raise np.linalg.LinAlgError("singular")
+        return real(graph, tree, init)
+
+    monkeypatch.setattr(auto, "initial_locals", no_chordal)
+    res = solve_auto(graph)
+    early = res.stats["certificate"]["early"]
+    assert early["start"] == "chordal" and "the start chordal failed: singular" in early["summary"]
+    assert res.stats["init"] != "chordal"
+    assert "start: singular" in res.stats["candidates"]["chordal"]["error"]

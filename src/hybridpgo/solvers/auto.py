@@ -444,7 +444,7 @@ def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: 
         cand.locals = initial_locals(graph, tree, init)
     except (HybridPGOError, ValueError, np.linalg.LinAlgError, RuntimeError) as exc:
         cand.error = f"start: {exc}"
-        return cand, None, _not_computed(f"the start {init} failed: {exc}")
+        return cand, None, {**_not_computed(f"the start {init} failed: {exc}"), "start": init}
     cand.rot, cand.trans = cand.start = global_poses(tree, *cand.locals)
     cand.start_seconds = time.perf_counter() - t0
     cand.history.append(robust_energy(graph, cand.rot, cand.trans)[0])
@@ -453,7 +453,10 @@ def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: 
         progress(Progress("start", 0, 0, cand.history[0], detail=init))
     if iterate is not None:
         iterate(Progress("start", 0, 0, cand.history[0], detail=init), cand.rot, cand.trans)
-    cert = sesync_certificate(graph, cand.rot, cand.trans)
+    try:
+        cert = sesync_certificate(graph, cand.rot, cand.trans)
+    except (HybridPGOError, ValueError, np.linalg.LinAlgError, RuntimeError) as exc:
+        return cand, None, {**_not_computed(f"the certificate failed: {exc}"), "start": init}
     info = _certificate_info(cert, init)
     floor = cert.stats.get("shift_floor", 0.0)
     if not cert.certified and cert.lambda_min < -floor:
