@@ -304,7 +304,9 @@ def _auto_polish() -> GaussNewtonConfig:
 class AutoConfig:
     """Options of the default pipeline :func:`hybridpgo.solvers.auto.solve_auto`.
 
-    For every start in ``inits`` (``"file"`` skipped when the file has no vertices): hybrid
+    First (``certify_first``, where SE-Sync's certificate applies) the first start of
+    ``inits`` alone: certified, LM from its certified start is the answer.  Otherwise, for
+    every start in ``inits`` (``"file"`` skipped when the file has no vertices): hybrid
     sweeps (options ``sweeps``) while they pay (each sweep must lower the energy by at least
     ``sweep_tolerance``, relative; the best poses seen are kept, so a sweep that raises E is
     undone), then the ``finalists`` starts with the lowest energy are polished with
