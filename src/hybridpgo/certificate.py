@@ -801,17 +801,10 @@ def ensure_compiled(planar: bool) -> float:
     seconds spent (0 when already done)."""
     if planar in _COMPILED:
         return 0.0
+    from ._warmup import tiny_graph
+
     t0 = time.perf_counter()
-    c, s_ = np.cos(0.3), np.sin(0.3)
-    turn = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
-    rot = np.stack([np.eye(3), turn, turn @ turn])
-    step = np.array([1.0, 0.0, 0.0 if planar else 0.5])
-    graph = PoseGraph(
-        node_ids=np.arange(3), rotations=rot, translations=np.cumsum([0 * step, step, step], 0),
-        edge_nodes=np.array([[0, 1], [1, 2], [0, 2]], np.int32),
-        edge_rotations=np.stack([turn, turn, turn @ turn]),
-        edge_translations=np.stack([step, step, step + turn @ step]),
-        edge_information=np.tile(np.eye(6), (3, 1, 1)), is_2d=planar)
+    graph = tiny_graph(planar=planar)
     sesync_certificate(graph, graph.rotations, graph.translations)
     _COMPILED.add(planar)
     return time.perf_counter() - t0

@@ -655,8 +655,10 @@ def _full_pipeline(graph: PoseGraph, exact: ExactSolver | None, cfg: AutoConfig,
     relaxation, outlier checks and hybrid kernels' compilation."""
     from .hybrid.solver import ensure_compiled as ensure_hybrid
 
+    # the early try's cost: from its start's poses to here (certificate, staircase, polish)
+    early_s = (time.perf_counter() - t_origin - early[0].times[0]
+               if early is not None and early[0].times else 0.0)
     hybrid_s = ensure_hybrid()
-    t_start = time.perf_counter()
     cands = _swept_starts(graph, cfg, tree, inits, large, t_origin, progress, iterate,
                           None if early is None else early[0])
     usable = [c for c in cands if c.rot is not None and np.isfinite(c.energy)]
@@ -670,13 +672,7 @@ def _full_pipeline(graph: PoseGraph, exact: ExactSolver | None, cfg: AutoConfig,
     t_polish = time.perf_counter()
     if exact is None:
         exact = ExactSolver(graph, cfg.polish)
-    checks: list[_Candidate] = []
-    early_s = 0.0
-    if early is not None:
-        early_s = float(early[2]["seconds"])
-        if early[1] is not None:
-            checks.append(early[1])
-            early_s = t_start - t_origin - early[0].times[0]
+    checks: list[_Candidate] = [] if early is None or early[1] is None else [early[1]]
     misfit_s: list[float] = []  # robust="auto": seconds of each misfit check
 
     def misfit(cand: _Candidate) -> bool:
@@ -796,7 +792,6 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     if not inits:
         raise SolverError("no start applies: the file has no vertices; add 'tree' or 'chordal' "
                           "to the starts")
-    t_polish = time.perf_counter()
     why = _certificate_applies(graph, cfg, large)
     early: tuple[_Candidate, _Candidate | None, dict[str, Any]] | None = None
     exact = None  # built once, before the first polish (the sweeps' memory comes first)
@@ -805,7 +800,8 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
 
         t_compile = time.perf_counter()
         compile_s += ensure_certificate(graph.is_2d)
-        t_origin += time.perf_counter() - t_compile  # compilation is not the solve's time
+        t_polish = time.perf_counter()
+        t_origin += t_polish - t_compile  # compilation is not the solve's time
         exact = ExactSolver(graph, cfg.polish)
         early = _certified_start(exact, cfg, tree, inits[0], t_origin, progress, iterate)
     if early is not None and early[2]["certified"]:
