@@ -19,6 +19,7 @@ from tolerances import (
 
 from hybridpgo.energy import energy
 from hybridpgo.errors import FormatError, GraphError
+from hybridpgo.io import bundled_path, read_graph
 from hybridpgo.online import OnlineConfig, OnlineSolver
 from hybridpgo.online._link import adopt_result
 from hybridpgo.online.replay import feed_frame, make_stream, prefix_optima
@@ -369,6 +370,25 @@ def test_update_stops_early_on_a_backlog() -> None:
     assert r.skipped >= 1
     r = s.update(None, None)
     assert r.backlog == 0 and r.new == total - 11 and r.old > 0
+
+
+def test_poses_hung_from_old_poses_stay_rotations_without_updates() -> None:
+    """A pose hung from an old pose gets its local rotation through the inverse of that pose's
+    global rotation; any error left in it doubles at every later pose hung through it.  With
+    no update to re-orthonormalize anything (``max_updates=0``), M3500_isam's first 500
+    frames must keep every local rotation orthonormal to rounding."""
+    g = read_graph(bundled_path("M3500_isam.txt"))
+    st = make_stream(g)
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    for k in range(500):
+        feed_frame(s, st, k)
+        s.update(None, 0)
+    assert s.backlog > 0  # nothing was relaxed
+    rot = s.store.rot[1: s.store.placed + 1]
+    err = np.abs(np.einsum("kji,kjl->kil", rot, rot) - np.eye(3)).max()
+    assert err <= FLOAT64_IDENTITY
+    _, trans = s.estimate()
+    assert np.isfinite(trans).all() and np.abs(trans).max() < 1e3
 
 
 def test_arrays_grow_without_changing_results() -> None:

@@ -412,6 +412,12 @@ class MapStore:
                 else:
                     tk.global_pose(tp, self.parent, self.rot, self.trans, ro, to)
                     rot, trans = ro.T @ gr, ro.T @ (gt - to)
+                if tp != a + 1:
+                    # one Newton step towards the polar factor, R (3I - R^T R) / 2: R^T is the
+                    # inverse of an orthonormal R only, and an error left here doubles at each
+                    # pose hung from an old pose through this one (M3500_isam with no update:
+                    # 1e-12 at frame 144, translations of 1e53 by frame 469)
+                    rot = 0.5 * rot @ (3.0 * np.eye(3) - rot.T @ rot)
             self.parent[node] = tp
             self.depth[node] = self.depth[tp] + 1
             self.rot[node] = rot
