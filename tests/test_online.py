@@ -871,10 +871,12 @@ def test_background_worker_waits_ready_and_runs_one_thread() -> None:
 
 
 def _worker_map(s: OnlineSolver, robust: tuple[str, float | None]) -> Any:
-    """A worker's map (:class:`hybridpgo.online.worker._Map`) holding all of ``s``'s map."""
+    """A worker's map (:class:`hybridpgo.online.worker._Map`) holding all of ``s``'s map;
+    no request counts as slow (the LM measurement after a slow one depends on the clock)."""
     from hybridpgo.online import worker
 
     mp = worker._Map(robust)
+    mp.slow_s = np.inf
     _ship(mp, s)
     return mp
 
@@ -1080,6 +1082,7 @@ def test_the_worker_solves_the_gauge_switch_to_gps_with_lm() -> None:
     st = make_stream(g)
     s = OnlineSolver(OnlineConfig(background_refine=False))
     mp = worker._Map(("none", None))
+    mp.slow_s = np.inf  # the LM measurement after a slow request depends on the clock
     k = 0
     while st.gps_ptr[k + 1] < worker.GPS_GAUGE - 1:
         feed_frame(s, st, k)
@@ -1131,3 +1134,38 @@ def test_an_answer_older_than_the_tail_limit_is_not_adopted() -> None:
     assert not link.fresh(store, SimpleNamespace(holds_all=(50, 9)))  # one GPS more
     assert not link.fresh(store, SimpleNamespace(holds_all=(0, 0)))
     assert link.stale == 2
+
+
+@pytest.mark.parametrize("lm_faster", [True, False])
+@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
+def test_background_worker_measures_lm_after_a_slow_incremental_request(
+        data_dir: Path, monkeypatch: pytest.MonkeyPatch, lm_faster: bool) -> None:
+    """An incremental request that took SLOW_INCREMENTAL_S has the next request solved by LM
+    (which still reaches the optimum); when LM was the faster (prefer_lm) the map stays with
+    LM and says why, else a new incremental solver starts at LM's optimum and answers the
+    request after.  The choice itself is a pure function of the two times."""
+    from hybridpgo.io import read_graph
+    from hybridpgo.online import worker
+
+    assert worker.prefer_lm(1.0, 0.4) and not worker.prefer_lm(1.0, 0.6)
+    assert not worker.prefer_lm(np.nan, 0.1) and not worker.prefer_lm(1.0, np.nan)
+    g = read_graph(data_dir / "w100_toro.graph")
+    st = make_stream(g)
+    opt = prefix_optima(st, [st.num_frames])[st.num_frames]
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    _stream(s, g, range(g.num_nodes))
+    mp = _worker_map(s, ("none", None))
+    mp.slow_s = 0.0  # every incremental request counts as slow
+    monkeypatch.setattr(worker, "prefer_lm", lambda inc, lm: lm_faster)
+    _, meta = mp.solve(50)
+    assert meta["incremental"] and np.isfinite(mp.inc_seconds)
+    _, meta = mp.solve(50)  # the measurement: LM
+    assert not meta["incremental"] and np.isfinite(mp.lm_seconds)
+    assert abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
+    if lm_faster:
+        assert mp.inc is None and "LM is faster" in meta["fallback"]
+    else:
+        assert mp.inc is not None and meta["fallback"] == ""
+    _, meta = mp.solve(50)
+    assert meta["incremental"] is not lm_faster
+    assert abs(meta["energy"] - opt) <= ONLINE_REFINED * opt

@@ -82,6 +82,9 @@ class WorkerLink:
         self._ship_frames: dict[int, int] = {}
         self.rescreens = 0
         """The newest answer's count of screenings that ran the robust re-solve."""
+        self.fallback = ""
+        """The newest answer's word on why the worker left its incremental solver ("": it
+        has not)."""
 
     def close(self) -> None:
         self.refiner.close()
@@ -164,6 +167,7 @@ class WorkerLink:
             return False
         self.refined = res.holds_all
         self.rescreens = res.rescreens
+        self.fallback = res.fallback
         self.tail, self.tail_ok = (n, *res.holds_all), True
         self.adopted += 1
         self.adopt_s_max = max(self.adopt_s_max, time.perf_counter() - t0)
@@ -211,4 +215,5 @@ class WorkerLink:
                 "results_other_gauge": self.other_gauge, "rescreens": self.rescreens,
                 "adopt_ms_max": self.adopt_s_max * 1e3,
                 "lag_frames_max": self.lag_max, "results_received": self.refiner.results,
+                "worker_fallback": self.fallback,
                 "error": self.refiner.error}

@@ -176,6 +176,9 @@ class Refined:
     rescreens: int = 0
     """``robust="auto"``: the worker's screenings so far that found its map inconsistent
     (each ran the robust re-solve)."""
+    fallback: str = ""
+    """Why the worker's map has left the incremental solver ("" while it has not: a
+    failed incremental solve, or LM being the faster on this map)."""
 
     @property
     def holds_all(self) -> tuple[int, int]:
@@ -258,7 +261,7 @@ class BackgroundRefiner:
                             float(meta["seconds"]),
                             (int(meta["m_held"]), int(meta["g_held"])),
                             (arrays["rejected_m"], arrays["rejected_g"]),
-                            int(meta["rescreens"]))
+                            int(meta["rescreens"]), str(meta.get("fallback", "")))
                         self.results += 1
                         self._answered = max(self._answered, int(meta["req"]))
                     else:
@@ -384,6 +387,27 @@ SCREEN_SHARE = 0.2
 #: cover yet composed onto their parents).  M3500_isam streamed back to back on a loaded 2-core
 #: machine: most answers take 1-3 ms, the longest (some 200 frames of new data at once) 2 s.
 SOLVE_CAP_S = 1.0
+#: An incremental request that takes this long (seconds) has the next request solved by LM
+#: instead, which measures LM's time on the map (:meth:`_Map.solve`).
+SLOW_INCREMENTAL_S = 0.25
+#: The map stays with LM once LM's solve took less than this share of the recent incremental
+#: requests' time (their moving average, :data:`INCREMENTAL_RATE`).  The incremental factor is
+#: a left-looking 6x6-block Cholesky without supernodes: on a lattice-like map, where each
+#: update re-eliminates most of the map and the fill is large, a warm LM solve (CHOLMOD, the
+#: planar system where the map is planar) is the faster of the two (grid10k streamed back to
+#: back: incremental requests of 0.6-2.6 s, 1 s capped answers that held too few constraints
+#: to be adopted, 1.17x the optimum 400 frames after the stream's end; a warm LM solve of the
+#: whole map 0.4-0.5 s).
+LM_PREFERRED_SHARE = 0.5
+#: Weight of the newest incremental request's time in their moving average.
+INCREMENTAL_RATE = 0.5
+
+
+def prefer_lm(incremental_s: float, lm_s: float) -> bool:
+    """Whether the map should stay with LM: its solve took less than
+    :data:`LM_PREFERRED_SHARE` of the incremental requests' moving average (both measured on
+    this map; NaN when not measured yet: False)."""
+    return bool(lm_s < LM_PREFERRED_SHARE * incremental_s)
 
 
 class _Map:
@@ -399,7 +423,11 @@ class _Map:
     the previous optimum.  When an incremental solve fails (an error of the factorization, or
     an energy above the one it started from) LM answers that request from the last good
     estimate and a new incremental solver starts there; after :data:`MAX_RESETS` failures the
-    map stays with LM (``fallback`` says why, ``resets`` how often).  The request that brings
+    map stays with LM (``fallback`` says why, ``resets`` how often).  An incremental request
+    that takes :data:`SLOW_INCREMENTAL_S` has the next one solved by LM, which measures LM on
+    this map: when LM took less than :data:`LM_PREFERRED_SHARE` of the incremental requests'
+    time the map stays with LM (:func:`prefer_lm`), else a new incremental solver starts at
+    LM's optimum.  The request that brings
     the :data:`GPS_GAUGE`-th GPS reading is solved by LM too (the gauge moves from the first
     pose to the earth), and the incremental solver starts again at its optimum.
     """
@@ -426,6 +454,13 @@ class _Map:
         self.fallback = ""
         #: failed incremental solves so far (each answered by LM, then the solver started again)
         self.resets = 0
+        #: moving average of the incremental requests' seconds, and the last LM solve's (NaN:
+        #: not measured yet); the next request is solved by LM to measure it (:meth:`solve`)
+        self.inc_seconds = np.nan
+        self.lm_seconds = np.nan
+        self._measure_lm = False
+        #: an incremental request this long (seconds) has the next one measure LM
+        self.slow_s = SLOW_INCREMENTAL_S
         #: whether the gauge is the earth (:data:`GPS_GAUGE` readings; before: the first pose)
         self.earth = False
         # the LM path's copy: global poses of tree nodes (the estimate) and the measurements
@@ -518,7 +553,11 @@ class _Map:
         # by LM (damped), and the incremental solver starts again at its optimum
         switch = not self.earth and g >= GPS_GAUGE
         self.earth = self.earth or switch
-        if self.inc is not None and not switch:
+        # an incremental request took SLOW_INCREMENTAL_S: this one is solved by LM, which
+        # measures LM on this map; the map then stays with the faster of the two (prefer_lm)
+        measure = self._measure_lm and self.inc is not None and not switch
+        self._measure_lm = False
+        if self.inc is not None and not (switch or measure):
             e_start = self._energy()
             try:
                 cycles = int(self.inc.stats["cycles"])
@@ -536,6 +575,11 @@ class _Map:
                 self.grot = self._append(self.grot, 1, rot)
                 self.gtr = self._append(self.gtr, 1, trans)
                 held = (self._held(self.keep_m[:m], m_est), self._held(self.keep_g[:g], g_est))
+                took = time.perf_counter() - t0
+                self.inc_seconds = (took if not np.isfinite(self.inc_seconds) else
+                                    self.inc_seconds + INCREMENTAL_RATE
+                                    * (took - self.inc_seconds))
+                self._measure_lm = took >= self.slow_s
             except (HybridPGOError, ValueError, ArithmeticError, MemoryError,
                     np.linalg.LinAlgError) as exc:
                 # e.g. an undamped step from a poor estimate: LM (damped) solves this request
@@ -547,8 +591,10 @@ class _Map:
         # stopped by its cap (false closures slow it down) is finished by LM
         finish = (thorough and self.auto and self.inc is not None and not (failed or switch)
                   and (held != (m, g) or status != "converged"))
-        if (self.inc is None or failed or switch or finish) and n >= 2:
+        if (self.inc is None or failed or switch or finish or measure) and n >= 2:
+            t_lm = time.perf_counter()
             energy, iterations, status = self._solve_lm(max_iterations)
+            self.lm_seconds = time.perf_counter() - t_lm
             held = (m, g)
         # screened at every answer that holds everything shipped, converged or not (false
         # closures slow the least-squares solve down: M3500 with 100 of them, streamed, hit
@@ -559,9 +605,13 @@ class _Map:
                     and self._screen(thorough))
         if screened:
             energy = self._energy()
-        if failed:
+        if measure and prefer_lm(self.inc_seconds, self.lm_seconds):
+            self.inc = None
+            self.fallback = (f"LM is faster on this map: {self.lm_seconds:.3g} s against "
+                             f"{self.inc_seconds:.3g} s per incremental request")
+        elif failed:
             self._reseed()
-        elif (switch or screened or finish) and self.inc is not None:
+        elif (switch or screened or finish or measure) and self.inc is not None:
             self.inc = self._incremental_here()
         seconds = time.perf_counter() - t0
         lrot = np.empty((n + 1, 3, 3))
@@ -572,7 +622,7 @@ class _Map:
                 "g_held": held[1], "energy": energy,
                 "iterations": iterations, "status": status, "seconds": seconds,
                 "incremental": self.inc is not None and not (failed or switch or screened
-                                                             or finish),
+                                                             or finish or measure),
                 "fallback": self.fallback,
                 "resets": self.resets, "rescreens": self.rescreens,
                 "thorough": self.auto and thorough and held == (m, g)}
