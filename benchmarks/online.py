@@ -259,7 +259,8 @@ def run(ctx: Context) -> Result:
                  if s.get("extra_ratio") else "-"),
                 hit if hit is not None else "never",
                 (f"{bgi['results_adopted']} ({bgi.get('results_stale', 0)} stale) / "
-                 f"{bgi['lag_frames_max']} / {bgi['adopt_ms_max']:.2f}" if bgi else "-"),
+                 f"{bgi['lag_frames_max']} / {bgi['adopt_ms_max']:.2f}"
+                 + (" / LM" if bgi.get("worker_fallback") else "") if bgi else "-"),
             ])
         tm, trow = _targets(name, {r.name: r for r in runs}, optima)
         metrics += tm
@@ -277,7 +278,8 @@ def run(ctx: Context) -> Result:
             ["graph", "poses", "edges", "GPS", "solver", "mean", "p99", "max", "CPU max",
              f"frames > {BUDGET_S * 1e3 + 1:.0f} ms CPU", "worst frames (frame:CPU ms)",
              "worst E/opt", "end E/opt", "extra E/opt 10 / N (N)", "extra frames to 1%",
-             "background: adopted (stale) / lag max (frames) / adopt max (ms)"],
+             "background: adopted (stale) / lag max (frames) / adopt max (ms) (/ LM: the "
+             "worker left its incremental solver)"],
             rows,
         ),
         markdown_table(

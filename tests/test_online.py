@@ -1140,8 +1140,8 @@ def test_an_answer_older_than_the_tail_limit_is_not_adopted() -> None:
 @pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
 def test_background_worker_measures_lm_after_a_slow_incremental_request(
         data_dir: Path, monkeypatch: pytest.MonkeyPatch, lm_faster: bool) -> None:
-    """An incremental request that took SLOW_INCREMENTAL_S has the next request solved by LM
-    (which still reaches the optimum); when LM was the faster (prefer_lm) the map stays with
+    """An incremental request that took SLOW_INCREMENTAL_S (past the warm-up requests, on a
+    large enough map) has the next request solved by LM (which still reaches the optimum); when LM was the faster (prefer_lm) the map stays with
     LM and says why, else a new incremental solver starts at LM's optimum and answers the
     request after.  The choice itself is a pure function of the two times."""
     from hybridpgo.io import read_graph
@@ -1155,7 +1155,7 @@ def test_background_worker_measures_lm_after_a_slow_incremental_request(
     s = OnlineSolver(OnlineConfig(background_refine=False))
     _stream(s, g, range(g.num_nodes))
     mp = _worker_map(s, ("none", None))
-    mp.slow_s = 0.0  # every incremental request counts as slow
+    mp.slow_s, mp.warmup, mp.min_poses = 0.0, 0, 0  # every incremental request is slow
     monkeypatch.setattr(worker, "prefer_lm", lambda inc, lm: lm_faster)
     _, meta = mp.solve(50)
     assert meta["incremental"] and np.isfinite(mp.inc_seconds)
@@ -1169,3 +1169,31 @@ def test_background_worker_measures_lm_after_a_slow_incremental_request(
     _, meta = mp.solve(50)
     assert meta["incremental"] is not lm_faster
     assert abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
+
+
+@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
+def test_background_worker_times_no_warm_up_request_nor_a_small_map(data_dir: Path) -> None:
+    """The first INCREMENTAL_WARMUP requests of an incremental solver are not timed (the first
+    factors the whole map, the worker's first may load kernels), nor are requests on a map
+    of fewer than LM_MIN_POSES poses: however slow, they never send the map to LM."""
+    from hybridpgo.io import read_graph
+    from hybridpgo.online import worker
+
+    g = read_graph(data_dir / "w100_toro.graph")
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    _stream(s, g, range(g.num_nodes))
+    small = _worker_map(s, ("none", None))
+    small.slow_s = 0.0  # every request is slow, but the map has 100 poses
+    assert small.min_poses == worker.LM_MIN_POSES > g.num_nodes
+    for _ in range(worker.INCREMENTAL_WARMUP + 2):
+        _, meta = small.solve(50)
+        assert meta["incremental"]
+    mp = _worker_map(s, ("none", None))
+    mp.slow_s, mp.min_poses = 0.0, 0
+    for _ in range(worker.INCREMENTAL_WARMUP):
+        _, meta = mp.solve(50)
+        assert meta["incremental"] and not np.isfinite(mp.inc_seconds)
+    _, meta = mp.solve(50)  # timed, and slow: the next request measures LM
+    assert meta["incremental"] and np.isfinite(mp.inc_seconds)
+    _, meta = mp.solve(50)
+    assert not meta["incremental"] and np.isfinite(mp.lm_seconds)

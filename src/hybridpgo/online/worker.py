@@ -401,6 +401,12 @@ SLOW_INCREMENTAL_S = 0.25
 LM_PREFERRED_SHARE = 0.5
 #: Weight of the newest incremental request's time in their moving average.
 INCREMENTAL_RATE = 0.5
+#: The first requests of an incremental solver are not timed: the first after a new solver
+#: factors the whole map, and the worker's first ones may load kernels (M3500_isam: a 0.47 s
+#: first request); nor are requests on maps of fewer poses than :data:`LM_MIN_POSES`, where
+#: LM is fast only because the map is small (a map that chose LM keeps it as it grows).
+INCREMENTAL_WARMUP = 3
+LM_MIN_POSES = 1000
 
 
 def prefer_lm(incremental_s: float, lm_s: float) -> bool:
@@ -424,8 +430,9 @@ class _Map:
     an energy above the one it started from) LM answers that request from the last good
     estimate and a new incremental solver starts there; after :data:`MAX_RESETS` failures the
     map stays with LM (``fallback`` says why, ``resets`` how often).  An incremental request
-    that takes :data:`SLOW_INCREMENTAL_S` has the next one solved by LM, which measures LM on
-    this map: when LM took less than :data:`LM_PREFERRED_SHARE` of the incremental requests'
+    that takes :data:`SLOW_INCREMENTAL_S` (past the solver's first
+    :data:`INCREMENTAL_WARMUP` requests, on a map of :data:`LM_MIN_POSES` poses or more) has
+    the next one solved by LM, which measures LM on this map: when LM took less than :data:`LM_PREFERRED_SHARE` of the incremental requests'
     time the map stays with LM (:func:`prefer_lm`), else a new incremental solver starts at
     LM's optimum.  The request that brings
     the :data:`GPS_GAUGE`-th GPS reading is solved by LM too (the gauge moves from the first
@@ -459,8 +466,13 @@ class _Map:
         self.inc_seconds = np.nan
         self.lm_seconds = np.nan
         self._measure_lm = False
-        #: an incremental request this long (seconds) has the next one measure LM
+        #: an incremental request this long (seconds) has the next one measure LM, once the
+        #: solver answered this many and the map holds this many poses
         self.slow_s = SLOW_INCREMENTAL_S
+        self.warmup = INCREMENTAL_WARMUP
+        self.min_poses = LM_MIN_POSES
+        #: requests answered by the current incremental solver
+        self._inc_answers = 0
         #: whether the gauge is the earth (:data:`GPS_GAUGE` readings; before: the first pose)
         self.earth = False
         # the LM path's copy: global poses of tree nodes (the estimate) and the measurements
@@ -576,10 +588,12 @@ class _Map:
                 self.gtr = self._append(self.gtr, 1, trans)
                 held = (self._held(self.keep_m[:m], m_est), self._held(self.keep_g[:g], g_est))
                 took = time.perf_counter() - t0
-                self.inc_seconds = (took if not np.isfinite(self.inc_seconds) else
-                                    self.inc_seconds + INCREMENTAL_RATE
-                                    * (took - self.inc_seconds))
-                self._measure_lm = took >= self.slow_s
+                self._inc_answers += 1
+                if self._inc_answers > self.warmup and n >= self.min_poses:
+                    self.inc_seconds = (took if not np.isfinite(self.inc_seconds) else
+                                        self.inc_seconds + INCREMENTAL_RATE
+                                        * (took - self.inc_seconds))
+                    self._measure_lm = took >= self.slow_s
             except (HybridPGOError, ValueError, ArithmeticError, MemoryError,
                     np.linalg.LinAlgError) as exc:
                 # e.g. an undamped step from a poor estimate: LM (damped) solves this request
@@ -728,6 +742,7 @@ class _Map:
 
         n = self.n
         e, k = self._kept()
+        self._inc_answers = 0
         inc = IncrementalExact(IncrementalConfig(**INCREMENTAL))  # type: ignore[arg-type]
         inc.add_poses(self.grot[1: n + 1], self.gtr[1: n + 1])  # global poses
         ab = self.edge_ab[e]
