@@ -1141,9 +1141,10 @@ def test_an_answer_older_than_the_tail_limit_is_not_adopted() -> None:
 def test_background_worker_measures_lm_after_a_slow_incremental_request(
         data_dir: Path, monkeypatch: pytest.MonkeyPatch, lm_faster: bool) -> None:
     """An incremental request that took SLOW_INCREMENTAL_S (past the warm-up requests, on a
-    large enough map) has the next request solved by LM (which still reaches the optimum); when LM was the faster (prefer_lm) the map stays with
-    LM and says why, else a new incremental solver starts at LM's optimum and answers the
-    request after.  The choice itself is a pure function of the two times."""
+    large enough map) has the next request solved by LM (which still reaches the optimum);
+    when LM was the faster (prefer_lm) the map stays with LM and says why, else a new
+    incremental solver starts at LM's optimum and answers the request after.  The choice
+    itself is a pure function of the two times."""
     from hybridpgo.io import read_graph
     from hybridpgo.online import worker
 

@@ -430,13 +430,13 @@ class _Map:
     an energy above the one it started from) LM answers that request from the last good
     estimate and a new incremental solver starts there; after :data:`MAX_RESETS` failures the
     map stays with LM (``fallback`` says why, ``resets`` how often).  An incremental request
-    that takes :data:`SLOW_INCREMENTAL_S` (past the solver's first
-    :data:`INCREMENTAL_WARMUP` requests, on a map of :data:`LM_MIN_POSES` poses or more) has
-    the next one solved by LM, which measures LM on this map: when LM took less than :data:`LM_PREFERRED_SHARE` of the incremental requests'
-    time the map stays with LM (:func:`prefer_lm`), else a new incremental solver starts at
-    LM's optimum.  The request that brings
-    the :data:`GPS_GAUGE`-th GPS reading is solved by LM too (the gauge moves from the first
-    pose to the earth), and the incremental solver starts again at its optimum.
+    that takes :data:`SLOW_INCREMENTAL_S` (past the solver's first :data:`INCREMENTAL_WARMUP`
+    requests, on a map of :data:`LM_MIN_POSES` poses or more) has the next one solved by LM,
+    which measures LM on this map: when LM took less than :data:`LM_PREFERRED_SHARE` of the
+    incremental requests' time the map stays with LM (:func:`prefer_lm`), else a new
+    incremental solver starts at LM's optimum.  The request that brings the
+    :data:`GPS_GAUGE`-th GPS reading is solved by LM too (the gauge moves from the first pose
+    to the earth), and the incremental solver starts again at its optimum.
     """
 
     def __init__(self, robust: tuple[str, float | None] = ("none", None)) -> None:
