@@ -1150,6 +1150,10 @@ def test_background_worker_measures_lm_after_a_slow_incremental_request(
 
     assert worker.prefer_lm(1.0, 0.4) and not worker.prefer_lm(1.0, 0.6)
     assert not worker.prefer_lm(np.nan, 0.1) and not worker.prefer_lm(1.0, np.nan)
+    # with LM already, the map keeps it up to LM_RETURN_SHARE of the incremental time
+    assert worker.prefer_lm(1.0, 0.6, with_lm=True) and worker.prefer_lm(1.0, 1.0, True)
+    assert not worker.prefer_lm(1.0, 1.1, with_lm=True)
+    assert worker.prefer_lm(np.nan, 5.0, True) and worker.prefer_lm(1.0, np.nan, True)
     g = read_graph(data_dir / "w100_toro.graph")
     st = make_stream(g)
     opt = prefix_optima(st, [st.num_frames])[st.num_frames]
@@ -1157,7 +1161,7 @@ def test_background_worker_measures_lm_after_a_slow_incremental_request(
     _stream(s, g, range(g.num_nodes))
     mp = _worker_map(s, ("none", None))
     mp.slow_s, mp.warmup, mp.min_poses = 0.0, 0, 0  # every incremental request is slow
-    monkeypatch.setattr(worker, "prefer_lm", lambda inc, lm: lm_faster)
+    monkeypatch.setattr(worker, "prefer_lm", lambda inc, lm, with_lm=False: lm_faster)
     _, meta = mp.solve(50)
     assert meta["incremental"] and np.isfinite(mp.inc_seconds)
     _, meta = mp.solve(50)  # the measurement: LM
@@ -1170,6 +1174,13 @@ def test_background_worker_measures_lm_after_a_slow_incremental_request(
     _, meta = mp.solve(50)
     assert meta["incremental"] is not lm_faster
     assert abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
+    if lm_faster:  # LM grown slower than the incremental requests were: back to them
+        monkeypatch.setattr(worker, "prefer_lm", lambda inc, lm, with_lm=False: False)
+        _, meta = mp.solve(50)
+        assert not meta["incremental"] and meta["fallback"] == ""
+        assert mp.inc is not None and not mp.with_lm and not np.isfinite(mp.inc_seconds)
+        _, meta = mp.solve(50)
+        assert meta["incremental"] and abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
 
 
 @pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines

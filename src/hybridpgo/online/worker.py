@@ -409,10 +409,20 @@ INCREMENTAL_WARMUP = 3
 LM_MIN_POSES = 1000
 
 
-def prefer_lm(incremental_s: float, lm_s: float) -> bool:
-    """Whether the map should stay with LM: its solve took less than
-    :data:`LM_PREFERRED_SHARE` of the incremental requests' moving average (both measured on
-    this map; NaN when not measured yet: False)."""
+#: A map with LM goes back to an incremental solver once an LM solve takes longer than this
+#: share of the incremental requests' moving average measured before it chose LM (LM's cost
+#: grows with the map; an incremental request's with the part of it a request re-eliminates).
+LM_RETURN_SHARE = 1.0
+
+
+def prefer_lm(incremental_s: float, lm_s: float, with_lm: bool = False) -> bool:
+    """Whether the map should be solved by LM.  From the incremental solver: LM took less
+    than :data:`LM_PREFERRED_SHARE` of the incremental requests' moving average; with LM
+    already: it takes at most :data:`LM_RETURN_SHARE` of it (between the two, the map stays
+    where it is).  Both times measured on this map; a NaN (not measured) keeps it where it
+    is."""
+    if with_lm:
+        return not lm_s > LM_RETURN_SHARE * incremental_s
     return bool(lm_s < LM_PREFERRED_SHARE * incremental_s)
 
 
@@ -433,8 +443,9 @@ class _Map:
     that takes :data:`SLOW_INCREMENTAL_S` (past the solver's first :data:`INCREMENTAL_WARMUP`
     requests, on a map of :data:`LM_MIN_POSES` poses or more) has the next one solved by LM,
     which measures LM on this map: when LM took less than :data:`LM_PREFERRED_SHARE` of the
-    incremental requests' time the map stays with LM (:func:`prefer_lm`), else a new
-    incremental solver starts at LM's optimum.  The request that brings the
+    incremental requests' time the map stays with LM (:func:`prefer_lm`) until an LM solve
+    takes longer than those requests did (:data:`LM_RETURN_SHARE`), else a new incremental
+    solver starts at LM's optimum.  The request that brings the
     :data:`GPS_GAUGE`-th GPS reading is solved by LM too (the gauge moves from the first pose
     to the earth), and the incremental solver starts again at its optimum.
     """
@@ -473,6 +484,8 @@ class _Map:
         self.min_poses = LM_MIN_POSES
         #: requests answered by the current incremental solver
         self._inc_answers = 0
+        #: the map is solved by LM because LM was measured faster (:func:`prefer_lm`)
+        self.with_lm = False
         #: whether the gauge is the earth (:data:`GPS_GAUGE` readings; before: the first pose)
         self.earth = False
         # the LM path's copy: global poses of tree nodes (the estimate) and the measurements
@@ -619,10 +632,18 @@ class _Map:
                     and self._screen(thorough))
         if screened:
             energy = self._energy()
+        returned = False  # solved by LM, which sent the map back to an incremental solver
         if measure and prefer_lm(self.inc_seconds, self.lm_seconds):
-            self.inc = None
+            self.inc, self.with_lm = None, True
             self.fallback = (f"LM is faster on this map: {self.lm_seconds:.3g} s against "
                              f"{self.inc_seconds:.3g} s per incremental request")
+        elif (self.with_lm and not (failed or switch)
+              and not prefer_lm(self.inc_seconds, self.lm_seconds, with_lm=True)):
+            # LM has grown slower than the incremental requests were: back to an incremental
+            # solver, timed again after its warm-up
+            self.inc, self.with_lm, self.fallback = self._incremental_here(), False, ""
+            self.inc_seconds = np.nan
+            returned = True
         elif failed:
             self._reseed()
         elif (switch or screened or finish or measure) and self.inc is not None:
@@ -636,7 +657,7 @@ class _Map:
                 "g_held": held[1], "energy": energy,
                 "iterations": iterations, "status": status, "seconds": seconds,
                 "incremental": self.inc is not None and not (failed or switch or screened
-                                                             or finish or measure),
+                                                             or finish or measure or returned),
                 "fallback": self.fallback,
                 "resets": self.resets, "rescreens": self.rescreens,
                 "thorough": self.auto and thorough and held == (m, g)}
