@@ -1209,3 +1209,27 @@ def test_background_worker_times_no_warm_up_request_nor_a_small_map(data_dir: Pa
     assert meta["incremental"] and np.isfinite(mp.inc_seconds)
     _, meta = mp.solve(50)
     assert not meta["incremental"] and np.isfinite(mp.lm_seconds)
+
+
+@pytest.mark.parametrize("rise", [0.5, 2.0])
+@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
+def test_background_worker_accepts_an_answer_a_hair_above_its_start(
+        data_dir: Path, monkeypatch: pytest.MonkeyPatch, rise: float) -> None:
+    """The incremental step is not an exact Gauss-Newton step: an answer whose E is above its
+    start by less than RISE_RTOL (relative) is the answer; beyond it, LM answers."""
+    from hybridpgo.io import read_graph
+    from hybridpgo.online import worker
+
+    g = read_graph(data_dir / "w100_toro.graph")
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    _stream(s, g, range(g.num_nodes))
+    mp = _worker_map(s, ("none", None))
+    mp.solve(50)
+    e_start = mp._energy()
+    rot, trans = mp.inc.estimate()
+    monkeypatch.setattr(mp.inc, "solve", lambda *a, **k: True)
+    monkeypatch.setattr(mp.inc, "estimate", lambda: (rot, trans))
+    monkeypatch.setattr(mp.inc, "energy", lambda: e_start * (1.0 + rise * worker.RISE_RTOL))
+    _, meta = mp.solve(50)
+    assert meta["incremental"] is (rise < 1.0)
+    assert (meta["resets"] == 0) is (rise < 1.0)
