@@ -411,11 +411,9 @@ INCREMENTAL_RATE = 0.5
 #: The first requests of an incremental solver are not timed: the first after a new solver
 #: factors the whole map, and the worker's first ones may load kernels (M3500_isam: a 0.47 s
 #: first request); nor are requests on maps of fewer poses than :data:`LM_MIN_POSES`, where
-#: LM is fast only because the map is small (a map that chose LM keeps it as it grows).
+#: LM is fast only because the map is small.
 INCREMENTAL_WARMUP = 3
 LM_MIN_POSES = 1000
-
-
 #: A map with LM goes back to an incremental solver once an LM solve takes longer than this
 #: share of the incremental requests' moving average measured before it chose LM (LM's cost
 #: grows with the map; an incremental request's with the part of it a request re-eliminates).
