@@ -881,6 +881,19 @@ def _worker_map(s: OnlineSolver, robust: tuple[str, float | None]) -> Any:
     return mp
 
 
+def _w100_worker_map(data_dir: Path) -> tuple[Any, float]:
+    """A worker's least-squares map holding the whole of w100_toro, streamed frame by frame,
+    and the graph's optimum."""
+    from hybridpgo.io import read_graph
+
+    g = read_graph(data_dir / "w100_toro.graph")
+    st = make_stream(g)
+    opt = prefix_optima(st, [st.num_frames])[st.num_frames]
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    _stream(s, g, range(g.num_nodes))
+    return _worker_map(s, ("none", None)), opt
+
+
 def _ship(mp: Any, s: OnlineSolver) -> None:
     """Ship to the worker's map ``mp`` what ``s`` placed and laid since the last call."""
     st = s.store
@@ -945,15 +958,9 @@ def test_background_worker_falls_back_to_lm_when_the_incremental_solve_fails(
     incremental solver starts at that optimum and answers the next request; after MAX_RESETS
     failures the map stays with LM."""
     from hybridpgo.errors import SolverError
-    from hybridpgo.io import read_graph
     from hybridpgo.online import worker
 
-    g = read_graph(data_dir / "w100_toro.graph")
-    st = make_stream(g)
-    opt = prefix_optima(st, [st.num_frames])[st.num_frames]
-    s = OnlineSolver(OnlineConfig(background_refine=False))
-    _stream(s, g, range(g.num_nodes))
-    mp = _worker_map(s, ("none", None))
+    mp, opt = _w100_worker_map(data_dir)
 
     def broken(*args: object, **kwargs: object) -> bool:
         raise SolverError("normal equations are not positive definite")
@@ -978,14 +985,8 @@ def test_background_worker_refuses_an_incremental_answer_above_its_start(
         data_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """An incremental answer whose energy is above the estimate it started from is not
     adopted: LM answers from that estimate instead."""
-    from hybridpgo.io import read_graph
 
-    g = read_graph(data_dir / "w100_toro.graph")
-    st = make_stream(g)
-    opt = prefix_optima(st, [st.num_frames])[st.num_frames]
-    s = OnlineSolver(OnlineConfig(background_refine=False))
-    _stream(s, g, range(g.num_nodes))
-    mp = _worker_map(s, ("none", None))
+    mp, opt = _w100_worker_map(data_dir)
     rot, trans = mp.inc.estimate()
     worse = trans + 10.0 * np.arange(trans.shape[0])[:, None]  # a map torn apart
     monkeypatch.setattr(mp.inc, "solve", lambda *a, **k: True)
@@ -1145,7 +1146,6 @@ def test_background_worker_measures_lm_after_a_slow_incremental_request(
     when LM was the faster (prefer_lm) the map stays with LM and says why, else a new
     incremental solver starts at LM's optimum and answers the request after.  The choice
     itself is a pure function of the two times."""
-    from hybridpgo.io import read_graph
     from hybridpgo.online import worker
 
     assert worker.prefer_lm(1.0, 0.4) and not worker.prefer_lm(1.0, 0.6)
@@ -1154,12 +1154,7 @@ def test_background_worker_measures_lm_after_a_slow_incremental_request(
     assert worker.prefer_lm(1.0, 0.6, with_lm=True) and worker.prefer_lm(1.0, 1.0, True)
     assert not worker.prefer_lm(1.0, 1.1, with_lm=True)
     assert worker.prefer_lm(np.nan, 5.0, True) and worker.prefer_lm(1.0, np.nan, True)
-    g = read_graph(data_dir / "w100_toro.graph")
-    st = make_stream(g)
-    opt = prefix_optima(st, [st.num_frames])[st.num_frames]
-    s = OnlineSolver(OnlineConfig(background_refine=False))
-    _stream(s, g, range(g.num_nodes))
-    mp = _worker_map(s, ("none", None))
+    mp, opt = _w100_worker_map(data_dir)
     mp.slow_s, mp.warmup, mp.min_poses = 0.0, 0, 0  # every incremental request is slow
     monkeypatch.setattr(worker, "prefer_lm", lambda inc, lm, with_lm=False: lm_faster)
     _, meta = mp.solve(50)
@@ -1217,13 +1212,9 @@ def test_background_worker_accepts_an_answer_a_hair_above_its_start(
         data_dir: Path, monkeypatch: pytest.MonkeyPatch, rise: float) -> None:
     """The incremental step is not an exact Gauss-Newton step: an answer whose E is above its
     start by less than RISE_RTOL (relative) is the answer; beyond it, LM answers."""
-    from hybridpgo.io import read_graph
     from hybridpgo.online import worker
 
-    g = read_graph(data_dir / "w100_toro.graph")
-    s = OnlineSolver(OnlineConfig(background_refine=False))
-    _stream(s, g, range(g.num_nodes))
-    mp = _worker_map(s, ("none", None))
+    mp, _ = _w100_worker_map(data_dir)
     mp.solve(50)
     e_start = mp._energy()
     rot, trans = mp.inc.estimate()
