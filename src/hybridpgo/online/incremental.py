@@ -6,7 +6,8 @@ appended, re-eliminates only the columns that changed and their ancestors in the
 tree, in a fresh fill-reducing order (AMD on the reduced system, with the ends of the new
 constraints last so that the next frame's changes stay near the root).  The linearization point
 moves only for the poses whose step exceeds a threshold ("fluid relinearization"), and the
-solution is propagated down the tree only where it changes ("wildfire" back substitution).
+solution may be propagated down the tree only where it changes ("wildfire" back substitution,
+``IncrementalConfig.wildfire``).
 This is the incremental scheme of iSAM2 (Kaess et al., IJRR 2012) written as a left-looking
 block Cholesky on the elimination tree instead of a Bayes tree of cliques.
 
@@ -62,7 +63,9 @@ class IncrementalConfig:
     (exact Gauss-Newton)."""
     wildfire: float = 0.0
     """The back substitution stops below a column whose solution moved by at most this
-    (inf-norm); 0: the whole solution is exact."""
+    (inf-norm); 0: the whole solution is exact.  A threshold leaves the steps of the columns
+    it skips stale: after a long loop closure the cycles that follow may relinearize a pose
+    or two each and take hundreds of cycles to converge."""
     gauge: Literal["auto", "first", "none"] = "auto"
     """``"auto"``: the first pose is held until ``gps_gauge`` GPS readings exist; ``"first"``:
     always; ``"none"``: never (GPS must fix the gauge)."""

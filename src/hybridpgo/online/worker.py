@@ -362,18 +362,24 @@ class BackgroundRefiner:
 #: (:meth:`~._link.WorkerLink.adopt`).
 GPS_GAUGE = 3
 #: Options of the worker's incremental solver: a pose's linearization point moves once its step
-#: exceeds 0.1 (m or rad), the back substitution stops below columns that moved by at most
-#: 1e-4, and the idle polish (``IncrementalConfig.polish_rho``) then takes every pose still
-#: moving to the optimum.  Measured on M3500_isam with an incremental solver fed every frame
-#: and its estimate adopted by the frames: worst checkpoint 1.002-1.007x the prefix optimum
-#: (valencia: 1.011x), against 1.233x (valencia: 121.8x) without a worker.
+#: exceeds 0.1 (m or rad), and the idle polish (``IncrementalConfig.polish_rho``) then takes
+#: every pose still moving to the optimum.  Measured on M3500_isam with an incremental solver
+#: fed every frame and its estimate adopted by the frames: worst checkpoint 1.002-1.007x the
+#: prefix optimum (valencia: 1.011x), against 1.233x (valencia: 121.8x) without a worker.
+#: The back substitution computes the whole solution in every cycle (``wildfire`` 0).  Stopped
+#: below columns that moved by at most 1e-4, it left steps of columns it skipped stale: after
+#: a long loop closure, cycles that relinearized one pose each while E oscillated between 2x
+#: and 10x the optimum (valencia streamed back to back: one request of 512 cycles, 0.2-0.35 s,
+#: against 8 with the whole solution; paris2's first 15 000 frames replayed into a worker's
+#: map: 48 s of solves, requests of up to 186 cycles and 74 answered by LM, against 34 s, at
+#: most 7 cycles and 4).
 #: Every re-eliminated set is ordered by AMD (``reorder_max``): the worker has no frame
 #: deadline, and a large set kept in its old order fills in without bound.  Measured on
 #: paris2 fed in chunks of 50 frames: with the default limit (4 096 variables) the factor's
 #: pool reached 4.2 M blocks and a solve 0.74 s on average by frame 7 549 (and asked for
 #: 36 GiB further on); with every set reordered, 0.13-0.5 M blocks and 0.06-0.36 s up to
 #: frame 17 549.
-INCREMENTAL = {"relinearize_rho": 0.1, "relinearize_phi": 0.1, "wildfire": 1e-4,
+INCREMENTAL = {"relinearize_rho": 0.1, "relinearize_phi": 0.1, "wildfire": 0.0,
                "gps_gauge": GPS_GAUGE, "reorder_max": 1 << 62}
 #: The outlier test of the screening (``robust="auto"``) takes at most this share of the
 #: worker's time: an answer is tested only when the time since the last test ended is at least
@@ -401,10 +407,10 @@ SLOW_INCREMENTAL_S = 0.25
 LM_PREFERRED_SHARE = 0.5
 #: An incremental answer whose E exceeds the E it started from by more than this (relative)
 #: is refused and LM answers the request.  The incremental step is not an exact Gauss-Newton
-#: step (a pose is relinearized only past 0.1, the back substitution stops below 1e-4), so an
-#: answer a hair above its start is expected: paris2 streamed back to back had rises below
-#: 1e-6 at four requests (at 1e-9 each was refused, the fourth sent the map to LM for good:
-#: 1.5 s per request against 0.06-0.36 s).  A map the step has thrown off rises by far more.
+#: step (a pose is relinearized only past 0.1), so an answer a hair above its start is
+#: expected: paris2 streamed back to back had rises below 1e-6 at four requests (at 1e-9
+#: each was refused, the fourth sent the map to LM for good: 1.5 s per request against
+#: 0.06-0.36 s).  A map the step has thrown off rises by far more.
 RISE_RTOL = 1e-6
 #: Weight of the newest incremental request's time in their moving average.
 INCREMENTAL_RATE = 0.5
