@@ -1073,9 +1073,10 @@ def test_a_capped_incremental_answer_says_which_constraints_it_holds(
 
 def test_the_worker_solves_the_gauge_switch_to_gps_with_lm() -> None:
     """Before GPS_GAUGE readings the worker holds the first pose (its answers are not adopted
-    then); the request that brings the GPS_GAUGE-th reading is solved by LM, not by an
-    undamped incremental step from the estimate in the old gauge (which raised E there), and
-    its answer is the prefix optimum; the incremental solver starts again there."""
+    then): a request with fewer readings is answered unsolved; the request that brings the
+    GPS_GAUGE-th reading is solved by LM, not by an undamped incremental step from the
+    estimate in the old gauge (which raised E there), and its answer is the prefix optimum;
+    the incremental solver starts again there."""
     from hybridpgo.generate import generate_city
     from hybridpgo.online import worker
 
@@ -1090,8 +1091,12 @@ def test_the_worker_solves_the_gauge_switch_to_gps_with_lm() -> None:
         s.update(None, UPDATES)
         k += 1
     _ship(mp, s)
+    assert mp.inc is not None
+    cycles = mp.inc.stats["cycles"]
     _, meta = mp.solve(50)  # readings, but fewer than GPS_GAUGE: the first pose held
     assert 0 < meta["g"] < worker.GPS_GAUGE and not mp.earth
+    assert meta["status"] == "not solved" and meta["iterations"] == 0
+    assert mp.inc.stats["cycles"] == cycles
     switch = int(np.searchsorted(st.gps_ptr, worker.GPS_GAUGE))  # frames to hold that many
     end = switch + 5
     opt = prefix_optima(st, [end])[end]

@@ -458,7 +458,8 @@ class _Map:
     takes longer than those requests did (:data:`LM_RETURN_SHARE`), else a new incremental
     solver starts at LM's optimum.  The request that brings the
     :data:`GPS_GAUGE`-th GPS reading is solved by LM too (the gauge moves from the first pose
-    to the earth), and the incremental solver starts again at its optimum.
+    to the earth), and the incremental solver starts again at its optimum; a request with
+    fewer readings (but some) is answered unsolved, since its answer is not adopted.
     """
 
     def __init__(self, robust: tuple[str, float | None] = ("none", None)) -> None:
@@ -576,13 +577,20 @@ class _Map:
         ``robust="auto"``: the answer is screened for outliers (:meth:`_screen`; ``thorough``:
         every constraint is tested, those rejected before included, as a whole-graph solve
         tests them)."""
-        from ..tree import locals_from_globals
-
         n, m, g = self.n, self.m, self.g
         t0 = time.perf_counter()
         energy, iterations, status = 0.0, 0, "converged"
         failed = False
         held = (m, g)
+        if not self.earth and 0 < g < GPS_GAUGE:
+            # 1 or 2 GPS readings: the frames let them move the whole map while this map
+            # holds its first pose, so no answer is adopted (WorkerLink.adopt) and none is
+            # solved; the estimate goes back as it is.  Solving it cost the next answer: an
+            # undamped solve of the first pose held against readings far away ran to
+            # SOLVE_CAP_S (valencia_gps back to back: 1 s at pose 106, the next answer, the
+            # first adopted, 600 frames later)
+            return self._answer(held, self._energy(), 0, "not solved",
+                                time.perf_counter() - t0, self.inc is not None, False)
         # GPS_GAUGE readings: the gauge becomes the earth.  The estimate was solved with the
         # first pose held where the stream started; the readings' frame may lie far from it,
         # and an undamped Gauss-Newton step that far need not lower E: this request is solved
@@ -659,19 +667,27 @@ class _Map:
             self._reseed()
         elif (switch or screened or finish or measure) and self.inc is not None:
             self.inc = self._incremental_here()
-        seconds = time.perf_counter() - t0
+        incremental = self.inc is not None and not (failed or switch or screened or finish
+                                                    or measure or returned)
+        return self._answer(held, energy, iterations, status, time.perf_counter() - t0,
+                            incremental, self.auto and thorough and held == (m, g))
+
+    def _answer(self, held: tuple[int, int], energy: float, iterations: int, status: str,
+                seconds: float, incremental: bool, thorough: bool
+                ) -> tuple[Arrays, dict[str, Any]]:
+        """A request's answer: the estimate's local transforms of nodes 1..n and its meta."""
+        from ..tree import locals_from_globals
+
+        n = self.n
         lrot = np.empty((n + 1, 3, 3))
         ltr = np.empty((n + 1, 3))
         locals_from_globals(self.parent[: n + 1], self.grot[: n + 1], self.gtr[: n + 1],
                             lrot, ltr)
-        meta = {"type": "result", "n": n, "m": m, "g": g, "m_held": held[0],
-                "g_held": held[1], "energy": energy,
-                "iterations": iterations, "status": status, "seconds": seconds,
-                "incremental": self.inc is not None and not (failed or switch or screened
-                                                             or finish or measure or returned),
-                "fallback": self.fallback,
-                "resets": self.resets, "rescreens": self.rescreens,
-                "thorough": self.auto and thorough and held == (m, g)}
+        meta = {"type": "result", "n": n, "m": self.m, "g": self.g, "m_held": held[0],
+                "g_held": held[1], "energy": energy, "iterations": iterations,
+                "status": status, "seconds": seconds, "incremental": incremental,
+                "fallback": self.fallback, "resets": self.resets,
+                "rescreens": self.rescreens, "thorough": thorough}
         return {"rot": lrot[1:], "trans": ltr[1:],
                 "rejected_m": np.flatnonzero(~self.keep_m[: held[0]]),
                 "rejected_g": np.flatnonzero(~self.keep_g[: held[1]])}, meta
