@@ -1229,3 +1229,38 @@ def test_background_worker_accepts_an_answer_a_hair_above_its_start(
     _, meta = mp.solve(50)
     assert meta["incremental"] is (rise < 1.0)
     assert (meta["resets"] == 0) is (rise < 1.0)
+
+
+@pytest.mark.parametrize("robust", [("none", None), ("auto", None), ("huber", 1.0)])
+def test_the_worker_warms_up_every_path_a_request_can_take(
+        robust: tuple[str, float | None]) -> None:
+    """Before it says it is ready the worker answers requests of a tiny map through the
+    incremental solve, LM in the plane, the gauge switch to GPS and (``auto``) the outlier test
+    with its robust re-solve, so that no kernel is first loaded in the middle of a stream."""
+    from hybridpgo.online import worker
+
+    calls: dict[str, int] = {}
+
+    def counted(name: str, fn: Any) -> Any:
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            if name == "lm":
+                key = "lm planar" if args[0]._graph(True).is_2d else "lm 3d"
+                calls[key] = calls.get(key, 0) + 1
+            else:
+                calls[name] = calls.get(name, 0) + 1
+            return fn(*args, **kwargs)
+        return wrapper
+
+    mp_cls = worker._Map
+    with pytest.MonkeyPatch.context() as mpatch:
+        mpatch.setattr(mp_cls, "_solve_lm", counted("lm", mp_cls._solve_lm))
+        mpatch.setattr(mp_cls, "_incremental_here",
+                       counted("incremental", mp_cls._incremental_here))
+        mp = worker.warm_up(robust)
+    assert mp.earth and mp.g == worker.GPS_GAUGE
+    assert calls.get("lm planar", 0) >= 1 and calls.get("lm 3d", 0) >= 1, calls
+    if robust[0] in ("none", "auto"):
+        assert mp.inc is not None and calls.get("incremental", 0) >= 2, calls
+        assert mp.resets == 0 and mp.fallback == "", mp.fallback
+    if robust[0] == "auto":
+        assert mp.rescreens >= 1 and not mp.keep_m[4]  # the false closure: tested, rejected

@@ -456,8 +456,9 @@ class OnlineSolver:
         return self._link.join(self._store, self.frame, timeout, self.config.background_rebase)
 
     def wait_background_ready(self, timeout: float | None = None) -> bool:
-        """Block until the background worker has started and loaded its kernels (about 1.5 s
-        after the solver is built: a process start, the imports, the cached kernels).
+        """Block until the background worker has started and loaded its kernels (about 1 s
+        after the solver is built: a process start, the imports, and the cached kernels of
+        every path a request can take, :func:`~hybridpgo.online.worker.warm_up`).
 
         The frames never wait for the worker; call this before the robot drives (as the replay
         and its benchmark do) so that the first results are not late by the start-up.  Returns

@@ -820,6 +820,46 @@ class _Map:
         return float(res.final_energy), int(res.iterations), res.status.value
 
 
+def warm_up(robust: tuple[str, float | None]) -> _Map:
+    """Answer requests of a tiny map through every path a request can take, so that each
+    kernel is loaded from Numba's cache (or compiled into it) before the worker says it is
+    ready: the incremental solve, LM in the plane (``is_2d``), the gauge switch to three GPS
+    readings (LM in 3D, a new incremental solver), and with ``robust="auto"`` the outlier
+    test and the robust re-solve of a map with a false closure.  A kernel first needed in
+    the middle of a stream holds the answers back while it loads or compiles (from a cold
+    cache, seconds per kernel).  Returns the tiny map."""
+    quarter = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # Rz(90°)
+    step = np.array([1.0, 0.0, 0.0])
+    # a unit square driven with a quarter turn per side, closed: every measurement is
+    # (Rz(90°), (1, 0, 0)); the first pose hangs from the earth at the origin
+    rot = np.stack([np.eye(3), quarter, quarter, quarter])
+    trans = np.stack([np.zeros(3), step, step, step])
+    mp = _Map(robust)
+    mp.add({"parent": np.arange(4, dtype=np.int32), "rot": rot, "trans": trans,
+            "edge_ab": np.array([[0, 1], [1, 2], [2, 3], [3, 0]], np.int32),
+            "edge_rot": np.tile(quarter, (4, 1, 1)), "edge_trans": np.tile(step, (4, 1)),
+            "edge_info": np.tile(np.eye(6), (4, 1, 1)), "gps_node": np.zeros(0, np.int32),
+            "gps_pos": np.zeros((0, 3)), "gps_info": np.zeros((0, 3, 3))})
+    mp.solve(5)  # incremental (a robust kernel: LM); "auto": the outlier test
+    mp._measure_lm = True
+    mp.solve(5)  # LM on the planar map, then a new incremental solver at its optimum
+    # three GPS readings: the gauge switch; with "auto" also a false closure across the
+    # square (its rotation right, its translation 40 m off) for the test to reject
+    bad = int(mp.auto)
+    mp.add({"parent": np.zeros(0, np.int32), "rot": np.zeros((0, 3, 3)),
+            "trans": np.zeros((0, 3)),
+            "edge_ab": np.array([[0, 2]] * bad, np.int32).reshape(-1, 2),
+            "edge_rot": np.tile(quarter @ quarter, (bad, 1, 1)),
+            "edge_trans": np.tile([40.0, 0.0, 0.0], (bad, 1)),
+            "edge_info": np.tile(np.eye(6), (bad, 1, 1)),
+            "gps_node": np.arange(3, dtype=np.int32),
+            "gps_pos": np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0]]),
+            "gps_info": np.tile(np.eye(3), (3, 1, 1))})
+    mp.solve(5, thorough=True)  # LM in 3D with GPS; "auto": the test, the robust re-solve
+    mp.solve(5)  # the incremental solver on the earth's gauge
+    return mp
+
+
 def _worker(max_iterations: int, robust_spec: str = "none") -> int:
     """The worker process: read messages on stdin, answer on stdout (see the module doc)."""
     inp = os.fdopen(os.dup(0), "rb", buffering=0)
@@ -849,14 +889,7 @@ def _worker(max_iterations: int, robust_spec: str = "none") -> int:
     threading.Thread(target=reader, daemon=True).start()
     name, _, scale = robust_spec.partition(":")
     robust = (name, float(scale) if scale else None)
-    # load the solver's kernels while the first frames arrive
-    if name in ("none", "auto"):
-        from .incremental import ensure_compiled as ensure_incremental
-
-        ensure_incremental()
-    from ..solvers.gauss_newton import ensure_compiled
-
-    ensure_compiled()
+    warm_up(robust)  # every kernel a request may need, before the worker says it is ready
     try:
         write_all(out, encode({"type": "ready"}, {}))
     except (BrokenPipeError, OSError):
