@@ -410,8 +410,9 @@ LM_PREFERRED_SHARE = 0.5
 #: step (a pose is relinearized only past 0.1), so an answer a hair above its start is
 #: expected: paris2 streamed back to back had rises below 1e-6 at four requests (at 1e-9
 #: each was refused, the fourth sent the map to LM for good: 1.5 s per request against
-#: 0.06-0.36 s).  A map the step has thrown off rises by far more.
-RISE_RTOL = 1e-6
+#: 0.06-0.36 s), paris2 with GPS rises of 6e-6 and 1.3e-5 (at 1e-6 each was refused and
+#: answered by a 2.4 s LM solve).  A map the step has thrown off rises by far more.
+RISE_RTOL = 1e-4
 #: Weight of the newest incremental request's time in their moving average.
 INCREMENTAL_RATE = 0.5
 #: The first requests of an incremental solver are not timed: the first after a new solver
