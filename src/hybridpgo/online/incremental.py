@@ -728,16 +728,3 @@ class IncrementalExact:
         self.stats["cycles"] += 1
         self.covered = self._cycle_cover
         self._phase = _IDLE
-
-
-
-def ensure_compiled() -> None:
-    """Load (or compile, once) the kernels of :class:`IncrementalExact` by solving a chain of
-    three poses with a loop closure."""
-    inc = IncrementalExact(capacity=4)
-    eye = np.tile(np.eye(3), (3, 1, 1))
-    inc.add_poses(eye, np.eye(3))
-    inc.add_edges([0, 1, 0], [1, 2, 2], eye, np.ones((3, 3)), np.tile(np.eye(6), (3, 1, 1)))
-    inc.add_gps([0], np.zeros((1, 3)), np.eye(3)[None])
-    inc.solve()
-    inc.energy()
