@@ -305,3 +305,54 @@ def test_sparse_spd_refuses_an_indefinite_matrix(backend, monkeypatch) -> None:
     a2.sort_indices()  # the canonical order of the values
     spd.factor(values=a2.data)
     assert np.abs(a2 @ spd.solve(b) - b).max() <= 1e3 * FLOAT64_IDENTITY * np.abs(b).max()
+
+
+def _naive_permuted_lower(a, old_at: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The lower triangle of ``P A P^T`` by SciPy (columns, rows, place of each value in
+    ``a.data.ravel()``): a matrix of entry numbers, permuted, lower triangle taken."""
+    ids = a.copy()
+    ids.data = np.arange(1, a.data.size + 1, dtype=np.float64).reshape(a.data.shape)
+    low = sp.tril(sp.csc_matrix(ids)[old_at][:, old_at], format="csc")
+    low.sort_indices()
+    return low.indptr, low.indices, np.asarray(low.data, np.int64) - 1
+
+
+@pytest.mark.parametrize("fmt", ["csr", "csc", "coo", "bsr"])
+@pytest.mark.parametrize("block", [1, 3])
+def test_sparse_spd_pattern_and_solve_in_every_format(fmt: str, block: int) -> None:
+    # a block matrix on a random graph (SPD: diagonally dominant); the pattern and the place
+    # of every value against SciPy's permutation and lower triangle
+    rng = np.random.default_rng(block)
+    nb = 30
+    edges = {(int(i), int(j)) for i, j in rng.integers(0, nb, (60, 2)) if i != j}
+    blocks = {(i, i): np.eye(block) * 50.0 for i in range(nb)}
+    for i, j in edges:
+        w = rng.standard_normal((block, block))
+        blocks[(i, j)] = blocks.get((i, j), 0) + w
+        blocks[(j, i)] = blocks.get((j, i), 0) + w.T
+    dense = np.zeros((nb * block, nb * block))
+    for (i, j), w in blocks.items():
+        dense[i * block:(i + 1) * block, j * block:(j + 1) * block] += w
+    a = sp.bsr_matrix(dense, blocksize=(block, block)) if fmt == "bsr" else (
+        sp.csr_matrix(dense).asformat(fmt))
+    a.sum_duplicates()
+    spd = SparseSPD(a, block)
+    ptr, _, src = _naive_permuted_lower(a, spd._old_at)
+    assert np.array_equal(spd._diag, ptr[:-1]) and np.array_equal(spd._source, src)
+    b = rng.standard_normal(nb * block)
+    spd.factor()
+    x = spd.solve(b)
+    assert np.abs(dense @ x - b).max() <= 1e3 * FLOAT64_IDENTITY * np.abs(b).max()
+    # new values, in the order of a.data: twice the matrix
+    spd.factor(values=2.0 * np.asarray(a.data).ravel())
+    assert (np.abs(2.0 * dense @ spd.solve(b) - b).max()
+            <= 1e3 * FLOAT64_IDENTITY * np.abs(b).max())
+
+
+def test_sparse_spd_refuses_a_missing_diagonal_or_another_format() -> None:
+    a = sp.csr_matrix(np.array([[2.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 3.0]]))
+    a.eliminate_zeros()
+    with pytest.raises(ValueError, match="diagonal entry"):
+        SparseSPD(a)
+    with pytest.raises(ValueError, match="CSR, CSC, COO or BSR"):
+        SparseSPD(sp.lil_matrix(np.eye(3)))

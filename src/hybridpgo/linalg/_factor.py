@@ -43,6 +43,7 @@ import numpy.typing as npt
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from .._numba import kernel
 from ..errors import SolverError
 from ..graph import FloatArray
 
@@ -306,7 +307,8 @@ class _Cholmod(Factorizer):
         col = np.repeat(np.arange(dim, dtype=np.int64), np.diff(pattern.indptr))
         cols = cvxopt.matrix(col, tc="i")
         del col
-        self._matrix = cvxopt.spmatrix(0.0, rows, cols, (dim, dim))
+        # values given as a matrix (the zeros of the store): about twice as fast as a scalar
+        self._matrix = cvxopt.spmatrix(self._store, rows, cols, (dim, dim))
         del rows, cols
         natural = cvxopt.matrix(np.arange(dim, dtype=np.int64), tc="i")
         with _cholmod_options(**_CHOLMOD_OPTIONS) as cm:
@@ -399,9 +401,95 @@ class CscPattern:
         self.indices: Int64Array = low.indices.astype(np.int64)
         self.dim = int(low.shape[0])
 
+    @classmethod
+    def from_arrays(cls, indptr: Int64Array, indices: Int64Array) -> CscPattern:
+        """The pattern of the column pointers ``indptr`` and row indices ``indices``."""
+        out = cls.__new__(cls)
+        out.indptr, out.indices, out.dim = indptr, indices, int(indptr.shape[0]) - 1
+        return out
+
     @property
     def diag_index(self) -> Int64Array:
         return self.indptr[:-1]
+
+
+#: The sparse formats whose stored entries :class:`SparseSPD` reads in place.
+_ENTRY_FORMATS = ("csr", "csc", "coo", "bsr")
+
+
+def _entries(a: sp.spmatrix) -> tuple[Int64Array, Int64Array, int]:
+    """``(rows, cols, b)``: the (b, b) blocks of ``a`` in the order of its values, by block
+    row and column: BSR's own blocks, else every stored entry (b = 1), so the entry (i, j) of
+    block k is ``a.data.ravel()[k b^2 + i b + j]``."""
+    if a.format == "bsr":
+        b = int(a.blocksize[0])
+        return (np.repeat(np.arange(a.shape[0] // b, dtype=np.int64), np.diff(a.indptr)),
+                np.asarray(a.indices, np.int64), b)
+    if a.format == "coo":
+        return np.asarray(a.row, np.int64), np.asarray(a.col, np.int64), 1
+    major = np.repeat(np.arange(a.shape[0], dtype=np.int64), np.diff(a.indptr))
+    minor = np.asarray(a.indices, np.int64)
+    return (major, minor, 1) if a.format == "csr" else (minor, major, 1)
+
+
+@kernel
+def permuted_lower(rows: np.ndarray, cols: np.ndarray, b: int, new_pos: np.ndarray,
+                   indptr: np.ndarray, indices: np.ndarray, source: np.ndarray) -> int:
+    """The lower triangle of ``P A P^T`` as CSC: ``indptr`` (dim + 1,) and ``indices`` (rows
+    increasing in each column, the diagonal first), and ``source``, the place in A's values of
+    each of its entries, for A given by its (b, b) blocks (:func:`_entries`: block k at block
+    row ``rows[k]``, column ``cols[k]``) and ``new_pos``, the new index of each block row.
+
+    The blocks are sorted by new block column, then row (two stable counting sorts), and each
+    block column is written out entry by entry.  Returns -1, or the first new block column
+    without its diagonal block (nothing else is checked: A is canonical)."""
+    nb = new_pos.shape[0]
+    by_row = np.zeros(nb + 1, np.int64)
+    by_col = np.zeros(nb + 1, np.int64)
+    for k in range(rows.shape[0]):
+        r = new_pos[rows[k]]
+        c = new_pos[cols[k]]
+        if r >= c:
+            by_row[r + 1] += 1
+            by_col[c + 1] += 1
+    for j in range(nb):
+        by_row[j + 1] += by_row[j]
+        by_col[j + 1] += by_col[j]
+    order = np.empty(by_row[nb], np.int64)  # the lower blocks by increasing new row
+    for k in range(rows.shape[0]):
+        r = new_pos[rows[k]]
+        if r >= new_pos[cols[k]]:
+            order[by_row[r]] = k
+            by_row[r] += 1
+    column = np.empty(order.shape[0], np.int64)  # then by new column (stable)
+    fill = by_col[:nb].copy()
+    for q in range(order.shape[0]):
+        c = new_pos[cols[order[q]]]
+        column[fill[c]] = order[q]
+        fill[c] += 1
+    bb = b * b
+    p = 0
+    for c in range(nb):
+        lo = by_col[c]
+        hi = by_col[c + 1]
+        if hi == lo or new_pos[rows[column[lo]]] != c:
+            return c
+        for j in range(b):
+            indptr[b * c + j] = p
+            kd = column[lo]  # the diagonal block: its rows j..b-1
+            for i in range(j, b):
+                indices[p] = b * c + i
+                source[p] = kd * bb + i * b + j
+                p += 1
+            for q in range(lo + 1, hi):
+                ko = column[q]
+                r = new_pos[rows[ko]]
+                for i in range(b):
+                    indices[p] = b * r + i
+                    source[p] = ko * bb + i * b + j
+                    p += 1
+    indptr[b * nb] = p
+    return -1
 
 
 class SparseSPD:
@@ -411,52 +499,56 @@ class SparseSPD:
     by a fill-reducing ordering of the block graph (:func:`fill_reducing_order`) and the
     factorizer (CHOLMOD when cvxopt is available, else SuperLU) analyzes the pattern once;
     each :meth:`factor` is then one numeric factorization, of ``A``'s values or of new values
-    on the same pattern.  Every diagonal entry of ``A`` must be stored (as it is for a matrix
-    whose diagonal is positive).
+    on the same pattern.  ``A`` is a CSR, CSC, COO or BSR matrix in canonical form with every
+    diagonal entry stored (as it is for a matrix whose diagonal is positive); its lower
+    triangle in the new order is laid out block by block (:func:`permuted_lower`: a BSR
+    matrix's blocks are permuted whole, 36 times fewer items than its 6x6 blocks' entries).
     """
 
     def __init__(self, a: sp.spmatrix, block: int = 1) -> None:
-        if not sp.issparse(a) or not a.has_canonical_format:
-            raise ValueError("SparseSPD needs a sparse matrix in canonical format (sorted "
-                             "indices, no duplicates)")
+        if not sp.issparse(a) or a.format not in _ENTRY_FORMATS or not a.has_canonical_format:
+            raise ValueError("SparseSPD needs a sparse CSR, CSC, COO or BSR matrix in canonical "
+                             "format (sorted indices, no duplicates)")
         dim = int(a.shape[0])
         self.dim = dim
         self.nnz = int(a.data.size)
+        rows, cols, b = _entries(a)  # A's blocks (BSR's), else its entries, in values order
         if a.format == "bsr":  # the block graph is the matrix's own block structure
-            block = int(a.blocksize[0])
+            block = b
             nb = dim // block
-            br = np.repeat(np.arange(nb, dtype=np.int64), np.diff(a.indptr))
-            bc = np.asarray(a.indices, np.int64)
-            lower = br > bc
-            rows, cols = br[lower], bc[lower]
+            lower = rows > cols
+            brow, bcol = rows[lower], cols[lower]
         else:
-            coo = sp.coo_matrix(a)
             nb = dim // block
-            br = coo.row.astype(np.int64) // block
-            bc = coo.col.astype(np.int64) // block
-            del coo
+            br, bc = rows // block, cols // block
             lower = br > bc
             if block == 1:  # canonical: every pair once already
-                rows, cols = br[lower], bc[lower]
+                brow, bcol = br[lower], bc[lower]
             else:
                 key = np.unique(bc[lower] * nb + br[lower])  # each block pair once
-                rows, cols = key % nb, key // nb
-        del br, bc, lower
-        new_block = fill_reducing_order(nb, rows, cols)
-        del rows, cols
+                brow, bcol = key % nb, key // nb
+            del br, bc
+        del lower
+        new_block = fill_reducing_order(nb, brow, bcol)
+        del brow, bcol
         self._new_pos = (block * new_block[:, None]
                          + np.arange(block, dtype=np.int64)[None, :]).ravel()
         self._old_at = np.empty(dim, np.int64)
         self._old_at[self._new_pos] = np.arange(dim)
-        # the permuted lower triangle of a matrix of entry numbers: where each value goes
-        ids = a.copy()
-        ids.data = np.arange(1, self.nnz + 1, dtype=np.float64).reshape(a.data.shape)
-        low = sp.tril(sp.csc_matrix(ids)[self._old_at][:, self._old_at], format="csc")
-        low.sort_indices()
-        self._source = np.asarray(low.data, np.int64) - 1
+        # the permuted lower triangle, column by column, and where each of its values is in A
+        indptr = np.empty(dim + 1, np.int64)
+        indices = np.empty(rows.size * b * b, np.int64)
+        self._source = np.empty(rows.size * b * b, np.int64)
+        pos = new_block if b == block else self._new_pos  # of A's blocks, or its entries
+        missing = int(permuted_lower(rows, cols, b, pos, indptr, indices, self._source))
+        if missing >= 0:
+            raise ValueError(f"SparseSPD needs every diagonal entry stored (row "
+                             f"{int(self._old_at[b * missing])} has none)")
+        nnz = int(indptr[dim])
+        indices, self._source = indices[:nnz], self._source[:nnz]
         self._values = np.asarray(a.data, np.float64).ravel().copy()
-        pattern = CscPattern(low)
-        del low, ids
+        pattern = CscPattern.from_arrays(indptr, indices)
+        del rows, cols
         self._diag = pattern.diag_index
         self._factorizer = make_factorizer(pattern, "auto") if dim else None
 
