@@ -394,6 +394,35 @@ def test_planar_reduction_equals_full_solve(method: str) -> None:
     assert not solve_exact(g2, rotations=rot, config=cfg).stats["planar"]
 
 
+@pytest.mark.parametrize("robust", [(0, 1.0), (_cost.robust_kind("huber", 1.0), 1.0)])
+def test_planar_system_is_assembled_as_the_rows_and_columns_of_the_whole(robust) -> None:
+    """The planar system written by the assembly equals, entry for entry, the x, y, yaw rows
+    and columns of the whole H taken by SciPy, and g's entries are the same."""
+    import scipy.sparse as sp
+    from test_energy import planar_graph
+
+    rng = np.random.default_rng(51)
+    g, *_ = planar_graph(rng, n=30, extra=25, noise=0.2)
+    fixed = _normal.default_fixed_nodes(g)
+    pat = _normal.analyze(g, fixed, reorder=True)
+    rot, trans = np.array(g.rotations), np.array(g.translations)
+    assert _normal.is_planar(g, rot, trans)
+    data, grad = np.empty(pat.nnz), np.empty(pat.dim)
+    full = _normal.assemble(g, pat, rot, trans, data, grad, robust)
+    system = _normal.planar_system(pat)
+    sdata, sgrad = np.full(system.nnz, np.nan), np.full(pat.dim, np.nan)
+    assert _normal.assemble(g, pat, rot, trans, sdata, sgrad, robust, system) == full
+    h = sp.csc_matrix((data, pat.lower_indices(), pat.indptr), shape=(pat.dim, pat.dim))
+    keep = system.dofs
+    sub = h[keep][:, keep].tocsc()
+    sub.sort_indices()
+    assert np.array_equal(sub.indptr, system.indptr)
+    assert np.array_equal(sub.indices, system.indices)
+    assert np.array_equal(sub.data, sdata)  # the same sums in the same order: equal
+    assert np.array_equal(sgrad[keep], grad[keep])
+    assert np.all(sgrad[np.setdiff1d(np.arange(pat.dim), keep)] == 0.0)
+
+
 def test_fixed_nodes_are_held_constant(rng: np.random.Generator) -> None:
     g = random_graph(rng, n=15, extra=10, fixed=(3, 9))
     assert default_fixed_nodes(g).tolist() == [3, 9]

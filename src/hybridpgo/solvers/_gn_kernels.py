@@ -18,7 +18,9 @@ pointers, entry ``(p, q)``, ``p >= q``, of diagonal block ``j`` lives at
 ``data[indptr[6 j + q] + p - q]`` and entry ``(p, q)`` of the ``k``-th lower block of block
 column ``j`` at ``data[indptr[6 j + q] + 6 - q + 6 k + p]``.  A relative constraint between
 variables ``va, vb`` touches the diagonal blocks of both and one lower block, in block column
-``min(va, vb)`` at position ``edge_off[c]`` (computed once).
+``min(va, vb)`` at position ``edge_off[c]`` (computed once).  The planar system (the x, y,
+yaw rows and columns) has the same layout with 3 in place of 6, and the same assembly writes
+it directly (its ``dofs`` argument).
 
 The error, ``Jr^-1``, χ², energy and retraction come from the cost layer
 (:mod:`hybridpgo._cost`), shared with the hybrid solver and :mod:`hybridpgo.energy`; they are
@@ -51,28 +53,45 @@ def _matmul6(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
 
 
 @kernel
-def _add_diag_atb(a: np.ndarray, b: np.ndarray, data: np.ndarray, indptr: np.ndarray,
-                  v: int) -> None:
-    """Lower triangle of diagonal block v += lower triangle of a^T @ b ((6, 6) a, b)."""
-    for q in range(6):
-        col = indptr[6 * v + q] - q
-        for p in range(q, 6):
+def _matmul_cols(a: np.ndarray, b: np.ndarray, dofs: np.ndarray, out: np.ndarray) -> None:
+    """``out[:, q] = a @ b[:, dofs[q]]`` for (6, 6) a, b: the columns of ``a @ b`` kept."""
+    for i in range(6):
+        for q in range(dofs.shape[0]):
+            dq = dofs[q]
             s = 0.0
             for k in range(6):
-                s += a[k, p] * b[k, q]
+                s += a[i, k] * b[k, dq]
+            out[i, q] = s
+
+
+@kernel
+def _add_diag_atb(a: np.ndarray, b: np.ndarray, dofs: np.ndarray, data: np.ndarray,
+                  indptr: np.ndarray, v: int) -> None:
+    """Lower triangle of diagonal block v += lower triangle of ``a[:, dofs]^T @ b`` ((6, 6) a,
+    (6, nd) b: its columns already the kept ones)."""
+    nd = dofs.shape[0]
+    for q in range(nd):
+        col = indptr[nd * v + q] - q
+        for p in range(q, nd):
+            dp = dofs[p]
+            s = 0.0
+            for k in range(6):
+                s += a[k, dp] * b[k, q]
             data[col + p] += s
 
 
 @kernel
-def _add_lower_atb(a: np.ndarray, b: np.ndarray, data: np.ndarray, indptr: np.ndarray,
-                   v: int, k: int) -> None:
-    """The k-th lower block of block column v += a^T @ b ((6, 6) a, b)."""
-    for q in range(6):
-        col = indptr[6 * v + q] + 6 - q + 6 * k
-        for p in range(6):
+def _add_lower_atb(a: np.ndarray, b: np.ndarray, dofs: np.ndarray, data: np.ndarray,
+                   indptr: np.ndarray, v: int, k: int) -> None:
+    """The k-th lower block of block column v += ``a[:, dofs]^T @ b`` ((6, 6) a, (6, nd) b)."""
+    nd = dofs.shape[0]
+    for q in range(nd):
+        col = indptr[nd * v + q] + nd - q + nd * k
+        for p in range(nd):
+            dp = dofs[p]
             s = 0.0
             for i in range(6):
-                s += a[i, p] * b[i, q]
+                s += a[i, dp] * b[i, q]
             data[col + p] += s
 
 
@@ -118,13 +137,15 @@ def _edge_linearization(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.n
 
 
 @kernel
-def _add_gradient(j: np.ndarray, oe: np.ndarray, grad: np.ndarray, v: int) -> None:
-    """grad[6v : 6v+6] += J^T (Omega e) for one (6, 6) Jacobian block."""
-    for p in range(6):
+def _add_gradient(j: np.ndarray, oe: np.ndarray, dofs: np.ndarray, grad: np.ndarray,
+                  v: int) -> None:
+    """grad[6v + dofs] += J[:, dofs]^T (Omega e) for one (6, 6) Jacobian block."""
+    for p in range(dofs.shape[0]):
+        dp = dofs[p]
         s = 0.0
         for k in range(6):
-            s += j[k, p] * oe[k]
-        grad[6 * v + p] += s
+            s += j[k, dp] * oe[k]
+        grad[6 * v + dp] += s
 
 
 # --------------------------------------------------------------------------- drivers
@@ -148,10 +169,16 @@ def assemble_normal_equations(
     edge_off: np.ndarray,
     gps_nodes: np.ndarray, gps_pos: np.ndarray, gps_info: np.ndarray,
     var_of_node: np.ndarray, indptr: np.ndarray, data: np.ndarray, grad: np.ndarray,
-    robust_kind: int, robust_delta: float,
+    robust_kind: int, robust_delta: float, dofs: np.ndarray,
 ) -> tuple[int, float, float]:
     """Fill ``data`` (lower-triangle CSC values of H, module docstring) and ``grad``
     (g = J^T Omega e) in one pass; return the energy.
+
+    ``dofs``: the tangent entries of each pose kept in the system, increasing (all six, or
+    the planar system's x, y, yaw): ``data`` then holds the rows and columns of those only,
+    in the layout of the module docstring with ``len(dofs)`` in place of 6 (``indptr`` the
+    system's), and ``grad`` (6 N) only their entries (the others are 0).  Each kept entry is
+    the same sum, in the same order, as in the whole system.
 
     With a robust kernel (``robust_kind``, ``robust_delta``: :func:`hybridpgo._cost.robust_cost`)
     every constraint's terms (relative and GPS) are multiplied by its weight ``w = rho'(s)``.
@@ -172,8 +199,9 @@ def assemble_normal_equations(
     oe = np.empty(6)
     ja = np.empty((6, 6))
     jb = np.empty((6, 6))
-    wa = np.empty((6, 6))
-    wb = np.empty((6, 6))
+    nd = dofs.shape[0]
+    wa = np.empty((6, nd))
+    wb = np.empty((6, nd))
     energy = 0.0
     plain = 0.0
     for c in range(m):
@@ -191,33 +219,33 @@ def assemble_normal_equations(
         if not ok:
             return c, energy, plain
         plain += ec
-        _matmul6(om, ja, wa)
-        _matmul6(om, jb, wb)
+        _matmul_cols(om, ja, dofs, wa)
+        _matmul_cols(om, jb, dofs, wb)
         if robust_kind != ROBUST_NONE:  # IRLS: H += w J^T Omega J, g += w J^T Omega e
             rho, wc = robust_cost(robust_kind, robust_delta, ec)
             ec = rho
             for i in range(6):
                 oe[i] *= wc
-                for j in range(6):
+                for j in range(nd):
                     wa[i, j] *= wc
                     wb[i, j] *= wc
         energy += ec
         va = var_of_node[a]
         vb = var_of_node[b]
         if va >= 0:
-            _add_diag_atb(ja, wa, data, indptr, va)
-            _add_gradient(ja, oe, grad, va)
+            _add_diag_atb(ja, wa, dofs, data, indptr, va)
+            _add_gradient(ja, oe, dofs, grad, va)
         if vb >= 0:
-            _add_diag_atb(jb, wb, data, indptr, vb)
-            _add_gradient(jb, oe, grad, vb)
+            _add_diag_atb(jb, wb, dofs, data, indptr, vb)
+            _add_gradient(jb, oe, dofs, grad, vb)
         if va >= 0 and vb >= 0:
             if va > vb:  # block (row a, col b) = Ja^T W Jb is the lower one
-                _add_lower_atb(ja, wb, data, indptr, vb, edge_off[c])
+                _add_lower_atb(ja, wb, dofs, data, indptr, vb, edge_off[c])
             elif vb > va:  # block (row b, col a) = Jb^T W Ja
-                _add_lower_atb(jb, wa, data, indptr, va, edge_off[c])
+                _add_lower_atb(jb, wa, dofs, data, indptr, va, edge_off[c])
             else:  # one variable for both ends: both cross terms land on the diagonal
-                _add_diag_atb(ja, wb, data, indptr, va)
-                _add_diag_atb(jb, wa, data, indptr, va)
+                _add_diag_atb(ja, wb, dofs, data, indptr, va)
+                _add_diag_atb(jb, wa, dofs, data, indptr, va)
     for c in range(gps_nodes.shape[0]):
         n = gps_nodes[c]
         om = gps_info[c]
@@ -234,16 +262,25 @@ def assemble_normal_equations(
         if vn < 0:
             continue
         # J = [R | 0]: H_nn = w [[R^T Omega R, 0], [0, 0]], g_n = w (R^T Omega e, 0).
-        for q in range(3):
-            col = indptr[6 * vn + q] - q
-            for p in range(q, 3):
+        for q in range(nd):
+            dq = dofs[q]
+            if dq >= 3:
+                continue
+            col = indptr[nd * vn + q] - q
+            for p in range(q, nd):
+                dp = dofs[p]
+                if dp >= 3:
+                    continue
                 s = 0.0
                 for k in range(3):
                     for l in range(3):
-                        s += r[k, p] * om[k, l] * r[l, q]
+                        s += r[k, dp] * om[k, l] * r[l, dq]
                 data[col + p] += wc * s
-        for p in range(3):
-            grad[6 * vn + p] += wc * (r[0, p] * oe[0] + r[1, p] * oe[1] + r[2, p] * oe[2])
+        for p in range(nd):
+            dp = dofs[p]
+            if dp < 3:
+                grad[6 * vn + dp] += wc * (r[0, dp] * oe[0] + r[1, dp] * oe[1]
+                                           + r[2, dp] * oe[2])
     return -1, energy, plain
 
 
@@ -253,18 +290,20 @@ def lower_pattern_indices(block_ptr: np.ndarray, block_row: np.ndarray, indptr: 
     """Row indices of the scalar lower-triangle pattern (module docstring) from the block one.
 
     ``block_ptr`` (nv+1,), ``block_row``: the lower off-diagonal blocks of each block column
-    (rows increasing); ``indptr`` (6 nv + 1,): the scalar column pointers; fills ``indices``.
+    (rows increasing); ``indptr`` (nd nv + 1,): the scalar column pointers of (nd, nd) blocks
+    (6, or 3 for the planar system); fills ``indices``.
     """
     nv = block_ptr.shape[0] - 1
+    nd = (indptr.shape[0] - 1) // max(nv, 1)
     for j in range(nv):
-        for q in range(6):
-            pos = indptr[6 * j + q]
-            for p in range(q, 6):
-                indices[pos] = 6 * j + p
+        for q in range(nd):
+            pos = indptr[nd * j + q]
+            for p in range(q, nd):
+                indices[pos] = nd * j + p
                 pos += 1
             for k in range(block_ptr[j], block_ptr[j + 1]):
-                r = 6 * block_row[k]
-                for p in range(6):
+                r = nd * block_row[k]
+                for p in range(nd):
                     indices[pos] = r + p
                     pos += 1
 

@@ -120,10 +120,7 @@ def analyze(graph: PoseGraph, fixed: npt.NDArray[np.int32], reorder: bool) -> Pa
     np.cumsum(nblocks, out=block_ptr[1:])
     edge_off = np.full(graph.num_edges, -1, np.int64)
     edge_off[both] = inv - block_ptr[bcol[inv]]
-    q6 = np.arange(6, dtype=np.int64)
-    counts = (6 - q6)[None, :] + 6 * nblocks[:, None]  # column 6j+q: diagonal rows q..5, blocks
-    indptr = np.zeros(6 * nv + 1, np.int64)
-    np.cumsum(counts.ravel(), out=indptr[1:])
+    indptr = block_indptr(block_ptr, 6)
     return Pattern(var_of_node=var, num_vars=nv, indptr=indptr, block_ptr=block_ptr,
                     block_row=np.ascontiguousarray(uniq % max(nv, 1)), edge_off=edge_off)
 
@@ -144,18 +141,24 @@ def lower_to_full(values: FloatArray, indices: Int64Array, indptr: Int64Array,
 # only the (x, y, yaw) system is solved.
 
 
+#: The tangent entries a pose keeps in the whole system, and in the planar one.
+ALL_DOFS = np.arange(6, dtype=np.int64)
+PLANAR_DOFS = np.ascontiguousarray(IN_PLANE, dtype=np.int64)
+
+
 @dataclass(frozen=True, slots=True)
 class System:
     """The symmetric system actually factored: all of H, or its (x, y, yaw) rows/columns.
 
     Stored as its lower triangle in CSC form, rows increasing in each column (so the diagonal
-    entry comes first): the layout of :class:`hybridpgo.linalg.SymmetricPattern`.
+    entry comes first): the layout of :class:`hybridpgo.linalg.SymmetricPattern`, by blocks of
+    ``len(tangent)`` (:mod:`._gn_kernels`), which the assembly writes straight into.
     """
 
     indptr: Int64Array  # CSC pattern of the lower triangle of the (dim, dim) system matrix
     indices: Int64Array  # empty once the factorizer has taken them (CHOLMOD keeps its own)
     dofs: Int64Array | None  # positions of the system's unknowns in the full vector; None: all
-    value_map: Int64Array | None  # system values = data[value_map]; None: data itself
+    tangent: Int64Array  # the tangent entries (of 6) each pose keeps, increasing
     dim: int
 
     @property
@@ -165,12 +168,6 @@ class System:
     @property
     def nnz(self) -> int:
         return int(self.indptr[-1])
-
-    def values(self, data: FloatArray, out: FloatArray | None) -> FloatArray:
-        """The system's values: ``data`` itself, or its entries gathered (into ``out``)."""
-        if self.value_map is None:
-            return data
-        return np.take(data, self.value_map, out=out)
 
     def restrict(self, vec: FloatArray) -> FloatArray:
         return vec if self.dofs is None else vec[self.dofs]
@@ -183,23 +180,27 @@ class System:
         return out
 
 
+def block_indptr(block_ptr: Int64Array, nd: int) -> Int64Array:
+    """Column pointers of the lower triangle by (nd, nd) blocks: column ``nd j + q`` holds the
+    diagonal block's rows q..nd-1, then nd rows per lower block of block column j."""
+    q = np.arange(nd, dtype=np.int64)
+    counts = (nd - q)[None, :] + nd * np.diff(block_ptr)[:, None]
+    indptr = np.zeros(nd * (block_ptr.shape[0] - 1) + 1, np.int64)
+    np.cumsum(counts.ravel(), out=indptr[1:])
+    return indptr
+
+
 def full_system(pat: Pattern) -> System:
-    return System(pat.indptr, pat.lower_indices(), None, None, pat.dim)
+    return System(pat.indptr, pat.lower_indices(), None, ALL_DOFS, pat.dim)
 
 
 def planar_system(pat: Pattern) -> System:
-    """The (x, y, yaw) rows and columns of H, with a value map computed once."""
-    keep = (6 * np.arange(pat.num_vars)[:, None] + IN_PLANE[None, :]).ravel()
-    ids = sp.csc_matrix((np.arange(1, pat.nnz + 1, dtype=np.float64), pat.lower_indices(),
-                         pat.indptr), shape=(pat.dim, pat.dim))
-    sub = ids[keep][:, keep].tocsc()
-    sub.sort_indices()
-    value_map = sub.data.astype(np.int64) - 1
-    indptr = sub.indptr.astype(np.int64)
-    indices = sub.indices.astype(np.int64)
-    # every diagonal entry is in the pattern, first in its column (a lower triangle)
-    assert np.array_equal(indices[indptr[:-1]], np.arange(keep.shape[0]))
-    return System(indptr, indices, keep, value_map, int(keep.shape[0]))
+    """The (x, y, yaw) rows and columns of H, in the layout of H by (3, 3) blocks."""
+    keep = (6 * np.arange(pat.num_vars)[:, None] + PLANAR_DOFS[None, :]).ravel()
+    indptr = block_indptr(pat.block_ptr, 3)
+    indices = np.empty(int(indptr[-1]), np.int64)
+    _k.lower_pattern_indices(pat.block_ptr, pat.block_row, indptr, indices)
+    return System(indptr, indices, keep, PLANAR_DOFS, int(keep.shape[0]))
 
 
 def is_planar(graph: PoseGraph, rot: FloatArray, trans: FloatArray) -> bool:
@@ -213,13 +214,17 @@ def is_planar(graph: PoseGraph, rot: FloatArray, trans: FloatArray) -> bool:
 
 # --------------------------------------------------------------------------- linearize
 def assemble(graph: PoseGraph, pat: Pattern, rot: FloatArray, trans: FloatArray,
-              data: FloatArray, grad: FloatArray, robust: tuple[int, float] = (0, 1.0)
-              ) -> tuple[float, float]:
-    """H and g into ``data``, ``grad``; returns ``(E_rho, E)`` (equal without a kernel)."""
+              data: FloatArray, grad: FloatArray, robust: tuple[int, float] = (0, 1.0),
+              system: System | None = None) -> tuple[float, float]:
+    """H (``system``'s rows and columns of it; default all) and g into ``data``, ``grad``;
+    returns ``(E_rho, E)`` (equal without a kernel)."""
+    indptr, tangent = (pat.indptr, ALL_DOFS) if system is None else (system.indptr,
+                                                                      system.tangent)
     status, e, plain = _k.assemble_normal_equations(
         rot, trans, graph.edge_nodes, graph.edge_rotations, graph.edge_translations,
         graph.edge_information, pat.edge_off, graph.gps_nodes, graph.gps_positions,
-        graph.gps_information, pat.var_of_node, pat.indptr, data, grad, robust[0], robust[1],
+        graph.gps_information, pat.var_of_node, indptr, data, grad, robust[0], robust[1],
+        tangent,
     )
     if status >= 0:
         where = describe_constraint(graph, status)

@@ -32,8 +32,8 @@ from ..errors import SolverError
 from ..graph import FloatArray, PoseGraph
 from ..linalg import BlockCholesky, NotPositiveDefinite, cholmod_available, make_factorizer
 from . import _gn_kernels as _k
-from ._normal import NormalEquations as NormalEquations
 from ._normal import (
+    ALL_DOFS,
     Pattern,
     System,
     analyze,
@@ -45,6 +45,7 @@ from ._normal import (
     is_planar,
     planar_system,
 )
+from ._normal import NormalEquations as NormalEquations
 from ._normal import default_fixed_nodes as default_fixed_nodes
 from ._normal import ensure_compiled as ensure_compiled
 from ._normal import gn_step as gn_step
@@ -86,15 +87,15 @@ class _Backend:
     Memory (per stored entry of the lower triangle of H, "nnz"; 1M-pose city: 57 M): the values
     are assembled straight into the factorizer's own buffer (CHOLMOD: the cvxopt matrix it
     copies into the factored matrix), damped in place on the diagonal and restored; no other
-    copy of H exists.  The row indices live only in CHOLMOD's matrix after the analysis.
+    copy of H exists (the planar system is assembled as such: a quarter of the entries).
+    The row indices live only in CHOLMOD's matrix after the analysis.
     """
 
     system: System
     solver: Any
     data: FloatArray
-    """Values of the lower triangle of H (the factorizer's buffer for the full system)."""
-    sys_values: FloatArray | None
-    """The reduced (planar) system's values (the factorizer's buffer), None for the full one."""
+    """Values of the lower triangle of the system (the factorizer's buffer where it has one):
+    the assembly writes them in place."""
 
     @classmethod
     def create(cls, pat: Pattern, planar: bool, linear_solver: str, allow_block: bool
@@ -106,20 +107,15 @@ class _Backend:
                     pat.num_vars, 1):
                 solver = block
         if solver is not None:  # the block factorization reads the values in place
-            system = System(pat.indptr, np.zeros(0, np.int64), None, None, pat.dim)
+            system = System(pat.indptr, np.zeros(0, np.int64), None, ALL_DOFS, pat.dim)
         else:
             system = planar_system(pat) if planar else full_system(pat)
             solver = make_factorizer(system, linear_solver)
         if solver.name == "cholmod":  # CHOLMOD holds the pattern: drop our copy of the rows
             system = dataclasses.replace(system, indices=np.zeros(0, np.int64))
         buffer = solver.values_buffer()
-        sys_values = None
-        if planar:
-            data = np.empty(pat.nnz)
-            sys_values = buffer if buffer is not None else np.empty(system.nnz)
-        else:
-            data = buffer if buffer is not None else np.empty(pat.nnz)
-        return cls(system, solver, data, sys_values)
+        data = buffer if buffer is not None else np.empty(system.nnz)
+        return cls(system, solver, data)
 
 
 class ExactSolver:
@@ -248,7 +244,6 @@ class _Run:
         self.system = backend.system
         self.solver = backend.solver
         self.data = backend.data
-        self.sys_values = backend.sys_values
         self.rot, self.trans = rot, trans
         self.new_rot, self.new_trans = np.empty_like(rot), np.empty_like(trans)
         self.grad = np.empty(self.pat.dim)
@@ -260,7 +255,7 @@ class _Run:
         """H and g at the current poses; returns E (E_rho) there, the plain E in ``plain``."""
         t0 = time.perf_counter()
         e, self.plain = assemble(self.graph, self.pat, self.rot, self.trans, self.data,
-                                 self.grad, self.robust)
+                                 self.grad, self.robust, self.system)
         self.seconds["assemble"] += time.perf_counter() - t0
         return e
 
@@ -276,7 +271,7 @@ class _Run:
         """
         t0 = time.perf_counter()
         system = self.system
-        values = system.values(self.data, self.sys_values)
+        values = self.data
         g_sys = system.restrict(self.grad)
         damping = np.zeros(0)
         if self.cfg.method == "lm":
