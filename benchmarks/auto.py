@@ -40,6 +40,10 @@ from .metrics import Metric, info, markdown_table, quality, timing
 REF_LM = GaussNewtonConfig(max_iterations=300, energy_tolerance=1e-12)
 #: "Reaches the optimum" and "reaches the global optimum" (item 2).
 OPTIMUM_REL = 1e-6
+#: The default's solve and GTSAM's LM are timed this many times each, alternately, where the
+#: default's solve took at most PAIRED_MAX_S seconds; the ratios use the fastest of each.
+PAIRED_ROUNDS = 3
+PAIRED_MAX_S = 3.0
 GLOBAL_REL = 1e-3
 
 #: Benchmark files and the ground truth file (noise-free relative measurements) of each.
@@ -190,11 +194,36 @@ def _measure(case: Case) -> dict[str, Any]:
     # the local-minima reference: LM from the truth where known, else the best known
     row["ref"] = refs.get("truth", row["best"])
     gt = row.get("gtsam")
+    peer_start = (g.rotations, g.translations) if g.has_estimates else start
     if gt is not None and gt["from"] == "file" and gt["energy"] > row["best"] * (1 + OPTIMUM_REL):
         # GTSAM's LM from the file ends above the optimum: GTSAM from the chordal start too
         gc = gtsam_solve(g, *start, "lm")
         row["gtsam_chordal"] = {"energy": gc["final_energy"], "seconds": gc["seconds"]}
+        peer_start = start
+    if gt is not None and row["solve_time"] <= PAIRED_MAX_S:
+        _paired(g, row, peer_start)
     return row
+
+
+def _paired(g: PoseGraph, row: dict[str, Any], peer_start: tuple[np.ndarray, np.ndarray]
+            ) -> None:
+    """Time the default and GTSAM's LM (from the start the ratio uses) again, alternately,
+    :data:`PAIRED_ROUNDS` times; the fastest of each (the first measurement included) gives
+    the ratio.  A shared machine slows single timings by tens of percent, each its own way."""
+    peer = row.get("gtsam_chordal", row["gtsam"])
+    solve, whole, cert = row["solve_time"], row["auto_time"], row["cert_seconds"]
+    best = peer["seconds"]
+    for _ in range(PAIRED_ROUNDS - 1):
+        t0 = time.perf_counter()
+        res = optimize(g)
+        took = time.perf_counter() - t0
+        if res.timings["solve"] < solve:
+            solve, cert = float(res.timings["solve"]), float(
+                res.stats["certificate"].get("seconds", 0.0))
+        whole = min(whole, took)
+        best = min(best, gtsam_solve(g, *peer_start, "lm")["seconds"])
+    row["paired"] = {"solve": solve, "whole": whole, "certificate": cert, "gtsam": best,
+                     "rounds": PAIRED_ROUNDS}
 
 
 def _fmt_ratio(x: float | None) -> str:
@@ -263,31 +292,36 @@ def run(ctx: Any, *, log: Callable[[str], None] | None = None) -> tuple[list[Met
             "+", "plus")
         same = abs(r["auto"] - r["every"]) / r["every"]
         gt = r.get("gtsam")
-        gtsam_cols = ["—", "—", "—"]
+        gtsam_cols = ["—", "—", "—", "—"]
+        pair = r.get("paired", {"solve": r["solve_time"], "whole": r["auto_time"],
+                                "certificate": r["cert_seconds"], "rounds": 1})
         if gt is not None:
             peer = r.get("gtsam_chordal", gt)
             src = "chordal (file: local min.)" if "gtsam_chordal" in r else gt["from"]
-            ratio = r["solve_time"] / peer["seconds"]
+            peer_s = pair.get("gtsam", peer["seconds"])
+            ratio = pair["solve"] / peer_s
             metrics.append(info(f"{key}.solve_over_gtsam_lm", ratio))
-            gtsam_cols = [f"{peer['seconds']:.2f} ({src}; E/best {peer['energy'] / r['best']:.6g})",
-                          f"{ratio:.2f}", f"{r['auto_time'] / peer['seconds']:.2f}"]
-        frac = r["cert_seconds"] / r["solve_time"] if r["solve_time"] > 0 else float("nan")
+            gtsam_cols = [f"{peer_s:.2f} ({src}; E/best {peer['energy'] / r['best']:.6g})",
+                          f"{ratio:.2f}", f"{pair['whole'] / peer_s:.2f}", str(pair["rounds"])]
+        frac = pair["certificate"] / pair["solve"] if pair["solve"] > 0 else float("nan")
         metrics += [quality(f"{key}.same_as_every_start", same),
                     info(f"{key}.certificate_fraction", frac)]
         t4.append([r["name"], "yes" if r["certified"] else "no", r["cert_summary"],
                    f"{r['polished']} / {r['every_polished']}", f"{same:.1e}",
-                   "met" if same <= 1e-9 else "MISSED", f"{r['solve_time']:.2f}",
-                   f"{r['every_time']:.2f}", f"{r['cert_seconds']:.2f}", f"{frac:.0%}",
+                   "met" if same <= 1e-9 else "MISSED", f"{pair['solve']:.2f}",
+                   f"{r['every_time']:.2f}", f"{pair['certificate']:.2f}", f"{frac:.0%}",
                    *gtsam_cols])
     tables.append(markdown_table(
         header=["graph", "certified", "certificate", "polished starts (cert / every)",
                 "|E - E_every| / E_every", "≤ 1e-9", "default solve s", "every start s",
                 "certificate s", "certificate / solve", "GTSAM LM s (from; E / best)",
-                "solve / GTSAM", "whole call / GTSAM"], rows=t4,
+                "solve / GTSAM", "whole call / GTSAM", "timings"], rows=t4,
         title="Certificate on the default path (solve: the default's timings['solve'], warm; "
               "every start: AutoConfig(certify=False), every finalist polished; GTSAM: "
               "LevenbergMarquardtOptimizer from the file, or from the chordal start where the "
-              "file's ends above the best known)"))
+              "file's ends above the best known; timings: the default and GTSAM each timed "
+              f"that many times, alternately (rows whose solve took <= {PAIRED_MAX_S:g} s), "
+              "the fastest of each in the solve, certificate and GTSAM columns)"))
 
     t2 = []
     reach_any = reach_auto = 0
