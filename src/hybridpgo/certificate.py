@@ -89,6 +89,12 @@ FLOOR_GAP_TOLERANCE = 1e-4
 SAME_OPTIMUM = 1e-9
 #: Newton on F stops when the predicted decrease is below this fraction of F.
 _NEWTON_TOLERANCE = 1e-14
+#: A factorization of F's Hessian is reused while each step's predicted decrease falls at
+#: least this many times below the last one (a chord step costs a solve and a gradient, a
+#: refactorization is then due).  M3500_isam: 13 chord steps at a rate of 3-10 (34 ms), or 2
+#: factorizations and 7 steps at 10 (22 ms); intel, garage, sphere2500 take the same steps
+#: either way.
+_CHORD_RATE = 10.0
 
 _E = np.zeros((3, 3, 3))
 _E[0, 2, 1], _E[0, 1, 2] = 1.0, -1.0
@@ -537,13 +543,13 @@ class SyncProblem:
         gauge pose held; the positions are re-optimized after each step.
 
         A factorization of the Hessian is reused while the steps it gives lower F and their
-        predicted decrease falls at least 3x per step (a chord method: each such step costs a
-        gradient and a solve); else it is refactored at the current point (after the step when
-        it lowered F), and damped
-        (``H + mu diag(H)``) while it is not positive definite or its step raises F by more
-        than F's rounding error.  Stops after a step whose predicted decrease is below
-        ``_NEWTON_TOLERANCE`` of F, or below F's rounding error when a fresh factorization no
-        longer shrinks it 3x.  Returns ``(Y, F, factorizations)``.
+        predicted decrease falls at least ``_CHORD_RATE`` times per step (a chord method:
+        each such step costs a gradient and a solve); else it is refactored at the current
+        point (after the step when it lowered F), and damped (``H + mu diag(H)``) while it is
+        not positive definite or its step raises F by more than F's rounding error.  Stops
+        after a step whose predicted decrease is below ``_NEWTON_TOLERANCE`` of F, or below
+        F's rounding error when a fresh factorization no longer shrinks it ``_CHORD_RATE``
+        times.  Returns ``(Y, F, factorizations)``.
         """
         from .linalg import NotPositiveDefinite
 
@@ -588,10 +594,10 @@ class SyncProblem:
             # converged: a tiny predicted decrease, or a fresh Newton step that no longer
             # shrinks it below F's rounding error (rounding floor)
             small = predicted <= _NEWTON_TOLERANCE * abs(f) or (
-                fresh and predicted <= noise and predicted > previous / 3.0)
+                fresh and predicted <= noise and predicted > previous / _CHORD_RATE)
             new_terms = self._edge_terms(y_new, hessian=False)
             f_new = new_terms["f"]
-            if small or (f_new <= f + noise and (fresh or predicted <= previous / 3.0)):
+            if small or (f_new <= f + noise and (fresh or predicted <= previous / _CHORD_RATE)):
                 y, terms = y_new, new_terms
                 g, f = terms["grad"], f_new
                 if small:
