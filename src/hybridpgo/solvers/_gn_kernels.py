@@ -53,10 +53,10 @@ def _matmul6(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
 
 
 @kernel
-def _matmul_cols(a: np.ndarray, b: np.ndarray, dofs: np.ndarray, out: np.ndarray) -> None:
+def _matmul_cols(a: np.ndarray, b: np.ndarray, dofs: tuple[int, ...], out: np.ndarray) -> None:
     """``out[:, q] = a @ b[:, dofs[q]]`` for (6, 6) a, b: the columns of ``a @ b`` kept."""
     for i in range(6):
-        for q in range(dofs.shape[0]):
+        for q in range(len(dofs)):
             dq = dofs[q]
             s = 0.0
             for k in range(6):
@@ -65,11 +65,11 @@ def _matmul_cols(a: np.ndarray, b: np.ndarray, dofs: np.ndarray, out: np.ndarray
 
 
 @kernel
-def _add_diag_atb(a: np.ndarray, b: np.ndarray, dofs: np.ndarray, data: np.ndarray,
+def _add_diag_atb(a: np.ndarray, b: np.ndarray, dofs: tuple[int, ...], data: np.ndarray,
                   indptr: np.ndarray, v: int) -> None:
     """Lower triangle of diagonal block v += lower triangle of ``a[:, dofs]^T @ b`` ((6, 6) a,
     (6, nd) b: its columns already the kept ones)."""
-    nd = dofs.shape[0]
+    nd = len(dofs)
     for q in range(nd):
         col = indptr[nd * v + q] - q
         for p in range(q, nd):
@@ -81,10 +81,10 @@ def _add_diag_atb(a: np.ndarray, b: np.ndarray, dofs: np.ndarray, data: np.ndarr
 
 
 @kernel
-def _add_lower_atb(a: np.ndarray, b: np.ndarray, dofs: np.ndarray, data: np.ndarray,
+def _add_lower_atb(a: np.ndarray, b: np.ndarray, dofs: tuple[int, ...], data: np.ndarray,
                    indptr: np.ndarray, v: int, k: int) -> None:
     """The k-th lower block of block column v += ``a[:, dofs]^T @ b`` ((6, 6) a, (6, nd) b)."""
-    nd = dofs.shape[0]
+    nd = len(dofs)
     for q in range(nd):
         col = indptr[nd * v + q] + nd - q + nd * k
         for p in range(nd):
@@ -137,10 +137,10 @@ def _edge_linearization(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.n
 
 
 @kernel
-def _add_gradient(j: np.ndarray, oe: np.ndarray, dofs: np.ndarray, grad: np.ndarray,
+def _add_gradient(j: np.ndarray, oe: np.ndarray, dofs: tuple[int, ...], grad: np.ndarray,
                   v: int) -> None:
     """grad[6v + dofs] += J[:, dofs]^T (Omega e) for one (6, 6) Jacobian block."""
-    for p in range(dofs.shape[0]):
+    for p in range(len(dofs)):
         dp = dofs[p]
         s = 0.0
         for k in range(6):
@@ -169,13 +169,14 @@ def assemble_normal_equations(
     edge_off: np.ndarray,
     gps_nodes: np.ndarray, gps_pos: np.ndarray, gps_info: np.ndarray,
     var_of_node: np.ndarray, indptr: np.ndarray, data: np.ndarray, grad: np.ndarray,
-    robust_kind: int, robust_delta: float, dofs: np.ndarray,
+    robust_kind: int, robust_delta: float, dofs: tuple[int, ...],
 ) -> tuple[int, float, float]:
     """Fill ``data`` (lower-triangle CSC values of H, module docstring) and ``grad``
     (g = J^T Omega e) in one pass; return the energy.
 
     ``dofs``: the tangent entries of each pose kept in the system, increasing (all six, or
-    the planar system's x, y, yaw): ``data`` then holds the rows and columns of those only,
+    the planar system's x, y, yaw), as a tuple (its length is then a constant of each
+    compiled variant): ``data`` then holds the rows and columns of those only,
     in the layout of the module docstring with ``len(dofs)`` in place of 6 (``indptr`` the
     system's), and ``grad`` (6 N) only their entries (the others are 0).  Each kept entry is
     the same sum, in the same order, as in the whole system.
@@ -199,7 +200,7 @@ def assemble_normal_equations(
     oe = np.empty(6)
     ja = np.empty((6, 6))
     jb = np.empty((6, 6))
-    nd = dofs.shape[0]
+    nd = len(dofs)
     wa = np.empty((6, nd))
     wb = np.empty((6, nd))
     energy = 0.0

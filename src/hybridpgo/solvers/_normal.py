@@ -224,7 +224,7 @@ def assemble(graph: PoseGraph, pat: Pattern, rot: FloatArray, trans: FloatArray,
         rot, trans, graph.edge_nodes, graph.edge_rotations, graph.edge_translations,
         graph.edge_information, pat.edge_off, graph.gps_nodes, graph.gps_positions,
         graph.gps_information, pat.var_of_node, indptr, data, grad, robust[0], robust[1],
-        tangent,
+        tuple(int(d) for d in tangent),  # a tuple: one compiled variant per system size
     )
     if status >= 0:
         where = describe_constraint(graph, status)
