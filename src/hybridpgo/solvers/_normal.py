@@ -373,7 +373,8 @@ def ensure_compiled() -> float:
     rot = np.array(g.rotations)  # writable, like the solver's state (Numba types differ)
     trans = np.array(g.translations)
     assemble(g, pat, rot, trans, data, grad)
-    pat.lower_indices()
+    planar = planar_system(pat)  # the planar system's variant of the assembly too
+    assemble(g, pat, rot, trans, np.empty(planar.nnz), grad, (0, 1.0), planar)
     out_r = np.empty((2, 3, 3))
     out_t = np.empty((2, 3))
     _k.retract(rot, trans, grad, pat.var_of_node, 1.0, out_r, out_t)
