@@ -72,6 +72,7 @@ GENERATED: list[tuple[str, str, str | None, int, float, int]] = [
     ("city (2000 poses) + GPS", "city", None, 0, 0.0, 100),
     ("valencia + GPS", "city", "valencia", 0, 0.0, 100),
     ("m3500a seed 0", "grid", "m3500a", 0, 0.0, 0),
+    ("m3500a seed 0 + GPS", "grid", "m3500a", 0, 0.0, 100),
     ("m3500a seed 1", "grid", "m3500a", 1, 0.0, 0),
     ("m3500b seed 0", "grid", "m3500b", 0, 0.0, 0),
     ("m3500b seed 1", "grid", "m3500b", 1, 0.0, 0),
@@ -82,6 +83,9 @@ GENERATED: list[tuple[str, str, str | None, int, float, int]] = [
     ("m3500 noisified 20 deg", "grid", "m3500", 0, 20.0, 0),
     ("m3500b noisified 10 deg", "grid", "m3500b", 0, 10.0, 0),
 ]
+#: Standard deviation (m) of the planar GPS readings added to a generated grid (its extent:
+#: +-43 m).
+GRID_GPS_SIGMA = 0.5
 #: Generated graphs left out (the city presets paris1 and paris2: see the module docstring of
 #: the results; their polish alone is minutes on this machine).
 SKIPPED_GENERATED: dict[str, str] = {
@@ -135,6 +139,13 @@ def _generated_case(name: str, kind: str, preset: str | None, seed: int, yaw: fl
     else:
         made = generate_grid(preset, seed=seed)
     graph = made.graph
+    if kind == "grid" and gps:  # planar readings of the true positions, sigma GRID_GPS_SIGMA
+        rng = np.random.default_rng(seed)
+        idx = np.arange(0, graph.num_nodes, gps)
+        pos = made.truth_translations[idx].copy()
+        pos[:, :2] += GRID_GPS_SIGMA * rng.standard_normal((idx.size, 2))
+        info = np.eye(3) / GRID_GPS_SIGMA ** 2
+        graph = graph.add_gps(graph.node_ids[idx], pos, np.broadcast_to(info, (idx.size, 3, 3)))
     if yaw:
         graph = noisify(graph, yaw_sigma_deg=yaw, seed=seed)
     return Case(name, graph, (made.truth_rotations, made.truth_translations), "generator")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -84,3 +86,17 @@ def random_graph(
         gps_information=gps_info,
     )
     return graph, rot, trans
+
+
+def with_gps(graph: PoseGraph, every: int = 4, sigma: float = 0.3, seed: int = 0) -> PoseGraph:
+    """``graph`` with a noisy GPS reading of every ``every``-th pose (anisotropic information;
+    planar readings on a 2D graph) and no fixed pose."""
+    rng = np.random.default_rng(seed)
+    idx = np.arange(0, graph.num_nodes, every)
+    pos = graph.translations[idx] + sigma * rng.standard_normal((idx.size, 3)) + 2.0
+    info = np.diag([1.0, 2.0, 0.5]) / sigma ** 2
+    if graph.is_2d:
+        pos[:, 2] = 0.0
+        info[:2, 2] = info[2, :2] = 0.0
+    out = graph.add_gps(graph.node_ids[idx], pos, np.broadcast_to(info, (idx.size, 3, 3)))
+    return dataclasses.replace(out, fixed_nodes=np.zeros(0, np.int32))

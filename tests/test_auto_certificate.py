@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from graphs import planar_rotations
+from graphs import planar_rotations, with_gps
 
 from hybridpgo import read_graph
 from hybridpgo.certificate import SyncProblem
@@ -43,7 +43,8 @@ def _dense_lambda_min(graph: PoseGraph, rotations: np.ndarray) -> tuple[float, f
 
 
 GRAPHS = pytest.mark.parametrize("make", [_grid2d, lambda: read_graph(
-    Path(__file__).parent / "data" / "smallGrid3D.g2o")], ids=["grid2d", "smallGrid3D"])
+    Path(__file__).parent / "data" / "smallGrid3D.g2o"), lambda: with_gps(_grid2d(), every=10)],
+    ids=["grid2d", "smallGrid3D", "grid2d+GPS"])
 
 
 @GRAPHS
@@ -175,8 +176,12 @@ def test_the_large_graph_policy_and_other_models_say_why_not() -> None:
     assert "early" not in default.stats["certificate"]
     gps = solve_auto(generate_city(None, seed=0, gps_every=50, num_poses=50).graph)
     assert gps.stats["certificate"]["summary"] == (
-        "not certified: GPS constraints (not in SE-Sync's model)")
+        "not certified: GPS constraints on a 3D graph (the relaxation of the earth frame's "
+        "rotation is not tight there)")
     assert gps.stats["polished_starts"] > 1
+    fixed = dataclasses.replace(with_gps(graph, every=10), fixed_nodes=np.zeros(1, np.int32))
+    assert solve_auto(fixed).stats["certificate"]["why"] == (
+        "GPS constraints and a fixed pose (not in SE-Sync's model)")
 
 
 def test_the_cli_summary_says_whether_it_is_certified(capsys, data_dir: Path,

@@ -9,13 +9,14 @@ import pathlib
 import numpy as np
 import pytest
 import scipy.sparse as sp
-from graphs import planar_rotations
+from graphs import planar_rotations, with_gps
 from naive import dense_quadratic_form, schur_certificate, sesync_objective
 from tolerances import CENTRAL_DIFF, FLOAT64_IDENTITY
 
 from hybridpgo.certificate import (
     SyncProblem,
     certify,
+    gps_weights,
     sesync_certificate,
     sesync_weights,
     staircase_start,
@@ -48,19 +49,37 @@ def _random_rotations(graph: PoseGraph, seed: int) -> np.ndarray:
     return np.asarray(Rotation.random(graph.num_nodes, random_state=seed).as_matrix())
 
 
-def _naive_f(graph: PoseGraph, prob: SyncProblem):
-    """v (one column of V = [T; Y]) -> SE-Sync's F with the real (d, d) matrices of v."""
+def _twin_model(graph: PoseGraph):
+    """SE-Sync's model written out constraint by constraint: ``(edges, rm, tm, kappa, tau,
+    n)`` over the graph's poses and, with GPS, an earth pose appended (index N): each reading
+    a constraint from it with the reading as translation, no rotation term (kappa 0) and
+    ``tau = d / tr(Omega^-1)`` of the reading's (d, d) information."""
     kappa, tau = sesync_weights(graph)
     n = graph.num_nodes
+    edges, rm, tm = graph.edge_nodes, graph.edge_rotations, graph.edge_translations
+    if graph.num_gps:
+        d = 2 if graph.is_2d else 3
+        tau_g = [d / np.trace(np.linalg.inv(w[:d, :d])) for w in graph.gps_information]
+        edges = np.concatenate([edges, [[n, int(i)] for i in graph.gps_nodes]])
+        rm = np.concatenate([rm, [np.eye(3)] * graph.num_gps])
+        tm = np.concatenate([tm, graph.gps_positions])
+        kappa = np.concatenate([kappa, np.zeros(graph.num_gps)])
+        tau = np.concatenate([tau, tau_g])
+        n += 1
+    return edges, rm, tm, kappa, tau, n
+
+
+def _naive_f(graph: PoseGraph, prob: SyncProblem):
+    """v (one column of V = [T; Y]) -> SE-Sync's F with the real (d, d) matrices of v."""
+    edges, rm, tm, kappa, tau, n = _twin_model(graph)
     if prob.complex:
-        rm = graph.edge_rotations[:, :2, :2]
-        tm = graph.edge_translations[:, :2]
+        rm, tm = rm[:, :2, :2], tm[:, :2]
 
         def f(v: np.ndarray) -> float:
             t, z = v[:n], v[n:]
             rot = np.stack([np.stack([z.real, -z.imag], -1), np.stack([z.imag, z.real], -1)], 1)
             trans = np.stack([t.real, t.imag], -1)
-            return sesync_objective(graph.edge_nodes, rm, tm, kappa, tau, rot, trans)
+            return sesync_objective(edges, rm, tm, kappa, tau, rot, trans)
     else:
         def f(v: np.ndarray) -> float:
             # v is column 0 of V (the other columns 0): entry 0 of every t_i and column 0 of
@@ -70,8 +89,7 @@ def _naive_f(graph: PoseGraph, prob: SyncProblem):
             trans[:, 0] = v[:n]
             rot = np.zeros((n, 3, 3))
             rot[:, 0, :] = v[n:].reshape(n, 3)
-            return sesync_objective(graph.edge_nodes, graph.edge_rotations,
-                                    graph.edge_translations, kappa, tau, rot, trans)
+            return sesync_objective(edges, rm, tm, kappa, tau, rot, trans)
     return f
 
 
@@ -103,7 +121,24 @@ def test_weights_are_sesyncs_from_the_file_numbers() -> None:
                                        rel=FLOAT64_IDENTITY)
 
 
-@pytest.mark.parametrize("make", [_tiny3d, _grid2d], ids=["3D", "2D"])
+def test_a_gps_readings_weight_is_its_isotropic_information() -> None:
+    """An isotropic reading (information w I) weighs w: F's GPS term is E's at the earth frame."""
+    for graph in (_grid2d(), _tiny3d()):
+        ids = graph.node_ids[:3]
+        w = np.array([0.5, 4.0, 25.0])
+        info = w[:, None, None] * np.eye(3)
+        if graph.is_2d:
+            info[:, 2, 2] = 7.0  # the vertical entry of a planar reading plays no part
+        pos = graph.translations[:3] * np.array([1.0, 1.0, 0.0 if graph.is_2d else 1.0])
+        assert np.abs(gps_weights(graph.add_gps(ids, pos, info)) - w).max() <= (
+            FLOAT64_IDENTITY * 10 * w.max())
+
+
+_GPS_CASES = [lambda: with_gps(_tiny3d()), lambda: with_gps(_grid2d())]
+
+
+@pytest.mark.parametrize("make", [_tiny3d, _grid2d, *_GPS_CASES],
+                         ids=["3D", "2D", "3D+GPS", "2D+GPS"])
 def test_data_matrix_and_certificate_match_naive_twins(make) -> None:
     """M against the polarization of SE-Sync's F term by term; S = Q - Lambda against the dense
     Schur complement; F(Y) with optimal positions against the twin at those positions."""
@@ -122,19 +157,21 @@ def test_data_matrix_and_certificate_match_naive_twins(make) -> None:
     # F at the optimal positions is the twin's F there, and no other positions are lower
     rot = prob.rotations(y)
     trans = prob.translations(prob.positions(y))
-    kappa, tau = sesync_weights(graph)
+    edges, rm, tm, kappa, tau, _ = _twin_model(graph)
     dd = 2 if prob.complex else 3
-    rm, tm = graph.edge_rotations[:, :dd, :dd], graph.edge_translations[:, :dd]
-    twin = sesync_objective(graph.edge_nodes, rm, tm, kappa, tau, rot[:, :dd, :dd],
-                            trans[:, :dd])
+    rm, tm = rm[:, :dd, :dd], tm[:, :dd]
+    twin = sesync_objective(edges, rm, tm, kappa, tau, rot[:, :dd, :dd], trans[:, :dd])
     assert prob.cost(y) == pytest.approx(twin, rel=1e3 * FLOAT64_IDENTITY)
     rng = np.random.default_rng(2)
     moved = trans[:, :dd] + 1e-3 * rng.standard_normal((n, dd))
-    assert sesync_objective(graph.edge_nodes, rm, tm, kappa, tau, rot[:, :dd, :dd],
-                            moved) > twin
+    moved[prob.gauge] = trans[prob.gauge, :dd]
+    assert sesync_objective(edges, rm, tm, kappa, tau, rot[:, :dd, :dd], moved) > twin
 
 
-@pytest.mark.parametrize("make", [_tiny3d, lambda: _grid2d(poses=12)], ids=["3D", "2D"])
+@pytest.mark.parametrize("make", [_tiny3d, lambda: _grid2d(poses=12),
+                                  lambda: with_gps(_tiny3d(), every=3),
+                                  lambda: with_gps(_grid2d(poses=12), every=3)],
+                         ids=["3D", "2D", "3D+GPS", "2D+GPS"])
 def test_newton_system_matches_finite_differences(make) -> None:
     graph = make()
     prob = SyncProblem(graph)
@@ -144,7 +181,7 @@ def test_newton_system_matches_finite_differences(make) -> None:
     pp = 3 if prob.complex else 6
     st = 2 if prob.complex else 3
     t0 = prob.positions(y)
-    kappa, tau = sesync_weights(graph)
+    edges, rm, tm, kappa, tau, _ = _twin_model(graph)
     dd = 2 if prob.complex else 3
 
     def objective(delta: np.ndarray) -> float:
@@ -154,8 +191,7 @@ def test_newton_system_matches_finite_differences(make) -> None:
         tt = t0 + ((p[:, 0] + 1j * p[:, 1])[:, None] if prob.complex else p[:, :st])
         rot = prob.rotations(yy)[:, :dd, :dd]
         trans = prob.translations(tt)[:, :dd]
-        return sesync_objective(graph.edge_nodes, graph.edge_rotations[:, :dd, :dd],
-                                graph.edge_translations[:, :dd], kappa, tau, rot, trans)
+        return sesync_objective(edges, rm[:, :dd, :dd], tm[:, :dd], kappa, tau, rot, trans)
 
     dim = pp * n
     assert objective(np.zeros(dim)) == pytest.approx(f, rel=FLOAT64_IDENTITY * 1e3)
@@ -176,7 +212,8 @@ def test_newton_system_matches_finite_differences(make) -> None:
 
 
 # --------------------------------------------------------------------------- certificate
-@pytest.mark.parametrize("make", [_tiny3d, _grid2d], ids=["3D", "2D"])
+@pytest.mark.parametrize("make", [_tiny3d, _grid2d, *_GPS_CASES],
+                         ids=["3D", "2D", "3D+GPS", "2D+GPS"])
 def test_smallest_eigenvalue_matches_a_dense_decomposition(make) -> None:
     graph = make()
     prob = SyncProblem(graph)

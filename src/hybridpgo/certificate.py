@@ -15,6 +15,19 @@ taken from its information matrix as SE-Sync's loader does (cross terms are igno
   ``Omega_phi = Omega_q / 4`` (:mod:`hybridpgo.io.g2o`), so ``kappa = 6 / tr(Omega_phi^-1)``.
 * 2D: ``tau = 2 / tr(Omega_xy^-1)`` and ``kappa = Omega_theta_theta``.
 
+GPS constraints (a position ``g`` of pose ``i`` in the earth frame) enter as relative
+constraints from one more unknown pose, the earth frame ``(R_e, t_e)``:
+``tau_g ||t_i - t_e - R_e g||^2`` with ``tau_g = d / tr(Omega_g^-1)`` (as a relative constraint's
+translation) and no rotation term.  F is then invariant under a rigid motion of every pose *and*
+the earth, so the earth is the gauge (held at the identity); at ``R_e = I, t_e = 0`` the term is
+``tau_g ||t_i - g||^2``, E's GPS term with isotropic information.  On planar graphs this
+relaxation certifies as SE-Sync's does (M3500 and intel with a GPS reading every 100 poses:
+gaps <= 1e-7).  On 3D graphs it is not tight: the relaxation lifts the earth's rotation into
+more dimensions than 3, where its columns are constrained by the readings alone and fit them
+better than any rotation (sphere2500 and the generated 3D cities with GPS: the certificate
+matrix has eigenvalues of -0.3 to -5 at F's minimum), so :func:`not_applicable` declines 3D
+graphs with GPS.
+
 ``F`` is **not** the energy E the solvers minimize (E uses geodesic ``Log`` errors and the full
 information): it is the objective that SE-Sync's certificate and its published optimal values
 refer to.  :func:`sesync_weights` computes the weights.
@@ -69,8 +82,8 @@ import scipy.sparse as sp
 from .errors import HybridPGOError
 from .graph import FloatArray, PoseGraph
 
-__all__ = ["Certificate", "SyncProblem", "certify", "ensure_compiled", "sesync_certificate",
-           "sesync_weights", "staircase_start"]
+__all__ = ["Certificate", "SyncProblem", "certify", "ensure_compiled", "gps_weights",
+           "sesync_certificate", "sesync_weights", "staircase_start"]
 
 ComplexArray = npt.NDArray[np.complex128]
 Array = npt.NDArray[Any]
@@ -120,6 +133,16 @@ def sesync_weights(graph: PoseGraph) -> tuple[FloatArray, FloatArray]:
         kappa = 6.0 / np.trace(np.linalg.inv(info[:, 3:, 3:]), axis1=1, axis2=2)
         tau = 3.0 / np.trace(np.linalg.inv(info[:, :3, :3]), axis1=1, axis2=2)
     return kappa, tau
+
+
+def gps_weights(graph: PoseGraph) -> FloatArray:
+    """The isotropic weight ``tau`` of every GPS constraint, as :func:`sesync_weights` weighs a
+    relative constraint's translation: ``3 / tr(Omega^-1)`` (3D), ``2 / tr(Omega_xy^-1)``
+    (2D)."""
+    info = graph.gps_information
+    dim = 2 if graph.is_2d else 3
+    out: FloatArray = dim / np.trace(np.linalg.inv(info[:, :dim, :dim]), axis1=1, axis2=2)
+    return out
 
 
 def _hat(v: FloatArray) -> FloatArray:
@@ -186,8 +209,11 @@ class SyncProblem:
     Parameters
     ----------
     graph : PoseGraph
-        Without GPS constraints.  2D graphs use the complex form (one complex number per
-        rotation and per position), 3D graphs the real one.
+        2D graphs use the complex form (one complex number per rotation and per position), 3D
+        graphs the real one.  A graph with GPS constraints gets one more unknown pose, the
+        earth frame (index ``num_poses``, the gauge), and each GPS reading becomes a relative
+        constraint from it with no rotation term (``kappa = 0``, ``tau``: :func:`gps_weights`);
+        such a graph may not also fix a pose.
     weights : {"sesync", "planar"}
         ``"sesync"``: :func:`sesync_weights`.  ``"planar"`` (2D only): ``kappa`` the yaw
         information over ``|z_b - z_a r_c|^2`` and ``tau`` the mean of the x and y information
@@ -195,40 +221,55 @@ class SyncProblem:
     """
 
     def __init__(self, graph: PoseGraph, weights: str = "sesync") -> None:
-        if graph.num_gps:
-            raise ValueError("SE-Sync's model has no GPS constraints")
+        if graph.num_gps and graph.fixed_nodes.size:
+            raise ValueError("SE-Sync's model of a graph with GPS constraints holds the earth "
+                             "frame, not a fixed pose")
         if weights not in ("sesync", "planar") or (weights == "planar" and not graph.is_2d):
             raise ValueError(f"weights must be 'sesync' or, for 2D graphs, 'planar'; got "
                              f"{weights!r}")
-        n = graph.num_nodes
+        gps = graph.num_gps
+        self.num_poses = graph.num_nodes
+        """The graph's poses: the problem's first unknowns (the earth frame's follows)."""
+        self.earth = graph.num_nodes if gps else -1
+        """Index of the earth frame's unknowns (-1: no GPS constraint)."""
+        n = graph.num_nodes + (1 if gps else 0)
         self.n = n
         self.complex = bool(graph.is_2d)
         d = 1 if self.complex else 3
         self.d = d
-        self.gauge = int(graph.fixed_nodes[0]) if graph.fixed_nodes.size else 0
-        a = graph.edge_nodes[:, 0].astype(np.int64)
-        b = graph.edge_nodes[:, 1].astype(np.int64)
+        if gps:
+            self.gauge = self.earth
+        else:
+            self.gauge = int(graph.fixed_nodes[0]) if graph.fixed_nodes.size else 0
+        # a GPS constraint is a relative one from the earth frame with no rotation term
+        a = np.concatenate([graph.edge_nodes[:, 0].astype(np.int64), np.full(gps, self.earth)])
+        b = np.concatenate([graph.edge_nodes[:, 1].astype(np.int64),
+                            graph.gps_nodes.astype(np.int64)])
         m = a.size
         kappa, tau = sesync_weights(graph)
+        tau_gps = gps_weights(graph)
         if weights == "planar":
             info = graph.edge_information
             kappa, tau = info[:, 5, 5] / 2.0, 0.5 * (info[:, 0, 0] + info[:, 1, 1])
+            tau_gps = 0.5 * (graph.gps_information[:, 0, 0] + graph.gps_information[:, 1, 1])
+        kappa = np.concatenate([kappa, np.zeros(gps)])
+        tau = np.concatenate([tau, tau_gps])
+        rot_m = np.concatenate([graph.edge_rotations, np.broadcast_to(np.eye(3), (gps, 3, 3))])
+        trans_m = np.concatenate([graph.edge_translations, graph.gps_positions])
         one = np.ones((m, 1, 1))
         # residual = sum_k c_k V_k (V_k: the block rows of one unknown); each term
         # w ||residual||^2 adds w c_p^H c_q to M at the blocks (p, q)
         terms: list[tuple[list[tuple[Array, Array]], FloatArray]]
         if self.complex:
-            rz = graph.edge_rotations[:, 0, 0] + 1j * graph.edge_rotations[:, 1, 0]
+            rz = rot_m[:, 0, 0] + 1j * rot_m[:, 1, 0]
             rz = rz / np.abs(rz)
-            tz = graph.edge_translations[:, 0] + 1j * graph.edge_translations[:, 1]
+            tz = trans_m[:, 0] + 1j * trans_m[:, 1]
             terms = [([(n + b, one), (n + a, -rz[:, None, None])], 2.0 * kappa),
                      ([(b, one), (a, -one), (n + a, -tz[:, None, None])], tau)]
         else:
             eye = np.broadcast_to(np.eye(3), (m, 3, 3))
-            terms = [([(n + 3 * b, eye), (n + 3 * a, -np.swapaxes(graph.edge_rotations, 1, 2))],
-                      kappa),
-                     ([(b, one), (a, -one), (n + 3 * a, -graph.edge_translations[:, None, :])],
-                      tau)]
+            terms = [([(n + 3 * b, eye), (n + 3 * a, -np.swapaxes(rot_m, 1, 2))], kappa),
+                     ([(b, one), (a, -one), (n + 3 * a, -trans_m[:, None, :])], tau)]
         dim = n + d * n
         rows: list[Array] = []
         cols: list[Array] = []
@@ -257,8 +298,8 @@ class SyncProblem:
         if self.complex:
             self._measured: tuple[Array, Array] = (rz, tz)
         else:
-            self._measured = (np.ascontiguousarray(graph.edge_rotations, np.float64),
-                              np.ascontiguousarray(graph.edge_translations, np.float64))
+            self._measured = (np.ascontiguousarray(rot_m, np.float64),
+                              np.ascontiguousarray(trans_m, np.float64))
         rot = np.arange(n, dim)
         self._a = sp.csr_matrix(self.m[rot][:, rot])
         self._b = sp.csr_matrix(self.m[rot][:, keep])
@@ -272,7 +313,10 @@ class SyncProblem:
 
     # ------------------------------------------------------------------ conversions
     def to_y(self, rotations: FloatArray) -> Array:
-        """Rotations (N, 3, 3) as the rank-d ``Y`` (d n, d)."""
+        """Rotations (N, 3, 3) as the rank-d ``Y`` (d n, d); the graph's N poses get the
+        identity appended for the earth frame (GPS)."""
+        if rotations.shape[0] == self.num_poses < self.n:
+            rotations = np.concatenate([rotations, np.eye(3)[None]])
         if self.complex:
             z = rotations[:, 0, 0] + 1j * rotations[:, 1, 0]
             return np.asarray((z / np.abs(z))[:, None], np.complex128)
@@ -301,20 +345,27 @@ class SyncProblem:
 
     def poses(self, y: Array, reference: tuple[FloatArray, FloatArray] | None = None
               ) -> tuple[FloatArray, FloatArray]:
-        """Poses ``(R, t)`` of a rank-d ``Y`` with its optimal positions, expressed in the frame
-        of ``reference`` at the gauge pose (the same pose there; none: as they are)."""
+        """The graph's poses ``(R, t)`` (N of them) of a rank-d ``Y`` with its optimal
+        positions, expressed in the frame of ``reference`` at the gauge pose (the same pose
+        there; none: as they are).  With GPS constraints always in the earth frame (its
+        unknowns turned to the identity), whatever ``reference``."""
         rot = self.rotations(y)
         trans = self.translations(self.positions(y))
-        if reference is not None:
-            g = self.gauge
-            turn = reference[0][g] @ rot[g].T
+        g = self.gauge
+        there: tuple[FloatArray, FloatArray] | None = None  # the gauge pose's new frame
+        if self.earth >= 0:
+            there = (np.eye(3), np.zeros(3))
+        elif reference is not None:
+            there = (reference[0][g], reference[1][g])
+        if there is not None:
+            turn = there[0] @ rot[g].T
             if self.complex:  # keep the planar form exact
                 c, s = turn[0, 0], turn[1, 0]
                 h = np.hypot(c, s)
                 turn = np.array([[c / h, -s / h, 0.0], [s / h, c / h, 0.0], [0.0, 0.0, 1.0]])
             rot = turn[None] @ rot
-            trans = (trans - trans[g]) @ turn.T + reference[1][g]
-        return rot, trans
+            trans = (trans - trans[g]) @ turn.T + there[1]
+        return rot[:self.num_poses], trans[:self.num_poses]
 
     # ------------------------------------------------------------------ Q and F
     def _dsolve(self, rhs: Array) -> Array:
@@ -818,8 +869,11 @@ def ensure_compiled(planar: bool) -> float:
 
 def not_applicable(graph: PoseGraph, robust: str = "none") -> str:
     """Why SE-Sync's model does not describe ``graph`` ("" when it does)."""
-    if graph.num_gps:
-        return "GPS constraints (not in SE-Sync's model)"
+    if graph.num_gps and not graph.is_2d:
+        return ("GPS constraints on a 3D graph (the relaxation of the earth frame's rotation is "
+                "not tight there)")
+    if graph.num_gps and graph.fixed_nodes.size:
+        return "GPS constraints and a fixed pose (not in SE-Sync's model)"
     if robust != "none":
         return "robust kernel (not in SE-Sync's model)"
     if graph.fixed_nodes.size > 1:

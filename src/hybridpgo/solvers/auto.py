@@ -49,11 +49,13 @@ solver is named (``--solver auto``).  The paper's pure method stays ``--solver h
    lower energy wins (``stats["relaxation"]``).  It is a check of the chordal cost, not a
    certificate of E's global optimum.
 
-5. **Certificate** (``AutoConfig.certify``; graphs SE-Sync's model describes: no GPS, no
-   robust kernel, at most one FIX node): the first polished finalist is certified
-   (:func:`hybridpgo.certificate.certify`: SE-Sync's objective refined from its rotations by
-   Newton's method, its global minimum certified by the smallest eigenvalue of the
-   certificate matrix, and LM from that certified start ends at the same energy).  When it is,
+5. **Certificate** (``AutoConfig.certify``; graphs SE-Sync's model describes: no robust
+   kernel, at most one FIX node and none with GPS, GPS only on planar graphs: the readings are
+   constraints from an earth frame, :mod:`hybridpgo.certificate`): the first polished
+   finalist is certified (:func:`hybridpgo.certificate.certify`: SE-Sync's objective refined
+   from its rotations by Newton's method, its global minimum certified by the smallest
+   eigenvalue of the certificate matrix, and LM from that certified start ends at the same
+   energy).  When it is,
    the other finalists are not polished and the relaxation check (4) is skipped; when LM from
    the certified start converges lower, that polish is the result.  Otherwise the other
    finalists are polished as in 3 and the winner is certified.  ``stats["certificate"]``:

@@ -357,9 +357,10 @@ class AutoConfig:
     global minimum, and LM from the certified start back to the same energy).  Certified: no
     other finalist is polished and the relaxation check is skipped.  Not certified: the other
     finalists are polished as with ``False`` and the winner is certified.  Applies where
-    SE-Sync's model describes the graph (no GPS, no robust kernel, at most one FIX node,
-    connected) and not under the large-graph policy.  ``stats["certificate"]`` says what was
-    certified, or why not.  False: every finalist is polished, no certificate."""
+    SE-Sync's model describes the graph (no robust kernel, at most one FIX node and none
+    with GPS, GPS only on planar graphs, connected) and not under the large-graph policy.
+    ``stats["certificate"]`` says what was certified, or why not.  False: every finalist is
+    polished, no certificate."""
     certify_first: bool = True
     """Before any sweep, try the first start of ``inits`` that applies (``"chordal"`` by
     default) alone: Newton's method on SE-Sync's objective refines its rotations, the
