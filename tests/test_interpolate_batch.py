@@ -188,3 +188,28 @@ def test_interpolated_gps_batches_converge() -> None:
     # batch up to ~50 nodes
     assert res.final_energy < 0.06 * res.initial_energy
     assert res.final_energy < 2.0 * full.final_energy
+
+
+def test_a_gps_batch_with_a_zero_block_is_solved_densely_only_on_a_small_union() -> None:
+    """All the GPS readings in one batch leave the tree's root with nothing but them through it
+    (a zero block of B_C).  Up to MAX_DENSE_NODES union nodes the batch takes the exact dense
+    step (not the segments' damped one); beyond, the segments with that block damped: the step
+    of ``dense=False`` to the bit (the dense solve would cost O((6 |U|)^3))."""
+    from hybridpgo.solvers.hybrid._batch_solve import MAX_DENSE_NODES
+
+    for n, gps, small in ((30, 5, True), (300, 12, False)):
+        graph = _gps_chain(6, n=n, gps=gps)
+        m, g = graph.num_edges, graph.num_gps
+        cs = np.arange(m, m + g, dtype=np.int64)
+        poses = {}
+        for dense in (True, False):
+            solver = HybridSolver(graph, HybridConfig(init="tree"))
+            nt = solver.tree.num_tree_nodes
+            nu = _batch.batch_relax(solver.problem, solver.state, cs, g, 0.7,
+                                    solver.config.damping, np.full(nt, -1, np.int64),
+                                    np.zeros((nt, 6)), np.zeros(nt, np.int64), 0, dense)
+            assert nu == _union_size(solver, cs)
+            poses[dense] = (solver.state.rot.copy(), solver.state.trans.copy())
+        assert (nu <= MAX_DENSE_NODES) == small
+        same = all(np.array_equal(a, b) for a, b in zip(poses[True], poses[False], strict=True))
+        assert same != small

@@ -10,7 +10,8 @@ Stages (:func:`batch_relax`): the union of the domains (:mod:`._batch_union`), o
 per constraint, the blocks of B_C with 𝔅(H) updated (eq. 36, 24), the solve
 (:mod:`._batch_solve`), and :func:`~._step.cap_and_apply`.  The solve is the Woodbury form over
 *segments* (:func:`~._batch_solve.woodbury_segments`) when every block of B_C is non-zero, else
-(B_C vanishes on a node only the batch touches) the dense normal equations over U.  With a node
+(B_C vanishes on a node only the batch touches) the dense normal equations over U when U has at
+most ``MAX_DENSE_NODES`` nodes (larger: that block damped, the segments).  With a node
 budget the batch is solved by interpolation (:mod:`._batch_reduced`).
 """
 
