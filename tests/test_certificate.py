@@ -230,6 +230,41 @@ def test_smallest_eigenvalue_matches_a_dense_decomposition(make) -> None:
     assert spec.objective == pytest.approx(prob.cost(y), rel=FLOAT64_IDENTITY * 1e3)
 
 
+@pytest.mark.parametrize("make", [_tiny3d, _grid2d, *_GPS_CASES],
+                         ids=["3D", "2D", "3D+GPS", "2D+GPS"])
+def test_certificate_matrix_is_the_data_matrix_pose_by_pose(make) -> None:
+    """The certificate's factored matrix K, built block by block from the constraints, is M
+    (dense, realified: ``p + i q`` as ``[[p, -q], [q, p]]``) with each pose's position and
+    rotation entries side by side, plus the anchor of the gauge's position."""
+    graph = make()
+    prob = SyncProblem(graph)
+    n = prob.n
+    m = prob.m.toarray()
+    if prob.complex:  # real form: entry (r, c) -> rows 2r, 2r + 1, columns 2c, 2c + 1
+        real = np.zeros((2 * m.shape[0], 2 * m.shape[1]))
+        real[0::2, 0::2], real[1::2, 1::2] = m.real, m.real
+        real[0::2, 1::2], real[1::2, 0::2] = -m.imag, m.imag
+        slots = [[2 * i, 2 * i + 1, 2 * (n + i), 2 * (n + i) + 1] for i in range(n)]
+    else:
+        real = m.real
+        slots = [[i, n + 3 * i, n + 3 * i + 1, n + 3 * i + 2] for i in range(n)]
+    perm = np.ravel(slots)
+    twin = real[np.ix_(perm, perm)]
+    anchor = np.mean([twin[4 * i, 4 * i] for i in range(n)])
+    for k in range(2 if prob.complex else 1):
+        twin[4 * prob.gauge + k, 4 * prob.gauge + k] += anchor
+    cs = prob._spectrum_setup()
+    dim = 4 * n
+    blocks = cs["values"].reshape(-1, 4, 4)
+    k_mat = np.zeros((dim, dim))
+    nb = prob._block_map(np.arange(n))
+    rows = np.repeat(np.arange(n), np.diff(nb["indptr"]))
+    for blk, r, c in zip(blocks, rows, nb["indices"], strict=True):
+        k_mat[4 * r:4 * r + 4, 4 * c:4 * c + 4] = blk
+    assert np.abs(k_mat - twin).max() <= 1e3 * FLOAT64_IDENTITY * np.abs(twin).max()
+    assert cs["scale"] == pytest.approx(np.abs(np.diagonal(real)).max(), rel=FLOAT64_IDENTITY)
+
+
 def test_published_optima_are_certified() -> None:
     """SE-Sync's published optimal objectives: intel 52.3482 (SE-Sync's example notebook;
     5.235e1 in IJRR 2019 Table 1), garage 1.263 (IJRR 2019 Table 2).  Certified at LM's

@@ -18,6 +18,7 @@ rotation block's diagonal of the information; ``W_c`` is ``R_a Omega_tt R_a^T``.
 from __future__ import annotations
 
 import enum
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -38,20 +39,44 @@ def _project_to_so3(m: FloatArray) -> FloatArray:
     return out
 
 
+def _project_to_so2(m: FloatArray) -> FloatArray:
+    """The nearest planar rotations (N, 3, 3) of (N, 2, 2) matrices: the angle maximizing
+    ``tr(R^T M)``, ``atan2(m10 - m01, m00 + m11)`` (the identity where M has no rotation
+    part)."""
+    c = m[:, 0, 0] + m[:, 1, 1]
+    s = m[:, 1, 0] - m[:, 0, 1]
+    h = np.hypot(c, s)
+    none = ~(h > 0.0)
+    c = np.where(none, 1.0, c / np.where(none, 1.0, h))
+    s = np.where(none, 0.0, s / np.where(none, 1.0, h))
+    out = np.zeros((m.shape[0], 3, 3))
+    out[:, 0, 0] = out[:, 1, 1] = c
+    out[:, 1, 0] = s
+    out[:, 0, 1] = -s
+    out[:, 2, 2] = 1.0
+    return out
+
+
 def _solve_blocks(n: int, diag: FloatArray, ea: npt.NDArray[np.int64],
                   eb: npt.NDArray[np.int64], off: FloatArray, rhs: FloatArray,
-                  fixed: int | None, x_fixed: FloatArray | None) -> FloatArray:
-    """Solve the SPD normal equations of 3-vectors per pose, given by blocks.
+                  fixed: int | None, x_fixed: FloatArray | None,
+                  analysis: dict[str, Any] | None = None) -> FloatArray:
+    """Solve the SPD normal equations of s-vectors per pose, given by blocks.
 
-    ``diag`` (n, 3, 3): diagonal blocks; ``off`` (m, 3, 3): the block (row ea, column eb) of
-    each edge (the (eb, ea) one is its transpose; parallel edges add up); ``rhs`` (n, 3, k).
-    With ``fixed``, that pose is held at ``x_fixed`` (3, k): its blocks move to the right-hand
+    ``diag`` (n, s, s): diagonal blocks; ``off`` (m, s, s): the block (row ea, column eb) of
+    each edge (the (eb, ea) one is its transpose; parallel edges add up); ``rhs`` (n, s, k).
+    With ``fixed``, that pose is held at ``x_fixed`` (s, k): its blocks move to the right-hand
     side.  Only the lower triangle is built, straight in a fill-reducing (AMD, pose graph)
     order, and factored once for the k right-hand sides (CHOLMOD, else SuperLU).
+
+    ``analysis`` (a dict, filled by the first call): a later call on the same edges, block size
+    and ``fixed`` reuses its order and symbolic factorization (the chordal start's two
+    systems), once its pattern is checked to be the same.
     """
     from .linalg import CscPattern, fill_reducing_order, make_factorizer
 
     k = rhs.shape[2]
+    bs = diag.shape[1]
     rhs = rhs.copy()
     keep = np.ones(n, bool)
     if fixed is not None:
@@ -69,39 +94,53 @@ def _solve_blocks(n: int, diag: FloatArray, ea: npt.NDArray[np.int64],
     both = (va >= 0) & (vb >= 0) & (va != vb)
     va, vb, off = va[both], vb[both], off[both]
     lo, hi = np.minimum(va, vb), np.maximum(va, vb)
-    pairs = np.unique(lo * max(nf, 1) + hi)
-    new = fill_reducing_order(nf, pairs % max(nf, 1), pairs // max(nf, 1))
-    del pairs, lo, hi
+    same = analysis is not None and analysis.get("key") == (n, bs, fixed, ea.size)
+    if same:
+        assert analysis is not None
+        new = analysis["new"]
+    else:
+        pairs = np.unique(lo * max(nf, 1) + hi)
+        new = fill_reducing_order(nf, pairs % max(nf, 1), pairs // max(nf, 1))
+        del pairs
+    del lo, hi
     pa, pb = new[va], new[vb]
-    q3 = np.arange(3)
+    qs = np.arange(bs)
     # off-diagonal: block (pa, pb) = off; keep the one below the diagonal of the new order
     swap = pa < pb
     blk = np.where(swap[:, None, None], np.swapaxes(off, 1, 2), off)
     row_b = np.maximum(pa, pb)
     col_b = np.minimum(pa, pb)
-    rows = [(3 * row_b[:, None, None] + q3[None, :, None]).repeat(3, 2).ravel()]
-    cols = [(3 * col_b[:, None, None] + q3[None, None, :]).repeat(3, 1).ravel()]
+    rows = [(bs * row_b[:, None, None] + qs[None, :, None]).repeat(bs, 2).ravel()]
+    cols = [(bs * col_b[:, None, None] + qs[None, None, :]).repeat(bs, 1).ravel()]
     vals = [blk.ravel()]
     pi = new[var[keep]]
-    il, jl = np.tril_indices(3)
-    rows.append((3 * pi[:, None] + il[None, :]).ravel())
-    cols.append((3 * pi[:, None] + jl[None, :]).ravel())
+    il, jl = np.tril_indices(bs)
+    rows.append((bs * pi[:, None] + il[None, :]).ravel())
+    cols.append((bs * pi[:, None] + jl[None, :]).ravel())
     vals.append(diag[keep][:, il, jl].ravel())
-    dim = 3 * nf
+    dim = bs * nf
     low = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                         shape=(dim, dim))
     del rows, cols, vals, blk
     low.sum_duplicates()
     low.sort_indices()
     b = np.empty((dim, k))
-    b.reshape(nf, 3, k)[new[var[keep]]] = rhs[keep]
+    b.reshape(nf, bs, k)[new[var[keep]]] = rhs[keep]
+    pattern = CscPattern(low)
+    if same and analysis is not None and np.array_equal(analysis["indptr"], pattern.indptr) \
+            and np.array_equal(analysis["indices"], pattern.indices):
+        factorizer = analysis["factorizer"]
+    else:
+        factorizer = make_factorizer(pattern, "auto")
+        if analysis is not None:
+            analysis.update(key=(n, bs, fixed, ea.size), new=new, indptr=pattern.indptr,
+                            indices=pattern.indices, factorizer=factorizer)
     try:
-        x = make_factorizer(CscPattern(low), "auto").solve(
-            np.asarray(low.data, np.float64), b, check=True)
+        x = factorizer.solve(np.asarray(low.data, np.float64), b, check=True)
     except SolverError as exc:
         raise RuntimeError(str(exc)) from exc
-    out = np.empty((n, 3, k))
-    out[keep] = np.asarray(x).reshape(nf, 3, k)[new[var[keep]]]
+    out = np.empty((n, bs, k))
+    out[keep] = np.asarray(x).reshape(nf, bs, k)[new[var[keep]]]
     if fixed is not None:
         assert x_fixed is not None
         out[fixed] = x_fixed
@@ -112,6 +151,10 @@ def chordal_initialization(
     graph: PoseGraph, gauge: int | None = None
 ) -> tuple[FloatArray, FloatArray]:
     """Global poses ``(R (N,3,3), t (N,3))`` from the chordal relaxation.
+
+    A planar graph (``is_2d``) is solved in the plane: its z rows and columns decouple (zero
+    right-hand side), so both systems keep the in-plane components only, and each rotation is
+    the nearest planar one.
 
     Parameters
     ----------
@@ -127,57 +170,65 @@ def chordal_initialization(
     t_gauge = graph.translations[gauge] if graph.has_estimates else np.zeros(3)
     a = graph.edge_nodes[:, 0].astype(np.int64)
     b = graph.edge_nodes[:, 1].astype(np.int64)
-    zr = graph.edge_rotations
+    # the in-plane components only on a planar graph (module docstring of the function)
+    s = 2 if graph.is_2d else 3
+    analysis: dict[str, Any] = {}  # the rotations' order and analysis, for the translations
+    zr = graph.edge_rotations[:, :s, :s]
     kappa = np.mean(np.diagonal(graph.edge_information[:, 3:, 3:], axis1=1, axis2=2), axis=1)
 
     # --- rotations: row k of R_b = (row k of R_a) Z, i.e. residual sqrt(kappa) (r_b - Z^T r_a)
     # for each row k (unknowns: the rows r of every R_i).  Normal equations by blocks:
     # (a, a) and (b, b) += kappa I (Z Z^T = I), (a, b) += -kappa Z; three right-hand sides k.
-    eye = np.eye(3)
+    eye = np.eye(s)
     deg = np.bincount(a, kappa, n) + np.bincount(b, kappa, n)
     diag = deg[:, None, None] * eye[None]
     off = -kappa[:, None, None] * zr
     try:
-        x = _solve_blocks(n, diag, a, b, off, np.zeros((n, 3, 3)), gauge, r_gauge.T)
+        x = _solve_blocks(n, diag, a, b, off, np.zeros((n, s, s)), gauge, r_gauge.T[:s, :s],
+                          analysis)
     except RuntimeError as exc:  # singular: a part of the graph has no path to the gauge
         raise GraphError(
             "chordal initialization failed: the rotation system is singular "
             "(is the graph connected?)"
         ) from exc
-    rot = _project_to_so3(np.swapaxes(x, 1, 2))  # x[i, :, k] is row k of R_i
+    # x[i, :, k] is row k of R_i
+    rot = (_project_to_so2 if s == 2 else _project_to_so3)(np.swapaxes(x, 1, 2))
     del x, diag, off
 
     # --- translations: residual L^T R_a^T (t_b - t_a) - L^T t_c with Omega_tt = L L^T, i.e.
     # weight S = R_a Omega_tt R_a^T: (a, a), (b, b) += S, (a, b) += -S; rhs_b += S R_a t_c.
-    info_t = graph.edge_information[:, :3, :3]
-    ra = rot[a]
+    info_t = graph.edge_information[:, :s, :s]
+    ra = rot[a][:, :s, :s]
     smat = np.einsum("eij,ejk,elk->eil", ra, info_t, ra)
-    d = np.einsum("eij,ej->ei", smat, np.einsum("eij,ej->ei", ra, graph.edge_translations))
-    diag = np.zeros((n, 3, 3))
-    rhs = np.zeros((n, 3))
-    for p in range(3):
+    d = np.einsum("eij,ej->ei", smat,
+                  np.einsum("eij,ej->ei", ra, graph.edge_translations[:, :s]))
+    diag = np.zeros((n, s, s))
+    rhs = np.zeros((n, s))
+    for p in range(s):
         rhs[:, p] = np.bincount(b, d[:, p], n) - np.bincount(a, d[:, p], n)
-        for q in range(3):
+        for q in range(s):
             diag[:, p, q] = np.bincount(a, smat[:, p, q], n) + np.bincount(b, smat[:, p, q], n)
     if graph.num_gps:
         gn = graph.gps_nodes.astype(np.int64)
-        og = graph.gps_information
-        gd = np.einsum("gij,gj->gi", og, graph.gps_positions)
-        for p in range(3):
+        og = graph.gps_information[:, :s, :s]
+        gd = np.einsum("gij,gj->gi", og, graph.gps_positions[:, :s])
+        for p in range(s):
             rhs[:, p] += np.bincount(gn, gd[:, p], n)
-            for q in range(3):
+            for q in range(s):
                 diag[:, p, q] += np.bincount(gn, og[:, p, q], n)
     del ra, d
     try:
         t = _solve_blocks(n, diag, a, b, -smat, rhs[:, :, None],
                           None if graph.num_gps else gauge,
-                          None if graph.num_gps else t_gauge[:, None])
+                          None if graph.num_gps else t_gauge[:s, None], analysis)
     except RuntimeError as exc:
         raise GraphError(
             "chordal initialization failed: the translation system is singular "
             "(a part of the graph without a gauge?)"
         ) from exc
-    return rot, np.ascontiguousarray(t[:, :, 0])
+    trans = np.zeros((n, 3))
+    trans[:, :s] = t[:, :, 0]
+    return rot, trans
 
 
 def planar_relaxation_start(graph: PoseGraph, rotations: FloatArray, translations: FloatArray,
