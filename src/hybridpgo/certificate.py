@@ -108,6 +108,14 @@ _NEWTON_TOLERANCE = 1e-14
 #: factorizations and 7 steps at 10 (22 ms); intel, garage, sphere2500 take the same steps
 #: either way.
 _CHORD_RATE = 10.0
+#: Newton's damping on F (``H + mu diag(H)``) starts here when H is not positive definite, and
+#: grows this many times per failed factorization; a damped step that lowers F divides it as
+#: much (to 0 below 10x the floor).  F's Hessian is indefinite far from a minimum: on garage,
+#: sphere2200 and sphere_bignoise from the chordal start, steps of 10x from 1e-8 took 7, 5 and
+#: 11 factorizations (3, 2 and 5 of them failed ones, each nearly as costly as a good one),
+#: these take 4, 3 and 8; the other benchmark files take the same number either way.
+_DAMPING_FLOOR = 1e-6
+_DAMPING_INDEFINITE = 100.0
 
 _E = np.zeros((3, 3, 3))
 _E[0, 2, 1], _E[0, 1, 2] = 1.0, -1.0
@@ -597,7 +605,10 @@ class SyncProblem:
         predicted decrease falls at least ``_CHORD_RATE`` times per step (a chord method:
         each such step costs a gradient and a solve); else it is refactored at the current
         point (after the step when it lowered F), and damped (``H + mu diag(H)``) while it is
-        not positive definite or its step raises F by more than F's rounding error.  Stops
+        not positive definite (``mu`` from ``_DAMPING_FLOOR``, ``_DAMPING_INDEFINITE`` times
+        more per failed factorization) or its step raises F by more than F's rounding error
+        (10 times more); a damped step that lowers F divides ``mu`` by
+        ``_DAMPING_INDEFINITE``, down to 0.  Stops
         after a step whose predicted decrease is below ``_NEWTON_TOLERANCE`` of F, or below
         F's rounding error when a fresh factorization no longer shrinks it ``_CHORD_RATE``
         times.  Returns ``(Y, F, factorizations)``.
@@ -628,14 +639,14 @@ class SyncProblem:
                 try:
                     spd.factor(mu * diag, values=values.ravel())
                 except NotPositiveDefinite:
-                    mu = max(1e-8, 10.0 * mu)
+                    mu = max(_DAMPING_FLOOR, _DAMPING_INDEFINITE * mu)
                     continue
                 fresh, stale = True, False
             gk = g.ravel()[keep]
             step = spd.solve(-gk)
             predicted = -0.5 * float(gk @ step)
             if not (predicted >= 0.0 and np.all(np.isfinite(step))):
-                mu = max(1e-8, 10.0 * mu) if fresh else mu
+                mu = max(_DAMPING_FLOOR, 10.0 * mu) if fresh else mu
                 stale = True
                 continue
             full = np.zeros(pp * self.n)
@@ -655,7 +666,7 @@ class SyncProblem:
                     break
                 previous = predicted
                 if fresh and mu > 0.0:
-                    mu = 0.1 * mu if mu > 1e-8 else 0.0
+                    mu = mu / _DAMPING_INDEFINITE if mu > 10.0 * _DAMPING_FLOOR else 0.0
                     stale = True  # less damping: refactor
                 fresh = False
             elif not fresh and f_new < f:  # a chord step that lowers F, slowly: keep it and
@@ -665,7 +676,7 @@ class SyncProblem:
                 stale = True
             else:
                 if fresh:
-                    mu = max(1e-8, 10.0 * mu)
+                    mu = max(_DAMPING_FLOOR, 10.0 * mu)
                 stale = True
         return y, f, factorizations
 
