@@ -170,7 +170,7 @@ def chordal_initialization(
     t_gauge = graph.translations[gauge] if graph.has_estimates else np.zeros(3)
     a = graph.edge_nodes[:, 0].astype(np.int64)
     b = graph.edge_nodes[:, 1].astype(np.int64)
-    # the in-plane components only on a planar graph (module docstring of the function)
+    # the in-plane components only on a planar graph (see the docstring)
     s = 2 if graph.is_2d else 3
     analysis: dict[str, Any] = {}  # the rotations' order and analysis, for the translations
     zr = graph.edge_rotations[:, :s, :s]
