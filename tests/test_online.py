@@ -650,6 +650,71 @@ def test_background_refine_reaches_the_batch_optimum(gps: int) -> None:
         assert s.stats()["background"]["error"] is None
 
 
+def test_a_frame_adopts_the_answer_to_its_own_data_when_it_comes_in_time() -> None:
+    """Asynchronously, a frame with a budget waits for the worker's answer to its own data
+    (once a round trip has been measured and it fits) and adopts it: the map is then the
+    worker's optimum of everything added, with nothing requeued and no request outstanding
+    (the next frame's data comes with the next request)."""
+    g = _graph(seed=14, n=40, extra=20)
+    st = make_stream(g)
+    with OnlineSolver(OnlineConfig()) as s:
+        assert s.wait_background_ready(120.0)
+        link = s._link
+        assert link is not None
+        settled = 0
+        for k in range(st.num_frames):
+            feed_frame(s, st, k)
+            s.update(2.0)  # a generous budget: the answer of a tiny map comes in it
+            if link.settled > settled:
+                settled = link.settled
+                store = s.store
+                assert link.refined == (store.m_laid, store.g_laid)
+                assert store.requeue.size == 0 and link.join_req == -1
+                assert link.holds(store)
+        assert settled >= st.num_frames // 2
+        assert s.stats()["background"]["results_settled"] == settled
+
+
+def test_a_frame_waits_only_for_an_answer_expected_before_its_deadline() -> None:
+    """``WorkerLink.settle`` waits only when the outstanding request's answer is expected
+    (its request time plus the median round trip) early enough to be adopted before the
+    frame's deadline; never before a round trip was measured, nor for a request that brought
+    no new data; and at most until the deadline less the adoption's margin."""
+    import time
+
+    from hybridpgo.online import _link
+
+    class Refiner:  # never answers; records the waits
+        def __init__(self) -> None:
+            self.waits: list[float] = []
+
+        def answered(self, req: int) -> bool:
+            return False
+
+        def wait_answered(self, req: int, timeout: float) -> bool:
+            self.waits.append(timeout)
+            return False
+
+    link = _link.WorkerLink.__new__(_link.WorkerLink)  # the bookkeeping only
+    link.refiner = ref = Refiner()
+    link.adopt_s = 1e-3
+    store = OnlineSolver(OnlineConfig(background_refine=False)).store
+    now = time.perf_counter()
+
+    def settle(answer_s: float, new: bool, deadline: float) -> bool:
+        link.join_req, link._req_at, link._req_new, link.answer_s = 0, now, new, answer_s
+        return link.settle(store, 0, True, deadline)
+
+    assert not settle(np.nan, True, now + 10.0) and ref.waits == []  # nothing measured
+    assert not settle(1e-3, False, now + 10.0) and ref.waits == []  # no new data: a polish
+    assert not settle(5.0, True, now + 1.0) and ref.waits == []  # expected too late
+    assert not settle(1e-3, True, now + 10.0)  # expected in time: waited, until the margin
+    assert len(ref.waits) == 1
+    assert 10.0 - _link.ADOPT_MARGIN * 1e-3 - 1.0 < ref.waits[0] <= (
+        10.0 - _link.ADOPT_MARGIN * 1e-3)
+    assert link.join_req == 0  # the request is still outstanding
+
+
 def test_background_join_is_reproducible() -> None:
     g = _graph(seed=12, n=40, extra=25, gps=3)
     out = []
@@ -998,9 +1063,11 @@ def test_background_worker_refuses_an_incremental_answer_above_its_start(
 
 @pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
 def test_background_worker_incremental_reaches_the_optimum(data_dir: Path) -> None:
-    """Without a robust kernel the worker's map is an IncrementalExact: one request on the
-    whole map, then more data and a second request, each ends at the prefix optimum, and the
-    locals it returns compose to poses of that energy."""
+    """Without a robust kernel the worker's map is an IncrementalExact.  A request that brings
+    new data stops once no pose's step passes the relinearization thresholds (no polish); the
+    next request, with nothing new, polishes to the prefix optimum; a thorough request
+    (``join_refine``) with new data reaches the optimum at once; and the locals returned
+    compose to poses of the answer's energy."""
     from hybridpgo.io import read_graph
 
     g = read_graph(data_dir / "w100_toro.graph")
@@ -1012,12 +1079,16 @@ def test_background_worker_incremental_reaches_the_optimum(data_dir: Path) -> No
     mp = _worker_map(s, ("none", None))
     assert mp.inc is not None
     _, meta = mp.solve(50)
-    assert meta["n"] == s.store.placed
+    assert meta["n"] == s.store.placed and meta["status"] == "converged"
+    relinearized = mp.inc.stats["relinearized"]
+    assert meta["energy"] > (1.0 + ONLINE_REFINED) * opts[half]  # not polished: not there
+    _, meta = mp.solve(50)  # nothing new: the polish
+    assert mp.inc.stats["relinearized"] > relinearized
     assert abs(meta["energy"] - opts[half]) <= ONLINE_REFINED * opts[half]
     _stream(s, g, range(half, g.num_nodes))
     store = s.store
     _ship(mp, s)
-    arrays, meta = mp.solve(50)
+    arrays, meta = mp.solve(50, thorough=True)
     opt = opts[st.num_frames]
     assert meta["status"] == "converged" and meta["iterations"] >= 1
     assert abs(meta["energy"] - opt) <= ONLINE_REFINED * opt

@@ -156,6 +156,32 @@ def test_an_idle_solver_reaches_the_batch_optimum(seed: int, gps_every: int) -> 
     assert abs(inc.energy() - ref.final_energy) <= INCREMENTAL_VS_BATCH * ref.final_energy
 
 
+def test_without_the_polish_a_solve_stops_at_the_thresholds_and_keeps_the_list() -> None:
+    """``solve(polish=False)`` ends once no step passes the relinearization thresholds (True:
+    nothing left without the polish), relinearizes nothing below them, and leaves the poses
+    listed for the polish to a later ``solve()``, which reaches the batch optimum."""
+    s = _stream(3, 120, 0.3, 0)
+    inc = IncrementalExact()
+    for k in range(s.frames):
+        _feed(inc, s, k)
+        assert inc.solve(polish=False)
+    listed = int(inc._pol_count[0])
+    relinearized = inc.stats["relinearized"]
+    assert listed > 0
+    assert inc.solve(polish=False)  # nothing new, no polish: no cycle
+    assert inc.stats["relinearized"] == relinearized and int(inc._pol_count[0]) == listed
+    e_unpolished = inc.energy()
+    while not inc.solve():
+        pass
+    assert inc.stats["relinearized"] > relinearized
+    rot, trans = inc.estimate()
+    graph = _graph(inc, rot, trans)
+    ref = solve_exact(graph, rot, trans,
+                      GaussNewtonConfig(max_iterations=100, energy_tolerance=1e-15))
+    assert abs(inc.energy() - ref.final_energy) <= INCREMENTAL_VS_BATCH * ref.final_energy
+    assert e_unpolished > ref.final_energy * (1.0 + INCREMENTAL_VS_BATCH)
+
+
 def test_gauss_newton_thresholds_reach_the_batch_optimum() -> None:
     """Thresholds 0 after a stream: every update is a Gauss-Newton step of the whole map."""
     s = _stream(4, 80, 0.4, 0)

@@ -467,12 +467,15 @@ class IncrementalExact:
         optimum.  O(poses)."""
         self._relin_cands = np.union1d(self._relin_cands, np.arange(self._n_in))
 
-    def solve(self, budget_s: float | None = None, max_cycles: int | None = None) -> bool:
+    def solve(self, budget_s: float | None = None, max_cycles: int | None = None,
+              polish: bool = True) -> bool:
         """Run update cycles until converged, ``budget_s`` seconds have passed, or
         ``max_cycles`` cycles were completed; resumable.
 
         Returns True when it found nothing left to do: everything added is integrated and no
-        pose's step exceeds the relinearization thresholds.
+        pose's step exceeds the relinearization thresholds (with ``polish``, the polish
+        thresholds too: ``IncrementalConfig.polish_rho``; without, the poses listed for the
+        polish stay listed for a later call's).
         """
         c0 = int(read_cycles())
         deadline = (_NO_DEADLINE if budget_s is None
@@ -484,7 +487,7 @@ class IncrementalExact:
             if self._phase == _IDLE:
                 if max_cycles is not None and done >= max_cycles:
                     return False
-                if not self._start_cycle():
+                if not self._start_cycle(polish):
                     sec["start"] += time.perf_counter() - t0
                     return True
             if self._phase == _LINEARIZE:
@@ -510,14 +513,14 @@ class IncrementalExact:
             if np.uint64(read_cycles()) > deadline:
                 return False
 
-    def _start_cycle(self) -> bool:
+    def _start_cycle(self, polish: bool = True) -> bool:
         """Integrate new data, relinearize, choose S and do its symbolic factorization.
-        False when there is nothing to do (converged and polished)."""
+        False when there is nothing to do (converged, and polished when ``polish``)."""
         if self._start_cycle_with(self.config.relinearize_rho, self.config.relinearize_phi):
             return True
         cfg = self.config
         k = int(self._pol_count[0])
-        if k == 0:
+        if k == 0 or not polish:
             return False
         cands = self._pol_list[:k].copy()
         self._pol_flag[cands] = False

@@ -21,7 +21,10 @@ arrays grow without copies; the updates are the whole-graph solver's relaxation 
   pays for a full garbage collection of the compiled kernels.
 * **Staying accurate** (``OnlineConfig.background_refine``, on by default): a worker process
   keeps the whole map at its optimum with an incremental exact solver and each answer is
-  adopted in one copy (:mod:`._link`, :mod:`.worker`).
+  adopted in one copy (:mod:`._link`, :mod:`.worker`).  After relaxing its new constraints, a
+  frame with a budget waits for the answer to its own data when the worker's recent round
+  trips say it can come and be adopted before the deadline
+  (:meth:`~._link.WorkerLink.settle`); the map is then the optimum of everything added.
 * **Outliers** (``OnlineConfig.robust="auto"``, the default): the worker screens its answers
   for false loop closures and GPS fixes; the constraints it rejects get zero whitening and no
   share of 𝔅(H) in the frames (:meth:`~.store.MapStore.set_rejected`, :meth:`outliers`).
@@ -351,6 +354,12 @@ class OnlineSolver:
         local_nodes = self._local_solve(deadline, counts, limit) if cfg.local_size else 0
         if local_nodes:
             limit -= 1
+        link = self._link
+        if first and link is not None and cfg.background_join == 0 and deadline != NO_DEADLINE:
+            # the worker's answer to this frame's data, when it can come in the frame's time
+            until = (time.perf_counter()
+                     + (int(deadline) - int(read_cycles())) / cycles_per_second())
+            link.settle(st, self.frame, cfg.background_rebase, until)
         old = n_re + self._spare_time(deadline, counts, limit, stamp)
         return FrameReport(n_new, self.backlog, old, local_nodes, int(counts[Count.CAPPED]),
                            int(counts[Count.REJECTED]), int(counts[Count.SKIPPED]), elapsed)
