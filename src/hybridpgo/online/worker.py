@@ -50,6 +50,7 @@ waits K frames later, so runs are reproducible.
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 import queue
@@ -914,6 +915,11 @@ def _worker(max_iterations: int, robust_spec: str = "none") -> int:
     name, _, scale = robust_spec.partition(":")
     robust = (name, float(scale) if scale else None)
     warm_up(robust)  # every kernel a request may need, before the worker says it is ready
+    # the objects alive now (the loaded kernels among them) live as long as the worker: out
+    # of the collector's reach, so that no request pays for walking them (as in the frames'
+    # process, solver._ensure_online_compiled)
+    gc.collect()
+    gc.freeze()
     try:
         write_all(out, encode({"type": "ready"}, {}))
     except (BrokenPipeError, OSError):
