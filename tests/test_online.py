@@ -710,9 +710,38 @@ def test_a_frame_waits_only_for_an_answer_expected_before_its_deadline() -> None
     assert not settle(5.0, True, now + 1.0) and ref.waits == []  # expected too late
     assert not settle(1e-3, True, now + 10.0)  # expected in time: waited, until the margin
     assert len(ref.waits) == 1
-    assert 10.0 - _link.ADOPT_MARGIN * 1e-3 - 1.0 < ref.waits[0] <= (
-        10.0 - _link.ADOPT_MARGIN * 1e-3)
+    margin = _link.ADOPT_MARGIN * 1e-3 + _link.WAKE_S
+    assert 10.0 - margin - 1.0 < ref.waits[0] <= 10.0 - margin
     assert link.join_req == 0  # the request is still outstanding
+
+
+def test_new_data_supersedes_a_polish_request() -> None:
+    """Asynchronously, a frame that ships new data while the worker polishes an unchanged
+    map (the outstanding request brought no data) asks again at once: the new request,
+    answered instead of the polish, covers the new data.  A request that brought data is
+    waited for as before."""
+    from hybridpgo.online import _link
+
+    class Refiner:  # never answers
+        def answered(self, req: int) -> bool:
+            return False
+
+    link = _link.WorkerLink.__new__(_link.WorkerLink)  # the bookkeeping only
+    link.refiner = Refiner()
+    asked: list[int] = []
+    link.ship = lambda store, frame: True  # type: ignore[method-assign]
+    link.request = lambda store, frame, thorough=False: asked.append(frame)  # type: ignore
+    store = OnlineSolver(OnlineConfig(background_refine=False)).store
+    link.join_req, link._req_new = 3, False  # a polish is running
+    link.step(store, 7, 0, True)
+    assert asked == [7]
+    link._req_new = True  # the outstanding request brought data: wait for it
+    link.step(store, 8, 0, True)
+    assert asked == [7]
+    link.ship = lambda store, frame: False  # type: ignore[method-assign]
+    link._req_new = False  # nothing new to ship: the polish goes on
+    link.step(store, 9, 0, True)
+    assert asked == [7]
 
 
 def test_background_join_is_reproducible() -> None:
@@ -1062,7 +1091,8 @@ def test_background_worker_refuses_an_incremental_answer_above_its_start(
 
 
 @pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
-def test_background_worker_incremental_reaches_the_optimum(data_dir: Path) -> None:
+def test_background_worker_incremental_reaches_the_optimum(
+        data_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Without a robust kernel the worker's map is an IncrementalExact.  A request that brings
     new data stops once no pose's step passes the relinearization thresholds (no polish); the
     next request, with nothing new, polishes to the prefix optimum; a thorough request
@@ -1082,7 +1112,15 @@ def test_background_worker_incremental_reaches_the_optimum(data_dir: Path) -> No
     assert meta["n"] == s.store.placed and meta["status"] == "converged"
     relinearized = mp.inc.stats["relinearized"]
     assert meta["energy"] > (1.0 + ONLINE_REFINED) * opts[half]  # not polished: not there
-    _, meta = mp.solve(50)  # nothing new: the polish
+    from hybridpgo.online import worker
+
+    cycles = mp.inc.stats["cycles"]
+    with monkeypatch.context() as mpatch:  # a slice too short for a whole cycle
+        mpatch.setattr(worker, "POLISH_SLICE_S", 1e-9)
+        _, meta = mp.solve(50, interrupted=lambda: True)  # nothing new: a polish, cut short
+    assert meta["status"] == "interrupted" and mp.inc.stats["cycles"] <= cycles + 1
+    _, meta = mp.solve(50, interrupted=lambda: False)  # nothing new: the polish, to the end
+    assert meta["status"] == "converged"
     assert mp.inc.stats["relinearized"] > relinearized
     assert abs(meta["energy"] - opts[half]) <= ONLINE_REFINED * opts[half]
     _stream(s, g, range(half, g.num_nodes))
@@ -1096,6 +1134,44 @@ def test_background_worker_incremental_reaches_the_optimum(data_dir: Path) -> No
     store.rot[1: meta["n"] + 1] = arrays["rot"]
     store.trans[1: meta["n"] + 1] = arrays["trans"]
     assert abs(s.energy() - meta["energy"]) <= 1e-9 * opt
+
+
+@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
+def test_the_workers_energy_is_the_sum_over_the_constraints_solved(data_dir: Path) -> None:
+    """The worker evaluates E from the χ² it kept, re-evaluating only the new constraints and
+    those with a moved end: equal (summation order aside) to a whole evaluation over the
+    constraints solved, after solves of growing prefixes, a changed rejected set, and a pose
+    moved by hand."""
+    from hybridpgo import _cost
+    from hybridpgo.io import read_graph
+
+    def naive(mp: Any) -> float:
+        n, m, g = mp.n, mp.m, mp.g
+        e, k = np.flatnonzero(mp.keep_m[:m]), np.flatnonzero(mp.keep_g[:g])
+        return float(_cost.total_energy(
+            mp.grot[1: n + 1], mp.gtr[1: n + 1], mp.edge_ab[e].astype(np.int32),
+            mp.edge_rot[e], mp.edge_trans[e], mp.edge_info[e],
+            mp.gps_node[k].astype(np.int32), mp.gps_pos[k], mp.gps_info[k]))
+
+    g = read_graph(data_dir / "w100_toro.graph")
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    mp = None
+    for lo in range(0, g.num_nodes, 20):
+        _stream(s, g, range(lo, min(lo + 20, g.num_nodes)))
+        if mp is None:
+            mp = _worker_map(s, ("none", None))
+        else:
+            _ship(mp, s)
+        assert abs(mp._energy() - naive(mp)) <= FLOAT64_IDENTITY * naive(mp)  # new data
+        _, meta = mp.solve(50)
+        assert abs(meta["energy"] - naive(mp)) <= FLOAT64_IDENTITY * naive(mp)  # solved
+    assert mp is not None
+    mp.keep_m[[3, 40, 77]] = False  # rejected: their χ² leave the sum
+    assert abs(mp._energy() - naive(mp)) <= FLOAT64_IDENTITY * naive(mp)
+    mp.gtr[9] += 0.5  # one pose moved: its constraints are evaluated again
+    assert abs(mp._energy() - naive(mp)) <= FLOAT64_IDENTITY * naive(mp)
+    mp.keep_m[:] = True  # re-admitted
+    assert abs(mp._energy() - naive(mp)) <= FLOAT64_IDENTITY * naive(mp)
 
 
 @pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
@@ -1296,7 +1372,13 @@ def test_background_worker_accepts_an_answer_a_hair_above_its_start(
     rot, trans = mp.inc.estimate()
     monkeypatch.setattr(mp.inc, "solve", lambda *a, **k: True)
     monkeypatch.setattr(mp.inc, "estimate", lambda: (rot, trans))
-    monkeypatch.setattr(mp.inc, "energy", lambda: e_start * (1.0 + rise * worker.RISE_RTOL))
+    evaluate = mp._evaluate  # the answer's E (at the incremental estimate), raised by hand
+
+    def raised(r: np.ndarray, t: np.ndarray) -> tuple[float, Any]:
+        e, change = evaluate(r, t)
+        return (e_start * (1.0 + rise * worker.RISE_RTOL) if r is rot else e), change
+
+    monkeypatch.setattr(mp, "_evaluate", raised)
     _, meta = mp.solve(50)
     assert meta["incremental"] is (rise < 1.0)
     assert (meta["resets"] == 0) is (rise < 1.0)

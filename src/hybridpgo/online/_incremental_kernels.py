@@ -52,6 +52,20 @@ PAST_DEADLINE = -5
 
 # --------------------------------------------------------------------------- linearization
 @kernel
+def differing_poses(rot: np.ndarray, trans: np.ndarray, ref_rot: np.ndarray,
+                    ref_trans: np.ndarray, out: np.ndarray) -> None:
+    """``out[i]``: pose i of ``(rot, trans)`` differs from ``(ref_rot, ref_trans)`` in some
+    entry, for the first ``out.shape[0]`` poses (a NaN always differs)."""
+    for i in range(out.shape[0]):
+        d = False
+        for a in range(3):
+            d = d or trans[i, a] != ref_trans[i, a]
+            for b in range(3):
+                d = d or rot[i, a, b] != ref_rot[i, a, b]
+        out[i] = d
+
+
+@kernel
 def linearize_edges(ids: np.ndarray, rot: np.ndarray, trans: np.ndarray, ab: np.ndarray,
                     zr: np.ndarray, zt: np.ndarray, info: np.ndarray, haa: np.ndarray,
                     hbb: np.ndarray, hab: np.ndarray, ga: np.ndarray, gb: np.ndarray,
