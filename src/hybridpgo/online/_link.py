@@ -58,8 +58,8 @@ ADOPT_S0 = 5e-4
 #: A frame waits for an answer only until this many times an adoption's average time, and
 #: :data:`WAKE_S` more, before its deadline, so that the adoption fits in the frame.
 ADOPT_MARGIN = 2.0
-#: Seconds a thread woken by the answer may take to run again (the worker holds the other
-#: core: M3500_isam back to back, without it, 4 frames of 3 500 passed 6 ms of wall time).
+#: Seconds kept for the frame's thread to run again once the answer wakes it (the worker
+#: holds the other core, and the answer's receiving thread the GIL for a moment).
 WAKE_S = 5e-4
 
 

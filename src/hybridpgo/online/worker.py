@@ -1036,7 +1036,8 @@ def _worker(max_iterations: int, robust_spec: str = "none") -> int:
             arrays, meta = mp.solve(max_iterations, thorough, lambda: bool(inbox))
             if meta["status"] == "interrupted":  # a polish cut short by a new message
                 continue
-            thorough = thorough and not meta["thorough"]  # else: at the next answer
+            # a thorough screening not done yet (robust="auto") stays asked for the next answer
+            thorough = thorough and mp.auto and not meta["thorough"]
         except Exception as exc:  # report it; the frames go on without refinement
             write_all(out, encode({"type": "error", "req": pending,
                                    "message": f"{type(exc).__name__}: {exc}"}, {}))
