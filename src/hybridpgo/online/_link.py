@@ -52,7 +52,7 @@ MAX_TAIL = 1000
 #: time per request has a long tail: M3500_isam back to back, median 3.7 ms, mean 8.2 ms).
 ANSWER_WINDOW = 16
 #: Weight of the newest adoption's time in their moving average.
-ANSWER_RATE = 0.3
+ADOPT_RATE = 0.3
 #: An adoption's time before any was measured (seconds).
 ADOPT_S0 = 5e-4
 #: A frame waits for an answer only until this many times an adoption's average time, and
@@ -251,7 +251,7 @@ class WorkerLink:
         self.adopted += 1
         took = time.perf_counter() - t0
         self.adopt_s_max = max(self.adopt_s_max, took)
-        self.adopt_s += ANSWER_RATE * (took - self.adopt_s)
+        self.adopt_s += ADOPT_RATE * (took - self.adopt_s)
         shipped = self._ship_frames.get(n)
         if shipped is not None:
             self.lag_max = max(self.lag_max, frame - shipped)

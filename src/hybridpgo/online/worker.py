@@ -325,7 +325,7 @@ class BackgroundRefiner:
         with self._cond:
             return self._answered >= req or not self._alive
 
-    def wait_answered(self, req: int, timeout: float) -> bool:
+    def wait_answered(self, req: int, timeout: float | None = None) -> bool:
         """Block until request ``req`` is answered (or the worker died, or ``timeout``
         seconds passed); :meth:`answered` then.  Takes nothing."""
         with self._cond:
@@ -341,10 +341,8 @@ class BackgroundRefiner:
     def wait(self, req: int, timeout: float | None = None) -> Refined | None:
         """Block until request ``req`` is answered (or the worker died, or ``timeout``);
         then the newest result not taken yet."""
-        with self._cond:
-            self._cond.wait_for(lambda: self._answered >= req or not self._alive, timeout)
-            out, self._latest = self._latest, None
-        return out
+        self.wait_answered(req, timeout)
+        return self.take()
 
     def close(self) -> None:
         """Stop the worker (EOF on its input, then kill after a timeout) and the threads."""
