@@ -80,6 +80,20 @@ def test_long_updates_are_predicted_from_long_updates() -> None:
     assert adm.predict(model, long_d, False) >= model[adm.MODEL_BASE] + long_d * long_per_node
 
 
+def test_large_batches_are_predicted_from_large_batches() -> None:
+    """The batch twin: thousands of small batches per large one (GPS pairs, junction groups of
+    short constraints) do not pull the cost per entry below what a large batch costs."""
+    model = np.array(adm.MODEL0)
+    large_w, large_per_entry = 1250, 1700.0
+    small_w, small_per_entry = 12, 150.0
+    for _ in range(40):
+        adm.learn(model, large_w, model[adm.MODEL_BASE] + large_w * large_per_entry, True)
+        for _ in range(300):
+            adm.learn(model, small_w, model[adm.MODEL_BASE] + small_w * small_per_entry, True)
+    assert adm.predict(model, large_w, True) >= model[adm.MODEL_BASE] + large_w * large_per_entry
+    assert model[adm.MODEL_BASE] == adm.MODEL0[adm.MODEL_BASE]  # batches never teach the base
+
+
 def test_add_calls_do_not_copy_the_map() -> None:
     """add_* writes in place: with the default reservation no array of the map moves while it
     grows (a frame never pays for copying the map)."""

@@ -36,12 +36,22 @@ MODEL_NODE = 1
 MODEL_BATCH = 2
 #: Weight of a new sample in the cost model's moving averages.
 MODEL_RATE = 1.0 / 32.0
-#: Single updates of more domain nodes than this (and every batch) teach the cost per node;
-#: shorter ones (above 4 nodes, the base's) teach nothing.  The cost per node is thus the cost
-#: of the nodes of long updates, whose path products and poses miss the cache (more per node
-#: than short domains): short updates, hundreds per frame, would otherwise pull it down to
-#: their own, and a long update admitted on it would overrun its frame.
+#: Single updates of more domain nodes than this teach the cost per node, and batches of more
+#: work than this the cost per batch entry; shorter ones (above 4 nodes: the base's) teach
+#: nothing.  Each rate is thus the cost of long updates, whose path products and poses miss the
+#: cache (more per node than short domains): short updates, hundreds per frame, would otherwise
+#: pull it down to their own, and a long update admitted on it would overrun its frame.  (With
+#: every batch teaching, paris2's junction groups of two loop closures over about 1 250 entries
+#: took up to 0.86 ms where 0.17-0.29 ms was predicted, 3.8x at the 90th percentile of the
+#: groups over 0.4 ms: the frames that ended them ran to 6-6.8 ms of CPU at a 5 ms budget.)
 MODEL_SIZE_REF = 32
+#: Tree levels above a batch's root that cost as much as one domain entry: the root's global
+#: pose is one composition per level, a domain entry a 6x6 block and its path products
+#: (paris2's junction groups, least squares over 163 000 batches: 69 cycles per level, 1 632
+#: per domain entry, so that groups of short constraints deep in the tree, counted level for
+#: entry, taught a cost per entry of 130-450 cycles and long groups overran their prediction
+#: 3.6x at the 90th percentile).  Counted at a 16th, a little above the measured 24th.
+DEPTH_PER_ENTRY = 16
 #: Predictions are the model times this margin (the model is a mean; updates vary around it).
 MODEL_MARGIN = 1.5
 #: Cycles per floating-point operation assumed for the dense factorization of a batch.
@@ -90,13 +100,13 @@ def capacitance_cost(nb: int) -> float:
 
 @kernel
 def learn(model: np.ndarray, d: int, dc: float, batch: bool) -> None:
-    """Moving averages of the base cost (small domains) and of the cost per domain node (long
-    updates, ``MODEL_SIZE_REF``)."""
+    """Moving averages of the base cost (small domains) and of the cost per domain node or
+    batch entry (long updates and batches, ``MODEL_SIZE_REF``)."""
     if d <= 4 and not batch:
         cur = model[MODEL_BASE]
         model[MODEL_BASE] = cur + MODEL_RATE * (min(dc, 4.0 * cur) - cur)
         return
-    if d <= MODEL_SIZE_REF and not batch:
+    if d <= MODEL_SIZE_REF:
         return
     k = MODEL_BATCH if batch else MODEL_NODE
     sample = max(dc - model[MODEL_BASE], 0.0) / d
@@ -107,13 +117,14 @@ def learn(model: np.ndarray, d: int, dc: float, batch: bool) -> None:
 @kernel
 def batch_work(prob: Problem, depth: np.ndarray, c: int) -> int:
     """Work of constraint c in a batch update, in domain-node units: its domain plus the depth
-    of its root (the batch computes the root's global pose, O(depth))."""
+    of its root (the batch computes the root's global pose, O(depth)) over
+    :data:`DEPTH_PER_ENTRY`."""
     s, d = domain(prob, c)
     if d == 0:
         return 0
     na = num_a_side(prob, c)
     top = prob.path_node[s + na - 1] if na > 0 else prob.path_node[s + d - 1]
-    return int(d + depth[prob.parent[top]])
+    return int(d + depth[prob.parent[top]] // DEPTH_PER_ENTRY)
 
 
 # --------------------------------------------------------------------------- priorities
