@@ -135,3 +135,83 @@ def test_frames_leave_nothing_for_the_garbage_collector() -> None:
     grown = len(gc.get_objects()) - before
     assert grown < 50, f"{grown} tracked objects after {st.num_frames - 100} frames"
     assert not gc.is_tracked(s.store.pair_last)  # integer keys and values only
+
+
+
+def _until_group(st):  # type: ignore[no-untyped-def]
+    """A solver fed frame by frame (each relaxed in full) until a frame forms a junction
+    group; that frame is integrated but not updated.  Returns the solver and the group's
+    members."""
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    store = s.store
+    k = 0
+    while True:
+        ng = store.ngroups
+        feed_frame(s, st, k)
+        k += 1
+        s._integrate()
+        if store.ngroups > ng:
+            break
+        s.update(None)
+    lo, hi = int(store.group_ptr[ng]), int(store.group_ptr[ng + 1])
+    members = np.sort(store.group_members[lo:hi])
+    assert members.size >= 2 and s.backlog == members.size  # the frame brings the group
+    return s, members
+
+
+def _city_stream():  # type: ignore[no-untyped-def]
+    from hybridpgo.generate import generate_city
+
+    return make_stream(generate_city(None, seed=1, num_poses=600, nx=4, ny=4,
+                                     block_size_m=60.0, p_loop=0.1).graph)
+
+
+def test_a_forced_junction_group_that_does_not_fit_goes_member_by_member() -> None:
+    """The first new constraint of a frame is started whatever its cost, but when its junction
+    group's batch does not fit, it is relaxed alone (a single update); each further member
+    comes first in a frame of its own, and none is dropped.  With time, the group is one
+    batch (its members share the batch's cycle count)."""
+    st = _city_stream()
+    runs = {}
+    for spent in (True, False):
+        s, members = _until_group(st)
+        relaxed = []
+        for _ in range(members.size):
+            if spent:
+                _spend_frame(s)
+            r = s.update(5e-3 if spent else None)
+            relaxed.append(int(np.count_nonzero(s.store.cycles[members])))
+            if not spent:
+                break
+            assert r.new == 1
+        runs[spent] = (members, relaxed, s.store.cycles[members].copy(), s.backlog)
+    members, relaxed, cycles, backlog = runs[True]
+    assert relaxed == list(range(1, members.size + 1)) and backlog == 0
+    assert np.unique(cycles).size == members.size  # single updates: each its own count
+    members, relaxed, cycles, backlog = runs[False]
+    assert relaxed == [members.size] and backlog == 0
+    assert np.unique(cycles).size == 1  # one batch: its count shared by the members
+
+
+def test_a_junction_group_no_budget_can_hold_goes_member_by_member() -> None:
+    """A group whose batch is predicted to take longer than the call's whole budget
+    (``Admission.span``) is relaxed by single updates of its members even with no deadline:
+    under the policy its batch would never start."""
+    from hybridpgo.online._frame import NO_DEADLINE
+    from hybridpgo.solvers.hybrid._sweep import loop_kernel, run_loop
+    from hybridpgo.solvers.hybrid.problem import NUM_COUNTS
+    from hybridpgo.solvers.hybrid.solver import STEP_KINDS
+
+    st = _city_stream()
+    for span, distinct in ((0.0, None), (np.inf, 1)):
+        s, members = _until_group(st)
+        store, cfg = s.store, s.config
+        prob, state, pol = store.views()
+        store.span[0] = span
+        counts = np.zeros(NUM_COUNTS, np.int64)
+        done = run_loop(loop_kernel(True, False, False, True), prob, state, store.scratch(None),
+                        members, cfg.tau_new, cfg.damping, int(STEP_KINDS[cfg.step]),
+                        cfg.gps_batch_size, 0, NO_DEADLINE, counts, True, pol, 1, 1 << 62)
+        cycles = store.cycles[members]
+        assert done == members.size and np.all(cycles > 0)
+        assert np.unique(cycles).size == (members.size if distinct is None else distinct)

@@ -15,7 +15,8 @@ arrays grow without copies; the updates are the whole-graph solver's relaxation 
   all).  An update is started only when its predicted cost fits before the deadline.
 * **The frame's budget** covers its ``add_*`` calls too (their cycles are charged to the next
   update); what does not fit stays queued for the next frames, in arrival order.  Only the
-  first new constraint of a frame is started whatever its cost; constraints queued again
+  first new constraint of a frame is started whatever its cost (alone, by a single update,
+  when its junction group's batch does not fit); constraints queued again
   after an adopted answer (relaxed before) start only when they fit.  Building the
   first solver of a process freezes the objects alive then (:func:`gc.freeze`), so no frame
   pays for a full garbage collection of the compiled kernels.
@@ -322,11 +323,14 @@ class OnlineSolver:
 
     def _deadline(self, budget_s: float | None, spent: int = 0) -> np.uint64:
         """The cycle count at which a call with this budget stops starting updates, ``spent``
-        cycles of it being used already."""
+        cycles of it being used already; the budget's cycles become the span the admission
+        policy lets a batch take (``Admission.span``)."""
         c0 = int(read_cycles()) - spent
         if budget_s is None:
+            self._store.span[0] = np.inf
             return NO_DEADLINE
         spare = max(check_budget(budget_s) - RESERVE_S, 0.0)
+        self._store.span[0] = spare * cycles_per_second()
         return np.uint64(max(c0 + int(spare * cycles_per_second()), 0))
 
     def _work(self, deadline: np.uint64, limit: int, elapsed: float, first: bool = False

@@ -138,6 +138,7 @@ class MapStore:
         """Poses hung from the earth by a GPS reading."""
         self.dmax = 1
         self.model = np.array(MODEL0)
+        self.span = np.full(1, np.inf)  # the current call's budget in cycles (Admission.span)
         self.queue = np.zeros(64, np.int64)
         """Constraints waiting for their first update, ``queue[q_head:q_tail]``."""
         self.q_head = self.q_tail = 0
@@ -293,7 +294,7 @@ class MapStore:
             )  # fmt: skip
             state = State(self.rot, self.trans, self.bdiag, self.contrib)
             pol = Admission(self.model, self.chi2, self.group_of, self.group_ptr,
-                            self.group_members, self.group_stamp, self.depth)
+                            self.group_members, self.group_stamp, self.depth, self.span)
             self._views = (prob, state, pol)
         return self._views
 

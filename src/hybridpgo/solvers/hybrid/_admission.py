@@ -41,16 +41,15 @@ MODEL_RATE = 1.0 / 32.0
 #: nothing.  Each rate is thus the cost of long updates, whose path products and poses miss the
 #: cache (more per node than short domains): short updates, hundreds per frame, would otherwise
 #: pull it down to their own, and a long update admitted on it would overrun its frame.  (With
-#: every batch teaching, paris2's junction groups of two loop closures over about 1 250 entries
-#: took up to 0.86 ms where 0.17-0.29 ms was predicted, 3.8x at the 90th percentile of the
-#: groups over 0.4 ms: the frames that ended them ran to 6-6.8 ms of CPU at a 5 ms budget.)
+#: every batch teaching, paris2's junction groups of about 1 000 entries or more took 3.5x their
+#: prediction at the median and 7x at the 90th percentile: the frames that ended them ran to
+#: 6-7 ms of CPU at a 5 ms budget.)
 MODEL_SIZE_REF = 32
 #: Tree levels above a batch's root that cost as much as one domain entry: the root's global
 #: pose is one composition per level, a domain entry a 6x6 block and its path products
-#: (paris2's junction groups, least squares over 163 000 batches: 69 cycles per level, 1 632
-#: per domain entry, so that groups of short constraints deep in the tree, counted level for
-#: entry, taught a cost per entry of 130-450 cycles and long groups overran their prediction
-#: 3.6x at the 90th percentile).  Counted at a 16th, a little above the measured 24th.
+#: (paris2's junction groups, least squares over 163 000 batches: a level costs a 24th of a
+#: domain entry, so that groups of short constraints deep in the tree, counted level for entry,
+#: taught a cost per entry far below a long group's).  Counted at a 16th, a little above.
 DEPTH_PER_ENTRY = 16
 #: Predictions are the model times this margin (the model is a mean; updates vary around it).
 MODEL_MARGIN = 1.5
@@ -81,6 +80,10 @@ class Admission(NamedTuple):
     """(K,) the stamp at which each group was last relaxed (written)."""
     depth: npt.NDArray[np.int32]
     """(T,) depth of every tree node (the work of a batch member, :func:`batch_work`)."""
+    span: npt.NDArray[np.float64]
+    """(1,) cycles of the call's whole budget (inf: none).  A junction group whose batch is
+    predicted to take longer is relaxed member by member, by single updates: no frame could
+    hold the batch, so under the policy it would never start."""
 
 
 # --------------------------------------------------------------------------- cost model
@@ -101,7 +104,7 @@ def capacitance_cost(nb: int) -> float:
 @kernel
 def learn(model: np.ndarray, d: int, dc: float, batch: bool) -> None:
     """Moving averages of the base cost (small domains) and of the cost per domain node or
-    batch entry (long updates and batches, ``MODEL_SIZE_REF``)."""
+    batch entry (long updates and large batches, ``MODEL_SIZE_REF``)."""
     if d <= 4 and not batch:
         cur = model[MODEL_BASE]
         model[MODEL_BASE] = cur + MODEL_RATE * (min(dc, 4.0 * cur) - cur)

@@ -172,7 +172,12 @@ def _make_loop(with_gps: bool, with_interpolation: bool, givens: bool, admission
     ``relax_interpolated``, about two thirds of the hybrid solver's compile time).  Single
     updates are the :data:`~._step.RELAX` variant with the GPS linearization only
     ``with_gps`` and one solve, Givens' when ``givens`` (``step_kind`` must then agree); under
-    the policy the solve is chosen by ``step_kind`` at run time."""
+    the policy the solve is chosen by ``step_kind`` at run time.  Under the policy an entry
+    starts only when its predicted cost fits before the deadline, except the first of a call
+    with ``force_first``; when that one's junction group does not fit, it is relaxed alone
+    (a single update costs O(its path), the group's batch O(every member's path and the
+    depth of its roots) and more per entry), and so is every member of a group whose batch
+    is predicted to take longer than the call's whole budget (``pol.span``)."""
 
     def loop_variant(prob: Problem, state: State, sc: Scratch, order: np.ndarray, tau: float,
                      mu: float, step_kind: int, gps_batch_size: int, d_max: int,
@@ -198,14 +203,18 @@ def _make_loop(with_gps: bool, with_interpolation: bool, givens: bool, admission
                     c = -1
                     stop_at = idx
                 else:
+                    pred = 0.0
                     if grp >= 0:
                         nb = pol.group_ptr[grp + 1] - pol.group_ptr[grp]
                         pred = (adm.predict(pol.model, _group_work(prob, pol, grp), True)
                                 + adm.capacitance_cost(nb))
-                    elif gps:
-                        pred = adm.predict(pol.model, domain(prob, c)[1], True) + buf_cost
-                    else:
-                        pred = adm.predict(pol.model, domain(prob, c)[1], False)
+                        if pred > pol.span[0]:  # no frame holds the batch: member by member
+                            grp = -1
+                    if grp < 0:
+                        if gps:
+                            pred = adm.predict(pol.model, domain(prob, c)[1], True) + buf_cost
+                        else:
+                            pred = adm.predict(pol.model, domain(prob, c)[1], False)
                     late = float(cycle_counter()) + pred > float(deadline)
                     if late and not (force_first and started == 0):
                         counts[Count.SKIPPED] += 1
@@ -213,6 +222,11 @@ def _make_loop(with_gps: bool, with_interpolation: bool, givens: bool, admission
                             continue
                         c = -1
                         stop_at = idx
+                    elif late and grp >= 0:
+                        # started whatever its cost, but a junction group's batch would
+                        # overrun: this member alone, by a single update (its group stays,
+                        # and each member comes first in a later frame likewise)
+                        grp = -1
             elif c >= 0 and idx > 0 and cycle_counter() >= deadline:
                 c = -1
                 stop_at = idx
@@ -305,7 +319,8 @@ def loop_kernel(with_gps: bool, with_interpolation: bool, givens: bool = False,
 
 #: The admission arrays of a loop without the policy (never read).
 NO_ADMISSION = Admission(np.zeros(3), np.zeros(0), np.zeros(0, np.int64), np.zeros(1, np.int64),
-                         np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int32))
+                         np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int32),
+                         np.full(1, np.inf))
 
 
 def run_loop(kern: Any, prob: Problem, state: State, sc: Scratch, order: np.ndarray,
