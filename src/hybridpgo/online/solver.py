@@ -16,7 +16,8 @@ arrays grow without copies; the updates are the whole-graph solver's relaxation 
 * **The frame's budget** covers its ``add_*`` calls too (their cycles are charged to the next
   update); what does not fit stays queued for the next frames, in arrival order.  Only the
   first new constraint of a frame is started whatever its cost (alone, by a single update,
-  when its junction group's batch does not fit); constraints queued again
+  when its junction group's batch does not fit), and a group whose batch no frame could hold
+  is relaxed member by member wherever it comes; constraints queued again
   after an adopted answer (relaxed before) start only when they fit.  Building the
   first solver of a process freezes the objects alive then (:func:`gc.freeze`), so no frame
   pays for a full garbage collection of the compiled kernels.
