@@ -8,6 +8,7 @@ absent, and the cost model is a pure function of the samples it is given.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from graphs import random_graph
 
 from hybridpgo.online import OnlineConfig, OnlineSolver
@@ -67,31 +68,24 @@ def test_spent_frame_carries_its_work_over_and_drops_nothing() -> None:
     assert np.all(s.store.cycles[: s.num_edges] > 0)
 
 
-def test_long_updates_are_predicted_from_long_updates() -> None:
-    """Hundreds of short updates per frame do not pull the cost per node below what a long
-    update costs: its prediction covers its measured cost."""
+@pytest.mark.parametrize(("batch", "large", "large_cost", "small", "small_cost"), [
+    (False, 3000, 4000.0, 8, 800.0),  # single updates: a cache-missing long path
+    (True, 1250, 1700.0, 12, 150.0),  # batches: GPS pairs, junction groups of short paths
+])
+def test_large_updates_are_predicted_from_large_updates(batch: bool, large: int,
+                                                        large_cost: float, small: int,
+                                                        small_cost: float) -> None:
+    """Hundreds of short updates (or small batches) per frame do not pull the cost per node
+    (per batch entry) below what a long update (a large batch) costs: its prediction covers
+    its measured cost; batches never teach the base."""
     model = np.array(adm.MODEL0)
-    long_d, long_per_node = 3000, 4000.0  # cache-missing long path
-    short_d, short_per_node = 8, 800.0
     for _ in range(40):
-        adm.learn(model, long_d, model[adm.MODEL_BASE] + long_d * long_per_node, False)
+        adm.learn(model, large, model[adm.MODEL_BASE] + large * large_cost, batch)
         for _ in range(300):
-            adm.learn(model, short_d, model[adm.MODEL_BASE] + short_d * short_per_node, False)
-    assert adm.predict(model, long_d, False) >= model[adm.MODEL_BASE] + long_d * long_per_node
-
-
-def test_large_batches_are_predicted_from_large_batches() -> None:
-    """The batch twin: thousands of small batches per large one (GPS pairs, junction groups of
-    short constraints) do not pull the cost per entry below what a large batch costs."""
-    model = np.array(adm.MODEL0)
-    large_w, large_per_entry = 1250, 1700.0
-    small_w, small_per_entry = 12, 150.0
-    for _ in range(40):
-        adm.learn(model, large_w, model[adm.MODEL_BASE] + large_w * large_per_entry, True)
-        for _ in range(300):
-            adm.learn(model, small_w, model[adm.MODEL_BASE] + small_w * small_per_entry, True)
-    assert adm.predict(model, large_w, True) >= model[adm.MODEL_BASE] + large_w * large_per_entry
-    assert model[adm.MODEL_BASE] == adm.MODEL0[adm.MODEL_BASE]  # batches never teach the base
+            adm.learn(model, small, model[adm.MODEL_BASE] + small * small_cost, batch)
+    assert adm.predict(model, large, batch) >= model[adm.MODEL_BASE] + large * large_cost
+    if batch:
+        assert model[adm.MODEL_BASE] == adm.MODEL0[adm.MODEL_BASE]
 
 
 def test_add_calls_do_not_copy_the_map() -> None:
