@@ -16,7 +16,9 @@ arrays grow without copies; the updates are the whole-graph solver's relaxation 
 * **The frame's budget** covers its ``add_*`` calls too (their cycles are charged to the next
   update); what does not fit stays queued for the next frames, in arrival order.  Only the
   first new constraint of a frame is started whatever its cost (alone, by a single update,
-  when its junction group's batch does not fit), and a group whose batch no frame could hold
+  when its junction group's batch does not fit; in slices over as many frames as it takes,
+  when that single update is long and does not fit either: :mod:`~..solvers.hybrid._slices`,
+  :meth:`~OnlineSolver._begin_sliced`), and a group whose batch no frame could hold
   is relaxed member by member wherever it comes; constraints queued again
   after an adopted answer (relaxed before) start only when they fit.  Building the
   first solver of a process freezes the objects alive then (:func:`gc.freeze`), so no frame
@@ -42,7 +44,7 @@ import gc
 import os
 import time
 import weakref
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -53,8 +55,9 @@ from ..errors import FormatError, GraphError
 from ..graph import FloatArray, PoseGraph, planar_data
 from ..solvers.config import check_int
 from ..solvers.hybrid import _admission as adm
-from ..solvers.hybrid._sweep import loop_kernel, run_loop
-from ..solvers.hybrid.problem import NUM_COUNTS, Count
+from ..solvers.hybrid import _slices
+from ..solvers.hybrid._sweep import group_work, loop_kernel, run_loop
+from ..solvers.hybrid.problem import NUM_COUNTS, Count, StepKind, Update
 from ..solvers.hybrid.solver import STEP_KINDS, ensure_compiled
 from ._frame import MAX_BUDGET_S as MAX_BUDGET_S
 from ._frame import NO_DEADLINE, RESERVE_S, FrameReport, charged, check_budget
@@ -66,6 +69,22 @@ from .store import MapStore
 #: Requeued constraints a frame drops at most when they do not fit
 #: (:meth:`OnlineSolver._requeued`).
 MAX_DROPS = 4
+#: A single update runs in slices across frames only from this many domain nodes (shorter
+#: ones take a fraction of a millisecond).
+MIN_SLICED = 4 * _slices.SLICE
+
+
+class _Sliced(NamedTuple):
+    """An update in slices under way (:mod:`~..solvers.hybrid._slices`)."""
+
+    lu: npt.NDArray[np.int64]
+    lf: npt.NDArray[np.float64]
+    wk: Any
+    adopted: int
+    """The worker's adoptions when it began (-1: no worker)."""
+    new: bool
+    """The first new constraint (else an older one, from spare time)."""
+    tau: float
 
 
 class OnlineSolver:
@@ -89,6 +108,11 @@ class OnlineSolver:
         self._gps_cursor = 0
         self._stamp = 0  # one per call of the relaxation loops (junction groups: once each)
         self._input_cycles = 0  # cycles spent in add_* since the last update (its frame's)
+        # the update in slices under way (_slices: progress arrays, its workspace, the
+        # worker's adoptions when it began), and the counts stats() reports
+        self._sliced: _Sliced | None = None
+        self._slice_wk: Any = None
+        self._sliced_done = self._sliced_cancelled = 0
         self._link: WorkerLink | None = None
         self._finalizer: weakref.finalize[Any, Any] | None = None
         if cfg.background_refine:
@@ -346,15 +370,27 @@ class OnlineSolver:
         stamp = self._stamp
         n_re = self._requeued(deadline, counts, limit, stamp, first) if st.requeue.size else 0
         limit -= int(counts[Count.DONE])
+        done0 = int(counts[Count.DONE])
+        forced = True
+        n_sliced = 0
+        if self._sliced is not None and not self._sliced_holds():
+            self._give_up_sliced()
+        sl = self._sliced
+        if limit > 0 and ((sl is not None and sl.new) or self._begin_sliced(deadline)):
+            n_sliced = self._advance_sliced(deadline, counts)
+            forced = False  # the frame's progress on the first new constraint
         prob, state, pol = st.views()
         sc = st.scratch(self._wk)
         self._wk = sc.wk
-        done0 = int(counts[Count.DONE])
-        n_new = run_loop(loop_kernel(True, False, False, True), prob, state, sc, st.pending(),
-                         cfg.tau_new, cfg.damping, int(STEP_KINDS[cfg.step]), cfg.gps_batch_size,
-                         0, deadline, counts, True, pol, stamp, limit, force_first=True,
-                         skip=False)
-        st.pop(n_new)
+        # a new constraint relaxed in slices stays first in the queue until done
+        behind = self._sliced is not None and self._sliced.new
+        n_new = run_loop(loop_kernel(True, False, False, True), prob, state, sc,
+                         st.pending()[int(behind):], cfg.tau_new, cfg.damping,
+                         int(STEP_KINDS[cfg.step]), cfg.gps_batch_size, 0, deadline, counts,
+                         True, pol, stamp, limit - (int(counts[Count.DONE]) - done0),
+                         force_first=forced, skip=False)
+        st.pop(n_new, behind)
+        n_new += n_sliced
         limit -= int(counts[Count.DONE]) - done0
         local_nodes = self._local_solve(deadline, counts, limit) if cfg.local_size else 0
         if local_nodes:
@@ -368,6 +404,93 @@ class OnlineSolver:
         old = n_re + self._spare_time(deadline, counts, limit, stamp)
         return FrameReport(n_new, self.backlog, old, local_nodes, int(counts[Count.CAPPED]),
                            int(counts[Count.REJECTED]), int(counts[Count.SKIPPED]), elapsed)
+
+    def _begin_sliced(self, deadline: np.uint64) -> bool:
+        """Start relaxing the first new constraint in slices (:mod:`~..solvers.hybrid._slices`)
+        when it is a relative constraint of at least :data:`MIN_SLICED` domain nodes (under
+        the Woodbury step) that the loop would relax by a single update: not in a junction
+        group, or in one whose batch is predicted not to fit.  The slices are timed, so a long
+        update never ends the frame late by more than one slice, whatever the cost model
+        predicts for it (its rare long paths miss the cache more than the model's average);
+        one that fits is done in the same frame.  True when begun."""
+        st = self._store
+        q = st.pending()
+        if (deadline == NO_DEADLINE or not q.size or q[0] >= st.cap_m
+                or STEP_KINDS[self.config.step] != StepKind.WOODBURY):
+            return False
+        c = int(q[0])
+        d = int(st.ptr[c + 1] - st.ptr[c])
+        if d < MIN_SLICED:
+            return False
+        prob, _, pol = st.views()
+        grp = int(st.group_of[c])
+        if grp >= 0:  # the loop relaxes its junction group as one batch when it fits
+            nb = int(st.group_ptr[grp + 1] - st.group_ptr[grp])
+            pred = (adm.predict(st.model, group_work(prob, pol, grp), True)
+                    + adm.capacitance_cost(nb))
+            if pred <= st.span[0] and float(read_cycles()) + pred <= float(deadline):
+                return False
+        if self._sliced is not None:  # an older constraint's, from spare time: new ones first
+            self._give_up_sliced()
+        self._start_sliced(c, d, True)
+        return True
+
+    def _start_sliced(self, c: int, d: int, new: bool) -> None:
+        """Begin the update in slices of constraint c (``d`` domain nodes; ``new``: the first
+        new constraint, else an older one relaxed in spare time)."""
+        wk = self._slice_wk
+        if wk is None or wk.x.shape[0] < d:
+            wk = self._slice_wk = self._store.scratch(None).wk
+        lu, lf = _slices.new_state()
+        prob, _, _ = self._store.views()
+        _slices.begin(prob, c, lu, lf)
+        self._sliced = _Sliced(lu, lf, wk, -1 if self._link is None else self._link.adopted,
+                               new, self.config.tau_new if new else self.config.tau_old)
+
+    def _give_up_sliced(self) -> None:
+        self._sliced = None
+        self._sliced_cancelled += 1
+
+    def _sliced_holds(self) -> bool:
+        """Whether the update in slices can go on: False (it is given up; a new constraint
+        stays first in the queue, to be relaxed afresh) when the worker's answer was adopted
+        since it began (its step belongs to the poses before) or its constraint's domain
+        changed."""
+        sl = self._sliced
+        assert sl is not None
+        q = self._store.pending()
+        prob, _, _ = self._store.views()
+        return ((self._link is None or self._link.adopted == sl.adopted)
+                and (not sl.new or (q.size > 0 and q[0] == sl.lu[_slices.C]))
+                and bool(_slices.valid(prob, sl.lu)))
+
+    def _advance_sliced(self, deadline: np.uint64, counts: npt.NDArray[np.int64]) -> int:
+        """Run the update in slices until ``deadline`` (at least one slice); once done, a new
+        constraint leaves the queue.  Returns the constraints done (0 or 1)."""
+        sl = self._sliced
+        assert sl is not None
+        lu, lf, wk = sl.lu, sl.lf, sl.wk
+        st = self._store
+        prob, state, pol = st.views()
+        whole = lu[_slices.PHASE] == _slices.SETUP
+        t0 = read_cycles()
+        if not _slices.advance(prob, state, wk, lu, lf, sl.tau, self.config.damping, deadline):
+            return 0
+        c = int(lu[_slices.C])
+        if whole:  # done in one call: the cost of a single update, for the cost model
+            adm.learn(st.model, int(lu[_slices.D]), float(read_cycles() - t0), False)
+        pol.chi2[c] = float(np.dot(wk.r, wk.r))  # its χ² before the update, as a single's
+        status = int(lu[_slices.STATUS])
+        if status == Update.CAPPED:
+            counts[Count.CAPPED] += 1
+        elif status == Update.REJECTED:
+            counts[Count.REJECTED] += 1
+        counts[Count.DONE] += 1
+        if sl.new:
+            st.pop(1)
+        self._sliced = None
+        self._sliced_done += 1
+        return 1
 
     def _requeued(self, deadline: np.uint64, counts: npt.NDArray[np.int64], limit: int,
                   stamp: int, first: bool) -> int:
@@ -418,7 +541,10 @@ class OnlineSolver:
 
     def _spare_time(self, deadline: np.uint64, counts: npt.NDArray[np.int64], limit: int,
                     stamp: int) -> int:
-        """Older constraints, largest last χ² first, while time remains; the updates made."""
+        """Older constraints, largest last χ² first, while time remains; the updates made.
+        Under a deadline the long relative ones among them (:data:`MIN_SLICED` domain nodes)
+        are relaxed in slices, one at a time: the one under way goes on first, and the
+        others begin, largest χ² first, once the short ones were admitted or skipped."""
         st = self._store
         cfg = self.config
         link = self._link
@@ -427,6 +553,12 @@ class OnlineSolver:
         held = cfg.background_hold and link is not None and link.holds(st)
         if not (limit > 0 and self.backlog == 0 and st.m_laid - fm > 1) or held:
             return 0
+        done0 = int(counts[Count.DONE])
+        went_on = -1
+        if self._sliced is not None:  # an older constraint's update in slices goes on first
+            went_on = int(self._sliced.lu[_slices.C])
+            self._advance_sliced(deadline, counts)
+            limit -= int(counts[Count.DONE]) - done0
         cand = np.empty(cfg.recent + cfg.window, np.int64)
         k = int(adm.candidates(st.chi2, fm, st.m_laid, cfg.recent, cfg.window, self._cursor,
                                cand))
@@ -440,12 +572,26 @@ class OnlineSolver:
             cand = np.concatenate([st.cap_m + gw, cand])
         if st.num_rejected:
             cand = cand[~st.rejected[cand]]
+        long = np.empty(0, np.int64)
+        if deadline != NO_DEADLINE and STEP_KINDS[cfg.step] == StepKind.WOODBURY:
+            # the long relative ones in slices
+            rel = cand[cand < st.cap_m]
+            long = rel[st.ptr[rel + 1] - st.ptr[rel] >= MIN_SLICED]
+            if long.size:
+                cand = cand[~np.isin(cand, long)]
         prob, state, pol = st.views()
         sc = st.scratch(self._wk)
-        done0 = int(counts[Count.DONE])
+        d0 = int(counts[Count.DONE])
         run_loop(loop_kernel(True, False, False, True), prob, state, sc, cand, cfg.tau_old,
                  cfg.damping, int(STEP_KINDS[cfg.step]), cfg.gps_batch_size, 0, deadline,
                  counts, True, pol, stamp, limit, force_first=False, skip=True)
+        limit -= int(counts[Count.DONE]) - d0
+        for c in long.tolist():  # largest χ² first, while one is done within the deadline
+            if self._sliced is not None or limit <= 0 or np.uint64(read_cycles()) >= deadline:
+                break
+            if c != went_on:
+                self._start_sliced(c, int(st.ptr[c + 1] - st.ptr[c]), False)
+                limit -= self._advance_sliced(deadline, counts)
         return int(counts[Count.DONE]) - done0
 
     # ----------------------------------------------------------------- background refine
@@ -606,6 +752,8 @@ class OnlineSolver:
             "path_length_max": int(st.dmax), "path_entries": st.path_entries(),
             "gps_links": st.gps_links, "junction_groups": st.ngroups,
             "rejected": st.num_rejected,
+            "sliced_updates": {"done": self._sliced_done, "given_up": self._sliced_cancelled,
+                               "under_way": self._sliced is not None},
             "model_us": (st.model / cycles_per_second() * 1e6).tolist(),
             **({"background": self._link.stats()} if self._link is not None else {}),
         }  # fmt: skip
@@ -686,6 +834,18 @@ def _ensure_online_compiled() -> float:
         s.update(1.0)
         s.energy()
         s.pose(3)
+        # an update in slices (the loop closure again, with no step: tau 0)
+        st = s._store
+        prob, state, pol = st.views()
+        lu, lf = _slices.new_state()
+        _slices.begin(prob, 3, lu, lf)
+        _slices.valid(prob, lu)
+        _slices.advance(prob, state, st.scratch(None).wk, lu, lf, 0.0, s.config.damping,
+                        NO_DEADLINE)
+        # and what decides to begin one (_begin_sliced, _advance_sliced)
+        adm.predict(st.model, group_work(prob, pol, 0), True)
+        adm.capacitance_cost(2)
+        adm.learn(st.model, 4, 1.0, False)
     except BaseException:
         _COMPILED[0] = False
         raise

@@ -277,8 +277,11 @@ class MapStore:
         """Arrival-order names -> store indices (the inverse of :meth:`arrival_names`)."""
         return np.where(names >= 0, names, self.cap_m - names - 1)
 
-    def pop(self, k: int) -> None:
-        """Drop the first ``k`` queued constraints."""
+    def pop(self, k: int, behind_first: bool = False) -> None:
+        """Drop the first ``k`` queued constraints (``behind_first``: the ``k`` after the
+        first, which stays first)."""
+        if behind_first and k:
+            self.queue[self.q_head + k] = self.queue[self.q_head]
         self.q_head += k
         if self.q_head == self.q_tail:
             self.q_head = self.q_tail = 0

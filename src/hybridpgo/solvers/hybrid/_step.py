@@ -338,20 +338,21 @@ def accumulate_blocks(prob: Problem, state: State, c: int, kr: int, jac: np.ndar
 
 
 @kernel
-def woodbury_solve(d: int, kr: int, jac: np.ndarray, lfac: np.ndarray, r: np.ndarray,
-                   y: np.ndarray, x: np.ndarray, smat: np.ndarray, sv: np.ndarray) -> None:
-    """x = B^-1 J^T (I + J B^-1 J^T)^-1 r with B = blockdiag(L_k L_k^T): O(d)
-    (docs/mathematics.md#hybrid-step).
-
-    With W_k = L_k^-1 J_k^T (forward substitution), S = I + sum_k W_k^T W_k and
-    x_k = L_k^-T W_k S^-1 r.  ``y`` holds the W_k; ``smat`` (6, 6) and ``sv`` (2, 6) scratch.
-    """
+def woodbury_start(kr: int, smat: np.ndarray) -> None:
+    """``S = I`` (its first ``kr`` rows; the rest zero) before :func:`woodbury_gather`."""
     for p in range(6):
         for q in range(6):
             smat[p, q] = 0.0
     for i in range(kr):
         smat[i, i] = 1.0
-    for k in range(d):
+
+
+@kernel
+def woodbury_gather(k0: int, k1: int, kr: int, jac: np.ndarray, lfac: np.ndarray,
+                    y: np.ndarray, smat: np.ndarray) -> None:
+    """Woodbury's first pass over the domain positions ``k0 <= k < k1``: ``W_k = L_k^-1 J_k^T``
+    into ``y[k]`` and ``S += W_k^T W_k`` (upper triangle)."""
+    for k in range(k0, k1):
         for i in range(6):
             inv = 1.0 / lfac[k, i, i]
             for q in range(kr):
@@ -365,14 +366,17 @@ def woodbury_solve(d: int, kr: int, jac: np.ndarray, lfac: np.ndarray, r: np.nda
                 for i in range(6):
                     acc += y[k, i, p] * y[k, i, q]
                 smat[p, q] += acc
+
+
+@kernel
+def woodbury_factor(kr: int, smat: np.ndarray, r: np.ndarray, sv: np.ndarray) -> bool:
+    """Factor the gathered ``S`` in place and solve ``S z = r`` into ``sv[0]``; False when
+    ``S`` is not positive definite."""
     for p in range(kr):
         for q in range(p):
             smat[p, q] = smat[q, p]
     if not chol_inplace(smat, kr):
-        for k in range(d):
-            for i in range(6):
-                x[k, i] = np.nan
-        return
+        return False
     # S z = r, column by column as chol_solve_cols does (z in sv[0])
     for i in range(kr):
         acc = r[i]
@@ -384,7 +388,14 @@ def woodbury_solve(d: int, kr: int, jac: np.ndarray, lfac: np.ndarray, r: np.nda
         for m in range(i + 1, kr):
             acc -= smat[m, i] * sv[0, m]
         sv[0, i] = acc / smat[i, i]
-    for k in range(d):
+    return True
+
+
+@kernel
+def woodbury_spread(k0: int, k1: int, kr: int, lfac: np.ndarray, y: np.ndarray,
+                    x: np.ndarray, sv: np.ndarray) -> None:
+    """Woodbury's second pass over ``k0 <= k < k1``: ``x_k = L_k^-T W_k z``."""
+    for k in range(k0, k1):
         for i in range(6):
             acc = 0.0
             for q in range(kr):
@@ -395,6 +406,27 @@ def woodbury_solve(d: int, kr: int, jac: np.ndarray, lfac: np.ndarray, r: np.nda
             for m in range(i + 1, 6):
                 acc -= lfac[k, m, i] * x[k, m]
             x[k, i] = acc / lfac[k, i, i]
+
+
+@kernel
+def woodbury_solve(d: int, kr: int, jac: np.ndarray, lfac: np.ndarray, r: np.ndarray,
+                   y: np.ndarray, x: np.ndarray, smat: np.ndarray, sv: np.ndarray) -> None:
+    """x = B^-1 J^T (I + J B^-1 J^T)^-1 r with B = blockdiag(L_k L_k^T): O(d)
+    (docs/mathematics.md#hybrid-step).
+
+    With W_k = L_k^-1 J_k^T (forward substitution), S = I + sum_k W_k^T W_k and
+    x_k = L_k^-T W_k S^-1 r.  ``y`` holds the W_k; ``smat`` (6, 6) and ``sv`` (2, 6) scratch.
+    The two passes over the domain are :func:`woodbury_gather` and :func:`woodbury_spread`
+    (a sliced update, :mod:`._slices`, runs them a range of positions at a time).
+    """
+    woodbury_start(kr, smat)
+    woodbury_gather(0, d, kr, jac, lfac, y, smat)
+    if not woodbury_factor(kr, smat, r, sv):
+        for k in range(d):
+            for i in range(6):
+                x[k, i] = np.nan
+        return
+    woodbury_spread(0, d, kr, lfac, y, x, sv)
 
 
 @kernel
@@ -475,12 +507,19 @@ def apply_step(nodes: np.ndarray, start: int, n: int, x: np.ndarray, tau: float,
     t, status = step_temperature(x, n, tau)
     if status == Update.REJECTED:
         return status
+    retract_nodes(nodes, start, n, x, t, rot, trans, ws)
+    return status
+
+
+@kernel
+def retract_nodes(nodes: np.ndarray, start: int, n: int, x: np.ndarray, t: float,
+                  rot: np.ndarray, trans: np.ndarray, ws: np.ndarray) -> None:
+    """``T_i <- T_i Exp(t x_k)`` for ``i = nodes[start + k]``, k < n (``ws``: scratch)."""
     er = ws[0]
     tmp = ws[1]
     for k in range(n):
         i = nodes[start + k]
         retract_into(rot[i], trans[i], x[k], t, rot[i], trans[i], er, tmp)
-    return status
 
 
 @kernel

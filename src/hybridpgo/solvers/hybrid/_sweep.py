@@ -124,7 +124,7 @@ def _flush_exact(prob: Problem, state: State, sc: Scratch, nbuf: int, tau: float
 
 
 @kernel
-def _group_work(prob: Problem, pol: Admission, grp: int) -> int:
+def group_work(prob: Problem, pol: Admission, grp: int) -> int:
     """The work of a junction group's batch, in domain-node units."""
     d = 0
     for j in range(pol.group_ptr[grp], pol.group_ptr[grp + 1]):
@@ -149,7 +149,7 @@ def _relax_group(prob: Problem, state: State, sc: Scratch, pol: Admission, grp: 
     t0 = cycle_counter()
     nu = batch_relax_exact(prob, state, members, nb, tau, mu, sc.slot, sc.xb, sc.nodes, 0,
                            False)
-    adm.learn(pol.model, max(_group_work(prob, pol, grp), 1), float(cycle_counter() - t0), True)
+    adm.learn(pol.model, max(group_work(prob, pol, grp), 1), float(cycle_counter() - t0), True)
     _book_batch(nu, t0, members, nb, sc.cycles, sc.batch_cycles, counts)
 
 
@@ -206,7 +206,7 @@ def _make_loop(with_gps: bool, with_interpolation: bool, givens: bool, admission
                     pred = 0.0
                     if grp >= 0:
                         nb = pol.group_ptr[grp + 1] - pol.group_ptr[grp]
-                        pred = (adm.predict(pol.model, _group_work(prob, pol, grp), True)
+                        pred = (adm.predict(pol.model, group_work(prob, pol, grp), True)
                                 + adm.capacitance_cost(nb))
                         if pred > pol.span[0]:  # no frame holds the batch: member by member
                             grp = -1
