@@ -194,3 +194,23 @@ def test_a_saved_state_keeps_the_constraint_an_update_in_slices_was_relaxing(tmp
     assert not t.stats()["sliced_updates"]["under_way"]
     t.update(None)
     assert t.backlog == 0
+
+
+def test_an_update_in_slices_overtaken_by_its_groups_batch_is_given_up() -> None:
+    """When the junction group's batch relaxes the constraint an update in slices is on, the
+    slices stop (their step would correct the same residual twice) and the constraint leaves
+    the queue, relaxed."""
+    s = _corridor(300)
+    _never_fits(s)
+    s._input_cycles = 1 << 62
+    s.update(5e-3)
+    sl = s._sliced
+    assert sl is not None and sl.new
+    st = s.store
+    # as if the constraint were in group 0 and that group's batch ran in a later frame
+    s._sliced = sl._replace(group=0, stamp=int(st.group_stamp[0]))
+    st.group_stamp[0] += 1
+    s._input_cycles = 1 << 62
+    rep = s.update(5e-3)
+    assert rep.new == 1 and s.backlog == 0
+    assert s.stats()["sliced_updates"] == {"done": 0, "given_up": 1, "under_way": False}

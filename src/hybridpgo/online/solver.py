@@ -85,6 +85,10 @@ class _Sliced(NamedTuple):
     new: bool
     """The first new constraint (else an older one, from spare time)."""
     tau: float
+    group: int
+    """Its junction group (-1: none) and the group's stamp when it began: a changed stamp
+    means its group's batch relaxed it meanwhile."""
+    stamp: int
 
 
 class OnlineSolver:
@@ -372,12 +376,12 @@ class OnlineSolver:
         limit -= int(counts[Count.DONE])
         done0 = int(counts[Count.DONE])
         forced = True
-        n_sliced = 0
+        n_sliced = self._sliced_overtaken()
         if self._sliced is not None and not self._sliced_holds():
             self._give_up_sliced()
         sl = self._sliced
         if limit > 0 and ((sl is not None and sl.new) or self._begin_sliced(deadline)):
-            n_sliced = self._advance_sliced(deadline, counts)
+            n_sliced += self._advance_sliced(deadline, counts)
             forced = False  # the frame's progress on the first new constraint
         prob, state, pol = st.views()
         sc = st.scratch(self._wk)
@@ -390,7 +394,7 @@ class OnlineSolver:
                          True, pol, stamp, limit - (int(counts[Count.DONE]) - done0),
                          force_first=forced, skip=False)
         st.pop(n_new, behind)
-        n_new += n_sliced
+        n_new += n_sliced + self._sliced_overtaken()
         limit -= int(counts[Count.DONE]) - done0
         local_nodes = self._local_solve(deadline, counts, limit) if cfg.local_size else 0
         if local_nodes:
@@ -441,15 +445,33 @@ class OnlineSolver:
         wk = self._slice_wk
         if wk is None or wk.x.shape[0] < d:
             wk = self._slice_wk = self._store.scratch(None).wk
+        st = self._store
         lu, lf = _slices.new_state()
-        prob, _, _ = self._store.views()
+        prob, _, _ = st.views()
         _slices.begin(prob, c, lu, lf)
+        grp = int(st.group_of[c])
         self._sliced = _Sliced(lu, lf, wk, -1 if self._link is None else self._link.adopted,
-                               new, self.config.tau_new if new else self.config.tau_old)
+                               new, self.config.tau_new if new else self.config.tau_old, grp,
+                               int(st.group_stamp[grp]) if grp >= 0 else -1)
 
     def _give_up_sliced(self) -> None:
         self._sliced = None
         self._sliced_cancelled += 1
+
+    def _sliced_overtaken(self) -> int:
+        """Give up the update in slices when its junction group's batch relaxed its constraint
+        meanwhile (its own step would correct the same residual a second time); a new
+        constraint then leaves the queue, relaxed.  Returns the new constraints so relaxed
+        (0 or 1)."""
+        sl = self._sliced
+        st = self._store
+        if sl is None or sl.group < 0 or int(st.group_stamp[sl.group]) == sl.stamp:
+            return 0
+        self._give_up_sliced()
+        if sl.new and st.pending().size and st.pending()[0] == sl.lu[_slices.C]:
+            st.pop(1)
+            return 1
+        return 0
 
     def _sliced_holds(self) -> bool:
         """Whether the update in slices can go on: False (it is given up; a new constraint
