@@ -209,3 +209,41 @@ def test_a_junction_group_no_budget_can_hold_goes_member_by_member() -> None:
         cycles = store.cycles[members]
         assert done == members.size and np.all(cycles > 0)
         assert np.unique(cycles).size == (members.size if distinct is None else distinct)
+
+
+def test_nothing_is_examined_past_the_deadline() -> None:
+    """Past the deadline no update fits: a loop that skips what does not fit stops at once
+    (the rest counted as skipped, none examined), and the spare-time pass is not made (its
+    window of candidates stays where it was); nothing moves."""
+    from hybridpgo.online._frame import NO_DEADLINE
+    from hybridpgo.solvers.hybrid._sweep import loop_kernel, run_loop
+    from hybridpgo.solvers.hybrid.problem import NUM_COUNTS, Count
+    from hybridpgo.solvers.hybrid.solver import STEP_KINDS
+
+    g = _graph(seed=6, n=400, extra=300)
+    st = make_stream(g)
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    for k in range(st.num_frames):
+        feed_frame(s, st, k)
+        s.update(None)
+    store, cfg = s.store, s.config
+    cand = np.arange(store.m_laid, dtype=np.int64)
+    rot0, cursor0 = store.rot.copy(), s._cursor
+    for deadline, stop in ((np.uint64(1), 0), (NO_DEADLINE, cand.size)):
+        prob, state, pol = store.views()
+        counts = np.zeros(NUM_COUNTS, np.int64)
+        k = run_loop(loop_kernel(True, False, False, True), prob, state, store.scratch(None),
+                     cand, cfg.tau_old, cfg.damping, int(STEP_KINDS[cfg.step]),
+                     cfg.gps_batch_size, 0, deadline, counts, True, pol, 7, 1 << 62,
+                     force_first=False, skip=True)
+        assert k == stop
+        if stop == 0:
+            assert counts[Count.SKIPPED] == cand.size and counts[Count.DONE] == 0
+            assert np.array_equal(store.rot, rot0)
+    rot1 = store.rot.copy()
+    counts = np.zeros(NUM_COUNTS, np.int64)
+    assert s._spare_time(np.uint64(1), counts, 1 << 62, 99) == 0
+    assert s._cursor == cursor0 and not counts.any()
+    assert np.array_equal(store.rot, rot1)
+    s._spare_time(NO_DEADLINE, counts, 1 << 62, 100)  # with time, the window moves on
+    assert s._cursor != cursor0

@@ -214,3 +214,23 @@ def test_an_update_in_slices_overtaken_by_its_groups_batch_is_given_up() -> None
     rep = s.update(5e-3)
     assert rep.new == 1 and s.backlog == 0
     assert s.stats()["sliced_updates"] == {"done": 0, "given_up": 1, "under_way": False}
+
+
+def test_a_shorter_update_is_sliced_only_when_it_does_not_fit() -> None:
+    """Between one slice's nodes and :data:`MIN_SLICED`, the first new constraint runs in
+    slices when its single update is predicted not to fit (the loop would start it whatever
+    its cost), and whole when it fits."""
+    n = (_slices.SLICE + MIN_SLICED) // 2
+    late = _corridor(n)
+    c = int(late.store.pending()[0])
+    d = int(late.store.ptr[c + 1] - late.store.ptr[c])
+    assert _slices.SLICE <= d < MIN_SLICED
+    _never_fits(late)
+    late._input_cycles = 1 << 62
+    rep = late.update(5e-3)
+    assert late.stats()["sliced_updates"]["under_way"] and rep.new == 0
+    in_time = _corridor(n)
+    in_time.store.model[adm.MODEL_NODE] = 0.0
+    rep = in_time.update(1.0)
+    assert rep.new == 1 and in_time.stats()["sliced_updates"] == {
+        "done": 0, "given_up": 0, "under_way": False}

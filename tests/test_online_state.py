@@ -372,3 +372,53 @@ def test_the_duplicate_check_knows_every_parallel_constraint_after_growth_and_lo
     t.add_constraint(0, 7, loops[3], np.eye(6))
     t.add_constraint(7, 0, loops[0], np.eye(6))  # the other direction is another pair
     assert t.num_edges == 39 + 5
+
+
+_ASYM = np.eye(6)
+_ASYM[0, 1] = 0.5
+
+
+@pytest.mark.parametrize(("meas", "info", "message"), [
+    ((np.eye(3), np.array([0.0, np.nan, 0.0])), np.eye(6), r"measurement is not finite"),
+    ((np.full((3, 3), np.inf), np.ones(3)), np.eye(6), r"measurement is not finite"),
+    ((np.diag([1.0, 1.0, -1.0]), np.ones(3)), np.eye(6),
+     r"R is not a rotation \(\|R\^T R - I\| = 0, det = -1\)"),
+    ((1.001 * np.eye(3), np.ones(3)), np.eye(6),
+     r"R is not a rotation \(\|R\^T R - I\| = 0\.002, det = 1\)"),
+    ((np.eye(3), np.ones(3)), np.full((6, 6), np.nan), r"information is not finite"),
+    ((np.eye(3), np.ones(3)), _ASYM, r"information matrix is not symmetric"),
+    ((np.eye(3), np.ones(3)), np.diag([1.0, 1, 1, 1, 1, -1]), r"not positive definite"),
+])
+def test_each_bad_measurement_or_information_is_named(meas: object, info: np.ndarray,
+                                                      message: str) -> None:
+    s = _solver()
+    ids = s.pose_ids()
+    before = s.state_arrays()
+    with pytest.raises(GraphError, match=message):
+        s.add_constraint(int(ids[0]), int(ids[3]), meas, info)
+    after = s.state_arrays()
+    assert all(np.array_equal(before[k], after[k]) for k in before)
+
+
+def test_the_rigid_and_information_checks_agree_with_numpy() -> None:
+    """The compiled checks of ``add_*`` against their NumPy twins (random near-rotations,
+    arbitrary matrices, and symmetric matrices with one entry nudged)."""
+    from hybridpgo.graph import SYMMETRY_RTOL
+    from hybridpgo.online._validate import _finite_symmetric, _rigid
+
+    rng = np.random.default_rng(11)
+    for _ in range(200):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        rot = np.ascontiguousarray(q + rng.normal(scale=10.0 ** rng.integers(-12, 0),
+                                                  size=(3, 3)))
+        finite, dev, det = _rigid(rot, np.zeros(3))
+        assert finite
+        np.testing.assert_allclose(dev, np.abs(rot.T @ rot - np.eye(3)).max(),
+                                   rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(det, np.linalg.det(rot), rtol=1e-12, atol=1e-15)
+        a = rng.normal(size=(6, 6))
+        info = a @ a.T
+        i, j = rng.integers(0, 6, 2)
+        info[i, j] += rng.choice([0.0, 1e-12, 1e-6]) * np.abs(info).max()
+        expect = int(np.abs(info - info.T).max() > SYMMETRY_RTOL * np.abs(info).max()) * 2
+        assert _finite_symmetric(info, SYMMETRY_RTOL) == expect

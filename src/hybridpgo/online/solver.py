@@ -56,7 +56,7 @@ from ..graph import FloatArray, PoseGraph, planar_data
 from ..solvers.config import check_int
 from ..solvers.hybrid import _admission as adm
 from ..solvers.hybrid import _slices
-from ..solvers.hybrid._sweep import group_work, loop_kernel, run_loop
+from ..solvers.hybrid._sweep import group_cost, loop_kernel, run_loop
 from ..solvers.hybrid.problem import NUM_COUNTS, Count, StepKind, Update
 from ..solvers.hybrid.solver import STEP_KINDS, ensure_compiled
 from ._frame import MAX_BUDGET_S as MAX_BUDGET_S
@@ -69,8 +69,11 @@ from .store import MapStore
 #: Requeued constraints a frame drops at most when they do not fit
 #: (:meth:`OnlineSolver._requeued`).
 MAX_DROPS = 4
-#: A single update runs in slices across frames only from this many domain nodes (shorter
-#: ones take a fraction of a millisecond).
+#: A single update of the first new constraint runs in slices from this many domain nodes
+#: whatever the cost model predicts (its rare long paths miss the cache more than the model's
+#: average); from one slice's nodes (:data:`~..solvers.hybrid._slices.SLICE`) when it is
+#: predicted not to fit before the deadline (the loop would start it whatever its cost).
+#: Spare time slices the long ones only.
 MIN_SLICED = 4 * _slices.SLICE
 
 
@@ -376,9 +379,7 @@ class OnlineSolver:
         limit -= int(counts[Count.DONE])
         done0 = int(counts[Count.DONE])
         forced = True
-        n_sliced = self._sliced_overtaken()
-        if self._sliced is not None and not self._sliced_holds():
-            self._give_up_sliced()
+        n_sliced = self._check_sliced()
         sl = self._sliced
         if limit > 0 and ((sl is not None and sl.new) or self._begin_sliced(deadline)):
             n_sliced += self._advance_sliced(deadline, counts)
@@ -394,7 +395,7 @@ class OnlineSolver:
                          True, pol, stamp, limit - (int(counts[Count.DONE]) - done0),
                          force_first=forced, skip=False)
         st.pop(n_new, behind)
-        n_new += n_sliced + self._sliced_overtaken()
+        n_new += n_sliced + self._check_sliced()
         limit -= int(counts[Count.DONE]) - done0
         local_nodes = self._local_solve(deadline, counts, limit) if cfg.local_size else 0
         if local_nodes:
@@ -411,8 +412,9 @@ class OnlineSolver:
 
     def _begin_sliced(self, deadline: np.uint64) -> bool:
         """Start relaxing the first new constraint in slices (:mod:`~..solvers.hybrid._slices`)
-        when it is a relative constraint of at least :data:`MIN_SLICED` domain nodes (under
-        the Woodbury step) that the loop would relax by a single update: not in a junction
+        when it is a relative constraint (under the Woodbury step) of at least
+        :data:`MIN_SLICED` domain nodes, or of at least one slice's whose single update is
+        predicted not to fit, that the loop would relax by a single update: not in a junction
         group, or in one whose batch is predicted not to fit.  The slices are timed, so a long
         update never ends the frame late by more than one slice, whatever the cost model
         predicts for it (its rare long paths miss the cache more than the model's average);
@@ -424,14 +426,13 @@ class OnlineSolver:
             return False
         c = int(q[0])
         d = int(st.ptr[c + 1] - st.ptr[c])
-        if d < MIN_SLICED:
+        if d < _slices.SLICE or (d < MIN_SLICED and float(read_cycles())
+                                 + adm.predict(st.model, d, False) <= float(deadline)):
             return False
         prob, _, pol = st.views()
         grp = int(st.group_of[c])
         if grp >= 0:  # the loop relaxes its junction group as one batch when it fits
-            nb = int(st.group_ptr[grp + 1] - st.group_ptr[grp])
-            pred = (adm.predict(st.model, group_work(prob, pol, grp), True)
-                    + adm.capacitance_cost(nb))
+            pred = group_cost(prob, pol, grp)
             if pred <= st.span[0] and float(read_cycles()) + pred <= float(deadline):
                 return False
         if self._sliced is not None:  # an older constraint's, from spare time: new ones first
@@ -458,33 +459,31 @@ class OnlineSolver:
         self._sliced = None
         self._sliced_cancelled += 1
 
-    def _sliced_overtaken(self) -> int:
-        """Give up the update in slices when its junction group's batch relaxed its constraint
-        meanwhile (its own step would correct the same residual a second time); a new
-        constraint then leaves the queue, relaxed.  Returns the new constraints so relaxed
-        (0 or 1)."""
+    def _check_sliced(self) -> int:
+        """Whether the update in slices can go on; when not, it is given up.  It cannot when
+        its junction group's batch relaxed its constraint meanwhile (its own step would correct
+        the same residual a second time: a new constraint then leaves the queue, relaxed), when
+        the worker's answer was adopted since it began (its step belongs to the poses before),
+        or when its constraint's domain changed (a new constraint then stays first in the
+        queue, to be relaxed afresh).  Returns the new constraints relaxed by their group's
+        batch (0 or 1)."""
         sl = self._sliced
-        st = self._store
-        if sl is None or sl.group < 0 or int(st.group_stamp[sl.group]) == sl.stamp:
+        if sl is None:
             return 0
-        self._give_up_sliced()
-        if sl.new and st.pending().size and st.pending()[0] == sl.lu[_slices.C]:
-            st.pop(1)
-            return 1
+        st = self._store
+        q = st.pending()
+        head = sl.new and q.size > 0 and q[0] == sl.lu[_slices.C]
+        if sl.group >= 0 and int(st.group_stamp[sl.group]) != sl.stamp:
+            self._give_up_sliced()
+            if head:
+                st.pop(1)
+                return 1
+            return 0
+        prob, _, _ = st.views()
+        if not ((self._link is None or self._link.adopted == sl.adopted)
+                and (head or not sl.new) and bool(_slices.valid(prob, sl.lu))):
+            self._give_up_sliced()
         return 0
-
-    def _sliced_holds(self) -> bool:
-        """Whether the update in slices can go on: False (it is given up; a new constraint
-        stays first in the queue, to be relaxed afresh) when the worker's answer was adopted
-        since it began (its step belongs to the poses before) or its constraint's domain
-        changed."""
-        sl = self._sliced
-        assert sl is not None
-        q = self._store.pending()
-        prob, _, _ = self._store.views()
-        return ((self._link is None or self._link.adopted == sl.adopted)
-                and (not sl.new or (q.size > 0 and q[0] == sl.lu[_slices.C]))
-                and bool(_slices.valid(prob, sl.lu)))
 
     def _advance_sliced(self, deadline: np.uint64, counts: npt.NDArray[np.int64]) -> int:
         """Run the update in slices until ``deadline`` (at least one slice); once done, a new
@@ -573,7 +572,8 @@ class OnlineSolver:
         # with an adopted background optimum, only the constraints it did not cover
         fm, fg = link.refined if (link is not None and cfg.background_tail_only) else (0, 0)
         held = cfg.background_hold and link is not None and link.holds(st)
-        if not (limit > 0 and self.backlog == 0 and st.m_laid - fm > 1) or held:
+        if (not (limit > 0 and self.backlog == 0 and st.m_laid - fm > 1) or held
+                or np.uint64(read_cycles()) >= deadline):  # (past it, nothing would fit)
             return 0
         done0 = int(counts[Count.DONE])
         went_on = -1
@@ -865,8 +865,8 @@ def _ensure_online_compiled() -> float:
         _slices.advance(prob, state, st.scratch(None).wk, lu, lf, 0.0, s.config.damping,
                         NO_DEADLINE)
         # and what decides to begin one (_begin_sliced, _advance_sliced)
-        adm.predict(st.model, group_work(prob, pol, 0), True)
-        adm.capacitance_cost(2)
+        group_cost(prob, pol, 0)
+        adm.predict(st.model, 4, False)
         adm.learn(st.model, 4, 1.0, False)
     except BaseException:
         _COMPILED[0] = False

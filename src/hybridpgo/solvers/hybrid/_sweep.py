@@ -133,6 +133,14 @@ def group_work(prob: Problem, pol: Admission, grp: int) -> int:
 
 
 @kernel
+def group_cost(prob: Problem, pol: Admission, grp: int) -> float:
+    """The predicted cycles of a junction group's batch: its work under the cost model, and
+    the solve of its members' capacitance system."""
+    nb = pol.group_ptr[grp + 1] - pol.group_ptr[grp]
+    return adm.predict(pol.model, group_work(prob, pol, grp), True) + adm.capacitance_cost(nb)
+
+
+@kernel
 def _relax_group(prob: Problem, state: State, sc: Scratch, pol: Admission, grp: int,
                  stamp: int, tau: float, mu: float, counts: np.ndarray) -> None:
     """Relax a junction group's members together as one batch (their χ² recorded first); the
@@ -205,9 +213,7 @@ def _make_loop(with_gps: bool, with_interpolation: bool, givens: bool, admission
                 else:
                     pred = 0.0
                     if grp >= 0:
-                        nb = pol.group_ptr[grp + 1] - pol.group_ptr[grp]
-                        pred = (adm.predict(pol.model, group_work(prob, pol, grp), True)
-                                + adm.capacitance_cost(nb))
+                        pred = group_cost(prob, pol, grp)
                         if pred > pol.span[0]:  # no frame holds the batch: member by member
                             grp = -1
                     if grp < 0:
@@ -215,11 +221,14 @@ def _make_loop(with_gps: bool, with_interpolation: bool, givens: bool, admission
                             pred = adm.predict(pol.model, domain(prob, c)[1], True) + buf_cost
                         else:
                             pred = adm.predict(pol.model, domain(prob, c)[1], False)
-                    late = float(cycle_counter()) + pred > float(deadline)
+                    now = float(cycle_counter())
+                    late = now + pred > float(deadline)
                     if late and not (force_first and started == 0):
-                        counts[Count.SKIPPED] += 1
-                        if skip:
-                            continue
+                        if skip and now < float(deadline):
+                            counts[Count.SKIPPED] += 1
+                            continue  # a shorter one may still fit
+                        # (with skip: past the deadline none fits, the rest are skipped too)
+                        counts[Count.SKIPPED] += n_order - idx if skip else 1
                         c = -1
                         stop_at = idx
                     elif late and grp >= 0:
@@ -332,7 +341,8 @@ def run_loop(kern: Any, prob: Problem, state: State, sc: Scratch, order: np.ndar
     signature only (a writable and a read-only ``order``, an IntEnum step kind or a NumPy
     integer would each compile the whole loop again).  Returns how many leading entries of
     ``order`` were processed (all of them unless the deadline or ``max_updates`` stopped the
-    loop, or an update did not fit and ``skip`` is False)."""
+    loop, or an update did not fit and ``skip`` is False, or with ``skip`` the deadline
+    passed)."""
     order = np.ascontiguousarray(order, dtype=np.int32).view()
     order.flags.writeable = False
     return int(kern(prob, state, sc, order, float(tau), float(mu), int(step_kind),
