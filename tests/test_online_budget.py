@@ -162,25 +162,28 @@ def _city_stream():  # type: ignore[no-untyped-def]
 
 def test_a_forced_junction_group_that_does_not_fit_goes_member_by_member() -> None:
     """The first new constraint of a frame is started whatever its cost, but when its junction
-    group's batch does not fit, it is relaxed alone (a single update); each further member
-    comes first in a frame of its own, and none is dropped.  With time, the group is one
-    batch (its members share the batch's cycle count)."""
+    group's batch does not fit, it is relaxed alone (a single update, in slices over several
+    frames when its path is long); each further member comes first likewise, and none is
+    dropped.  With time, the group is one batch (its members share the batch's cycle
+    count)."""
     st = _city_stream()
     runs = {}
     for spent in (True, False):
         s, members = _until_group(st)
         relaxed = []
-        for _ in range(members.size):
+        while s.backlog and len(relaxed) < 1000:
             if spent:
                 _spend_frame(s)
             r = s.update(5e-3 if spent else None)
             relaxed.append(int(np.count_nonzero(s.store.cycles[members])))
             if not spent:
                 break
-            assert r.new == 1
+            assert r.new == relaxed[-1] - (relaxed[-2] if len(relaxed) > 1 else 0) <= 1
         runs[spent] = (members, relaxed, s.store.cycles[members].copy(), s.backlog)
     members, relaxed, cycles, backlog = runs[True]
-    assert relaxed == list(range(1, members.size + 1)) and backlog == 0
+    # one member at a time, in as many frames as its update takes
+    assert sorted(set(relaxed)) == list(range(relaxed[0], members.size + 1))
+    assert relaxed[0] <= 1 and backlog == 0
     assert np.unique(cycles).size == members.size  # single updates: each its own count
     members, relaxed, cycles, backlog = runs[False]
     assert relaxed == [members.size] and backlog == 0
