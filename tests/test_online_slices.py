@@ -7,6 +7,8 @@ one slice per call) or absent, and the cost model is set so that a long update n
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -208,7 +210,7 @@ def test_an_update_in_slices_overtaken_by_its_groups_batch_is_given_up() -> None
     assert sl is not None and sl.new
     st = s.store
     # as if the constraint were in group 0 and that group's batch ran in a later frame
-    s._sliced = sl._replace(group=0, stamp=int(st.group_stamp[0]))
+    s._sliced = dataclasses.replace(sl, group=0, stamp=int(st.group_stamp[0]))
     st.group_stamp[0] += 1
     s._input_cycles = 1 << 62
     rep = s.update(5e-3)

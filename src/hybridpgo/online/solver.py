@@ -44,7 +44,7 @@ import gc
 import os
 import time
 import weakref
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -77,7 +77,8 @@ MAX_DROPS = 4
 MIN_SLICED = 4 * _slices.SLICE
 
 
-class _Sliced(NamedTuple):
+@dataclasses.dataclass(slots=True)
+class _Sliced:
     """An update in slices under way (:mod:`~..solvers.hybrid._slices`)."""
 
     lu: npt.NDArray[np.int64]
@@ -92,8 +93,8 @@ class _Sliced(NamedTuple):
     """Its junction group (-1: none) and the group's stamp when it began: a changed stamp
     means its group's batch relaxed it meanwhile."""
     stamp: int
-    spent: npt.NDArray[np.uint64]
-    """Cycles of its slices so far (one entry): the update's cycles once done."""
+    spent: int = 0
+    """Cycles of its slices so far: the update's cycles once done."""
 
 
 class OnlineSolver:
@@ -455,8 +456,7 @@ class OnlineSolver:
         grp = int(st.group_of[c])
         self._sliced = _Sliced(lu, lf, wk, -1 if self._link is None else self._link.adopted,
                                new, self.config.tau_new if new else self.config.tau_old, grp,
-                               int(st.group_stamp[grp]) if grp >= 0 else -1,
-                               np.zeros(1, np.uint64))
+                               int(st.group_stamp[grp]) if grp >= 0 else -1)
 
     def _give_up_sliced(self) -> None:
         self._sliced = None
@@ -499,13 +499,13 @@ class OnlineSolver:
         whole = lu[_slices.PHASE] == _slices.SETUP
         t0 = read_cycles()
         done = _slices.advance(prob, state, wk, lu, lf, sl.tau, self.config.damping, deadline)
-        sl.spent[0] += np.uint64(read_cycles() - t0)
+        sl.spent += int(read_cycles()) - int(t0)
         if not done:
             return 0
         c = int(lu[_slices.C])
         if whole:  # done in one call: the cost of a single update, for the cost model
-            adm.learn(st.model, int(lu[_slices.D]), float(sl.spent[0]), False)
-        st.cycles[c] = sl.spent[0]  # its update's cycles, as the loop records a single's
+            adm.learn(st.model, int(lu[_slices.D]), float(sl.spent), False)
+        st.cycles[c] = sl.spent  # its update's cycles, as the loop records a single's
         pol.chi2[c] = float(np.dot(wk.r, wk.r))  # its χ² before the update, as a single's
         status = int(lu[_slices.STATUS])
         if status == Update.CAPPED:
