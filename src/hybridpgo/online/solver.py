@@ -59,6 +59,7 @@ from ..solvers.hybrid import _slices
 from ..solvers.hybrid._sweep import group_cost, loop_kernel, run_loop
 from ..solvers.hybrid.problem import NUM_COUNTS, Count, StepKind, Update
 from ..solvers.hybrid.solver import STEP_KINDS, ensure_compiled
+from . import _heap
 from ._frame import MAX_BUDGET_S as MAX_BUDGET_S
 from ._frame import NO_DEADLINE, RESERVE_S, FrameReport, charged, check_budget
 from ._link import WorkerLink
@@ -108,6 +109,8 @@ class OnlineSolver:
     def __init__(self, config: OnlineConfig | None = None) -> None:
         self.config = cfg = config or OnlineConfig()
         self.compile_seconds = ensure_compiled() + _ensure_online_compiled()
+        if cfg.heap_reserve_mb:
+            _heap.keep_resident(cfg.heap_reserve_mb)
         self._index: dict[int, int] = {}
         self.frame = 0
         """Number of :meth:`update` calls so far."""
@@ -378,7 +381,8 @@ class OnlineSolver:
         counts = np.zeros(NUM_COUNTS, np.int64)
         self._stamp += 1
         stamp = self._stamp
-        n_re = self._requeued(deadline, counts, limit, stamp, first) if st.requeue.size else 0
+        n_re = (self._requeued(self._keep_for_new(deadline), counts, limit, stamp, first)
+                if st.requeue.size else 0)
         limit -= int(counts[Count.DONE])
         done0 = int(counts[Count.DONE])
         forced = True
@@ -412,6 +416,20 @@ class OnlineSolver:
         old = n_re + self._spare_time(deadline, counts, limit, stamp)
         return FrameReport(n_new, self.backlog, old, local_nodes, int(counts[Count.CAPPED]),
                            int(counts[Count.REJECTED]), int(counts[Count.SKIPPED]), elapsed)
+
+    def _keep_for_new(self, deadline: np.uint64) -> np.uint64:
+        """The deadline of the requeued constraints: ``deadline`` less the predicted cost of
+        the first new constraint's least work (its single update, or one slice of a longer
+        one), which the frame does whatever its cost; without it, requeued updates that fill
+        the budget leave that work to end the frame late."""
+        st = self._store
+        q = st.pending()
+        if deadline == NO_DEADLINE or not q.size:
+            return deadline
+        c = int(q[0])
+        d = min(int(st.ptr[c + 1] - st.ptr[c]), _slices.SLICE)
+        keep = int(adm.predict(st.model, d, c >= st.cap_m))
+        return np.uint64(max(int(deadline) - keep, 0))
 
     def _begin_sliced(self, deadline: np.uint64) -> bool:
         """Start relaxing the first new constraint in slices (:mod:`~..solvers.hybrid._slices`)
@@ -851,7 +869,8 @@ def _ensure_online_compiled() -> float:
     _COMPILED[0] = True
     t0 = time.perf_counter()
     try:
-        s = OnlineSolver(OnlineConfig(local_size=2, reserve_poses=8))
+        # (the caller's config decides on the process's heap: heap_reserve_mb)
+        s = OnlineSolver(OnlineConfig(local_size=2, reserve_poses=8, heap_reserve_mb=0))
         s.add_pose(0)
         step = (np.eye(3), np.array([1.0, 0.0, 0.0]))
         for i in range(1, 4):

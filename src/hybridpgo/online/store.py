@@ -470,6 +470,9 @@ class MapStore:
         for lo, hi in ((int(self.ptr[m0]), int(self.ptr[m1])),
                        (int(self.ptr[cm + g0]), int(self.ptr[cm + g1]))):
             np.add.at(self.path_count, self.path_node[lo:hi], 1)
+            # no contributions yet; written now, the pool's new pages fault here, before the
+            # frame's admission decisions, not inside the first update (0.5 MB at 1 742 nodes)
+            self.contrib[lo:hi] = 0.0
         if lengths.size:
             self.dmax = max(self.dmax, int(lengths.max()))
         self.m_laid, self.g_laid = m1, g1

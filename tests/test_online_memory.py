@@ -1,0 +1,102 @@
+"""Page faults out of the online mode's updates: a new path's pool pages are written when it is
+laid, and the heap the compiled kernels allocate from stays resident (glibc); the requeued
+constraints leave the frame room for its first new constraint.
+
+Faults are counted with ``getrusage(RUSAGE_THREAD)`` (Linux); no test reads the clock.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import platform
+import resource
+import sys
+
+import numpy as np
+import pytest
+
+from hybridpgo.online import OnlineConfig, OnlineSolver, _heap
+from hybridpgo.online._frame import NO_DEADLINE
+from hybridpgo.solvers.hybrid import _admission as adm
+from hybridpgo.solvers.hybrid import _slices
+
+LINUX = sys.platform.startswith("linux") and hasattr(resource, "RUSAGE_THREAD")
+GLIBC = LINUX and platform.libc_ver()[0] == "glibc"
+
+
+def _faults() -> int:
+    return int(resource.getrusage(resource.RUSAGE_THREAD).ru_minflt)
+
+
+def _chain_with_loop(n: int) -> OnlineSolver:
+    """``n`` poses of odometry along a line, then a loop closure from the last to the first
+    in a frame of its own: its path is the whole chain.  Everything laid, nothing relaxed."""
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    s.add_pose(0)
+    step = (np.eye(3), np.array([1.0, 0.0, 0.0]))
+    for i in range(1, n):
+        s.add_pose(i, i - 1, step, np.eye(6))
+    s._integrate()
+    s.add_constraint(n - 1, 0, (np.eye(3), np.array([n - 1.0, 0.0, 0.0])), np.eye(6))
+    s._integrate()
+    return s
+
+
+@pytest.mark.skipif(not LINUX, reason="page faults counted per thread on Linux only")
+def test_a_new_path_is_written_when_laid_not_in_its_first_update() -> None:
+    s = _chain_with_loop(3000)
+    st = s.store
+    c = st.m_laid - 1
+    lo, hi = int(st.ptr[c]), int(st.ptr[c + 1])
+    assert hi - lo >= 2999  # the loop's path: the whole chain
+    assert not st.contrib[lo:hi].any()  # no contribution before its first update
+    f0 = _faults()
+    st.contrib[lo:hi] = 0.0  # what its first update does to these pages (one per 14 nodes)
+    assert _faults() - f0 < 8  # about 210 without: every page was already written
+
+
+@pytest.mark.skipif(not GLIBC, reason="the heap's settings are glibc's")
+def test_a_kept_heap_serves_large_blocks_without_page_faults() -> None:
+    assert _heap.keep_resident(16)
+    assert not _heap.keep_resident(0)
+    libc = ctypes.CDLL("libc.so.6")
+    libc.malloc.argtypes, libc.malloc.restype = [ctypes.c_size_t], ctypes.c_void_p
+    libc.free.argtypes, libc.free.restype = [ctypes.c_void_p], None
+    size = 8 << 20
+    f0 = _faults()
+    for _ in range(3):  # a kernel's temporaries of 8 MiB, three frames in a row
+        p = libc.malloc(size)
+        assert p
+        ctypes.memset(p, 1, size)
+        libc.free(p)
+    assert _faults() - f0 < 32  # 4 096 here with malloc's defaults (fresh maps)
+
+
+def test_requeued_updates_leave_room_for_the_first_new_constraint() -> None:
+    """The requeued constraints' deadline is the frame's less the predicted cost of the first
+    new constraint's least work: its single update, or one slice of a longer one."""
+    s = _chain_with_loop(300)
+    st = s.store
+    deadline = np.uint64(10**15)
+    q = st.pending()
+    assert q.size
+    first = int(q[0])  # the first odometry edge: one node
+    d = int(st.ptr[first + 1] - st.ptr[first])
+    assert d == 1
+    assert s._keep_for_new(deadline) == deadline - np.uint64(int(adm.predict(st.model, 1,
+                                                                               False)))
+    st.pop(int(q.size) - 1)  # only the loop closure is left, 299 nodes: one slice's worth
+    c = int(st.pending()[0])
+    assert int(st.ptr[c + 1] - st.ptr[c]) == 299
+    keep = int(adm.predict(st.model, _slices.SLICE, False))
+    assert keep < int(adm.predict(st.model, 299, False))
+    assert s._keep_for_new(deadline) == deadline - np.uint64(keep)
+    assert s._keep_for_new(NO_DEADLINE) == NO_DEADLINE
+    st.pop(1)
+    assert s._keep_for_new(deadline) == deadline  # nothing new: all of it
+
+
+@pytest.mark.parametrize("bad", [-1, True, 1.5, _heap.MAX_RESERVE_MB + 1, 10**12])
+def test_a_heap_reserve_out_of_range_is_refused(bad: object) -> None:
+    with pytest.raises(ValueError, match="heap_reserve_mb"):
+        OnlineConfig(heap_reserve_mb=bad)  # type: ignore[arg-type]
