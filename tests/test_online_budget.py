@@ -250,3 +250,36 @@ def test_nothing_is_examined_past_the_deadline() -> None:
     assert np.array_equal(store.rot, rot1)
     s._spare_time(NO_DEADLINE, counts, 1 << 62, 100)  # with time, the window moves on
     assert s._cursor != cursor0
+
+
+def test_a_long_group_member_is_sliced_unless_its_batch_fits_with_a_slice_to_spare() -> None:
+    """The frame's first new constraint, a long member of a junction group, is left to the
+    loop's batch only when the batch fits with one slice's predicted cost to spare (the loop
+    decides a moment later; a batch that no longer fits then has the member relaxed alone by
+    one single update, unsliced).  The cost model makes a slice cost seconds, a batch
+    nothing, so the decision does not depend on the time the test takes."""
+    from hybridpgo._numba import read_cycles
+    from hybridpgo.online._frame import NO_DEADLINE
+    from hybridpgo.solvers.hybrid import _slices
+    from hybridpgo.solvers.hybrid._sweep import group_cost
+
+    st = _city_stream()
+    decided = []
+    for spare in (0.5, 2.0):
+        s, members = _until_group(st)
+        store = s.store
+        lengths = store.ptr[members + 1] - store.ptr[members]
+        long = int(members[int(np.argmax(lengths))])
+        assert int(lengths.max()) >= _slices.SLICE and long < store.cap_m
+        store.set_queue(np.concatenate([[long], store.pending()[store.pending() != long]]))
+        store.model[adm.MODEL_NODE] = 1e8  # a slice: about 10^10 cycles
+        store.model[adm.MODEL_BATCH] = 1.0
+        store.span[0] = np.inf
+        prob, _, pol = store.views()
+        slice_cost = adm.predict(store.model, _slices.SLICE, False)
+        batch = group_cost(prob, pol, int(store.group_of[long]))
+        assert batch < 1e-3 * slice_cost
+        deadline = np.uint64(int(read_cycles()) + int(batch + spare * slice_cost))
+        decided.append(s._begin_sliced(deadline))
+        assert s._begin_sliced(NO_DEADLINE) is False
+    assert decided == [True, False]

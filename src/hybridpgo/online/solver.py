@@ -453,7 +453,9 @@ class OnlineSolver:
         prob, _, pol = st.views()
         grp = int(st.group_of[c])
         if grp >= 0:  # the loop relaxes its junction group as one batch when it fits
-            pred = group_cost(prob, pol, grp)
+            # (with one slice to spare: the loop decides a moment later, and when the batch
+            # no longer fits then, it relaxes this member alone by one single update)
+            pred = group_cost(prob, pol, grp) + adm.predict(st.model, _slices.SLICE, False)
             if pred <= st.span[0] and float(read_cycles()) + pred <= float(deadline):
                 return False
         if self._sliced is not None:  # an older constraint's, from spare time: new ones first
