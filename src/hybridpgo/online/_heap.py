@@ -32,8 +32,9 @@ MMAP_THRESHOLD = 32 << 20
 #: The reserve is written in blocks of this size (each below ``MMAP_THRESHOLD``).
 _BLOCK = 4 << 20
 
-#: The largest reserve a configuration may ask for (MiB; a saved state's too).
-MAX_RESERVE_MB = 1024
+#: The largest reserve a configuration may ask for (MiB; a saved state's too).  Twice it, and
+#: the threshold, stay below 2^31 bytes: ``mallopt`` takes an ``int``.
+MAX_RESERVE_MB = 512
 #: Bytes of heap kept resident so far in this process (0: none; the settings not made).
 _kept = [0]
 
@@ -41,8 +42,9 @@ _kept = [0]
 def keep_resident(reserve_mb: int) -> bool:
     """Keep ``reserve_mb`` MiB of the calling thread's heap resident and ``malloc``'s blocks
     below :data:`MMAP_THRESHOLD` on the heap (module docstring).  Done once per process; a
-    later call with a larger reserve writes the difference.  False where the C library is not
-    glibc or does not take the settings (nothing is then changed) or ``reserve_mb`` is 0."""
+    later call with a larger reserve makes the settings and writes the heap again for it.
+    False where the C library is not glibc or does not take the settings (nothing is then
+    changed) or ``reserve_mb`` is 0."""
     want = int(reserve_mb) << 20
     if want == 0:
         return False
