@@ -19,6 +19,7 @@ from tolerances import INCREMENTAL_VS_BATCH, SPARSE_VS_DENSE_GN
 
 from hybridpgo.graph import PoseGraph
 from hybridpgo.online.incremental import IncrementalConfig, IncrementalExact
+from hybridpgo.online.worker import ROUNDING_WILDFIRE
 from hybridpgo.solvers.config import GaussNewtonConfig
 from hybridpgo.solvers.gauss_newton import gn_step, solve_exact
 
@@ -119,14 +120,17 @@ def _check_gn_step(inc: IncrementalExact) -> None:
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(2, 40),
        loop_p=st.sampled_from([0.0, 0.3, 0.8]), gps_every=st.sampled_from([0, 3, 7]),
        beta=st.sampled_from([0.0, 1e-3, 0.05]), reorder=st.booleans(),
-       capacity=st.sampled_from([4, 64]))
+       capacity=st.sampled_from([4, 64]), wildfire=st.sampled_from([0.0, ROUNDING_WILDFIRE]))
 def test_every_cycle_solves_the_whole_map_exactly(seed: int, n: int, loop_p: float,
                                                   gps_every: int, beta: float, reorder: bool,
-                                                  capacity: int) -> None:
+                                                  capacity: int, wildfire: float) -> None:
     """After each completed cycle, x is the batch Gauss-Newton step at the linearization point,
-    whatever was re-eliminated (partial refactorization, orphans, reordering, pool growth)."""
+    whatever was re-eliminated (partial refactorization, orphans, reordering, pool growth),
+    also when the back substitution skips what moved by rounding only (the worker's
+    threshold)."""
     s = _stream(seed, n, loop_p, gps_every)
-    cfg = IncrementalConfig(relinearize_rho=beta, relinearize_phi=beta, reorder=reorder)
+    cfg = IncrementalConfig(relinearize_rho=beta, relinearize_phi=beta, reorder=reorder,
+                            wildfire=wildfire)
     inc = IncrementalExact(cfg, capacity=capacity)
     rng = np.random.default_rng(seed + 1)
     for k in range(s.frames):
@@ -290,6 +294,32 @@ def test_fill_beyond_max_fill_is_an_error_not_a_huge_allocation(
     assert np.all(np.isfinite(roomy.estimate()[1]))
 
 
+@pytest.mark.parametrize("seed", [0, 3])
+def test_a_pose_with_its_odometry_recomputes_only_the_columns_it_changes(seed: int) -> None:
+    """A frame that brings only a pose and its odometry changes no other pose's step: with the
+    worker's threshold (rounding) its cycle recomputes a few columns, where the exact back
+    substitution recomputes every column below the re-eliminated ones; the steps of the two
+    solvers stay the batch Gauss-Newton step's."""
+    s = _stream(seed, 160, 0.3, 0)
+    for k in range(80, 160):  # loop closures in the first half only
+        s.loops[k] = []
+    per_frame = {}
+    for wildfire in (0.0, ROUNDING_WILDFIRE):
+        inc = IncrementalExact(IncrementalConfig(relinearize_rho=0.1, relinearize_phi=0.1,
+                                                 wildfire=wildfire))
+        counts = []
+        for k in range(s.frames):
+            _feed(inc, s, k)
+            before = inc.stats["recomputed"]
+            inc.solve(polish=False)
+            if k >= 100:
+                counts.append(inc.stats["recomputed"] - before)
+        _check_gn_step(inc)
+        per_frame[wildfire] = np.array(counts)
+    assert per_frame[ROUNDING_WILDFIRE].max() <= 4
+    assert per_frame[0.0].min() > 5 * per_frame[ROUNDING_WILDFIRE].max()
+
+
 def _rot_z(theta: float) -> np.ndarray:
     c, s = np.cos(theta), np.sin(theta)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -300,10 +330,10 @@ def test_the_workers_options_converge_in_few_cycles_after_a_long_loop(
         seed: int, n: int, laps: int, noise: float) -> None:
     """Laps of a planar circle with noisy odometry, solved; then the last lap is tied to the
     first by 10 loop closures at once.  With the worker's options (the whole solution in every
-    back substitution) the solve that integrates them converges in at most 30 cycles (11 and
-    19 here) and ends at the batch optimum.  A back substitution stopped below 1e-4 leaves the
-    steps of the columns it skips stale: 62 and 61 cycles for these two (and 512 for one
-    request of a city streamed back to back)."""
+    back substitution, but for what moved by rounding only) the solve that integrates them
+    converges in at most 30 cycles (11 and 19 here) and ends at the batch optimum.  A back
+    substitution stopped below 1e-4 leaves the steps of the columns it skips stale: 62 and 109
+    cycles for these two (and 512 for one request of a city streamed back to back)."""
     from hybridpgo.online.worker import INCREMENTAL
 
     rng = np.random.default_rng(seed)

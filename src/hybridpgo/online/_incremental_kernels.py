@@ -561,9 +561,11 @@ def back_substitute(stack: np.ndarray, top: np.ndarray, deadline: np.uint64,
 
     A popped column is recomputed when it is in S or one of its rows changed in this cycle
     (``changed[r] == stamp``); it is marked changed when its x moved by more than
-    ``threshold`` (inf-norm).  Children are pushed when the column is in S or changed, and a
-    child of S is pushed always.  Recomputed columns are appended to ``touched``.  Returns True
-    when the stack is empty, False when stopped at ``deadline`` (call again).
+    ``threshold`` (inf-norm).  A child's rows are its parent and rows of its parent, so a
+    child needs recomputing only when the column or one of its rows changed: its children
+    are pushed then (always with ``threshold`` 0), and a child of S is pushed always.
+    Recomputed columns are appended to ``touched``.  Returns True when the stack is empty,
+    False when stopped at ``deadline`` (call again).
     """
     xn = np.empty(6)
     while top[0] > 0:
@@ -571,13 +573,12 @@ def back_substitute(stack: np.ndarray, top: np.ndarray, deadline: np.uint64,
         j = stack[top[0]]
         s0 = col_start[j]
         n = col_len[j]
-        need = in_s[j] == stamp
-        if not need:
-            for t in range(s0, s0 + n):
-                if changed[row_var[t]] == stamp:
-                    need = True
-                    break
-        if not need:
+        rows_changed = False
+        for t in range(s0, s0 + n):
+            if changed[row_var[t]] == stamp:
+                rows_changed = True
+                break
+        if not (rows_changed or in_s[j] == stamp):
             continue
         for a in range(6):
             xn[a] = y[j, a]
@@ -607,9 +608,10 @@ def back_substitute(stack: np.ndarray, top: np.ndarray, deadline: np.uint64,
         # exact (threshold 0): every child of a recomputed column is visited
         touched[n_touched[0]] = j
         n_touched[0] += 1
+        push = moved or rows_changed or threshold <= 0.0
         c = ch_head[j]
         while c >= 0:
-            if moved or threshold <= 0.0 or in_s[c] == stamp:
+            if push or in_s[c] == stamp:
                 if top[0] >= stack.shape[0]:
                     return False  # cannot happen: the stack holds every variable
                 stack[top[0]] = c

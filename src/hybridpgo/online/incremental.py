@@ -62,10 +62,13 @@ class IncrementalConfig:
     """... or the rotation part exceeds this (radians).  Both 0: every step relinearizes
     (exact Gauss-Newton)."""
     wildfire: float = 0.0
-    """The back substitution stops below a column whose solution moved by at most this
-    (inf-norm); 0: the whole solution is exact.  A threshold leaves the steps of the columns
-    it skips stale: after a long loop closure the cycles that follow may relinearize a pose
-    or two each and take hundreds of cycles to converge."""
+    """The back substitution stops below a column when neither its solution nor the solution
+    of any of its rows moved by more than this (inf-norm); 0: the whole solution is
+    recomputed.  At rounding level (the worker's 1e-12) the solution stays exact and a frame
+    that brings only a pose and its odometry recomputes a few columns instead of the map.  A
+    larger threshold leaves the steps of the columns it skips stale: after a long loop
+    closure the cycles that follow may relinearize a pose or two each and take hundreds of
+    cycles to converge."""
     gauge: Literal["auto", "first", "none"] = "auto"
     """``"auto"``: the first pose is held until ``gps_gauge`` GPS readings exist; ``"first"``:
     always; ``"none"``: never (GPS must fix the gauge)."""
