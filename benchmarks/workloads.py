@@ -653,3 +653,7 @@ WORKLOADS["certificate"] = _certificate
 from .covariance import run as _covariance_run  # noqa: E402
 
 WORKLOADS["covariance"] = _covariance_run
+
+from .worker import run as _worker_run  # noqa: E402  (the worker's incremental requests)
+
+WORKLOADS["worker"] = _worker_run

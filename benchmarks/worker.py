@@ -1,0 +1,129 @@
+"""The online worker's incremental solver, request by request: back substitution of the whole
+solution against the one that skips what moved by rounding only (the worker's option).
+
+Run: ``PYTHONPATH=src python -m benchmarks --only worker --run <name>`` (about 4 minutes).
+
+Each graph is streamed as the online solver's worker receives it: frame by frame (a pose and
+its odometry, then the frame's loop closures), one :meth:`IncrementalExact.solve` without the
+polish per frame (a request that brings data).  Two solvers take the same frames in the same
+process, one with ``wildfire`` 0 (every column below the re-eliminated ones recomputed in every
+cycle) and one with :data:`hybridpgo.online.worker.ROUNDING_WILDFIRE`, in turn, so that the
+ratio of their times is measured under the same load.
+
+* ``worker.<graph>.<mode>.ms_odometry_mean``: mean time of a request whose frame brings only a
+  pose and its odometry; ``ms_loop_median``: median of a request whose frame closes a loop;
+  ``s_total``: all requests; ``columns_odometry_median``: columns recomputed by an
+  odometry-only request.
+* ``worker.<graph>.rounding_vs_whole``: total time ratio (rounding / whole).
+* ``worker.<graph>.energy_rel_diff_max`` and ``position_diff_max``: the largest relative
+  energy difference and position difference (m) between the two estimates at every 500th
+  frame and the last.
+
+Graphs: the valencia city preset (all 15 031 frames) and paris2's first 12 000 frames
+(:func:`hybridpgo.generate.generate_city`, seed 0).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from hybridpgo.online.incremental import IncrementalConfig, IncrementalExact
+from hybridpgo.online.replay import _inverse_edge, make_stream
+from hybridpgo.online.worker import INCREMENTAL, ROUNDING_WILDFIRE
+
+from .context import Context, Result
+from .metrics import Metric, info, markdown_table, quality, timing
+
+#: Frames streamed per graph (None: all).
+GRAPHS: tuple[tuple[str, int | None], ...] = (("valencia", None), ("paris2", 12_000))
+#: Frames between two comparisons of the estimates.
+EVERY = 500
+MODES = (("whole", 0.0), ("rounding", ROUNDING_WILDFIRE))
+
+
+def _feed(inc: IncrementalExact, stream: Any, rank: np.ndarray, k: int) -> int:
+    """Frame k's pose, odometry and loop closures; returns the frame's constraint count."""
+    g = stream.graph
+    if k == 0:
+        inc.add_poses(np.eye(3)[None], np.zeros((1, 3)))
+    else:
+        c = int(stream.odometry[k])
+        a, b = (int(v) for v in g.edge_nodes[c])
+        zr, zt = g.edge_rotations[c], g.edge_translations[c]
+        if b != int(stream.order[k]):
+            zr, zt, _ = _inverse_edge(zr, zt, g.edge_information[c])
+            a = b
+        inc.add_poses(zr[None], zt[None], [rank[a]])
+    es = stream.edges[stream.edge_ptr[k]:stream.edge_ptr[k + 1]]
+    if es.size:
+        ab = rank[g.edge_nodes[es]]
+        inc.add_edges(ab[:, 0], ab[:, 1], g.edge_rotations[es], g.edge_translations[es],
+                      g.edge_information[es])
+    return int(es.size)
+
+
+def _one(name: str, frames: int | None) -> tuple[list[Metric], list[Any]]:
+    from hybridpgo.generate import generate_city
+
+    stream = make_stream(generate_city(name, seed=0).graph)
+    g = stream.graph
+    rank = np.empty(g.num_nodes, np.int64)
+    rank[stream.order] = np.arange(g.num_nodes)
+    nf = stream.num_frames if frames is None else min(frames, stream.num_frames)
+    incs = [IncrementalExact(IncrementalConfig(**{**INCREMENTAL, "wildfire": w}))  # type: ignore[arg-type]
+            for _, w in MODES]
+    sec = np.zeros((len(MODES), nf))
+    cols = np.zeros((len(MODES), nf), np.int64)
+    loop = np.zeros(nf, bool)
+    de = dp = 0.0
+    for k in range(nf):
+        for i, inc in enumerate(incs):
+            loop[k] = _feed(inc, stream, rank, k) > 1
+            before = inc.stats["recomputed"]
+            t0 = time.perf_counter()
+            inc.solve(polish=False)
+            sec[i, k] = time.perf_counter() - t0
+            cols[i, k] = inc.stats["recomputed"] - before
+        if (k + 1) % EVERY == 0 or k == nf - 1:
+            e0, e1 = incs[0].energy(), incs[1].energy()
+            de = max(de, abs(e1 - e0) / max(e0, 1e-300))
+            dp = max(dp, float(np.abs(incs[0].estimate()[1] - incs[1].estimate()[1]).max()))
+    odo = ~loop
+    odo[0] = False  # the first frame: a lone pose
+    metrics: list[Metric] = []
+    rows = []
+    for i, (mode, _) in enumerate(MODES):
+        key = f"worker.{name}.{mode}"
+        vals = (float(sec[i, odo].mean() * 1e3), float(np.median(sec[i, loop]) * 1e3),
+                float(sec[i].sum()), float(np.median(cols[i, odo])))
+        metrics += [timing(f"{key}.ms_odometry_mean", vals[0], "ms"),
+                    timing(f"{key}.ms_loop_median", vals[1], "ms"),
+                    timing(f"{key}.s_total", vals[2]),
+                    info(f"{key}.columns_odometry_median", vals[3])]
+        rows.append([name, nf, int(loop.sum()), mode, *vals])
+    ratio = float(sec[1].sum() / sec[0].sum())
+    metrics += [info(f"worker.{name}.rounding_vs_whole", ratio),
+                quality(f"worker.{name}.energy_rel_diff_max", de),
+                quality(f"worker.{name}.position_diff_max", dp, "m")]
+    rows[1] += [ratio, de, dp]
+    rows[0] += ["", "", ""]
+    return metrics, rows
+
+
+def run(ctx: Context) -> Result:
+    metrics: list[Metric] = []
+    rows: list[Any] = []
+    for name, frames in GRAPHS:
+        m, r = _one(name, frames)
+        metrics += m
+        rows += r
+    table = markdown_table(
+        "Worker requests (one incremental solve per frame, no polish): back substitution of "
+        "the whole solution vs skipping what moved by rounding only (ROUNDING_WILDFIRE)",
+        ["graph", "frames", "loop frames", "back substitution", "odometry-only request mean ms",
+         "loop request median ms", "total s", "columns per odometry-only request (median)",
+         "total rounding / whole", "max rel. energy diff", "max position diff (m)"], rows)
+    return metrics, [table]
