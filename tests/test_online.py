@@ -1317,6 +1317,7 @@ def test_background_worker_measures_lm_after_a_slow_incremental_request(
     assert meta["incremental"] and np.isfinite(mp.inc_seconds)
     _, meta = mp.solve(50)  # the measurement: LM
     assert not meta["incremental"] and np.isfinite(mp.lm_seconds)
+    assert mp._lm_timed == (mp.lm_seconds, mp.n)  # the map it was measured on
     assert abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
     if lm_faster:
         assert mp.inc is None and "LM is faster" in meta["fallback"]
@@ -1332,6 +1333,26 @@ def test_background_worker_measures_lm_after_a_slow_incremental_request(
         assert mp.inc is not None and not mp.with_lm and not np.isfinite(mp.inc_seconds)
         _, meta = mp.solve(50)
         assert meta["incremental"] and abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
+
+
+def test_background_worker_measures_lm_again_only_when_it_could_be_preferred() -> None:
+    """Before LM was measured a request is slow from ``slow_s``; after, only from the time a
+    request must take for LM to be preferred (prefer_lm), LM's measured time scaled by the
+    map's growth since, and never below ``slow_s``."""
+    from hybridpgo.online import worker
+
+    mp = worker._Map(("none", None))
+    assert mp._slow(5000) == mp.slow_s == worker.SLOW_INCREMENTAL_S
+    mp._lm_timed = (1.2, 20_000)  # the last measuring LM solve: 1.2 s on 20 000 poses
+    need = 1.2 / worker.LM_PREFERRED_SHARE
+    assert mp._slow(20_000) == pytest.approx(need)
+    assert mp._slow(30_000) == pytest.approx(1.5 * need)
+    # a request that long makes LM the preferred choice at that LM time, a shorter one not
+    assert worker.prefer_lm(1.01 * need, 1.2) and not worker.prefer_lm(0.99 * need, 1.2)
+    mp._lm_timed = (0.01, 20_000)
+    assert mp._slow(20_000) == worker.SLOW_INCREMENTAL_S
+    mp._lm_timed = (np.nan, 20_000)  # not measured
+    assert mp._slow(20_000) == worker.SLOW_INCREMENTAL_S
 
 
 @pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines

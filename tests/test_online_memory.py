@@ -15,8 +15,9 @@ import sys
 import numpy as np
 import pytest
 
+from hybridpgo._numba import cycles_per_second
 from hybridpgo.online import OnlineConfig, OnlineSolver, _heap
-from hybridpgo.online._frame import NO_DEADLINE
+from hybridpgo.online._frame import NO_DEADLINE, READ_LEVEL_S
 from hybridpgo.solvers.hybrid import _admission as adm
 from hybridpgo.solvers.hybrid import _slices
 
@@ -94,6 +95,25 @@ def test_requeued_updates_leave_room_for_the_first_new_constraint() -> None:
     assert s._keep_for_new(NO_DEADLINE) == NO_DEADLINE
     st.pop(1)
     assert s._keep_for_new(deadline) == deadline  # nothing new: all of it
+
+
+def test_a_frame_keeps_the_time_to_read_its_newest_pose() -> None:
+    """The frame's deadline is kept from the reading of its newest pose after it: O(its tree
+    depth), READ_LEVEL_S per level; the deeper the pose, the more is kept."""
+    s = _chain_with_loop(300)
+    st = s.store
+    deadline = np.uint64(10**15)
+    depth = int(st.depth[st.placed])
+    assert depth >= 150  # a chain: the newest pose lies deep in the tree
+    keep = int(depth * READ_LEVEL_S * cycles_per_second())
+    assert keep > 0
+    assert s._keep_for_read(deadline) == deadline - np.uint64(keep)
+    assert s._keep_for_read(NO_DEADLINE) == NO_DEADLINE
+    s.add_pose(300, 299, (np.eye(3), np.array([1.0, 0.0, 0.0])), np.eye(6))
+    s._integrate()
+    assert int(st.depth[st.placed]) == depth + 1  # the new pose is the one read
+    assert s._keep_for_read(deadline) < deadline - np.uint64(keep)
+    assert s._keep_for_read(np.uint64(1)) == 0  # never below the clock's zero
 
 
 @pytest.mark.parametrize("bad", [-1, True, 1.5, _heap.MAX_RESERVE_MB + 1, 10**12])

@@ -61,7 +61,7 @@ from ..solvers.hybrid.problem import NUM_COUNTS, Count, StepKind, Update
 from ..solvers.hybrid.solver import STEP_KINDS, ensure_compiled
 from . import _heap
 from ._frame import MAX_BUDGET_S as MAX_BUDGET_S
-from ._frame import NO_DEADLINE, RESERVE_S, FrameReport, charged, check_budget
+from ._frame import NO_DEADLINE, READ_LEVEL_S, RESERVE_S, FrameReport, charged, check_budget
 from ._link import WorkerLink
 from ._validate import as_pose, check_id, whitening
 from .config import OnlineConfig
@@ -305,8 +305,9 @@ class OnlineSolver:
         ----------
         budget_s : float, optional
             Time budget of the frame (seconds, > 0): the ``add_*`` calls since the last update
-            count against it, so the frame's whole work stays within it.  No update is started
-            whose predicted cost would pass it.  None: no time limit.
+            count against it, and the time to read the newest pose after it (:meth:`pose`,
+            O(its tree depth)) is kept from it, so the frame's whole work stays within it.  No
+            update is started whose predicted cost would pass it.  None: no time limit.
         max_updates : int, optional
             Start at most this many updates (counted like the budget; with ``budget_s=None``
             the frame's work does not depend on timing, so runs are reproducible).
@@ -326,6 +327,7 @@ class OnlineSolver:
             check_int("max_updates", max_updates, 0)
         limit = (1 << 62) if max_updates is None else max_updates
         self._integrate()
+        deadline = self._keep_for_read(deadline)
         if self._link is not None:
             cfg = self.config
             self._link.step(self._store, self.frame, cfg.background_join,
@@ -370,6 +372,15 @@ class OnlineSolver:
         spare = max(check_budget(budget_s) - RESERVE_S, 0.0)
         self._store.span[0] = spare * cycles_per_second()
         return np.uint64(max(c0 + int(spare * cycles_per_second()), 0))
+
+    def _keep_for_read(self, deadline: np.uint64) -> np.uint64:
+        """The deadline less the predicted cost of reading the newest pose after the frame
+        (:meth:`pose`: O(its tree depth), :data:`~._frame.READ_LEVEL_S` per level)."""
+        st = self._store
+        if deadline == NO_DEADLINE or st.placed == 0:
+            return deadline
+        keep = int(st.depth[st.placed]) * READ_LEVEL_S * cycles_per_second()
+        return np.uint64(max(int(deadline) - int(keep), 0))
 
     def _work(self, deadline: np.uint64, limit: int, elapsed: float, first: bool = False
               ) -> FrameReport:

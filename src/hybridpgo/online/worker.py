@@ -431,7 +431,15 @@ SOLVE_CAP_S = 1.0
 #: update cycle in progress.
 POLISH_SLICE_S = 2e-3
 #: An incremental request that takes this long (seconds) has the next request solved by LM
-#: instead, which measures LM's time on the map (:meth:`_Map.solve`).
+#: instead, which measures LM's time on the map (:meth:`_Map.solve`).  Once LM was measured
+#: and found slower, a request is slow only when it took as long as LM would need to be
+#: preferred (:func:`prefer_lm`), LM's time scaled by the map's growth since: each measurement
+#: costs an LM solve and a new incremental solver (a factorization of the whole map).  paris2
+#: streamed back to back with this threshold fixed: from 19 000 poses on every incremental
+#: request (0.3-0.6 s, some 80 frames of data) was slow, and one request in five was a
+#: measuring LM solve (1.1-4.4 s, each slower than the requests) followed by a whole
+#: factorization (0.9 s): 117 of the worker's 180 s in requests over 0.25 s, the answers up
+#: to 670 frames behind the frames.
 SLOW_INCREMENTAL_S = 0.25
 #: The map stays with LM once LM's solve took less than this share of the recent incremental
 #: requests' time (their moving average, :data:`INCREMENTAL_RATE`).  The incremental factor is
@@ -532,6 +540,9 @@ class _Map:
         self.slow_s = SLOW_INCREMENTAL_S
         self.warmup = INCREMENTAL_WARMUP
         self.min_poses = LM_MIN_POSES
+        #: the last measuring LM solve's (or with LM, the last LM solve's) seconds and poses
+        #: (:meth:`_slow`; 0 poses: none yet)
+        self._lm_timed = (np.nan, 0)
         #: requests answered by the current incremental solver
         self._inc_answers = 0
         #: (poses, edges, GPS readings) of the map at the last request solved
@@ -684,7 +695,7 @@ class _Map:
                     self.inc_seconds = (took if not np.isfinite(self.inc_seconds) else
                                         self.inc_seconds + INCREMENTAL_RATE
                                         * (took - self.inc_seconds))
-                    self._measure_lm = took >= self.slow_s
+                    self._measure_lm = took >= self._slow(n)
             except (HybridPGOError, ValueError, ArithmeticError, MemoryError,
                     np.linalg.LinAlgError) as exc:
                 # e.g. an undamped step from a poor estimate: LM (damped) solves this request
@@ -700,6 +711,8 @@ class _Map:
             t_lm = time.perf_counter()
             energy, iterations, status = self._solve_lm(max_iterations)
             self.lm_seconds = time.perf_counter() - t_lm
+            if measure or self.with_lm:  # a warm LM solve of the map as it stands
+                self._lm_timed = (self.lm_seconds, n)
             held = (m, g)
         # screened at every answer that holds everything shipped, converged or not (false
         # closures slow the least-squares solve down: M3500 with 100 of them, streamed, hit
@@ -731,6 +744,20 @@ class _Map:
                                                     or measure or returned)
         return self._answer(held, energy, iterations, status, time.perf_counter() - t0,
                             incremental, self.auto and thorough and held == (m, g))
+
+    def _slow(self, n: int) -> float:
+        """Seconds from which an incremental request on a map of ``n`` poses has the next
+        one measure LM: :attr:`slow_s`, or once LM was measured, the time a request must take
+        for LM to be preferred at LM's last measured time scaled by the map's growth
+        (:data:`SLOW_INCREMENTAL_S`), whichever is longer.  The LM solves of a failed
+        incremental solve or of the gauge switch are not measurements: they start from a
+        poor estimate, or on a small map whose fixed costs would scale into a threshold no
+        request reaches."""
+        seconds, poses = self._lm_timed
+        if not (poses and np.isfinite(seconds)):
+            return self.slow_s
+        lm_now = seconds * n / poses
+        return max(self.slow_s, lm_now / LM_PREFERRED_SHARE)
 
     def _polish(self, interrupted: Callable[[], bool]) -> str:
         """The incremental solve with the polish, in slices of :data:`POLISH_SLICE_S`, until
