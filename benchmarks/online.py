@@ -141,6 +141,17 @@ def _worst(r: ReplayResult, k: int = 3) -> str:
                      for w in notes[:k]) or "-"
 
 
+def _fallback(bgi: dict[str, Any]) -> str:
+    """Why the worker's map left its incremental solver, in a few words ("" when it has not):
+    LM measured faster (the map stays with LM), or the kind of the last failed incremental
+    solve (LM answered that request and a new incremental solver started)."""
+    text = bgi.get("worker_fallback") or ""
+    if not text:
+        return ""
+    return " / LM faster" if text.startswith("LM is faster") else " / reset: " + text.split(
+        ":", 1)[0]
+
+
 def _targets(name: str, runs: dict[str, ReplayResult], optima: dict[int, float]
              ) -> tuple[list[Metric], list[Any]]:
     """The targets of the module docstring for one graph: metrics and a row."""
@@ -260,7 +271,7 @@ def run(ctx: Context) -> Result:
                 hit if hit is not None else "never",
                 (f"{bgi['results_adopted']} ({bgi.get('results_stale', 0)} stale) / "
                  f"{bgi['lag_frames_max']} / {bgi['adopt_ms_max']:.2f}"
-                 + (" / LM" if bgi.get("worker_fallback") else "") if bgi else "-"),
+                 + _fallback(bgi) if bgi else "-"),
             ])
         tm, trow = _targets(name, {r.name: r for r in runs}, optima)
         metrics += tm
@@ -278,8 +289,9 @@ def run(ctx: Context) -> Result:
             ["graph", "poses", "edges", "GPS", "solver", "mean", "p99", "max", "CPU max",
              f"frames > {BUDGET_S * 1e3 + 1:.0f} ms CPU", "worst frames (frame:CPU ms)",
              "worst E/opt", "end E/opt", "extra E/opt 10 / N (N)", "extra frames to 1%",
-             "background: adopted (stale) / lag max (frames) / adopt max (ms) (/ LM: the "
-             "worker left its incremental solver)"],
+             "background: adopted (stale) / lag max (frames) / adopt max (ms) (/ LM faster: "
+             "the worker's map went to LM; / reset: the last failure of its incremental solve, "
+             "after which LM answered and a new incremental solver started)"],
             rows,
         ),
         markdown_table(
