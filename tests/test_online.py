@@ -1409,6 +1409,51 @@ def test_background_worker_accepts_an_answer_a_hair_above_its_start(
     assert (meta["resets"] == 0) is (rise < 1.0)
 
 
+@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
+def test_background_worker_polishes_an_answer_that_raised_e_before_it_fails(
+        data_dir: Path) -> None:
+    """An incremental answer above its start by more than RISE_RTOL is not refused at once:
+    the solve goes on with the polish, and when that brings E back within the bound, that is
+    the answer (no LM, no reset)."""
+    mp, opt = _w100_worker_map(data_dir)
+    evaluate = mp._evaluate
+    seen: list[float] = []
+
+    def raised_once(r: np.ndarray, t: np.ndarray) -> tuple[float, Any]:
+        e, change = evaluate(r, t)
+        seen.append(e)
+        # the first call is the start's E (_energy), the second the answer's: raised by hand
+        return (10.0 * e + 1.0 if len(seen) == 2 else e), change
+
+    mp._evaluate = raised_once
+    _, meta = mp.solve(50)
+    assert len(seen) == 3  # the start, the raised answer, the answer after the polish
+    assert meta["incremental"] and meta["resets"] == 0 and meta["fallback"] == ""
+    assert abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
+
+
+@pytest.mark.parametrize("more_s", [0.0, np.inf])
+@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
+def test_background_worker_answers_after_one_cycle_once_its_cycles_are_slow(
+        data_dir: Path, monkeypatch: pytest.MonkeyPatch, more_s: float) -> None:
+    """A request with new data starts no further update cycle once MORE_CYCLES_S passed since
+    its first began: at 0 s it answers after one cycle ("cycles"), without the bound it runs
+    its cycles until no step exceeds the relinearization thresholds; either way the request
+    after it (nothing new: the polish) ends at the optimum."""
+    from hybridpgo.online import worker
+
+    mp, opt = _w100_worker_map(data_dir)
+    monkeypatch.setattr(worker, "MORE_CYCLES_S", more_s)
+    _, meta = mp.solve(50)
+    assert meta["incremental"]
+    if more_s == 0.0:
+        assert meta["status"] == "cycles" and meta["iterations"] == 1
+    else:
+        assert meta["status"] == "converged" and meta["iterations"] > 1
+    _, meta = mp.solve(50)
+    assert meta["incremental"] and abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
+
+
 @pytest.mark.parametrize("robust", [("none", None), ("auto", None), ("huber", 1.0)])
 def test_the_worker_warms_up_every_path_a_request_can_take(
         robust: tuple[str, float | None]) -> None:

@@ -421,7 +421,7 @@ def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarra
     """
     d = np.empty((6, 6))
     b = np.empty(6)
-    acc = np.empty((6, 6))
+    ljt = np.empty((6, 6))
     for q in range(i0, order.shape[0]):
         j = order[q]
         tag = position[j]
@@ -503,20 +503,32 @@ def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarra
                             for m in range(6):
                                 s += lj[a, m] * lj[c, m]
                             d[a, c] -= s
+                    for m in range(6):
+                        for c in range(6):
+                            ljt[m, c] = lj[c, m]
                     for t in range(k0, k0 + kn):
                         r = row_var[t]
                         if position[r] > tag:
                             lr = row_blk[t]
+                            lo = row_blk[slot[r]]
+                            # lo -= lr lj^T: six independent sums per row of lr, each over m
+                            # in order (held in registers)
                             for a in range(6):
-                                for c in range(6):
-                                    s = 0.0
-                                    for m in range(6):
-                                        s += lr[a, m] * lj[c, m]
-                                    acc[a, c] = s
-                            tt = slot[r]
-                            for a in range(6):
-                                for c in range(6):
-                                    row_blk[tt, a, c] -= acc[a, c]
+                                u0 = u1 = u2 = u3 = u4 = u5 = 0.0
+                                for m in range(6):
+                                    x = lr[a, m]
+                                    u0 += x * ljt[m, 0]
+                                    u1 += x * ljt[m, 1]
+                                    u2 += x * ljt[m, 2]
+                                    u3 += x * ljt[m, 3]
+                                    u4 += x * ljt[m, 4]
+                                    u5 += x * ljt[m, 5]
+                                lo[a, 0] -= u0
+                                lo[a, 1] -= u1
+                                lo[a, 2] -= u2
+                                lo[a, 3] -= u3
+                                lo[a, 4] -= u4
+                                lo[a, 5] -= u5
                     k = parent[k]
                     if k < 0:
                         return BROKEN_TREE
@@ -585,11 +597,22 @@ def back_substitute(stack: np.ndarray, top: np.ndarray, deadline: np.uint64,
         for t in range(s0, s0 + n):
             r = row_var[t]
             blk = row_blk[t]
-            for a in range(6):
-                s = 0.0
-                for m in range(6):
-                    s += blk[m, a] * x[r, m]
-                xn[a] -= s
+            # xn -= blk^T x_r: six independent sums, each over m in order (in registers)
+            u0 = u1 = u2 = u3 = u4 = u5 = 0.0
+            for m in range(6):
+                xm = x[r, m]
+                u0 += blk[m, 0] * xm
+                u1 += blk[m, 1] * xm
+                u2 += blk[m, 2] * xm
+                u3 += blk[m, 3] * xm
+                u4 += blk[m, 4] * xm
+                u5 += blk[m, 5] * xm
+            xn[0] -= u0
+            xn[1] -= u1
+            xn[2] -= u2
+            xn[3] -= u3
+            xn[4] -= u4
+            xn[5] -= u5
         dj = diag[j]
         for c in range(5, -1, -1):
             s = xn[c]

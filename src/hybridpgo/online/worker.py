@@ -424,6 +424,14 @@ SCREEN_SHARE = 0.2
 #: cover yet composed onto their parents).  M3500_isam streamed back to back on a loaded 2-core
 #: machine: most answers take 1-3 ms, the longest (some 200 frames of new data at once) 2 s.
 SOLVE_CAP_S = 1.0
+#: A request that brings new data starts no further update cycle once this many seconds
+#: passed since its first began: its answer goes back, and the relinearization left is done
+#: by the next request's first cycle together with that request's new data (one cycle per
+#: request where cycles are slow, as iSAM2 makes one per update).  On a city each cycle after a
+#: loop closure re-eliminates most of the map (paris2 at 32 000 poses: 0.25-0.5 s per cycle,
+#: 2-3 cycles per request): answering after the first halves the time to an answer, and the
+#: map was solved as many times.
+MORE_CYCLES_S = 0.05
 #: Seconds of one slice of the polish of a request without new data, between which the
 #: worker looks for new messages: new data stops the polish (its request is answered with the
 #: new data's solve instead), so that an idle map's polish (valencia: up to 0.15 s) never
@@ -451,7 +459,8 @@ SLOW_INCREMENTAL_S = 0.25
 #: whole map 0.4-0.5 s).
 LM_PREFERRED_SHARE = 0.5
 #: An incremental answer whose E exceeds the E it started from by more than this (relative)
-#: is refused and LM answers the request.  The incremental step is not an exact Gauss-Newton
+#: goes on with the polish until it converges or :data:`SOLVE_CAP_S`; still above it, it is
+#: refused and LM answers the request.  The incremental step is not an exact Gauss-Newton
 #: step (a pose is relinearized only past 0.1), so an answer a hair above its start is
 #: expected: paris2 streamed back to back had rises below 1e-6 at four requests (at 1e-9
 #: each was refused, the fourth sent the map to LM for good: 1.5 s per request against
@@ -494,7 +503,8 @@ class _Map:
     the exact Levenberg-Marquardt solve
     (:func:`~hybridpgo.solvers.gauss_newton.solve_exact`) over the whole map, warm-started from
     the previous optimum.  When an incremental solve fails (an error of the factorization, or
-    an energy above the one it started from) LM answers that request from the last good
+    an energy above the one it started from by more than :data:`RISE_RTOL` even after the
+    polish) LM answers that request from the last good
     estimate and a new incremental solver starts there; after :data:`MAX_RESETS` failures the
     map stays with LM (``fallback`` says why, ``resets`` how often).  An incremental request
     that takes :data:`SLOW_INCREMENTAL_S` (past the solver's first :data:`INCREMENTAL_WARMUP`
@@ -631,12 +641,15 @@ class _Map:
               ) -> tuple[Arrays, dict[str, Any]]:
         """The optimum of the map from the current estimate; the locals of nodes 1..n.
 
-        Incremental: update cycles until nothing is left to do (or :data:`SOLVE_CAP_S`);
-        ``iterations`` counts them; the polish (:data:`INCREMENTAL`) runs when the request
-        brings no new data or is ``thorough``.  A polish that is not thorough runs in slices
-        of :data:`POLISH_SLICE_S` and stops once ``interrupted()`` (a new message came): its
-        status is then ``"interrupted"``, and the estimate is the last completed cycle's (the
-        worker does not send it: the message's request is answered next).  LM (robust
+        Incremental: update cycles until nothing is left to do (or :data:`SOLVE_CAP_S`, or
+        for a request with new data, the first cycle to end past :data:`MORE_CYCLES_S`:
+        :meth:`_cycles`); ``iterations`` counts them; an answer whose E rose above
+        :data:`RISE_RTOL` goes on with the polish before it fails; the polish
+        (:data:`INCREMENTAL`) runs when the request brings no new data or is ``thorough``.
+        A polish that is not thorough runs in slices of :data:`POLISH_SLICE_S` and stops once
+        ``interrupted()`` (a new message came): its status is then ``"interrupted"``, and the
+        estimate is the last completed cycle's (the worker does not send it: the message's
+        request is answered next).  LM (robust
         kernel): at most ``max_iterations``.
         ``robust="auto"``: the answer is screened for outliers (:meth:`_screen`; ``thorough``:
         every constraint is tested, those rejected before included, as a whole-graph solve
@@ -672,13 +685,24 @@ class _Map:
                 # the polish only for a request that brings nothing new, or a thorough one
                 # (OnlineSolver.join_refine: the optimum of everything); see INCREMENTAL
                 polish = thorough or (n, m, g) == self._solved
+                end = t0 + SOLVE_CAP_S
                 if polish and not thorough and interrupted is not None:
                     status = self._polish(interrupted)
-                elif not self.inc.solve(SOLVE_CAP_S, polish=polish):
-                    status = "max_time"
-                iterations = int(self.inc.stats["cycles"]) - cycles
+                elif polish:
+                    if not self.inc.solve(SOLVE_CAP_S, polish=True):
+                        status = "max_time"
+                else:
+                    status = self._cycles(end)
                 rot, trans = self.inc.estimate()
                 energy, change = self._evaluate(rot, trans)
+                if not energy <= e_start * (1.0 + RISE_RTOL) + 1e-12 and status != "max_time":
+                    # the step raised E: the solve goes on, the polish included (every pose
+                    # that moved relinearized), until it converges or the cap
+                    if not self.inc.solve(max(end - time.perf_counter(), 0.0), polish=True):
+                        status = "max_time"
+                    rot, trans = self.inc.estimate()
+                    energy, change = self._evaluate(rot, trans)
+                iterations = int(self.inc.stats["cycles"]) - cycles
                 # the estimate is the last completed update cycle's: the constraints laid
                 # after the ones it integrated are not in it (a solve stopped by the cap)
                 _, m_est, g_est = self.inc.covered
@@ -758,6 +782,25 @@ class _Map:
             return self.slow_s
         lm_now = seconds * n / poses
         return max(self.slow_s, lm_now / LM_PREFERRED_SHARE)
+
+    def _cycles(self, end: float) -> str:
+        """The update cycles of a request that brings new data: one after the other until
+        no pose's step exceeds the relinearization thresholds (``"converged"``), until
+        ``end`` (perf_counter seconds; ``"max_time"``), or until a cycle ends past
+        :data:`MORE_CYCLES_S` since the first began (``"cycles"``: the relinearization left
+        goes into the next request's first cycle, with its new data)."""
+        assert self.inc is not None
+        t0 = time.perf_counter()
+        while True:
+            done = int(self.inc.stats["cycles"])
+            if self.inc.solve(max(end - time.perf_counter(), 0.0), max_cycles=1,
+                              polish=False):
+                return "converged"
+            now = time.perf_counter()
+            if now >= end or int(self.inc.stats["cycles"]) == done:  # stopped inside a cycle
+                return "max_time"
+            if now - t0 >= MORE_CYCLES_S:
+                return "cycles"
 
     def _polish(self, interrupted: Callable[[], bool]) -> str:
         """The incremental solve with the polish, in slices of :data:`POLISH_SLICE_S`, until
