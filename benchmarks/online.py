@@ -143,13 +143,11 @@ def _worst(r: ReplayResult, k: int = 3) -> str:
 
 def _fallback(bgi: dict[str, Any]) -> str:
     """Why the worker's map left its incremental solver, in a few words ("" when it has not):
-    LM measured faster (the map stays with LM), or the kind of the last failed incremental
-    solve (LM answered that request and a new incremental solver started)."""
-    text = bgi.get("worker_fallback") or ""
-    if not text:
-        return ""
-    return " / LM faster" if text.startswith("LM is faster") else " / reset: " + text.split(
-        ":", 1)[0]
+    LM measured faster (the map stays with LM), and how many incremental solves failed (each
+    answered by LM, then a new incremental solver started)."""
+    out = " / LM faster" if bgi.get("worker_with_lm") else ""
+    resets = int(bgi.get("worker_resets") or 0)
+    return out + (f" / resets: {resets}" if resets else "")
 
 
 def _targets(name: str, runs: dict[str, ReplayResult], optima: dict[int, float]
@@ -290,8 +288,8 @@ def run(ctx: Context) -> Result:
              f"frames > {BUDGET_S * 1e3 + 1:.0f} ms CPU", "worst frames (frame:CPU ms)",
              "worst E/opt", "end E/opt", "extra E/opt 10 / N (N)", "extra frames to 1%",
              "background: adopted (stale) / lag max (frames) / adopt max (ms) (/ LM faster: "
-             "the worker's map went to LM; / reset: the last failure of its incremental solve, "
-             "after which LM answered and a new incremental solver started)"],
+             "the worker's map went to LM; / resets: failed incremental solves, each answered "
+             "by LM, then a new incremental solver started)"],
             rows,
         ),
         markdown_table(

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from hybridpgo.online.incremental import IncrementalConfig, IncrementalExact
-from hybridpgo.online.replay import _inverse_edge, make_stream
+from hybridpgo.online.replay import make_stream
 from hybridpgo.online.worker import INCREMENTAL, ROUNDING_WILDFIRE
 
 from .context import Context, Result
@@ -52,12 +52,7 @@ def _feed(inc: IncrementalExact, stream: Any, rank: np.ndarray, k: int) -> int:
     if k == 0:
         inc.add_poses(np.eye(3)[None], np.zeros((1, 3)))
     else:
-        c = int(stream.odometry[k])
-        a, b = (int(v) for v in g.edge_nodes[c])
-        zr, zt = g.edge_rotations[c], g.edge_translations[c]
-        if b != int(stream.order[k]):
-            zr, zt, _ = _inverse_edge(zr, zt, g.edge_information[c])
-            a = b
+        a, zr, zt, _ = stream.odometry_from(k)
         inc.add_poses(zr[None], zt[None], [rank[a]])
     es = stream.edges[stream.edge_ptr[k]:stream.edge_ptr[k + 1]]
     if es.size:

@@ -525,6 +525,40 @@ def test_config_is_checked() -> None:
             OnlineConfig(**bad)  # type: ignore[arg-type]
 
 
+def test_a_frames_odometry_is_given_from_the_earlier_pose() -> None:
+    """Stream.odometry_from gives frame k's odometry from the earlier pose to the frame's: as
+    the graph stores it, or inverted when stored the other way round (the information carried
+    along, so that E is the same either way)."""
+    import dataclasses
+
+    from hybridpgo.online.replay import _inverse_edge
+
+    g = _graph(seed=4, n=20, extra=6)
+    st = make_stream(g)
+    flip = np.zeros(g.num_edges, np.bool_)
+    flip[st.odometry[1::2]] = True  # every other frame's odometry stored backwards
+    rot, trans, info = (g.edge_rotations.copy(), g.edge_translations.copy(),
+                        g.edge_information.copy())
+    for c in np.flatnonzero(flip):
+        rot[c], trans[c], info[c] = _inverse_edge(rot[c], trans[c], info[c])
+    ab = np.where(flip[:, None], g.edge_nodes[:, ::-1], g.edge_nodes).astype(np.int32)
+    back = dataclasses.replace(g, edge_nodes=ab, edge_rotations=rot, edge_translations=trans,
+                               edge_information=info)
+    assert energy(back, g.rotations, g.translations) == pytest.approx(
+        energy(g, g.rotations, g.translations), rel=FLOAT64_IDENTITY)
+    sb = make_stream(back)
+    assert np.array_equal(sb.order, st.order) and np.array_equal(sb.odometry, st.odometry)
+    for k in range(1, st.num_frames):
+        c = int(st.odometry[k])
+        a, zr, zt, om = sb.odometry_from(k)
+        assert a == g.edge_nodes[c, 0] and g.edge_nodes[c, 1] == st.order[k]
+        assert np.allclose(zr, g.edge_rotations[c], atol=FLOAT64_IDENTITY, rtol=0)
+        assert np.allclose(zt, g.edge_translations[c], atol=FLOAT64_IDENTITY, rtol=0)
+        om0 = g.edge_information[c]
+        assert np.allclose(om, om0, rtol=0, atol=FLOAT64_IDENTITY * np.abs(om0).max())
+        assert st.odometry_from(k)[0] == a
+
+
 def test_pending_poses_have_an_estimate() -> None:
     g = _graph(seed=8)
     st = make_stream(g)
@@ -647,7 +681,11 @@ def test_background_refine_reaches_the_batch_optimum(gps: int) -> None:
         for _ in range(10):
             s.update(None, UPDATES)
         assert abs(s.energy() - e) <= REFINE_REPEATED * e
-        assert s.stats()["background"]["error"] is None
+        bgi = s.stats()["background"]
+        assert bgi["error"] is None
+        # the worker's own word on its solver, passed on with each adopted answer
+        assert bgi["worker_resets"] == 0 and bgi["worker_with_lm"] is False
+        assert bgi["worker_fallback"] == ""
 
 
 def test_a_frame_adopts_the_answer_to_its_own_data_when_it_comes_in_time() -> None:
@@ -970,11 +1008,12 @@ def test_background_worker_waits_ready_and_runs_one_thread() -> None:
 
 def _worker_map(s: OnlineSolver, robust: tuple[str, float | None]) -> Any:
     """A worker's map (:class:`hybridpgo.online.worker._Map`) holding all of ``s``'s map;
-    no request counts as slow (the LM measurement after a slow one depends on the clock)."""
+    no request counts as slow (the LM measurement after a slow one depends on the clock), nor
+    stops after its first cycles (likewise)."""
     from hybridpgo.online import worker
 
     mp = worker._Map(robust)
-    mp.slow_s = np.inf
+    mp.slow_s = mp.more_cycles_s = np.inf
     _ship(mp, s)
     return mp
 
@@ -1235,7 +1274,7 @@ def test_the_worker_solves_the_gauge_switch_to_gps_with_lm() -> None:
     st = make_stream(g)
     s = OnlineSolver(OnlineConfig(background_refine=False))
     mp = worker._Map(("none", None))
-    mp.slow_s = np.inf  # the LM measurement after a slow request depends on the clock
+    mp.slow_s = mp.more_cycles_s = np.inf  # both depend on the clock
     k = 0
     while st.gps_ptr[k + 1] < worker.GPS_GAUGE - 1:
         feed_frame(s, st, k)
@@ -1275,6 +1314,29 @@ def test_an_answer_in_the_first_poses_gauge_is_not_adopted_once_gps_moves_the_ma
     for g in range(1, worker.GPS_GAUGE):
         assert not link.adopt(SimpleNamespace(), SimpleNamespace(n=5, m=4, g=g), 7, True)
     assert link.other_gauge == worker.GPS_GAUGE - 1
+
+
+def test_an_adopted_answer_passes_on_the_workers_word_on_its_solver() -> None:
+    """The worker's count of failed incremental solves, whether its map went to LM and why,
+    reach ``stats()["background"]`` with each adopted answer."""
+    from types import SimpleNamespace
+
+    from hybridpgo.online._link import WorkerLink
+    from hybridpgo.online.worker import Refined
+
+    link = WorkerLink.__new__(WorkerLink)  # the bookkeeping only, no worker process
+    link.__dict__.update(adopted=0, adopt_s_max=0.0, adopt_s=0.0, lag_max=0, _ship_frames={},
+                         other_gauge=0, stale=0, settled=0, refined=(0, 0), rescreens=0,
+                         fallback="", resets=0, with_lm=False,
+                         refiner=SimpleNamespace(results=1, error=None))
+    store = SimpleNamespace(placed=2, rot=np.zeros((3, 3, 3)), trans=np.zeros((3, 3)))
+    res = Refined(2, 0, 0, 0, np.repeat(np.eye(3)[None], 2, 0), np.ones((2, 3)), 0.0, 1,
+                  "converged", 0.0, fallback="LM is faster", resets=2, with_lm=True)
+    assert link.adopt(store, res, 3, False)
+    bgi = link.stats()
+    assert (bgi["worker_resets"], bgi["worker_with_lm"]) == (2, True)
+    assert bgi["worker_fallback"] == "LM is faster" and bgi["results_adopted"] == 1
+    assert np.array_equal(store.trans[1:], np.ones((2, 3)))
 
 
 def test_an_answer_older_than_the_tail_limit_is_not_adopted() -> None:
@@ -1317,6 +1379,7 @@ def test_background_worker_measures_lm_after_a_slow_incremental_request(
     assert meta["incremental"] and np.isfinite(mp.inc_seconds)
     _, meta = mp.solve(50)  # the measurement: LM
     assert not meta["incremental"] and np.isfinite(mp.lm_seconds)
+    assert meta["with_lm"] is lm_faster and meta["resets"] == 0
     assert mp._lm_timed == (mp.lm_seconds, mp.n)  # the map it was measured on
     assert abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
     if lm_faster:
@@ -1435,7 +1498,7 @@ def test_background_worker_polishes_an_answer_that_raised_e_before_it_fails(
 @pytest.mark.parametrize("more_s", [0.0, np.inf])
 @pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
 def test_background_worker_answers_after_one_cycle_once_its_cycles_are_slow(
-        data_dir: Path, monkeypatch: pytest.MonkeyPatch, more_s: float) -> None:
+        data_dir: Path, more_s: float) -> None:
     """A request with new data starts no further update cycle once MORE_CYCLES_S passed since
     its first began: at 0 s it answers after one cycle ("cycles"), without the bound it runs
     its cycles until no step exceeds the relinearization thresholds; either way the request
@@ -1443,13 +1506,19 @@ def test_background_worker_answers_after_one_cycle_once_its_cycles_are_slow(
     from hybridpgo.online import worker
 
     mp, opt = _w100_worker_map(data_dir)
-    monkeypatch.setattr(worker, "MORE_CYCLES_S", more_s)
+    mp.slow_s, mp.warmup, mp.min_poses = 0.0, 0, 0  # every request timed is slow
+    assert worker._Map(("none", None)).more_cycles_s == worker.MORE_CYCLES_S
+    mp.more_cycles_s = more_s
     _, meta = mp.solve(50)
     assert meta["incremental"]
     if more_s == 0.0:
         assert meta["status"] == "cycles" and meta["iterations"] == 1
+        # a request that did part of its work is no sample of its cost against LM's
+        assert not np.isfinite(mp.inc_seconds) and not mp._measure_lm
     else:
         assert meta["status"] == "converged" and meta["iterations"] > 1
+        assert np.isfinite(mp.inc_seconds) and mp._measure_lm
+        mp._measure_lm = False  # (the LM measurement is another test's)
     _, meta = mp.solve(50)
     assert meta["incremental"] and abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
 

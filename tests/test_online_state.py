@@ -403,7 +403,7 @@ def test_each_bad_measurement_or_information_is_named(meas: object, info: np.nda
 def test_the_rigid_and_information_checks_agree_with_numpy() -> None:
     """The compiled checks of ``add_*`` against their NumPy twins (random near-rotations,
     arbitrary matrices, and symmetric matrices with one entry nudged)."""
-    from hybridpgo.graph import SYMMETRY_RTOL
+    from hybridpgo.graph import SYMMETRY_RTOL, asymmetric
     from hybridpgo.online._validate import _finite_symmetric, _rigid
 
     rng = np.random.default_rng(11)
@@ -422,3 +422,4 @@ def test_the_rigid_and_information_checks_agree_with_numpy() -> None:
         info[i, j] += rng.choice([0.0, 1e-12, 1e-6]) * np.abs(info).max()
         expect = int(np.abs(info - info.T).max() > SYMMETRY_RTOL * np.abs(info).max()) * 2
         assert _finite_symmetric(info, SYMMETRY_RTOL) == expect
+        assert bool(asymmetric(info[None])[0]) is (expect == 2)  # the vectorized twin

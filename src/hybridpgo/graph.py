@@ -339,6 +339,15 @@ def pd_problem(eig_min: float) -> str:
     return f"smallest eigenvalue {eig_min:.6g}"
 
 
+def asymmetric(info: FloatArray) -> npt.NDArray[np.bool_]:
+    """Which matrices of ``info`` (k, d, d) differ from their transpose by more than
+    :data:`SYMMETRY_RTOL` times their largest entry's magnitude."""
+    k = info.shape[0]
+    scale = np.abs(info).reshape(k, -1).max(axis=1) if k else np.zeros(0)
+    asym = np.abs(info - np.swapaxes(info, 1, 2)).reshape(k, -1).max(axis=1) if k else scale
+    return np.asarray(asym > SYMMETRY_RTOL * np.maximum(scale, 1e-300))
+
+
 def check_information(info: FloatArray, what: str) -> None:
     """Raise :class:`GraphError` unless every matrix in ``info`` (k, d, d) is symmetric,
     positive definite to rounding (:func:`positive_definite`) and with entries at most
@@ -346,9 +355,7 @@ def check_information(info: FloatArray, what: str) -> None:
     if info.shape[0] == 0:
         return
     _check_entries(info, what)
-    scale = np.abs(info).reshape(info.shape[0], -1).max(axis=1)
-    asym = np.abs(info - np.swapaxes(info, 1, 2)).reshape(info.shape[0], -1).max(axis=1)
-    bad = np.nonzero(asym > SYMMETRY_RTOL * np.maximum(scale, 1e-300))[0]
+    bad = np.nonzero(asymmetric(info))[0]
     if bad.size:
         raise GraphError(f"{what} {int(bad[0])}: information matrix is not symmetric")
     eig_min = np.linalg.eigvalsh(info)[:, 0]

@@ -100,6 +100,10 @@ class WorkerLink:
         self.fallback = ""
         """The newest answer's word on why the worker left its incremental solver ("": it
         has not)."""
+        self.resets = 0
+        """The newest answer's count of the worker's failed incremental solves."""
+        self.with_lm = False
+        """The newest answer's word that the worker's map is solved by LM, measured faster."""
         self.answer_s = np.nan
         """Median wall time from a request that brings new data to its answer's arrival,
         over the last :data:`ANSWER_WINDOW` such requests (NaN: none measured yet)."""
@@ -247,6 +251,7 @@ class WorkerLink:
         self.refined = res.holds_all
         self.rescreens = res.rescreens
         self.fallback = res.fallback
+        self.resets, self.with_lm = res.resets, res.with_lm
         self.tail, self.tail_ok = (n, *res.holds_all), True
         self.adopted += 1
         took = time.perf_counter() - t0
@@ -297,5 +302,6 @@ class WorkerLink:
                 "adopt_ms_max": self.adopt_s_max * 1e3,
                 "lag_frames_max": self.lag_max, "results_received": self.refiner.results,
                 "results_settled": self.settled,
-                "worker_fallback": self.fallback,
+                "worker_fallback": self.fallback, "worker_resets": self.resets,
+                "worker_with_lm": self.with_lm,
                 "error": self.refiner.error}

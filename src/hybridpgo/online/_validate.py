@@ -74,7 +74,9 @@ def _rigid(rot: FloatArray, trans: FloatArray) -> tuple[bool, float, float]:
 @kernel
 def _finite_symmetric(info: FloatArray, rtol: float) -> int:
     """0 when the square ``info`` is finite and symmetric to ``rtol`` times its largest
-    magnitude; 1: not finite; 2: not symmetric."""
+    magnitude; 1: not finite; 2: not symmetric.  The per-call twin of
+    :func:`hybridpgo.graph.asymmetric` (one matrix, compiled: no array temporaries in a
+    frame's ``add_*``)."""
     k = info.shape[0]
     scale = 0.0
     for i in range(k):

@@ -37,7 +37,7 @@ import numpy.typing as npt
 from .. import _cost
 from .._numba import cycles_per_second, read_cycles
 from ..errors import SolverError
-from ..graph import SYMMETRY_RTOL, FloatArray
+from ..graph import FloatArray, asymmetric
 from ..linalg import fill_reducing_order
 from . import _incremental_kernels as ik
 
@@ -108,9 +108,7 @@ def _check_measurements(rot: FloatArray | None, trans: FloatArray, info: FloatAr
         finite &= np.isfinite(rot).reshape(k, -1).all(axis=1)
     if not finite.all():
         raise ValueError(f"{what} {int(np.argmin(finite))} (of those added) is not finite")
-    asym = np.abs(info - info.transpose(0, 2, 1)).reshape(k, -1).max(axis=1)
-    scale = np.abs(info).reshape(k, -1).max(axis=1)
-    bad = asym > SYMMETRY_RTOL * np.maximum(scale, 1e-300)
+    bad = asymmetric(info)
     if not bad.any():
         try:
             np.linalg.cholesky(info)

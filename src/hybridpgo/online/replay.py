@@ -54,6 +54,19 @@ class Stream:
     def num_frames(self) -> int:
         return int(self.order.shape[0])
 
+    def odometry_from(self, k: int) -> tuple[int, FloatArray, FloatArray, FloatArray]:
+        """Frame ``k``'s odometry (``k >= 1``) as a constraint from the earlier pose to the
+        frame's pose: ``(earlier pose's dense index, rotation, translation, information)``,
+        inverted (:func:`_inverse_edge`) when the graph stores it the other way round."""
+        g = self.graph
+        c = int(self.odometry[k])
+        a, b = (int(v) for v in g.edge_nodes[c])
+        zr, zt, info = g.edge_rotations[c], g.edge_translations[c], g.edge_information[c]
+        if b != int(self.order[k]):  # stored as (k, earlier)
+            zr, zt, info = _inverse_edge(zr, zt, info)
+            a = b
+        return a, zr, zt, info
+
     def prefix(self, frames: int, rotations: FloatArray | None = None,
                translations: FloatArray | None = None) -> PoseGraph:
         """The graph of the first ``frames`` frames (poses, their edges and GPS), at the given
@@ -148,12 +161,7 @@ def feed_frame(solver: Any, stream: Stream, k: int) -> None:
     if k == 0:
         solver.add_pose(int(ids[p]))
     else:
-        c = int(stream.odometry[k])
-        a, b = (int(v) for v in g.edge_nodes[c])
-        zr, zt, info = g.edge_rotations[c], g.edge_translations[c], g.edge_information[c]
-        if b != p:  # stored as (k, earlier): hand it over as (earlier, k)
-            zr, zt, info = _inverse_edge(zr, zt, info)
-            a = b
+        a, zr, zt, info = stream.odometry_from(k)
         solver.add_pose(int(ids[p]), int(ids[a]), (zr, zt), info)
         e0 += 1
     for c in stream.edges[e0:e1].tolist():
@@ -183,7 +191,6 @@ def prefix_optima(stream: Stream, frames: Sequence[int], max_iterations: int = 1
     from ..solvers.config import GaussNewtonConfig
     from ..solvers.gauss_newton import solve_exact
 
-    g = stream.graph
     out: dict[int, float] = {}
     rot = np.empty((0, 3, 3))
     trans = np.empty((0, 3))
@@ -198,13 +205,7 @@ def prefix_optima(stream: Stream, frames: Sequence[int], max_iterations: int = 1
                 r[0] = np.eye(3)
                 t[0] = 0.0
                 continue
-            c = int(stream.odometry[k])
-            a, b = (int(v) for v in g.edge_nodes[c])
-            zr, zt = g.edge_rotations[c], g.edge_translations[c]
-            p = int(stream.order[k])
-            if b != p:
-                zr, zt = zr.T, -zr.T @ zt
-                a = b
+            a, zr, zt, _ = stream.odometry_from(k)
             ka = int(stream.frame_of[a])
             r[k] = r[ka] @ zr
             t[k] = r[ka] @ zt + t[ka]
