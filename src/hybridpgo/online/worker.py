@@ -45,7 +45,8 @@ missing ones in the answer's age (:data:`~._link.MAX_TAIL`).
 The worker solves only on request.  The asynchronous mode keeps one request outstanding and
 makes the next as soon as the answer is adopted, so which prefix each answer covers depends on
 timing; the synchronous mode (``OnlineConfig.background_join = K``) requests every K frames and
-waits K frames later, so runs are reproducible.
+waits K frames later, so runs are reproducible while the requests stay within the worker's
+time bounds (:data:`MORE_CYCLES_S`, :data:`SOLVE_CAP_S`, :data:`SLOW_INCREMENTAL_S`).
 """
 
 from __future__ import annotations
