@@ -343,8 +343,10 @@ def asymmetric(info: FloatArray) -> npt.NDArray[np.bool_]:
     """Which matrices of ``info`` (k, d, d) differ from their transpose by more than
     :data:`SYMMETRY_RTOL` times their largest entry's magnitude."""
     k = info.shape[0]
-    scale = np.abs(info).reshape(k, -1).max(axis=1) if k else np.zeros(0)
-    asym = np.abs(info - np.swapaxes(info, 1, 2)).reshape(k, -1).max(axis=1) if k else scale
+    if k == 0:
+        return np.zeros(0, np.bool_)
+    scale = np.abs(info).reshape(k, -1).max(axis=1)
+    asym = np.abs(info - np.swapaxes(info, 1, 2)).reshape(k, -1).max(axis=1)
     return np.asarray(asym > SYMMETRY_RTOL * np.maximum(scale, 1e-300))
 
 

@@ -694,6 +694,7 @@ class _Map:
         self._measure_lm = False
         if self.inc is not None and not (switch or measure):
             e_start = self._energy()
+            bound = e_start * (1.0 + RISE_RTOL) + 1e-12  # the answer's E at most (RISE_RTOL)
             try:
                 cycles = int(self.inc.stats["cycles"])
                 # the polish only for a request that brings nothing new, or a thorough one
@@ -709,7 +710,7 @@ class _Map:
                     status = self._cycles(end)
                 rot, trans = self.inc.estimate()
                 energy, change = self._evaluate(rot, trans)
-                if not energy <= e_start * (1.0 + RISE_RTOL) + 1e-12 and status != "max_time":
+                if not energy <= bound and status != "max_time":
                     # the step raised E: the solve goes on, the polish included (every pose
                     # that moved relinearized), until it converges or the cap
                     if not self.inc.solve(max(end - time.perf_counter(), 0.0), polish=True):
@@ -720,7 +721,7 @@ class _Map:
                 # the estimate is the last completed update cycle's: the constraints laid
                 # after the ones it integrated are not in it (a solve stopped by the cap)
                 _, m_est, g_est = self.inc.covered
-                if not energy <= e_start * (1.0 + RISE_RTOL) + 1e-12:  # NaN fails too
+                if not energy <= bound:  # NaN fails too
                     raise ArithmeticError(f"the incremental solve raised E from {e_start:.6g} "
                                           f"to {energy:.6g}")
                 self.grot = self._append(self.grot, 1, rot)
@@ -804,8 +805,9 @@ class _Map:
         """The update cycles of a request that brings new data: one after the other until
         no pose's step exceeds the relinearization thresholds (``"converged"``), until
         ``end`` (perf_counter seconds; ``"max_time"``), or until a cycle ends past
-        :data:`MORE_CYCLES_S` since the first began (``"cycles"``: the relinearization left
-        goes into the next request's first cycle, with its new data)."""
+        :attr:`more_cycles_s` (:data:`MORE_CYCLES_S`) since the first began (``"cycles"``:
+        the relinearization left goes into the next request's first cycle, with its new
+        data)."""
         assert self.inc is not None
         t0 = time.perf_counter()
         while True:
