@@ -1,23 +1,28 @@
 """The online worker's incremental solver, request by request: back substitution of the whole
-solution against the one that skips what moved by rounding only (the worker's option).
+solution against the one that skips what moved by rounding only (the worker's option), and the
+planar system (3x3 blocks, the default on planar data) against the full one (6x6 blocks).
 
 Run: ``PYTHONPATH=src python -m benchmarks --only worker --run <name>`` (about 4 minutes).
 
 Each graph is streamed as the online solver's worker receives it: frame by frame (a pose and
 its odometry, then the frame's loop closures), one :meth:`IncrementalExact.solve` without the
 polish per frame (a request that brings data).  Two solvers take the same frames in the same
-process, one with ``wildfire`` 0 (every column below the re-eliminated ones recomputed in every
-cycle) and one with :data:`hybridpgo.online.worker.ROUNDING_WILDFIRE`, in turn, so that the
-ratio of their times is measured under the same load.
+process, in turn, so that the ratio of their times is measured under the same load: the
+worker's options (``rounding``: :data:`hybridpgo.online.worker.ROUNDING_WILDFIRE`, the planar
+system), ``whole`` (``wildfire`` 0: every column below the re-eliminated ones recomputed in
+every cycle) and ``full`` (the worker's options with ``planar=False``: 6x6 blocks on the same
+planar data).
 
 * ``worker.<graph>.<mode>.ms_odometry_mean``: mean time of a request whose frame brings only a
   pose and its odometry; ``ms_loop_median``: median of a request whose frame closes a loop;
   ``s_total``: all requests; ``columns_odometry_median``: columns recomputed by an
   odometry-only request.
-* ``worker.<graph>.rounding_vs_whole``: total time ratio (rounding / whole).
+* ``worker.<graph>.rounding_vs_whole``: total time ratio (rounding / whole);
+  ``planar_vs_full``: (rounding / full).
 * ``worker.<graph>.energy_rel_diff_max`` and ``position_diff_max``: the largest relative
-  energy difference and position difference (m) between the two estimates at every 500th
-  frame and the last.
+  energy difference and position difference (m) between the rounding and whole estimates at
+  every 500th frame and the last; ``full_energy_rel_diff_max``, ``full_position_diff_max``:
+  between the rounding and full ones.
 
 Graphs: the valencia city preset (all 15 031 frames) and paris2's first 12 000 frames
 (:func:`hybridpgo.generate.generate_city`, seed 0).
@@ -41,7 +46,9 @@ from .metrics import Metric, info, markdown_table, quality, timing
 GRAPHS: tuple[tuple[str, int | None], ...] = (("valencia", None), ("paris2", 12_000))
 #: Frames between two comparisons of the estimates.
 EVERY = 500
-MODES = (("whole", 0.0), ("rounding", ROUNDING_WILDFIRE))
+MODES: tuple[tuple[str, dict[str, Any]], ...] = (
+    ("whole", {"wildfire": 0.0}), ("rounding", {"wildfire": ROUNDING_WILDFIRE}),
+    ("full", {"wildfire": ROUNDING_WILDFIRE, "planar": False}))
 #: Frames a third solver takes before the timing, so that no request pays a compilation.
 WARM_UP = 300
 
@@ -74,12 +81,12 @@ def _one(name: str, frames: int | None) -> tuple[list[Metric], list[Any]]:
     for k in range(min(WARM_UP, nf)):  # kernels compiled or loaded before the timing
         _feed(warm, stream, rank, k)
         warm.solve(polish=False)
-    incs = [IncrementalExact(IncrementalConfig(**{**INCREMENTAL, "wildfire": w}))  # type: ignore[arg-type]
-            for _, w in MODES]
+    incs = [IncrementalExact(IncrementalConfig(**{**INCREMENTAL, **o}))  # type: ignore[arg-type]
+            for _, o in MODES]
     sec = np.zeros((len(MODES), nf))
     cols = np.zeros((len(MODES), nf), np.int64)
     loop = np.zeros(nf, bool)
-    de = dp = 0.0
+    de = dp = fe = fp = 0.0
     for k in range(nf):
         for i, inc in enumerate(incs):
             laid = _feed(inc, stream, rank, k)
@@ -90,9 +97,12 @@ def _one(name: str, frames: int | None) -> tuple[list[Metric], list[Any]]:
             cols[i, k] = inc.stats["recomputed"] - before
         loop[k] = laid > 1  # the same frame for every solver
         if (k + 1) % EVERY == 0 or k == nf - 1:
-            e0, e1 = incs[0].energy(), incs[1].energy()
+            e0, e1, e2 = (inc.energy() for inc in incs)
             de = max(de, abs(e1 - e0) / max(e0, 1e-300))
-            dp = max(dp, float(np.abs(incs[0].estimate()[1] - incs[1].estimate()[1]).max()))
+            fe = max(fe, abs(e1 - e2) / max(e2, 1e-300))
+            p0, p1, p2 = (inc.estimate()[1] for inc in incs)
+            dp = max(dp, float(np.abs(p0 - p1).max()))
+            fp = max(fp, float(np.abs(p2 - p1).max()))
     odo = ~loop
     odo[0] = False  # the first frame: a lone pose
     metrics: list[Metric] = []
@@ -107,11 +117,16 @@ def _one(name: str, frames: int | None) -> tuple[list[Metric], list[Any]]:
                     info(f"{key}.columns_odometry_median", vals[3])]
         rows.append([name, nf, int(loop.sum()), mode, *vals])
     ratio = float(sec[1].sum() / sec[0].sum())
+    planar = float(sec[1].sum() / sec[2].sum())
     metrics += [info(f"worker.{name}.rounding_vs_whole", ratio),
+                info(f"worker.{name}.planar_vs_full", planar),
                 quality(f"worker.{name}.energy_rel_diff_max", de),
-                quality(f"worker.{name}.position_diff_max", dp, "m")]
-    rows[1] += [ratio, de, dp]
+                quality(f"worker.{name}.position_diff_max", dp, "m"),
+                quality(f"worker.{name}.full_energy_rel_diff_max", fe),
+                quality(f"worker.{name}.full_position_diff_max", fp, "m")]
     rows[0] += ["", "", ""]
+    rows[1] += [f"{ratio:.3g} / {planar:.3g}", f"{de:.2g} / {fe:.2g}", f"{dp:.2g} / {fp:.2g}"]
+    rows[2] += ["", "", ""]
     return metrics, rows
 
 
@@ -124,8 +139,11 @@ def run(ctx: Context) -> Result:
         rows += r
     table = markdown_table(
         "Worker requests (one incremental solve per frame, no polish): back substitution of "
-        "the whole solution vs skipping what moved by rounding only (ROUNDING_WILDFIRE)",
-        ["graph", "frames", "loop frames", "back substitution", "odometry-only request mean ms",
+        "the whole solution (whole) vs skipping what moved by rounding only (rounding: "
+        "ROUNDING_WILDFIRE, the worker's), and the planar system (rounding) vs 6x6 blocks "
+        "(full)",
+        ["graph", "frames", "loop frames", "mode", "odometry-only request mean ms",
          "loop request median ms", "total s", "columns per odometry-only request (median)",
-         "total rounding / whole", "max rel. energy diff", "max position diff (m)"], rows)
+         "total rounding / whole, rounding / full", "max rel. energy diff (vs whole / full)",
+         "max position diff (m) (vs whole / full)"], rows)
     return metrics, [table]

@@ -12,12 +12,12 @@ import dataclasses
 
 import numpy as np
 import pytest
-from graphs import random_rotations
+from graphs import planar_rotations, random_rotations
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from tolerances import INCREMENTAL_VS_BATCH, SPARSE_VS_DENSE_GN
 
-from hybridpgo.graph import PoseGraph
+from hybridpgo.graph import PoseGraph, lift_information_2d
 from hybridpgo.online.incremental import IncrementalConfig, IncrementalExact
 from hybridpgo.online.worker import ROUNDING_WILDFIRE
 from hybridpgo.solvers.config import GaussNewtonConfig
@@ -40,23 +40,38 @@ class _Stream:
         return len(self.loops)
 
 
-def _stream(seed: int, n: int, loop_p: float, gps_every: int, noise: float = 0.05) -> _Stream:
+def _stream(seed: int, n: int, loop_p: float, gps_every: int, noise: float = 0.05,
+            planar: bool = False) -> _Stream:
+    """``planar``: the poses and measurements lie in the xy-plane (rotations about z exactly,
+    z = 0) and the information is a planar one lifted to 3D (GPS readings, if any, are not
+    planar)."""
     rng = np.random.default_rng(seed)
     rot = np.empty((n, 3, 3))
     trans = np.empty((n, 3))
     rot[0] = np.eye(3)
     trans[0] = 0.0
-    steps = random_rotations(rng, n, 0.3)
+
+    def turns(k: int, scale: float) -> np.ndarray:
+        if planar:
+            return planar_rotations(rng.normal(scale=scale, size=k))
+        return random_rotations(rng, k, scale)
+
+    steps = turns(n, 0.3)
     for k in range(1, n):
         rot[k] = rot[k - 1] @ steps[k]
         trans[k] = trans[k - 1] + rot[k - 1] @ np.array([1.0, 0.0, 0.0])
 
     def measure(a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
-        zr = rot[a].T @ rot[b] @ random_rotations(rng, 1, noise)[0]
+        zr = rot[a].T @ rot[b] @ turns(1, noise)[0]
         zt = rot[a].T @ (trans[b] - trans[a]) + rng.normal(scale=noise, size=3)
+        if planar:
+            zr[2, :], zr[:, 2], zt[2] = (0.0, 0.0, 1.0), (0.0, 0.0, 1.0), 0.0
         return zr, zt
 
     def info6() -> np.ndarray:
+        if planar:
+            q = rng.normal(size=(3, 3))
+            return lift_information_2d((q @ q.T + 3.0 * np.eye(3))[None])[0]
         q = rng.normal(size=(6, 6))
         return q @ q.T + 6.0 * np.eye(6)
 
@@ -120,15 +135,18 @@ def _check_gn_step(inc: IncrementalExact) -> None:
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(2, 40),
        loop_p=st.sampled_from([0.0, 0.3, 0.8]), gps_every=st.sampled_from([0, 3, 7]),
        beta=st.sampled_from([0.0, 1e-3, 0.05]), reorder=st.booleans(),
-       capacity=st.sampled_from([4, 64]), wildfire=st.sampled_from([0.0, ROUNDING_WILDFIRE]))
+       capacity=st.sampled_from([4, 64]), wildfire=st.sampled_from([0.0, ROUNDING_WILDFIRE]),
+       planar=st.booleans())
 def test_every_cycle_solves_the_whole_map_exactly(seed: int, n: int, loop_p: float,
                                                   gps_every: int, beta: float, reorder: bool,
-                                                  capacity: int, wildfire: float) -> None:
+                                                  capacity: int, wildfire: float,
+                                                  planar: bool) -> None:
     """After each completed cycle, x is the batch Gauss-Newton step at the linearization point,
     whatever was re-eliminated (partial refactorization, orphans, reordering, pool growth),
     also when the back substitution skips what moved by rounding only (the worker's
-    threshold)."""
-    s = _stream(seed, n, loop_p, gps_every)
+    threshold); a planar stream is solved in the planar system until its first GPS reading,
+    then in the full one."""
+    s = _stream(seed, n, loop_p, gps_every, planar=planar)
     cfg = IncrementalConfig(relinearize_rho=beta, relinearize_phi=beta, reorder=reorder,
                             wildfire=wildfire)
     inc = IncrementalExact(cfg, capacity=capacity)
@@ -140,6 +158,45 @@ def test_every_cycle_solves_the_whole_map_exactly(seed: int, n: int, loop_p: flo
             inc.solve(max_cycles=1)
             if inc.stats["cycles"] > before:
                 _check_gn_step(inc)
+                flat = k == 0 or (planar and not any(s.gps[i] for i in range(k + 1)))
+                assert inc._nd == (3 if flat else 6)
+
+
+@pytest.mark.parametrize("late", ["edge", "pose", "gps"])
+def test_the_planar_system_is_the_full_systems_solution_and_leaves_it_for_3d_data(
+        late: str) -> None:
+    """A planar stream solved in the planar system (default) gives the estimates of the same
+    stream solved in the full system (``planar=False``) to rounding, at every cycle; a datum
+    out of the plane (an edge, a pose, a GPS reading) moves the solver to the full system, and
+    it still solves the whole map exactly."""
+    s = _stream(11, 60, 0.4, 0, planar=True)
+    flat = IncrementalExact(IncrementalConfig(relinearize_rho=0.05, relinearize_phi=0.05))
+    full = IncrementalExact(IncrementalConfig(relinearize_rho=0.05, relinearize_phi=0.05,
+                                              planar=False))
+    for k in range(s.frames):
+        _feed(flat, s, k)
+        _feed(full, s, k)
+        flat.solve(max_cycles=1)
+        full.solve(max_cycles=1)
+        assert flat._nd == 3 and full._nd == 6
+        for a, b in zip(flat.estimate(), full.estimate(), strict=True):
+            assert np.abs(a - b).max() <= SPARSE_VS_DENSE_GN * max(1.0, np.abs(b).max())
+    rot, trans = flat.estimate()
+    assert np.all(rot[:, 2, :2] == 0.0) and np.all(trans[:, 2] == 0.0)  # in the plane
+    tilt = random_rotations(np.random.default_rng(3), 1, 0.1)
+    n = flat.num_poses
+    if late == "edge":
+        flat.add_edges([0], [n - 1], tilt, trans[n - 1: n], np.eye(6)[None])
+    elif late == "pose":
+        flat.add_poses(tilt, np.array([[1.0, 0.0, 0.2]]), [n - 1])
+        flat.add_edges([n - 1], [n], tilt, np.array([[1.0, 0.0, 0.2]]), np.eye(6)[None])
+    else:
+        flat.add_gps([n - 1], trans[n - 1: n] + np.array([0.0, 0.0, 0.5]), np.eye(3)[None])
+    flat.solve(max_cycles=1)
+    assert flat._nd == 6
+    _check_gn_step(flat)
+    while not flat.solve(max_cycles=1):
+        _check_gn_step(flat)
 
 
 @pytest.mark.parametrize(("seed", "gps_every"), [(0, 0), (1, 5)])

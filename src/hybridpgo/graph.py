@@ -405,6 +405,14 @@ def planar_motions(rotations: FloatArray, translations: FloatArray) -> bool:
                 and np.all(translations[:, 2] == 0.0))
 
 
+def decoupled_information(info: FloatArray) -> bool:
+    """True when no (6, 6) information over (rho, phi) couples an in-plane coordinate (x, y,
+    yaw) with an out-of-plane one (z, roll, pitch); both blocks compared exactly (an input is
+    symmetric only to a tolerance)."""
+    return not (np.any(info[:, IN_PLANE[:, None], OUT_OF_PLANE[None, :]] != 0.0)
+                or np.any(info[:, OUT_OF_PLANE[:, None], IN_PLANE[None, :]] != 0.0))
+
+
 def planar_data(graph: PoseGraph) -> bool:
     """True when the graph's data are planar data lifted into 3D.
 
@@ -429,9 +437,7 @@ def planar_data(graph: PoseGraph) -> bool:
     if graph.num_edges == 0 or not planar_motions(graph.edge_rotations,
                                                   graph.edge_translations):
         return False
-    info = graph.edge_information  # both blocks: the input is symmetric only to a tolerance
-    if (np.any(info[:, IN_PLANE[:, None], OUT_OF_PLANE[None, :]] != 0.0)
-            or np.any(info[:, OUT_OF_PLANE[:, None], IN_PLANE[None, :]] != 0.0)):
+    if not decoupled_information(graph.edge_information):
         return False
     gps = graph.gps_information
     return bool(np.all(graph.gps_positions[:, 2] == 0.0) and np.all(gps[:, :2, 2] == 0.0)

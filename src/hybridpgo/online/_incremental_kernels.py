@@ -3,11 +3,11 @@
 The normal equations ``H delta = -g`` of the map linearized at the linearization point theta
 (right perturbations, tangent order (rho, phi), ``E = sum_c e_c^T Omega_c e_c``: the exact
 solver's conventions, :mod:`hybridpgo.solvers._gn_kernels`) are kept factored, ``H = L L^T``,
-by 6x6 blocks, one block column per free pose ("variable").  The elimination order is a
-position per variable (a stamp that only grows: a variable re-eliminated later gets a larger
-one), the elimination tree ``parent`` is the smallest-position row of each column.  A column
-stores its rows (variables, in no particular order) and their blocks in a pool; the factored
-diagonal block apart.
+by 6x6 blocks (3x3 in the planar system below), one block column per free pose ("variable").
+The elimination order is a position per variable (a stamp that only grows: a variable
+re-eliminated later gets a larger one), the elimination tree ``parent`` is the
+smallest-position row of each column.  A column stores its rows (variables, in no particular
+order) and their blocks in a pool; the factored diagonal block apart.
 
 One update ("cycle") re-eliminates only the set S of columns whose values changed (the ends
 of the constraints that are new or were relinearized) and all their ancestors in the
@@ -25,6 +25,12 @@ after every other column, in a new fill-reducing order; the columns hanging belo
 * :func:`back_substitute` solves ``L^T x = y`` from the roots down, recomputing a column when it
   is in S or one of its rows changed by more than a threshold (0: exact), so the unchanged
   rest of the map is not visited.
+
+The planar system: when the poses and measurements are planar (:mod:`.incremental`), the
+factor's coordinates are the tangent coordinates ``perm[:nd]`` with ``perm = (0, 1, 5, 2, 3,
+4)`` (x, y, yaw first) and ``nd = 3``; its blocks are (3, 3), the diagonal blocks the identity
+beyond ``nd`` and ``y`` zero there, and the step's out-of-plane coordinates stay 0.  The full
+system: ``perm`` the identity, ``nd = 6``.
 
 Resumable: :func:`numeric` and :func:`back_substitute` stop when the cycle counter passes a
 deadline and are called again from where they stopped.  Status codes instead of exceptions.
@@ -383,9 +389,10 @@ def symbolic(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarr
 
 # --------------------------------------------------------------------------- numeric
 @kernel
-def _chol6(d: np.ndarray) -> bool:
-    """In-place lower Cholesky of a (6, 6) block (upper part zeroed); False: not SPD."""
-    for c in range(6):
+def _chol6(d: np.ndarray, nd: int) -> bool:
+    """In-place lower Cholesky of the leading (nd, nd) part of a (6, 6) block, the rest the
+    identity (upper part zeroed); False: not SPD."""
+    for c in range(nd):
         s = d[c, c]
         for t in range(c):
             s -= d[c, t] * d[c, t]
@@ -393,14 +400,17 @@ def _chol6(d: np.ndarray) -> bool:
             return False
         lc = math.sqrt(s)
         d[c, c] = lc
-        for r in range(c + 1, 6):
+        for r in range(c + 1, nd):
             s2 = d[r, c]
             for t in range(c):
                 s2 -= d[r, t] * d[c, t]
             d[r, c] = s2 / lc
     for c in range(6):
-        for r in range(c):
-            d[r, c] = 0.0
+        for r in range(6):
+            if r < c or (c >= nd and r > c) or (r >= nd and c < nd):
+                d[r, c] = 0.0
+        if c >= nd:
+            d[c, c] = 1.0
     return True
 
 
@@ -411,8 +421,13 @@ def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarra
             hab: np.ndarray, ga: np.ndarray, gb: np.ndarray, hgg: np.ndarray, gg: np.ndarray,
             parent: np.ndarray, col_start: np.ndarray, col_len: np.ndarray,
             row_var: np.ndarray, row_blk: np.ndarray, diag: np.ndarray, y: np.ndarray,
-            slot: np.ndarray, walk: np.ndarray, damping: float, work: np.ndarray) -> int:
+            slot: np.ndarray, walk: np.ndarray, damping: float, nd: int, perm: np.ndarray,
+            work: np.ndarray) -> int:
     """Factor the columns ``order[i0:]`` and their forward substitution ``y`` (module doc).
+
+    ``nd``, ``perm``: the factor's coordinates are the tangent coordinates ``perm[:nd]``
+    (module doc: the planar system), ``row_blk`` holds (nd, nd) blocks; GPS readings need the
+    identity ``perm`` and ``nd = 6``.
 
     ``damping``: ``H + damping * diag(H)`` (Levenberg-Marquardt; 0 for Gauss-Newton).  Stops
     after the first column that ends past ``deadline`` (cycle counter); returns the index to
@@ -429,8 +444,8 @@ def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarra
         n = col_len[j]
         for t in range(s0, s0 + n):
             slot[row_var[t]] = t
-            for a in range(6):
-                for c in range(6):
+            for a in range(nd):
+                for c in range(nd):
                     row_blk[t, a, c] = 0.0
         for a in range(6):
             b[a] = 0.0
@@ -443,25 +458,27 @@ def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarra
             side = i & 1
             u = ab[e, 1 - side]
             if side == 0:
-                for a in range(6):
-                    b[a] -= ga[e, a]
-                    for c in range(6):
-                        d[a, c] += haa[e, a, c]
+                for a in range(nd):
+                    pa = perm[a]
+                    b[a] -= ga[e, pa]
+                    for c in range(nd):
+                        d[a, c] += haa[e, pa, perm[c]]
             else:
-                for a in range(6):
-                    b[a] -= gb[e, a]
-                    for c in range(6):
-                        d[a, c] += hbb[e, a, c]
+                for a in range(nd):
+                    pa = perm[a]
+                    b[a] -= gb[e, pa]
+                    for c in range(nd):
+                        d[a, c] += hbb[e, pa, perm[c]]
             if free[u] and position[u] > tag:
                 t = slot[u]
                 if side == 0:  # block (row b, column a) = hab^T
-                    for a in range(6):
-                        for c in range(6):
-                            row_blk[t, a, c] += hab[e, c, a]
+                    for a in range(nd):
+                        for c in range(nd):
+                            row_blk[t, a, c] += hab[e, perm[c], perm[a]]
                 else:  # block (row a, column b) = hab
-                    for a in range(6):
-                        for c in range(6):
-                            row_blk[t, a, c] += hab[e, a, c]
+                    for a in range(nd):
+                        for c in range(nd):
+                            row_blk[t, a, c] += hab[e, perm[a], perm[c]]
             i = inc_next[i]
         i = gps_head[j]
         while i >= 0:
@@ -471,7 +488,7 @@ def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarra
                     d[a, c] += hgg[i, a, c]
             i = gps_next[i]
         if damping > 0.0:
-            for a in range(6):
+            for a in range(nd):
                 d[a, a] *= 1.0 + damping
         # updates of the earlier columns with a block in row j (ereach)
         walk[j] = tag
@@ -493,22 +510,35 @@ def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarra
                     lj = row_blk[p0]
                     work[0] += 1
                     work[1] += kn
-                    for a in range(6):
+                    for a in range(nd):
                         s = 0.0
-                        for c in range(6):
+                        for c in range(nd):
                             s += lj[a, c] * y[k, c]
                         b[a] -= s
                         for c in range(a + 1):
                             s = 0.0
-                            for m in range(6):
+                            for m in range(nd):
                                 s += lj[a, m] * lj[c, m]
                             d[a, c] -= s
-                    for m in range(6):
-                        for c in range(6):
+                    for m in range(nd):
+                        for c in range(nd):
                             ljt[m, c] = lj[c, m]
                     for t in range(k0, k0 + kn):
                         r = row_var[t]
-                        if position[r] > tag:
+                        if position[r] > tag and nd == 3:
+                            lr = row_blk[t]
+                            lo = row_blk[slot[r]]
+                            for a in range(3):  # lo -= lr lj^T, as below
+                                u0 = u1 = u2 = 0.0
+                                for m in range(3):
+                                    x = lr[a, m]
+                                    u0 += x * ljt[m, 0]
+                                    u1 += x * ljt[m, 1]
+                                    u2 += x * ljt[m, 2]
+                                lo[a, 0] -= u0
+                                lo[a, 1] -= u1
+                                lo[a, 2] -= u2
+                        elif position[r] > tag:
                             lr = row_blk[t]
                             lo = row_blk[slot[r]]
                             # lo -= lr lj^T: six independent sums per row of lr, each over m
@@ -533,10 +563,10 @@ def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarra
                     if k < 0:
                         return BROKEN_TREE
             i = inc_next[i]
-        for a in range(6):
+        for a in range(nd):
             for c in range(a):
                 d[c, a] = d[a, c]
-        if not _chol6(d):
+        if not _chol6(d, nd):
             return NOT_SPD
         for a in range(6):
             for c in range(6):
@@ -544,18 +574,20 @@ def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarra
         # off-diagonal blocks: X L_d^T = B; y_j = L_d^-1 b
         for t in range(s0, s0 + n):
             x = row_blk[t]
-            for a in range(6):
-                for c in range(6):
+            for a in range(nd):
+                for c in range(nd):
                     s = x[a, c]
                     for m in range(c):
                         s -= x[a, m] * d[c, m]
                     x[a, c] = s / d[c, c]
             slot[row_var[t]] = -1
-        for c in range(6):
+        for c in range(nd):
             s = b[c]
             for m in range(c):
                 s -= d[c, m] * y[j, m]
             y[j, c] = s / d[c, c]
+        for c in range(nd, 6):
+            y[j, c] = 0.0
         if cycle_counter() > deadline:
             return q + 1
     return int(order.shape[0])
@@ -568,8 +600,10 @@ def back_substitute(stack: np.ndarray, top: np.ndarray, deadline: np.uint64,
                     ch_head: np.ndarray, ch_next: np.ndarray, col_start: np.ndarray,
                     col_len: np.ndarray, row_var: np.ndarray, row_blk: np.ndarray,
                     diag: np.ndarray, y: np.ndarray, x: np.ndarray, touched: np.ndarray,
-                    n_touched: np.ndarray) -> bool:
-    """``L^T x = y`` from the roots down (the caller pushes S's roots on ``stack``).
+                    n_touched: np.ndarray, nd: int, perm: np.ndarray) -> bool:
+    """``L^T x = y`` from the roots down (the caller pushes S's roots on ``stack``); ``x``
+    in tangent coordinates, the factor's coordinate ``a < nd`` being ``perm[a]`` (the others
+    0: see :func:`numeric`).
 
     A popped column is recomputed when it is in S or one of its rows changed in this cycle
     (``changed[r] == stamp``); it is marked changed when its x moved by more than
@@ -597,6 +631,17 @@ def back_substitute(stack: np.ndarray, top: np.ndarray, deadline: np.uint64,
         for t in range(s0, s0 + n):
             r = row_var[t]
             blk = row_blk[t]
+            if nd == 3:  # as below, x_r read in the factor's coordinates
+                u0 = u1 = u2 = 0.0
+                for m in range(3):
+                    xm = x[r, perm[m]]
+                    u0 += blk[m, 0] * xm
+                    u1 += blk[m, 1] * xm
+                    u2 += blk[m, 2] * xm
+                xn[0] -= u0
+                xn[1] -= u1
+                xn[2] -= u2
+                continue
             # xn -= blk^T x_r: six independent sums, each over m in order (in registers)
             u0 = u1 = u2 = u3 = u4 = u5 = 0.0
             for m in range(6):
@@ -614,17 +659,18 @@ def back_substitute(stack: np.ndarray, top: np.ndarray, deadline: np.uint64,
             xn[4] -= u4
             xn[5] -= u5
         dj = diag[j]
-        for c in range(5, -1, -1):
+        for c in range(nd - 1, -1, -1):
             s = xn[c]
-            for m in range(c + 1, 6):
+            for m in range(c + 1, nd):
                 s -= dj[m, c] * xn[m]
             xn[c] = s / dj[c, c]
         dev = 0.0
-        for a in range(6):
-            dv = abs(xn[a] - x[j, a])
+        for a in range(nd):
+            pa = perm[a]
+            dv = abs(xn[a] - x[j, pa])
             if dv > dev:
                 dev = dv
-            x[j, a] = xn[a]
+            x[j, pa] = xn[a]
         moved = dev > threshold
         if moved:
             changed[j] = stamp

@@ -11,6 +11,12 @@ solution may be propagated down the tree only where it changes ("wildfire" back 
 This is the incremental scheme of iSAM2 (Kaess et al., IJRR 2012) written as a left-looking
 block Cholesky on the elimination tree instead of a Bayes tree of cliques.
 
+While every pose and measurement is planar (``IncrementalConfig.planar``) the factor holds only
+the (x, y, yaw) part of each block, 3x3: there the out-of-plane error, gradient and step are
+exactly 0 and the planar system's step is the full system's (a planar graph lifted to 3D).
+The first datum that is not planar moves the solver to the full system, in one update that
+linearizes every constraint again and re-eliminates the whole map.
+
 With both thresholds 0 every update is an exact Gauss-Newton step of the whole map, and
 repeated :meth:`~IncrementalExact.solve` calls converge to the same optimum as the batch exact
 solver (:func:`hybridpgo.solvers.gauss_newton.solve_exact`).
@@ -37,7 +43,14 @@ import numpy.typing as npt
 from .. import _cost
 from .._numba import cycles_per_second, read_cycles
 from ..errors import SolverError
-from ..graph import FloatArray, asymmetric
+from ..graph import (
+    IN_PLANE,
+    OUT_OF_PLANE,
+    FloatArray,
+    asymmetric,
+    decoupled_information,
+    planar_motions,
+)
 from ..linalg import fill_reducing_order
 from . import _incremental_kernels as ik
 
@@ -47,6 +60,8 @@ _NO_DEADLINE = np.uint64(np.iinfo(np.uint64).max)
 _AMD_MIN = 8
 
 _IDLE, _LINEARIZE, _SYMBOLIC, _NUMERIC, _BACK = 0, 1, 2, 3, 4
+#: The planar system's coordinates first (x, y, yaw), then z, roll, pitch.
+_PLANAR_PERM = np.concatenate([IN_PLANE, OUT_OF_PLANE])
 #: Constraints linearized between two deadline checks.
 _CHUNK = 256
 
@@ -89,8 +104,15 @@ class IncrementalConfig:
     poses that move)."""
     polish_phi: float = 1e-5
     """See ``polish_rho``."""
+    planar: bool = True
+    """Solve the (x, y, yaw) system while every pose and measurement is planar
+    (:func:`~hybridpgo.graph.planar_motions`, no information coupling the plane with z, roll
+    or pitch, no GPS reading): there the out-of-plane error, gradient and step are exactly 0
+    and the in-plane step is the full system's, at an eighth of the factorization's
+    multiplications.  The first datum that is not planar switches to the full system (one
+    update re-eliminates the whole map)."""
     max_fill: int = 128
-    """The factor's pool holds at most this many 6x6 blocks per pose and constraint (at least
+    """The factor's pool holds at most this many blocks per pose and constraint (at least
     :data:`POOL_FLOOR`): an update whose fill-in needs more raises :class:`SolverError` (a poor
     elimination order, e.g. large sets kept in their old order: paris2 asked for 36 GiB).
     The caller can start again or solve in batch."""
@@ -119,7 +141,7 @@ def _check_measurements(rot: FloatArray | None, trans: FloatArray, info: FloatAr
                          "not symmetric positive definite")
 
 
-#: The factor's pool may always hold this many 6x6 blocks (``IncrementalConfig.max_fill``).
+#: The factor's pool may always hold this many blocks (``IncrementalConfig.max_fill``).
 POOL_FLOOR = 1 << 20
 
 
@@ -141,7 +163,13 @@ class IncrementalExact:
         self._alloc_gps(max(cap // 16, 8))
         self._pool_cap = 8 * cap
         self._row_var = np.zeros(self._pool_cap, np.int64)
-        self._row_blk = np.zeros((self._pool_cap, 6, 6))
+        # the factor's coordinates: tangent coordinates perm[:nd] (module doc: the planar
+        # system), its blocks (nd, nd); _planar_lost: a datum that is not planar was added to
+        # a planar solver
+        self._nd = 3 if self.config.planar else 6
+        self._perm = _PLANAR_PERM.copy() if self.config.planar else np.arange(6)
+        self._planar_lost = False
+        self._row_blk = np.zeros((self._pool_cap, self._nd, self._nd))
         self._pool_used = np.zeros(2, np.int64)
         self._work = np.zeros(2, np.int64)
         self._counter = 0  # next elimination position
@@ -316,7 +344,7 @@ class IncrementalExact:
         src = np.repeat(self._col_start[:n], lens) + offs
         dst = np.repeat(new_start, lens) + offs
         row_var = np.zeros(cap, np.int64)
-        row_blk = np.zeros((cap, 6, 6))
+        row_blk = np.zeros((cap, self._nd, self._nd))
         row_var[dst] = self._row_var[src]
         row_blk[dst] = self._row_blk[src]
         self._row_var, self._row_blk = row_var, row_blk
@@ -363,6 +391,8 @@ class IncrementalExact:
             raise ValueError("a parent must be an earlier pose (or -1)")
         if not (np.all(np.isfinite(rot)) and np.all(np.isfinite(trans))):
             raise ValueError("poses must be finite")
+        if self._nd == 3 and not planar_motions(rot, trans):
+            self._planar_lost = True
         self._grow_poses(self._n + k)
         n = self._n
         self._rel_r[n: n + k] = rot
@@ -386,6 +416,8 @@ class IncrementalExact:
                   or np.any(ia == ib)):
             raise ValueError("edges must join two different poses already added")
         _check_measurements(rot, trans, info, "edge")
+        if self._nd == 3 and not (planar_motions(rot, trans) and decoupled_information(info)):
+            self._planar_lost = True
         self._grow_edges(self._m + k)
         m = self._m
         self._ab[m: m + k, 0] = ia
@@ -405,6 +437,8 @@ class IncrementalExact:
         if k and (nd.min() < 0 or nd.max() >= self._n):
             raise ValueError("GPS readings must be on poses already added")
         _check_measurements(None, pos, info, "GPS reading")
+        if k:
+            self._planar_lost = self._nd == 3
         self._grow_gps(self._g + k)
         g = self._g
         self._gnode[g: g + k] = nd
@@ -535,6 +569,13 @@ class IncrementalExact:
         m0, m1 = self._m_in, self._m
         g0, g1 = self._g_in, self._g
         stamp = self._stamp + 1
+        # the full system from now on: every constraint linearized again and every column
+        # re-eliminated (the solver's steps so far have no out-of-plane part)
+        full = np.zeros(0, np.int64)
+        if self._planar_lost and self._nd == 3:
+            self._nd, self._perm = 6, np.arange(6)
+            self._row_blk = np.zeros((self._pool_cap, 6, 6))
+            full = np.arange(n0)
         # 1. new poses and constraints
         if n1 > n0:
             ik.place_poses(n0, n1, self._ref, self._rel_r, self._rel_t, self._est_r,
@@ -561,7 +602,8 @@ class IncrementalExact:
                                self._th_r, self._th_t, self._x, self._est_r, self._est_t, out)
             relin = out[:k]
             self._relin_cands = np.zeros(0, np.int64)
-        if n1 == n0 and m1 == m0 and g1 == g0 and relin.size == 0 and freed.size == 0:
+        if (n1 == n0 and m1 == m0 and g1 == g0 and relin.size == 0 and freed.size == 0
+                and full.size == 0):
             return False
         self._stamp = stamp
         # 3. the constraints to linearize: the new ones and those of relinearized poses
@@ -573,7 +615,7 @@ class IncrementalExact:
         self._e_stamp[m0:m1] = stamp
         self._g_stamp[g0:g1] = stamp
         cnt[:] = (m1 - m0, g1 - g0)
-        touch = np.concatenate([relin, freed])
+        touch = np.concatenate([relin, freed, full])
         ik.incident_factors(touch, self._inc_head, self._inc_next, self._gps_head,
                             self._gps_next, self._e_stamp, self._g_stamp, stamp, e_ids, g_ids,
                             cnt)
@@ -693,7 +735,7 @@ class IncrementalExact:
                        self._haa, self._hbb, self._hab, self._ga, self._gb, self._hgg,
                        self._gg, self._parent, self._col_start, self._col_len, self._row_var,
                        self._row_blk, self._diag, self._y, self._slot, self._walk, 0.0,
-                       self._work)
+                       self._nd, self._perm, self._work)
         self.stats["applied"] += int(self._work[0])
         self.stats["products"] += int(self._work[1])
         self._work[:] = 0
@@ -716,7 +758,7 @@ class IncrementalExact:
                                   self._changed, self.config.wildfire, self._ch_head,
                                   self._ch_next, self._col_start, self._col_len,
                                   self._row_var, self._row_blk, self._diag, self._y, self._x,
-                                  self._touched, self._n_touched)
+                                  self._touched, self._n_touched, self._nd, self._perm)
         if not done:
             return
         touched = self._touched[: int(self._n_touched[0])].copy()
