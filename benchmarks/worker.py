@@ -2,7 +2,7 @@
 solution against the one that skips what moved by rounding only (the worker's option), and the
 planar system (3x3 blocks, the default on planar data) against the full one (6x6 blocks).
 
-Run: ``PYTHONPATH=src python -m benchmarks --only worker --run <name>`` (about 4 minutes).
+Run: ``PYTHONPATH=src python -m benchmarks --only worker --run <name>`` (about 8 minutes).
 
 Each graph is streamed as the online solver's worker receives it: frame by frame (a pose and
 its odometry, then the frame's loop closures), one :meth:`IncrementalExact.solve` without the
@@ -25,7 +25,9 @@ planar data).
   between the rounding and full ones.
 
 Graphs: the valencia city preset (all 15 031 frames) and paris2's first 12 000 frames
-(:func:`hybridpgo.generate.generate_city`, seed 0).
+(:func:`hybridpgo.generate.generate_city`, seed 0; both 3D, so the planar system is left at
+their first frames), and grid10k's first 4 000 frames (:func:`hybridpgo.generate.generate_grid`,
+seed 0, 10 000 poses; planar).
 """
 
 from __future__ import annotations
@@ -43,7 +45,8 @@ from .context import Context, Result
 from .metrics import Metric, info, markdown_table, quality, timing
 
 #: Frames streamed per graph (None: all).
-GRAPHS: tuple[tuple[str, int | None], ...] = (("valencia", None), ("paris2", 12_000))
+GRAPHS: tuple[tuple[str, int | None], ...] = (("valencia", None), ("paris2", 12_000),
+                                               ("grid10k", 4_000))
 #: Frames between two comparisons of the estimates.
 EVERY = 500
 MODES: tuple[tuple[str, dict[str, Any]], ...] = (
@@ -70,9 +73,11 @@ def _feed(inc: IncrementalExact, stream: Any, rank: np.ndarray, k: int) -> int:
 
 
 def _one(name: str, frames: int | None) -> tuple[list[Metric], list[Any]]:
-    from hybridpgo.generate import generate_city
+    from hybridpgo.generate import generate_city, generate_grid
 
-    stream = make_stream(generate_city(name, seed=0).graph)
+    graph = (generate_grid(seed=0, num_poses=10_000).graph if name == "grid10k"
+             else generate_city(name, seed=0).graph)
+    stream = make_stream(graph)
     g = stream.graph
     rank = np.empty(g.num_nodes, np.int64)
     rank[stream.order] = np.arange(g.num_nodes)

@@ -437,8 +437,8 @@ class IncrementalExact:
         if k and (nd.min() < 0 or nd.max() >= self._n):
             raise ValueError("GPS readings must be on poses already added")
         _check_measurements(None, pos, info, "GPS reading")
-        if k:
-            self._planar_lost = self._nd == 3
+        if k and self._nd == 3:
+            self._planar_lost = True
         self._grow_gps(self._g + k)
         g = self._g
         self._gnode[g: g + k] = nd
