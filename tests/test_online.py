@@ -1525,29 +1525,6 @@ def test_background_worker_answers_after_one_cycle_once_its_cycles_are_slow(
     assert meta["incremental"] and abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
 
 
-@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
-def test_a_request_stopped_inside_a_cycle_adds_its_time_to_the_next_sample(
-        data_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A request stopped by SOLVE_CAP_S before its first cycle ended answers with the estimate
-    it started from; its time is carried to the next request, whose sample for the choice of
-    LM is the time to a new estimate (so a cycle longer than the cap can be timed past it)."""
-    from hybridpgo.online import worker
-
-    mp, _ = _w100_worker_map(data_dir)
-    mp.warmup, mp.min_poses, mp.slow_s = 0, 0, np.inf
-    monkeypatch.setattr(worker, "SOLVE_CAP_S", 0.0)
-    _, meta = mp.solve(50)
-    assert meta["incremental"] and meta["status"] == "max_time" and meta["iterations"] == 0
-    carried = mp._unanswered_s
-    assert carried > 0.0 and mp.inc_seconds == carried and not mp._measure_lm
-    monkeypatch.setattr(worker, "SOLVE_CAP_S", 60.0)
-    mp.slow_s = carried  # slow only with the stopped request's time counted
-    _, meta = mp.solve(50)
-    assert meta["incremental"] and meta["iterations"] >= 1
-    assert mp._unanswered_s == 0.0 and mp._measure_lm
-    assert mp.inc_seconds >= carried
-
-
 @pytest.mark.parametrize("robust", [("none", None), ("auto", None), ("huber", 1.0)])
 def test_the_worker_warms_up_every_path_a_request_can_take(
         robust: tuple[str, float | None]) -> None:

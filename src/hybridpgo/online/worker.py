@@ -570,10 +570,6 @@ class _Map:
         self._lm_timed = (np.nan, 0)
         #: requests answered by the current incremental solver
         self._inc_answers = 0
-        #: seconds of the incremental requests since the last one that completed an update
-        #: cycle (a request stopped by :data:`SOLVE_CAP_S` inside a cycle answers with the
-        #: estimate it started from; the cycle resumes at the next request)
-        self._unanswered_s = 0.0
         #: (poses, edges, GPS readings) of the map at the last request solved
         self._solved = (-1, -1, -1)
         #: the last committed evaluation of E (:meth:`_evaluate`): the poses of its first
@@ -733,12 +729,8 @@ class _Map:
                 self.gtr = self._append(self.gtr, 1, trans)
                 self._commit(change)
                 held = (self._held(self.keep_m[:m], m_est), self._held(self.keep_g[:g], g_est))
+                took = time.perf_counter() - t0
                 self._inc_answers += 1
-                # the time to a new estimate: a request stopped by the cap inside a cycle
-                # answers with the old one, so its time adds to the next request's sample
-                # (else a cycle longer than SOLVE_CAP_S could never be timed past the cap)
-                took = self._unanswered_s + time.perf_counter() - t0
-                self._unanswered_s = took if iterations == 0 and status == "max_time" else 0.0
                 # a request stopped after its first cycles (MORE_CYCLES_S) did part of its
                 # work: its time is no sample of what a request costs against LM
                 if (self._inc_answers > self.warmup and n >= self.min_poses
@@ -1005,7 +997,6 @@ class _Map:
         n = self.n
         e, k = self._kept()
         self._inc_answers = 0
-        self._unanswered_s = 0.0
         inc = IncrementalExact(IncrementalConfig(**INCREMENTAL))  # type: ignore[arg-type]
         inc.add_poses(self.grot[1: n + 1], self.gtr[1: n + 1])  # global poses
         ab = self.edge_ab[e]
