@@ -27,7 +27,8 @@ revisits (:func:`hybridpgo.generate.generate_grid`).  Ratios floor both energies
 ``replay.ENERGY_FLOOR`` (1e-6): a prefix without a loop closure has the optimum 0 up to rounding.
 
 Targets (B = 5 ms): back to back every frame <= B + 1 ms CPU, worst checkpoint <= 1.05x the
-prefix optimum, end <= 1.001x within 10 extra frames; at 10 Hz worst checkpoint <= 1.01x;
+prefix optimum, end <= 1.001x within 10 extra frames; at 10 Hz worst checkpoint <= 1.01x and
+every frame <= B + 1 ms CPU;
 beside iSAM2 our CPU max >= 10x below its max and our ratio within 1% of its at every
 checkpoint.  The second table checks them per graph.
 """
@@ -171,9 +172,12 @@ def _targets(name: str, runs: dict[str, ReplayResult], optima: dict[int, float]
     if rate is not None:
         rs = rate.summary(optima)
         rcpu = float(rate.cpu_s.max() * 1e3)
-        ok = "ok" if rs["energy_ratio_max"] <= 1.01 else "MISS"
-        row.append(f"{rs['energy_ratio_max']:.4g} {ok} (frames 1-{rate.latency_s.shape[0]}, "
-                   f"CPU max {rcpu:.1f})")
+        # both promises at the rate too: the accuracy and the frame's CPU bound
+        ok = "ok" if rs["energy_ratio_max"] <= 1.01 and rcpu <= limit_ms else "MISS"
+        row.append(f"{rs['energy_ratio_max']:.4g}, CPU max {rcpu:.1f} {ok} "
+                   f"(frames 1-{rate.latency_s.shape[0]})")
+        out += [info(f"online.{name}.target.rate_cpu_ms_max", rcpu, "ms"),
+                info(f"online.{name}.target.rate_ratio_max", rs["energy_ratio_max"])]
     else:
         row.append("-")
     # "isam2", or "isam2 (stopped at frame F)" when ISAM2_MAX_S cut it short
@@ -295,7 +299,8 @@ def run(ctx: Context) -> Result:
         markdown_table(
             "Targets with the default configuration (hybridpgo+background), B = 5 ms",
             ["graph", "back to back: CPU max <= 6 ms", "worst E/opt <= 1.05",
-             "end within 10 extra frames <= 1.001", f"{RATE_HZ:g} Hz: worst E/opt <= 1.01",
+             "end within 10 extra frames <= 1.001",
+             f"{RATE_HZ:g} Hz: worst E/opt <= 1.01 and CPU max <= 6 ms",
              "iSAM2 CPU max / ours >= 10", "ours / iSAM2 E at every checkpoint <= 1.01"],
             target_rows,
         ),

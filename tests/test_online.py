@@ -1523,6 +1523,19 @@ def test_background_worker_answers_after_one_cycle_once_its_cycles_are_slow(
         mp._measure_lm = False  # (the LM measurement is another test's)
     _, meta = mp.solve(50)
     assert meta["incremental"] and abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
+    # a new pose on its exact odometry: one cycle does all the work, which the request
+    # finds ("converged", a sample of a request's cost) whatever the bound
+    n = mp.n
+    step = np.array([[1.0, 0.0, 0.0]])
+    mp.add({"parent": np.array([n], np.int32), "rot": np.eye(3)[None], "trans": step,
+            "edge_ab": np.array([[n - 1, n]], np.int32), "edge_rot": np.eye(3)[None],
+            "edge_trans": step, "edge_info": np.eye(6)[None],
+            "gps_node": np.zeros(0, np.int32), "gps_pos": np.zeros((0, 3)),
+            "gps_info": np.zeros((0, 3, 3))})
+    mp._measure_lm, mp.inc_seconds = False, np.nan
+    _, meta = mp.solve(50)
+    assert meta["incremental"] and meta["status"] == "converged" and meta["iterations"] == 1
+    assert np.isfinite(mp.inc_seconds) and abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
 
 
 @pytest.mark.parametrize("robust", [("none", None), ("auto", None), ("huber", 1.0)])
@@ -1556,5 +1569,31 @@ def test_the_worker_warms_up_every_path_a_request_can_take(
     if robust[0] in ("none", "auto"):
         assert mp.inc is not None and calls.get("incremental", 0) >= 2, calls
         assert mp.resets == 0 and mp.fallback == "", mp.fallback
-    if robust[0] == "auto":
-        assert mp.rescreens >= 1 and not mp.keep_m[4]  # the false closure: tested, rejected
+    if robust[0] == "auto":  # the false closure, the last edge: tested, rejected
+        assert mp.rescreens >= 1 and not mp.keep_m[mp.m - 1] and mp.keep_m[: mp.m - 1].all()
+
+
+def test_the_worker_warm_up_loads_every_kernel_of_the_incremental_solver() -> None:
+    """Every kernel the incremental solver calls is loaded by the warm-up, the AMD ordering of
+    a re-eliminated set and the relinearization included, even when the request's time cap
+    would stop a cycle at once (as a cold cache's compilation does): in a fresh process, so
+    that no other test has loaded them."""
+    import re
+    import subprocess
+    import sys
+
+    from hybridpgo.online import incremental
+
+    called = sorted(set(re.findall(r"\bik\.([a-z]\w*)\(",
+                                   Path(incremental.__file__).read_text())))
+    assert {"numeric", "back_substitute", "reduced_pattern", "relinearize"} <= set(called)
+    program = (
+        "import hybridpgo.online._incremental_kernels as ik\n"
+        "from hybridpgo.online import worker\n"
+        "worker.SOLVE_CAP_S = 0.0\n"
+        "mp = worker.warm_up(('none', None))\n"
+        "assert mp.inc is not None and mp.resets == 0, mp.fallback\n"
+        f"print(' '.join(k for k in {called!r} if not getattr(ik, k).signatures))\n")
+    out = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True,
+                         timeout=600, check=True)
+    assert out.stdout.split() == [], f"not loaded by the warm-up: {out.stdout}"

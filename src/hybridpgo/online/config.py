@@ -108,9 +108,9 @@ class OnlineConfig(RobustOptions):
     depend on timing); K > 0 is the deterministic mode: every K-th update ships the map and
     asks for its optimum, and the update K frames later waits for that answer (however long
     the solve takes) and adopts it, so runs are reproducible as long as the worker's requests
-    stay within its time bounds (a request with new data stops starting update cycles after
-    50 ms, any request at 1 s, and a request that slow has LM measured: past those, what an
-    answer holds depends on the machine's speed)."""
+    stay within its time bounds (a request stops at 1 s, and one of 0.25 s has LM measured:
+    past those, what an answer holds depends on the machine's speed; a request with new data
+    makes one update cycle)."""
     background_tail_only: bool = False
     """With ``background_refine``: once a result has been adopted, spare-time updates go only
     to the constraints added after its snapshot (the adopted optimum is not perturbed by the

@@ -505,7 +505,8 @@ class IncrementalExact:
     def solve(self, budget_s: float | None = None, max_cycles: int | None = None,
               polish: bool = True) -> bool:
         """Run update cycles until converged, ``budget_s`` seconds have passed, or
-        ``max_cycles`` cycles were completed; resumable.
+        ``max_cycles`` cycles were completed; resumable.  ``budget_s`` None or inf: no
+        deadline.
 
         Returns True when it found nothing left to do: everything added is integrated and no
         pose's step exceeds the relinearization thresholds (with ``polish``, the polish
@@ -513,7 +514,7 @@ class IncrementalExact:
         polish stay listed for a later call's).
         """
         c0 = int(read_cycles())
-        deadline = (_NO_DEADLINE if budget_s is None
+        deadline = (_NO_DEADLINE if budget_s is None or budget_s == np.inf
                     else np.uint64(c0 + int(max(budget_s, 0.0) * cycles_per_second())))
         done = 0
         sec = self.stats["seconds"]

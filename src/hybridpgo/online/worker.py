@@ -433,17 +433,25 @@ SCREEN_SHARE = 0.2
 SOLVE_CAP_S = 1.0
 #: A request that brings new data starts no further update cycle once this many seconds
 #: passed since its first began: its answer goes back, and the relinearization left is done
-#: by the next request's first cycle together with that request's new data (one cycle per
-#: request where cycles are slow, as iSAM2 makes one per update).  On a city each cycle after a
-#: loop closure re-eliminates most of the map (paris2 at 32 000 poses: 0.25-0.5 s per cycle,
-#: 2-3 cycles per request): answering after the first halves the time to an answer, and the
-#: map was solved as many times.  Such a request is not timed for the choice between the
-#: incremental solver and LM (:func:`prefer_lm`), which compares LM's solve of the whole map
-#: with requests that did all their work (grid10k streamed back to back with the one-cycle
-#: requests timed: the map stayed with the incremental solver, whose cycles grew past the
-#: 1 s cap, and ended 1.39x the optimum 10 frames after the stream; a warm LM solve of that
-#: map takes about 0.3 s).
-MORE_CYCLES_S = 0.05
+#: by the next request's first cycle together with that request's new data.  0: one cycle
+#: per request with new data, as iSAM2 makes one per update.  The first cycle after a loop
+#: closure is a Gauss-Newton step of the whole map from its last linearization, which takes
+#: the estimate most of the way, in a fraction of the time of all the cycles (valencia's
+#: 2 936-pose loop at frame 8 497: one cycle 9.2 ms and 1.0001x the prefix optimum, both
+#: cycles 18.1 ms; paris2 at 32 000 poses: 0.25-0.5 s per cycle, 2-3 cycles per request).
+#: valencia streamed back to back, two runs each: the checkpoint 3 frames after that loop
+#: 1.0001x and 3.66x with one cycle (the answer came before the checkpoint, or just after
+#: it), 3.56x and 3.55x with cycles up to 50 ms; the checkpoint at 6 500 1.011-1.012x
+#: against 1.04-1.06x.  paris2, one run each: worst checkpoint 1.019x against 1.044x;
+#: M3500_isam 1.0005-1.0006x against 1.0005-1.004x; grid10k 1.076x against 1.048x (its
+#: cycles take longer than 50 ms from some 5 000 poses on, where the two are the same, and
+#: its worst checkpoint moves by more than that between runs).  A request stopped this way
+#: is not timed for the choice between the incremental solver and LM (:func:`prefer_lm`),
+#: which compares LM's solve of the whole map with requests that did all their work
+#: (grid10k streamed back to back with the one-cycle requests timed: the map stayed with the
+#: incremental solver, whose cycles grew past the 1 s cap, and ended 1.39x the optimum 10
+#: frames after the stream; a warm LM solve of that map takes about 0.3 s).
+MORE_CYCLES_S = 0.0
 #: Seconds of one slice of the polish of a request without new data, between which the
 #: worker looks for new messages: new data stops the polish (its request is answered with the
 #: new data's solve instead), so that an idle map's polish (valencia: up to 0.15 s) never
@@ -492,6 +500,9 @@ LM_MIN_POSES = 1000
 #: share of the incremental requests' moving average measured before it chose LM (LM's cost
 #: grows with the map; an incremental request's with the part of it a request re-eliminates).
 LM_RETURN_SHARE = 1.0
+#: Poses of the map :func:`warm_up` solves: more than the smallest set the incremental solver
+#: orders by AMD (``incremental._AMD_MIN``), so that the ordering's kernels load too.
+WARM_UP_POSES = 10
 
 
 def prefer_lm(incremental_s: float, lm_s: float, with_lm: bool = False) -> bool:
@@ -563,6 +574,8 @@ class _Map:
         self.slow_s = SLOW_INCREMENTAL_S
         #: a request with new data starts no cycle past this many seconds (:meth:`_cycles`)
         self.more_cycles_s = MORE_CYCLES_S
+        #: an incremental request stops after this many seconds (:data:`SOLVE_CAP_S`)
+        self.cap_s = SOLVE_CAP_S
         self.warmup = INCREMENTAL_WARMUP
         self.min_poses = LM_MIN_POSES
         #: the last measuring LM solve's (or with LM, the last LM solve's) seconds and poses
@@ -701,11 +714,11 @@ class _Map:
                 # the polish only for a request that brings nothing new, or a thorough one
                 # (OnlineSolver.join_refine: the optimum of everything); see INCREMENTAL
                 polish = thorough or (n, m, g) == self._solved
-                end = t0 + SOLVE_CAP_S
+                end = t0 + self.cap_s
                 if polish and not thorough and interrupted is not None:
                     status = self._polish(interrupted)
                 elif polish:
-                    if not self.inc.solve(SOLVE_CAP_S, polish=True):
+                    if not self.inc.solve(self.cap_s, polish=True):
                         status = "max_time"
                 else:
                     status = self._cycles(end)
@@ -808,7 +821,9 @@ class _Map:
         ``end`` (perf_counter seconds; ``"max_time"``), or until a cycle ends past
         :attr:`more_cycles_s` (:data:`MORE_CYCLES_S`) since the first began (``"cycles"``:
         the relinearization left goes into the next request's first cycle, with its new
-        data)."""
+        data).  A cycle that leaves nothing to relinearize is ``"converged"`` either way:
+        looking starts the next cycle's work, which stops at once (a deadline of 0) and
+        which the next request resumes."""
         assert self.inc is not None
         t0 = time.perf_counter()
         while True:
@@ -820,14 +835,14 @@ class _Map:
             if now >= end or int(self.inc.stats["cycles"]) == done:  # stopped inside a cycle
                 return "max_time"
             if now - t0 >= self.more_cycles_s:
-                return "cycles"
+                return "converged" if self.inc.solve(0.0, polish=False) else "cycles"
 
     def _polish(self, interrupted: Callable[[], bool]) -> str:
         """The incremental solve with the polish, in slices of :data:`POLISH_SLICE_S`, until
         converged (``"converged"``), ``interrupted()`` (``"interrupted"``) or
         :data:`SOLVE_CAP_S` (``"max_time"``)."""
         assert self.inc is not None
-        end = time.perf_counter() + SOLVE_CAP_S
+        end = time.perf_counter() + self.cap_s
         while not self.inc.solve(POLISH_SLICE_S, polish=True):
             if interrupted():
                 return "interrupted"
@@ -1029,38 +1044,50 @@ class _Map:
 def warm_up(robust: tuple[str, float | None]) -> _Map:
     """Answer requests of a tiny map through every path a request can take, so that each
     kernel is loaded from Numba's cache (or compiled into it) before the worker says it is
-    ready: the incremental solve, LM in the plane (``is_2d``), the gauge switch to three GPS
-    readings (LM in 3D, a new incremental solver), and with ``robust="auto"`` the outlier
-    test and the robust re-solve of a map with a false closure.  A kernel first needed in
-    the middle of a stream holds the answers back while it loads or compiles (from a cold
-    cache, seconds per kernel).  Returns the tiny map."""
-    quarter = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # Rz(90°)
+    ready: the incremental solve (a set of :data:`WARM_UP_POSES` new poses, which the solver
+    orders by AMD, and the cycles after it, which relinearize), LM in the plane (``is_2d``),
+    the gauge switch to three GPS readings (LM in 3D, a new incremental solver), and with
+    ``robust="auto"`` the outlier test and the robust re-solve of a map with a false closure.
+    A kernel first needed in the middle of a stream holds the answers back while it loads or
+    compiles (from a cold cache, seconds per kernel).  The requests here have no time cap
+    and run every cycle (:attr:`_Map.cap_s`, :attr:`_Map.more_cycles_s`): on a cold cache
+    the first cycle's compilation takes longer than :data:`SOLVE_CAP_S`, and a cycle stopped
+    there would leave the kernels of its later phases for the first requests of the stream.
+    Returns the tiny map."""
+    from ..geometry.so3 import exp as so3_exp
+
+    k = WARM_UP_POSES
+    turn = so3_exp(np.array([0.0, 0.0, 2.0 * np.pi / k]))
     step = np.array([1.0, 0.0, 0.0])
-    # a unit square driven with a quarter turn per side, closed: every measurement is
-    # (Rz(90°), (1, 0, 0)); the first pose hangs from the earth at the origin
-    rot = np.stack([np.eye(3), quarter, quarter, quarter])
-    trans = np.stack([np.zeros(3), step, step, step])
+    # a regular k-gon driven with a turn of 2 pi / k per side, closed: every measurement is
+    # (turn, step); the first pose hangs from the earth at the origin
+    rot = np.concatenate([np.eye(3)[None], np.tile(turn, (k - 1, 1, 1))])
+    trans = np.concatenate([np.zeros((1, 3)), np.tile(step, (k - 1, 1))])
+    ring = np.arange(k, dtype=np.int32)
     mp = _Map(robust)
-    mp.add({"parent": np.arange(4, dtype=np.int32), "rot": rot, "trans": trans,
-            "edge_ab": np.array([[0, 1], [1, 2], [2, 3], [3, 0]], np.int32),
-            "edge_rot": np.tile(quarter, (4, 1, 1)), "edge_trans": np.tile(step, (4, 1)),
-            "edge_info": np.tile(np.eye(6), (4, 1, 1)), "gps_node": np.zeros(0, np.int32),
+    mp.cap_s = mp.more_cycles_s = np.inf
+    mp.add({"parent": ring, "rot": rot, "trans": trans,
+            "edge_ab": np.stack([ring, np.roll(ring, -1)], axis=1),
+            "edge_rot": np.tile(turn, (k, 1, 1)), "edge_trans": np.tile(step, (k, 1)),
+            "edge_info": np.tile(np.eye(6), (k, 1, 1)), "gps_node": np.zeros(0, np.int32),
             "gps_pos": np.zeros((0, 3)), "gps_info": np.zeros((0, 3, 3))})
     mp.solve(5)  # incremental (a robust kernel: LM); "auto": the outlier test
     mp._measure_lm = True
     mp.solve(5)  # LM on the planar map, then a new incremental solver at its optimum
-    # three GPS readings: the gauge switch; with "auto" also a false closure across the
-    # square (its rotation right, its translation 40 m off) for the test to reject
+    # three GPS readings at the first three poses: the gauge switch; with "auto" also a
+    # false closure across the polygon (its rotation right, its translation 40 m off) for
+    # the test to reject
     bad = int(mp.auto)
+    half = k // 2
     mp.add({"parent": np.zeros(0, np.int32), "rot": np.zeros((0, 3, 3)),
             "trans": np.zeros((0, 3)),
-            "edge_ab": np.array([[0, 2]] * bad, np.int32).reshape(-1, 2),
-            "edge_rot": np.tile(quarter @ quarter, (bad, 1, 1)),
+            "edge_ab": np.array([[0, half]] * bad, np.int32).reshape(-1, 2),
+            "edge_rot": np.tile(np.linalg.matrix_power(turn, half), (bad, 1, 1)),
             "edge_trans": np.tile([40.0, 0.0, 0.0], (bad, 1)),
             "edge_info": np.tile(np.eye(6), (bad, 1, 1)),
-            "gps_node": np.arange(3, dtype=np.int32),
-            "gps_pos": np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0]]),
-            "gps_info": np.tile(np.eye(3), (3, 1, 1))})
+            "gps_node": np.arange(GPS_GAUGE, dtype=np.int32),
+            "gps_pos": mp.gtr[1: GPS_GAUGE + 1].copy(),
+            "gps_info": np.tile(np.eye(3), (GPS_GAUGE, 1, 1))})
     mp.solve(5, thorough=True)  # LM in 3D with GPS; "auto": the test, the robust re-solve
     mp.solve(5)  # the incremental solver on the earth's gauge
     return mp
