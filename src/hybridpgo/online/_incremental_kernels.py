@@ -389,7 +389,7 @@ def symbolic(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarr
 
 # --------------------------------------------------------------------------- numeric
 @kernel
-def _chol6(d: np.ndarray, nd: int) -> bool:
+def _chol_block(d: np.ndarray, nd: int) -> bool:
     """In-place lower Cholesky of the leading (nd, nd) part of a (6, 6) block, the rest the
     identity (upper part zeroed); False: not SPD."""
     for c in range(nd):
@@ -405,9 +405,9 @@ def _chol6(d: np.ndarray, nd: int) -> bool:
             for t in range(c):
                 s2 -= d[r, t] * d[c, t]
             d[r, c] = s2 / lc
-    for c in range(6):
+    for c in range(6):  # keep the diagonal and the factor below it in the leading part
         for r in range(6):
-            if r < c or (c >= nd and r > c) or (r >= nd and c < nd):
+            if r != c and not c < r < nd:
                 d[r, c] = 0.0
         if c >= nd:
             d[c, c] = 1.0
@@ -566,7 +566,7 @@ def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarra
         for a in range(nd):
             for c in range(a):
                 d[c, a] = d[a, c]
-        if not _chol6(d, nd):
+        if not _chol_block(d, nd):
             return NOT_SPD
         for a in range(6):
             for c in range(6):
