@@ -36,8 +36,7 @@ The third table measures the machine itself in the same run, before the first gr
 the last: a fixed amount of arithmetic, sized to take the budget (5 ms) of one thread's CPU
 time at the median, repeated back to back for ``NOISE_S`` seconds with nothing else running in
 the process.  Its largest CPU time says how far the machine alone stretches a frame's worth
-of work (a shared virtual machine charges a thread for time it did not compute in: interrupts,
-a host that slows the core).
+of work (on a shared virtual machine the same work takes more CPU time at times).
 """
 
 from __future__ import annotations
