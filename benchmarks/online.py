@@ -132,14 +132,10 @@ def machine_noise(seconds: float, budget_s: float = BUDGET_S) -> dict[str, float
             "over": float(np.count_nonzero(ms > (budget_s + 1e-3) * 1e3))}
 
 
-def _noise_seconds() -> float:
-    raw = os.environ.get(NOISE_ENV, "")
-    return float(raw) if raw else NOISE_S
-
-
-def _isam2_max_s() -> float:
-    raw = os.environ.get(ISAM2_ENV, "")
-    return float(raw) if raw else ISAM2_MAX_S
+def _env_seconds(name: str, default: float) -> float:
+    """Seconds from the environment variable ``name`` (unset or empty: ``default``)."""
+    raw = os.environ.get(name, "")
+    return float(raw) if raw else default
 
 
 def _rate_frames(num_frames: int) -> int:
@@ -267,7 +263,7 @@ def run(ctx: Context) -> Result:
     rows = []
     target_rows = []
     noise_rows = []
-    noise_s = _noise_seconds()
+    noise_s = _env_seconds(NOISE_ENV, NOISE_S)
 
     def noise(when: str) -> None:
         if noise_s <= 0:
@@ -303,7 +299,7 @@ def run(ctx: Context) -> Result:
         at_rate.name += f"@{RATE_HZ:g}Hz"
         runs.append(at_rate)
         print(f"    {name}: background at {RATE_HZ:g} Hz done ({nr} frames)", flush=True)
-        isam2_s = _isam2_max_s()
+        isam2_s = _env_seconds(ISAM2_ENV, ISAM2_MAX_S)
         if isam2_s > 0 and gtsam_available() and not (graph.is_2d and graph.num_gps):
             try:
                 runs.append(replay_isam2(stream, checkpoints=frames, extra_frames=ISAM2_EXTRA,

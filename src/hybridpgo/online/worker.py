@@ -840,7 +840,7 @@ class _Map:
     def _polish(self, interrupted: Callable[[], bool]) -> str:
         """The incremental solve with the polish, in slices of :data:`POLISH_SLICE_S`, until
         converged (``"converged"``), ``interrupted()`` (``"interrupted"``) or
-        :data:`SOLVE_CAP_S` (``"max_time"``)."""
+        :attr:`cap_s` (:data:`SOLVE_CAP_S`; ``"max_time"``)."""
         assert self.inc is not None
         end = time.perf_counter() + self.cap_s
         while not self.inc.solve(POLISH_SLICE_S, polish=True):
