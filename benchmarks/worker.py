@@ -24,6 +24,15 @@ planar data).
   every 500th frame and the last; ``full_energy_rel_diff_max``, ``full_position_diff_max``:
   between the rounding and full ones.
 
+Requests on a large map (``worker.large.*``): paris2 streamed in requests of
+:data:`LARGE_STEP` frames (one update cycle each, no polish: a worker request whose cycle
+budget is one cycle) up to :data:`LARGE_FRAMES` frames, then :data:`LARGE_TIMED` requests
+timed: ``ms_median`` / ``ms_max`` per request, ``numeric_ms_median`` (the factorization),
+``columns_mean`` (columns re-eliminated), ``applied_mean`` (updates of one column by an
+earlier one) and ``blocks_read_mean`` (blocks read by those updates: the factorization's
+work, independent of the machine).  ``HYBRIDPGO_BENCH_WORKER_PARTS``: ``requests``,
+``large`` or both (the default, comma-separated).
+
 Graphs: the valencia city preset (all 15 031 frames) and paris2's first 12 000 frames
 (:func:`hybridpgo.generate.generate_city`, seed 0; both 3D, so the planar system is left at
 their first frames), and grid10k's first 4 000 frames (:func:`hybridpgo.generate.generate_grid`,
@@ -32,6 +41,7 @@ seed 0, 10 000 poses; planar).
 
 from __future__ import annotations
 
+import os
 import time
 from typing import Any
 
@@ -54,6 +64,11 @@ MODES: tuple[tuple[str, dict[str, Any]], ...] = (
     ("full", {"wildfire": ROUNDING_WILDFIRE, "planar": False}))
 #: Frames a third solver takes before the timing, so that no request pays a compilation.
 WARM_UP = 300
+#: Requests on a large map: paris2's frames per request, frames before the timing, requests
+#: timed.
+LARGE_STEP = 90
+LARGE_FRAMES = 39_420
+LARGE_TIMED = 5
 
 
 def _feed(inc: IncrementalExact, stream: Any, rank: np.ndarray, k: int) -> int:
@@ -135,9 +150,66 @@ def _one(name: str, frames: int | None) -> tuple[list[Metric], list[Any]]:
     return metrics, rows
 
 
+def _large() -> tuple[list[Metric], str]:
+    """Requests of :data:`LARGE_STEP` frames on paris2 grown to :data:`LARGE_FRAMES` frames
+    (module doc)."""
+    from hybridpgo.generate import generate_city
+
+    stream = make_stream(generate_city("paris2", seed=0).graph)
+    g = stream.graph
+    rank = np.empty(g.num_nodes, np.int64)
+    rank[stream.order] = np.arange(g.num_nodes)
+    inc = IncrementalExact(IncrementalConfig(**INCREMENTAL))  # type: ignore[arg-type]
+    k = 0
+
+    def request() -> None:
+        nonlocal k
+        for _ in range(LARGE_STEP):
+            _feed(inc, stream, rank, k)
+            k += 1
+        inc.solve(max_cycles=1, polish=False)
+
+    while k + LARGE_STEP <= LARGE_FRAMES:
+        request()
+    keys = ("columns", "applied", "products")
+    sec, num, work = [], [], []
+    for _ in range(LARGE_TIMED):
+        before = [inc.stats[q] for q in keys]
+        n0 = inc.stats["seconds"]["numeric"]
+        t0 = time.perf_counter()
+        request()
+        sec.append(time.perf_counter() - t0)
+        num.append(inc.stats["seconds"]["numeric"] - n0)
+        work.append([inc.stats[q] - b for q, b in zip(keys, before, strict=True)])
+    w = np.mean(np.array(work, float), axis=0)
+    vals = (float(np.median(sec) * 1e3), float(np.max(sec) * 1e3), float(np.median(num) * 1e3))
+    metrics = [timing("worker.large.ms_median", vals[0], "ms"),
+               timing("worker.large.ms_max", vals[1], "ms"),
+               timing("worker.large.numeric_ms_median", vals[2], "ms"),
+               info("worker.large.columns_mean", float(w[0])),
+               info("worker.large.applied_mean", float(w[1])),
+               info("worker.large.blocks_read_mean", float(w[2]))]
+    table = markdown_table(
+        f"Requests on a large map: paris2 in requests of {LARGE_STEP} frames (one cycle, no "
+        f"polish), {LARGE_TIMED} requests timed after {k - LARGE_TIMED * LARGE_STEP} frames",
+        ["request ms (median / max)", "factorization ms (median)", "columns", "column updates",
+         "blocks read"],
+        [[f"{vals[0]:.1f} / {vals[1]:.1f}", f"{vals[2]:.1f}", f"{w[0]:.0f}", f"{w[1]:.0f}",
+          f"{w[2]:.0f}"]])
+    return metrics, table
+
+
 def run(ctx: Context) -> Result:
+    parts = os.environ.get("HYBRIDPGO_BENCH_WORKER_PARTS", "requests,large").split(",")
     metrics: list[Metric] = []
     rows: list[Any] = []
+    tables = []
+    if "large" in parts:
+        m, t = _large()
+        metrics += m
+        tables.append(t)
+    if "requests" not in parts:
+        return metrics, tables
     for name, frames in GRAPHS:
         m, r = _one(name, frames)
         metrics += m
@@ -151,4 +223,4 @@ def run(ctx: Context) -> Result:
          "loop request median ms", "total s", "columns per odometry-only request (median)",
          "total rounding / whole, rounding / full", "max rel. energy diff (vs whole / full)",
          "max position diff (m) (vs whole / full)"], rows)
-    return metrics, [table]
+    return metrics, [table, *tables]

@@ -122,6 +122,14 @@ def _graph(inc: IncrementalExact, rot: np.ndarray, trans: np.ndarray) -> PoseGra
         fixed_nodes=np.zeros(0 if inc._free[0] else 1, np.int32))  # fmt: skip
 
 
+def _check_sorted_rows(inc: IncrementalExact) -> None:
+    """Every column of the last re-eliminated set lists its rows in increasing position (the
+    left-looking pass reads each such column from a cursor on)."""
+    for v in getattr(inc, "_s_vars", ()):  # none before the first set with a column
+        rows = inc._row_var[inc._col_start[v]: inc._col_start[v] + inc._col_len[v]]
+        assert np.all(np.diff(inc._position[rows]) > 0)
+
+
 def _check_gn_step(inc: IncrementalExact) -> None:
     n = inc._n_in
     graph = _graph(inc, inc._th_r, inc._th_t)
@@ -158,6 +166,7 @@ def test_every_cycle_solves_the_whole_map_exactly(seed: int, n: int, loop_p: flo
             inc.solve(max_cycles=1)
             if inc.stats["cycles"] > before:
                 _check_gn_step(inc)
+                _check_sorted_rows(inc)
                 flat = k == 0 or (planar and not any(s.gps[i] for i in range(k + 1)))
                 assert inc._nd == (3 if flat else 6)
 
@@ -276,6 +285,23 @@ def test_deadline_slices_give_the_same_answer_bit_for_bit() -> None:
     assert calls > 10 * s.frames  # the slices did split the work
     for a, b in zip(whole.estimate(), sliced.estimate(), strict=True):
         assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("count", [0, 1, 2, 5, 32, 33, 100])
+def test_rows_are_sorted_by_position_as_a_plain_sort_does(count: int) -> None:
+    """The symbolic phase's row sort (insertion sort up to 32 rows, argsort above) against
+    Python's sort of the same segment; the rows around the segment stay as they were."""
+    from hybridpgo.online._incremental_kernels import _sort_rows
+
+    rng = np.random.default_rng(count)
+    position = rng.permutation(1000).astype(np.int64)
+    row_var = rng.permutation(1000)[:count + 10].astype(np.int64)
+    before = row_var.copy()
+    _sort_rows(row_var, 4, count, position)
+    want = sorted(before[4: 4 + count].tolist(), key=lambda v: position[v])
+    assert row_var[4: 4 + count].tolist() == want
+    assert np.array_equal(row_var[:4], before[:4])
+    assert np.array_equal(row_var[4 + count:], before[4 + count:])
 
 
 def test_estimate_composes_poses_added_since_the_last_update() -> None:

@@ -6,8 +6,9 @@ solver's conventions, :mod:`hybridpgo.solvers._gn_kernels`) are kept factored, `
 by 6x6 blocks (3x3 in the planar system below), one block column per free pose ("variable").
 The elimination order is a position per variable (a stamp that only grows: a variable
 re-eliminated later gets a larger one), the elimination tree ``parent`` is the
-smallest-position row of each column.  A column stores its rows (variables, in no particular
-order) and their blocks in a pool; the factored diagonal block apart.
+smallest-position row of each column.  A column stores its rows (variables) and their blocks
+in a pool, the factored diagonal block apart; :func:`symbolic` writes the rows of a column
+sorted by position.
 
 One update ("cycle") re-eliminates only the set S of columns whose values changed (the ends
 of the constraints that are new or were relinearized) and all their ancestors in the
@@ -17,11 +18,13 @@ after every other column, in a new fill-reducing order; the columns hanging belo
 "orphans") keep their blocks, and only their parent pointer changes.  Then
 
 * :func:`symbolic` computes the rows of each column of S (its constraints to later variables
-  of S, and its children's rows), its parent and the children lists;
+  of S, and its children's rows; sorted by position), its parent and the children lists;
 * :func:`numeric` factors the columns of S in order, left-looking: column j takes the update of
   every earlier column k with a block in row j (found by walking the elimination tree up from
   j's constraint neighbours, "ereach"), including the unchanged ones below S; the forward
-  substitution ``y_j`` is computed in the same pass;
+  substitution ``y_j`` is computed in the same pass.  A column of S reaches the columns it
+  updates in the order of its sorted rows, so each update reads it from a cursor on (the
+  rows below j only); an unchanged column is searched for row j and read whole;
 * :func:`back_substitute` solves ``L^T x = y`` from the roots down, recomputing a column when it
   is in S or one of its rows changed by more than a threshold (0: exact), so the unchanged
   rest of the map is not visited.
@@ -379,12 +382,35 @@ def symbolic(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarr
             c = ch_next[c]
         if k != cnt:
             return BROKEN_TREE
+        _sort_rows(row_var, s0, cnt, position)
         col_len[j] = cnt
         _link(j, best, parent, ch_head, ch_next, ch_prev)
         if cycle_counter() > deadline and q + 1 < order.shape[0]:
             pool_used[1] = q + 1
             return PAST_DEADLINE
     return int(order.shape[0])
+
+
+@kernel
+def _sort_rows(row_var: np.ndarray, s0: int, cnt: int, position: np.ndarray) -> None:
+    """Sort ``row_var[s0:s0 + cnt]`` by position (insertion sort up to 32 rows)."""
+    if cnt <= 32:
+        for a in range(s0 + 1, s0 + cnt):
+            v = row_var[a]
+            pv = position[v]
+            b = a - 1
+            while b >= s0 and position[row_var[b]] > pv:
+                row_var[b + 1] = row_var[b]
+                b -= 1
+            row_var[b + 1] = v
+        return
+    seg = row_var[s0: s0 + cnt].copy()
+    keys = np.empty(cnt, np.int64)
+    for a in range(cnt):
+        keys[a] = position[seg[a]]
+    idx = np.argsort(keys)
+    for a in range(cnt):
+        row_var[s0 + a] = seg[idx[a]]
 
 
 # --------------------------------------------------------------------------- numeric
@@ -421,13 +447,19 @@ def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarra
             hab: np.ndarray, ga: np.ndarray, gb: np.ndarray, hgg: np.ndarray, gg: np.ndarray,
             parent: np.ndarray, col_start: np.ndarray, col_len: np.ndarray,
             row_var: np.ndarray, row_blk: np.ndarray, diag: np.ndarray, y: np.ndarray,
-            slot: np.ndarray, walk: np.ndarray, damping: float, nd: int, perm: np.ndarray,
+            slot: np.ndarray, walk: np.ndarray, in_s: np.ndarray, stamp: int,
+            cursor: np.ndarray, damping: float, nd: int, perm: np.ndarray,
             work: np.ndarray) -> int:
     """Factor the columns ``order[i0:]`` and their forward substitution ``y`` (module doc).
 
     ``nd``, ``perm``: the factor's coordinates are the tangent coordinates ``perm[:nd]``
     (module doc: the planar system), ``row_blk`` holds (nd, nd) blocks; GPS readings need the
     identity ``perm`` and ``nd = 6``.
+
+    A column k of S (``in_s[k] == stamp``) has its rows sorted by position (:func:`symbolic`),
+    so the columns j it updates come in the order of its rows: ``cursor[k]`` is the index (in
+    the column) of the next one, and the update reads only the rows after it.  The unchanged
+    columns below S are searched for row j and read whole.
 
     ``damping``: ``H + damping * diag(H)`` (Levenberg-Marquardt; 0 for Gauss-Newton).  Stops
     after the first column that ends past ``deadline`` (cycle counter); returns the index to
@@ -501,15 +533,23 @@ def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarra
                     k0 = col_start[k]
                     kn = col_len[k]
                     p0 = -1
-                    for t in range(k0, k0 + kn):
-                        if row_var[t] == j:
-                            p0 = t
-                            break
+                    whole = in_s[k] != stamp
+                    if whole:
+                        for t in range(k0, k0 + kn):
+                            if row_var[t] == j:
+                                p0 = t
+                                break
+                    else:
+                        p0 = k0 + cursor[k]
+                        if p0 >= k0 + kn or row_var[p0] != j:
+                            return BROKEN_TREE
+                        cursor[k] += 1
                     if p0 < 0:
                         return BROKEN_TREE
                     lj = row_blk[p0]
+                    t0 = k0 if whole else p0 + 1
                     work[0] += 1
-                    work[1] += kn
+                    work[1] += k0 + kn - t0
                     for a in range(nd):
                         s = 0.0
                         for c in range(nd):
@@ -523,9 +563,11 @@ def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarra
                     for m in range(nd):
                         for c in range(nd):
                             ljt[m, c] = lj[c, m]
-                    for t in range(k0, k0 + kn):
+                    for t in range(t0, k0 + kn):
                         r = row_var[t]
-                        if position[r] > tag and nd == 3:
+                        if whole and position[r] <= tag:
+                            continue
+                        if nd == 3:
                             lr = row_blk[t]
                             lo = row_blk[slot[r]]
                             for a in range(3):  # lo -= lr lj^T, as below
@@ -538,7 +580,7 @@ def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarra
                                 lo[a, 0] -= u0
                                 lo[a, 1] -= u1
                                 lo[a, 2] -= u2
-                        elif position[r] > tag:
+                        else:
                             lr = row_blk[t]
                             lo = row_blk[slot[r]]
                             # lo -= lr lj^T: six independent sums per row of lr, each over m
@@ -581,6 +623,7 @@ def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarra
                         s -= x[a, m] * d[c, m]
                     x[a, c] = s / d[c, c]
             slot[row_var[t]] = -1
+        cursor[j] = 0
         for c in range(nd):
             s = b[c]
             for m in range(c):

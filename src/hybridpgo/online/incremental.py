@@ -220,6 +220,7 @@ class IncrementalExact:
         self._mark = np.full(cap, -1, np.int64)
         self._walk = np.full(cap, -1, np.int64)
         self._slot = np.full(cap, -1, np.int64)
+        self._cursor = np.full(cap, -1, np.int64)
         self._local = np.zeros(cap, np.int64)
         self._stack = np.zeros(cap, np.int64)
         self._touched = np.zeros(cap, np.int64)
@@ -233,7 +234,7 @@ class IncrementalExact:
     _POSE_FILL: ClassVar[dict[str, int]] = {
         "_ref": -1, "_position": -1, "_parent": -1, "_ch_head": -1, "_ch_next": -1,
         "_ch_prev": -1, "_inc_head": -1, "_gps_head": -1, "_in_s": -1, "_changed": -1,
-        "_mark": -1, "_walk": -1, "_slot": -1}
+        "_mark": -1, "_walk": -1, "_slot": -1, "_cursor": -1}
 
     def _grow_poses(self, need: int) -> None:
         if need <= self._cap_n:
@@ -244,8 +245,8 @@ class IncrementalExact:
         for name in ("_ref", "_rel_r", "_rel_t", "_th_r", "_th_t", "_est_r", "_est_t", "_x",
                      "_y", "_diag", "_free", "_position", "_parent", "_ch_head", "_ch_next",
                      "_ch_prev", "_col_start", "_col_len", "_col_cap", "_inc_head",
-                     "_gps_head", "_in_s", "_changed", "_mark", "_walk", "_slot", "_local",
-                     "_stack", "_touched", "_pol_flag", "_pol_list", "_chg_flag",
+                     "_gps_head", "_in_s", "_changed", "_mark", "_walk", "_slot", "_cursor",
+                     "_local", "_stack", "_touched", "_pol_flag", "_pol_list", "_chg_flag",
                      "_chg_list"):
             old = getattr(self, name)
             fill = self._POSE_FILL.get(name, 0)
@@ -735,7 +736,8 @@ class IncrementalExact:
                        self._inc_head, self._inc_next, self._gps_head, self._gps_next,
                        self._haa, self._hbb, self._hab, self._ga, self._gb, self._hgg,
                        self._gg, self._parent, self._col_start, self._col_len, self._row_var,
-                       self._row_blk, self._diag, self._y, self._slot, self._walk, 0.0,
+                       self._row_blk, self._diag, self._y, self._slot, self._walk,
+                       self._in_s, self._stamp, self._cursor, 0.0,
                        self._nd, self._perm, self._work)
         self.stats["applied"] += int(self._work[0])
         self.stats["products"] += int(self._work[1])
