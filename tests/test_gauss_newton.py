@@ -6,7 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from ref_kernels import relative_error, se3_exp
-from tolerances import CENTRAL_DIFF, CENTRAL_DIFF_STEP, FLOAT64_IDENTITY, SPARSE_VS_DENSE_GN
+from tolerances import (
+    CENTRAL_DIFF,
+    CENTRAL_DIFF_STEP,
+    FLOAT64_IDENTITY,
+    SPARSE_VS_DENSE_GN,
+    TWIN_JACOBIAN,
+)
 
 from hybridpgo import _cost
 from hybridpgo.energy import energy
@@ -262,6 +268,82 @@ def test_edge_jacobians_match_central_differences(seed: int) -> None:
                                        atol=CENTRAL_DIFF * max(1.0, np.abs(fd).max()))
 
 
+def _rot_z(theta: float) -> np.ndarray:
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+_PLANAR = [0, 1, 5]  # x, y, yaw
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-5, 1e-3, 0.1, 0.3, 0.49, 0.51, 1.0, 3.0])
+def test_planar_linearization_is_se3s_restricted_to_the_plane(angle: float) -> None:
+    """SE(2)'s error and Jacobians (the planar system's) against SE(3)'s x, y, yaw rows and
+    columns on planar poses and measurements, for error angles on both sides of the series'
+    switch: equal to rounding; SE(3)'s out-of-plane rows of the planar columns are exactly 0
+    (what the planar system leaves out)."""
+    rng = np.random.default_rng(int(angle * 1e3))
+    w = np.empty((_cost.SCRATCH, 3, 3))
+    for sign in (1.0, -1.0):
+        for _ in range(20):
+            ra = _rot_z(rng.uniform(-np.pi, np.pi))
+            rz = _rot_z(rng.uniform(-np.pi, np.pi))
+            rb = ra @ rz @ _rot_z(sign * angle)  # the error's rotation: angle about z
+            ta = np.r_[rng.normal(size=2) * 5.0, 0.0]
+            tb = np.r_[rng.normal(size=2) * 5.0, 0.0]
+            tz = np.r_[rng.normal(size=2) * 3.0, 0.0]
+            e3, ja3, jb3 = np.empty(6), np.empty((6, 6)), np.empty((6, 6))
+            _gn_kernels._edge_linearization(ra, ta, rb, tb, rz, tz, e3, ja3, jb3, w)
+            e2, ja2, jb2 = np.empty(6), np.empty((6, 6)), np.empty((6, 6))
+            rel = _cost.planar_residual(rz, tz, ra, ta, rb, tb, e2)
+            _cost.planar_jacobians(e2, rel, ja2, jb2)
+            assert e2[5] == pytest.approx(sign * angle, abs=FLOAT64_IDENTITY)
+            np.testing.assert_allclose(e2, e3, rtol=0,
+                                       atol=TWIN_JACOBIAN * max(1.0, np.abs(e3).max()))
+            for j2, j3 in ((ja2, ja3), (jb2, jb3)):
+                np.testing.assert_allclose(j2[np.ix_(_PLANAR, _PLANAR)],
+                                           j3[np.ix_(_PLANAR, _PLANAR)], rtol=0,
+                                           atol=TWIN_JACOBIAN * np.abs(j3).max())
+                assert np.all(j3[np.ix_([2, 3, 4], _PLANAR)] == 0.0)
+                assert np.all(j2[[2, 3, 4], :] == 0.0)
+                assert np.all(j2[:, [2, 3, 4]] == 0.0)
+
+
+def test_planar_jacobians_match_central_differences() -> None:
+    """The planar Jacobians against central differences of the planar error under planar
+    right perturbations of either pose."""
+    rng = np.random.default_rng(7)
+
+    def error(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.ndarray) -> np.ndarray:
+        out = np.empty(6)
+        _cost.planar_residual(rz, tz, ra, ta, rb, tb, out)
+        return out[_PLANAR]
+
+    def moved(r: np.ndarray, t: np.ndarray, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        dr, dt = se3_exp(np.r_[xi[0], xi[1], 0.0, 0.0, 0.0, xi[2]])
+        return r @ dr, t + r @ dt
+
+    for _ in range(20):
+        ra, rb, rz = (_rot_z(rng.uniform(-np.pi, np.pi)) for _ in range(3))
+        ta, tb, tz = (np.r_[rng.normal(size=2) * 4.0, 0.0] for _ in range(3))
+        e, ja, jb = np.empty(6), np.empty((6, 6)), np.empty((6, 6))
+        _cost.planar_jacobians(e, _cost.planar_residual(rz, tz, ra, ta, rb, tb, e), ja, jb)
+        for side, jac in ((0, ja), (1, jb)):
+            fd = np.empty((3, 3))
+            for d in range(3):
+                xi = np.zeros(3)
+                xi[d] = CENTRAL_DIFF_STEP
+                if side == 0:
+                    ep = error(*moved(ra, ta, xi), rb, tb)
+                    em = error(*moved(ra, ta, -xi), rb, tb)
+                else:
+                    ep = error(ra, ta, *moved(rb, tb, xi))
+                    em = error(ra, ta, *moved(rb, tb, -xi))
+                fd[:, d] = (ep - em) / (2 * CENTRAL_DIFF_STEP)
+            np.testing.assert_allclose(jac[np.ix_(_PLANAR, _PLANAR)], fd, rtol=0,
+                                       atol=CENTRAL_DIFF * max(1.0, np.abs(fd).max()))
+
+
 @pytest.mark.parametrize(("num_gps", "fixed"), [(0, ()), (3, ()), (2, (4, 7))])
 def test_sparse_normal_equations_match_dense_finite_differences(num_gps: int,
                                                                 fixed: tuple[int, ...]) -> None:
@@ -396,8 +478,10 @@ def test_planar_reduction_equals_full_solve(method: str) -> None:
 
 @pytest.mark.parametrize("robust", [(0, 1.0), (_cost.robust_kind("huber", 1.0), 1.0)])
 def test_planar_system_is_assembled_as_the_rows_and_columns_of_the_whole(robust) -> None:
-    """The planar system written by the assembly equals, entry for entry, the x, y, yaw rows
-    and columns of the whole H taken by SciPy, and g's entries are the same."""
+    """The planar system written by the assembly (SE(2)'s linearization) equals the x, y, yaw
+    rows and columns of the whole H (SE(3)'s) taken by SciPy, and g's entries and E are the
+    same, to rounding: the same pattern, and the same numbers by another route through
+    float64."""
     import scipy.sparse as sp
     from test_energy import planar_graph
 
@@ -411,15 +495,18 @@ def test_planar_system_is_assembled_as_the_rows_and_columns_of_the_whole(robust)
     full = _normal.assemble(g, pat, rot, trans, data, grad, robust)
     system = _normal.planar_system(pat)
     sdata, sgrad = np.full(system.nnz, np.nan), np.full(pat.dim, np.nan)
-    assert _normal.assemble(g, pat, rot, trans, sdata, sgrad, robust, system) == full
+    planar = _normal.assemble(g, pat, rot, trans, sdata, sgrad, robust, system)
+    assert planar == pytest.approx(full, rel=TWIN_JACOBIAN)
     h = sp.csc_matrix((data, pat.lower_indices(), pat.indptr), shape=(pat.dim, pat.dim))
     keep = system.dofs
     sub = h[keep][:, keep].tocsc()
     sub.sort_indices()
     assert np.array_equal(sub.indptr, system.indptr)
     assert np.array_equal(sub.indices, system.indices)
-    assert np.array_equal(sub.data, sdata)  # the same sums in the same order: equal
-    assert np.array_equal(sgrad[keep], grad[keep])
+    np.testing.assert_allclose(sdata, sub.data, rtol=0,
+                               atol=TWIN_JACOBIAN * np.abs(sub.data).max())
+    np.testing.assert_allclose(sgrad[keep], grad[keep], rtol=0,
+                               atol=TWIN_JACOBIAN * np.abs(grad).max())
     assert np.all(sgrad[np.setdiff1d(np.arange(pat.dim), keep)] == 0.0)
 
 

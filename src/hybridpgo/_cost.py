@@ -6,6 +6,8 @@ Jacobian, its whitened form, its χ² and the pose retraction through these kern
 cannot drift apart:
 
 * relative constraint: ``e = Log(Z^-1 X_a^-1 X_b)`` (tangent order rho, phi) and ``Jr^-1(e)``;
+  on planar poses and data the same quantities by SE(2)'s formulas (:func:`planar_residual`,
+  :func:`planar_jacobians`: the planar system of the exact solver);
 * position ("GPS") constraint: ``e = p_n - g``;
 * ``χ² = e^T Omega e`` (no 1/2), whitening with ``L^T`` where ``Omega = L L^T``;
 * the retraction ``T <- T Exp(s xi)``, followed by one Newton step towards the polar factor.
@@ -33,7 +35,7 @@ from ._robust import ROBUST_NAMES as ROBUST_NAMES
 from ._robust import ROBUST_NONE as ROBUST_NONE
 from ._robust import default_robust_scale as default_robust_scale
 from ._robust import robust_kind as robust_kind
-from .geometry._kernels import SMALL_ANGLE, edge_error_into, jr_inv_blocks, skew_into
+from .geometry._kernels import SMALL_ANGLE, edge_error_into, jl_inv_coeff, jr_inv_blocks, skew_into
 
 #: Scratch (3, 3) matrices :func:`residual_and_jr_inv` needs.
 SCRATCH = 12
@@ -112,6 +114,103 @@ def residual_and_jr_inv(zr: np.ndarray, zt: np.ndarray, ra: np.ndarray, ta: np.n
     jr_inv_blocks(e, ws)
 
 
+#: Below this angle (radians) :func:`planar_jacobians` takes ``(th - sin th) / th^2`` from its
+#: series (to th^13: truncated below 1e-15 relative there), where the closed form cancels.
+PLANAR_SERIES_ANGLE = 0.5
+
+
+@kernel
+def planar_residual(zr: np.ndarray, zt: np.ndarray, ra: np.ndarray, ta: np.ndarray,
+                    rb: np.ndarray, tb: np.ndarray, e: np.ndarray
+                    ) -> tuple[float, float, float, float]:
+    """:func:`relative_residual` of planar poses and measurement (rotations about z, no z
+    translation: ``graph.planar_motions``): the SE(2) logarithm ``e = (rho_x, rho_y, 0, 0, 0,
+    theta)``, which is SE(3)'s restricted to the plane (docs/mathematics.md#planar-reduction).
+
+    Returns ``X_a^-1 X_b`` as ``(cos, sin, x, y)`` (for :func:`planar_jacobians`).
+    """
+    ca = ra[0, 0]
+    sa = ra[1, 0]
+    d0 = tb[0] - ta[0]
+    d1 = tb[1] - ta[1]
+    x = ca * d0 + sa * d1
+    y = ca * d1 - sa * d0
+    cab = ca * rb[0, 0] + sa * rb[1, 0]
+    sab = ca * rb[1, 0] - sa * rb[0, 0]
+    cz = zr[0, 0]
+    sz = zr[1, 0]
+    u0 = x - zt[0]
+    u1 = y - zt[1]
+    t0 = cz * u0 + sz * u1
+    t1 = cz * u1 - sz * u0
+    th = math.atan2(cz * sab - sz * cab, cz * cab + sz * sab)
+    alpha = 1.0 - jl_inv_coeff(abs(th)) * th * th  # (th / 2) cot(th / 2)
+    e[0] = alpha * t0 + 0.5 * th * t1
+    e[1] = alpha * t1 - 0.5 * th * t0
+    e[2] = 0.0
+    e[3] = 0.0
+    e[4] = 0.0
+    e[5] = th
+    return cab, sab, x, y
+
+
+@kernel
+def planar_jacobians(e: np.ndarray, rel: tuple[float, float, float, float], ja: np.ndarray,
+                     jb: np.ndarray) -> None:
+    """``jb = Jr^-1(e)`` and ``ja = -Jr^-1(e) Ad(X_b^-1 X_a)`` of a planar constraint (its
+    error ``e`` and ``X_a^-1 X_b = rel`` from :func:`planar_residual`) as (6, 6) matrices: the
+    (x, y, yaw) rows and columns of SE(3)'s, 0 elsewhere (the out-of-plane rows and columns do
+    not enter the planar system; docs/mathematics.md#planar-reduction)."""
+    th = e[5]
+    r0 = e[0]
+    r1 = e[1]
+    h = 0.5 * th
+    alpha = 1.0 - jl_inv_coeff(abs(th)) * th * th
+    t2 = th * th
+    # ca = (1 - cos th) / th^2 = (sin(th / 2) / th)^2 / 2, cb = (th - sin th) / th^2 (its
+    # series below PLANAR_SERIES_ANGLE, where the difference cancels)
+    if th == 0.0:
+        ca = 0.5
+    else:
+        sh = math.sin(0.5 * th) / (0.5 * th)
+        ca = 0.5 * sh * sh
+    if abs(th) < PLANAR_SERIES_ANGLE:
+        cb = th * (1.0 / 6.0 - t2 * (1.0 / 120.0 - t2 * (1.0 / 5040.0 - t2 * (
+            1.0 / 362880.0 - t2 * (1.0 / 39916800.0 - t2 * (
+                1.0 / 6227020800.0 - t2 / 1307674368000.0))))))
+    else:
+        cb = (th - math.sin(th)) / t2
+    # Jr's yaw column (x, y rows), then Jr^-1's: -M^-1 b with M^-1 = [[alpha, -h], [h, alpha]]
+    b0 = r0 * cb - r1 * ca
+    b1 = r0 * ca + r1 * cb
+    k0 = -(alpha * b0 - h * b1)
+    k1 = -(h * b0 + alpha * b1)
+    for i in range(6):
+        for j in range(6):
+            ja[i, j] = 0.0
+            jb[i, j] = 0.0
+    jb[0, 0] = alpha
+    jb[0, 1] = -h
+    jb[0, 5] = k0
+    jb[1, 0] = h
+    jb[1, 1] = alpha
+    jb[1, 5] = k1
+    jb[5, 5] = 1.0
+    # Ad(X_b^-1 X_a) = [[R, (ty, -tx)], [0, 1]], R = R_ab^T, t = -R_ab^T t_ab
+    cab, sab, x, y = rel
+    tx = -(cab * x + sab * y)
+    ty = sab * x - cab * y
+    a00, a01, a02 = cab, sab, ty
+    a10, a11, a12 = -sab, cab, -tx
+    ja[0, 0] = -(alpha * a00 - h * a10)
+    ja[0, 1] = -(alpha * a01 - h * a11)
+    ja[0, 5] = -(alpha * a02 - h * a12 + k0)
+    ja[1, 0] = -(h * a00 + alpha * a10)
+    ja[1, 1] = -(h * a01 + alpha * a11)
+    ja[1, 5] = -(h * a02 + alpha * a12 + k1)
+    ja[5, 5] = -1.0
+
+
 @kernel
 def jr_inv_matrix(ws: np.ndarray, out: np.ndarray) -> None:
     """The (6, 6) ``Jr^-1`` from the blocks :func:`residual_and_jr_inv` left in ``ws``."""
@@ -174,6 +273,15 @@ def relative_chi2(zr: np.ndarray, zt: np.ndarray, info: np.ndarray, ra: np.ndarr
                   oe: np.ndarray, ws: np.ndarray) -> float:
     """χ² of a relative constraint at global poses a, b (``e``: its error, ``oe``: Omega e)."""
     relative_residual(zr, zt, ra, ta, rb, tb, e, ws)
+    return chi2(info, e, 6, oe)
+
+
+@kernel
+def planar_chi2(zr: np.ndarray, zt: np.ndarray, info: np.ndarray, ra: np.ndarray,
+                ta: np.ndarray, rb: np.ndarray, tb: np.ndarray, e: np.ndarray,
+                oe: np.ndarray) -> float:
+    """:func:`relative_chi2` of a planar constraint at planar poses (:func:`planar_residual`)."""
+    planar_residual(zr, zt, ra, ta, rb, tb, e)
     return chi2(info, e, 6, oe)
 
 
@@ -242,10 +350,12 @@ def total_energy(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarray,
 def robust_total_energy(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarray,
                         edge_rot: np.ndarray, edge_trans: np.ndarray, edge_info: np.ndarray,
                         gps_nodes: np.ndarray, gps_pos: np.ndarray, gps_info: np.ndarray,
-                        kind: int, delta: float) -> tuple[float, float]:
+                        kind: int, delta: float, planar: bool = False) -> tuple[float, float]:
     """``(E_rho, E)``: robust and plain energy at global poses (may be inf/nan), in order.
 
-    ``E_rho = sum_c rho(s_c)`` over the relative and the GPS constraints.
+    ``E_rho = sum_c rho(s_c)`` over the relative and the GPS constraints (``kind`` 0: no
+    kernel, ``E_rho = E``).  ``planar``: the poses and measurements are planar
+    (``graph.planar_motions``): each relative χ² from :func:`planar_chi2`.
     """
     ws = np.empty((3, 3, 3))
     e = np.empty(6)
@@ -255,8 +365,12 @@ def robust_total_energy(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarr
     for c in range(edge_nodes.shape[0]):
         a = edge_nodes[c, 0]
         b = edge_nodes[c, 1]
-        s = relative_chi2(edge_rot[c], edge_trans[c], edge_info[c], rot[a], trans[a],
-                          rot[b], trans[b], e, oe, ws)
+        if planar:
+            s = planar_chi2(edge_rot[c], edge_trans[c], edge_info[c], rot[a], trans[a],
+                            rot[b], trans[b], e, oe)
+        else:
+            s = relative_chi2(edge_rot[c], edge_trans[c], edge_info[c], rot[a], trans[a],
+                              rot[b], trans[b], e, oe, ws)
         total += robust_cost(kind, delta, s)[0]
         plain += s
     for c in range(gps_nodes.shape[0]):

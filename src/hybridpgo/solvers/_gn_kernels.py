@@ -34,7 +34,16 @@ import math
 
 import numpy as np
 
-from .._cost import ROBUST_NONE, chi2, gps_chi2, residual_and_jr_inv, retract_into, robust_cost
+from .._cost import (
+    ROBUST_NONE,
+    chi2,
+    gps_chi2,
+    planar_jacobians,
+    planar_residual,
+    residual_and_jr_inv,
+    retract_into,
+    robust_cost,
+)
 from .._cost import SCRATCH as _SCRATCH
 from .._numba import kernel
 from ..geometry._kernels import mm3, skew_into
@@ -178,8 +187,10 @@ def assemble_normal_equations(
     the planar system's x, y, yaw), as a tuple (its length is then a constant of each
     compiled variant): ``data`` then holds the rows and columns of those only,
     in the layout of the module docstring with ``len(dofs)`` in place of 6 (``indptr`` the
-    system's), and ``grad`` (6 N) only their entries (the others are 0).  Each kept entry is
-    the same sum, in the same order, as in the whole system.
+    system's), and ``grad`` (6 N) only their entries (the others are 0).  The planar system
+    (poses and data planar) linearizes each constraint with SE(2)'s formulas
+    (:func:`hybridpgo._cost.planar_jacobians`): the whole system's x, y, yaw rows and
+    columns, to rounding, at a fraction of SE(3)'s cost.
 
     With a robust kernel (``robust_kind``, ``robust_delta``: :func:`hybridpgo._cost.robust_cost`)
     every constraint's terms (relative and GPS) are multiplied by its weight ``w = rho'(s)``.
@@ -208,8 +219,13 @@ def assemble_normal_equations(
     for c in range(m):
         a = edge_nodes[c, 0]
         b = edge_nodes[c, 1]
-        _edge_linearization(rot[a], trans[a], rot[b], trans[b], edge_rot[c], edge_trans[c],
-                            e, ja, jb, w)
+        if nd == 3:  # the planar system: SE(2)'s error and Jacobians (planar_jacobians)
+            rel = planar_residual(edge_rot[c], edge_trans[c], rot[a], trans[a], rot[b],
+                                  trans[b], e)
+            planar_jacobians(e, rel, ja, jb)
+        else:
+            _edge_linearization(rot[a], trans[a], rot[b], trans[b], edge_rot[c],
+                                edge_trans[c], e, ja, jb, w)
         om = edge_info[c]
         ec = chi2(om, e, 6, oe)
         ok = math.isfinite(ec)

@@ -233,14 +233,15 @@ def assemble(graph: PoseGraph, pat: Pattern, rot: FloatArray, trans: FloatArray,
 
 
 def energy_at(graph: PoseGraph, rot: FloatArray, trans: FloatArray,
-            robust: tuple[int, float] = (0, 1.0)) -> float:
+            robust: tuple[int, float] = (0, 1.0), planar: bool = False) -> float:
     """E (E_rho with a robust kernel) at trial poses (may be inf/nan: the callers reject such
-    steps)."""
-    if robust[0] != _cost.ROBUST_NONE:
+    steps).  ``planar``: the poses and data are planar (:func:`is_planar`); the errors are
+    SE(2)'s, as the planar system's assembly computes them."""
+    if robust[0] != _cost.ROBUST_NONE or planar:
         return float(_cost.robust_total_energy(
             rot, trans, graph.edge_nodes, graph.edge_rotations, graph.edge_translations,
             graph.edge_information, graph.gps_nodes, graph.gps_positions,
-            graph.gps_information, robust[0], robust[1])[0])
+            graph.gps_information, robust[0], robust[1], planar)[0])
     return float(_cost.total_energy(rot, trans, graph.edge_nodes, graph.edge_rotations,
                                  graph.edge_translations, graph.edge_information,
                                  graph.gps_nodes, graph.gps_positions, graph.gps_information))
@@ -380,6 +381,7 @@ def ensure_compiled() -> float:
     _k.retract(rot, trans, grad, pat.var_of_node, 1.0, out_r, out_t)
     energy_at(g, out_r, out_t)
     energy_at(g, out_r, out_t, (_cost.ROBUST_HUBER, 1.0))
+    energy_at(g, out_r, out_t, (0, 1.0), True)
     _COMPILED[0] = True
     return time.perf_counter() - t0
 

@@ -305,7 +305,8 @@ class _Run:
         scale = 1.0
         _k.retract(self.rot, self.trans, step, self.pat.var_of_node, scale, self.new_rot,
                    self.new_trans)
-        e_new = energy_at(self.graph, self.new_rot, self.new_trans, self.robust)
+        e_new = energy_at(self.graph, self.new_rot, self.new_trans, self.robust,
+                          self.planar)
         tries = 0
         if self.cfg.method == "gn" and self.cfg.step_guard:
             while not (e_new <= e_cur) and tries < self.cfg.max_step_halvings:
@@ -313,7 +314,8 @@ class _Run:
                 tries += 1
                 _k.retract(self.rot, self.trans, step, self.pat.var_of_node, scale,
                            self.new_rot, self.new_trans)
-                e_new = energy_at(self.graph, self.new_rot, self.new_trans, self.robust)
+                e_new = energy_at(self.graph, self.new_rot, self.new_trans, self.robust,
+                                  self.planar)
         self.seconds["energy"] += time.perf_counter() - t0
         return e_new, scale, tries
 
