@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import os
 from pathlib import Path
 from typing import Any
@@ -1133,6 +1134,66 @@ def test_background_worker_refuses_an_incremental_answer_above_its_start(
     _, meta = mp.solve(50)
     assert not meta["incremental"] and "raised E" in meta["fallback"]
     assert abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
+
+
+@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
+def test_background_worker_integrates_what_an_answer_missed_before_it_polishes(
+        data_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An answer that holds fewer constraints than the map (its update cycle began before the
+    last data came, as the worker's look at the next cycle begins it) is followed, at the next
+    request without new data, by an update cycle that integrates the rest, not by the polish
+    (which would answer only at its end); the request after an answer that held everything
+    polishes.  A polish answers ("polishing") at the end of a slice once POLISH_ANSWER_S
+    passed with a cycle done, and the next requests go on with it, E never rising, to the
+    prefix optimum."""
+    from hybridpgo.io import read_graph
+    from hybridpgo.online import worker
+
+    g = read_graph(data_dir / "w100_toro.graph")
+    st = make_stream(g)
+    opt = prefix_optima(st, [st.num_frames])[st.num_frames]
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    half = g.num_nodes // 2
+    _stream(s, g, range(half))
+    mp = _worker_map(s, ("none", None))
+    mp.more_cycles_s = 0.0  # the worker's: one cycle per request with new data
+    _, meta = mp.solve(50)
+    _stream(s, g, range(half, half + 5))
+    _ship(mp, s)
+    mp.inc.solve(0.0, polish=False)  # a cycle begun at these data (the worker's look ahead)
+    _stream(s, g, range(half + 5, g.num_nodes))
+    _ship(mp, s)
+    _, meta = mp.solve(50)  # finishes the cycle begun before the last data came
+    assert (meta["m_held"], meta["g_held"]) != (meta["m"], meta["g"])
+    polished = []
+
+    def polish(interrupted):  # type: ignore[no-untyped-def]
+        polished.append(True)
+        return "converged"
+
+    with monkeypatch.context() as mpatch:
+        mpatch.setattr(mp, "_polish", polish)
+        _, meta = mp.solve(50, interrupted=lambda: False)  # nothing new
+        assert not polished and meta["iterations"] >= 1
+        assert (meta["m_held"], meta["g_held"]) == (meta["m"], meta["g"])
+        while meta["status"] != "converged":  # relinearization left: cycles, not the polish
+            assert not polished
+            _, meta = mp.solve(50, interrupted=lambda: False)
+        _, meta = mp.solve(50, interrupted=lambda: False)
+        assert polished  # everything held: the polish
+    monkeypatch.setattr(worker, "POLISH_ANSWER_S", 0.0)
+    monkeypatch.setattr(worker, "POLISH_SLICE_S", 1e-9)  # slices too short for a whole cycle
+    energies = [meta["energy"]]
+    statuses = []
+    for _ in range(100):
+        _, meta = mp.solve(50, interrupted=lambda: False)
+        energies.append(meta["energy"])
+        statuses.append(meta["status"])
+        if meta["status"] == "converged":
+            break
+    assert statuses[0] == "polishing" and statuses[-1] == "converged"
+    assert all(b <= a * (1.0 + FLOAT64_IDENTITY) for a, b in itertools.pairwise(energies))
+    assert abs(energies[-1] - opt) <= ONLINE_REFINED * opt
 
 
 @pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
