@@ -178,17 +178,6 @@ def _herm(x: Array) -> Array:
     return out
 
 
-def _realify_coo(rows: Array, cols: Array, vals: Array
-                 ) -> tuple[Array, Array, FloatArray]:
-    """COO entries of a Hermitian matrix as those of the real symmetric matrix of twice its
-    size with ``u^T W u = v^H M v`` for ``u`` = (Re v_0, Im v_0, Re v_1, ...): each entry
-    ``p + i q`` becomes the 2x2 block ``[[p, -q], [q, p]]``."""
-    p, q = np.real(vals), np.imag(vals)
-    r, c = 2 * np.asarray(rows, np.int64), 2 * np.asarray(cols, np.int64)
-    return (np.concatenate([r, r, r + 1, r + 1]), np.concatenate([c, c + 1, c, c + 1]),
-            np.concatenate([p, -q, q, p]))
-
-
 @dataclass(frozen=True)
 class Spectrum:
     """The certificate matrix's smallest eigenvalue at a point, and what it proves."""
@@ -692,35 +681,34 @@ class SyncProblem:
         ``S = Q - Lambda`` is."""
         if self._cert is not None:
             return self._cert
+        from ._sync_kernels import pose_blocks
         from .linalg import SparseSPD
 
-        n, _d = self.n, self.d
+        n = self.n
         i = np.arange(n)
-        coo = sp.coo_matrix(self.m)
-        if self.complex:
-            perm = np.stack([2 * i, 2 * i + 1, 2 * (n + i), 2 * (n + i) + 1], axis=1).ravel()
-            r, c, v = _realify_coo(coo.row, coo.col, coo.data)
-            anchor = [0, 1]
-            rot_slots = [2, 3]
-        else:
-            perm = np.stack([i, n + 3 * i, n + 3 * i + 1, n + 3 * i + 2], axis=1).ravel()
-            r, c, v = coo.row, coo.col, np.real(coo.data)
-            anchor = [0]
-            rot_slots = [1, 2, 3]
-        dim = 4 * n
-        where_new = np.empty(dim, np.int64)
-        where_new[perm] = np.arange(dim)
-        diag_t = self.m.diagonal()[:n].real
-        c_anchor = float(np.mean(diag_t)) if n else 1.0
-        rows = np.concatenate([where_new[r], 4 * self.gauge + np.asarray(anchor)])
-        cols = np.concatenate([where_new[c], 4 * self.gauge + np.asarray(anchor)])
-        vals = np.concatenate([v, np.full(len(anchor), c_anchor)])
-        kmat = sp.csr_matrix((vals, (rows, cols)), shape=(dim, dim))  # sums, keeps zeros
-        bsr = sp.bsr_matrix(kmat, blocksize=(4, 4))
-        bsr.sort_indices()
-        br = np.repeat(np.arange(n, dtype=np.int64), np.diff(bsr.indptr))
-        keys = br * n + bsr.indices
+        a, b = self._edges
+        # the pose graph's blocks (every entry of M couples the two ends of a constraint)
+        keys = np.unique(np.concatenate([a * n + b, b * n + a, i * (n + 1)]))
+        block_ptr = np.zeros(n + 1, np.int64)
+        np.cumsum(np.bincount(keys // max(n, 1), minlength=n), out=block_ptr[1:])
+        block_col = np.ascontiguousarray(keys % max(n, 1))
+        blocks = np.zeros((keys.size, 4, 4))
+        m = self.m
+        bad = pose_blocks(m.indptr.astype(np.int64), m.indices.astype(np.int64),
+                          np.ascontiguousarray(np.real(m.data), np.float64),
+                          np.ascontiguousarray(np.imag(m.data), np.float64), n, self.d,
+                          block_ptr, block_col, blocks)
+        if bad >= 0:
+            raise RuntimeError(f"internal error: row {bad} of M has an entry outside the "
+                               "pose graph's blocks")
         diag_block = np.searchsorted(keys, i * (n + 1))
+        anchor, rot_slots = ([0, 1], [2, 3]) if self.complex else ([0], [1, 2, 3])
+        diag_t = m.diagonal()[:n].real
+        c_anchor = float(np.mean(diag_t)) if n else 1.0
+        for q in anchor:
+            blocks[diag_block[self.gauge], q, q] += c_anchor
+        dim = 4 * n
+        bsr = sp.bsr_matrix((blocks, block_col, block_ptr), shape=(dim, dim))
         rs = np.asarray(rot_slots)
         mask = np.zeros((n, 4))
         mask[:, rs] = 1.0

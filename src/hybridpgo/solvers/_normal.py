@@ -232,19 +232,29 @@ def assemble(graph: PoseGraph, pat: Pattern, rot: FloatArray, trans: FloatArray,
     return float(e), float(plain)
 
 
-def energy_at(graph: PoseGraph, rot: FloatArray, trans: FloatArray,
-            robust: tuple[int, float] = (0, 1.0), planar: bool = False) -> float:
-    """E (E_rho with a robust kernel) at trial poses (may be inf/nan: the callers reject such
-    steps).  ``planar``: the poses and data are planar (:func:`is_planar`); the errors are
-    SE(2)'s, as the planar system's assembly computes them."""
+def energies_at(graph: PoseGraph, rot: FloatArray, trans: FloatArray,
+                robust: tuple[int, float] = (0, 1.0), planar: bool = False
+                ) -> tuple[float, float]:
+    """``(E_rho, E)`` at trial poses (equal without a robust kernel; may be inf/nan: the
+    callers reject such steps), each the same sum, in the same order, as :func:`assemble`'s.
+    ``planar``: the poses and data are planar (:func:`is_planar`); the errors are SE(2)'s, as
+    the planar system's assembly computes them."""
     if robust[0] != _cost.ROBUST_NONE or planar:
-        return float(_cost.robust_total_energy(
+        e_rho, e = _cost.robust_total_energy(
             rot, trans, graph.edge_nodes, graph.edge_rotations, graph.edge_translations,
             graph.edge_information, graph.gps_nodes, graph.gps_positions,
-            graph.gps_information, robust[0], robust[1], planar)[0])
-    return float(_cost.total_energy(rot, trans, graph.edge_nodes, graph.edge_rotations,
+            graph.gps_information, robust[0], robust[1], planar)
+        return float(e_rho), float(e)
+    e = float(_cost.total_energy(rot, trans, graph.edge_nodes, graph.edge_rotations,
                                  graph.edge_translations, graph.edge_information,
                                  graph.gps_nodes, graph.gps_positions, graph.gps_information))
+    return e, e
+
+
+def energy_at(graph: PoseGraph, rot: FloatArray, trans: FloatArray,
+              robust: tuple[int, float] = (0, 1.0), planar: bool = False) -> float:
+    """E (E_rho with a robust kernel) at trial poses: :func:`energies_at`'s first."""
+    return energies_at(graph, rot, trans, robust, planar)[0]
 
 
 def describe_constraint(graph: PoseGraph, c: int) -> str:

@@ -39,7 +39,7 @@ from ._normal import (
     analyze,
     assemble,
     check_gauge,
-    energy_at,
+    energies_at,
     full_system,
     initial_poses,
     is_planar,
@@ -249,7 +249,9 @@ class _Run:
         self.grad = np.empty(self.pat.dim)
         self.seconds = {"assemble": 0.0, "factorize": 0.0, "energy": 0.0}
         self.plain = 0.0
-        """The plain E at the last assembly."""
+        """The plain E at the current poses (the last assembly's, or the last trial's)."""
+        self.new_plain = 0.0
+        """The plain E at the trial poses."""
 
     def assemble(self) -> float:
         """H and g at the current poses; returns E (E_rho) there, the plain E in ``plain``."""
@@ -305,8 +307,8 @@ class _Run:
         scale = 1.0
         _k.retract(self.rot, self.trans, step, self.pat.var_of_node, scale, self.new_rot,
                    self.new_trans)
-        e_new = energy_at(self.graph, self.new_rot, self.new_trans, self.robust,
-                          self.planar)
+        e_new, self.new_plain = energies_at(self.graph, self.new_rot, self.new_trans,
+                                            self.robust, self.planar)
         tries = 0
         if self.cfg.method == "gn" and self.cfg.step_guard:
             while not (e_new <= e_cur) and tries < self.cfg.max_step_halvings:
@@ -314,8 +316,8 @@ class _Run:
                 tries += 1
                 _k.retract(self.rot, self.trans, step, self.pat.var_of_node, scale,
                            self.new_rot, self.new_trans)
-                e_new = energy_at(self.graph, self.new_rot, self.new_trans, self.robust,
-                                  self.planar)
+                e_new, self.new_plain = energies_at(self.graph, self.new_rot,
+                                                    self.new_trans, self.robust, self.planar)
         self.seconds["energy"] += time.perf_counter() - t0
         return e_new, scale, tries
 
@@ -419,25 +421,30 @@ def _iterate(run: _Run, limit: int, t_start: float, t_analyze: float,
             accepted += 1
             run.accept()
             e_prev = e_cur
-            e_cur = run.assemble()
-            drop = e_prev - e_cur
+            # E at the new poses is the trial's (the assembly's same sum, in the same order):
+            # a step that converges needs no assembly there
+            drop = e_prev - e_new
             rate = drop / last_drop if 0.0 < drop < last_drop else 0.0 if drop <= 0.0 else 1.0
             last_drop = drop
             # converged: this change, and what the next ones would add if E kept falling at
             # this rate (a geometric tail: large-residual graphs converge linearly, each step
             # changing E by less than the tolerance while far more of it remains)
             ahead = abs(drop) * rate / (1.0 - rate) if rate < 1.0 else np.inf
-            if e_cur == 0.0 or (abs(drop) <= cfg.energy_tolerance * e_prev
-                                and ahead <= cfg.energy_tolerance * e_prev):
-                if cfg.method == "lm" and mu > cfg.initial_damping and not undamped:
-                    # a small change under heavy damping can be slow progress (ill-conditioned
-                    # graphs: linear convergence at mu ~ 1e-3): once, go on from the initial
-                    # damping; where the optimum is reached the next step confirms it
-                    mu, nu, undamped = cfg.initial_damping, 2.0, True
-                else:
-                    status = Status.CONVERGED
-            elif step_small and scale == 1.0:
+            small = e_new == 0.0 or (abs(drop) <= cfg.energy_tolerance * e_prev
+                                     and ahead <= cfg.energy_tolerance * e_prev)
+            # a small change under heavy damping can be slow progress (ill-conditioned graphs:
+            # linear convergence at mu ~ 1e-3): once, go on from the initial damping; where
+            # the optimum is reached the next step confirms it
+            restart = small and cfg.method == "lm" and mu > cfg.initial_damping and not undamped
+            if small and not restart:
+                e_cur, run.plain = e_new, run.new_plain
                 status = Status.CONVERGED
+            else:
+                e_cur = run.assemble()
+                if restart:
+                    mu, nu, undamped = cfg.initial_damping, 2.0, True
+                elif step_small and scale == 1.0:
+                    status = Status.CONVERGED
         else:
             rejected += 1
             if changed or step_small:  # E or the poses no longer change measurably
