@@ -1011,7 +1011,8 @@ def _replace(cert: Certificate, **changes: Any) -> Certificate:
 
 
 # ------------------------------------------------------------------ the staircase
-#: Iterations of the staircase's minimization between two tries of rounding and certifying.
+#: Iterations of the staircase's minimization before its first try of rounding and
+#: certifying; the next tries come after twice as many in all each time.
 STAIRCASE_CHUNK = 50
 
 
@@ -1026,8 +1027,9 @@ def staircase_start(graph: PoseGraph, rotations: FloatArray, translations: Float
     along the eigenvector of the certificate's negative eigenvalue into one more rank
     (``[Y, alpha v]``, ``alpha`` halved until F falls), minimize there (:meth:`SyncProblem.
     minimize`, at most ``max_iterations``), round to rotations, refine them with Newton and
-    certify again; the minimization stops every :data:`STAIRCASE_CHUNK` iterations for a
-    rounding, refinement and certificate, and the staircase ends at the first that certifies.
+    certify again; the minimization stops after :data:`STAIRCASE_CHUNK` iterations, then each
+    time their number doubled, for a rounding, refinement and certificate, and the staircase
+    ends at the first that certifies.
     Returns the lowest-F rotations found with their optimal positions, in the
     frame of the given poses at the gauge pose, and ``info``: ``certified``, ``objective`` (F),
     ``lambda_min``, ``rank`` (where it ended), ``ranks`` (per rank: F of the relaxation, F
@@ -1065,18 +1067,20 @@ def staircase_start(graph: PoseGraph, rotations: FloatArray, translations: Float
         p += 1
         # minimize in chunks; after each, round, refine and certify: a relaxation not yet
         # minimized often rounds into the certified optimum already (m3500 with 20 degrees of
-        # yaw noise: certified after 100 iterations at rank 2, where the minimization runs 438)
-        yp, done = trial, 0
+        # yaw noise: certified after 100 iterations at rank 2, where the minimization runs 438);
+        # the chunks double, so a relaxation that never certifies (m3500c) pays few tries
+        yp, done, chunk = trial, 0, STAIRCASE_CHUNK
         while True:
-            yp, fp, its = prob.minimize(yp, min(STAIRCASE_CHUNK, max_iterations - done))
+            yp, fp, its = prob.minimize(yp, min(chunk, max_iterations - done))
             done += its
             yr, fr, _ = prob.refine(prob.round(yp))
             if fr < best_f:
                 best_y, best_f = yr, fr
             spec_r = prob.spectrum(yr, gap_tolerance)
             certified = bool(np.isfinite(spec_r.lower_bound) and fr <= best_f)
-            if certified or its < STAIRCASE_CHUNK or done >= max_iterations:
+            if certified or its < chunk or done >= max_iterations:
                 break
+            chunk = done  # the tries at 50, 100, 200, 400, ... iterations
         if certified:
             ranks.append({"rank": float(p), "relaxation": fp, "rounded": fr,
                           "lambda_min": float("nan"), "iterations": float(done)})
