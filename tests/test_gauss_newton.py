@@ -619,3 +619,27 @@ def test_config_is_frozen() -> None:
             cfg.initial_damping) == ("lm", 100, 1e-10, 1e-12, 1e-8)
     with pytest.raises(AttributeError):
         cfg.method = "gn"  # type: ignore[misc]
+
+
+@pytest.mark.parametrize("robust", [(0, 1.0), (_cost.robust_kind("huber", 1.0), 1.0)])
+@pytest.mark.parametrize("planar", [False, True])
+def test_the_trial_energy_is_the_assemblys_to_the_bit(robust, planar: bool) -> None:
+    """LM reads E at the new poses from its trial and assembles only a step that does not
+    converge: the trial's ``(E_rho, E)`` must be the assembly's exactly, in the whole system
+    and in the planar one (the same terms summed in the same order)."""
+    from test_energy import planar_graph
+
+    rng = np.random.default_rng(52)
+    if planar:
+        g, *_ = planar_graph(rng, n=30, extra=25, noise=0.2)
+    else:
+        g = random_graph(rng, n=20, extra=15, noise=0.4, init_noise=0.4, num_gps=3)
+    fixed = _normal.default_fixed_nodes(g)
+    pat = _normal.analyze(g, fixed, reorder=True)
+    rot, trans = np.array(g.rotations), np.array(g.translations)
+    assert _normal.is_planar(g, rot, trans) == planar
+    system = _normal.planar_system(pat) if planar else None
+    nnz = system.nnz if system is not None else pat.nnz
+    data, grad = np.empty(nnz), np.empty(pat.dim)
+    assembled = _normal.assemble(g, pat, rot, trans, data, grad, robust, system)
+    assert _normal.energies_at(g, rot, trans, robust, planar) == assembled
