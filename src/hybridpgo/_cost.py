@@ -122,12 +122,13 @@ PLANAR_SERIES_ANGLE = 0.5
 @kernel
 def planar_residual(zr: np.ndarray, zt: np.ndarray, ra: np.ndarray, ta: np.ndarray,
                     rb: np.ndarray, tb: np.ndarray, e: np.ndarray
-                    ) -> tuple[float, float, float, float]:
+                    ) -> tuple[float, float, float, float, float]:
     """:func:`relative_residual` of planar poses and measurement (rotations about z, no z
     translation: ``graph.planar_motions``): the SE(2) logarithm ``e = (rho_x, rho_y, 0, 0, 0,
     theta)``, which is SE(3)'s restricted to the plane (docs/mathematics.md#planar-reduction).
 
-    Returns ``X_a^-1 X_b`` as ``(cos, sin, x, y)`` (for :func:`planar_jacobians`).
+    Returns ``X_a^-1 X_b`` as ``(cos, sin, x, y)`` and ``alpha = (theta / 2) cot(theta / 2)``
+    (for :func:`planar_jacobians`).
     """
     ca = ra[0, 0]
     sa = ra[1, 0]
@@ -151,21 +152,21 @@ def planar_residual(zr: np.ndarray, zt: np.ndarray, ra: np.ndarray, ta: np.ndarr
     e[3] = 0.0
     e[4] = 0.0
     e[5] = th
-    return cab, sab, x, y
+    return cab, sab, x, y, alpha
 
 
 @kernel
-def planar_jacobians(e: np.ndarray, rel: tuple[float, float, float, float], ja: np.ndarray,
-                     jb: np.ndarray) -> None:
+def planar_jacobians(e: np.ndarray, rel: tuple[float, float, float, float, float],
+                     ja: np.ndarray, jb: np.ndarray) -> None:
     """``jb = Jr^-1(e)`` and ``ja = -Jr^-1(e) Ad(X_b^-1 X_a)`` of a planar constraint (its
-    error ``e`` and ``X_a^-1 X_b = rel`` from :func:`planar_residual`) as (6, 6) matrices: the
+    error ``e`` and ``rel`` from :func:`planar_residual`) as (6, 6) matrices: the
     (x, y, yaw) rows and columns of SE(3)'s, 0 elsewhere (the out-of-plane rows and columns do
     not enter the planar system; docs/mathematics.md#planar-reduction)."""
     th = e[5]
     r0 = e[0]
     r1 = e[1]
     h = 0.5 * th
-    alpha = 1.0 - jl_inv_coeff(abs(th)) * th * th
+    cab, sab, x, y, alpha = rel
     t2 = th * th
     # ca = (1 - cos th) / th^2 = (sin(th / 2) / th)^2 / 2, cb = (th - sin th) / th^2 (its
     # series below PLANAR_SERIES_ANGLE, where the difference cancels)
@@ -197,7 +198,6 @@ def planar_jacobians(e: np.ndarray, rel: tuple[float, float, float, float], ja: 
     jb[1, 5] = k1
     jb[5, 5] = 1.0
     # Ad(X_b^-1 X_a) = [[R, (ty, -tx)], [0, 1]], R = R_ab^T, t = -R_ab^T t_ab
-    cab, sab, x, y = rel
     tx = -(cab * x + sab * y)
     ty = sab * x - cab * y
     a00, a01, a02 = cab, sab, ty

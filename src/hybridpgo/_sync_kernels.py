@@ -235,6 +235,16 @@ def sync_terms_2d(z: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray,
 
 
 @kernel
+def _pose_slot(u: int, n: int, d: int) -> tuple[int, int]:
+    """Unknown ``u`` of M as (pose, first slot of its real form; :func:`pose_blocks`)."""
+    if u < n:
+        pose, slot = u, 0
+    else:
+        pose, slot = (u - n) // d, 1 + (u - n) % d
+    return pose, 2 * slot if d == 1 else slot
+
+
+@kernel
 def pose_blocks(indptr: np.ndarray, indices: np.ndarray, re: np.ndarray, im: np.ndarray,
                 n: int, d: int, block_ptr: np.ndarray, block_col: np.ndarray,
                 out: np.ndarray) -> int:
@@ -247,22 +257,11 @@ def pose_blocks(indptr: np.ndarray, indices: np.ndarray, re: np.ndarray, im: np.
     pattern (columns increasing in each block row), ``out`` (blocks, 4, 4).  Returns -1, or
     the row of an entry outside the pattern."""
     for r in range(indptr.shape[0] - 1):
-        if r < n:
-            pr, sr = r, 0
-        else:
-            pr, sr = (r - n) // d, 1 + (r - n) % d
-        if d == 1:
-            sr *= 2
+        pr, sr = _pose_slot(r, n, d)
         lo = block_ptr[pr]
         hi = block_ptr[pr + 1]
         for t in range(indptr[r], indptr[r + 1]):
-            c = indices[t]
-            if c < n:
-                pc, sc = c, 0
-            else:
-                pc, sc = (c - n) // d, 1 + (c - n) % d
-            if d == 1:
-                sc *= 2
+            pc, sc = _pose_slot(indices[t], n, d)
             k = lo + np.searchsorted(block_col[lo:hi], pc)
             if k >= hi or block_col[k] != pc:
                 return r
