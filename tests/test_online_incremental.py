@@ -9,13 +9,14 @@ bit for bit the answer of unsliced work.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
 from graphs import planar_rotations, random_rotations
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from tolerances import INCREMENTAL_VS_BATCH, SPARSE_VS_DENSE_GN
+from tolerances import FLOAT64_IDENTITY, INCREMENTAL_VS_BATCH, SPARSE_VS_DENSE_GN
 
 from hybridpgo.graph import PoseGraph, lift_information_2d
 from hybridpgo.online.incremental import IncrementalConfig, IncrementalExact
@@ -130,6 +131,31 @@ def _check_sorted_rows(inc: IncrementalExact) -> None:
         assert np.all(np.diff(inc._position[rows]) > 0)
 
 
+def _check_supernodes(inc: IncrementalExact) -> int:
+    """The last set's supernodes partition it into runs of consecutive columns, each column's
+    parent the next and its rows the next column and the next column's rows; returns the
+    widest run."""
+    import hybridpgo.online._incremental_kernels as ik
+
+    order = getattr(inc, "_order_s", np.zeros(0, np.int64))
+    if order.size == 0:
+        return 0
+    ptr = inc._sn_ptr[: inc._sn_count + 1]
+    assert ptr[0] == 0 and ptr[-1] == order.size and np.all(np.diff(ptr) >= 1)
+    widest = 0
+    for s in range(inc._sn_count):
+        cols = order[ptr[s]: ptr[s + 1]]
+        assert cols.size <= ik.SUPERNODE_MAX
+        assert np.all(inc._sn_of[cols] == s)
+        for j, j2 in itertools.pairwise(cols):
+            rows = inc._row_var[inc._col_start[j]: inc._col_start[j] + inc._col_len[j]]
+            rows2 = inc._row_var[inc._col_start[j2]: inc._col_start[j2] + inc._col_len[j2]]
+            assert inc._parent[j] == j2
+            assert rows.tolist() == [j2, *rows2.tolist()]
+        widest = max(widest, cols.size)
+    return widest
+
+
 def _check_gn_step(inc: IncrementalExact) -> None:
     n = inc._n_in
     graph = _graph(inc, inc._th_r, inc._th_t)
@@ -167,6 +193,7 @@ def test_every_cycle_solves_the_whole_map_exactly(seed: int, n: int, loop_p: flo
             if inc.stats["cycles"] > before:
                 _check_gn_step(inc)
                 _check_sorted_rows(inc)
+                _check_supernodes(inc)
                 flat = k == 0 or (planar and not any(s.gps[i] for i in range(k + 1)))
                 assert inc._nd == (3 if flat else 6)
 
@@ -302,6 +329,43 @@ def test_rows_are_sorted_by_position_as_a_plain_sort_does(count: int) -> None:
     assert row_var[4: 4 + count].tolist() == want
     assert np.array_equal(row_var[:4], before[:4])
     assert np.array_equal(row_var[4 + count:], before[4 + count:])
+
+
+@pytest.mark.parametrize(("width", "below"), [(1, 0), (1, 3), (3, 5), (8, 40), (20, 60)])
+def test_a_panel_is_factored_as_numpys_cholesky(width: int, below: int) -> None:
+    """The supernode panel's factorization (blocked; loops for small steps, BLAS with the
+    diagonal block's inverse for large ones) against numpy's Cholesky factor of the whole
+    matrix: the panel's columns of it; only the lower triangle of the panel's top is read."""
+    from hybridpgo.online._incremental_kernels import _factor_panel
+
+    rng = np.random.default_rng(width * 100 + below)
+    nc, nrow = 6 * width, 6 * (width + below)
+    g = rng.standard_normal((nrow, nrow))
+    h = g @ g.T + nrow * np.eye(nrow)
+    want = np.linalg.cholesky(h)[:, :nc]
+    panel = np.ascontiguousarray(h[:, :nc])
+    panel[np.triu_indices(nc, 1)] = np.nan  # never read
+    assert _factor_panel(panel, nc)
+    got = panel.copy()
+    got[np.triu_indices(nc, 1)] = 0.0
+    assert np.abs(got - want).max() <= FLOAT64_IDENTITY * np.abs(want).max()
+    h[0, 0] = -1.0
+    assert not _factor_panel(np.ascontiguousarray(h[:, :nc]), nc)
+
+
+def test_supernodes_group_the_columns_of_a_loop_closed_map() -> None:
+    """On a drive with many loop closures the re-eliminated columns' rows nest over long runs:
+    they are grouped into supernodes wider than a few columns (every cycle checked), and the
+    step is still the batch Gauss-Newton step."""
+    s = _stream(11, 120, 0.3, 0)
+    inc = IncrementalExact(IncrementalConfig(relinearize_rho=0.0, relinearize_phi=0.0))
+    widest = 0
+    for k in range(s.frames):
+        _feed(inc, s, k)
+        inc.solve(max_cycles=1)
+        widest = max(widest, _check_supernodes(inc))
+    _check_gn_step(inc)
+    assert widest > 8
 
 
 def test_estimate_composes_poses_added_since_the_last_update() -> None:

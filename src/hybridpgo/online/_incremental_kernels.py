@@ -19,12 +19,15 @@ after every other column, in a new fill-reducing order; the columns hanging belo
 
 * :func:`symbolic` computes the rows of each column of S (its constraints to later variables
   of S, and its children's rows; sorted by position), its parent and the children lists;
-* :func:`numeric` factors the columns of S in order, left-looking: column j takes the update of
-  every earlier column k with a block in row j (found by walking the elimination tree up from
-  j's constraint neighbours, "ereach"), including the unchanged ones below S; the forward
-  substitution ``y_j`` is computed in the same pass.  A column of S reaches the columns it
-  updates in the order of its sorted rows, so each update reads it from a cursor on (the
-  rows below j only); an unchanged column is searched for row j and read whole;
+* :func:`supernodes` groups S's columns into supernodes: runs of consecutive columns with
+  nested rows (each column's rows are the next column and its rows);
+* :func:`numeric` factors S one supernode at a time, left-looking, as a dense panel: A's
+  entries, then the update of every earlier column k with a block in one of the supernode's
+  rows (found by walking the elimination tree up from the constraint neighbours, "ereach"),
+  then a blocked dense Cholesky factorization; the forward substitution ``y`` is computed in
+  the same pass and the panel is copied to the column storage.  The earlier columns of S
+  are read from their supernodes' panels, each supernode's update one matrix product (BLAS
+  when large); the unchanged columns below S by 6x6 (3x3) block products;
 * :func:`back_substitute` solves ``L^T x = y`` from the roots down, recomputing a column when it
   is in S or one of its rows changed by more than a threshold (0: exact), so the unchanged
   rest of the map is not visited.
@@ -36,7 +39,8 @@ beyond ``nd`` and ``y`` zero there, and the step's out-of-plane coordinates stay
 system: ``perm`` the identity, ``nd = 6``.
 
 Resumable: :func:`numeric` and :func:`back_substitute` stop when the cycle counter passes a
-deadline and are called again from where they stopped.  Status codes instead of exceptions.
+deadline (between two supernodes, two columns) and are called again from where they stopped.
+Status codes instead of exceptions.
 """
 
 from __future__ import annotations
@@ -414,226 +418,431 @@ def _sort_rows(row_var: np.ndarray, s0: int, cnt: int, position: np.ndarray) -> 
 
 
 # --------------------------------------------------------------------------- numeric
+#: :func:`supernodes`: the most columns in one supernode (bounds a panel's size and the dense
+#: work between two deadline checks).
+SUPERNODE_MAX = 64
+#: :func:`numeric`: a product of panels with fewer multiply-adds than this is done by loops
+#: here; a larger one by BLAS (``np.dot``), whose call costs about a microsecond.
+SMALL_GEMM = 8192
+#: :func:`numeric`: columns per step of a panel's blocked Cholesky factorization.
+PANEL_STEP = 32
+
+
 @kernel
-def _chol_block(d: np.ndarray, nd: int) -> bool:
-    """In-place lower Cholesky of the leading (nd, nd) part of a (6, 6) block, the rest the
-    identity (upper part zeroed); False: not SPD."""
-    for c in range(nd):
-        s = d[c, c]
-        for t in range(c):
-            s -= d[c, t] * d[c, t]
-        if not (s > 0.0):
-            return False
-        lc = math.sqrt(s)
-        d[c, c] = lc
-        for r in range(c + 1, nd):
-            s2 = d[r, c]
-            for t in range(c):
-                s2 -= d[r, t] * d[c, t]
-            d[r, c] = s2 / lc
-    for c in range(6):  # keep the diagonal and the factor below it in the leading part
-        for r in range(6):
-            if r != c and not c < r < nd:
-                d[r, c] = 0.0
-        if c >= nd:
-            d[c, c] = 1.0
+def supernodes(order: np.ndarray, parent: np.ndarray, col_len: np.ndarray, max_width: int,
+               nd: int, sn_ptr: np.ndarray, sn_of: np.ndarray, pan_off: np.ndarray) -> int:
+    """Group the columns ``order`` (S in its elimination order, rows known) into supernodes:
+    runs of consecutive columns in which each column's parent is the next one and it has one
+    row more, so that its rows are the next column and the next column's rows.  Supernode
+    ``s`` is ``order[sn_ptr[s]:sn_ptr[s + 1]]``; ``sn_of[j] = s``; its panel, ``(w + r) nd``
+    rows by ``w nd`` columns for ``w`` columns and ``r`` rows of its last column, starts at
+    ``pan_off[s]`` of the panel pool (``pan_off[count]``: the pool's size).  Returns the count.
+    """
+    ns = order.shape[0]
+    count = 0
+    sn_ptr[0] = 0
+    pan_off[0] = 0
+    w = 1
+    for q in range(ns):
+        j = order[q]
+        sn_of[j] = count
+        join = False
+        if q + 1 < ns and w < max_width:
+            j2 = order[q + 1]
+            join = parent[j] == j2 and col_len[j] == col_len[j2] + 1
+        if join:
+            w += 1
+            continue
+        count += 1
+        sn_ptr[count] = q + 1
+        pan_off[count] = pan_off[count - 1] + (w + col_len[j]) * nd * w * nd
+        w = 1
+    return count
+
+
+@kernel
+def _first_at_least(row_var: np.ndarray, t0: int, n: int, position: np.ndarray,
+                    tag: int) -> int:
+    """The index (from ``t0``) of the first of the ``n`` rows at ``row_var[t0:]``, sorted by
+    position, whose position is at least ``tag`` (``n`` when none)."""
+    lo = 0
+    hi = n
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if position[row_var[t0 + mid]] < tag:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@kernel
+def _subtract_product(p: np.ndarray, a: np.ndarray, b: np.ndarray, rows: np.ndarray,
+                      cols: np.ndarray, nd: int) -> None:
+    """``p[rows[i] nd + u, cols[q] nd + v] -= (a b^T)[i nd + u, q nd + v]`` for the blocks
+    with ``rows[i] >= cols[q]`` (the lower part of the target); BLAS for a large product."""
+    mr = a.shape[0]
+    mq = b.shape[0]
+    kk = a.shape[1]
+    if mr * mq * kk >= SMALL_GEMM:
+        c = np.dot(a, b.T)
+        for i in range(mr // nd):
+            tr = rows[i]
+            for q in range(mq // nd):
+                tc = cols[q]
+                if tr < tc:
+                    continue
+                for u in range(nd):
+                    for v in range(nd):
+                        p[tr * nd + u, tc * nd + v] -= c[i * nd + u, q * nd + v]
+        return
+    for i in range(mr // nd):
+        tr = rows[i]
+        for q in range(mq // nd):
+            tc = cols[q]
+            if tr < tc:
+                continue
+            for u in range(nd):
+                for v in range(nd):
+                    s = 0.0
+                    for m in range(kk):
+                        s += a[i * nd + u, m] * b[q * nd + v, m]
+                    p[tr * nd + u, tc * nd + v] -= s
+
+
+@kernel
+def _factor_panel(p: np.ndarray, nc: int) -> bool:
+    """In place: the lower Cholesky factor of the panel's leading (nc, nc) part (its lower
+    triangle read) and the rows below it solved against it (``X L^T = B``), by blocked
+    right-looking steps of :data:`PANEL_STEP` columns; False: not positive definite."""
+    nrow = p.shape[0]
+    for c0 in range(0, nc, PANEL_STEP):
+        c1 = min(c0 + PANEL_STEP, nc)
+        for c in range(c0, c1):
+            s = p[c, c]
+            for t in range(c0, c):
+                s -= p[c, t] * p[c, t]
+            if not (s > 0.0):
+                return False
+            lc = math.sqrt(s)
+            p[c, c] = lc
+            for r in range(c + 1, c1):
+                s2 = p[r, c]
+                for t in range(c0, c):
+                    s2 -= p[r, t] * p[c, t]
+                p[r, c] = s2 / lc
+        nb = c1 - c0
+        mr = nrow - c1
+        if mr == 0:
+            break
+        if mr * nb * nb < SMALL_GEMM:
+            for r in range(c1, nrow):
+                for c in range(c0, c1):
+                    s = p[r, c]
+                    for t in range(c0, c):
+                        s -= p[r, t] * p[c, t]
+                    p[r, c] = s / p[c, c]
+            x = np.ascontiguousarray(p[c1:, c0:c1])
+        else:  # X = B L^-T with L's inverse (nb, nb), by BLAS
+            li = np.zeros((nb, nb))
+            for c in range(nb):
+                li[c, c] = 1.0 / p[c0 + c, c0 + c]
+                for r in range(c + 1, nb):
+                    s = 0.0
+                    for t in range(c, r):
+                        s -= p[c0 + r, c0 + t] * li[t, c]
+                    li[r, c] = s / p[c0 + r, c0 + r]
+            x = np.dot(np.ascontiguousarray(p[c1:, c0:c1]), li.T)
+            p[c1:, c0:c1] = x
+        if c1 < nc:
+            mq = nc - c1
+            if mr * mq * (c1 - c0) >= SMALL_GEMM:
+                u = np.dot(x, x[:mq].T)
+                for r in range(mr):
+                    for c in range(min(r + 1, mq)):
+                        p[c1 + r, c1 + c] -= u[r, c]
+            else:
+                for r in range(mr):
+                    for c in range(min(r + 1, mq)):
+                        s = 0.0
+                        for t in range(c1 - c0):
+                            s += x[r, t] * x[c, t]
+                        p[c1 + r, c1 + c] -= s
     return True
 
 
 @kernel
-def numeric(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarray,
+def numeric(order: np.ndarray, s_from: int, deadline: np.uint64, position: np.ndarray,
             free: np.ndarray, ab: np.ndarray, inc_head: np.ndarray, inc_next: np.ndarray,
             gps_head: np.ndarray, gps_next: np.ndarray, haa: np.ndarray, hbb: np.ndarray,
             hab: np.ndarray, ga: np.ndarray, gb: np.ndarray, hgg: np.ndarray, gg: np.ndarray,
             parent: np.ndarray, col_start: np.ndarray, col_len: np.ndarray,
             row_var: np.ndarray, row_blk: np.ndarray, diag: np.ndarray, y: np.ndarray,
             slot: np.ndarray, walk: np.ndarray, in_s: np.ndarray, stamp: int,
-            cursor: np.ndarray, damping: float, nd: int, perm: np.ndarray,
-            work: np.ndarray) -> int:
-    """Factor the columns ``order[i0:]`` and their forward substitution ``y`` (module doc).
+            sn_ptr: np.ndarray, sn_count: int, sn_of: np.ndarray, sn_mark: np.ndarray,
+            pan_off: np.ndarray, panel: np.ndarray, src: np.ndarray, damping: float,
+            nd: int, perm: np.ndarray, work: np.ndarray) -> int:
+    """Factor the supernodes ``s_from, ..., sn_count - 1`` of S (:func:`supernodes`) and their
+    forward substitution ``y`` (module doc).
 
     ``nd``, ``perm``: the factor's coordinates are the tangent coordinates ``perm[:nd]``
     (module doc: the planar system), ``row_blk`` holds (nd, nd) blocks; GPS readings need the
     identity ``perm`` and ``nd = 6``.
 
-    A column k of S (``in_s[k] == stamp``) has its rows sorted by position (:func:`symbolic`),
-    so the columns j it updates come in the order of its rows: ``cursor[k]`` is the index (in
-    the column) of the next one, and the update reads only the rows after it.  The unchanged
-    columns below S are searched for row j and read whole.
+    A supernode J is factored as one dense panel (its columns; as rows, its columns and the
+    rows of its last column, in position order): A's entries; the updates of every earlier
+    column with a row in J, found by walking the elimination tree up from the constraint
+    neighbours of J's columns ("ereach"); a blocked Cholesky factorization; then its columns
+    are copied to the column storage (``diag``, ``row_blk``).  An earlier supernode K of S
+    updates J by one product of two slices of its panel, the rows of K from J's first column
+    on (all of them rows of J's panel, by the elimination tree's property) times the rows
+    that are columns of J, with BLAS when large; an unchanged column below S by 6x6 block
+    products (its rows are not in position order).  ``slot[v]`` is the panel row of
+    variable v while J is factored (-1 otherwise); ``sn_mark[K]``, ``walk[k]``: J's first
+    position once K, k were applied to J.
 
     ``damping``: ``H + damping * diag(H)`` (Levenberg-Marquardt; 0 for Gauss-Newton).  Stops
-    after the first column that ends past ``deadline`` (cycle counter); returns the index to
-    resume from (``len(order)`` when done), or ``NOT_SPD`` / ``BROKEN_TREE``.  ``work`` (2,):
-    += earlier columns applied, += their blocks multiplied.
+    after the first supernode that ends past ``deadline`` (cycle counter); returns the
+    supernode to resume from (``sn_count`` when done), or ``NOT_SPD`` / ``BROKEN_TREE``.
+    ``work`` (2,): += earlier columns applied, += their blocks multiplied.
     """
-    d = np.empty((6, 6))
-    b = np.empty(6)
+    qbuf = np.empty(64, np.int64)
+    bv = np.empty(SUPERNODE_MAX * 6)
     ljt = np.empty((6, 6))
-    for q in range(i0, order.shape[0]):
-        j = order[q]
-        tag = position[j]
-        s0 = col_start[j]
-        n = col_len[j]
-        for t in range(s0, s0 + n):
-            slot[row_var[t]] = t
-            for a in range(nd):
-                for c in range(nd):
-                    row_blk[t, a, c] = 0.0
-        for a in range(6):
-            b[a] = 0.0
-            for c in range(6):
-                d[a, c] = 0.0
-        # A's column j: the constraints' diagonal blocks, gradients and blocks to later rows
-        i = inc_head[j]
-        while i >= 0:
-            e = i >> 1
-            side = i & 1
-            u = ab[e, 1 - side]
-            if side == 0:
-                for a in range(nd):
-                    pa = perm[a]
-                    b[a] -= ga[e, pa]
-                    for c in range(nd):
-                        d[a, c] += haa[e, pa, perm[c]]
-            else:
-                for a in range(nd):
-                    pa = perm[a]
-                    b[a] -= gb[e, pa]
-                    for c in range(nd):
-                        d[a, c] += hbb[e, pa, perm[c]]
-            if free[u] and position[u] > tag:
-                t = slot[u]
-                if side == 0:  # block (row b, column a) = hab^T
+    for s in range(s_from, sn_count):
+        a0 = sn_ptr[s]
+        a1 = sn_ptr[s + 1]
+        w = a1 - a0
+        jl = order[a1 - 1]
+        ls0 = col_start[jl]
+        ln = col_len[jl]
+        nr = w + ln
+        nc = w * nd
+        pj = panel[pan_off[s]: pan_off[s + 1]].reshape(nr * nd, nc)
+        pj[:, :] = 0.0
+        for c in range(nc):
+            bv[c] = 0.0
+        for c in range(w):
+            slot[order[a0 + c]] = c
+        for t in range(ln):
+            slot[row_var[ls0 + t]] = w + t
+        tag0 = position[order[a0]]
+        # A's columns: the constraints' diagonal blocks, gradients and blocks to later rows
+        for c in range(w):
+            j = order[a0 + c]
+            tag = position[j]
+            o = c * nd
+            i = inc_head[j]
+            while i >= 0:
+                e = i >> 1
+                side = i & 1
+                u = ab[e, 1 - side]
+                if side == 0:
                     for a in range(nd):
-                        for c in range(nd):
-                            row_blk[t, a, c] += hab[e, perm[c], perm[a]]
-                else:  # block (row a, column b) = hab
+                        pa = perm[a]
+                        bv[o + a] -= ga[e, pa]
+                        for v in range(nd):
+                            pj[o + a, o + v] += haa[e, pa, perm[v]]
+                else:
                     for a in range(nd):
-                        for c in range(nd):
-                            row_blk[t, a, c] += hab[e, perm[a], perm[c]]
-            i = inc_next[i]
-        i = gps_head[j]
-        while i >= 0:
-            for a in range(3):
-                b[a] -= gg[i, a]
-                for c in range(3):
-                    d[a, c] += hgg[i, a, c]
-            i = gps_next[i]
-        if damping > 0.0:
-            for a in range(nd):
-                d[a, a] *= 1.0 + damping
-        # updates of the earlier columns with a block in row j (ereach)
-        walk[j] = tag
-        i = inc_head[j]
-        while i >= 0:
-            k = ab[i >> 1, 1 - (i & 1)]
-            if free[k] and position[k] < tag:
-                while walk[k] != tag:
-                    walk[k] = tag
-                    k0 = col_start[k]
-                    kn = col_len[k]
-                    p0 = -1
-                    whole = in_s[k] != stamp
-                    if whole:
-                        for t in range(k0, k0 + kn):
-                            if row_var[t] == j:
-                                p0 = t
-                                break
-                    else:
-                        p0 = k0 + cursor[k]
-                        if p0 >= k0 + kn or row_var[p0] != j:
-                            return BROKEN_TREE
-                        cursor[k] += 1
-                    if p0 < 0:
+                        pa = perm[a]
+                        bv[o + a] -= gb[e, pa]
+                        for v in range(nd):
+                            pj[o + a, o + v] += hbb[e, pa, perm[v]]
+                if free[u] and position[u] > tag:
+                    r = slot[u] * nd
+                    if r < 0:
                         return BROKEN_TREE
-                    lj = row_blk[p0]
-                    t0 = k0 if whole else p0 + 1
-                    work[0] += 1
-                    work[1] += k0 + kn - t0
+                    if side == 0:  # block (row b, column a) = hab^T
+                        for a in range(nd):
+                            for v in range(nd):
+                                pj[r + a, o + v] += hab[e, perm[v], perm[a]]
+                    else:  # block (row a, column b) = hab
+                        for a in range(nd):
+                            for v in range(nd):
+                                pj[r + a, o + v] += hab[e, perm[a], perm[v]]
+                i = inc_next[i]
+            i = gps_head[j]
+            while i >= 0:
+                for a in range(3):
+                    bv[o + a] -= gg[i, a]
+                    for v in range(3):
+                        pj[o + a, o + v] += hgg[i, a, v]
+                i = gps_next[i]
+            if damping > 0.0:
+                for a in range(nd):
+                    pj[o + a, o + a] *= 1.0 + damping
+        # the earlier columns with a row in J (ereach of J's columns; J's own columns stop
+        # the walks: their updates to each other are the panel's factorization)
+        nsrc = 0
+        for c in range(w):
+            walk[order[a0 + c]] = tag0
+        for c in range(w):
+            j = order[a0 + c]
+            tag = position[j]
+            i = inc_head[j]
+            while i >= 0:
+                k = ab[i >> 1, 1 - (i & 1)]
+                if free[k] and position[k] < tag:
+                    while walk[k] != tag0:
+                        walk[k] = tag0
+                        src[nsrc] = k
+                        nsrc += 1
+                        k = parent[k]
+                        if k < 0:
+                            return BROKEN_TREE
+                i = inc_next[i]
+        for si in range(nsrc):
+            k = src[si]
+            if in_s[k] == stamp:
+                sk = sn_of[k]
+                if sn_mark[sk] == tag0:
+                    continue
+                sn_mark[sk] = tag0
+                b0 = sn_ptr[sk]
+                wk = sn_ptr[sk + 1] - b0
+                kl = order[b0 + wk - 1]
+                ks0 = col_start[kl]
+                kn = col_len[kl]
+                nck = wk * nd
+                r0 = _first_at_least(row_var, ks0, kn, position, tag0)
+                r1 = r0 + _first_at_least(row_var, ks0 + r0, kn - r0, position,
+                                          position[jl] + 1)
+                if r1 == r0 or r1 > w + r0:
+                    return BROKEN_TREE
+                base = pan_off[sk] + (wk + r0) * nd * nck
+                a_ = panel[base: pan_off[sk + 1]].reshape((kn - r0) * nd, nck)
+                b_ = panel[base: base + (r1 - r0) * nd * nck].reshape((r1 - r0) * nd, nck)
+                if kn - r0 > qbuf.shape[0]:
+                    qbuf = np.empty(2 * (kn - r0), np.int64)
+                rows = qbuf[: kn - r0]
+                for t in range(kn - r0):
+                    rows[t] = slot[row_var[ks0 + r0 + t]]
+                    if rows[t] < 0:
+                        return BROKEN_TREE
+                # forward substitution: b_q -= L_qK y_K
+                for q in range(r1 - r0):
+                    o = rows[q] * nd
                     for a in range(nd):
-                        s = 0.0
-                        for c in range(nd):
-                            s += lj[a, c] * y[k, c]
-                        b[a] -= s
-                        for c in range(a + 1):
-                            s = 0.0
+                        acc = 0.0
+                        for kk in range(wk):
+                            yk = order[b0 + kk]
                             for m in range(nd):
-                                s += lj[a, m] * lj[c, m]
-                            d[a, c] -= s
+                                acc += b_[q * nd + a, kk * nd + m] * y[yk, m]
+                        bv[o + a] -= acc
+                _subtract_product(pj, a_, b_, rows, rows[: r1 - r0], nd)
+                work[0] += wk
+                work[1] += (kn - r0) * (r1 - r0) * wk
+            else:
+                # an unchanged column: its rows in J's panel (those in J's columns first)
+                k0 = col_start[k]
+                kn = col_len[k]
+                if 2 * kn > qbuf.shape[0]:
+                    qbuf = np.empty(4 * kn, np.int64)
+                nq = 0
+                for t in range(k0, k0 + kn):
+                    sr = slot[row_var[t]]
+                    if 0 <= sr < w:
+                        qbuf[2 * nq] = t
+                        qbuf[2 * nq + 1] = sr
+                        nq += 1
+                if nq == 0:
+                    return BROKEN_TREE
+                nb = nq
+                for t in range(k0, k0 + kn):
+                    sr = slot[row_var[t]]
+                    if sr >= w:
+                        qbuf[2 * nb] = t
+                        qbuf[2 * nb + 1] = sr
+                        nb += 1
+                work[0] += 1
+                for qi in range(nq):
+                    lq = row_blk[qbuf[2 * qi]]
+                    tc = qbuf[2 * qi + 1]
+                    o = tc * nd
+                    for a in range(nd):
+                        acc = 0.0
+                        for m in range(nd):
+                            acc += lq[a, m] * y[k, m]
+                        bv[o + a] -= acc
                     for m in range(nd):
-                        for c in range(nd):
-                            ljt[m, c] = lj[c, m]
-                    for t in range(t0, k0 + kn):
-                        r = row_var[t]
-                        if whole and position[r] <= tag:
+                        for v in range(nd):
+                            ljt[m, v] = lq[v, m]
+                    for ri in range(nb):
+                        tr = qbuf[2 * ri + 1]
+                        if tr < tc:
                             continue
+                        lr = row_blk[qbuf[2 * ri]]
+                        r = tr * nd
+                        work[1] += 1
                         if nd == 3:
-                            lr = row_blk[t]
-                            lo = row_blk[slot[r]]
-                            for a in range(3):  # lo -= lr lj^T, as below
+                            for a in range(3):  # as below
                                 u0 = u1 = u2 = 0.0
                                 for m in range(3):
                                     x = lr[a, m]
                                     u0 += x * ljt[m, 0]
                                     u1 += x * ljt[m, 1]
                                     u2 += x * ljt[m, 2]
-                                lo[a, 0] -= u0
-                                lo[a, 1] -= u1
-                                lo[a, 2] -= u2
-                        else:
-                            lr = row_blk[t]
-                            lo = row_blk[slot[r]]
-                            # lo -= lr lj^T: six independent sums per row of lr, each over m
-                            # in order (held in registers)
-                            for a in range(6):
-                                u0 = u1 = u2 = u3 = u4 = u5 = 0.0
-                                for m in range(6):
-                                    x = lr[a, m]
-                                    u0 += x * ljt[m, 0]
-                                    u1 += x * ljt[m, 1]
-                                    u2 += x * ljt[m, 2]
-                                    u3 += x * ljt[m, 3]
-                                    u4 += x * ljt[m, 4]
-                                    u5 += x * ljt[m, 5]
-                                lo[a, 0] -= u0
-                                lo[a, 1] -= u1
-                                lo[a, 2] -= u2
-                                lo[a, 3] -= u3
-                                lo[a, 4] -= u4
-                                lo[a, 5] -= u5
-                    k = parent[k]
-                    if k < 0:
-                        return BROKEN_TREE
-            i = inc_next[i]
-        for a in range(nd):
-            for c in range(a):
-                d[c, a] = d[a, c]
-        if not _chol_block(d, nd):
+                                pj[r + a, o] -= u0
+                                pj[r + a, o + 1] -= u1
+                                pj[r + a, o + 2] -= u2
+                            continue
+                        # pj block -= lr lq^T: six independent sums per row of lr, each over
+                        # m in order (held in registers)
+                        for a in range(6):
+                            u0 = u1 = u2 = u3 = u4 = u5 = 0.0
+                            for m in range(6):
+                                x = lr[a, m]
+                                u0 += x * ljt[m, 0]
+                                u1 += x * ljt[m, 1]
+                                u2 += x * ljt[m, 2]
+                                u3 += x * ljt[m, 3]
+                                u4 += x * ljt[m, 4]
+                                u5 += x * ljt[m, 5]
+                            pj[r + a, o] -= u0
+                            pj[r + a, o + 1] -= u1
+                            pj[r + a, o + 2] -= u2
+                            pj[r + a, o + 3] -= u3
+                            pj[r + a, o + 4] -= u4
+                            pj[r + a, o + 5] -= u5
+        if not _factor_panel(pj, nc):
             return NOT_SPD
-        for a in range(6):
-            for c in range(6):
-                diag[j, a, c] = d[a, c]
-        # off-diagonal blocks: X L_d^T = B; y_j = L_d^-1 b
-        for t in range(s0, s0 + n):
-            x = row_blk[t]
-            for a in range(nd):
-                for c in range(nd):
-                    s = x[a, c]
-                    for m in range(c):
-                        s -= x[a, m] * d[c, m]
-                    x[a, c] = s / d[c, c]
-            slot[row_var[t]] = -1
-        cursor[j] = 0
-        for c in range(nd):
-            s = b[c]
+        # y_J = L_JJ^-1 b_J; the columns back to the column storage
+        for c in range(nc):
+            acc = bv[c]
             for m in range(c):
-                s -= d[c, m] * y[j, m]
-            y[j, c] = s / d[c, c]
-        for c in range(nd, 6):
-            y[j, c] = 0.0
+                acc -= pj[c, m] * bv[m]
+            bv[c] = acc / pj[c, c]
+        for c in range(w):
+            j = order[a0 + c]
+            o = c * nd
+            if col_len[j] != nr - c - 1:
+                return BROKEN_TREE
+            dj = diag[j]
+            for a in range(6):
+                for v in range(6):
+                    dj[a, v] = 0.0
+                dj[a, a] = 1.0
+            for a in range(nd):
+                for v in range(a + 1):
+                    dj[a, v] = pj[o + a, o + v]
+                y[j, a] = bv[o + a]
+            for a in range(nd, 6):
+                y[j, a] = 0.0
+            s0 = col_start[j]
+            for t in range(nr - c - 1):
+                blk = row_blk[s0 + t]
+                r = (c + 1 + t) * nd
+                for a in range(nd):
+                    for v in range(nd):
+                        blk[a, v] = pj[r + a, o + v]
+        for c in range(w):
+            slot[order[a0 + c]] = -1
+        for t in range(ln):
+            slot[row_var[ls0 + t]] = -1
         if cycle_counter() > deadline:
-            return q + 1
-    return int(order.shape[0])
+            return s + 1
+    return sn_count
 
 
 # --------------------------------------------------------------------------- back substitution

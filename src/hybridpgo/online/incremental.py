@@ -9,7 +9,7 @@ moves only for the poses whose step exceeds a threshold ("fluid relinearization"
 solution may be propagated down the tree only where it changes ("wildfire" back substitution,
 ``IncrementalConfig.wildfire``).
 This is the incremental scheme of iSAM2 (Kaess et al., IJRR 2012) written as a left-looking
-block Cholesky on the elimination tree instead of a Bayes tree of cliques.
+supernodal block Cholesky on the elimination tree instead of a Bayes tree of cliques.
 
 While every pose and measurement is planar (``IncrementalConfig.planar``) the factor holds only
 the (x, y, yaw) part of each block, 3x3: there the out-of-plane error, gradient and step are
@@ -22,9 +22,10 @@ repeated :meth:`~IncrementalExact.solve` calls converge to the same optimum as t
 solver (:func:`hybridpgo.solvers.gauss_newton.solve_exact`).
 
 Every piece of work is bounded: :meth:`~IncrementalExact.solve` takes a deadline and returns
-when it passes, between two columns of the factorization or of the back substitution; the next
-call resumes there.  Data appended meanwhile waits for the next update cycle.  The estimate
-(:meth:`~IncrementalExact.estimate`) is always the last completed cycle's.
+when it passes, between two supernodes of the factorization or two columns of the back
+substitution; the next call resumes there.  Data appended meanwhile waits for the next update
+cycle.  The estimate (:meth:`~IncrementalExact.estimate`) is always the last completed
+cycle's.
 
 Gauge: with ``gauge="auto"`` the first pose is held until ``gps_gauge`` position readings exist,
 then the earth frame is the gauge (as the online solver's worker does); ``"first"`` always holds
@@ -56,6 +57,8 @@ from . import _incremental_kernels as ik
 
 IntArray = npt.NDArray[np.int64]
 _NO_DEADLINE = np.uint64(np.iinfo(np.uint64).max)
+#: Panel room (floats) kept between update cycles; a larger pool is released after its cycle.
+_PANEL_KEEP = 1 << 22
 #: S smaller than this is ordered without AMD (positions: its old order, new variables last).
 _AMD_MIN = 8
 
@@ -170,6 +173,12 @@ class IncrementalExact:
         self._perm = _PLANAR_PERM.copy() if self.config.planar else np.arange(6)
         self._planar_lost = False
         self._row_blk = np.zeros((self._pool_cap, self._nd, self._nd))
+        # the supernodes of the cycle's S and their panels (ik.supernodes, ik.numeric)
+        self._sn_ptr = np.zeros(1, np.int64)
+        self._sn_count = 0
+        self._sn_mark = np.full(16, -1, np.int64)
+        self._pan_off = np.zeros(1, np.int64)
+        self._panel = np.zeros(0)
         self._pool_used = np.zeros(2, np.int64)
         self._work = np.zeros(2, np.int64)
         self._counter = 0  # next elimination position
@@ -220,7 +229,8 @@ class IncrementalExact:
         self._mark = np.full(cap, -1, np.int64)
         self._walk = np.full(cap, -1, np.int64)
         self._slot = np.full(cap, -1, np.int64)
-        self._cursor = np.full(cap, -1, np.int64)
+        self._sn_of = np.zeros(cap, np.int64)
+        self._src = np.zeros(cap, np.int64)
         self._local = np.zeros(cap, np.int64)
         self._stack = np.zeros(cap, np.int64)
         self._touched = np.zeros(cap, np.int64)
@@ -234,7 +244,7 @@ class IncrementalExact:
     _POSE_FILL: ClassVar[dict[str, int]] = {
         "_ref": -1, "_position": -1, "_parent": -1, "_ch_head": -1, "_ch_next": -1,
         "_ch_prev": -1, "_inc_head": -1, "_gps_head": -1, "_in_s": -1, "_changed": -1,
-        "_mark": -1, "_walk": -1, "_slot": -1, "_cursor": -1}
+        "_mark": -1, "_walk": -1, "_slot": -1}
 
     def _grow_poses(self, need: int) -> None:
         if need <= self._cap_n:
@@ -245,8 +255,8 @@ class IncrementalExact:
         for name in ("_ref", "_rel_r", "_rel_t", "_th_r", "_th_t", "_est_r", "_est_t", "_x",
                      "_y", "_diag", "_free", "_position", "_parent", "_ch_head", "_ch_next",
                      "_ch_prev", "_col_start", "_col_len", "_col_cap", "_inc_head",
-                     "_gps_head", "_in_s", "_changed", "_mark", "_walk", "_slot", "_cursor",
-                     "_local", "_stack", "_touched", "_pol_flag", "_pol_list", "_chg_flag",
+                     "_gps_head", "_in_s", "_changed", "_mark", "_walk", "_slot", "_sn_of",
+                     "_src", "_local", "_stack", "_touched", "_pol_flag", "_pol_list", "_chg_flag",
                      "_chg_list"):
             old = getattr(self, name)
             fill = self._POSE_FILL.get(name, 0)
@@ -711,7 +721,22 @@ class IncrementalExact:
                 raise SolverError("internal error in the incremental symbolic factorization")
             break
         self._i = 0
+        self._prepare_supernodes()
         self._phase = _NUMERIC
+
+    def _prepare_supernodes(self) -> None:
+        """S's supernodes (``ik.supernodes``) and room for their panels."""
+        order = self._order_s
+        ns = order.shape[0]
+        self._sn_ptr = np.empty(ns + 1, np.int64)
+        self._pan_off = np.empty(ns + 1, np.int64)
+        self._sn_count = ik.supernodes(order, self._parent, self._col_len, ik.SUPERNODE_MAX,
+                                       self._nd, self._sn_ptr, self._sn_of, self._pan_off)
+        if self._sn_mark.shape[0] < self._sn_count:
+            self._sn_mark = np.full(2 * self._sn_count, -1, np.int64)
+        size = int(self._pan_off[self._sn_count])
+        if self._panel.shape[0] < size:
+            self._panel = np.empty(size)
 
     def _order(self, s_vars: IntArray, orphans: IntArray, stamp: int,
                last: npt.NDArray[np.bool_]) -> IntArray:
@@ -737,7 +762,8 @@ class IncrementalExact:
                        self._haa, self._hbb, self._hab, self._ga, self._gb, self._hgg,
                        self._gg, self._parent, self._col_start, self._col_len, self._row_var,
                        self._row_blk, self._diag, self._y, self._slot, self._walk,
-                       self._in_s, self._stamp, self._cursor, 0.0,
+                       self._in_s, self._stamp, self._sn_ptr, self._sn_count, self._sn_of,
+                       self._sn_mark, self._pan_off, self._panel, self._src, 0.0,
                        self._nd, self._perm, self._work)
         self.stats["applied"] += int(self._work[0])
         self.stats["products"] += int(self._work[1])
@@ -748,7 +774,9 @@ class IncrementalExact:
         if r < 0:
             raise SolverError("internal error in the incremental factorization")
         self._i = r
-        if r == order.shape[0]:
+        if r == self._sn_count:
+            if self._panel.shape[0] > _PANEL_KEEP:
+                self._panel = np.empty(_PANEL_KEEP)
             s = self._s_vars
             roots = s[self._parent[s] < 0]
             self._stack[: roots.shape[0]] = roots

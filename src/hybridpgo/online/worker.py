@@ -476,7 +476,7 @@ POLISH_ANSWER_S = 0.05
 SLOW_INCREMENTAL_S = 0.25
 #: The map stays with LM once LM's solve took less than this share of the recent incremental
 #: requests' time (their moving average, :data:`INCREMENTAL_RATE`).  The incremental factor is
-#: a left-looking block Cholesky without supernodes (3x3 blocks while the map is planar, else
+#: a left-looking supernodal block Cholesky (3x3 blocks while the map is planar, else
 #: 6x6): on a lattice-like map, where each
 #: update re-eliminates most of the map and the fill is large, a warm LM solve (CHOLMOD, the
 #: planar system where the map is planar) is the faster of the two (grid10k streamed back to
