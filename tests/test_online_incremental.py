@@ -336,7 +336,7 @@ def test_a_panel_is_factored_as_numpys_cholesky(width: int, below: int) -> None:
     """The supernode panel's factorization (blocked; loops for small steps, BLAS with the
     diagonal block's inverse for large ones) against numpy's Cholesky factor of the whole
     matrix: the panel's columns of it; only the lower triangle of the panel's top is read."""
-    from hybridpgo.online._incremental_kernels import _factor_panel
+    from hybridpgo.online._incremental_kernels import _factor_panel, panel_scratch
 
     rng = np.random.default_rng(width * 100 + below)
     nc, nrow = 6 * width, 6 * (width + below)
@@ -345,12 +345,13 @@ def test_a_panel_is_factored_as_numpys_cholesky(width: int, below: int) -> None:
     want = np.linalg.cholesky(h)[:, :nc]
     panel = np.ascontiguousarray(h[:, :nc])
     panel[np.triu_indices(nc, 1)] = np.nan  # never read
-    assert _factor_panel(panel, nc)
+    scratch = np.full(panel_scratch(nrow, nc), np.nan)  # written before it is read
+    assert _factor_panel(panel, nc, scratch)
     got = panel.copy()
     got[np.triu_indices(nc, 1)] = 0.0
     assert np.abs(got - want).max() <= FLOAT64_IDENTITY * np.abs(want).max()
     h[0, 0] = -1.0
-    assert not _factor_panel(np.ascontiguousarray(h[:, :nc]), nc)
+    assert not _factor_panel(np.ascontiguousarray(h[:, :nc]), nc, scratch)
 
 
 def test_supernodes_group_the_columns_of_a_loop_closed_map() -> None:

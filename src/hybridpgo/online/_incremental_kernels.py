@@ -478,14 +478,16 @@ def _first_at_least(row_var: np.ndarray, t0: int, n: int, position: np.ndarray,
 
 @kernel
 def _subtract_product(p: np.ndarray, a: np.ndarray, b: np.ndarray, rows: np.ndarray,
-                      cols: np.ndarray, nd: int) -> None:
+                      cols: np.ndarray, nd: int, scratch: np.ndarray) -> None:
     """``p[rows[i] nd + u, cols[q] nd + v] -= (a b^T)[i nd + u, q nd + v]`` for the blocks
-    with ``rows[i] >= cols[q]`` (the lower part of the target); BLAS for a large product."""
+    with ``rows[i] >= cols[q]`` (the lower part of the target); BLAS for a large product,
+    into ``scratch`` (at least ``a.shape[0] * b.shape[0]`` floats)."""
     mr = a.shape[0]
     mq = b.shape[0]
     kk = a.shape[1]
     if mr * mq * kk >= SMALL_GEMM:
-        c = np.dot(a, b.T)
+        c = scratch[: mr * mq].reshape(mr, mq)
+        np.dot(a, b.T, c)
         for i in range(mr // nd):
             tr = rows[i]
             for q in range(mq // nd):
@@ -510,12 +512,22 @@ def _subtract_product(p: np.ndarray, a: np.ndarray, b: np.ndarray, rows: np.ndar
                     p[tr * nd + u, tc * nd + v] -= s
 
 
+def panel_scratch(rows: int, nc: int) -> int:
+    """Floats of scratch :func:`numeric` needs for panels of at most ``rows`` rows and ``nc``
+    columns (products of panels, the panel factorization's steps)."""
+    return rows * nc + 2 * rows * PANEL_STEP + PANEL_STEP * PANEL_STEP
+
+
 @kernel
-def _factor_panel(p: np.ndarray, nc: int) -> bool:
+def _factor_panel(p: np.ndarray, nc: int, scratch: np.ndarray) -> bool:
     """In place: the lower Cholesky factor of the panel's leading (nc, nc) part (its lower
     triangle read) and the rows below it solved against it (``X L^T = B``), by blocked
-    right-looking steps of :data:`PANEL_STEP` columns; False: not positive definite."""
+    right-looking steps of :data:`PANEL_STEP` columns; False: not positive definite.
+    ``scratch``: :func:`panel_scratch` floats for the panel's size."""
     nrow = p.shape[0]
+    o_x = nrow * nc
+    o_b = o_x + nrow * PANEL_STEP
+    o_l = o_b + nrow * PANEL_STEP
     for c0 in range(0, nc, PANEL_STEP):
         c1 = min(c0 + PANEL_STEP, nc)
         for c in range(c0, c1):
@@ -535,6 +547,7 @@ def _factor_panel(p: np.ndarray, nc: int) -> bool:
         mr = nrow - c1
         if mr == 0:
             break
+        x = scratch[o_x: o_x + mr * nb].reshape(mr, nb)
         if mr * nb * nb < SMALL_GEMM:
             for r in range(c1, nrow):
                 for c in range(c0, c1):
@@ -542,22 +555,31 @@ def _factor_panel(p: np.ndarray, nc: int) -> bool:
                     for t in range(c0, c):
                         s -= p[r, t] * p[c, t]
                     p[r, c] = s / p[c, c]
-            x = np.ascontiguousarray(p[c1:, c0:c1])
+                    x[r - c1, c - c0] = p[r, c]
         else:  # X = B L^-T with L's inverse (nb, nb), by BLAS
-            li = np.zeros((nb, nb))
+            li = scratch[o_l: o_l + nb * nb].reshape(nb, nb)
             for c in range(nb):
+                for r in range(c):
+                    li[r, c] = 0.0
                 li[c, c] = 1.0 / p[c0 + c, c0 + c]
                 for r in range(c + 1, nb):
                     s = 0.0
                     for t in range(c, r):
                         s -= p[c0 + r, c0 + t] * li[t, c]
                     li[r, c] = s / p[c0 + r, c0 + r]
-            x = np.dot(np.ascontiguousarray(p[c1:, c0:c1]), li.T)
-            p[c1:, c0:c1] = x
+            bm = scratch[o_b: o_b + mr * nb].reshape(mr, nb)
+            for r in range(mr):
+                for c in range(nb):
+                    bm[r, c] = p[c1 + r, c0 + c]
+            np.dot(bm, li.T, x)
+            for r in range(mr):
+                for c in range(nb):
+                    p[c1 + r, c0 + c] = x[r, c]
         if c1 < nc:
             mq = nc - c1
-            if mr * mq * (c1 - c0) >= SMALL_GEMM:
-                u = np.dot(x, x[:mq].T)
+            if mr * mq * nb >= SMALL_GEMM:
+                u = scratch[: mr * mq].reshape(mr, mq)
+                np.dot(x, x[:mq].T, u)
                 for r in range(mr):
                     for c in range(min(r + 1, mq)):
                         p[c1 + r, c1 + c] -= u[r, c]
@@ -565,7 +587,7 @@ def _factor_panel(p: np.ndarray, nc: int) -> bool:
                 for r in range(mr):
                     for c in range(min(r + 1, mq)):
                         s = 0.0
-                        for t in range(c1 - c0):
+                        for t in range(nb):
                             s += x[r, t] * x[c, t]
                         p[c1 + r, c1 + c] -= s
     return True
@@ -580,8 +602,8 @@ def numeric(order: np.ndarray, s_from: int, deadline: np.uint64, position: np.nd
             row_var: np.ndarray, row_blk: np.ndarray, diag: np.ndarray, y: np.ndarray,
             slot: np.ndarray, walk: np.ndarray, in_s: np.ndarray, stamp: int,
             sn_ptr: np.ndarray, sn_count: int, sn_of: np.ndarray, sn_mark: np.ndarray,
-            pan_off: np.ndarray, panel: np.ndarray, src: np.ndarray, damping: float,
-            nd: int, perm: np.ndarray, work: np.ndarray) -> int:
+            pan_off: np.ndarray, panel: np.ndarray, src: np.ndarray, scratch: np.ndarray,
+            damping: float, nd: int, perm: np.ndarray, work: np.ndarray) -> int:
     """Factor the supernodes ``s_from, ..., sn_count - 1`` of S (:func:`supernodes`) and their
     forward substitution ``y`` (module doc).
 
@@ -599,7 +621,8 @@ def numeric(order: np.ndarray, s_from: int, deadline: np.uint64, position: np.nd
     that are columns of J, with BLAS when large; an unchanged column below S by 6x6 block
     products (its rows are not in position order).  ``slot[v]`` is the panel row of
     variable v while J is factored (-1 otherwise); ``sn_mark[K]``, ``walk[k]``: J's first
-    position once K, k were applied to J.
+    position once K, k were applied to J.  ``scratch``: :func:`panel_scratch` floats for the
+    largest panel (products and the panel factorization work there, not in new arrays).
 
     ``damping``: ``H + damping * diag(H)`` (Levenberg-Marquardt; 0 for Gauss-Newton).  Stops
     after the first supernode that ends past ``deadline`` (cycle counter); returns the
@@ -730,7 +753,7 @@ def numeric(order: np.ndarray, s_from: int, deadline: np.uint64, position: np.nd
                             for m in range(nd):
                                 acc += b_[q * nd + a, kk * nd + m] * y[yk, m]
                         bv[o + a] -= acc
-                _subtract_product(pj, a_, b_, rows, rows[: r1 - r0], nd)
+                _subtract_product(pj, a_, b_, rows, rows[: r1 - r0], nd, scratch)
                 work[0] += wk
                 work[1] += (kn - r0) * (r1 - r0) * wk
             else:
@@ -805,7 +828,7 @@ def numeric(order: np.ndarray, s_from: int, deadline: np.uint64, position: np.nd
                             pj[r + a, o + 3] -= u3
                             pj[r + a, o + 4] -= u4
                             pj[r + a, o + 5] -= u5
-        if not _factor_panel(pj, nc):
+        if not _factor_panel(pj, nc, scratch):
             return NOT_SPD
         # y_J = L_JJ^-1 b_J; the columns back to the column storage
         for c in range(nc):

@@ -54,11 +54,10 @@ from ..graph import (
 )
 from ..linalg import fill_reducing_order
 from . import _incremental_kernels as ik
+from ._incremental_kernels import panel_scratch
 
 IntArray = npt.NDArray[np.int64]
 _NO_DEADLINE = np.uint64(np.iinfo(np.uint64).max)
-#: Panel room (floats) kept between update cycles; a larger pool is released after its cycle.
-_PANEL_KEEP = 1 << 22
 #: S smaller than this is ordered without AMD (positions: its old order, new variables last).
 _AMD_MIN = 8
 
@@ -179,6 +178,7 @@ class IncrementalExact:
         self._sn_mark = np.full(16, -1, np.int64)
         self._pan_off = np.zeros(1, np.int64)
         self._panel = np.zeros(0)
+        self._scratch = np.zeros(0)
         self._pool_used = np.zeros(2, np.int64)
         self._work = np.zeros(2, np.int64)
         self._counter = 0  # next elimination position
@@ -734,9 +734,16 @@ class IncrementalExact:
                                        self._nd, self._sn_ptr, self._sn_of, self._pan_off)
         if self._sn_mark.shape[0] < self._sn_count:
             self._sn_mark = np.full(2 * self._sn_count, -1, np.int64)
+        ptr = self._sn_ptr[: self._sn_count + 1]
+        rows = int(np.max(np.diff(ptr) + self._col_len[order[ptr[1:] - 1]]))
+        need = panel_scratch(rows * self._nd, ik.SUPERNODE_MAX * self._nd)
+        if self._scratch.shape[0] < need:
+            self._scratch = np.empty(max(need, self._scratch.shape[0] * 3 // 2))
         size = int(self._pan_off[self._sn_count])
         if self._panel.shape[0] < size:
-            self._panel = np.empty(size)
+            # kept for the next cycles (never shrunk): allocating, first touching and freeing
+            # tens of megabytes per cycle slows the frames' process beside the worker
+            self._panel = np.empty(max(size, self._panel.shape[0] * 3 // 2))
 
     def _order(self, s_vars: IntArray, orphans: IntArray, stamp: int,
                last: npt.NDArray[np.bool_]) -> IntArray:
@@ -763,7 +770,8 @@ class IncrementalExact:
                        self._gg, self._parent, self._col_start, self._col_len, self._row_var,
                        self._row_blk, self._diag, self._y, self._slot, self._walk,
                        self._in_s, self._stamp, self._sn_ptr, self._sn_count, self._sn_of,
-                       self._sn_mark, self._pan_off, self._panel, self._src, 0.0,
+                       self._sn_mark, self._pan_off, self._panel, self._src,
+                       self._scratch, 0.0,
                        self._nd, self._perm, self._work)
         self.stats["applied"] += int(self._work[0])
         self.stats["products"] += int(self._work[1])
@@ -775,8 +783,6 @@ class IncrementalExact:
             raise SolverError("internal error in the incremental factorization")
         self._i = r
         if r == self._sn_count:
-            if self._panel.shape[0] > _PANEL_KEEP:
-                self._panel = np.empty(_PANEL_KEEP)
             s = self._s_vars
             roots = s[self._parent[s] < 0]
             self._stack[: roots.shape[0]] = roots
