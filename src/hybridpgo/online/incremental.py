@@ -741,8 +741,9 @@ class IncrementalExact:
             self._scratch = np.empty(max(need, self._scratch.shape[0] * 3 // 2))
         size = int(self._pan_off[self._sn_count])
         if self._panel.shape[0] < size:
-            # kept for the next cycles (never shrunk): allocating, first touching and freeing
-            # tens of megabytes per cycle slows the frames' process beside the worker
+            # kept for the next cycles (never shrunk): a cycle then allocates, first touches
+            # and frees no large array, work that takes memory bandwidth from the frames'
+            # process beside the worker
             self._panel = np.empty(max(size, self._panel.shape[0] * 3 // 2))
 
     def _order(self, s_vars: IntArray, orphans: IntArray, stamp: int,
