@@ -485,19 +485,16 @@ def _subtract_product(p: np.ndarray, a: np.ndarray, b: np.ndarray, rows: np.ndar
     mr = a.shape[0]
     mq = b.shape[0]
     kk = a.shape[1]
+    c = scratch[: mr * mq].reshape(mr, mq)
     if mr * mq * kk >= SMALL_GEMM:
-        c = scratch[: mr * mq].reshape(mr, mq)
         np.dot(a, b.T, c)
-        for i in range(mr // nd):
-            tr = rows[i]
-            for q in range(mq // nd):
-                tc = cols[q]
-                if tr < tc:
-                    continue
-                for u in range(nd):
-                    for v in range(nd):
-                        p[tr * nd + u, tc * nd + v] -= c[i * nd + u, q * nd + v]
-        return
+    else:
+        for r in range(mr):
+            for t in range(mq):
+                x = 0.0
+                for m in range(kk):
+                    x += a[r, m] * b[t, m]
+                c[r, t] = x
     for i in range(mr // nd):
         tr = rows[i]
         for q in range(mq // nd):
@@ -506,10 +503,7 @@ def _subtract_product(p: np.ndarray, a: np.ndarray, b: np.ndarray, rows: np.ndar
                 continue
             for u in range(nd):
                 for v in range(nd):
-                    s = 0.0
-                    for m in range(kk):
-                        s += a[i * nd + u, m] * b[q * nd + v, m]
-                    p[tr * nd + u, tc * nd + v] -= s
+                    p[tr * nd + u, tc * nd + v] -= c[i * nd + u, q * nd + v]
 
 
 def panel_scratch(rows: int, nc: int) -> int:
