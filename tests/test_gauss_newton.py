@@ -3,6 +3,8 @@ optima."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 from ref_kernels import relative_error, se3_exp
@@ -643,3 +645,57 @@ def test_the_trial_energy_is_the_assemblys_to_the_bit(robust, planar: bool) -> N
     data, grad = np.empty(nnz), np.empty(pat.dim)
     assembled = _normal.assemble(g, pat, rot, trans, data, grad, robust, system)
     assert _normal.energies_at(g, rot, trans, robust, planar) == assembled
+
+
+# --------------------------------------------------------------------------- convergence test
+def _feed(energies: list[float], tolerance: float = 1e-10,
+          undamped: bool = True) -> list[bool]:
+    """The convergence test's answer after each step of an energy sequence."""
+    stop = gauss_newton._Convergence(tolerance)
+    return [stop.accepted(a, b, undamped) for a, b in itertools.pairwise(energies)]
+
+
+def test_a_linear_fall_goes_on_while_its_tail_is_above_the_tolerance() -> None:
+    # E = 100 + 2^-k: every step from k = 40 on changes E by less than 1e-10 E, but the tail
+    # (as large as the step) is not, until it is
+    e = [100.0 + 0.5 ** k for k in range(60)]
+    done = _feed(e)
+    first = done.index(True)
+    tail = (e[first + 1] - 100.0)
+    assert tail <= 1e-10 * e[first]
+    assert e[first] - 100.0 > 1e-10 * e[first - 1]  # the step before was not yet there
+    assert not any(done[:first])
+
+
+def test_a_superlinear_fall_stops_at_the_step_that_shows_it() -> None:
+    # decreases 1, 1e-3, 1e-7: rates 1e-3 then 1e-4 (falling, below 0.01); the last step's
+    # change (1e-9 of E) is above the tolerance, its tail (1e-11) below
+    e = [100.0 + 1.0 + 1e-3 + 1e-7, 100.0 + 1e-3 + 1e-7, 100.0 + 1e-7, 100.0]
+    assert _feed(e) == [False, False, True]
+    # the same fall, damped (LM's mu above its start): the step's own change must be small
+    assert _feed(e, undamped=False) == [False, False, False]
+    # a rate that rises again (1e-4, then 1e-3) is no proof of a superlinear fall
+    rising = [100.0 + 1.0 + 1e-4 + 1e-7, 100.0 + 1e-4 + 1e-7, 100.0 + 1e-7, 100.0]
+    assert _feed(rising) == [False, False, False]
+    # nor are the first two steps (no rate before theirs)
+    assert _feed(e[1:]) == [False, False]
+
+
+def test_a_rise_of_the_energy_is_never_a_superlinear_fall() -> None:
+    # unguarded Gauss-Newton takes a step that raises E: converged only if the change is tiny
+    e = [100.0 + 1.0 + 1e-3, 100.0 + 1e-3, 100.0 + 1e-6, 150.0]
+    assert _feed(e) == [False, False, False]
+
+
+def test_lm_stops_at_the_first_superlinear_step_within_the_tolerance_of_the_optimum() -> None:
+    from hybridpgo.io import bundled_path, read_graph
+
+    g = read_graph(bundled_path("intel.g2o"))
+    r = solve_exact(g)
+    tight = solve_exact(g, config=GaussNewtonConfig(energy_tolerance=0.0, max_iterations=30))
+    assert r.status is Status.CONVERGED
+    assert tight.iterations > r.iterations
+    # the step r stopped at changed E by more than the tolerance: the superlinear rule ended it
+    h = r.energy_history
+    assert h[-2] - h[-1] > 1e-10 * h[-2]
+    assert r.final_energy - tight.final_energy <= 1e-10 * tight.final_energy
