@@ -681,6 +681,17 @@ def test_a_superlinear_fall_stops_at_the_step_that_shows_it() -> None:
     assert _feed(e[1:]) == [False, False]
 
 
+def test_a_superlinear_exit_keeps_a_margin_below_the_tolerance() -> None:
+    # sphere2500_isam's LM from its certified start: decreases 1450, 97.4, 4.8e-3 (rates
+    # 0.067, 5e-5), then 1.8e-6 more to the optimum, 1.2e-10 of E: the tail at 5e-5 (2.4e-7,
+    # 1.6e-11 of E) underestimates it 7.5x, so the third step is not an exit
+    e = [16354.1842, 14904.23616, 14806.86102, 14806.8562]
+    assert _feed(e) == [False, False, False]
+    # a last decrease ten times smaller (rate 5e-6): its tail, 100 times smaller, is an exit
+    e[3] = e[2] - (e[2] - e[3]) / 10.0
+    assert _feed(e) == [False, False, True]
+
+
 def test_a_rise_of_the_energy_is_never_a_superlinear_fall() -> None:
     # unguarded Gauss-Newton takes a step that raises E: converged only if the change is tiny
     e = [100.0 + 1.0 + 1e-3, 100.0 + 1e-3, 100.0 + 1e-6, 150.0]
