@@ -122,11 +122,11 @@ class GaussNewtonConfig(RobustOptions):
     counts, and so does a GN step together with its halvings."""
     energy_tolerance: float = 1e-10
     """Stop (converged) when, after an accepted step, the geometric tail at the last two steps'
-    rate (what the next steps would add if E kept falling at that rate) is below
-    ``energy_tolerance * E``, and so is the step's own change ``|dE|`` unless E falls
-    superlinearly (the rate small and falling: the tail then bounds what is left); or when E
-    reaches exactly 0.  LM that converges while damped above ``initial_damping`` goes on once
-    from there."""
+    rate (what the next steps would add if E kept falling at that rate) and the step's own
+    change ``|dE|`` are both below ``energy_tolerance * E``; or, when E falls superlinearly
+    (a full Newton-like step whose rate is at most 0.01 and no larger than the step before's),
+    when the tail alone is ten times below it; or when E reaches exactly 0.  LM that converges
+    while damped above ``initial_damping`` goes on once from there."""
     step_tolerance: float = 1e-12
     """Stop (converged) when the accepted step satisfies
     ``max_i |delta_i|_inf < step_tolerance * (1 + max_i |t_i|_inf)`` (delta in (rho, phi) units:

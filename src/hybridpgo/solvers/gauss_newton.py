@@ -78,9 +78,10 @@ DIAG_FLOOR = 1e-12
 BLOCK_MAX_FILL = 6
 #: An accepted step ends the solve early (converged) when E falls superlinearly: its decrease
 #: is at most this fraction of the one before, and that fraction is no larger than the step
-#: before's (``_Convergence``).  Measured at the default tolerances, iterations to convergence:
-#: intel 4 -> 3, M3500_isam 4 -> 3, garage 6 -> 5; sphere2500 and torus3D, whose fractions
-#: rise again near the end, unchanged (5, 5).
+#: before's (``_Convergence``).  That saves the step that would only confirm convergence,
+#: measured at the default tolerances: intel, M3500_isam and M3500_toro converge in 3
+#: iterations instead of 4, garage in 5 instead of 6; sphere2500 and torus3D, whose fractions
+#: rise again near the end, take 5 either way.
 SUPERLINEAR_RATE = 0.01
 #: ... and the geometric tail at that fraction is this many times below the tolerance: a
 #: fraction can rise again where the fall turns linear (sphere2500_isam: 5e-5, then 4e-4;
@@ -391,31 +392,45 @@ class _Trace:
                          self.run.trans)
 
 
+def _newton_like(cfg: GaussNewtonConfig, mu_step: float, mu_after: float,
+                 scale: float) -> bool:
+    """Whether an accepted step was a full Newton-like one, the only kind whose fall can show
+    superlinear convergence (:class:`_Convergence`): GN's step not halved; LM's damping at
+    most its start when the step was solved and after it (a gain ratio that raises ``mu``
+    is no Newton step)."""
+    if cfg.method == "gn":
+        return scale == 1.0
+    return mu_step <= cfg.initial_damping and mu_after <= cfg.initial_damping
+
+
 class _Convergence:
     """The energy test of convergence, fed the energies before and after each accepted step.
 
     Converged when what the next steps would add, if E kept falling at the last step's rate
     (the geometric tail ``drop r / (1 - r)``, r = this decrease over the one before), is at
     most ``tolerance E``, and either this step's own decrease is too, or E falls superlinearly
-    (r at most :data:`SUPERLINEAR_RATE` and no larger than the step before's, the step not
-    damped above LM's start) and the tail is :data:`SUPERLINEAR_MARGIN` times below.
+    (r at most :data:`SUPERLINEAR_RATE` and no larger than the step before's, the step a full
+    Newton-like one) and the tail is :data:`SUPERLINEAR_MARGIN` times below the tolerance.
     Large-residual graphs converge linearly, each step changing E by less than the tolerance
-    while far more of it remains: the tail catches that; a superlinear fall makes the tail,
-    with the margin, a bound of what remains, so the step that would only confirm it is not
-    taken."""
+    while far more of it remains: the tail catches that.  In a superlinear fall the tail is an
+    estimate of what remains (7.5 times too small where the fall turned linear, see
+    :data:`SUPERLINEAR_MARGIN`), and with the margin the step that would only confirm
+    convergence is not taken."""
 
     def __init__(self, tolerance: float) -> None:
         self.tolerance = tolerance
         self.last_drop = np.inf  # the last accepted step's decrease of E
         self.last_rate = np.inf  # its fraction of the one before (inf: no two steps yet)
 
-    def accepted(self, e_prev: float, e_new: float, undamped: bool) -> bool:
-        """Record an accepted step from ``e_prev`` to ``e_new`` (<= e_prev); True when
-        converged.  ``undamped``: GN, or LM's damping at most its initial value."""
+    def accepted(self, e_prev: float, e_new: float, newton: bool) -> bool:
+        """Record an accepted step from ``e_prev`` to ``e_new`` (above ``e_prev`` only for
+        unguarded Gauss-Newton); True when converged.  ``newton``: the step was a full
+        Newton-like one (GN not halved; LM damped at most at its start, before and after the
+        step), the only kind that can show a superlinear fall."""
         drop = e_prev - e_new
         last = self.last_drop
         rate = drop / last if 0.0 < drop < last else 0.0 if drop <= 0.0 else 1.0
-        superlinear = (undamped and drop > 0.0 and np.isfinite(self.last_rate)
+        superlinear = (newton and drop > 0.0 and np.isfinite(self.last_rate)
                        and rate <= min(SUPERLINEAR_RATE, self.last_rate))
         self.last_rate = rate if np.isfinite(last) else np.inf
         self.last_drop = drop
@@ -469,8 +484,7 @@ def _iterate(run: _Run, limit: int, t_start: float, t_analyze: float,
             e_prev = e_cur
             # E at the new poses is the trial's (the assembly's same sum, in the same order):
             # a step that converges needs no assembly there
-            small = stop.accepted(e_prev, e_new,
-                                  cfg.method == "gn" or mu_step <= cfg.initial_damping)
+            small = stop.accepted(e_prev, e_new, _newton_like(cfg, mu_step, mu, scale))
             # a small change under heavy damping can be slow progress (ill-conditioned graphs:
             # linear convergence at mu ~ 1e-3): once, go on from the initial damping; where
             # the optimum is reached the next step confirms it
