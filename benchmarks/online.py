@@ -195,9 +195,19 @@ def _figure(ctx: Context, name: str, runs: list[ReplayResult], optima: dict[int,
 
 
 def _worst(r: ReplayResult, k: int = 3) -> str:
-    """The ``k`` frames of most CPU: ``frame:ms(edges e, gps g)``."""
+    """The ``k`` frames of most CPU: ``frame:ms(edges e, gps g)``, and when the machine took
+    time from one, ``w`` its wait for a CPU and ``s`` the host's steal meanwhile (ms)."""
     notes = r.info.get("worst_frames") or []
-    return ", ".join(f"{w['frame']}:{w['cpu_ms']:.1f}(e{w['edges']} g{w['gps']})"
+
+    def taken(w: dict[str, Any]) -> str:
+        out = ""
+        if (w.get("waited_ms") or 0.0) >= 0.05:
+            out += f" w{w['waited_ms']:.1f}"
+        if w.get("stolen_ms"):
+            out += f" s{w['stolen_ms']:.0f}"
+        return out
+
+    return ", ".join(f"{w['frame']}:{w['cpu_ms']:.1f}(e{w['edges']} g{w['gps']}{taken(w)})"
                      for w in notes[:k]) or "-"
 
 
@@ -371,7 +381,8 @@ def run(ctx: Context) -> Result:
             f"over the prefix / its batch optimum (every {EVERY} frames and the end; extra: after "
             f"10 and after N more frames with no new data)",
             ["graph", "poses", "edges", "GPS", "solver", "mean", "p99", "max", "CPU max",
-             f"frames > {BUDGET_S * 1e3 + 1:.0f} ms CPU", "worst frames (frame:CPU ms)",
+             f"frames > {BUDGET_S * 1e3 + 1:.0f} ms CPU",
+             "worst frames (frame:CPU ms; w: waited for a CPU, s: taken by the host, ms)",
              "worst E/opt", "end E/opt", "extra E/opt 10 / N (N)", "extra frames to 1%",
              "background: adopted (stale) / lag max (frames) / adopt max (ms) (/ LM faster: "
              "the worker's map went to LM; / resets: failed incremental solves, each answered "

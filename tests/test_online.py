@@ -607,6 +607,39 @@ def test_cli_replay_json(capsys: pytest.CaptureFixture[str], data_dir: Path) -> 
     assert len(r["extra_ratio"]) == 3 and r["latency_ms_max"] >= r["latency_ms_mean"] > 0
 
 
+def test_worst_frames_say_what_the_machine_took(data_dir: Path,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each worst frame carries the thread's wait for a CPU and the host's steal during it
+    (Linux: numbers >= 0 from /proc; elsewhere None), and the command line says them."""
+    import sys
+
+    from hybridpgo.cli.replay import _machine
+    from hybridpgo.online import replay as rp
+
+    stream = rp.make_stream(read_graph(data_dir / "tinyGrid3D.g2o"))
+    worst = rp.replay_online(stream, OnlineConfig(background_refine=False),
+                             5e-3).info["worst_frames"]
+    assert worst
+    for w in worst:
+        if sys.platform.startswith("linux"):
+            assert w["waited_ms"] >= 0.0 and w["stolen_ms"] >= 0.0
+    clock = rp._MachineClock()
+    a = clock.read()
+    sum(range(100000))
+    b = clock.read()
+    clock.close()
+    if sys.platform.startswith("linux"):
+        assert b[0] >= a[0] >= 0.0 and b[1] >= a[1] >= 0.0
+    monkeypatch.setattr(rp._MachineClock, "PATHS", ("/nonexistent/a", "/nonexistent/b"))
+    worst = rp.replay_online(stream, OnlineConfig(background_refine=False),
+                             5e-3).info["worst_frames"]
+    assert all(w["waited_ms"] is None and w["stolen_ms"] is None for w in worst)
+    assert _machine(worst[0]) == ""
+    assert _machine({"waited_ms": 1.234, "stolen_ms": 10.0}) == (
+        "; waited 1.23 ms for a CPU, the host took 10 ms of CPU")
+    assert _machine({"waited_ms": 0.0, "stolen_ms": 0.0}) == ""
+
+
 def test_cli_replay_robust_option(capsys: pytest.CaptureFixture[str], data_dir: Path,
                                   monkeypatch: pytest.MonkeyPatch) -> None:
     """``replay --robust`` takes what ``optimize --robust`` takes and reaches the solver's

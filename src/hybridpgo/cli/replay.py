@@ -200,7 +200,7 @@ def run(args: argparse.Namespace) -> int:
         for w in r.get("info", {}).get("worst_frames", [])[:3]:
             rows.append(("  worst frame", f"{w['frame']}: {w['cpu_ms']:.2f} ms CPU "
                          f"({w['edges']} edge(s), {w['gps']} GPS; relaxed {w['new']} new, "
-                         f"{w['old']} old; {w['backlog']} left for later)"))
+                         f"{w['old']} old; {w['backlog']} left for later{_machine(w)})"))
     for path in s.get("plots", []):
         rows.append(("plot", path))
     if s.get("rerun"):
@@ -208,3 +208,14 @@ def run(args: argparse.Namespace) -> int:
                               "open with: rerun FILE)"))
     print_table(rows)
     return 0
+
+
+def _machine(w: dict[str, Any]) -> str:
+    """What the machine took from a worst frame, when anything: its wait for a CPU and the
+    time the host took from the virtual machine's CPUs meanwhile."""
+    parts = []
+    if w.get("waited_ms"):
+        parts.append(f"waited {w['waited_ms']:.2f} ms for a CPU")
+    if w.get("stolen_ms"):
+        parts.append(f"the host took {w['stolen_ms']:.0f} ms of CPU")
+    return "; " + ", ".join(parts) if parts else ""

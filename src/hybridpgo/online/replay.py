@@ -325,6 +325,52 @@ def replay_online(stream: Stream, config: Any = None, budget_s: float | None = 5
 WORST_FRAMES = 5
 
 
+class _MachineClock:
+    """What the machine took from the frames' thread, where Linux tells it: the time the
+    thread waited for a CPU (``/proc/thread-self/schedstat``, nanoseconds) and the time the
+    host took from this virtual machine's CPUs (``steal`` in ``/proc/stat``, all CPUs, in
+    clock ticks; a host that stops a virtual CPU makes the thread's CPU time look longer).
+    Both are read outside the frames' timing; ``read()`` gives ``(waited_s, stolen_s)`` so
+    far, NaN where the system does not say."""
+
+    PATHS = ("/proc/thread-self/schedstat", "/proc/stat")
+
+    def __init__(self) -> None:
+        self._files: list[Any] = []
+        for path in self.PATHS:
+            try:
+                self._files.append(open(path, "rb", buffering=0))
+            except OSError:
+                self._files.append(None)
+        import os
+
+        try:
+            self._tick = 1.0 / float(os.sysconf("SC_CLK_TCK"))
+        except (AttributeError, ValueError, OSError):
+            self._tick = 0.01
+
+    def read(self) -> tuple[float, float]:
+        waited = stolen = float("nan")
+        sched, stat = self._files
+        try:
+            if sched is not None:
+                sched.seek(0)
+                waited = int(sched.read().split()[1]) * 1e-9
+            if stat is not None:
+                stat.seek(0)
+                line = stat.read(256).split(b"\n", 1)[0].split()
+                if line[0] == b"cpu" and len(line) > 8:
+                    stolen = int(line[8]) * self._tick
+        except (OSError, ValueError, IndexError):
+            pass
+        return waited, stolen
+
+    def close(self) -> None:
+        for f in self._files:
+            if f is not None:
+                f.close()
+
+
 def _replay_online(solver: Any, stream: Stream, budget_s: float | None,
                    checkpoints: Sequence[int], extra_frames: int, refine_every: int,
                    refine_offset: int, progress: Callable[[int, float], None] | None,
@@ -336,6 +382,8 @@ def _replay_online(solver: Any, stream: Stream, budget_s: float | None,
     # what each frame's update did (FrameReport's counts), in an array: a list of one object
     # per frame would lengthen every full garbage collection as the stream goes on
     done = np.zeros((nf, len(_REPORT_FIELDS)), np.int64)
+    machine = np.full((nf, 2), np.nan)  # per frame: waited for a CPU, taken by the host (s)
+    clock = _MachineClock()
     marks = set(checkpoints)
     energies: dict[int, float] = {}
     ids = stream.graph.node_ids
@@ -354,6 +402,7 @@ def _replay_online(solver: Any, stream: Stream, budget_s: float | None,
                 if rest > 0:
                     time.sleep(rest)
         pid = int(ids[stream.order[k]])
+        m0 = clock.read()
         c0 = time.thread_time()
         t0 = time.perf_counter()
         feed_frame(solver, stream, k)
@@ -363,6 +412,8 @@ def _replay_online(solver: Any, stream: Stream, budget_s: float | None,
         solver.pose(pid)
         lat[k] = time.perf_counter() - t0
         cpu[k] = time.thread_time() - c0
+        m1 = clock.read()
+        machine[k] = (m1[0] - m0[0], m1[1] - m0[1])
         done[k] = [getattr(rep, f) for f in _REPORT_FIELDS]
         if on_frame is not None:
             on_frame(k + 1, solver, float(lat[k]))
@@ -389,7 +440,9 @@ def _replay_online(solver: Any, stream: Stream, budget_s: float | None,
         name += "+background"
     worst = np.argsort(-cpu, kind="stable")[:WORST_FRAMES]
     info = {**solver.stats(), "compile_s": solver.compile_seconds,
-            "worst_frames": [_frame_note(stream, int(k), lat, cpu, done[k]) for k in worst]}
+            "worst_frames": [_frame_note(stream, int(k), lat, cpu, done[k], machine[k])
+                             for k in worst]}
+    clock.close()
     if period is not None:
         info.update(rate_hz=rate_hz, idle_s=idle_s)
     return ReplayResult(name, lat, cpu, energies, extra_e, extra_l, info)
@@ -400,13 +453,17 @@ _REPORT_FIELDS = ("new", "old", "backlog", "local_nodes", "skipped")
 
 
 def _frame_note(stream: Stream, k: int, lat: FloatArray, cpu: FloatArray,
-                done: npt.NDArray[np.int64]) -> dict[str, Any]:
+                done: npt.NDArray[np.int64], machine: FloatArray) -> dict[str, Any]:
     """What frame k brought and what its update did (one of the worst frames; ``done``: its
-    :data:`_REPORT_FIELDS`)."""
+    :data:`_REPORT_FIELDS`), and what the machine took meanwhile (``machine``: the thread's
+    wait for a CPU and the host's steal, seconds, :class:`_MachineClock`; None where the
+    system does not tell)."""
+    waited, stolen = (float(v) * 1e3 if np.isfinite(v) else None for v in machine)
     return {"frame": k + 1, "cpu_ms": float(cpu[k] * 1e3), "wall_ms": float(lat[k] * 1e3),
             "edges": int(stream.edge_ptr[k + 1] - stream.edge_ptr[k]),
             "gps": int(stream.gps_ptr[k + 1] - stream.gps_ptr[k]),
-            **{f: int(v) for f, v in zip(_REPORT_FIELDS, done, strict=True)}}
+            **{f: int(v) for f, v in zip(_REPORT_FIELDS, done, strict=True)},
+            "waited_ms": waited, "stolen_ms": stolen}
 
 
 # --------------------------------------------------------------------------- iSAM2
