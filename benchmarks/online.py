@@ -201,7 +201,7 @@ def _worst(r: ReplayResult, k: int = 3) -> str:
 
     def taken(w: dict[str, Any]) -> str:
         out = ""
-        if (w.get("waited_ms") or 0.0) >= 0.05:
+        if (w.get("waited_ms") or 0.0) >= 0.05:  # the column's precision
             out += f" w{w['waited_ms']:.1f}"
         if w.get("stolen_ms"):
             out += f" s{w['stolen_ms']:.0f}"
@@ -382,7 +382,8 @@ def run(ctx: Context) -> Result:
             f"10 and after N more frames with no new data)",
             ["graph", "poses", "edges", "GPS", "solver", "mean", "p99", "max", "CPU max",
              f"frames > {BUDGET_S * 1e3 + 1:.0f} ms CPU",
-             "worst frames (frame:CPU ms; w: waited for a CPU, s: taken by the host, ms)",
+             "worst frames (frame:CPU ms; w: waited for a CPU, s: taken by the host from both "
+             "CPUs in 10 ms ticks, ms)",
              "worst E/opt", "end E/opt", "extra E/opt 10 / N (N)", "extra frames to 1%",
              "background: adopted (stale) / lag max (frames) / adopt max (ms) (/ LM faster: "
              "the worker's map went to LM; / resets: failed incremental solves, each answered "

@@ -214,8 +214,9 @@ def _machine(w: dict[str, Any]) -> str:
     """What the machine took from a worst frame, when anything: its wait for a CPU and the
     time the host took from the virtual machine's CPUs meanwhile."""
     parts = []
-    if w.get("waited_ms"):
-        parts.append(f"waited {w['waited_ms']:.2f} ms for a CPU")
+    if (w.get("waited_ms") or 0.0) >= 0.005:
+        parts.append(f"{w['wall_ms']:.2f} ms wall, of it {w['waited_ms']:.2f} ms waiting for a "
+                     "CPU")
     if w.get("stolen_ms"):
-        parts.append(f"the host took {w['stolen_ms']:.0f} ms of CPU")
+        parts.append(f"the host took {w['stolen_ms']:.0f} ms of CPU (both CPUs, 10 ms ticks)")
     return "; " + ", ".join(parts) if parts else ""

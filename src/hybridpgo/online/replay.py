@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -327,48 +328,68 @@ WORST_FRAMES = 5
 
 class _MachineClock:
     """What the machine took from the frames' thread, where Linux tells it: the time the
-    thread waited for a CPU (``/proc/thread-self/schedstat``, nanoseconds) and the time the
-    host took from this virtual machine's CPUs (``steal`` in ``/proc/stat``, all CPUs, in
-    clock ticks; a host that stops a virtual CPU makes the thread's CPU time look longer).
-    Both are read outside the frames' timing; ``read()`` gives ``(waited_s, stolen_s)`` so
-    far, NaN where the system does not say."""
+    thread waited for a CPU (its ``schedstat``'s run delay, nanoseconds) and the time the host
+    took from this virtual machine's CPUs (``steal`` in ``/proc/stat``: all CPUs together, in
+    clock ticks of usually 10 ms, so a frame of a few ms may show a tick the host took from the
+    other CPU).  Where the guest kernel does not subtract steal from a thread's run time, a
+    host that stops a virtual CPU makes the thread's CPU time look longer; where it does, the
+    steal lengthens only the wall time.  Read outside the frames' timing; :meth:`read` gives
+    ``(waited_s, stolen_s)`` so far, NaN where the system does not tell (no such file, or one
+    that cannot be read or parsed)."""
 
+    #: The thread's scheduler statistics (``/proc/self/task/TID/schedstat`` on kernels
+    #: before 3.17, :meth:`__init__`) and the system's CPU times.
     PATHS = ("/proc/thread-self/schedstat", "/proc/stat")
 
     def __init__(self) -> None:
-        self._files: list[Any] = []
-        for path in self.PATHS:
-            try:
-                self._files.append(open(path, "rb", buffering=0))
-            except OSError:
-                self._files.append(None)
-        import os
+        import threading
+        import weakref
 
+        sched, stat = self.PATHS
+        if sched.startswith("/proc/thread-self/") and not os.path.exists("/proc/thread-self"):
+            sched = f"/proc/self/task/{threading.get_native_id()}/schedstat"
+        self._fds: list[int | None] = []
+        for path in (sched, stat):
+            try:
+                self._fds.append(os.open(path, os.O_RDONLY))
+            except OSError:
+                self._fds.append(None)
+        # descriptors, not file objects: closed when the clock goes, also after an error
+        # inside a replay, without a ResourceWarning
+        self._close = weakref.finalize(self, _close_all, list(self._fds))
         try:
             self._tick = 1.0 / float(os.sysconf("SC_CLK_TCK"))
         except (AttributeError, ValueError, OSError):
             self._tick = 0.01
 
     def read(self) -> tuple[float, float]:
+        sched, stat = self._fds
         waited = stolen = float("nan")
-        sched, stat = self._files
-        try:
-            if sched is not None:
-                sched.seek(0)
-                waited = int(sched.read().split()[1]) * 1e-9
-            if stat is not None:
-                stat.seek(0)
-                line = stat.read(256).split(b"\n", 1)[0].split()
+        if sched is not None:
+            try:
+                waited = int(os.pread(sched, 256, 0).split()[1]) * 1e-9
+            except (OSError, ValueError, IndexError):
+                pass
+        if stat is not None:
+            try:
+                line = os.pread(stat, 256, 0).split(b"\n", 1)[0].split()
                 if line[0] == b"cpu" and len(line) > 8:
                     stolen = int(line[8]) * self._tick
-        except (OSError, ValueError, IndexError):
-            pass
+            except (OSError, ValueError, IndexError):
+                pass
         return waited, stolen
 
     def close(self) -> None:
-        for f in self._files:
-            if f is not None:
-                f.close()
+        self._close()
+
+
+def _close_all(fds: list[int | None]) -> None:
+    for fd in fds:
+        if fd is not None:
+            try:
+                os.close(fd)
+            except OSError:
+                pass
 
 
 def _replay_online(solver: Any, stream: Stream, budget_s: float | None,
