@@ -33,7 +33,8 @@ class FrameReport(NamedTuple):
     old: int
     """Spare-time updates of older constraints."""
     local_nodes: int
-    """Poses moved by the local solve (0: off or it did not fit)."""
+    """Poses moved by the local solve and the batch of a loop closure's neighbours (0: neither
+    ran or fitted)."""
     capped: int
     """Updates whose rotation was capped at pi/8."""
     rejected: int

@@ -12,7 +12,9 @@ later frames.  This module holds what that policy decides with:
 * :class:`Admission`, the arrays the loop of :mod:`._sweep` reads and writes under the policy;
 * :func:`gps_chi2` / :func:`edge_chi2`: a constraint's χ² at the current estimate, from its path;
 * :func:`candidates` (the bounded set of spare-time updates, largest χ² first) and
-  :func:`local_batch` (a batch update of chosen constraints, admitted by the same model).
+  :func:`local_batch` (a batch update of chosen constraints, admitted by the same model);
+* :func:`crossing` and :func:`edge_chi2s`: the relative constraints whose paths share a node with
+  a given one's (those its update moves) and their χ², for the batch of a loop's neighbours.
 """
 
 from __future__ import annotations
@@ -168,6 +170,42 @@ def chi2_of(prob: Problem, state: State, c: int, wk: Workspace, ro: np.ndarray,
     if is_gps(prob, c):
         return gps_chi2(prob, state, c, ro, to)
     return edge_chi2(prob, state, c, wk)
+
+
+@kernel
+def crossing(prob: Problem, m: int, c: int, rejected: np.ndarray, mark: np.ndarray,
+             out: np.ndarray) -> int:
+    """The relative constraints among ``0..m-1``, c and those in ``rejected`` left out,
+    whose paths hold a node of c's path: the constraints whose residuals an update of c
+    changes (it moves the subtrees of its path's nodes).  O(path entries of the m
+    constraints).  ``mark`` (one flag per tree node) is False on entry and on exit.  Writes
+    them to ``out`` in index order and returns how many."""
+    s, d = domain(prob, c)
+    for k in range(s, s + d):
+        mark[prob.path_node[k]] = True
+    n = 0
+    for e in range(m):
+        if e == c or rejected[e]:
+            continue
+        for k in range(prob.path_ptr[e], prob.path_ptr[e + 1]):
+            if mark[prob.path_node[k]]:
+                out[n] = e
+                n += 1
+                break
+    for k in range(s, s + d):
+        mark[prob.path_node[k]] = False
+    return n
+
+
+@kernel
+def edge_chi2s(prob: Problem, state: State, cs: np.ndarray, wk: Workspace,
+               out: np.ndarray) -> float:
+    """:func:`edge_chi2` of every relative constraint in ``cs`` into ``out``; their sum."""
+    total = 0.0
+    for q in range(cs.shape[0]):
+        out[q] = edge_chi2(prob, state, cs[q], wk)
+        total += out[q]
+    return total
 
 
 @kernel
