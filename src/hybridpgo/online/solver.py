@@ -100,7 +100,7 @@ class _Hood:
     c: int
     """The new relative constraint of the longest path."""
     new: npt.NDArray[np.int64]
-    """The frame's new relative constraints."""
+    """The frame's new (and queued again) relative constraints."""
     near: npt.NDArray[np.int64]
     """The older constraints whose paths share a node with c's."""
     before: float
@@ -423,6 +423,8 @@ class OnlineSolver:
         counts = np.zeros(NUM_COUNTS, np.int64)
         self._stamp += 1
         stamp = self._stamp
+        hood = (self._loop_neighbours(deadline) if cfg.loop_batch and limit > 0
+                and self._sliced is None else None)
         n_re = (self._requeued(self._keep_for_new(deadline), counts, limit, stamp, first)
                 if st.requeue.size else 0)
         limit -= int(counts[Count.DONE])
@@ -433,8 +435,6 @@ class OnlineSolver:
         if limit > 0 and ((sl is not None and sl.new) or self._begin_sliced(deadline)):
             n_sliced += self._advance_sliced(deadline, counts)
             forced = False  # the frame's progress on the first new constraint
-        hood = (self._loop_neighbours(deadline) if cfg.loop_batch and limit > 0
-                and self._sliced is None else None)
         prob, state, pol = st.views()
         sc = st.scratch(self._wk)
         self._wk = sc.wk
@@ -469,14 +469,15 @@ class OnlineSolver:
                            int(counts[Count.REJECTED]), int(counts[Count.SKIPPED]), elapsed)
 
     def _loop_neighbours(self, deadline: np.uint64) -> _Hood | None:
-        """Before a frame's new constraints are relaxed: when one of them is a relative
+        """Before a frame's new constraints are relaxed: when one of them (or of the
+        constraints queued again after an adopted answer, :meth:`_requeued`) is a relative
         constraint of at least :data:`LOOP_MIN_PATH` path nodes (the longest is taken), its
         neighbours (:func:`~..solvers.hybrid._admission.crossing`: the older constraints
         whose residuals its update changes) and their χ² and the new constraints' χ² now,
         for :meth:`_loop_batch`.  None when there is none, or when the scan (O(path
         entries)) would not leave the first new constraint its predicted time."""
         st = self._store
-        q = st.pending()
+        q = np.concatenate([st.requeue, st.pending()])
         rel = q[q < st.cap_m]
         if not rel.size:
             return None
@@ -510,16 +511,17 @@ class OnlineSolver:
     def _loop_batch(self, hood: _Hood, deadline: np.uint64,
                     counts: npt.NDArray[np.int64]) -> int:
         """After the new constraints were relaxed: when the neighbours of the loop
-        (:meth:`_loop_neighbours`) gained more χ² than the new constraints lost (more than
-        :data:`LOOP_SHARE` of it: the update pushed the loop's error onto constraints its
+        (:meth:`_loop_neighbours`) gained more χ² than :data:`LOOP_SHARE` of what the new
+        constraints lost (the update pushed the loop's error onto constraints its
         hybrid Hessian holds only by their diagonal blocks 𝔅(H); on valencia_gps such frames
         raised the map from the optimum to 1.1-4x it), the new constraints and the
-        :attr:`~.config.OnlineConfig.loop_batch` neighbours of largest χ² are relaxed together as one batch (III-G), when it fits
-        before the deadline: the batch holds each of them exactly.  The neighbours' measured
-        χ² becomes their spare-time priority.  Returns the batch's union nodes (0: none)."""
+        :attr:`~.config.OnlineConfig.loop_batch` neighbours of largest χ² are relaxed
+        together as one batch (III-G), when it fits before the deadline: the batch holds each
+        of them exactly.  The neighbours' measured χ² becomes their spare-time priority.
+        Returns the batch's union nodes (0: none)."""
         st = self._store
         cfg = self.config
-        q = st.pending()
+        q = np.concatenate([st.requeue, st.pending()])
         if np.isin(hood.c, q) or self._sliced is not None:
             return 0  # not relaxed in this frame
         done = hood.new[~np.isin(hood.new, q)]
