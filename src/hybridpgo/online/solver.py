@@ -1019,6 +1019,11 @@ def _ensure_online_compiled() -> float:
         group_cost(prob, pol, 0)
         adm.predict(st.model, 4, False)
         adm.learn(st.model, 4, 1.0, False)
+        # a loop closure's neighbours and their χ² (_loop_neighbours, _loop_batch)
+        near = np.empty(st.m_laid, np.int64)
+        k = adm.crossing(prob, st.m_laid, 3, st.rejected, np.zeros(st.placed + 1, np.bool_),
+                         near)
+        adm.edge_chi2s(prob, state, near[:k], st.scratch(None).wk, np.empty(max(k, 1)))
     except BaseException:
         _COMPILED[0] = False
         raise
