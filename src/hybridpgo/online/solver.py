@@ -81,10 +81,11 @@ MIN_SLICED = 4 * _slices.SLICE
 #: (:meth:`OnlineSolver._loop_neighbours`).
 LOOP_MIN_PATH = 4
 #: The batch of a loop's neighbours runs when they gained more χ² than this share of what the
-#: new constraints lost.  Measured on valencia_gps's loops, each frame starting from the
-#: worker's optimum: 0.52-13 where the frame's updates raised the map to 1.1-4x the prefix
-#: optimum, 0.17-0.66 where they left it within 1.03x (where the batch also runs, it moves
-#: the map by -0.005 to +0.01 of the optimum).
+#: new constraints lost.  Measured on twelve of valencia_gps's loops, each frame starting
+#: from the worker's optimum: 0.51-11 in the five frames whose updates raised the map to
+#: 1.1-4x the prefix optimum; 0.17-0.66 in six of the seven that left it within 1.03x, 7.4 in
+#: the seventh (where the batch runs in such a frame, it moved E by -0.011 to +0.011 of the
+#: optimum).
 LOOP_SHARE = 0.5
 #: Cycles per path entry of the scan for a loop's neighbours (a bound: 0.8-0.9 ns measured
 #: on valencia and paris2).
@@ -107,6 +108,8 @@ class _Hood:
     """Their χ² before the frame's updates."""
     new_before: float
     """The new constraints' χ² before their updates."""
+    entries: int
+    """Path entries of the neighbours and the new constraints (a χ² measurement's work)."""
 
 
 @dataclasses.dataclass(slots=True)
@@ -472,10 +475,11 @@ class OnlineSolver:
         """Before a frame's new constraints are relaxed: when one of them (or of the
         constraints queued again after an adopted answer, :meth:`_requeued`) is a relative
         constraint of at least :data:`LOOP_MIN_PATH` path nodes (the longest is taken), its
-        neighbours (:func:`~..solvers.hybrid._admission.crossing`: the older constraints
-        whose residuals its update changes) and their χ² and the new constraints' χ² now,
-        for :meth:`_loop_batch`.  None when there is none, or when the scan (O(path
-        entries)) would not leave the first new constraint its predicted time."""
+        neighbours (:func:`~..solvers.hybrid._admission.crossing`: the older relative
+        constraints whose residuals its update changes; GPS readings are not measured),
+        their χ² and the new constraints' χ² now, for :meth:`_loop_batch`.  None when there
+        is none, or when the scan (O(path entries)) or the two measurements would not leave
+        the first new constraint its predicted time."""
         st = self._store
         q = np.concatenate([st.requeue, st.pending()])
         rel = q[q < st.cap_m]
@@ -506,24 +510,29 @@ class OnlineSolver:
         chi = np.empty(max(near.size, rel.size))
         before = float(adm.edge_chi2s(prob, state, near, sc.wk, chi))
         new_before = float(adm.edge_chi2s(prob, state, rel, sc.wk, chi))
-        return _Hood(c, rel, near, before, new_before)
+        return _Hood(c, rel, near, before, new_before, entries)
 
     def _loop_batch(self, hood: _Hood, deadline: np.uint64,
                     counts: npt.NDArray[np.int64]) -> int:
         """After the new constraints were relaxed: when the neighbours of the loop
         (:meth:`_loop_neighbours`) gained more χ² than :data:`LOOP_SHARE` of what the new
-        constraints lost (the update pushed the loop's error onto constraints its
-        hybrid Hessian holds only by their diagonal blocks 𝔅(H); on valencia_gps such frames
-        raised the map from the optimum to 1.1-4x it), the new constraints and the
+        constraints lost (the update pushed the loop's error onto constraints its hybrid
+        Hessian holds only by their diagonal blocks 𝔅(H); on valencia_gps such frames raised
+        the map from the optimum to 1.1-4x it), the new constraints and the
         :attr:`~.config.OnlineConfig.loop_batch` neighbours of largest χ² are relaxed
         together as one batch (III-G), when it fits before the deadline: the batch holds each
         of them exactly.  The neighbours' measured χ² becomes their spare-time priority.
-        Returns the batch's union nodes (0: none)."""
+        Nothing is measured when the measurement's predicted cost no longer fits before the
+        deadline (the frame's other new constraints took the time).  Returns the batch's
+        union nodes (0: none)."""
         st = self._store
         cfg = self.config
         q = np.concatenate([st.requeue, st.pending()])
         if np.isin(hood.c, q) or self._sliced is not None:
             return 0  # not relaxed in this frame
+        if deadline != NO_DEADLINE and (float(read_cycles()) + hood.entries * CHI2_CYCLES
+                                        > float(deadline)):
+            return 0  # the frame's other new constraints took the time
         done = hood.new[~np.isin(hood.new, q)]
         prob, state, _ = st.views()
         sc = st.scratch(self._wk)
