@@ -490,9 +490,12 @@ class OnlineSolver:
         if int(lens.max()) < LOOP_MIN_PATH:
             return None
         first = adm.predict(st.model, int(lens[0]), False)  # the first new constraint's
-        if deadline != NO_DEADLINE and (float(read_cycles()) + first
-                                        + 2.0 * int(st.ptr[st.m_laid]) * SCAN_CYCLES
-                                        > float(deadline)):
+
+        def late(cycles: float) -> bool:  # would ``cycles`` of work leave it no time?
+            return (deadline != NO_DEADLINE
+                    and float(read_cycles()) + first + cycles > float(deadline))
+
+        if late(2.0 * int(st.ptr[st.m_laid]) * SCAN_CYCLES):
             return None
         prob, state, _ = st.views()
         mark = np.zeros(st.placed + 1, np.bool_)
@@ -502,8 +505,7 @@ class OnlineSolver:
         near = near[~np.isin(near, rel)]
         # their χ² now and after the frame's updates (O(their path entries) each)
         entries = int(np.sum(st.ptr[near + 1] - st.ptr[near])) + int(np.sum(lens))
-        if deadline != NO_DEADLINE and (float(read_cycles()) + first
-                                        + 2.0 * entries * CHI2_CYCLES > float(deadline)):
+        if late(2.0 * entries * CHI2_CYCLES):
             return None
         sc = st.scratch(self._wk)
         self._wk = sc.wk
