@@ -196,7 +196,8 @@ def _figure(ctx: Context, name: str, runs: list[ReplayResult], optima: dict[int,
 
 def _worst(r: ReplayResult, k: int = 3) -> str:
     """The ``k`` frames of most CPU: ``frame:ms(edges e, gps g)``, and when the machine took
-    time from one, ``w`` its wait for a CPU and ``s`` the host's steal meanwhile (ms)."""
+    time from one, ``w`` its wait for a CPU and ``s`` the host's steal meanwhile (ms), ``c`` the
+    garbage collections in it (ms) and ``f`` the thread's page faults (from 100)."""
     notes = r.info.get("worst_frames") or []
 
     def taken(w: dict[str, Any]) -> str:
@@ -205,6 +206,10 @@ def _worst(r: ReplayResult, k: int = 3) -> str:
             out += f" w{w['waited_ms']:.1f}"
         if w.get("stolen_ms"):
             out += f" s{w['stolen_ms']:.0f}"
+        if (w.get("collected_ms") or 0.0) >= 0.05:
+            out += f" c{w['collected_ms']:.1f}"
+        if (w.get("faults") or 0) >= 100:
+            out += f" f{w['faults']}"
         return out
 
     return ", ".join(f"{w['frame']}:{w['cpu_ms']:.1f}(e{w['edges']} g{w['gps']}{taken(w)})"

@@ -131,6 +131,50 @@ def test_frames_leave_nothing_for_the_garbage_collector() -> None:
     assert not gc.is_tracked(s.store.pair_last)  # integer keys and values only
 
 
+@pytest.mark.parametrize("enabled", [True, False])
+def test_no_garbage_collection_starts_inside_a_frame(enabled: bool) -> None:
+    """With the collector's threshold at 1, any tracked allocation starts a collection: none
+    starts while add_*, update or pose runs (a collection walks the whole process's objects,
+    the application's too), the ones that fell due run at allocations outside, and the
+    collector is left on or off as the caller had it."""
+    import gc
+    import sys
+
+    import hybridpgo.online.solver as solver_module
+
+    g = _graph(seed=5, n=80, extra=40)
+    st = make_stream(g)
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    feed_frame(s, st, 0)
+    s.update(None)  # the process's first solver compiles and freezes before the counts
+    started: list[bool] = []
+
+    def on_collection(phase: str, info: dict[str, int]) -> None:
+        if phase == "start":  # is a method of the solver on the stack?
+            f = sys._getframe(1)
+            while f is not None and f.f_code.co_filename != solver_module.__file__:
+                f = f.f_back
+            started.append(f is not None)
+
+    thresholds = gc.get_threshold()
+    was = gc.isenabled()
+    gc.callbacks.append(on_collection)
+    try:
+        gc.set_threshold(1, 1, 1)
+        (gc.enable if enabled else gc.disable)()
+        for k in range(1, st.num_frames):
+            feed_frame(s, st, k)
+            s.update(None, 4)
+            s.pose(int(g.node_ids[st.order[k]]))
+            assert gc.isenabled() == enabled
+    finally:
+        gc.callbacks.remove(on_collection)
+        gc.set_threshold(*thresholds)
+        (gc.enable if was else gc.disable)()
+    assert not any(started), f"{sum(started)} collections started inside the solver"
+    assert (len(started) > 0) == enabled  # the collections ran, outside the solver
+
+
 
 def _until_group(st):  # type: ignore[no-untyped-def]
     """A solver fed frame by frame (each relaxed in full) until a frame forms a junction

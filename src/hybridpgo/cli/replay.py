@@ -211,12 +211,17 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _machine(w: dict[str, Any]) -> str:
-    """What the machine took from a worst frame, when anything: its wait for a CPU and the
-    time the host took from the virtual machine's CPUs meanwhile."""
+    """What the machine took from a worst frame, when anything: its wait for a CPU, the time
+    the host took from the virtual machine's CPUs meanwhile, the garbage collections in it and
+    its page faults (from 100: fresh memory written for the first time)."""
     parts = []
     if (w.get("waited_ms") or 0.0) >= 0.005:
         parts.append(f"{w['wall_ms']:.2f} ms wall, of it {w['waited_ms']:.2f} ms waiting for a "
                      "CPU")
     if w.get("stolen_ms"):
         parts.append(f"the host took {w['stolen_ms']:.0f} ms of CPU (both CPUs, 10 ms ticks)")
+    if (w.get("collected_ms") or 0.0) >= 0.005:
+        parts.append(f"{w['collected_ms']:.2f} ms of garbage collection")
+    if (w.get("faults") or 0) >= 100:
+        parts.append(f"{w['faults']} page faults")
     return "; " + ", ".join(parts) if parts else ""

@@ -11,6 +11,7 @@ measured against.
 from __future__ import annotations
 
 import dataclasses
+import gc
 import math
 import os
 import time
@@ -20,6 +21,11 @@ from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
+
+try:
+    import resource
+except ImportError:  # not on Windows: page faults unknown there
+    resource = None  # type: ignore[assignment]
 
 from ..energy import energy
 from ..errors import GraphError, SolverError
@@ -333,8 +339,12 @@ class _MachineClock:
     clock ticks of usually 10 ms, so a frame of a few ms may show a tick the host took from the
     other CPU).  Where the guest kernel does not subtract steal from a thread's run time, a
     host that stops a virtual CPU makes the thread's CPU time look longer; where it does, the
-    steal lengthens only the wall time.  Read outside the frames' timing; :meth:`read` gives
-    ``(waited_s, stolen_s)`` so far, NaN where the system does not tell (no such file, or one
+    steal lengthens only the wall time.  Also what the process did that the solver does not
+    decide: the time spent in Python's garbage collections (any thread's; the solver holds
+    automatic collection off in its frames, :func:`~._frame.uncollected`) and the thread's page
+    faults (``getrusage``; first writes to fresh memory, which a virtual machine's host may
+    back slowly).  Read outside the frames' timing; :meth:`read` gives ``(waited_s, stolen_s,
+    collected_s, faults)`` so far, NaN where the system does not tell (no such file, or one
     that cannot be read or parsed)."""
 
     #: The thread's scheduler statistics (``/proc/self/task/TID/schedstat`` on kernels
@@ -355,14 +365,36 @@ class _MachineClock:
             except OSError:
                 self._fds.append(None)
         # descriptors, not file objects: closed when the clock goes, also after an error
-        # inside a replay, without a ResourceWarning
-        self._close = weakref.finalize(self, _close_all, list(self._fds))
+        # inside a replay, without a ResourceWarning (with the collection callback, below)
         try:
             self._tick = 1.0 / float(os.sysconf("SC_CLK_TCK"))
         except (AttributeError, ValueError, OSError):
             self._tick = 0.01
+        # seconds in collections so far, and when the current one started (a closure over
+        # the list, not a method: gc.callbacks would keep the clock alive)
+        collected = self._collected = [0.0, 0.0]
 
-    def read(self) -> tuple[float, float]:
+        def on_collection(phase: str, info: dict[str, int]) -> None:
+            if phase == "start":
+                collected[1] = time.perf_counter()
+            else:
+                collected[0] += time.perf_counter() - collected[1]
+
+        gc.callbacks.append(on_collection)
+        self._close = weakref.finalize(self, _close_all, list(self._fds), on_collection)
+
+    @staticmethod
+    def _faults() -> float:
+        who = getattr(resource, "RUSAGE_THREAD", None)  # Linux
+        if who is None:
+            return float("nan")
+        try:
+            use = resource.getrusage(who)
+        except (OSError, ValueError):
+            return float("nan")
+        return float(use.ru_minflt + use.ru_majflt)
+
+    def read(self) -> tuple[float, float, float, float]:
         sched, stat = self._fds
         waited = stolen = float("nan")
         if sched is not None:
@@ -377,13 +409,15 @@ class _MachineClock:
                     stolen = int(line[8]) * self._tick
             except (OSError, ValueError, IndexError):
                 pass
-        return waited, stolen
+        return waited, stolen, self._collected[0], self._faults()
 
     def close(self) -> None:
         self._close()
 
 
-def _close_all(fds: list[int | None]) -> None:
+def _close_all(fds: list[int | None], callback: Any = None) -> None:
+    if callback in gc.callbacks:
+        gc.callbacks.remove(callback)
     for fd in fds:
         if fd is not None:
             try:
@@ -403,7 +437,8 @@ def _replay_online(solver: Any, stream: Stream, budget_s: float | None,
     # what each frame's update did (FrameReport's counts), in an array: a list of one object
     # per frame would lengthen every full garbage collection as the stream goes on
     done = np.zeros((nf, len(_REPORT_FIELDS)), np.int64)
-    machine = np.full((nf, 2), np.nan)  # per frame: waited for a CPU, taken by the host (s)
+    # per frame: waited for a CPU, taken by the host, garbage collections (s), page faults
+    machine = np.full((nf, 4), np.nan)
     clock = _MachineClock()
     marks = set(checkpoints)
     energies: dict[int, float] = {}
@@ -434,7 +469,7 @@ def _replay_online(solver: Any, stream: Stream, budget_s: float | None,
         lat[k] = time.perf_counter() - t0
         cpu[k] = time.thread_time() - c0
         m1 = clock.read()
-        machine[k] = (m1[0] - m0[0], m1[1] - m0[1])
+        machine[k] = np.subtract(m1, m0)
         done[k] = [getattr(rep, f) for f in _REPORT_FIELDS]
         if on_frame is not None:
             on_frame(k + 1, solver, float(lat[k]))
@@ -477,14 +512,17 @@ def _frame_note(stream: Stream, k: int, lat: FloatArray, cpu: FloatArray,
                 done: npt.NDArray[np.int64], machine: FloatArray) -> dict[str, Any]:
     """What frame k brought and what its update did (one of the worst frames; ``done``: its
     :data:`_REPORT_FIELDS`), and what the machine took meanwhile (``machine``: the thread's
-    wait for a CPU and the host's steal, seconds, :class:`_MachineClock`; None where the
-    system does not tell)."""
-    waited, stolen = (float(v) * 1e3 if np.isfinite(v) else None for v in machine)
+    wait for a CPU, the host's steal and the garbage collections, seconds, and the thread's
+    page faults, :class:`_MachineClock`; None where the system does not tell)."""
+    waited, stolen, collected = (float(v) * 1e3 if np.isfinite(v) else None
+                                 for v in machine[:3])
+    faults = int(machine[3]) if np.isfinite(machine[3]) else None
     return {"frame": k + 1, "cpu_ms": float(cpu[k] * 1e3), "wall_ms": float(lat[k] * 1e3),
             "edges": int(stream.edge_ptr[k + 1] - stream.edge_ptr[k]),
             "gps": int(stream.gps_ptr[k + 1] - stream.gps_ptr[k]),
             **{f: int(v) for f, v in zip(_REPORT_FIELDS, done, strict=True)},
-            "waited_ms": waited, "stolen_ms": stolen}
+            "waited_ms": waited, "stolen_ms": stolen, "collected_ms": collected,
+            "faults": faults}
 
 
 # --------------------------------------------------------------------------- iSAM2

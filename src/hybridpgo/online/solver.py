@@ -21,8 +21,11 @@ arrays grow without copies; the updates are the whole-graph solver's relaxation 
   :meth:`~OnlineSolver._begin_sliced`), and a group whose batch no frame could hold
   is relaxed member by member wherever it comes; constraints queued again
   after an adopted answer (relaxed before) start only when they fit.  Building the
-  first solver of a process freezes the objects alive then (:func:`gc.freeze`), so no frame
-  pays for a full garbage collection of the compiled kernels.
+  first solver of a process freezes the objects alive then (:func:`gc.freeze`), so no
+  garbage collection walks the compiled kernels, and a frame's work (``add_*``,
+  :meth:`~OnlineSolver.update`, :meth:`~OnlineSolver.pose`) runs with automatic garbage
+  collection held off (:func:`~._frame.uncollected`): a collection that falls due meanwhile
+  runs at the next allocation outside the solver (the application's, or :meth:`idle`'s).
 * **Staying accurate** (``OnlineConfig.background_refine``, on by default): a worker process
   keeps the whole map at its optimum with an incremental exact solver and each answer is
   adopted in one copy (:mod:`._link`, :mod:`.worker`).  After relaxing its new constraints, a
@@ -61,7 +64,15 @@ from ..solvers.hybrid.problem import NUM_COUNTS, Count, StepKind, Update
 from ..solvers.hybrid.solver import STEP_KINDS, ensure_compiled
 from . import _heap
 from ._frame import MAX_BUDGET_S as MAX_BUDGET_S
-from ._frame import NO_DEADLINE, READ_LEVEL_S, RESERVE_S, FrameReport, charged, check_budget
+from ._frame import (
+    NO_DEADLINE,
+    READ_LEVEL_S,
+    RESERVE_S,
+    FrameReport,
+    charged,
+    check_budget,
+    uncollected,
+)
 from ._link import WorkerLink
 from ._validate import as_pose, check_id, whitening
 from .config import OnlineConfig
@@ -331,6 +342,7 @@ class OnlineSolver:
         st.lay_paths()
 
     # ----------------------------------------------------------------- update
+    @uncollected
     def update(self, budget_s: float | None = None, max_updates: int | None = None
                ) -> FrameReport:
         """One frame: integrate what arrived, relax new constraints, then older ones.
@@ -811,6 +823,7 @@ class OnlineSolver:
         return self._link is not None and self._link.refiner.wait_ready(timeout)
 
     # ----------------------------------------------------------------- estimates
+    @uncollected
     def pose(self, pose_id: int) -> tuple[FloatArray, FloatArray]:
         """Current estimate ``(R (3, 3), t (3,))`` of one pose, O(tree depth)."""
         p = self._pose_index(pose_id, "pose")
