@@ -33,8 +33,21 @@ re-eliminated ones) and ``blocks_mean`` (the 6x6 block products of those updates
 supernodes' own factorization not counted: ``IncrementalExact.stats["products"]``).  This
 part runs in a child process with the worker's environment
 (:data:`hybridpgo.online.worker.WORKER_THREADS`: one BLAS thread), as the worker does.
-``HYBRIDPGO_BENCH_WORKER_PARTS``: ``requests``, ``large`` or both (the default,
-comma-separated).
+
+Requests as the map grows (``worker.growth.*``): grid10k, all :data:`GROWTH_POSES` frames, one
+request per frame as the worker serves a frame-by-frame stream (one update cycle, no polish),
+in a child process with the worker's environment; per :data:`GROWTH_BIN` frames the request's
+``ms_mean`` / ``ms_p90`` / ``ms_max``, ``numeric_ms_mean`` (the factorization), ``columns_mean``
+(columns re-eliminated) and ``pool`` (the factor's blocks at the bin's end).  Beside it, in the
+same child, GTSAM's ISAM2 on the same stream (:func:`hybridpgo.online.replay.replay_isam2`:
+one update and the frame's pose per frame, GTSAM's default relinearization threshold 0.1 as
+the worker's, up to :data:`GROWTH_ISAM2_S` seconds of updates): ``isam2_ms_mean`` /
+``isam2_ms_p90`` per whole bin it reached.  A request that takes longer than the frame
+period leaves the worker behind the stream: its answers then come less often than the
+frames, each covering more of them.
+
+``HYBRIDPGO_BENCH_WORKER_PARTS``: ``requests``, ``large``, ``growth`` (comma-separated; the
+default ``requests,large``).
 
 Graphs: the valencia city preset (all 15 031 frames) and paris2's first 12 000 frames
 (:func:`hybridpgo.generate.generate_city`, seed 0; both 3D, so the planar system is left at
@@ -218,11 +231,107 @@ def _large() -> tuple[list[Metric], str]:
     return metrics, table
 
 
+#: Poses of the graph the growth part streams (grid10k), frames per bin, and the seconds of
+#: ISAM2 updates beside it.
+GROWTH_POSES = 10_000
+GROWTH_BIN = 1_000
+GROWTH_ISAM2_S = 240.0
+
+
+def _bins(values: np.ndarray) -> list[np.ndarray]:
+    return [values[i: i + GROWTH_BIN] for i in range(0, values.shape[0], GROWTH_BIN)]
+
+
+def _growth_numbers() -> dict[str, Any]:
+    """Requests of one frame each on grid10k as it grows (module doc), in this process."""
+    from hybridpgo.generate import generate_grid
+    from hybridpgo.online.replay import replay_isam2
+
+    stream = make_stream(generate_grid(seed=0, num_poses=GROWTH_POSES).graph)
+    g = stream.graph
+    rank = np.empty(g.num_nodes, np.int64)
+    rank[stream.order] = np.arange(g.num_nodes)
+    warm = IncrementalExact(IncrementalConfig(**INCREMENTAL))  # type: ignore[arg-type]
+    for k in range(WARM_UP):  # kernels compiled or loaded before the timing
+        _feed(warm, stream, rank, k)
+        warm.solve(polish=False)
+    inc = IncrementalExact(IncrementalConfig(**INCREMENTAL))  # type: ignore[arg-type]
+    nf = stream.num_frames
+    sec, num, cols, pool = (np.zeros(nf) for _ in range(4))
+    for k in range(nf):
+        _feed(inc, stream, rank, k)
+        n0, c0 = inc.stats["seconds"]["numeric"], inc.stats["columns"]
+        t0 = time.perf_counter()
+        inc.solve(max_cycles=1, polish=False)
+        sec[k] = time.perf_counter() - t0
+        num[k] = inc.stats["seconds"]["numeric"] - n0
+        cols[k] = inc.stats["columns"] - c0
+        pool[k] = inc._pool_used[0]
+    out: dict[str, Any] = {"bins": [
+        {"frames": int(b.shape[0]), "ms_mean": float(b.mean() * 1e3),
+         "ms_p90": float(np.percentile(b, 90) * 1e3), "ms_max": float(b.max() * 1e3),
+         "numeric_ms_mean": float(n.mean() * 1e3), "columns_mean": float(c.mean()),
+         "pool": float(p[-1])}
+        for b, n, c, p in zip(_bins(sec), _bins(num), _bins(cols), _bins(pool), strict=True)]}
+    from .gtsam_ref import gtsam_available
+
+    if gtsam_available():
+        lat = np.asarray(replay_isam2(stream, max_seconds=GROWTH_ISAM2_S).latency_s)
+        done = lat.shape[0] == nf  # else stopped at its time: only its whole bins
+        reached = [b for b in _bins(lat) if done or b.shape[0] == GROWTH_BIN]
+        out["isam2"] = [{"ms_mean": float(b.mean() * 1e3),
+                         "ms_p90": float(np.percentile(b, 90) * 1e3)} for b in reached]
+        out["isam2_frames"] = int(lat.shape[0])
+    return out
+
+
+def _growth() -> tuple[list[Metric], str]:
+    """:func:`_growth_numbers` in a child process with the worker's environment."""
+    code = ("import json, benchmarks.worker as w; "
+            "print(json.dumps(w._growth_numbers()))")
+    env = {**os.environ, **WORKER_THREADS}
+    out = subprocess.run([sys.executable, "-c", code], env=env, check=True,
+                         capture_output=True, text=True).stdout
+    v = json.loads(out.strip().splitlines()[-1])
+    metrics: list[Metric] = []
+    rows = []
+    isam = v.get("isam2", [])
+    for i, b in enumerate(v["bins"]):
+        lo, hi = i * GROWTH_BIN + 1, i * GROWTH_BIN + b["frames"]
+        key = f"worker.growth.{hi}"
+        metrics += [timing(f"{key}.ms_mean", b["ms_mean"], "ms"),
+                    timing(f"{key}.ms_p90", b["ms_p90"], "ms"),
+                    timing(f"{key}.ms_max", b["ms_max"], "ms"),
+                    timing(f"{key}.numeric_ms_mean", b["numeric_ms_mean"], "ms"),
+                    info(f"{key}.columns_mean", b["columns_mean"]),
+                    info(f"{key}.pool", b["pool"])]
+        cell = "-"
+        if i < len(isam):
+            metrics += [timing(f"{key}.isam2_ms_mean", isam[i]["ms_mean"], "ms"),
+                        timing(f"{key}.isam2_ms_p90", isam[i]["ms_p90"], "ms")]
+            cell = f"{isam[i]['ms_mean']:.2f} / {isam[i]['ms_p90']:.2f}"
+        rows.append([f"{lo}-{hi}", f"{b['ms_mean']:.2f} / {b['ms_p90']:.2f} / {b['ms_max']:.1f}",
+                     f"{b['numeric_ms_mean']:.2f}", f"{b['columns_mean']:.0f}",
+                     f"{b['pool']:.0f}", cell])
+    table = markdown_table(
+        f"Requests as the map grows: grid10k streamed frame by frame, one request (one update "
+        f"cycle, no polish) per frame; one BLAS thread.  ISAM2 on the same stream in the same "
+        f"process, one update per frame (frames 1-{v.get('isam2_frames', 0)} within "
+        f"{GROWTH_ISAM2_S:.0f} s of updates)",
+        ["frames", "request ms mean / p90 / max", "factorization ms mean", "columns mean",
+         "factor blocks at the end", "ISAM2 frame ms mean / p90"], rows)
+    return metrics, table
+
+
 def run(ctx: Context) -> Result:
     parts = os.environ.get("HYBRIDPGO_BENCH_WORKER_PARTS", "requests,large").split(",")
     metrics: list[Metric] = []
     rows: list[Any] = []
     tables = []
+    if "growth" in parts:
+        m, t = _growth()
+        metrics += m
+        tables.append(t)
     if "large" in parts:
         m, t = _large()
         metrics += m
