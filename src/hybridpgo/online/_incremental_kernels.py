@@ -477,24 +477,33 @@ def _first_at_least(row_var: np.ndarray, t0: int, n: int, position: np.ndarray,
 
 
 @kernel
-def _subtract_product(p: np.ndarray, a: np.ndarray, b: np.ndarray, rows: np.ndarray,
-                      cols: np.ndarray, nd: int, scratch: np.ndarray) -> None:
-    """``p[rows[i] nd + u, cols[q] nd + v] -= (a b^T)[i nd + u, q nd + v]`` for the blocks
-    with ``rows[i] >= cols[q]`` (the lower part of the target); BLAS for a large product,
-    into ``scratch`` (at least ``a.shape[0] * b.shape[0]`` floats)."""
+def _product(a: np.ndarray, b: np.ndarray, out: np.ndarray, lower: bool) -> None:
+    """``out = a b^T``: BLAS for a product of at least :data:`SMALL_GEMM` multiplications,
+    loops for a smaller one, which with ``lower`` fill only ``out[r, t]`` for ``t <= r``."""
     mr = a.shape[0]
     mq = b.shape[0]
     kk = a.shape[1]
-    c = scratch[: mr * mq].reshape(mr, mq)
     if mr * mq * kk >= SMALL_GEMM:
-        np.dot(a, b.T, c)
-    else:
-        for r in range(mr):
-            for t in range(mq):
-                x = 0.0
-                for m in range(kk):
-                    x += a[r, m] * b[t, m]
-                c[r, t] = x
+        np.dot(a, b.T, out)
+        return
+    for r in range(mr):
+        for t in range(min(r + 1, mq) if lower else mq):
+            x = 0.0
+            for m in range(kk):
+                x += a[r, m] * b[t, m]
+            out[r, t] = x
+
+
+@kernel
+def _subtract_product(p: np.ndarray, a: np.ndarray, b: np.ndarray, rows: np.ndarray,
+                      cols: np.ndarray, nd: int, scratch: np.ndarray) -> None:
+    """``p[rows[i] nd + u, cols[q] nd + v] -= (a b^T)[i nd + u, q nd + v]`` for the blocks
+    with ``rows[i] >= cols[q]`` (the lower part of the target); the product (:func:`_product`)
+    into ``scratch`` (at least ``a.shape[0] * b.shape[0]`` floats)."""
+    mr = a.shape[0]
+    mq = b.shape[0]
+    c = scratch[: mr * mq].reshape(mr, mq)
+    _product(a, b, c, False)
     for i in range(mr // nd):
         tr = rows[i]
         for q in range(mq // nd):
@@ -569,21 +578,13 @@ def _factor_panel(p: np.ndarray, nc: int, scratch: np.ndarray) -> bool:
             for r in range(mr):
                 for c in range(nb):
                     p[c1 + r, c0 + c] = x[r, c]
-        if c1 < nc:
+        if c1 < nc:  # the trailing columns' lower triangle: X X^T subtracted
             mq = nc - c1
-            if mr * mq * nb >= SMALL_GEMM:
-                u = scratch[: mr * mq].reshape(mr, mq)
-                np.dot(x, x[:mq].T, u)
-                for r in range(mr):
-                    for c in range(min(r + 1, mq)):
-                        p[c1 + r, c1 + c] -= u[r, c]
-            else:
-                for r in range(mr):
-                    for c in range(min(r + 1, mq)):
-                        s = 0.0
-                        for t in range(nb):
-                            s += x[r, t] * x[c, t]
-                        p[c1 + r, c1 + c] -= s
+            u = scratch[: mr * mq].reshape(mr, mq)
+            _product(x, x[:mq], u, True)
+            for r in range(mr):
+                for c in range(min(r + 1, mq)):
+                    p[c1 + r, c1 + c] -= u[r, c]
     return True
 
 
