@@ -660,8 +660,13 @@ def test_the_machine_clock_counts_collections_and_page_faults() -> None:
     callbacks = len(gc.callbacks)
     clock = rp._MachineClock()
     assert len(gc.callbacks) == callbacks + 1
-    a = clock.read()
-    b = clock.read()
+    was = gc.isenabled()
+    gc.disable()  # no automatic collection between the two reads
+    try:
+        a = clock.read()
+        b = clock.read()
+    finally:
+        (gc.enable if was else gc.disable)()
     assert b[2] == a[2]  # no collection in between
     gc.collect()
     c = clock.read()
