@@ -61,7 +61,8 @@ def uncollected(method: _F) -> _F:
     the collection that falls due comes at the next allocation outside the solver: in the
     application's own code, or in :meth:`OnlineSolver.idle`, which the time between frames
     pays.  Nothing is skipped: the collector's counts keep growing while it is held.  A
-    caller that turned automatic collection off keeps it off."""
+    caller that turned automatic collection off keeps it off.  The switch is the process's:
+    other threads' collections wait for the end of the call too (at most the frame)."""
 
     @functools.wraps(method)
     def uncollected(self: Any, *args: Any, **kwargs: Any) -> Any:
