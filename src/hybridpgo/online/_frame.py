@@ -62,7 +62,7 @@ def uncollected(method: _F) -> _F:
     application's own code, or in :meth:`OnlineSolver.idle`, which the time between frames
     pays.  Nothing is skipped: the collector's counts keep growing while it is held.  A
     caller that turned automatic collection off keeps it off.  The switch is the process's:
-    other threads' collections wait for the end of the call too (at most the frame)."""
+    other threads' collections wait for the end of the call too."""
 
     @functools.wraps(method)
     def uncollected(self: Any, *args: Any, **kwargs: Any) -> Any:
