@@ -176,3 +176,53 @@ def test_values_buffer_is_used_without_a_copy(backend: str, rng: np.random.Gener
     x = f.solve(buf, b, check=True)
     np.testing.assert_allclose(x, np.linalg.solve(a, b), rtol=0,
                                atol=FLOAT64_IDENTITY * np.linalg.cond(a) * np.abs(x).max())
+
+
+@pytest.mark.skipif(not cholmod_available(), reason="cvxopt not installed")
+def test_shared_patterns_copy_the_matrix_and_keep_values_apart(rng: np.random.Generator
+                                                               ) -> None:
+    """Inside shared_patterns, a second CHOLMOD factorizer with an equal pattern starts from a
+    copy of the first one's matrix (not from triplets, not the same object); the two factor
+    their own values, also interleaved; a different pattern is not shared; nothing is kept
+    after the context."""
+    from hybridpgo.linalg import shared_patterns
+
+    a = _sparse_spd(rng, 40)
+    c = _sparse_spd(rng, 40) + 5.0 * np.eye(40)
+    pat, va = _pattern_of(a)
+    assert np.all(a != 0) and np.all(c != 0)  # dense: c's values fit a's pattern
+    built: list[int] = []  # calls of cvxopt's constructor from triplets
+    import cvxopt
+
+    original = cvxopt.spmatrix
+
+    def counting(*args: object, **kwargs: object) -> object:
+        built.append(1)
+        return original(*args, **kwargs)
+
+    cvxopt.spmatrix = counting  # type: ignore[assignment]
+    try:
+        with shared_patterns():
+            f1 = make_factorizer(pat, "cholmod")
+            f2 = make_factorizer(Pattern(pat.indptr.copy(), pat.indices.copy(),
+                                         pat.diag_index.copy(), pat.dim), "cholmod")
+            other, _ = _pattern_of(np.eye(40) + np.diag(np.ones(39), -1) * 0.1
+                                   + np.diag(np.ones(39), 1) * 0.1)
+            make_factorizer(other, "cholmod")
+            assert _linear._PATTERNS.get() is not None
+        assert _linear._PATTERNS.get() is None
+        make_factorizer(pat, "cholmod")  # outside: built from triplets again
+    finally:
+        cvxopt.spmatrix = original  # type: ignore[assignment]
+    assert len(built) == 3  # f1, the other pattern, the one outside; not f2
+    assert f2._matrix is not f1._matrix
+    assert list(f2._matrix.CCS[0]) == list(f1._matrix.CCS[0])
+    assert list(f2._matrix.CCS[1]) == list(f1._matrix.CCS[1])
+    vc = c[pat.indices, np.repeat(np.arange(40), np.diff(pat.indptr))]
+    b = rng.normal(size=40)
+    f1.factor(va)
+    f2.factor(vc)  # interleaved: each keeps its own factor
+    for f, m in ((f1, a), (f2, c)):
+        x = f.solve_factored(b)
+        np.testing.assert_allclose(m @ x, b, rtol=0,
+                                   atol=FLOAT64_IDENTITY * np.abs(b).max() * np.linalg.cond(m))

@@ -16,6 +16,7 @@ from ._factor import cholmod_available as cholmod_available
 from ._factor import fill_reducing_order as fill_reducing_order
 from ._factor import make_factorizer as make_factorizer
 from ._factor import not_positive_definite as not_positive_definite
+from ._factor import shared_patterns as shared_patterns
 from ._factor import solve_spd as solve_spd
 
 __all__ = [
@@ -29,5 +30,6 @@ __all__ = [
     "fill_reducing_order",
     "make_factorizer",
     "not_positive_definite",
+    "shared_patterns",
     "solve_spd",
 ]

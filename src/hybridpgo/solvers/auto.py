@@ -97,6 +97,7 @@ import numpy as np
 from ..errors import HybridPGOError, SolverError
 from ..graph import FloatArray, PoseGraph
 from ..initialization import initial_locals
+from ..linalg import shared_patterns
 from ..tree import PoseTree, build_tree, global_poses
 from .config import AutoConfig, InitName, Progress, ProgressCallback
 from .gauss_newton import ExactSolver, IterateCallback
@@ -771,6 +772,14 @@ def solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
     SolverError
         When no start could be computed and polished.
     """
+    with shared_patterns():  # the certificate's Newton system and the polish share a pattern
+        return _solve_auto(graph, config, progress=progress, iterate=iterate)
+
+
+def _solve_auto(graph: PoseGraph, config: AutoConfig | None = None, *,
+                progress: ProgressCallback | None = None,
+                iterate: IterateCallback | None = None) -> SolveResult:
+    """:func:`solve_auto` inside its pattern context."""
     cfg = config or AutoConfig()
     outliers = cfg.robust == "auto"
     if outliers:  # least squares first; the outlier test and re-solve close the pipeline
