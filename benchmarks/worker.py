@@ -207,14 +207,19 @@ def _large_numbers() -> dict[str, float]:
             "after": float(k - LARGE_TIMED * LARGE_STEP)}
 
 
-def _large() -> tuple[list[Metric], str]:
-    """:func:`_large_numbers` in a child process with the worker's environment."""
-    code = ("import json, benchmarks.worker as w; "
-            "print(json.dumps(w._large_numbers()))")
+def _in_worker_env(name: str) -> Any:
+    """The JSON result of this module's function ``name`` run in a child process with the
+    worker's environment (:data:`hybridpgo.online.worker.WORKER_THREADS`)."""
+    code = f"import json, benchmarks.worker as w; print(json.dumps(w.{name}()))"
     env = {**os.environ, **WORKER_THREADS}
     out = subprocess.run([sys.executable, "-c", code], env=env, check=True,
                          capture_output=True, text=True).stdout
-    v = json.loads(out.strip().splitlines()[-1])
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def _large() -> tuple[list[Metric], str]:
+    """:func:`_large_numbers` in a child process with the worker's environment."""
+    v = _in_worker_env("_large_numbers")
     metrics = [timing("worker.large.ms_median", v["ms_median"], "ms"),
                timing("worker.large.ms_max", v["ms_max"], "ms"),
                timing("worker.large.numeric_ms_median", v["numeric_ms_median"], "ms"),
@@ -287,12 +292,7 @@ def _growth_numbers() -> dict[str, Any]:
 
 def _growth() -> tuple[list[Metric], str]:
     """:func:`_growth_numbers` in a child process with the worker's environment."""
-    code = ("import json, benchmarks.worker as w; "
-            "print(json.dumps(w._growth_numbers()))")
-    env = {**os.environ, **WORKER_THREADS}
-    out = subprocess.run([sys.executable, "-c", code], env=env, check=True,
-                         capture_output=True, text=True).stdout
-    v = json.loads(out.strip().splitlines()[-1])
+    v = _in_worker_env("_growth_numbers")
     metrics: list[Metric] = []
     rows = []
     isam = v.get("isam2", [])

@@ -105,6 +105,11 @@ SCAN_CYCLES = 8.0
 CHI2_CYCLES = 1000.0
 
 
+def _late(deadline: np.uint64, cycles: float) -> bool:
+    """Would ``cycles`` more of work end past the deadline (never without one)?"""
+    return deadline != NO_DEADLINE and float(read_cycles()) + cycles > float(deadline)
+
+
 @dataclasses.dataclass(slots=True)
 class _Hood:
     """A new loop closure's neighbours (:meth:`OnlineSolver._loop_neighbours`)."""
@@ -502,12 +507,7 @@ class OnlineSolver:
         if int(lens.max()) < LOOP_MIN_PATH:
             return None
         first = adm.predict(st.model, int(lens[0]), False)  # the first new constraint's
-
-        def late(cycles: float) -> bool:  # would ``cycles`` of work leave it no time?
-            return (deadline != NO_DEADLINE
-                    and float(read_cycles()) + first + cycles > float(deadline))
-
-        if late(2.0 * int(st.ptr[st.m_laid]) * SCAN_CYCLES):
+        if _late(deadline, first + 2.0 * int(st.ptr[st.m_laid]) * SCAN_CYCLES):
             return None
         prob, state, _ = st.views()
         mark = np.zeros(st.placed + 1, np.bool_)
@@ -517,7 +517,7 @@ class OnlineSolver:
         near = near[~np.isin(near, rel)]
         # their χ² now and after the frame's updates (O(their path entries) each)
         entries = int(np.sum(st.ptr[near + 1] - st.ptr[near])) + int(np.sum(lens))
-        if late(2.0 * entries * CHI2_CYCLES):
+        if _late(deadline, first + 2.0 * entries * CHI2_CYCLES):
             return None
         sc = st.scratch(self._wk)
         self._wk = sc.wk
@@ -544,8 +544,7 @@ class OnlineSolver:
         q = np.concatenate([st.requeue, st.pending()])
         if np.isin(hood.c, q) or self._sliced is not None:
             return 0  # not relaxed in this frame
-        if deadline != NO_DEADLINE and (float(read_cycles()) + hood.entries * CHI2_CYCLES
-                                        > float(deadline)):
+        if _late(deadline, hood.entries * CHI2_CYCLES):
             return 0  # the frame's other new constraints took the time
         done = hood.new[~np.isin(hood.new, q)]
         prob, state, _ = st.views()
