@@ -1215,10 +1215,37 @@ def test_background_worker_refuses_an_incremental_answer_above_its_start(
 
 
 @pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
+def test_background_worker_answers_with_the_data_of_its_request(data_dir: Path) -> None:
+    """One update cycle per request with new data (the worker's): every answer holds every
+    constraint shipped before its request, also after a cycle that left poses to relinearize
+    (status "cycles"), whose look at what is left begins no cycle (a cycle begun then would
+    hold only the data there by then, and the next request would answer without its own)."""
+    from hybridpgo.io import read_graph
+
+    g = read_graph(data_dir / "w100_toro.graph")
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    half = g.num_nodes // 2
+    _stream(s, g, range(half))
+    mp = _worker_map(s, ("none", None))
+    mp.more_cycles_s = 0.0  # the worker's: one cycle per request with new data
+    mp.solve(50)
+    statuses = []
+    for k in range(half, g.num_nodes):
+        _stream(s, g, range(k, k + 1))
+        _ship(mp, s)
+        assert mp.inc.pending
+        _, meta = mp.solve(50)
+        statuses.append(meta["status"])
+        assert (meta["m_held"], meta["g_held"]) == (meta["m"], meta["g"]), k
+        assert not mp.inc.busy and mp.inc.settled == (meta["status"] == "converged")
+    assert "cycles" in statuses and "converged" in statuses
+
+
+@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
 def test_background_worker_integrates_what_an_answer_missed_before_it_polishes(
         data_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """An answer that holds fewer constraints than the map (its update cycle began before the
-    last data came, as the worker's look at the next cycle begins it) is followed, at the next
+    last data came, as a request stopped inside a cycle leaves it) is followed, at the next
     request without new data, by an update cycle that integrates the rest, not by the polish
     (which would answer only at its end); the request after an answer that held everything
     polishes.  A polish answers ("polishing") at the end of a slice once POLISH_ANSWER_S
@@ -1238,7 +1265,7 @@ def test_background_worker_integrates_what_an_answer_missed_before_it_polishes(
     _, meta = mp.solve(50)
     _stream(s, g, range(half, half + 5))
     _ship(mp, s)
-    mp.inc.solve(0.0, polish=False)  # a cycle begun at these data (the worker's look ahead)
+    mp.inc.solve(0.0, polish=False)  # a cycle begun at these data (a request stopped in it)
     _stream(s, g, range(half + 5, g.num_nodes))
     _ship(mp, s)
     _, meta = mp.solve(50)  # finishes the cycle begun before the last data came

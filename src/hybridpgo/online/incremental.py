@@ -504,6 +504,23 @@ class IncrementalExact:
         """True when data was added that no update has integrated yet."""
         return (self._n_in, self._m_in, self._g_in) != (self._n, self._m, self._g)
 
+    @property
+    def settled(self) -> bool:
+        """True when an update cycle without the polish would find nothing to do: no cycle
+        under way, nothing added since the last one, and no pose whose step exceeds the
+        relinearization thresholds.  Read-only, O(poses the last cycle moved): unlike a
+        :meth:`solve` call, which begins the next cycle when there is one, with the data added
+        by then (data added later waits for the cycle after it)."""
+        if self.busy or self.pending or (self._planar_lost and self._nd == 3):
+            return False
+        cands = self._relin_cands
+        if not cands.size:
+            return True
+        step = np.abs(self._x[cands])
+        cfg = self.config
+        return not bool(np.any((step[:, :3].max(axis=1) > cfg.relinearize_rho)
+                               | (step[:, 3:].max(axis=1) > cfg.relinearize_phi)))
+
     # ----------------------------------------------------------------- solving
     def relinearize_all(self) -> None:
         """Make every pose a relinearization candidate at the next update cycle (those whose

@@ -832,9 +832,13 @@ class _Map:
         ``end`` (perf_counter seconds; ``"max_time"``), or until a cycle ends past
         :attr:`more_cycles_s` (:data:`MORE_CYCLES_S`) since the first began (``"cycles"``:
         the relinearization left goes into the next request's first cycle, with its new
-        data).  A cycle that leaves nothing to relinearize is ``"converged"`` either way:
-        looking starts the next cycle's work, which stops at once (a deadline of 0) and
-        which the next request resumes."""
+        data).  A cycle that leaves nothing to relinearize is ``"converged"`` either way.
+        The look after the last cycle begins nothing
+        (:attr:`~hybridpgo.online.incremental.IncrementalExact.settled`): a cycle begun to
+        look would hold only the data there by then, and the next request would finish it
+        and answer without its own data (grid10k streamed back to back: after every loop
+        closure that moved poses past the thresholds, each answer held the previous
+        request's data, one frame older than it could)."""
         assert self.inc is not None
         t0 = time.perf_counter()
         while True:
@@ -845,8 +849,8 @@ class _Map:
             now = time.perf_counter()
             if now >= end or int(self.inc.stats["cycles"]) == done:  # stopped inside a cycle
                 return "max_time"
-            if now - t0 >= self.more_cycles_s:
-                return "converged" if self.inc.solve(0.0, polish=False) else "cycles"
+            if now - t0 >= self.more_cycles_s:  # a look that begins no cycle
+                return "converged" if self.inc.settled else "cycles"
 
     def _polish(self, interrupted: Callable[[], bool]) -> str:
         """The incremental solve with the polish, in slices of :data:`POLISH_SLICE_S`, until
