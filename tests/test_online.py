@@ -849,6 +849,9 @@ def test_new_data_supersedes_a_polish_request() -> None:
         def answered(self, req: int) -> bool:
             return False
 
+        def take(self) -> None:
+            return None
+
     link = _link.WorkerLink.__new__(_link.WorkerLink)  # the bookkeeping only
     link.refiner = Refiner()
     asked: list[int] = []
@@ -1702,6 +1705,81 @@ def test_background_worker_answers_after_one_cycle_once_its_cycles_are_slow(
     _, meta = mp.solve(50)
     assert meta["incremental"] and meta["status"] == "converged" and meta["iterations"] == 1
     assert np.isfinite(mp.inc_seconds) and abs(meta["energy"] - opt) <= ONLINE_REFINED * opt
+
+
+@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
+@pytest.mark.parametrize("defer", [True, False])
+def test_the_worker_screens_an_answer_after_sending_it(data_dir: Path, defer: bool) -> None:
+    """``robust="auto"``: a request's answer goes out before the outlier test that fell due
+    with it (``screen_after``), so the test does not hold it back; when the test rejects a
+    false closure, the re-solved map is a second answer naming it.  A thorough request, or
+    ``defer_screening`` off, screens before answering."""
+    from hybridpgo.io import read_graph
+
+    g = read_graph(data_dir / "w100_toro.graph")
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    _stream(s, g, range(g.num_nodes))
+    mp = _worker_map(s, ("auto", None))
+    mp.defer_screening = defer
+    mp.solve(50)
+    mp.screen_after()
+    n = mp.n
+    false = n // 2
+    mp.add({"parent": np.zeros(0, np.int32), "rot": np.zeros((0, 3, 3)),
+            "trans": np.zeros((0, 3)), "edge_ab": np.array([[1, false]], np.int32),
+            "edge_rot": np.eye(3)[None], "edge_trans": np.array([[40.0, 0.0, 0.0]]),
+            "edge_info": np.eye(6)[None] * 100.0, "gps_node": np.zeros(0, np.int32),
+            "gps_pos": np.zeros((0, 3)), "gps_info": np.zeros((0, 3, 3))})
+    bad = mp.m - 1
+    mp._screened_at = -np.inf  # the test is due
+    arrays, meta = mp.solve(50)
+    later = mp.screen_after()
+    if defer:  # the least-squares answer first, then the re-solved one
+        assert bad not in arrays["rejected_m"] and later is not None
+        arrays, meta = later
+        assert meta["status"] == "screened" and meta["m_held"] == mp.m
+    else:
+        assert later is None
+    assert list(arrays["rejected_m"]) == [bad] and mp.rescreens == 1
+    assert mp.screen_after() is None  # nothing more due
+    mp._screened_at = -np.inf
+    mp.solve(50, thorough=True)  # a thorough request: screened before its answer
+    assert mp.screen_after() is None
+
+
+@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
+def test_the_worker_process_answers_again_after_a_screening_that_rejects(
+        data_dir: Path) -> None:
+    """The worker process (``robust="auto"``) sends a request's least-squares answer, then
+    runs the outlier test due with it and, when the test rejects a false closure, answers the
+    same request again with the re-solved map (status ``"screened"``), which names it."""
+    from hybridpgo.io import read_graph
+    from hybridpgo.online.worker import BackgroundRefiner
+
+    g = read_graph(data_dir / "w100_toro.graph")
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    _stream(s, g, range(g.num_nodes))
+    st = s.store
+    t, m = st.placed + 1, st.m_laid
+    ab = np.concatenate([st.edge_ab[:m], [[1, t // 2]]]).astype(np.int32)
+    ref = BackgroundRefiner(20, "auto")
+    try:
+        assert ref.wait_ready(120.0)
+        ref.ship({"type": "data"}, {
+            "parent": st.parent[1:t], "rot": st.rot[1:t], "trans": st.trans[1:t],
+            "edge_ab": ab, "edge_rot": np.concatenate([st.edge_rot[:m], np.eye(3)[None]]),
+            "edge_trans": np.concatenate([st.edge_trans[:m], [[40.0, 0.0, 0.0]]]),
+            "edge_info": np.concatenate([st.edge_info[:m], np.eye(6)[None] * 100.0]),
+            "gps_node": np.zeros(0, np.int32), "gps_pos": np.zeros((0, 3)),
+            "gps_info": np.zeros((0, 3, 3))})
+        req = ref.request()
+        with ref._cond:
+            assert ref._cond.wait_for(lambda: ref.results >= 2 or ref.error, 120.0)
+        res = ref.take()
+        assert ref.error is None and res is not None and res.req == req
+        assert res.status == "screened" and list(res.rejected[0]) == [m]
+    finally:
+        ref.close()
 
 
 @pytest.mark.parametrize("robust", [("none", None), ("auto", None), ("huber", 1.0)])

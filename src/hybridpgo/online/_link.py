@@ -133,16 +133,18 @@ class WorkerLink:
         ref = self.refiner
         if join == 0:  # asynchronous: one request at a time, adopted when its answer is there
             shipped = self.ship(store, frame)
-            if self.join_req >= 0:
-                if not ref.answered(self.join_req):
-                    if shipped and not self._req_new:
-                        # the worker is polishing an unchanged map: the new data stops the
-                        # polish, and this request, answered instead, covers it
-                        self.request(store, frame)
-                    return
-                res = self._take()
-                if res is not None and self.fresh(store, res):
-                    self.adopt(store, res, frame, rebase)
+            waiting = self.join_req >= 0 and not ref.answered(self.join_req)
+            # the answer, or while waiting for the next, one that came after the last taken
+            # (the worker's screening after an answer re-solved the map: worker.screen_after)
+            res = self._take()
+            if res is not None and self.fresh(store, res):
+                self.adopt(store, res, frame, rebase)
+            if waiting:
+                if shipped and not self._req_new:
+                    # the worker is polishing an unchanged map: the new data stops the
+                    # polish, and this request, answered instead, covers it
+                    self.request(store, frame)
+                return
             self.request(store, frame)
         elif frame % join == 0:
             if self.join_req >= 0:
@@ -172,15 +174,17 @@ class WorkerLink:
         self._req_sent = self.sent
 
     def _take(self) -> Refined | None:
-        """The answer to the outstanding request (None: the worker failed); no request is
-        outstanding after it.  A request that brought new data times the round trip
-        (:attr:`answer_s`)."""
+        """The newest answer not taken yet (None: none, or the worker failed); no request is
+        outstanding once the outstanding one was answered.  A request that brought new data
+        times the round trip to its first answer (:attr:`answer_s`)."""
         res = self.refiner.take()
-        if res is not None and res.req == self.join_req and self._req_new:
+        if (res is not None and res.req == self.join_req and self._req_new
+                and res.status != "screened"):
             self._trips[self._ntrips % ANSWER_WINDOW] = res.received - self._req_at
             self._ntrips += 1
             self.answer_s = float(np.nanmedian(self._trips))
-        self.join_req = -1
+        if self.join_req >= 0 and self.refiner.answered(self.join_req):
+            self.join_req = -1
         return res
 
     def settle(self, store: MapStore, frame: int, rebase: bool, deadline: float) -> bool:
