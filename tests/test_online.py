@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import itertools
 import os
 from pathlib import Path
@@ -870,6 +871,48 @@ def test_new_data_supersedes_a_polish_request() -> None:
     assert asked == [7]
 
 
+def test_a_frame_adopts_an_answer_that_comes_while_it_waits() -> None:
+    """Asynchronously, an answer that arrives while the frames wait for the outstanding
+    request (the worker's second answer to the request before, after its outlier test
+    re-solved the map) is adopted at the next frame, without a new request; the outstanding
+    one stays outstanding until it is answered, and then the next frame asks again."""
+    from types import SimpleNamespace
+
+    from hybridpgo.online import _link
+
+    ready: list[Any] = []
+    state = {"answered": 4}
+
+    class Refiner:
+        def answered(self, req: int) -> bool:
+            return state["answered"] >= req
+
+        def take(self) -> Any:
+            return ready.pop() if ready else None
+
+    link = _link.WorkerLink.__new__(_link.WorkerLink)  # the bookkeeping only
+    link.refiner = Refiner()
+    asked: list[int] = []
+    adopted: list[int] = []
+    link.ship = lambda store, frame: True  # type: ignore[method-assign]
+    link.request = lambda store, frame, thorough=False, defer=True: (  # type: ignore
+        asked.append(frame), setattr(link, "join_req", 6))
+    link.fresh = lambda store, res: True  # type: ignore[method-assign]
+    link.adopt = lambda store, res, frame, rebase: adopted.append(res.req)  # type: ignore
+    store = OnlineSolver(OnlineConfig(background_refine=False)).store
+    link.join_req, link._req_new = 5, True  # request 5, with data, outstanding
+    ready.append(SimpleNamespace(req=4, status="screened"))  # request 4's second answer
+    link.step(store, 10, 0, True)
+    assert adopted == [4] and asked == [] and link.join_req == 5
+    link.step(store, 11, 0, True)  # nothing came: wait
+    assert adopted == [4] and asked == []
+    state["answered"] = 5
+    ready.append(SimpleNamespace(req=5, status="converged", received=0.0))
+    link._req_at, link._trips, link._ntrips = 0.0, np.full(4, np.nan), 0
+    link.step(store, 12, 0, True)  # answered: adopted, and the frame asks again
+    assert adopted == [4, 5] and asked == [12] and link.join_req == 6
+
+
 def test_background_join_is_reproducible() -> None:
     g = _graph(seed=12, n=40, extra=25, gps=3)
     out = []
@@ -1240,7 +1283,9 @@ def test_background_worker_answers_with_the_data_of_its_request(data_dir: Path) 
         _, meta = mp.solve(50)
         statuses.append(meta["status"])
         assert (meta["m_held"], meta["g_held"]) == (meta["m"], meta["g"]), k
+        # settled says what a cycle's start would decide, and begins nothing
         assert not mp.inc.busy and mp.inc.settled == (meta["status"] == "converged")
+        assert mp.inc.settled == (not copy.deepcopy(mp.inc)._start_cycle(False)), k
     assert "cycles" in statuses and "converged" in statuses
 
 
@@ -1744,6 +1789,7 @@ def test_the_worker_screens_an_answer_after_sending_it(data_dir: Path, defer: bo
     assert mp.screen_after() is None  # nothing more due
     mp._screened_at = -np.inf
     mp.solve(50, thorough=True)  # a thorough request: screened before its answer
+    assert np.isfinite(mp._screened_at) and not mp._screen_later
     assert mp.screen_after() is None
 
 

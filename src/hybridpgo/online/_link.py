@@ -133,13 +133,12 @@ class WorkerLink:
         ref = self.refiner
         if join == 0:  # asynchronous: one request at a time, adopted when its answer is there
             shipped = self.ship(store, frame)
-            waiting = self.join_req >= 0 and not ref.answered(self.join_req)
             # the answer, or while waiting for the next, one that came after the last taken
             # (the worker's screening after an answer re-solved the map: worker.screen_after)
             res = self._take()
             if res is not None and self.fresh(store, res):
                 self.adopt(store, res, frame, rebase)
-            if waiting:
+            if self.join_req >= 0:  # still waiting
                 if shipped and not self._req_new:
                     # the worker is polishing an unchanged map: the new data stops the
                     # polish, and this request, answered instead, covers it
@@ -151,7 +150,9 @@ class WorkerLink:
                 res = ref.wait(self.join_req)
                 if res is not None:
                     self.adopt(store, res, frame, rebase)
-            self.request(store, frame)
+            # screened before the answer, so that what an answer holds does not depend on
+            # when the worker's screening ends
+            self.request(store, frame, defer=False)
 
     def fresh(self, store: MapStore, res: Refined) -> bool:
         """True when at most :data:`MAX_TAIL` constraints laid are missing from the answer's
@@ -164,11 +165,12 @@ class WorkerLink:
         self.stale += 1
         return False
 
-    def request(self, store: MapStore, frame: int, thorough: bool = False) -> None:
-        """Ship the new data and ask for the optimum of everything shipped (``thorough``:
-        :meth:`~.worker.BackgroundRefiner.request`)."""
+    def request(self, store: MapStore, frame: int, thorough: bool = False,
+                defer: bool = True) -> None:
+        """Ship the new data and ask for the optimum of everything shipped (``thorough``,
+        ``defer``: :meth:`~.worker.BackgroundRefiner.request`)."""
         self.ship(store, frame)
-        self.join_req = self.refiner.request(thorough)
+        self.join_req = self.refiner.request(thorough, defer)
         self._req_at = time.perf_counter()
         self._req_new = self.sent != self._req_sent
         self._req_sent = self.sent
@@ -177,13 +179,14 @@ class WorkerLink:
         """The newest answer not taken yet (None: none, or the worker failed); no request is
         outstanding once the outstanding one was answered.  A request that brought new data
         times the round trip to its first answer (:attr:`answer_s`)."""
+        answered = self.join_req >= 0 and self.refiner.answered(self.join_req)  # then take
         res = self.refiner.take()
         if (res is not None and res.req == self.join_req and self._req_new
                 and res.status != "screened"):
             self._trips[self._ntrips % ANSWER_WINDOW] = res.received - self._req_at
             self._ntrips += 1
             self.answer_s = float(np.nanmedian(self._trips))
-        if self.join_req >= 0 and self.refiner.answered(self.join_req):
+        if answered:
             self.join_req = -1
         return res
 

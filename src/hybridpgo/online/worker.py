@@ -322,12 +322,14 @@ class BackgroundRefiner:
         if self._alive:
             self._outbox.put(encode(meta, arrays))
 
-    def request(self, thorough: bool = False) -> int:
+    def request(self, thorough: bool = False, defer: bool = True) -> int:
         """Ask for the optimum of everything shipped so far; the request's id.  ``thorough``
         (``robust="auto"``): test every constraint, those rejected before included
-        (:meth:`_Map.solve`)."""
+        (:meth:`_Map.solve`); ``defer`` False: an outlier test due with the answer runs before
+        it is sent, not after (:meth:`_Map.screen_after`)."""
         self._req += 1
-        self.ship({"type": "solve", "req": self._req, "thorough": thorough}, {})
+        self.ship({"type": "solve", "req": self._req, "thorough": thorough, "defer": defer},
+                  {})
         return self._req
 
     def answered(self, req: int) -> bool:
@@ -636,6 +638,7 @@ class _Map:
         return arr
 
     def add(self, d: Arrays) -> None:
+        self._screen_later = False  # a screening due with the last answer is of another map
         k = d["parent"].shape[0]
         t0 = self.n + 1
         self.parent = self._append(self.parent, t0, d["parent"].astype(np.int32))
@@ -694,9 +697,10 @@ class _Map:
         estimate is the last completed cycle's (the worker does not send it: the message's
         request is answered next).  LM (robust
         kernel): at most ``max_iterations``.
-        ``robust="auto"``: the answer is screened for outliers (:meth:`_screen`; ``thorough``:
-        every constraint is tested, those rejected before included, as a whole-graph solve
-        tests them)."""
+        ``robust="auto"``: when an outlier test is due (:data:`SCREEN_SHARE`), the answer is
+        screened (:meth:`_screen`) after it was sent (:meth:`screen_after`), or before it when
+        ``defer_screening`` is False or the request is ``thorough`` (every constraint tested,
+        those rejected before included, as a whole-graph solve tests them)."""
         n, m, g = self.n, self.m, self.g
         t0 = time.perf_counter()
         energy, iterations, status = 0.0, 0, "converged"
@@ -828,8 +832,9 @@ class _Map:
         :meth:`solve`), run once that answer was sent, so that the test does not hold the
         answer back (valencia streamed back to back: the answer to a 2 936-pose loop closure
         took 10 ms with the test after it, 20 ms with it before).  When the test fails and
-        the robust re-solve changes the estimate, the answer of the re-solved map (its
-        rejected constraints named; the frames adopt it like any answer); else None.  Until
+        the robust re-solve changes the estimate or the rejected set, the answer of the
+        re-solved map (its rejected constraints named; the frames adopt it like any
+        answer); else None.  Until
         then the frames hold the least-squares answer, the fit a whole-graph solve makes
         before its outlier test."""
         if not self._screen_later:
@@ -1209,6 +1214,7 @@ def _worker(max_iterations: int, robust_spec: str = "none") -> int:
             elif meta["type"] == "solve":
                 pending = max(pending, int(meta["req"]))
                 thorough = thorough or bool(meta.get("thorough", False))
+                mp.defer_screening = bool(meta.get("defer", True))
         if stop:
             break
         if pending <= answered:
