@@ -834,9 +834,8 @@ class _Map:
         took 10 ms with the test after it, 20 ms with it before).  When the test fails and
         the robust re-solve changes the estimate or the rejected set, the answer of the
         re-solved map (its rejected constraints named; the frames adopt it like any
-        answer); else None.  Until
-        then the frames hold the least-squares answer, the fit a whole-graph solve makes
-        before its outlier test."""
+        answer); else None.  Until then the frames hold the least-squares answer, the fit a
+        whole-graph solve makes before its outlier test."""
         if not self._screen_later:
             return None
         self._screen_later = False
@@ -1153,6 +1152,11 @@ def warm_up(robust: tuple[str, float | None]) -> _Map:
     return mp
 
 
+def _error(req: int, exc: Exception) -> bytes:
+    """The ``error`` message answering request ``req``."""
+    return encode({"type": "error", "req": req, "message": f"{type(exc).__name__}: {exc}"}, {})
+
+
 def _worker(max_iterations: int, robust_spec: str = "none") -> int:
     """The worker process: read messages on stdin, answer on stdout (see the module doc)."""
     inp = os.fdopen(os.dup(0), "rb", buffering=0)
@@ -1226,8 +1230,7 @@ def _worker(max_iterations: int, robust_spec: str = "none") -> int:
             # a thorough screening not done yet (robust="auto") stays asked for the next answer
             thorough = thorough and mp.auto and not meta["thorough"]
         except Exception as exc:  # report it; the frames go on without refinement
-            write_all(out, encode({"type": "error", "req": pending,
-                                   "message": f"{type(exc).__name__}: {exc}"}, {}))
+            write_all(out, _error(pending, exc))
             answered = pending
             continue
         meta["req"] = pending
@@ -1243,8 +1246,7 @@ def _worker(max_iterations: int, robust_spec: str = "none") -> int:
             message = None if later is None else encode({**later[1], "req": pending},
                                                         later[0])
         except Exception as exc:  # report it; the frames go on without refinement
-            message = encode({"type": "error", "req": pending,
-                              "message": f"{type(exc).__name__}: {exc}"}, {})
+            message = _error(pending, exc)
         if message is not None:
             try:
                 write_all(out, message)
