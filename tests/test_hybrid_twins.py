@@ -371,6 +371,85 @@ def test_cost_kernels_match_twins(angle):
         assert _rel_err(r_in, r_t) <= FLOAT64_IDENTITY and _rel_err(t_in, t_t) <= FLOAT64_IDENTITY
 
 
+@pytest.mark.parametrize("angle", [1e-9, 1e-5, 0.3, 2.0, math.pi - 3e-3, math.pi - 1e-4])
+def test_energy_loops_match_twins(angle):
+    """The loops over constraints (χ² read from the arrays by index) against the twins, and
+    bit for bit against the per-constraint kernels on views (same operations, same order)."""
+    rng = np.random.default_rng(29)
+    n, m = 6, 12
+    poses = [naive.se3_exp(np.r_[rng.normal(size=3), angle * _unit(rng)]) for _ in range(n)]
+    rot = np.array([p[0] for p in poses])
+    trans = np.array([p[1] for p in poses])
+    ab = np.array([rng.choice(n, 2, replace=False) for _ in range(m)], np.int32)
+    zr, zt = np.empty((m, 3, 3)), np.empty((m, 3))
+    for c in range(m):
+        # an error of angle ``angle`` (near pi: the log's symmetric-part branch)
+        xi = np.r_[rng.normal(size=3), angle * _unit(rng)]
+        rab, tab = naive.between(rot[ab[c, 0]], trans[ab[c, 0]], rot[ab[c, 1]], trans[ab[c, 1]])
+        zr[c], zt[c] = naive.compose(rab, tab, *naive.se3_exp(-xi))
+    q = rng.normal(size=(m, 6, 6))
+    info = q @ q.transpose(0, 2, 1) + 6 * np.eye(6)
+    gps = np.array([1, 4], np.int32)
+    gpos = rng.normal(size=(2, 3))
+    ginfo = np.array([np.eye(3), 2 * np.eye(3)])
+    out, out_g = np.empty(m), np.empty(2)
+    _cost.constraint_energies(rot, trans, ab, zr, zt, info, gps, gpos, ginfo, out, out_g)
+    ws = np.empty((_cost.SCRATCH, 3, 3))
+    e = np.empty(6)
+    for c in range(m):
+        a, b = ab[c]
+        rab, tab = naive.between(rot[a], trans[a], rot[b], trans[b])
+        want = naive.chi2(info[c], naive.relative_error(zr[c], zt[c], rab, tab))
+        assert abs(out[c] - want) <= FLOAT64_IDENTITY * 10 * want
+        _cost.relative_residual(zr[c], zt[c], rot[a], trans[a], rot[b], trans[b], e, ws)
+        assert out[c] == _cost.chi2(info[c], e, 6, np.empty(6))
+    for k in range(2):
+        d = trans[gps[k]] - gpos[k]
+        assert abs(out_g[k] - d @ ginfo[k] @ d) <= FLOAT64_IDENTITY * (d @ ginfo[k] @ d)
+    total = _cost.total_energy(rot, trans, ab, zr, zt, info, gps, gpos, ginfo)
+    assert total == sum(out.tolist() + out_g.tolist())  # summed in order
+    rho, plain = _cost.robust_total_energy(rot, trans, ab, zr, zt, info, gps, gpos, ginfo,
+                                           _cost.ROBUST_NONE, 1.0)
+    assert rho == plain == total
+
+
+@pytest.mark.parametrize("angle", [1e-9, 1e-5, 0.3, 2.0, math.pi - 1e-4])
+def test_planar_energy_loop_matches_the_3d_one(angle):
+    """The planar χ² loop (``robust_total_energy(..., planar=True)``) against the 3D one on
+    planar poses and measurements, and bit for bit against the per-constraint kernel on
+    views (:func:`planar_residual` and :func:`chi2`)."""
+    rng = np.random.default_rng(30)
+    n, m = 6, 12
+
+    def rz(t: float) -> np.ndarray:
+        return np.array([[math.cos(t), -math.sin(t), 0.0], [math.sin(t), math.cos(t), 0.0],
+                         [0.0, 0.0, 1.0]])
+
+    rot = np.array([rz(t) for t in rng.uniform(-math.pi, math.pi, n)])
+    trans = np.c_[rng.normal(size=(n, 2)) * 5, np.zeros(n)]
+    ab = np.array([rng.choice(n, 2, replace=False) for _ in range(m)], np.int32)
+    zr, zt = np.empty((m, 3, 3)), np.c_[rng.normal(size=(m, 2)), np.zeros(m)]
+    for c in range(m):  # a yaw error of +-angle
+        rab = rot[ab[c, 0]].T @ rot[ab[c, 1]]
+        zr[c] = rab @ rz(-angle * rng.choice([-1.0, 1.0]))
+    q = rng.normal(size=(m, 6, 6))
+    info = q @ q.transpose(0, 2, 1) + 6 * np.eye(6)
+    no_gps = (np.zeros(0, np.int32), np.zeros((0, 3)), np.zeros((0, 3, 3)))
+    rho, plain = _cost.robust_total_energy(rot, trans, ab, zr, zt, info, *no_gps,
+                                           _cost.ROBUST_NONE, 1.0, True)
+    want = _cost.total_energy(rot, trans, ab, zr, zt, info, *no_gps)
+    assert rho == plain
+    assert abs(plain - want) <= FLOAT64_IDENTITY * 10 * want
+    e = np.empty(6)
+    total = 0.0
+    for c in range(m):
+        a, b = ab[c]
+        _cost.planar_residual(zr[c], zt[c], rot[a], trans[a], rot[b], trans[b], e)
+        total += _cost.chi2(info[c], e, 6, np.empty(6))
+    assert plain == total
+
+
+
 # --------------------------------------------------------------------------------- III-F/G
 def _batch_twin(solver: HybridSolver, batch: list[int], mu: float,
                 damped: bool | None = None) -> tuple[np.ndarray, np.ndarray]:

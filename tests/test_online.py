@@ -1290,6 +1290,41 @@ def test_background_worker_answers_with_the_data_of_its_request(data_dir: Path) 
 
 
 @pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
+def test_the_worker_map_energy_refresh_equals_a_full_evaluation(data_dir: Path) -> None:
+    """The worker's E after each answer (only the constraints that are new or touch a pose
+    that moved evaluated) equals E summed over every constraint solved, also with rejected
+    constraints and a pose moved by hand."""
+    from hybridpgo import _cost
+    from hybridpgo.io import read_graph
+
+    g = read_graph(data_dir / "w100_toro.graph")
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    half = g.num_nodes // 2
+    _stream(s, g, range(half))
+    mp = _worker_map(s, ("none", None))
+
+    def full() -> float:
+        n, m, k = mp.n, mp.m, mp.keep_m[: mp.m]
+        out = np.empty(m)
+        _cost.constraint_energies(mp.grot[1: n + 1], mp.gtr[1: n + 1], mp.edge_ab[:m],
+                                  mp.edge_rot[:m], mp.edge_trans[:m], mp.edge_info[:m],
+                                  np.zeros(0, np.int32), np.zeros((0, 3)),
+                                  np.zeros((0, 3, 3)), out, np.empty(0))
+        return float(out[k].sum())
+
+    _, meta = mp.solve(50)
+    assert meta["energy"] == full()
+    for k in range(half, g.num_nodes, 7):
+        _stream(s, g, range(k, min(k + 7, g.num_nodes)))
+        _ship(mp, s)
+        _, meta = mp.solve(50)
+        assert meta["energy"] == full(), k
+    mp.keep_m[[3, mp.m - 1]] = False  # rejected: left out of E
+    mp.gtr[5] += 0.25  # node 5 (pose 4) moved
+    assert mp._energy() == full()
+
+
+@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
 def test_background_worker_integrates_what_an_answer_missed_before_it_polishes(
         data_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """An answer that holds fewer constraints than the map (its update cycle began before the

@@ -35,7 +35,16 @@ from ._robust import ROBUST_NAMES as ROBUST_NAMES
 from ._robust import ROBUST_NONE as ROBUST_NONE
 from ._robust import default_robust_scale as default_robust_scale
 from ._robust import robust_kind as robust_kind
-from .geometry._kernels import SMALL_ANGLE, edge_error_into, jl_inv_coeff, jr_inv_blocks, skew_into
+from .geometry._kernels import (
+    SMALL_ANGLE,
+    edge_error9,
+    edge_error_into,
+    jl_inv_coeff,
+    jr_inv_blocks,
+    row3,
+    row3x3,
+    skew_into,
+)
 
 #: Scratch (3, 3) matrices :func:`residual_and_jr_inv` needs.
 SCRATCH = 12
@@ -94,11 +103,11 @@ def robust_whitening(kind: int, delta: float, r: np.ndarray, n: int) -> float:
 @kernel
 def relative_residual(zr: np.ndarray, zt: np.ndarray, ra: np.ndarray, ta: np.ndarray,
                       rb: np.ndarray, tb: np.ndarray, e: np.ndarray, ws: np.ndarray) -> None:
-    """``e = Log(Z^-1 X_a^-1 X_b)`` (6,); ``ws`` (>= 3, 3, 3) scratch.
+    """``e = Log(Z^-1 X_a^-1 X_b)`` (6,); ``ws`` (>= 2, 3, 3) scratch.
 
     On return ``ws[0]`` holds ``R_a^T R_b`` and ``ws[1][0]`` holds ``R_a^T (t_b - t_a)``.
     """
-    edge_error_into(ra, ta, rb, tb, zr, zt, ws[0], ws[1][0], ws[2], e)
+    edge_error_into(ra, ta, rb, tb, zr, zt, ws[0], ws[1][0], e)
 
 
 @kernel
@@ -110,13 +119,34 @@ def residual_and_jr_inv(zr: np.ndarray, zt: np.ndarray, ra: np.ndarray, ta: np.n
     ``ws`` is (SCRATCH, 3, 3) scratch; on return ``J = ws[8]``, ``K = ws[9]``,
     ``X_a^-1 X_b = (ws[10], ws[11][0])``.
     """
-    edge_error_into(ra, ta, rb, tb, zr, zt, ws[10], ws[11][0], ws[0], e)
+    edge_error_into(ra, ta, rb, tb, zr, zt, ws[10], ws[11][0], e)
     jr_inv_blocks(e, ws)
 
 
 #: Below this angle (radians) :func:`planar_jacobians` takes ``(th - sin th) / th^2`` from its
 #: series (to th^13: truncated below 1e-15 relative there), where the closed form cancels.
 PLANAR_SERIES_ANGLE = 0.5
+
+
+@kernel
+def planar_error(ca: float, sa: float, ta0: float, ta1: float, cb: float, sb: float,
+                 tb0: float, tb1: float, cz: float, sz: float, tz0: float, tz1: float
+                 ) -> tuple[float, float, float, tuple[float, float, float, float, float]]:
+    """``(rho_x, rho_y, theta, rel)`` of :func:`planar_residual` from the poses' and the
+    measurement's (cos, sin, x, y) (no array views)."""
+    d0 = tb0 - ta0
+    d1 = tb1 - ta1
+    x = ca * d0 + sa * d1
+    y = ca * d1 - sa * d0
+    cab = ca * cb + sa * sb
+    sab = ca * sb - sa * cb
+    u0 = x - tz0
+    u1 = y - tz1
+    t0 = cz * u0 + sz * u1
+    t1 = cz * u1 - sz * u0
+    th = math.atan2(cz * sab - sz * cab, cz * cab + sz * sab)
+    alpha = 1.0 - jl_inv_coeff(abs(th)) * th * th  # (th / 2) cot(th / 2)
+    return alpha * t0 + 0.5 * th * t1, alpha * t1 - 0.5 * th * t0, th, (cab, sab, x, y, alpha)
 
 
 @kernel
@@ -130,29 +160,15 @@ def planar_residual(zr: np.ndarray, zt: np.ndarray, ra: np.ndarray, ta: np.ndarr
     Returns ``X_a^-1 X_b`` as ``(cos, sin, x, y)`` and ``alpha = (theta / 2) cot(theta / 2)``
     (for :func:`planar_jacobians`).
     """
-    ca = ra[0, 0]
-    sa = ra[1, 0]
-    d0 = tb[0] - ta[0]
-    d1 = tb[1] - ta[1]
-    x = ca * d0 + sa * d1
-    y = ca * d1 - sa * d0
-    cab = ca * rb[0, 0] + sa * rb[1, 0]
-    sab = ca * rb[1, 0] - sa * rb[0, 0]
-    cz = zr[0, 0]
-    sz = zr[1, 0]
-    u0 = x - zt[0]
-    u1 = y - zt[1]
-    t0 = cz * u0 + sz * u1
-    t1 = cz * u1 - sz * u0
-    th = math.atan2(cz * sab - sz * cab, cz * cab + sz * sab)
-    alpha = 1.0 - jl_inv_coeff(abs(th)) * th * th  # (th / 2) cot(th / 2)
-    e[0] = alpha * t0 + 0.5 * th * t1
-    e[1] = alpha * t1 - 0.5 * th * t0
+    e0, e1, th, rel = planar_error(ra[0, 0], ra[1, 0], ta[0], ta[1], rb[0, 0], rb[1, 0],
+                                   tb[0], tb[1], zr[0, 0], zr[1, 0], zt[0], zt[1])
+    e[0] = e0
+    e[1] = e1
     e[2] = 0.0
     e[3] = 0.0
     e[4] = 0.0
     e[5] = th
-    return cab, sab, x, y, alpha
+    return rel
 
 
 @kernel
@@ -268,21 +284,40 @@ def whiten_rows(lt: np.ndarray, m: np.ndarray, n: int, out: np.ndarray) -> None:
 
 
 @kernel
-def relative_chi2(zr: np.ndarray, zt: np.ndarray, info: np.ndarray, ra: np.ndarray,
-                  ta: np.ndarray, rb: np.ndarray, tb: np.ndarray, e: np.ndarray,
-                  oe: np.ndarray, ws: np.ndarray) -> float:
-    """χ² of a relative constraint at global poses a, b (``e``: its error, ``oe``: Omega e)."""
-    relative_residual(zr, zt, ra, ta, rb, tb, e, ws)
-    return chi2(info, e, 6, oe)
+def _chi2_at(edge_info: np.ndarray, c: int, e: tuple[float, float, float, float, float, float]
+             ) -> float:
+    """:func:`chi2` of the error tuple ``e`` with ``edge_info[c]``, in :func:`chi2`'s order."""
+    total = 0.0
+    for i in range(6):
+        s = 0.0
+        for j in range(6):
+            s += edge_info[c, i, j] * e[j]
+        total += e[i] * s
+    return total
 
 
 @kernel
-def planar_chi2(zr: np.ndarray, zt: np.ndarray, info: np.ndarray, ra: np.ndarray,
-                ta: np.ndarray, rb: np.ndarray, tb: np.ndarray, e: np.ndarray,
-                oe: np.ndarray) -> float:
-    """:func:`relative_chi2` of a planar constraint at planar poses (:func:`planar_residual`)."""
-    planar_residual(zr, zt, ra, ta, rb, tb, e)
-    return chi2(info, e, 6, oe)
+def relative_chi2_at(rot: np.ndarray, trans: np.ndarray, a: int, b: int, edge_rot: np.ndarray,
+                     edge_trans: np.ndarray, edge_info: np.ndarray, c: int) -> float:
+    """χ² of relative constraint ``c`` between global poses ``a`` and ``b``, read from the
+    arrays by index (no array views: a loop over the constraints runs several times faster
+    than one passing each constraint's rows to :func:`relative_residual` and :func:`chi2`;
+    same operations in the same order, so the same bits)."""
+    e = edge_error9(row3x3(rot, a), row3(trans, a), row3x3(rot, b), row3(trans, b),
+                    row3x3(edge_rot, c), row3(edge_trans, c))[0]
+    return _chi2_at(edge_info, c, e)
+
+
+@kernel
+def planar_chi2_at(rot: np.ndarray, trans: np.ndarray, a: int, b: int, edge_rot: np.ndarray,
+                   edge_trans: np.ndarray, edge_info: np.ndarray, c: int) -> float:
+    """:func:`relative_chi2_at` of a planar constraint at planar poses
+    (:func:`planar_residual`), read by index."""
+    e0, e1, th, _ = planar_error(rot[a, 0, 0], rot[a, 1, 0], trans[a, 0], trans[a, 1],
+                                 rot[b, 0, 0], rot[b, 1, 0], trans[b, 0], trans[b, 1],
+                                 edge_rot[c, 0, 0], edge_rot[c, 1, 0], edge_trans[c, 0],
+                                 edge_trans[c, 1])
+    return _chi2_at(edge_info, c, (e0, e1, 0.0, 0.0, 0.0, th))
 
 
 @kernel
@@ -299,14 +334,12 @@ def constraint_energies(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarr
                         gps_nodes: np.ndarray, gps_pos: np.ndarray, gps_info: np.ndarray,
                         out_rel: np.ndarray, out_gps: np.ndarray) -> None:
     """χ² of every relative (M,) and position (G,) constraint at global poses (may be inf/nan)."""
-    ws = np.empty((3, 3, 3))
     e = np.empty(6)
     oe = np.empty(6)
     for c in range(edge_nodes.shape[0]):
         a = edge_nodes[c, 0]
         b = edge_nodes[c, 1]
-        out_rel[c] = relative_chi2(edge_rot[c], edge_trans[c], edge_info[c], rot[a], trans[a],
-                                   rot[b], trans[b], e, oe, ws)
+        out_rel[c] = relative_chi2_at(rot, trans, a, b, edge_rot, edge_trans, edge_info, c)
     for c in range(gps_nodes.shape[0]):
         out_gps[c] = gps_chi2(trans[gps_nodes[c]], gps_pos[c], gps_info[c], e, oe)
 
@@ -332,15 +365,13 @@ def total_energy(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarray,
                  edge_rot: np.ndarray, edge_trans: np.ndarray, edge_info: np.ndarray,
                  gps_nodes: np.ndarray, gps_pos: np.ndarray, gps_info: np.ndarray) -> float:
     """``E = sum_c e_c^T Omega_c e_c`` at global poses (may be inf/nan), summed in order."""
-    ws = np.empty((3, 3, 3))
     e = np.empty(6)
     oe = np.empty(6)
     total = 0.0
     for c in range(edge_nodes.shape[0]):
         a = edge_nodes[c, 0]
         b = edge_nodes[c, 1]
-        total += relative_chi2(edge_rot[c], edge_trans[c], edge_info[c], rot[a], trans[a],
-                               rot[b], trans[b], e, oe, ws)
+        total += relative_chi2_at(rot, trans, a, b, edge_rot, edge_trans, edge_info, c)
     for c in range(gps_nodes.shape[0]):
         total += gps_chi2(trans[gps_nodes[c]], gps_pos[c], gps_info[c], e, oe)
     return total
@@ -355,9 +386,8 @@ def robust_total_energy(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarr
 
     ``E_rho = sum_c rho(s_c)`` over the relative and the GPS constraints (``kind`` 0: no
     kernel, ``E_rho = E``).  ``planar``: the poses and measurements are planar
-    (``graph.planar_motions``): each relative χ² from :func:`planar_chi2`.
+    (``graph.planar_motions``): each relative χ² from :func:`planar_chi2_at`.
     """
-    ws = np.empty((3, 3, 3))
     e = np.empty(6)
     oe = np.empty(6)
     total = 0.0
@@ -366,11 +396,9 @@ def robust_total_energy(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarr
         a = edge_nodes[c, 0]
         b = edge_nodes[c, 1]
         if planar:
-            s = planar_chi2(edge_rot[c], edge_trans[c], edge_info[c], rot[a], trans[a],
-                            rot[b], trans[b], e, oe)
+            s = planar_chi2_at(rot, trans, a, b, edge_rot, edge_trans, edge_info, c)
         else:
-            s = relative_chi2(edge_rot[c], edge_trans[c], edge_info[c], rot[a], trans[a],
-                              rot[b], trans[b], e, oe, ws)
+            s = relative_chi2_at(rot, trans, a, b, edge_rot, edge_trans, edge_info, c)
         total += robust_cost(kind, delta, s)[0]
         plain += s
     for c in range(gps_nodes.shape[0]):

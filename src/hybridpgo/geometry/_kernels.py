@@ -30,6 +30,66 @@ Q_SERIES_ANGLE = 0.1
 GIMBAL_LOCK_COS = 1e-14
 
 
+# 3x3 matrices as row-major 9-tuples of floats: kept in registers, so the products below cost
+# no array views (each view or array argument of a Numba call costs an atomic reference-count
+# pair, more than the arithmetic: a loop over constraints that passes each constraint's rows
+# as views spends most of its time there).  The products sum in the order of :func:`mm3`.
+M3 = tuple[float, float, float, float, float, float, float, float, float]
+#: 3-vectors and 6-vectors as tuples of floats.
+V3 = tuple[float, float, float]
+E6 = tuple[float, float, float, float, float, float]
+
+
+@kernel
+def load3x3(a: np.ndarray) -> M3:
+    """A (3, 3) array as a row-major 9-tuple."""
+    return (a[0, 0], a[0, 1], a[0, 2], a[1, 0], a[1, 1], a[1, 2], a[2, 0], a[2, 1], a[2, 2])
+
+
+@kernel
+def load3(a: np.ndarray) -> V3:
+    """A (3,) array as a 3-tuple."""
+    return a[0], a[1], a[2]
+
+
+@kernel
+def row3x3(a: np.ndarray, i: int) -> M3:
+    """``a[i]`` of a (k, 3, 3) array as a row-major 9-tuple, read element by element (no
+    view)."""
+    return (a[i, 0, 0], a[i, 0, 1], a[i, 0, 2], a[i, 1, 0], a[i, 1, 1], a[i, 1, 2],
+            a[i, 2, 0], a[i, 2, 1], a[i, 2, 2])
+
+
+@kernel
+def row3(a: np.ndarray, i: int) -> V3:
+    """``a[i]`` of a (k, 3) array as a 3-tuple (no view)."""
+    return a[i, 0], a[i, 1], a[i, 2]
+
+
+@kernel
+def _tmul3(a: M3, b: M3) -> M3:
+    """a^T b for row-major 9-tuples, each entry summed over k = 0, 1, 2 in order."""
+    return (
+        a[0] * b[0] + a[3] * b[3] + a[6] * b[6],
+        a[0] * b[1] + a[3] * b[4] + a[6] * b[7],
+        a[0] * b[2] + a[3] * b[5] + a[6] * b[8],
+        a[1] * b[0] + a[4] * b[3] + a[7] * b[6],
+        a[1] * b[1] + a[4] * b[4] + a[7] * b[7],
+        a[1] * b[2] + a[4] * b[5] + a[7] * b[8],
+        a[2] * b[0] + a[5] * b[3] + a[8] * b[6],
+        a[2] * b[1] + a[5] * b[4] + a[8] * b[7],
+        a[2] * b[2] + a[5] * b[5] + a[8] * b[8],
+    )
+
+
+@kernel
+def _tmulv(a: M3, v: V3) -> V3:
+    """a^T v for a row-major 9-tuple, each entry summed in order."""
+    return (a[0] * v[0] + a[3] * v[1] + a[6] * v[2],
+            a[1] * v[0] + a[4] * v[1] + a[7] * v[2],
+            a[2] * v[0] + a[5] * v[1] + a[8] * v[2])
+
+
 @kernel
 def mm3(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
     """out = a @ b for (3, 3) arrays (out must not alias a or b)."""
@@ -66,45 +126,44 @@ def adjoint_into(r: np.ndarray, t: np.ndarray, out: np.ndarray) -> None:
 
 
 @kernel
-def so3_log_into(r: np.ndarray, out: np.ndarray) -> None:
-    """out[3:6] = Log(R), exactly as geometry's ``so3_log`` (series / generic / near pi)."""
-    vx = 0.5 * (r[2, 1] - r[1, 2])
-    vy = 0.5 * (r[0, 2] - r[2, 0])
-    vz = 0.5 * (r[1, 0] - r[0, 1])
+def so3_log9(r: M3) -> V3:
+    """Log(R) of a rotation given as a row-major 9-tuple, exactly as geometry's ``so3_log``
+    (series / generic / near pi)."""
+    vx = 0.5 * (r[7] - r[5])
+    vy = 0.5 * (r[2] - r[6])
+    vz = 0.5 * (r[3] - r[1])
     s = math.sqrt(vx * vx + vy * vy + vz * vz)  # sin(theta)
-    c = 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0)  # cos(theta)
+    c = 0.5 * (r[0] + r[4] + r[8] - 1.0)  # cos(theta)
     th = math.atan2(s, c)
     if th < SMALL_ANGLE:
         f = 1.0 + th * th / 6.0  # th/sin(th) = 1 + th^2/6 + 7 th^4/360
-        out[3] = f * vx
-        out[4] = f * vy
-        out[5] = f * vz
-        return
+        return f * vx, f * vy, f * vz
     if math.pi - th > NEAR_PI:
         f = th / s
-        out[3] = f * vx
-        out[4] = f * vy
-        out[5] = f * vz
-        return
+        return f * vx, f * vy, f * vz
     # Near pi: R + R^T = 2 cos(th) I + 2 (1 - cos th) a a^T; take the largest diagonal column.
-    d0 = r[0, 0] - c
-    d1 = r[1, 1] - c
-    d2 = r[2, 2] - c
+    d0 = r[0] - c
+    d1 = r[4] - c
+    d2 = r[8] - c
     k = 0
     if d1 > d0 and d1 >= d2:
         k = 1
     elif d2 > d0 and d2 > d1:
         k = 2
-    a0 = 0.5 * (r[0, k] + r[k, 0]) - (c if k == 0 else 0.0)
-    a1 = 0.5 * (r[1, k] + r[k, 1]) - (c if k == 1 else 0.0)
-    a2 = 0.5 * (r[2, k] + r[k, 2]) - (c if k == 2 else 0.0)
+    a0 = 0.5 * (r[k] + r[3 * k]) - (c if k == 0 else 0.0)
+    a1 = 0.5 * (r[3 + k] + r[3 * k + 1]) - (c if k == 1 else 0.0)
+    a2 = 0.5 * (r[6 + k] + r[3 * k + 2]) - (c if k == 2 else 0.0)
     n = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
     sign = 1.0
     if a0 * vx + a1 * vy + a2 * vz < 0.0:
         sign = -1.0
-    out[3] = sign * th * a0 / n
-    out[4] = sign * th * a1 / n
-    out[5] = sign * th * a2 / n
+    return sign * th * a0 / n, sign * th * a1 / n, sign * th * a2 / n
+
+
+@kernel
+def so3_log_into(r: np.ndarray, out: np.ndarray) -> None:
+    """out[3:6] = Log(R) of a (3, 3) array (:func:`so3_log9`)."""
+    out[3], out[4], out[5] = so3_log9(load3x3(r))
 
 
 @kernel
@@ -116,33 +175,16 @@ def jl_inv_coeff(th: float) -> float:
 
 
 @kernel
-def edge_error_into(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.ndarray,
-                    rz: np.ndarray, tz: np.ndarray, rab: np.ndarray, tab: np.ndarray,
-                    re: np.ndarray, e: np.ndarray) -> None:
-    """e = Log(Z^-1 X_a^-1 X_b) = (V(phi)^-1 t_e, phi); also X_a^-1 X_b -> (rab, tab).
-
-    ``re`` (3, 3) is scratch (it receives the rotation of Z^-1 X_a^-1 X_b).
-    """
-    d0 = tb[0] - ta[0]
-    d1 = tb[1] - ta[1]
-    d2 = tb[2] - ta[2]
-    for i in range(3):
-        tab[i] = ra[0, i] * d0 + ra[1, i] * d1 + ra[2, i] * d2
-        for j in range(3):
-            rab[i, j] = ra[0, i] * rb[0, j] + ra[1, i] * rb[1, j] + ra[2, i] * rb[2, j]
-    u0 = tab[0] - tz[0]
-    u1 = tab[1] - tz[1]
-    u2 = tab[2] - tz[2]
-    for i in range(3):
-        for j in range(3):
-            re[i, j] = rz[0, i] * rab[0, j] + rz[1, i] * rab[1, j] + rz[2, i] * rab[2, j]
-    t0 = rz[0, 0] * u0 + rz[1, 0] * u1 + rz[2, 0] * u2
-    t1 = rz[0, 1] * u0 + rz[1, 1] * u1 + rz[2, 1] * u2
-    t2 = rz[0, 2] * u0 + rz[1, 2] * u1 + rz[2, 2] * u2
-    so3_log_into(re, e)
-    p0 = e[3]
-    p1 = e[4]
-    p2 = e[5]
+def edge_error9(ra: M3, ta: V3, rb: M3, tb: V3, rz: M3, tz: V3) -> tuple[E6, M3, V3]:
+    """``(e, R_ab, t_ab)``: e = Log(Z^-1 X_a^-1 X_b) = (V(phi)^-1 t_e, phi) and
+    X_a^-1 X_b = (R_ab, t_ab), of poses and measurement given as 9- and 3-tuples (no array
+    views: a loop over constraints reads them by index, :func:`load3x3`, :func:`load3`)."""
+    d = (tb[0] - ta[0], tb[1] - ta[1], tb[2] - ta[2])
+    tab = _tmulv(ra, d)
+    rab = _tmul3(ra, rb)
+    tu = _tmulv(rz, (tab[0] - tz[0], tab[1] - tz[1], tab[2] - tz[2]))
+    t0, t1, t2 = tu
+    p0, p1, p2 = so3_log9(_tmul3(rz, rab))
     c = jl_inv_coeff(math.sqrt(p0 * p0 + p1 * p1 + p2 * p2))
     # rho = Jl^-1(phi) t = t - 1/2 phi x t + c phi x (phi x t)
     x0 = p1 * t2 - p2 * t1
@@ -151,15 +193,23 @@ def edge_error_into(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.ndarr
     y0 = p1 * x2 - p2 * x1
     y1 = p2 * x0 - p0 * x2
     y2 = p0 * x1 - p1 * x0
-    e[0] = t0 - 0.5 * x0 + c * y0
-    e[1] = t1 - 0.5 * x1 + c * y1
-    e[2] = t2 - 0.5 * x2 + c * y2
+    e = (t0 - 0.5 * x0 + c * y0, t1 - 0.5 * x1 + c * y1, t2 - 0.5 * x2 + c * y2, p0, p1, p2)
+    return e, rab, tab
 
 
-# 3x3 matrices as row-major 9-tuples of floats: kept in registers, so the products below cost
-# no array views (each view or array argument of a Numba call costs an atomic reference-count
-# pair, more than the arithmetic).  ``_mul3`` sums in the order of :func:`mm3`: same results.
-M3 = tuple[float, float, float, float, float, float, float, float, float]
+@kernel
+def edge_error_into(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.ndarray,
+                    rz: np.ndarray, tz: np.ndarray, rab: np.ndarray, tab: np.ndarray,
+                    e: np.ndarray) -> None:
+    """:func:`edge_error9` of (3, 3) and (3,) arrays into ``e`` (6,), ``rab``, ``tab``."""
+    ev, r, t = edge_error9(load3x3(ra), load3(ta), load3x3(rb), load3(tb), load3x3(rz),
+                           load3(tz))
+    for i in range(6):
+        e[i] = ev[i]
+    for i in range(3):
+        tab[i] = t[i]
+        for j in range(3):
+            rab[i, j] = r[3 * i + j]
 
 
 @kernel

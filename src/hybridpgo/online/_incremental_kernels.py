@@ -49,7 +49,7 @@ import math
 
 import numpy as np
 
-from .._cost import SCRATCH, chi2, retract_into
+from .._cost import SCRATCH, chi2, gps_chi2, relative_chi2_at, retract_into
 from .._numba import cycle_counter, kernel
 from ..solvers._gn_kernels import _edge_linearization, _matmul6
 
@@ -76,6 +76,28 @@ def differing_poses(rot: np.ndarray, trans: np.ndarray, ref_rot: np.ndarray,
             for b in range(3):
                 d = d or rot[i, a, b] != ref_rot[i, a, b]
         out[i] = d
+
+
+@kernel
+def refresh_energies(rot: np.ndarray, trans: np.ndarray, moved: np.ndarray, edge_nodes: np.ndarray,
+                     edge_rot: np.ndarray, edge_trans: np.ndarray, edge_info: np.ndarray,
+                     gps_nodes: np.ndarray, gps_pos: np.ndarray, gps_info: np.ndarray,
+                     m0: int, g0: int, out_rel: np.ndarray, out_gps: np.ndarray) -> None:
+    """χ² at the poses ``rot, trans`` (as :func:`hybridpgo._cost.constraint_energies`) of the
+    constraints that are new (relative index ``>= m0``, position index ``>= g0``) or that have
+    an end ``i`` with ``moved[i]``, written into ``out_rel`` / ``out_gps``; the others keep
+    what those hold."""
+    e = np.empty(6)
+    oe = np.empty(6)
+    for c in range(edge_nodes.shape[0]):
+        a = edge_nodes[c, 0]
+        b = edge_nodes[c, 1]
+        if c >= m0 or moved[a] or moved[b]:
+            out_rel[c] = relative_chi2_at(rot, trans, a, b, edge_rot, edge_trans, edge_info, c)
+    for c in range(gps_nodes.shape[0]):
+        n = gps_nodes[c]
+        if c >= g0 or moved[n]:
+            out_gps[c] = gps_chi2(trans[n], gps_pos[c], gps_info[c], e, oe)
 
 
 @kernel

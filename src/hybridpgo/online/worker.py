@@ -1011,49 +1011,37 @@ class _Map:
 
     def _evaluate(self, rot: np.ndarray, trans: np.ndarray) -> tuple[float, Any]:
         """E of the constraints solved at the poses ``rot``, ``trans`` of nodes 1..n, and
-        the change of the per-constraint energies for :meth:`_commit`.  Only the constraints
-        that are new since the last committed evaluation or that have an end whose pose
-        differs from it are evaluated: O(n + m) comparisons and sums, and χ² for those
-        constraints only (an answer moves few poses unless a loop closed: valencia at 8 000
-        poses, two full evaluations per request took 5.6 of its 7.5 ms)."""
-        from .. import _cost
-        from ._incremental_kernels import differing_poses
+        the per-constraint energies for :meth:`_commit`.  Only the constraints that are new
+        since the last committed evaluation or that have an end whose pose differs from it
+        are evaluated (:func:`~._incremental_kernels.refresh_energies`): O(n + m) comparisons
+        and sums, and χ² for those constraints only (an answer moves few poses unless a loop
+        closed)."""
+        from ._incremental_kernels import differing_poses, refresh_energies
 
         n, m, g = self.n, self.m, self.g
-        k, km, kg = self._ev_n, self._ev_m, self._ev_g
+        k = self._ev_n
         moved = np.ones(n, np.bool_)
         differing_poses(rot, trans, self._ev_rot, self._ev_tr, moved[:k])
-        ab = self.edge_ab[:m]
-        edges = np.flatnonzero(moved[ab[:, 0]] | moved[ab[:, 1]])
-        edges = np.union1d(edges, np.arange(km, m))
-        gps = np.union1d(np.flatnonzero(moved[self.gps_node[:g]]), np.arange(kg, g))
-        e_val = np.empty(edges.shape[0])
-        g_val = np.empty(gps.shape[0])
-        _cost.constraint_energies(
-            rot, trans, ab[edges].astype(np.int32), self.edge_rot[edges],
-            self.edge_trans[edges], self.edge_info[edges],
-            self.gps_node[gps].astype(np.int32), self.gps_pos[gps], self.gps_info[gps],
-            e_val, g_val)
-        ce_m = self._append(self._ce_m, km, np.zeros(m - km))
-        ce_g = self._append(self._ce_g, kg, np.zeros(g - kg))
-        em, eg = ce_m[:m].copy(), ce_g[:g].copy()
-        em[edges] = e_val
-        eg[gps] = g_val
+        # the committed energies; the new constraints' entries are written
+        em = np.empty(m)
+        em[: self._ev_m] = self._ce_m[: self._ev_m]
+        eg = np.empty(g)
+        eg[: self._ev_g] = self._ce_g[: self._ev_g]
+        refresh_energies(rot, trans, moved, self.edge_ab[:m], self.edge_rot[:m],
+                         self.edge_trans[:m], self.edge_info[:m], self.gps_node[:g],
+                         self.gps_pos[:g], self.gps_info[:g], self._ev_m, self._ev_g, em, eg)
         energy = float(em[self.keep_m[:m]].sum() + eg[self.keep_g[:g]].sum())
-        return energy, (rot, trans, np.flatnonzero(moved), ce_m, ce_g, edges, e_val, gps,
-                        g_val)
+        return energy, (rot, trans, np.flatnonzero(moved), em, eg)
 
     def _commit(self, change: Any) -> None:
         """Keep an evaluation of :meth:`_evaluate` as the reference of the next."""
-        rot, trans, moved, ce_m, ce_g, edges, e_val, gps, g_val = change
+        rot, trans, moved, em, eg = change
         n = rot.shape[0]
         self._ev_rot = self._append(self._ev_rot, self._ev_n, np.zeros((n - self._ev_n, 3, 3)))
         self._ev_tr = self._append(self._ev_tr, self._ev_n, np.zeros((n - self._ev_n, 3)))
         self._ev_rot[moved] = rot[moved]
         self._ev_tr[moved] = trans[moved]
-        ce_m[edges] = e_val
-        ce_g[gps] = g_val
-        self._ce_m, self._ce_g = ce_m, ce_g
+        self._ce_m, self._ce_g = em, eg
         self._ev_n, self._ev_m, self._ev_g = n, self.m, self.g
 
     def _reseed(self) -> None:
