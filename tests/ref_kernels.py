@@ -325,3 +325,106 @@ def between(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray,
 def relative_error(rz: np.ndarray, tz: np.ndarray, rab: np.ndarray, tab: np.ndarray) -> np.ndarray:
     """e = Log(Z^-1 X_ab) for measurement Z = (rz, tz) and X_ab = X_a^-1 X_b."""
     return se3_log(rz.T @ rab, rz.T @ (tab - tz))
+
+
+# ------------------------------------------------------------ χ² in the loops' operation order
+# The energy loops of hybridpgo._cost read each constraint into registers; these are the same
+# formulas written on (3, 3) and (3,) arrays, entry by entry, with every sum in the same order,
+# so the two must agree bit for bit (an index or sign slip in either shows).
+@kernel
+def chi2_in_order(info: np.ndarray, e: np.ndarray) -> float:
+    """``e^T Omega e`` summed row by row: ``sum_i e_i (sum_j Omega_ij e_j)``, j and i in order."""
+    total = 0.0
+    for i in range(6):
+        s = 0.0
+        for j in range(6):
+            s += info[i, j] * e[j]
+        total += e[i] * s
+    return total
+
+
+@kernel
+def relative_chi2_in_order(zr: np.ndarray, zt: np.ndarray, info: np.ndarray, ra: np.ndarray,
+                           ta: np.ndarray, rb: np.ndarray, tb: np.ndarray) -> float:
+    """χ² of ``e = Log(Z^-1 X_a^-1 X_b)``: products entry by entry, each summed over k in order;
+    Log by the branches of :func:`so3_log`; ``rho = Jl^-1(phi) t``."""
+    d = tb - ta
+    tab = np.empty(3)
+    rab = np.empty((3, 3))
+    for i in range(3):
+        tab[i] = ra[0, i] * d[0] + ra[1, i] * d[1] + ra[2, i] * d[2]
+        for j in range(3):
+            rab[i, j] = ra[0, i] * rb[0, j] + ra[1, i] * rb[1, j] + ra[2, i] * rb[2, j]
+    re = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            re[i, j] = zr[0, i] * rab[0, j] + zr[1, i] * rab[1, j] + zr[2, i] * rab[2, j]
+    u = tab - zt
+    t = np.empty(3)
+    for i in range(3):
+        t[i] = zr[0, i] * u[0] + zr[1, i] * u[1] + zr[2, i] * u[2]
+    vx = 0.5 * (re[2, 1] - re[1, 2])
+    vy = 0.5 * (re[0, 2] - re[2, 0])
+    vz = 0.5 * (re[1, 0] - re[0, 1])
+    s = math.sqrt(vx * vx + vy * vy + vz * vz)
+    c = 0.5 * (re[0, 0] + re[1, 1] + re[2, 2] - 1.0)
+    th = math.atan2(s, c)
+    if th < SMALL_ANGLE:
+        f = 1.0 + th * th / 6.0
+        p = (f * vx, f * vy, f * vz)
+    elif math.pi - th > NEAR_PI:
+        f = th / s
+        p = (f * vx, f * vy, f * vz)
+    else:
+        d0, d1, d2 = re[0, 0] - c, re[1, 1] - c, re[2, 2] - c
+        k = 0
+        if d1 > d0 and d1 >= d2:
+            k = 1
+        elif d2 > d0 and d2 > d1:
+            k = 2
+        a0 = 0.5 * (re[0, k] + re[k, 0]) - (c if k == 0 else 0.0)
+        a1 = 0.5 * (re[1, k] + re[k, 1]) - (c if k == 1 else 0.0)
+        a2 = 0.5 * (re[2, k] + re[k, 2]) - (c if k == 2 else 0.0)
+        nrm = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        sign = -1.0 if a0 * vx + a1 * vy + a2 * vz < 0.0 else 1.0
+        p = (sign * th * a0 / nrm, sign * th * a1 / nrm, sign * th * a2 / nrm)
+    tp = math.sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2])
+    if tp < SMALL_ANGLE:
+        cc = 1.0 / 12.0 + tp * tp / 720.0
+    else:
+        cc = 1.0 / (tp * tp) - math.cos(0.5 * tp) / (2.0 * tp * math.sin(0.5 * tp))
+    x0 = p[1] * t[2] - p[2] * t[1]
+    x1 = p[2] * t[0] - p[0] * t[2]
+    x2 = p[0] * t[1] - p[1] * t[0]
+    y0 = p[1] * x2 - p[2] * x1
+    y1 = p[2] * x0 - p[0] * x2
+    y2 = p[0] * x1 - p[1] * x0
+    e = np.array([t[0] - 0.5 * x0 + cc * y0, t[1] - 0.5 * x1 + cc * y1,
+                  t[2] - 0.5 * x2 + cc * y2, p[0], p[1], p[2]])
+    return chi2_in_order(info, e)
+
+
+@kernel
+def planar_chi2_in_order(zr: np.ndarray, zt: np.ndarray, info: np.ndarray, ra: np.ndarray,
+                         ta: np.ndarray, rb: np.ndarray, tb: np.ndarray) -> float:
+    """χ² of the SE(2) logarithm ``(rho_x, rho_y, 0, 0, 0, theta)`` of planar poses and
+    measurement, in the operation order of the planar loop."""
+    ca, sa = ra[0, 0], ra[1, 0]
+    d0, d1 = tb[0] - ta[0], tb[1] - ta[1]
+    x = ca * d0 + sa * d1
+    y = ca * d1 - sa * d0
+    cab = ca * rb[0, 0] + sa * rb[1, 0]
+    sab = ca * rb[1, 0] - sa * rb[0, 0]
+    cz, sz = zr[0, 0], zr[1, 0]
+    u0, u1 = x - zt[0], y - zt[1]
+    t0 = cz * u0 + sz * u1
+    t1 = cz * u1 - sz * u0
+    th = math.atan2(cz * sab - sz * cab, cz * cab + sz * sab)
+    a = abs(th)
+    if a < SMALL_ANGLE:
+        cc = 1.0 / 12.0 + a * a / 720.0
+    else:
+        cc = 1.0 / (a * a) - math.cos(0.5 * a) / (2.0 * a * math.sin(0.5 * a))
+    alpha = 1.0 - cc * th * th
+    e = np.array([alpha * t0 + 0.5 * th * t1, alpha * t1 - 0.5 * th * t0, 0.0, 0.0, 0.0, th])
+    return chi2_in_order(info, e)

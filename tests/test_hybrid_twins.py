@@ -18,6 +18,7 @@ import math
 import naive
 import numpy as np
 import pytest
+import ref_kernels
 from graphs import random_graph
 from scipy.spatial.transform import Rotation
 from tolerances import FLOAT64_IDENTITY, SAME_EQUATION, TWIN_JACOBIAN
@@ -374,7 +375,8 @@ def test_cost_kernels_match_twins(angle):
 @pytest.mark.parametrize("angle", [1e-9, 1e-5, 0.3, 2.0, math.pi - 3e-3, math.pi - 1e-4])
 def test_energy_loops_match_twins(angle):
     """The loops over constraints (χ² read from the arrays by index) against the twins, and
-    bit for bit against the per-constraint kernels on views (same operations, same order)."""
+    bit for bit against the same formulas on arrays (``ref_kernels``: same operations, same
+    order)."""
     rng = np.random.default_rng(29)
     n, m = 6, 12
     poses = [naive.se3_exp(np.r_[rng.normal(size=3), angle * _unit(rng)]) for _ in range(n)]
@@ -401,6 +403,8 @@ def test_energy_loops_match_twins(angle):
         rab, tab = naive.between(rot[a], trans[a], rot[b], trans[b])
         want = naive.chi2(info[c], naive.relative_error(zr[c], zt[c], rab, tab))
         assert abs(out[c] - want) <= FLOAT64_IDENTITY * 10 * want
+        assert out[c] == ref_kernels.relative_chi2_in_order(zr[c], zt[c], info[c], rot[a],
+                                                            trans[a], rot[b], trans[b])
         _cost.relative_residual(zr[c], zt[c], rot[a], trans[a], rot[b], trans[b], e, ws)
         assert out[c] == _cost.chi2(info[c], e, 6, np.empty(6))
     for k in range(2):
@@ -416,8 +420,8 @@ def test_energy_loops_match_twins(angle):
 @pytest.mark.parametrize("angle", [1e-9, 1e-5, 0.3, 2.0, math.pi - 1e-4])
 def test_planar_energy_loop_matches_the_3d_one(angle):
     """The planar χ² loop (``robust_total_energy(..., planar=True)``) against the 3D one on
-    planar poses and measurements, and bit for bit against the per-constraint kernel on
-    views (:func:`planar_residual` and :func:`chi2`)."""
+    planar poses and measurements, and bit for bit against the same formula on arrays
+    (``ref_kernels``) and against :func:`planar_residual` with :func:`chi2`."""
     rng = np.random.default_rng(30)
     n, m = 6, 12
 
@@ -445,9 +449,11 @@ def test_planar_energy_loop_matches_the_3d_one(angle):
     for c in range(m):
         a, b = ab[c]
         _cost.planar_residual(zr[c], zt[c], rot[a], trans[a], rot[b], trans[b], e)
-        total += _cost.chi2(info[c], e, 6, np.empty(6))
+        s = _cost.chi2(info[c], e, 6, np.empty(6))
+        assert s == ref_kernels.planar_chi2_in_order(zr[c], zt[c], info[c], rot[a], trans[a],
+                                                     rot[b], trans[b])
+        total += s
     assert plain == total
-
 
 
 # --------------------------------------------------------------------------------- III-F/G

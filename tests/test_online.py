@@ -1304,13 +1304,12 @@ def test_the_worker_map_energy_refresh_equals_a_full_evaluation(data_dir: Path) 
     mp = _worker_map(s, ("none", None))
 
     def full() -> float:
-        n, m, k = mp.n, mp.m, mp.keep_m[: mp.m]
-        out = np.empty(m)
+        n, m, g = mp.n, mp.m, mp.g
+        out, out_g = np.empty(m), np.empty(g)
         _cost.constraint_energies(mp.grot[1: n + 1], mp.gtr[1: n + 1], mp.edge_ab[:m],
                                   mp.edge_rot[:m], mp.edge_trans[:m], mp.edge_info[:m],
-                                  np.zeros(0, np.int32), np.zeros((0, 3)),
-                                  np.zeros((0, 3, 3)), out, np.empty(0))
-        return float(out[k].sum())
+                                  mp.gps_node[:g], mp.gps_pos[:g], mp.gps_info[:g], out, out_g)
+        return float(out[mp.keep_m[:m]].sum() + out_g[mp.keep_g[:g]].sum())
 
     _, meta = mp.solve(50)
     assert meta["energy"] == full()
@@ -1322,6 +1321,21 @@ def test_the_worker_map_energy_refresh_equals_a_full_evaluation(data_dir: Path) 
     mp.keep_m[[3, mp.m - 1]] = False  # rejected: left out of E
     mp.gtr[5] += 0.25  # node 5 (pose 4) moved
     assert mp._energy() == full()
+    # two GPS readings (fewer than the gauge needs: answered unsolved, E evaluated), one on the
+    # moved pose; then that pose moves again, and one reading is rejected
+    pos = mp.gtr[[5, 30]] + 0.5
+    mp.add({"parent": np.zeros(0, np.int32), "rot": np.zeros((0, 3, 3)),
+            "trans": np.zeros((0, 3)), "edge_ab": np.zeros((0, 2), np.int32),
+            "edge_rot": np.zeros((0, 3, 3)), "edge_trans": np.zeros((0, 3)),
+            "edge_info": np.zeros((0, 6, 6)), "gps_node": np.array([4, 29], np.int32),
+            "gps_pos": pos, "gps_info": np.array([np.eye(3), 2 * np.eye(3)])})
+    _, meta = mp.solve(50)
+    assert meta["status"] == "not solved" and meta["energy"] == full() > 0
+    mp.gtr[5] -= 0.125
+    e_moved = mp._energy()
+    assert e_moved == full()
+    mp.keep_g[1] = False
+    assert mp._energy() == full() < e_moved
 
 
 @pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines

@@ -33,7 +33,8 @@ GIMBAL_LOCK_COS = 1e-14
 # 3x3 matrices as row-major 9-tuples of floats: kept in registers, so the products below cost
 # no array views (each view or array argument of a Numba call costs an atomic reference-count
 # pair, more than the arithmetic: a loop over constraints that passes each constraint's rows
-# as views spends most of its time there).  The products sum in the order of :func:`mm3`.
+# as views spends most of its time there).  Each entry of a product is summed over k = 0, 1, 2
+# in order, as :func:`mm3` sums.
 M3 = tuple[float, float, float, float, float, float, float, float, float]
 #: 3-vectors and 6-vectors as tuples of floats.
 V3 = tuple[float, float, float]
@@ -178,7 +179,7 @@ def jl_inv_coeff(th: float) -> float:
 def edge_error9(ra: M3, ta: V3, rb: M3, tb: V3, rz: M3, tz: V3) -> tuple[E6, M3, V3]:
     """``(e, R_ab, t_ab)``: e = Log(Z^-1 X_a^-1 X_b) = (V(phi)^-1 t_e, phi) and
     X_a^-1 X_b = (R_ab, t_ab), of poses and measurement given as 9- and 3-tuples (no array
-    views: a loop over constraints reads them by index, :func:`load3x3`, :func:`load3`)."""
+    views: a loop over constraints reads them by index, :func:`row3x3`, :func:`row3`)."""
     d = (tb[0] - ta[0], tb[1] - ta[1], tb[2] - ta[2])
     tab = _tmulv(ra, d)
     rab = _tmul3(ra, rb)
@@ -278,7 +279,7 @@ def _q_matrix3(r0: float, r1: float, r2: float, p0: float, p1: float, p2: float)
 @kernel
 def _q_entry(n: int, rx: M3, pr: M3, rp: M3, prp: M3, m1: M3, m2: M3, m3: M3, m4: M3,
              a1: float, a2: float, b4: float) -> float:
-    """Entry n of Q, with the operations (and rounding) of the former array version."""
+    """Entry n of Q (:func:`_q_matrix3`) from the 9-tuples of its products."""
     v = 0.5 * rx[n] + a1 * (pr[n] + rp[n] + prp[n]) + 3.0 * a2 * prp[n]
     v -= a2 * (m1[n] + m2[n])
     v -= b4 * (m3[n] + m4[n])

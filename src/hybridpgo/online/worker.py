@@ -1042,7 +1042,7 @@ class _Map:
         self._ev_rot[moved] = rot[moved]
         self._ev_tr[moved] = trans[moved]
         self._ce_m, self._ce_g = em, eg
-        self._ev_n, self._ev_m, self._ev_g = n, self.m, self.g
+        self._ev_n, self._ev_m, self._ev_g = n, em.shape[0], eg.shape[0]
 
     def _reseed(self) -> None:
         """A new incremental solver holding the whole map at the current estimate (after an
