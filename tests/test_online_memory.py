@@ -137,3 +137,39 @@ def test_a_frame_keeps_the_time_to_read_its_newest_pose() -> None:
 def test_a_heap_reserve_out_of_range_is_refused(bad: object) -> None:
     with pytest.raises(ValueError, match="heap_reserve_mb"):
         OnlineConfig(heap_reserve_mb=bad)  # type: ignore[arg-type]
+
+
+@pytest.mark.skipif(not LINUX, reason="page faults counted per thread on Linux only")
+@pytest.mark.parametrize("ahead", [True, False])
+def test_the_path_pool_is_written_ahead_of_a_long_path(ahead: bool) -> None:
+    """Frames write the path pool ahead of the laid paths in their spare time (one chunk per
+    frame: ``update`` without a deadline writes one), so a long loop closure's path lays
+    without faulting its pages; without the pages written ahead it faults every one."""
+    from hybridpgo.online.store import PREFAULT_AHEAD_BYTES, PREFAULT_CHUNK_BYTES
+
+    n = 3000
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    s.add_pose(0)
+    step = (np.eye(3), np.array([1.0, 0.0, 0.0]))
+    for i in range(1, n):
+        s.add_pose(i, i - 1, step, np.eye(6))
+    st = s.store
+    row = st.contrib[0].nbytes
+    s.update(None, 0)
+    used = int(st.ptr[st.m_laid])
+    assert st._ahead[0] == used + PREFAULT_CHUNK_BYTES // row  # one chunk per frame
+    if ahead:
+        while st.prefault():
+            pass
+        assert st._ahead[0] == used + PREFAULT_AHEAD_BYTES // row
+        assert st._ahead[1] == st.cap_pe + PREFAULT_AHEAD_BYTES // row  # then the GPS region
+        assert not st.contrib[used:].any() and not st.path_node[used: st._ahead[0]].any()
+    s.add_constraint(n - 1, 0, (np.eye(3), np.array([n - 1.0, 0.0, 0.0])), np.eye(6))
+    f0 = _faults()
+    st.lay_paths()
+    faults = _faults() - f0
+    assert int(st.ptr[st.m_laid]) - used >= n - 1  # the loop's path: the whole chain
+    if ahead:
+        assert faults < 16
+    else:
+        assert faults > 150  # 3 000 entries of 293 bytes: about 215 fresh pages
