@@ -14,7 +14,7 @@ import itertools
 import numpy as np
 import pytest
 from graphs import planar_rotations, random_rotations
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from tolerances import FLOAT64_IDENTITY, FORWARD_ERROR, INCREMENTAL_VS_BATCH, SPARSE_VS_DENSE_GN
 
@@ -168,8 +168,9 @@ def _check_gn_step(inc: IncrementalExact) -> None:
     err = float(np.abs(got - ref).max())
     if err > SPARSE_VS_DENSE_GN * scale:  # the bound of this system's conditioning
         h = normal_equations(graph, inc._th_r[:n], inc._th_t[:n], graph.fixed_nodes).hessian
-        cond = float(np.linalg.cond(h.toarray()))
-        assert err <= FORWARD_ERROR * cond * np.finfo(float).eps * scale, (err, cond)
+        bound = float(np.linalg.cond(h.toarray())) * np.finfo(float).eps
+        assert bound <= 1e-5, bound  # a graph so ill-conditioned tests nothing
+        assert err <= FORWARD_ERROR * bound * scale, (err, bound)
 
 
 @settings(max_examples=25, deadline=None)
@@ -178,6 +179,8 @@ def _check_gn_step(inc: IncrementalExact) -> None:
        beta=st.sampled_from([0.0, 1e-3, 0.05]), reorder=st.booleans(),
        capacity=st.sampled_from([4, 64]), wildfire=st.sampled_from([0.0, ROUNDING_WILDFIRE]),
        planar=st.booleans())
+@example(seed=57, n=11, loop_p=0.8, gps_every=3, beta=0.0, reorder=False, capacity=4,
+         wildfire=0.0, planar=True)  # H's condition number 3e8-2e9 (FORWARD_ERROR)
 def test_every_cycle_solves_the_whole_map_exactly(seed: int, n: int, loop_p: float,
                                                   gps_every: int, beta: float, reorder: bool,
                                                   capacity: int, wildfire: float,

@@ -106,7 +106,8 @@ CHI2_CYCLES = 1000.0
 
 
 #: Seconds a frame must have left before its deadline to write ahead into the path pool
-#: (:meth:`MapStore.prefault`: 16 page faults, 0.1-0.6 ms on this kind of virtual machine).
+#: (:meth:`~.store.MapStore.prefault`: 16-18 page faults, 0.03 ms on an idle host; in one
+#: benchmark frame on a busy one, 255 faults took about 7 ms).
 PREFAULT_CYCLES_S = 1e-3
 
 
@@ -369,6 +370,10 @@ class OnlineSolver:
             the frame's work does not depend on timing, so runs are reproducible).
 
         With neither limit, every new constraint and every spare-time candidate is relaxed once.
+        A frame with 1 ms of its budget left (or without a budget) then writes 64 KiB of its
+        store of constraint paths ahead of the paths laid so far, so that the memory of a long
+        path laid later is allocated already (docs/mathematics.md, "No page faults in
+        updates").
 
         Raises
         ------
@@ -389,7 +394,8 @@ class OnlineSolver:
             self._link.step(self._store, self.frame, cfg.background_join,
                             cfg.background_rebase)
         report = self._work(deadline, limit, time.perf_counter() - t0, first=True)
-        if not _late(deadline, PREFAULT_CYCLES_S * cycles_per_second()):
+        if deadline == NO_DEADLINE or not _late(deadline,
+                                                PREFAULT_CYCLES_S * cycles_per_second()):
             self._store.prefault()  # fresh pages of the path pool, while there is time
         self.frame += 1
         return report._replace(seconds=time.perf_counter() - t0)
@@ -397,7 +403,9 @@ class OnlineSolver:
     def idle(self, budget_s: float) -> int:
         """Use ``budget_s`` seconds between frames for the back end: adopt the worker's
         results, relax what is still queued, then older constraints, until the time is used or
-        nothing is left to do (the adopted optimum holds, ``background_hold``).  Returns the
+        nothing is left to do (the adopted optimum holds, ``background_hold``); then write the
+        store of constraint paths ahead of the paths laid so far while time is left (as
+        :meth:`update` does).  Returns the
         updates made.  A stream at a real rate calls it after each frame's :meth:`update` with
         the time until the next frame; a frame's own work stays bounded by its budget.
 

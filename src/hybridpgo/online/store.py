@@ -75,13 +75,14 @@ _GPS_ARRAYS: _Spec = (("gps_node", (), np.int32), ("gps_pos", (3,), np.float64),
                ("gps_info", (3, 3), np.float64), ("gps_lt", (3, 3), np.float64))
 _POOL_ARRAYS: _Spec = (("path_node", (), np.int32), ("path_sign", (), np.int8),
                 ("contrib", (6, 6), np.float64))
-#: Bytes of the path pool (``contrib`` and the pool's other arrays, 293 bytes per path entry)
-#: kept written ahead of each region's laid paths by :meth:`MapStore.prefault`, in the frames'
-#: spare time: a page of reserved memory is allocated when first written, and a long loop
-#: closure's path would otherwise fault all of its fresh pages inside the frame that lays it
-#: (valencia, frame 7 784: a 2 936-entry path, 233-255 page faults, 3.2-9.0 ms of CPU).
+#: Bytes of ``contrib`` (288 per path entry; the pool's other arrays add 5) kept written ahead
+#: of each region's laid paths by :meth:`MapStore.prefault`, in the frames' spare time: a page
+#: of reserved memory is allocated when first written, and a long loop closure's path would
+#: otherwise fault all of its fresh pages inside the frame that lays it (valencia, frame
+#: 7 784: a 2 936-entry path, 233-255 page faults, 3.2-9.0 ms of CPU).
 PREFAULT_AHEAD_BYTES = 4 << 20
-#: Bytes of ``contrib`` one call of :meth:`MapStore.prefault` writes (16 pages: 16 faults).
+#: Bytes of ``contrib`` one call of :meth:`MapStore.prefault` writes (16 pages, and a page or
+#: two of the pool's other arrays).
 PREFAULT_CHUNK_BYTES = 64 << 10
 #: Arrays per constraint (edges, then GPS readings at ``cap_m``).
 _CONSTRAINT_ARRAYS: _Spec = (
@@ -253,15 +254,15 @@ class MapStore:
     def prefault(self) -> bool:
         """Write zeros to the next :data:`PREFAULT_CHUNK_BYTES` of ``contrib`` (and the same
         entries of the pool's other arrays) past the laid paths of the first region (edges,
-        then GPS readings) that has less than :data:`PREFAULT_AHEAD_BYTES` written ahead, so
-        that their pages are allocated now rather than in the frame that lays a long path.
-        The entries past the laid paths are zero already: only the pages change.  True when
-        it wrote."""
+        then GPS readings once the map has one) that has less than
+        :data:`PREFAULT_AHEAD_BYTES` written ahead, so that their pages are allocated now
+        rather than in the frame that lays a long path.  The entries past the laid paths are
+        zero already: only the pages change.  True when it wrote."""
         row = self.contrib[0].nbytes
         chunk, ahead = PREFAULT_CHUNK_BYTES // row, PREFAULT_AHEAD_BYTES // row
         regions = ((int(self.ptr[self.m_laid]), self.cap_pe),
                    (int(self.ptr[self.cap_m + self.g_laid]), self.cap_pe + self.cap_pg))
-        for r, (used, end) in enumerate(regions):
+        for r, (used, end) in enumerate(regions[: 2 if self.g else 1]):
             lo = max(self._ahead[r], used)
             hi = min(lo + chunk, used + ahead, end)
             if hi > lo:
