@@ -68,19 +68,9 @@ def row3(a: np.ndarray, i: int) -> V3:
 
 
 @kernel
-def _tmul3(a: M3, b: M3) -> M3:
-    """a^T b for row-major 9-tuples, each entry summed over k = 0, 1, 2 in order."""
-    return (
-        a[0] * b[0] + a[3] * b[3] + a[6] * b[6],
-        a[0] * b[1] + a[3] * b[4] + a[6] * b[7],
-        a[0] * b[2] + a[3] * b[5] + a[6] * b[8],
-        a[1] * b[0] + a[4] * b[3] + a[7] * b[6],
-        a[1] * b[1] + a[4] * b[4] + a[7] * b[7],
-        a[1] * b[2] + a[4] * b[5] + a[7] * b[8],
-        a[2] * b[0] + a[5] * b[3] + a[8] * b[6],
-        a[2] * b[1] + a[5] * b[4] + a[8] * b[7],
-        a[2] * b[2] + a[5] * b[5] + a[8] * b[8],
-    )
+def _transpose3(a: M3) -> M3:
+    """a^T for a row-major 9-tuple."""
+    return a[0], a[3], a[6], a[1], a[4], a[7], a[2], a[5], a[8]
 
 
 @kernel
@@ -182,10 +172,10 @@ def edge_error9(ra: M3, ta: V3, rb: M3, tb: V3, rz: M3, tz: V3) -> tuple[E6, M3,
     views: a loop over constraints reads them by index, :func:`row3x3`, :func:`row3`)."""
     d = (tb[0] - ta[0], tb[1] - ta[1], tb[2] - ta[2])
     tab = _tmulv(ra, d)
-    rab = _tmul3(ra, rb)
+    rab = _mul3(_transpose3(ra), rb)
     tu = _tmulv(rz, (tab[0] - tz[0], tab[1] - tz[1], tab[2] - tz[2]))
     t0, t1, t2 = tu
-    p0, p1, p2 = so3_log9(_tmul3(rz, rab))
+    p0, p1, p2 = so3_log9(_mul3(_transpose3(rz), rab))
     c = jl_inv_coeff(math.sqrt(p0 * p0 + p1 * p1 + p2 * p2))
     # rho = Jl^-1(phi) t = t - 1/2 phi x t + c phi x (phi x t)
     x0 = p1 * t2 - p2 * t1
