@@ -17,6 +17,7 @@ symmetric-part formula (``NEAR_PI``).
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -428,3 +429,64 @@ def planar_chi2_in_order(zr: np.ndarray, zt: np.ndarray, info: np.ndarray, ra: n
     alpha = 1.0 - cc * th * th
     e = np.array([alpha * t0 + 0.5 * th * t1, alpha * t1 - 0.5 * th * t0, 0.0, 0.0, 0.0, th])
     return chi2_in_order(info, e)
+
+
+def assemble_in_order(ja: np.ndarray, jb: np.ndarray, info: np.ndarray, weight: np.ndarray,
+                      var_a: np.ndarray, var_b: np.ndarray, edge_off: np.ndarray,
+                      dofs: tuple[int, ...], indptr: np.ndarray, data: np.ndarray,
+                      grad: np.ndarray, e: np.ndarray) -> None:
+    """The relative constraints' terms of the exact solver's normal equations (layout of
+    :mod:`hybridpgo.solvers._gn_kernels`) from given Jacobians ``ja, jb`` (M, 6, 6), errors
+    ``e`` (M, 6) and robust weights, with every product summed over all six rows in order
+    (the kernel leaves out the Jacobians' structural zeros).  Plain Python: for small graphs."""
+    nd = len(dofs)
+    data[:] = 0.0
+    grad[:] = 0.0
+    for c in range(ja.shape[0]):
+        om = info[c]
+        oe = [sum_in_order(om[i, k] * e[c, k] for k in range(6)) for i in range(6)]
+        wa = [[sum_in_order(om[i, k] * ja[c, k, dofs[q]] for k in range(6)) for q in range(nd)]
+              for i in range(6)]
+        wb = [[sum_in_order(om[i, k] * jb[c, k, dofs[q]] for k in range(6)) for q in range(nd)]
+              for i in range(6)]
+        wc = weight[c]
+        if wc != 1.0:
+            oe = [x * wc for x in oe]
+            wa = [[x * wc for x in row] for row in wa]
+            wb = [[x * wc for x in row] for row in wb]
+        va, vb = int(var_a[c]), int(var_b[c])
+
+        def diag(j: np.ndarray, w: list[list[float]], v: int) -> None:
+            for q in range(nd):
+                col = indptr[nd * v + q] - q
+                for p in range(q, nd):
+                    data[col + p] += sum_in_order(j[k, dofs[p]] * w[k][q] for k in range(6))
+
+        def lower(j: np.ndarray, w: list[list[float]], v: int, k: int) -> None:
+            for q in range(nd):
+                col = indptr[nd * v + q] + nd - q + nd * k
+                for p in range(nd):
+                    data[col + p] += sum_in_order(j[i, dofs[p]] * w[i][q] for i in range(6))
+
+        for j, v, w in ((ja[c], va, wa), (jb[c], vb, wb)):
+            if v >= 0:
+                diag(j, w, v)
+                for p in range(nd):
+                    grad[6 * v + dofs[p]] += sum_in_order(j[k, dofs[p]] * oe[k]
+                                                          for k in range(6))
+        if va >= 0 and vb >= 0:
+            if va > vb:
+                lower(ja[c], wb, vb, int(edge_off[c]))
+            elif vb > va:
+                lower(jb[c], wa, va, int(edge_off[c]))
+            else:
+                diag(ja[c], wb, va)
+                diag(jb[c], wa, va)
+
+
+def sum_in_order(terms: Iterable[float]) -> float:
+    """``0.0 + t_0 + t_1 + ...`` in float64, left to right (a kernel's accumulation loop)."""
+    s = 0.0
+    for t in terms:
+        s += float(t)
+    return s

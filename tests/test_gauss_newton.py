@@ -7,7 +7,7 @@ import itertools
 
 import numpy as np
 import pytest
-from ref_kernels import relative_error, se3_exp
+from ref_kernels import assemble_in_order, relative_error, se3_exp
 from tolerances import (
     CENTRAL_DIFF,
     CENTRAL_DIFF_STEP,
@@ -212,7 +212,6 @@ def test_allocation_free_kernels_match_geometry_kernels(regime: str) -> None:
     from ref_kernels import se3_adjoint, se3_right_jacobian_inv
 
     rng = np.random.default_rng(7)
-    w = np.empty((12, 3, 3))
     for _ in range(20):
         ra = _rotation(rng, np.pi)
         ta = rng.normal(size=3)
@@ -224,7 +223,9 @@ def test_allocation_free_kernels_match_geometry_kernels(regime: str) -> None:
         e = np.empty(6)
         ja = np.empty((6, 6))
         jb = np.empty((6, 6))
-        _gn_kernels._edge_linearization(ra, ta, rb, tb, rz, tz, e, ja, jb, w)
+        _gn_kernels._edge_linearization(np.stack([ra, rb]), np.stack([ta, tb]), rz[None],
+                                        tz[None], 0, 1, 0, e, ja, jb)
+        assert np.all(ja[3:, :3] == 0.0) and np.all(jb[3:, :3] == 0.0)  # what assembly skips
         ref_e = relative_error(rz, tz, ra.T @ rb, ra.T @ (tb - ta))
         np.testing.assert_allclose(e, ref_e, rtol=0, atol=FLOAT64_IDENTITY * 10)
         jri = se3_right_jacobian_inv(ref_e)
@@ -286,7 +287,6 @@ def test_planar_linearization_is_se3s_restricted_to_the_plane(angle: float) -> N
     switch: equal to rounding; SE(3)'s out-of-plane rows of the planar columns are exactly 0
     (what the planar system leaves out)."""
     rng = np.random.default_rng(int(angle * 1e3))
-    w = np.empty((_cost.SCRATCH, 3, 3))
     for sign in (1.0, -1.0):
         for _ in range(20):
             ra = _rot_z(rng.uniform(-np.pi, np.pi))
@@ -296,10 +296,12 @@ def test_planar_linearization_is_se3s_restricted_to_the_plane(angle: float) -> N
             tb = np.r_[rng.normal(size=2) * 5.0, 0.0]
             tz = np.r_[rng.normal(size=2) * 3.0, 0.0]
             e3, ja3, jb3 = np.empty(6), np.empty((6, 6)), np.empty((6, 6))
-            _gn_kernels._edge_linearization(ra, ta, rb, tb, rz, tz, e3, ja3, jb3, w)
+            _gn_kernels._edge_linearization(np.stack([ra, rb]), np.stack([ta, tb]), rz[None],
+                                            tz[None], 0, 1, 0, e3, ja3, jb3)
             e2, ja2, jb2 = np.empty(6), np.empty((6, 6)), np.empty((6, 6))
             rel = _cost.planar_residual(rz, tz, ra, ta, rb, tb, e2)
             _cost.planar_jacobians(e2, rel, ja2, jb2)
+            assert np.all(ja2[3:, :3] == 0.0) and np.all(jb2[3:, :3] == 0.0)
             assert e2[5] == pytest.approx(sign * angle, abs=FLOAT64_IDENTITY)
             np.testing.assert_allclose(e2, e3, rtol=0,
                                        atol=TWIN_JACOBIAN * max(1.0, np.abs(e3).max()))
@@ -646,6 +648,54 @@ def test_the_trial_energy_is_the_assemblys_to_the_bit(robust, planar: bool) -> N
     data, grad = np.empty(nnz), np.empty(pat.dim)
     assembled = _normal.assemble(g, pat, rot, trans, data, grad, robust, system)
     assert _normal.energies_at(g, rot, trans, robust, planar) == assembled
+
+
+@pytest.mark.parametrize("robust", [(0, 1.0), (_cost.robust_kind("huber", 1.0), 1.0)])
+@pytest.mark.parametrize("planar", [False, True])
+def test_assembly_equals_the_full_products_to_the_bit(robust, planar: bool) -> None:
+    """The assembly sums each product only over the Jacobians' rows that can be non-zero; the
+    same products summed over all six rows in order (``ref_kernels.assemble_in_order``, from
+    the same Jacobians) give H and g equal to the bit, in the whole and the planar system."""
+    from test_energy import planar_graph
+
+    rng = np.random.default_rng(53)
+    if planar:
+        g, *_ = planar_graph(rng, n=25, extra=20, noise=0.3)
+    else:
+        g = random_graph(rng, n=18, extra=14, noise=0.5, init_noise=0.5, num_gps=0)
+    fixed = _normal.default_fixed_nodes(g)
+    pat = _normal.analyze(g, fixed, reorder=True)
+    rot, trans = np.array(g.rotations), np.array(g.translations)
+    assert _normal.is_planar(g, rot, trans) == planar
+    system = _normal.planar_system(pat) if planar else _normal.full_system(pat)
+    m = g.num_edges
+    e, ja, jb = np.empty((m, 6)), np.empty((m, 6, 6)), np.empty((m, 6, 6))
+    nodes = g.edge_nodes
+    if planar:
+        for c in range(m):
+            a, b = nodes[c]
+            rel = _cost.planar_residual(g.edge_rotations[c], g.edge_translations[c], rot[a],
+                                        trans[a], rot[b], trans[b], e[c])
+            _cost.planar_jacobians(e[c], rel, ja[c], jb[c])
+    else:
+        _gn_kernels.edge_jacobians(rot, trans, nodes, g.edge_rotations, g.edge_translations, e,
+                                   ja, jb)
+    weight = np.ones(m)
+    if robust[0] != _cost.ROBUST_NONE:
+        info = g.edge_information
+        for c in range(m):
+            chi = _cost.chi2(info[c], e[c], 6, np.empty(6))
+            weight[c] = _cost.robust_cost(robust[0], robust[1], chi)[1]
+        assert weight.min() < 1.0  # some constraints down-weighted
+    data, grad = np.empty(system.nnz), np.empty(pat.dim)
+    _normal.assemble(g, pat, rot, trans, data, grad, robust, system)
+    ref_data, ref_grad = np.empty(system.nnz), np.empty(pat.dim)
+    var = pat.var_of_node
+    assemble_in_order(ja, jb, g.edge_information, weight, var[nodes[:, 0]], var[nodes[:, 1]],
+                      pat.edge_off, tuple(int(d) for d in system.tangent), system.indptr,
+                      ref_data, ref_grad, e)
+    assert np.array_equal(data, ref_data)
+    assert np.array_equal(grad, ref_grad)
 
 
 # --------------------------------------------------------------------------- convergence test

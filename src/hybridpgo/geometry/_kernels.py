@@ -288,8 +288,8 @@ def q_into(r0: float, r1: float, r2: float, p0: float, p1: float, p2: float,
 
 
 @kernel
-def jr_inv_blocks(e: np.ndarray, w: np.ndarray) -> None:
-    """Jr^-1(e) = Jl^-1(-e) = [[J, K], [0, J]]: J -> w[8], K -> w[9] (w[0:8] scratch).
+def jr_inv9(e: E6) -> tuple[M3, M3]:
+    """``(J, K)`` of Jr^-1(e) = Jl^-1(-e) = [[J, K], [0, J]] as row-major 9-tuples.
 
     J = Jl^-1(-phi) = I + 1/2 [phi]x + c [phi]x^2, K = -J Q(-rho, -phi) J.
     """
@@ -308,7 +308,14 @@ def jr_inv_blocks(e: np.ndarray, w: np.ndarray) -> None:
     )
     q = _q_matrix3(-e[0], -e[1], -e[2], -p0, -p1, -p2)
     km = _mul3(jm, _mul3(q, jm))
+    return jm, (-km[0], -km[1], -km[2], -km[3], -km[4], -km[5], -km[6], -km[7], -km[8])
+
+
+@kernel
+def jr_inv_blocks(e: np.ndarray, w: np.ndarray) -> None:
+    """:func:`jr_inv9` of the array ``e``: J -> w[8], K -> w[9]."""
+    jm, km = jr_inv9((e[0], e[1], e[2], e[3], e[4], e[5]))
     for i in range(3):
         for j in range(3):
             w[8, i, j] = jm[3 * i + j]
-            w[9, i, j] = -km[3 * i + j]
+            w[9, i, j] = km[3 * i + j]

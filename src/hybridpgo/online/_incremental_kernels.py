@@ -49,9 +49,9 @@ import math
 
 import numpy as np
 
-from .._cost import SCRATCH, chi2, gps_chi2, relative_chi2_at, retract_into
+from .._cost import chi2, gps_chi2, relative_chi2_at, retract_into
 from .._numba import cycle_counter, kernel
-from ..solvers._gn_kernels import _edge_linearization, _matmul6
+from ..solvers._gn_kernels import _edge_linearization, _matmul_cols, _rows
 
 #: numeric: a pivot of a diagonal block was not positive (the system is not SPD).
 NOT_SPD = -2
@@ -108,7 +108,6 @@ def linearize_edges(ids: np.ndarray, rot: np.ndarray, trans: np.ndarray, ab: np.
     """Each listed edge's blocks of H and g at the poses ``rot, trans`` (the linearization
     point): ``haa = Ja^T W Ja``, ``hbb = Jb^T W Jb``, ``hab = Ja^T W Jb`` (block (a, b)),
     ``ga = Ja^T W e``, ``gb = Jb^T W e``, its χ².  Returns -1, or the first non-finite edge."""
-    w = np.empty((SCRATCH, 3, 3))
     e = np.empty(6)
     oe = np.empty(6)
     ja = np.empty((6, 6))
@@ -119,18 +118,18 @@ def linearize_edges(ids: np.ndarray, rot: np.ndarray, trans: np.ndarray, ab: np.
         c = ids[q]
         a = ab[c, 0]
         b = ab[c, 1]
-        _edge_linearization(rot[a], trans[a], rot[b], trans[b], zr[c], zt[c], e, ja, jb, w)
+        _edge_linearization(rot, trans, zr, zt, a, b, c, e, ja, jb)
         om = info[c]
         s = chi2(om, e, 6, oe)
         if not math.isfinite(s):
             return int(c)
         chi[c] = s
-        _matmul6(om, ja, wa)
-        _matmul6(om, jb, wb)
+        _matmul_cols(om, ja, (0, 1, 2, 3, 4, 5), wa)
+        _matmul_cols(om, jb, (0, 1, 2, 3, 4, 5), wb)
         for p in range(6):
             sa = 0.0
             sb = 0.0
-            for k in range(6):
+            for k in range(_rows(p)):  # the Jacobians' structural zeros left out (_gn_kernels)
                 sa += ja[k, p] * oe[k]
                 sb += jb[k, p] * oe[k]
             ga[c, p] = sa
@@ -139,7 +138,7 @@ def linearize_edges(ids: np.ndarray, rot: np.ndarray, trans: np.ndarray, ab: np.
                 s1 = 0.0
                 s2 = 0.0
                 s3 = 0.0
-                for k in range(6):
+                for k in range(_rows(p)):
                     s1 += ja[k, p] * wa[k, r]
                     s2 += jb[k, p] * wb[k, r]
                     s3 += ja[k, p] * wb[k, r]

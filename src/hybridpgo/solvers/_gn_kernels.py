@@ -40,35 +40,44 @@ from .._cost import (
     gps_chi2,
     planar_jacobians,
     planar_residual,
-    residual_and_jr_inv,
     retract_into,
     robust_cost,
 )
-from .._cost import SCRATCH as _SCRATCH
 from .._numba import kernel
-from ..geometry._kernels import mm3, skew_into
+from ..geometry._kernels import (
+    E6,
+    M3,
+    _mul3,
+    _skew3,
+    _tmulv,
+    _transpose3,
+    edge_error9,
+    jr_inv9,
+    row3,
+    row3x3,
+)
 
 
 # --------------------------------------------------------------------------- inner kernels
+#: Rows of a Jacobian column that can be non-zero: both the SE(3) Jacobians
+#: (:func:`edge_linearization9`) and the planar ones (:func:`hybridpgo._cost.planar_jacobians`)
+#: are 0 in rows 3-5 of columns 0-2 (their lower-left block), so the products below sum column
+#: ``d`` over rows ``< _rows(d)`` only.  The terms left out are exact zeros, so each sum is the
+#: full sum to the bit (adding +-0 to a sum that started at +0 never changes it).
 @kernel
-def _matmul6(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
-    """out = a @ b for (6, 6) arrays."""
-    for i in range(6):
-        for j in range(6):
-            s = 0.0
-            for k in range(6):
-                s += a[i, k] * b[k, j]
-            out[i, j] = s
+def _rows(d: int) -> int:
+    return 3 if d < 3 else 6
 
 
 @kernel
 def _matmul_cols(a: np.ndarray, b: np.ndarray, dofs: tuple[int, ...], out: np.ndarray) -> None:
-    """``out[:, q] = a @ b[:, dofs[q]]`` for (6, 6) a, b: the columns of ``a @ b`` kept."""
+    """``out[:, q] = a @ b[:, dofs[q]]`` for (6, 6) a and a Jacobian b: the columns of
+    ``a @ b`` kept."""
     for i in range(6):
         for q in range(len(dofs)):
             dq = dofs[q]
             s = 0.0
-            for k in range(6):
+            for k in range(_rows(dq)):
                 s += a[i, k] * b[k, dq]
             out[i, q] = s
 
@@ -76,15 +85,15 @@ def _matmul_cols(a: np.ndarray, b: np.ndarray, dofs: tuple[int, ...], out: np.nd
 @kernel
 def _add_diag_atb(a: np.ndarray, b: np.ndarray, dofs: tuple[int, ...], data: np.ndarray,
                   indptr: np.ndarray, v: int) -> None:
-    """Lower triangle of diagonal block v += lower triangle of ``a[:, dofs]^T @ b`` ((6, 6) a,
-    (6, nd) b: its columns already the kept ones)."""
+    """Lower triangle of diagonal block v += lower triangle of ``a[:, dofs]^T @ b`` (a (6, 6)
+    Jacobian, (6, nd) b: its columns already the kept ones)."""
     nd = len(dofs)
     for q in range(nd):
         col = indptr[nd * v + q] - q
         for p in range(q, nd):
             dp = dofs[p]
             s = 0.0
-            for k in range(6):
+            for k in range(_rows(dp)):
                 s += a[k, dp] * b[k, q]
             data[col + p] += s
 
@@ -92,57 +101,64 @@ def _add_diag_atb(a: np.ndarray, b: np.ndarray, dofs: tuple[int, ...], data: np.
 @kernel
 def _add_lower_atb(a: np.ndarray, b: np.ndarray, dofs: tuple[int, ...], data: np.ndarray,
                    indptr: np.ndarray, v: int, k: int) -> None:
-    """The k-th lower block of block column v += ``a[:, dofs]^T @ b`` ((6, 6) a, (6, nd) b)."""
+    """The k-th lower block of block column v += ``a[:, dofs]^T @ b`` (a (6, 6) Jacobian,
+    (6, nd) b)."""
     nd = len(dofs)
     for q in range(nd):
         col = indptr[nd * v + q] + nd - q + nd * k
         for p in range(nd):
             dp = dofs[p]
             s = 0.0
-            for i in range(6):
+            for i in range(_rows(dp)):
                 s += a[i, dp] * b[i, q]
             data[col + p] += s
 
 
 @kernel
-def _edge_linearization(ra: np.ndarray, ta: np.ndarray, rb: np.ndarray, tb: np.ndarray,
-                        rz: np.ndarray, tz: np.ndarray, e: np.ndarray, ja: np.ndarray,
-                        jb: np.ndarray, w: np.ndarray) -> None:
-    """Error e (6,) and Jacobians ja, jb (6, 6) of one relative constraint; w: scratch.
+def edge_linearization9(rot: np.ndarray, trans: np.ndarray, edge_rot: np.ndarray,
+                        edge_trans: np.ndarray, a: int, b: int, c: int
+                        ) -> tuple[E6, M3, M3, M3, M3]:
+    """``(e, J, K, JR, JT)`` of relative constraint c between poses a and b, read by index
+    (no array views, docs/contributing.md#kernels): the error e and the blocks of its
+    Jacobians as row-major 9-tuples, ``jb = Jr^-1(e) = [[J, K], [0, J]]`` and
+    ``ja = -Jr^-1(e) Ad(X_b^-1 X_a) = -[[JR, JT], [0, JR]]``.
 
-    ``jb = Jr^-1(e)``, ``ja = -Jr^-1(e) Ad(X_b^-1 X_a)``.  With X_b^-1 X_a = (R, t) =
-    (R_ab^T, -R_ab^T t_ab) and Ad = [[R, [t]x R], [0, R]], Jr^-1 = [[J, K], [0, J]]:
-    ``ja = -[[J R, J [t]x R + K R], [0, J R]]``.
+    With X_b^-1 X_a = (R, t) = (R_ab^T, -R_ab^T t_ab) and Ad = [[R, [t]x R], [0, R]]:
+    ``JR = J R`` and ``JT = J [t]x R + K R``.
     """
-    residual_and_jr_inv(rz, tz, ra, ta, rb, tb, e, w)
-    rab = w[10]
-    tab = w[11][0]
-    jm = w[8]
-    km = w[9]
-    r = w[0]
+    e, rab, tab = edge_error9(row3x3(rot, a), row3(trans, a), row3x3(rot, b), row3(trans, b),
+                              row3x3(edge_rot, c), row3(edge_trans, c))
+    jm, km = jr_inv9(e)
+    r = _transpose3(rab)
+    s = _tmulv(rab, tab)  # R_ab^T t_ab
+    txr = _mul3(_skew3(-s[0], -s[1], -s[2]), r)  # [t]x R
+    jr = _mul3(jm, r)
+    jt = _mul3(jm, txr)
+    kr = _mul3(km, r)
+    return e, jm, km, jr, (jt[0] + kr[0], jt[1] + kr[1], jt[2] + kr[2], jt[3] + kr[3],
+                           jt[4] + kr[4], jt[5] + kr[5], jt[6] + kr[6], jt[7] + kr[7],
+                           jt[8] + kr[8])
+
+
+@kernel
+def _edge_linearization(rot: np.ndarray, trans: np.ndarray, edge_rot: np.ndarray,
+                        edge_trans: np.ndarray, a: int, b: int, c: int, e: np.ndarray,
+                        ja: np.ndarray, jb: np.ndarray) -> None:
+    """:func:`edge_linearization9` into the arrays e (6,), ja and jb (6, 6)."""
+    ev, jm, km, jr, jt = edge_linearization9(rot, trans, edge_rot, edge_trans, a, b, c)
+    for i in range(6):
+        e[i] = ev[i]
     for i in range(3):
         for j in range(3):
-            r[i, j] = rab[j, i]
-    s0 = -(r[0, 0] * tab[0] + r[0, 1] * tab[1] + r[0, 2] * tab[2])
-    s1 = -(r[1, 0] * tab[0] + r[1, 1] * tab[1] + r[1, 2] * tab[2])
-    s2 = -(r[2, 0] * tab[0] + r[2, 1] * tab[1] + r[2, 2] * tab[2])
-    txr = w[1]
-    skew_into(s0, s1, s2, w[2])
-    mm3(w[2], r, txr)  # [t]x R
-    jr = w[3]
-    mm3(jm, r, jr)  # J R
-    mm3(jm, txr, w[4])  # J [t]x R
-    mm3(km, r, w[5])  # K R
-    for i in range(3):
-        for j in range(3):
-            ja[i, j] = -jr[i, j]
-            ja[i, j + 3] = -(w[4][i, j] + w[5][i, j])
+            n = 3 * i + j
+            ja[i, j] = -jr[n]
+            ja[i, j + 3] = -jt[n]
             ja[i + 3, j] = 0.0
-            ja[i + 3, j + 3] = -jr[i, j]
-            jb[i, j] = jm[i, j]
-            jb[i, j + 3] = km[i, j]
+            ja[i + 3, j + 3] = -jr[n]
+            jb[i, j] = jm[n]
+            jb[i, j + 3] = km[n]
             jb[i + 3, j] = 0.0
-            jb[i + 3, j + 3] = jm[i, j]
+            jb[i + 3, j + 3] = jm[n]
 
 
 @kernel
@@ -152,7 +168,7 @@ def _add_gradient(j: np.ndarray, oe: np.ndarray, dofs: tuple[int, ...], grad: np
     for p in range(len(dofs)):
         dp = dofs[p]
         s = 0.0
-        for k in range(6):
+        for k in range(_rows(dp)):
             s += j[k, dp] * oe[k]
         grad[6 * v + dp] += s
 
@@ -163,12 +179,11 @@ def edge_jacobians(rot: np.ndarray, trans: np.ndarray, edge_nodes: np.ndarray,
                    edge_rot: np.ndarray, edge_trans: np.ndarray, out_err: np.ndarray,
                    out_ja: np.ndarray, out_jb: np.ndarray) -> None:
     """Errors (M, 6) and Jacobians (M, 6, 6) w.r.t. delta_a and delta_b of every relative edge."""
-    w = np.empty((_SCRATCH, 3, 3))
     for c in range(edge_nodes.shape[0]):
         a = edge_nodes[c, 0]
         b = edge_nodes[c, 1]
-        _edge_linearization(rot[a], trans[a], rot[b], trans[b], edge_rot[c], edge_trans[c],
-                            out_err[c], out_ja[c], out_jb[c], w)
+        _edge_linearization(rot, trans, edge_rot, edge_trans, a, b, c, out_err[c], out_ja[c],
+                            out_jb[c])
 
 
 @kernel
@@ -206,7 +221,6 @@ def assemble_normal_equations(
     data[:] = 0.0
     grad[:] = 0.0
     m = edge_nodes.shape[0]
-    w = np.empty((_SCRATCH, 3, 3))
     e = np.empty(6)
     oe = np.empty(6)
     ja = np.empty((6, 6))
@@ -224,8 +238,7 @@ def assemble_normal_equations(
                                   trans[b], e)
             planar_jacobians(e, rel, ja, jb)
         else:
-            _edge_linearization(rot[a], trans[a], rot[b], trans[b], edge_rot[c],
-                                edge_trans[c], e, ja, jb, w)
+            _edge_linearization(rot, trans, edge_rot, edge_trans, a, b, c, e, ja, jb)
         om = edge_info[c]
         ec = chi2(om, e, 6, oe)
         ok = math.isfinite(ec)
