@@ -7,10 +7,14 @@ into an uninitialized ``contrib``; the naive twin of eq. 23/24 is tests/test_hyb
 
 from __future__ import annotations
 
+import mmap
+import sys
+
 import numpy as np
 import pytest
 from graphs import random_graph
 
+from hybridpgo._memory import mapped_zeros
 from hybridpgo.solvers import HybridConfig
 from hybridpgo.solvers.hybrid import HybridSolver, _init_blocks, _sweep
 from hybridpgo.solvers.hybrid.problem import State
@@ -83,3 +87,40 @@ def test_the_set_up_kernel_is_chosen_by_size_and_gives_the_same_solve(monkeypatc
     assert small_calls == [] and large_calls  # the own kernel only for the "large" graph
     assert np.array_equal(small.rotations, large.rotations)
     assert np.array_equal(small.translations, large.translations)
+
+
+def _mapping(a: np.ndarray) -> object:
+    """The object at the root of ``a``'s chain of bases."""
+    while isinstance(a.base, np.ndarray):
+        a = a.base
+    return a.base.obj if isinstance(a.base, memoryview) else a.base
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="anonymous maps: Linux")
+def test_the_blocks_live_on_an_anonymous_map_not_numpys_huge_pages() -> None:
+    """𝔅(H) and every constraint's blocks (GBs at 1M poses) are views of anonymous memory
+    maps (:mod:`hybridpgo._memory`), not NumPy allocations, which ask for huge pages."""
+    graph = random_graph(np.random.default_rng(6), 400, 300)[0]
+    st = HybridSolver(graph).state
+    assert st.contrib.nbytes >= mmap.PAGESIZE
+    for a in (st.bdiag, st.contrib):
+        assert isinstance(_mapping(a), mmap.mmap)
+        assert a.flags.writeable and a.flags.c_contiguous
+
+
+@pytest.mark.parametrize("reserve", [False, True])
+def test_mapped_zeros_are_zero_writable_and_fall_back_to_numpy(monkeypatch, reserve) -> None:
+    a, mapped = mapped_zeros((300, 6, 6), np.float64, reserve)
+    assert a.shape == (300, 6, 6) and a.dtype == np.float64 and not a.any()
+    assert mapped == sys.platform.startswith("linux")
+    a[-1] = 2.0
+    assert a.sum() == 72.0
+
+    def refuse(*_args: object, **_kwargs: object) -> None:
+        raise OSError("no map")
+
+    monkeypatch.setattr(mmap, "mmap", refuse)
+    b, mapped = mapped_zeros((300, 6, 6), np.int64, reserve)
+    assert not mapped and b.dtype == np.int64 and b.shape == (300, 6, 6) and not b.any()
+    tiny, mapped = mapped_zeros((3,), np.float64, reserve)  # below a page: NumPy's
+    assert not mapped and tiny.shape == (3,)

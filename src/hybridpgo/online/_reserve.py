@@ -11,29 +11,18 @@ strict overcommit policy, an address-space limit) the arrays are ordinary ``nump
 
 from __future__ import annotations
 
-import mmap
-import sys
 from typing import Any
 
 import numpy as np
 
-#: Linux's ``MAP_NORESERVE``: no swap is reserved for the map (pages come on first write).
-_MAP_NORESERVE = 0x4000
+from .._memory import mapped_zeros
 
 
 def reserved_zeros(shape: tuple[int, ...], dtype: Any = np.float64) -> tuple[np.ndarray, bool]:
     """``(array, reserved)``: a zero array of ``shape``; ``reserved`` is True when it is a view
-    of a memory map that costs address space only until written."""
-    dt = np.dtype(dtype)
-    nbytes = int(np.prod(shape, dtype=np.int64)) * dt.itemsize
-    if sys.platform.startswith("linux") and nbytes >= mmap.PAGESIZE:
-        try:
-            m = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | _MAP_NORESERVE)
-        except (OSError, ValueError, OverflowError):
-            pass
-        else:
-            return np.frombuffer(m, dtype=dt).reshape(shape), True
-    return np.zeros(shape, dt), False
+    of a memory map that costs address space only until written
+    (:func:`hybridpgo._memory.mapped_zeros` with ``reserve=True``)."""
+    return mapped_zeros(shape, dtype, reserve=True)
 
 
 def grown(arr: np.ndarray, size: int, fill: float = 0) -> np.ndarray:

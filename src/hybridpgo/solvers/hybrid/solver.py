@@ -17,6 +17,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..._cost import robust_kind
+from ..._memory import mapped_zeros
 from ..._numba import cycles_per_second, read_cycles
 from ..._warmup import tiny_graph
 from ...energy import energy, robust_energy
@@ -114,9 +115,10 @@ class HybridSolver:
         )  # fmt: skip
         self.state = State(  # copies: the sweeps change them in place
             np.array(rot0, np.float64, order="C"), np.array(trans0, np.float64, order="C"),
-            np.zeros((tree.num_tree_nodes, 6, 6)),
-            # every row is written by rebuild_blocks: no zero-fill (a page touch per row, GBs)
-            np.empty((int(tree.path_ptr[-1]), 6, 6)),
+            # 𝔅(H) and the constraints' blocks (GBs at 1M poses): on demand-zero pages without
+            # huge pages, whose first write can stall in the kernel's compaction (_memory)
+            mapped_zeros((tree.num_tree_nodes, 6, 6))[0],
+            mapped_zeros((int(tree.path_ptr[-1]), 6, 6))[0],
         )
         lengths = tree.path_lengths()
         self.dmax = max(int(lengths.max()) if lengths.size else 1, 1)
