@@ -11,7 +11,7 @@ import pytest
 import scipy.sparse as sp
 from graphs import planar_rotations, with_gps
 from naive import dense_quadratic_form, schur_certificate, sesync_objective
-from tolerances import CENTRAL_DIFF, FLOAT64_IDENTITY
+from tolerances import CENTRAL_DIFF, FLOAT64_IDENTITY, ORTHONORMAL
 
 from hybridpgo.certificate import (
     SyncProblem,
@@ -435,3 +435,79 @@ def test_sparse_spd_refuses_a_missing_diagonal_or_another_format() -> None:
         SparseSPD(a)
     with pytest.raises(ValueError, match="CSR, CSC, COO or BSR"):
         SparseSPD(sp.lil_matrix(np.eye(3)))
+
+
+def _svd_polar(b: np.ndarray) -> np.ndarray:
+    u, _, vh = np.linalg.svd(b, full_matrices=False)
+    return u @ vh
+
+
+@pytest.mark.parametrize("p", [3, 4, 6])
+def test_polar_rows_is_the_svds_polar_factor(p: int) -> None:
+    """Newton's polar iteration against the SVD's ``u @ vh``, from near-orthonormal blocks
+    (the staircase's retraction), Gaussian and badly scaled ones; blocks with nearly dependent
+    rows are refused (``ok`` False) and ``retract`` gives them the SVD's factor."""
+    from hybridpgo._sync_kernels import POLAR_SINGULAR, polar_rows
+
+    rng = np.random.default_rng(p)
+    n = 400
+    q = _svd_polar(rng.standard_normal((n, 3, p)))
+    sig = np.array([1.0, 1.0, 1e-7])[None, :, None]
+    families = {
+        "near": q + 0.05 * rng.standard_normal((n, 3, p)),
+        "gauss": rng.standard_normal((n, 3, p)),
+        "large": 1e3 * rng.standard_normal((n, 3, p)),
+        "small": 1e-3 * rng.standard_normal((n, 3, p)),
+        "dependent": _svd_polar(rng.standard_normal((n, 3, 3))) @ (sig * q),
+    }
+    for name, b in families.items():
+        out, ok = np.full_like(b, np.nan), np.empty(n, np.bool_)
+        polar_rows(b, out, ok)
+        if name == "dependent":
+            assert not ok.any()
+            continue
+        # refused exactly where the rows are nearly dependent (POLAR_SINGULAR)
+        gram_b = b @ np.swapaxes(b, 1, 2)
+        ratio = np.linalg.det(gram_b) / (np.trace(gram_b, axis1=1, axis2=2) / 3.0) ** 3
+        clear = np.abs(np.log(ratio / POLAR_SINGULAR)) > 1e-6
+        assert np.array_equal(ok[clear], (ratio >= POLAR_SINGULAR)[clear]), name
+        assert ok.mean() > (0.999 if name == "near" else 0.9), name
+        out, ref = out[ok], _svd_polar(b[ok])
+        # the polar factor's condition: largest over the sum of the two smallest singular values
+        s = np.linalg.svd(b[ok], compute_uv=False)
+        cond = s[:, 0] / (s[:, -1] + s[:, -2])
+        err = np.abs(out - ref).max(axis=(1, 2))
+        assert np.all(err <= FLOAT64_IDENTITY * np.maximum(cond, 1.0)), name
+        gram = out @ np.swapaxes(out, 1, 2)
+        np.testing.assert_allclose(gram, np.broadcast_to(np.eye(3), gram.shape), rtol=0,
+                                   atol=ORTHONORMAL * 10)
+    # the retraction: the kernel where it converges, the SVD where it refuses
+    prob = SyncProblem(_tiny3d())
+    v = np.concatenate([q[:prob.n - 1], families["dependent"][:1]]).reshape(3 * prob.n, p)
+    np.testing.assert_allclose(prob.retract(v), _svd_polar(v.reshape(prob.n, 3, p)).reshape(
+        v.shape), rtol=0, atol=FLOAT64_IDENTITY)
+
+
+def test_newton_on_f_does_not_retry_an_indefinite_undamped_hessian_every_step(monkeypatch):
+    """Where F's undamped Hessian is indefinite (here: every undamped factorization refused),
+    Newton's method keeps the floor's damping until a step meets its model, instead of
+    retrying mu = 0 after every damped step (a failed factorization costs about as much as a
+    good one): at most one failed factorization for three good ones."""
+    graph = read_graph(bundled_path("garage.g2o"))
+    prob = SyncProblem(graph)
+    prob._newton_setup()  # the positions' factorization and the analysis, before the stub
+    outcomes: list[bool] = []
+    factor = _linear.SparseSPD.factor
+
+    def indefinite_unless_damped(self, shift=0.0, check=False, values=None):
+        if not np.any(np.asarray(shift)):
+            outcomes.append(False)
+            raise NotPositiveDefinite("stub: indefinite")
+        outcomes.append(True)
+        return factor(self, shift, check, values)
+
+    monkeypatch.setattr(_linear.SparseSPD, "factor", indefinite_unless_damped)
+    start = prob.to_y(graph.rotations)
+    _, f, count = prob.refine(start)
+    assert count == len(outcomes) and f < prob.cost(start)
+    assert 3 * outcomes.count(False) <= outcomes.count(True), outcomes

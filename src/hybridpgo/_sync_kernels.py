@@ -273,3 +273,82 @@ def pose_blocks(indptr: np.ndarray, indices: np.ndarray, re: np.ndarray, im: np.
                 out[k, sr + 1, sc] += q
                 out[k, sr + 1, sc + 1] += p
     return -1
+
+
+#: :func:`polar_rows`: a block whose ``det(X X^T)`` is below this times ``(tr(X X^T) / 3)^3`` is
+#: left to the SVD (its rows nearly dependent: the polar factor is then ill-determined).
+POLAR_SINGULAR = 1e-4
+#: :func:`polar_rows`: the iteration is scaled while its change exceeds this (relative).
+_POLAR_SCALED = 1e-2
+#: :func:`polar_rows`: once a change is below this (relative), one more step reaches rounding.
+_POLAR_CLOSE = 1e-8
+
+
+@kernel
+def polar_rows(v: np.ndarray, out: np.ndarray, ok: np.ndarray) -> None:
+    """The polar factor ``U = (X X^T)^-1/2 X`` of each (3, p) block X of ``v`` (n, 3, p): the
+    nearest matrix with orthonormal rows (what the SVD gives as ``u @ vh``), into ``out``.
+
+    Newton's iteration ``X <- (g X + (X X^T)^-1 X / g) / 2`` (Higham, "Functions of
+    Matrices", 8.3), with the determinant scaling ``g = det(X X^T)^(-1/6)`` while the steps are
+    large: quadratic convergence from any block of full row rank, about 2 ns per entry and step.
+    ``ok[i]`` is False where block i has nearly dependent rows (:data:`POLAR_SINGULAR`) or is not
+    finite: those are left to the caller (the SVD)."""
+    n = v.shape[0]
+    p = v.shape[2]
+    x = np.empty((3, p))
+    y = np.empty((3, p))
+    for i in range(n):
+        for r in range(3):
+            for c in range(p):
+                x[r, c] = v[i, r, c]
+        ok[i] = False
+        scaled = True
+        for _ in range(100):
+            g00 = g01 = g02 = g11 = g12 = g22 = 0.0
+            for c in range(p):
+                g00 += x[0, c] * x[0, c]
+                g01 += x[0, c] * x[1, c]
+                g02 += x[0, c] * x[2, c]
+                g11 += x[1, c] * x[1, c]
+                g12 += x[1, c] * x[2, c]
+                g22 += x[2, c] * x[2, c]
+            # the adjugate of the symmetric G
+            a00 = g11 * g22 - g12 * g12
+            a01 = g02 * g12 - g01 * g22
+            a02 = g01 * g12 - g02 * g11
+            a11 = g00 * g22 - g02 * g02
+            a12 = g01 * g02 - g00 * g12
+            a22 = g00 * g11 - g01 * g01
+            det = g00 * a00 + g01 * a01 + g02 * a02
+            tr = (g00 + g11 + g22) / 3.0
+            if not (det > POLAR_SINGULAR * tr * tr * tr) or not np.isfinite(det):
+                break
+            gam = det ** (-1.0 / 6.0) if scaled else 1.0
+            h = 0.5 / (gam * det)
+            change = 0.0
+            size = 0.0
+            for c in range(p):
+                x0 = x[0, c]
+                x1 = x[1, c]
+                x2 = x[2, c]
+                y[0, c] = 0.5 * gam * x0 + h * (a00 * x0 + a01 * x1 + a02 * x2)
+                y[1, c] = 0.5 * gam * x1 + h * (a01 * x0 + a11 * x1 + a12 * x2)
+                y[2, c] = 0.5 * gam * x2 + h * (a02 * x0 + a12 * x1 + a22 * x2)
+                for r in range(3):
+                    change = max(change, abs(y[r, c] - x[r, c]))
+                    size = max(size, abs(y[r, c]))
+            for r in range(3):
+                for c in range(p):
+                    x[r, c] = y[r, c]
+            if change <= _POLAR_CLOSE * size:
+                if not scaled:  # the step after a change this small reaches rounding
+                    ok[i] = True
+                    break
+                scaled = False
+                continue
+            scaled = scaled and change > _POLAR_SCALED * size
+        if ok[i]:
+            for r in range(3):
+                for c in range(p):
+                    out[i, r, c] = x[r, c]

@@ -389,19 +389,21 @@ def _certificate_info(cert: Any, start: str) -> dict[str, Any]:
         **{k: float(v) for k, v in cert.stats.items()}}
 
 
-def _staircase(graph: PoseGraph, cand: _Candidate, cert: Any,
+def _staircase(graph: PoseGraph, prob: Any, init: str, cert: Any,
                info: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
     """The early try's second chance: :func:`hybridpgo.certificate.staircase_start` from the
-    start, then the certificate of its rounded, Newton-refined rotations.  Returns the
-    certificate and ``stats["certificate"]`` (with ``staircase``: its ranks, seconds, verdict;
-    ``seconds`` counts the staircase)."""
+    rotations the failed certificate refined (so its Newton steps go on from there, on the
+    same :class:`~hybridpgo.certificate.SyncProblem` ``prob``), then the certificate of its
+    rounded, Newton-refined rotations.  Returns the certificate and ``stats["certificate"]``
+    (with ``staircase``: its ranks, seconds, verdict; ``seconds`` counts the staircase)."""
     from ..certificate import sesync_certificate, staircase_start
 
     t0 = time.perf_counter()
-    assert cand.rot is not None and cand.trans is not None
+    assert cert.rotations is not None and cert.translations is not None
     try:
         with np.errstate(over="raise", invalid="raise", divide="raise"):
-            rot, trans, stair = staircase_start(graph, cand.rot, cand.trans)
+            rot, trans, stair = staircase_start(graph, cert.rotations, cert.translations,
+                                                problem=prob)
     except (HybridPGOError, ValueError, np.linalg.LinAlgError, RuntimeError,
             FloatingPointError) as exc:
         info["staircase"] = {"certified": False, "error": str(exc),
@@ -412,9 +414,9 @@ def _staircase(graph: PoseGraph, cand: _Candidate, cert: Any,
                "objective": float(stair["objective"]),
                "ranks": [{k: float(v) for k, v in r.items()} for r in stair["ranks"]]}
     if stair["certified"]:
-        rounded = sesync_certificate(graph, rot, trans)
+        rounded = sesync_certificate(graph, rot, trans, problem=prob)
         if rounded.certified:
-            out = _certificate_info(rounded, cand.init)
+            out = _certificate_info(rounded, init)
             out["seconds"] = info["seconds"] + time.perf_counter() - t0
             out["staircase"] = {**summary, "seconds": time.perf_counter() - t0,
                                 "rank_d": info["summary"]}
@@ -437,7 +439,7 @@ def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: 
     Returns the start's candidate (its poses, no sweeps; ``locals`` kept for the sweeps when
     the try fails), the certified start's candidate (None when the certificate failed) and
     the try's ``stats["certificate"]``; ``certified`` there means the polish converged too."""
-    from ..certificate import sesync_certificate
+    from ..certificate import SyncProblem, not_applicable, sesync_certificate
     from ..energy import robust_energy
 
     graph = exact.graph
@@ -457,15 +459,23 @@ def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: 
     if iterate is not None:
         iterate(Progress("start", 0, 0, cand.history[0], detail=init), cand.rot, cand.trans)
     try:
-        cert = sesync_certificate(graph, cand.rot, cand.trans)
+        prob = None  # one SyncProblem for the certificate and the staircase (set-up once)
+        if not not_applicable(graph):
+            try:
+                with np.errstate(over="raise", invalid="raise", divide="raise"):
+                    prob = SyncProblem(graph)
+            except FloatingPointError:  # the certificate says why (F overflows)
+                prob = None
+        cert = sesync_certificate(graph, cand.rot, cand.trans, problem=prob)
     except (HybridPGOError, ValueError, np.linalg.LinAlgError, RuntimeError) as exc:
         return cand, None, {**_not_computed(f"the certificate failed: {exc}"), "start": init}
     info = _certificate_info(cert, init)
     floor = cert.stats.get("shift_floor", 0.0)
-    if not cert.certified and cert.lambda_min < -floor:
+    if (not cert.certified and cert.lambda_min < -floor
+            and cert.rotations.shape[0] == graph.num_nodes):
         # F's local minimum (a negative eigenvalue): SE-Sync's Riemannian staircase escapes it
         # through higher ranks; a certified rounding is the certified start
-        cert, info = _staircase(graph, cand, cert, info)
+        cert, info = _staircase(graph, prob, init, cert, info)
     if not cert.certified:
         return cand, None, info
     check = _Candidate(init, "certified start")
