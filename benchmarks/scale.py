@@ -315,15 +315,18 @@ def run(ctx: Any) -> tuple[list[Metric], list[str]]:
                 f"{r['energy_pipeline_other'] / r['constraints']:.10g}", f"{ratio - 1.0:+.2e}"])
         parts = r.get("sweep_parts", {})
         nan = float("nan")
-        for part in ("setup", "kernel", "energies"):
+        for part in ("setup", "kernel", "energies", "compile"):
             if part in parts:
                 metrics.append(info(f"{key}.sweep_{part}_s", parts[part], "s"))
+        compiled = parts.get("compile", 0.0)  # kernels compiled, not loaded (a fresh cache)
         cpu = r.get("cpu_s", {})
         if "sweep" in cpu:
             metrics.append(info(f"{key}.sweep_cpu_s", cpu["sweep"], "s"))
         sweep_cell = (
             f"{tm['sweep']:.1f} = {parts.get('setup', nan):.1f} + {parts.get('kernel', nan):.1f}"
-            f" + {parts.get('energies', nan):.1f} (CPU {cpu.get('sweep', nan):.1f}; load "
+            f" + {parts.get('energies', nan):.1f}"
+            + (f" + {compiled:.1f} compiling" if compiled >= 0.05 else "")
+            + f" (CPU {cpu.get('sweep', nan):.1f}; load "
             f"{r.get('load', {}).get('sweep', [nan])[0]:.1f})" if "sweep" in tm
             else f"skipped: {r['sweep_block_gb']:.0f} GB of blocks"
             if r["sweep_block_gb"] > SWEEP_BLOCKS_LIMIT_GB else "not run")

@@ -108,9 +108,9 @@ def test_the_blocks_live_on_an_anonymous_map_not_numpys_huge_pages() -> None:
         assert a.flags.writeable and a.flags.c_contiguous
 
 
-@pytest.mark.parametrize("reserve", [False, True])
-def test_mapped_zeros_are_zero_writable_and_fall_back_to_numpy(monkeypatch, reserve) -> None:
-    a, mapped = mapped_zeros((300, 6, 6), np.float64, reserve)
+@pytest.mark.parametrize("overcommit", [False, True])
+def test_mapped_zeros_are_zero_writable_and_fall_back_to_numpy(monkeypatch, overcommit) -> None:
+    a, mapped = mapped_zeros((300, 6, 6), np.float64, overcommit)
     assert a.shape == (300, 6, 6) and a.dtype == np.float64 and not a.any()
     assert mapped == sys.platform.startswith("linux")
     a[-1] = 2.0
@@ -120,7 +120,7 @@ def test_mapped_zeros_are_zero_writable_and_fall_back_to_numpy(monkeypatch, rese
         raise OSError("no map")
 
     monkeypatch.setattr(mmap, "mmap", refuse)
-    b, mapped = mapped_zeros((300, 6, 6), np.int64, reserve)
+    b, mapped = mapped_zeros((300, 6, 6), np.int64, overcommit)
     assert not mapped and b.dtype == np.int64 and b.shape == (300, 6, 6) and not b.any()
-    tiny, mapped = mapped_zeros((3,), np.float64, reserve)  # below a page: NumPy's
+    tiny, mapped = mapped_zeros((3,), np.float64, overcommit)  # below a page: NumPy's
     assert not mapped and tiny.shape == (3,)

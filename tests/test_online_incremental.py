@@ -523,3 +523,39 @@ def test_the_workers_options_converge_in_few_cycles_after_a_long_loop(
     ref = solve_exact(_graph(inc, rot, trans), rot, trans,
                       GaussNewtonConfig(max_iterations=100, energy_tolerance=1e-15))
     assert abs(inc.energy() - ref.final_energy) <= INCREMENTAL_VS_BATCH * ref.final_energy
+
+
+def test_edge_linearization_blocks_equal_the_full_products_to_the_bit() -> None:
+    """``linearize_edges`` sums its products only over the Jacobians' rows that can be
+    non-zero (as the batch assembly does); the same products over all six rows, in order, from
+    the same Jacobians give every block, gradient and χ² equal to the bit."""
+    from graphs import random_graph
+    from ref_kernels import sum_in_order
+
+    from hybridpgo.online._incremental_kernels import linearize_edges
+    from hybridpgo.solvers._gn_kernels import edge_jacobians
+
+    g = random_graph(np.random.default_rng(54), 12, 10)[0]
+    m = g.num_edges
+    rot, trans = np.array(g.rotations), np.array(g.translations)
+    out = [np.zeros((m, 6, 6)) for _ in range(3)] + [np.zeros((m, 6)) for _ in range(2)]
+    chi = np.zeros(m)
+    ids = np.arange(m, dtype=np.int64)
+    assert linearize_edges(ids, rot, trans, g.edge_nodes, g.edge_rotations,
+                           g.edge_translations, g.edge_information, *out, chi) == -1
+    e, ja, jb = np.empty((m, 6)), np.empty((m, 6, 6)), np.empty((m, 6, 6))
+    edge_jacobians(rot, trans, g.edge_nodes, g.edge_rotations, g.edge_translations, e, ja, jb)
+    r6 = range(6)
+    for c in range(m):
+        om = g.edge_information[c]
+        oe = [sum_in_order(om[i, k] * e[c, k] for k in r6) for i in r6]
+        wa = [[sum_in_order(om[i, k] * ja[c, k, q] for k in r6) for q in r6] for i in r6]
+        wb = [[sum_in_order(om[i, k] * jb[c, k, q] for k in r6) for q in r6] for i in r6]
+        for p in r6:
+            assert out[3][c, p] == sum_in_order(ja[c, k, p] * oe[k] for k in r6)
+            assert out[4][c, p] == sum_in_order(jb[c, k, p] * oe[k] for k in r6)
+            for r in r6:
+                assert out[0][c, p, r] == sum_in_order(ja[c, k, p] * wa[k][r] for k in r6)
+                assert out[1][c, p, r] == sum_in_order(jb[c, k, p] * wb[k][r] for k in r6)
+                assert out[2][c, p, r] == sum_in_order(ja[c, k, p] * wb[k][r] for k in r6)
+        assert chi[c] == sum_in_order(e[c, i] * oe[i] for i in r6)

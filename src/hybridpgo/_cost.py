@@ -5,7 +5,8 @@ Both solvers and :mod:`hybridpgo.energy` compute a constraint's error, its inver
 Jacobian, its whitened form, its χ² and the pose retraction through these kernels only, so they
 cannot drift apart:
 
-* relative constraint: ``e = Log(Z^-1 X_a^-1 X_b)`` (tangent order rho, phi) and ``Jr^-1(e)``;
+* relative constraint: ``e = Log(Z^-1 X_a^-1 X_b)`` (tangent order rho, phi), ``Jr^-1(e)`` and
+  the Jacobians of e by both poses (:func:`edge_linearization9`);
   on planar poses and data the same quantities by SE(2)'s formulas (:func:`planar_residual`,
   :func:`planar_jacobians`: the planar system of the exact solver);
 * position ("GPS") constraint: ``e = p_n - g``;
@@ -36,10 +37,17 @@ from ._robust import ROBUST_NONE as ROBUST_NONE
 from ._robust import default_robust_scale as default_robust_scale
 from ._robust import robust_kind as robust_kind
 from .geometry._kernels import (
+    E6,
+    M3,
     SMALL_ANGLE,
+    _mul3,
+    _skew3,
+    _tmulv,
+    _transpose3,
     edge_error9,
     edge_error_into,
     jl_inv_coeff,
+    jr_inv9,
     jr_inv_blocks,
     row3,
     row3x3,
@@ -121,6 +129,33 @@ def residual_and_jr_inv(zr: np.ndarray, zt: np.ndarray, ra: np.ndarray, ta: np.n
     """
     edge_error_into(ra, ta, rb, tb, zr, zt, ws[10], ws[11][0], e)
     jr_inv_blocks(e, ws)
+
+
+@kernel
+def edge_linearization9(rot: np.ndarray, trans: np.ndarray, edge_rot: np.ndarray,
+                        edge_trans: np.ndarray, a: int, b: int, c: int
+                        ) -> tuple[E6, M3, M3, M3, M3]:
+    """``(e, J, K, JR, JT)`` of relative constraint c between poses a and b, read by index
+    (no array views, docs/contributing.md#kernels): the error e and the blocks of its
+    Jacobians as row-major 9-tuples, ``jb = Jr^-1(e) = [[J, K], [0, J]]`` and
+    ``ja = -Jr^-1(e) Ad(X_b^-1 X_a) = -[[JR, JT], [0, JR]]``.
+
+    With X_b^-1 X_a = (R, t) = (R_ab^T, -R_ab^T t_ab) and Ad = [[R, [t]x R], [0, R]]:
+    ``JR = J R`` and ``JT = J [t]x R + K R``.
+    """
+    e, rab, tab = edge_error9(row3x3(rot, a), row3(trans, a), row3x3(rot, b), row3(trans, b),
+                              row3x3(edge_rot, c), row3(edge_trans, c))
+    jm, km = jr_inv9(e)
+    r = _transpose3(rab)
+    s = _tmulv(rab, tab)  # R_ab^T t_ab
+    txr = _mul3(_skew3(-s[0], -s[1], -s[2]), r)  # [t]x R
+    jr = _mul3(jm, r)
+    jt = _mul3(jm, txr)
+    kr = _mul3(km, r)
+    return e, jm, km, jr, (jt[0] + kr[0], jt[1] + kr[1], jt[2] + kr[2], jt[3] + kr[3],
+                           jt[4] + kr[4], jt[5] + kr[5], jt[6] + kr[6], jt[7] + kr[7],
+                           jt[8] + kr[8])
+
 
 
 #: Below this angle (radians) :func:`planar_jacobians` takes ``(th - sin th) / th^2`` from its

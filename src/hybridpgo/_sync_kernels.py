@@ -1,5 +1,6 @@
 """Kernels of SE-Sync's objective F (:mod:`hybridpgo.certificate`): its value, gradient and
-Newton Hessian summed over the constraints, one pass each.
+Newton Hessian summed over the constraints, one pass each; the certificate matrix's pose blocks
+(:func:`pose_blocks`); the staircase's retraction (:func:`polar_rows`).
 
 Per constraint ``c = (a, b)`` with weights ``w_r`` (rotation) and ``w_t`` (translation),
 ``F_c = w_r ||R_b - R_a Rm||_F^2 + w_t ||t_b - t_a - R_a tm||^2`` over the parameters
@@ -15,6 +16,8 @@ differences).  Each returns ``(F, rounding)``: ``rounding`` is the sum of
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -276,8 +279,12 @@ def pose_blocks(indptr: np.ndarray, indices: np.ndarray, re: np.ndarray, im: np.
 
 
 #: :func:`polar_rows`: a block whose ``det(X X^T)`` is below this times ``(tr(X X^T) / 3)^3`` is
-#: left to the SVD (its rows nearly dependent: the polar factor is then ill-determined).
+#: left to the SVD: its rows nearly dependent, ``X X^T`` would lose the polar factor's digits
+#: (above it the iteration agrees with the SVD to rounding, tests/test_certificate.py).
 POLAR_SINGULAR = 1e-4
+#: :func:`polar_rows`: steps after which a block still moving is left to the SVD (a block of
+#: full rank converges in fewer than 60 from any scale).
+_POLAR_STEPS = 100
 #: :func:`polar_rows`: the iteration is scaled while its change exceeds this (relative).
 _POLAR_SCALED = 1e-2
 #: :func:`polar_rows`: once a change is below this (relative), one more step reaches rounding.
@@ -291,9 +298,9 @@ def polar_rows(v: np.ndarray, out: np.ndarray, ok: np.ndarray) -> None:
 
     Newton's iteration ``X <- (g X + (X X^T)^-1 X / g) / 2`` (Higham, "Functions of
     Matrices", 8.3), with the determinant scaling ``g = det(X X^T)^(-1/6)`` while the steps are
-    large: quadratic convergence from any block of full row rank, about 2 ns per entry and step.
-    ``ok[i]`` is False where block i has nearly dependent rows (:data:`POLAR_SINGULAR`) or is not
-    finite: those are left to the caller (the SVD)."""
+    large: quadratic convergence from any block of full row rank.  ``ok[i]`` is False where
+    block i has nearly dependent rows (:data:`POLAR_SINGULAR`), is not finite, or still moves
+    after :data:`_POLAR_STEPS` steps: those are left to the caller (the SVD)."""
     n = v.shape[0]
     p = v.shape[2]
     x = np.empty((3, p))
@@ -304,7 +311,7 @@ def polar_rows(v: np.ndarray, out: np.ndarray, ok: np.ndarray) -> None:
                 x[r, c] = v[i, r, c]
         ok[i] = False
         scaled = True
-        for _ in range(100):
+        for _ in range(_POLAR_STEPS):
             g00 = g01 = g02 = g11 = g12 = g22 = 0.0
             for c in range(p):
                 g00 += x[0, c] * x[0, c]
@@ -322,7 +329,7 @@ def polar_rows(v: np.ndarray, out: np.ndarray, ok: np.ndarray) -> None:
             a22 = g00 * g11 - g01 * g01
             det = g00 * a00 + g01 * a01 + g02 * a02
             tr = (g00 + g11 + g22) / 3.0
-            if not (det > POLAR_SINGULAR * tr * tr * tr) or not np.isfinite(det):
+            if not (det > POLAR_SINGULAR * tr * tr * tr) or not math.isfinite(det):
                 break
             gam = det ** (-1.0 / 6.0) if scaled else 1.0
             h = 0.5 / (gam * det)

@@ -116,10 +116,11 @@ _CHORD_RATE = 10.0
 #: these take 4, 3 and 8; the other benchmark files take the same number either way.
 _DAMPING_FLOOR = 1e-6
 _DAMPING_INDEFINITE = 100.0
-#: After an undamped factorization failed (H indefinite), a step at the damping floor returns to
-#: mu = 0 only when F fell by its predicted decrease within this fraction (the model has become
-#: Newton's): on a 100 000-pose city from the chordal start every undamped try failed, half of
-#: Newton's 30 factorizations (0.2 s each).
+#: After an undamped factorization failed (H indefinite), a step damped near the floor returns
+#: to mu = 0 only when F fell by its predicted decrease within this fraction (the model has
+#: become Newton's).  Returning to 0 after every damped step costs a failed factorization per
+#: step wherever H stays indefinite (``benchmarks/results/2026-11-30-scale-d``: the 100 000-pose
+#: city's certificate, half of Newton's 30 factorizations from the chordal start).
 _NEWTON_LIKE = 0.25
 
 _E = np.zeros((3, 3, 3))
@@ -431,7 +432,7 @@ class SyncProblem:
         blocks = np.ascontiguousarray(np.real(v), np.float64).reshape(self.n, self.d, -1)
         polar = np.empty_like(blocks)
         ok = np.empty(self.n, np.bool_)
-        polar_rows(blocks, polar, ok)  # Newton's iteration, 10-20x faster than a batched SVD
+        polar_rows(blocks, polar, ok)  # Newton's iteration, in a kernel (a batched SVD is slower)
         if not ok.all():  # nearly dependent rows: the SVD's polar factor
             u, _, vh = np.linalg.svd(blocks[~ok], full_matrices=False)
             polar[~ok] = u @ vh
@@ -610,8 +611,9 @@ class SyncProblem:
         more per failed factorization) or its step raises F by more than F's rounding error
         (10 times more); a damped step that lowers F divides ``mu`` by
         ``_DAMPING_INDEFINITE``, down to 0, except that after an undamped factorization
-        failed, a step at the floor returns to 0 only when F fell by the model's decrease
-        within ``_NEWTON_LIKE`` (else the floor's factorization serves chord steps).  Stops
+        failed, a step damped at most 10 times the floor returns to 0 only when F fell by the
+        model's decrease within ``_NEWTON_LIKE`` (else that factorization serves chord steps).
+        Stops
         after a step whose predicted decrease is below ``_NEWTON_TOLERANCE`` of F, or below
         F's rounding error when a fresh factorization no longer shrinks it ``_CHORD_RATE``
         times.  Returns ``(Y, F, factorizations)``.
@@ -878,8 +880,8 @@ _COMPILED: set[bool] = set()
 
 def ensure_compiled(planar: bool) -> float:
     """Compile (or load from Numba's cache) the kernels of F for planar graphs (the complex
-    form) or 3D ones, once per process: a certificate of a three-pose loop.  Returns the
-    seconds spent (0 when already done)."""
+    form) or 3D ones, once per process: a certificate of a three-pose loop, and in 3D the
+    staircase's retraction.  Returns the seconds spent (0 when already done)."""
     if planar in _COMPILED:
         return 0.0
     from ._warmup import tiny_graph
@@ -911,6 +913,21 @@ def not_applicable(graph: PoseGraph, robust: str = "none") -> str:
     if np.unique(graph.connected_components()).size > 1:
         return "the graph is not connected"
     return ""
+
+
+def sync_problem(graph: PoseGraph) -> tuple[SyncProblem | None, float]:
+    """``(problem, seconds)``: the graph's :class:`SyncProblem` and the seconds its set-up
+    took, to share between a certificate and the staircase; None where the certificate does
+    not apply (:func:`not_applicable`) or F overflows (:func:`sesync_certificate` then says
+    so)."""
+    t0 = time.perf_counter()
+    if not_applicable(graph):
+        return None, 0.0
+    try:
+        with np.errstate(over="raise", invalid="raise", divide="raise"):
+            return SyncProblem(graph), time.perf_counter() - t0
+    except FloatingPointError:
+        return None, time.perf_counter() - t0
 
 
 def sesync_certificate(graph: PoseGraph, rotations: FloatArray,

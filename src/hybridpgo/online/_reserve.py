@@ -21,8 +21,8 @@ from .._memory import mapped_zeros
 def reserved_zeros(shape: tuple[int, ...], dtype: Any = np.float64) -> tuple[np.ndarray, bool]:
     """``(array, reserved)``: a zero array of ``shape``; ``reserved`` is True when it is a view
     of a memory map that costs address space only until written
-    (:func:`hybridpgo._memory.mapped_zeros` with ``reserve=True``)."""
-    return mapped_zeros(shape, dtype, reserve=True)
+    (:func:`hybridpgo._memory.mapped_zeros` with ``overcommit=True``)."""
+    return mapped_zeros(shape, dtype, overcommit=True)
 
 
 def grown(arr: np.ndarray, size: int, fill: float = 0) -> np.ndarray:

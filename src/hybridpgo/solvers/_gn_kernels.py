@@ -22,9 +22,10 @@ variables ``va, vb`` touches the diagonal blocks of both and one lower block, in
 yaw rows and columns) has the same layout with 3 in place of 6, and the same assembly writes
 it directly (its ``dofs`` argument).
 
-The error, ``Jr^-1``, χ², energy and retraction come from the cost layer
+The error, its Jacobians (``Jr^-1``), χ², energy and retraction come from the cost layer
 (:mod:`hybridpgo._cost`), shared with the hybrid solver and :mod:`hybridpgo.energy`; they are
-allocation-free (docs/contributing.md#kernels).  The drivers allocate one scratch buffer per call.
+allocation-free (docs/contributing.md#kernels).  The drivers allocate their few (6, 6) buffers
+once per call.
 ``tests/test_gauss_newton.py`` checks them against ``tests/ref_kernels.py`` to float64 rounding.
 """
 
@@ -37,6 +38,7 @@ import numpy as np
 from .._cost import (
     ROBUST_NONE,
     chi2,
+    edge_linearization9,
     gps_chi2,
     planar_jacobians,
     planar_residual,
@@ -44,28 +46,18 @@ from .._cost import (
     robust_cost,
 )
 from .._numba import kernel
-from ..geometry._kernels import (
-    E6,
-    M3,
-    _mul3,
-    _skew3,
-    _tmulv,
-    _transpose3,
-    edge_error9,
-    jr_inv9,
-    row3,
-    row3x3,
-)
 
 
 # --------------------------------------------------------------------------- inner kernels
-#: Rows of a Jacobian column that can be non-zero: both the SE(3) Jacobians
-#: (:func:`edge_linearization9`) and the planar ones (:func:`hybridpgo._cost.planar_jacobians`)
-#: are 0 in rows 3-5 of columns 0-2 (their lower-left block), so the products below sum column
-#: ``d`` over rows ``< _rows(d)`` only.  The terms left out are exact zeros, so each sum is the
-#: full sum to the bit (adding +-0 to a sum that started at +0 never changes it).
 @kernel
 def _rows(d: int) -> int:
+    """Rows of a Jacobian's column d that can be non-zero: both the SE(3) Jacobians
+    (:func:`hybridpgo._cost.edge_linearization9`) and the planar ones
+    (:func:`hybridpgo._cost.planar_jacobians`) are 0 in rows 3-5 of columns 0-2 (their
+    lower-left block), so the products here sum column d over rows ``< _rows(d)`` only.  The
+    terms left out are exact zeros times finite numbers, so each sum is the full sum to the
+    bit (adding +-0 to a sum that started at +0 never changes it; where a product overflows,
+    H is not finite either way)."""
     return 3 if d < 3 else 6
 
 
@@ -112,32 +104,6 @@ def _add_lower_atb(a: np.ndarray, b: np.ndarray, dofs: tuple[int, ...], data: np
             for i in range(_rows(dp)):
                 s += a[i, dp] * b[i, q]
             data[col + p] += s
-
-
-@kernel
-def edge_linearization9(rot: np.ndarray, trans: np.ndarray, edge_rot: np.ndarray,
-                        edge_trans: np.ndarray, a: int, b: int, c: int
-                        ) -> tuple[E6, M3, M3, M3, M3]:
-    """``(e, J, K, JR, JT)`` of relative constraint c between poses a and b, read by index
-    (no array views, docs/contributing.md#kernels): the error e and the blocks of its
-    Jacobians as row-major 9-tuples, ``jb = Jr^-1(e) = [[J, K], [0, J]]`` and
-    ``ja = -Jr^-1(e) Ad(X_b^-1 X_a) = -[[JR, JT], [0, JR]]``.
-
-    With X_b^-1 X_a = (R, t) = (R_ab^T, -R_ab^T t_ab) and Ad = [[R, [t]x R], [0, R]]:
-    ``JR = J R`` and ``JT = J [t]x R + K R``.
-    """
-    e, rab, tab = edge_error9(row3x3(rot, a), row3(trans, a), row3x3(rot, b), row3(trans, b),
-                              row3x3(edge_rot, c), row3(edge_trans, c))
-    jm, km = jr_inv9(e)
-    r = _transpose3(rab)
-    s = _tmulv(rab, tab)  # R_ab^T t_ab
-    txr = _mul3(_skew3(-s[0], -s[1], -s[2]), r)  # [t]x R
-    jr = _mul3(jm, r)
-    jt = _mul3(jm, txr)
-    kr = _mul3(km, r)
-    return e, jm, km, jr, (jt[0] + kr[0], jt[1] + kr[1], jt[2] + kr[2], jt[3] + kr[3],
-                           jt[4] + kr[4], jt[5] + kr[5], jt[6] + kr[6], jt[7] + kr[7],
-                           jt[8] + kr[8])
 
 
 @kernel

@@ -90,7 +90,7 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -102,6 +102,9 @@ from ..tree import PoseTree, build_tree, global_poses
 from .config import AutoConfig, InitName, Progress, ProgressCallback
 from .gauss_newton import ExactSolver, IterateCallback
 from .result import SolveResult, Status
+
+if TYPE_CHECKING:
+    from ..certificate import SyncProblem
 
 __all__ = ["MIN_FINALIST_ITERATIONS", "solve_auto"]
 
@@ -389,17 +392,17 @@ def _certificate_info(cert: Any, start: str) -> dict[str, Any]:
         **{k: float(v) for k, v in cert.stats.items()}}
 
 
-def _staircase(graph: PoseGraph, prob: Any, init: str, cert: Any,
+def _staircase(graph: PoseGraph, prob: SyncProblem | None, init: str, cert: Any,
                info: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
     """The early try's second chance: :func:`hybridpgo.certificate.staircase_start` from the
-    rotations the failed certificate refined (so its Newton steps go on from there, on the
-    same :class:`~hybridpgo.certificate.SyncProblem` ``prob``), then the certificate of its
+    rotations the failed certificate refined (its Newton's method starts from the
+    certificate's last iterate, on the same :class:`~hybridpgo.certificate.SyncProblem`
+    ``prob``), then the certificate of its
     rounded, Newton-refined rotations.  Returns the certificate and ``stats["certificate"]``
     (with ``staircase``: its ranks, seconds, verdict; ``seconds`` counts the staircase)."""
     from ..certificate import sesync_certificate, staircase_start
 
     t0 = time.perf_counter()
-    assert cert.rotations is not None and cert.translations is not None
     try:
         with np.errstate(over="raise", invalid="raise", divide="raise"):
             rot, trans, stair = staircase_start(graph, cert.rotations, cert.translations,
@@ -412,6 +415,7 @@ def _staircase(graph: PoseGraph, prob: Any, init: str, cert: Any,
         return cert, info
     summary = {"certified": bool(stair["certified"]), "rank": int(stair["rank"]),
                "objective": float(stair["objective"]),
+               "rank_d_objective": float(info["objective"]),  # where the certificate failed
                "ranks": [{k: float(v) for k, v in r.items()} for r in stair["ranks"]]}
     if stair["certified"]:
         rounded = sesync_certificate(graph, rot, trans, problem=prob)
@@ -439,7 +443,7 @@ def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: 
     Returns the start's candidate (its poses, no sweeps; ``locals`` kept for the sweeps when
     the try fails), the certified start's candidate (None when the certificate failed) and
     the try's ``stats["certificate"]``; ``certified`` there means the polish converged too."""
-    from ..certificate import SyncProblem, not_applicable, sesync_certificate
+    from ..certificate import sesync_certificate, sync_problem
     from ..energy import robust_energy
 
     graph = exact.graph
@@ -459,20 +463,16 @@ def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: 
     if iterate is not None:
         iterate(Progress("start", 0, 0, cand.history[0], detail=init), cand.rot, cand.trans)
     try:
-        prob = None  # one SyncProblem for the certificate and the staircase (set-up once)
-        if not not_applicable(graph):
-            try:
-                with np.errstate(over="raise", invalid="raise", divide="raise"):
-                    prob = SyncProblem(graph)
-            except FloatingPointError:  # the certificate says why (F overflows)
-                prob = None
+        # one SyncProblem for the certificate and the staircase (set up once)
+        prob, setup_s = sync_problem(graph)
         cert = sesync_certificate(graph, cand.rot, cand.trans, problem=prob)
     except (HybridPGOError, ValueError, np.linalg.LinAlgError, RuntimeError) as exc:
         return cand, None, {**_not_computed(f"the certificate failed: {exc}"), "start": init}
     info = _certificate_info(cert, init)
+    info["seconds"] += setup_s  # the problem's set-up, made before the certificate's clock
+    info["seconds_setup"] = info.get("seconds_setup", 0.0) + setup_s
     floor = cert.stats.get("shift_floor", 0.0)
-    if (not cert.certified and cert.lambda_min < -floor
-            and cert.rotations.shape[0] == graph.num_nodes):
+    if not cert.certified and cert.lambda_min < -floor:
         # F's local minimum (a negative eigenvalue): SE-Sync's Riemannian staircase escapes it
         # through higher ranks; a certified rounding is the certified start
         cert, info = _staircase(graph, prob, init, cert, info)
