@@ -157,7 +157,6 @@ def edge_linearization9(rot: np.ndarray, trans: np.ndarray, edge_rot: np.ndarray
                            jt[8] + kr[8])
 
 
-
 #: Below this angle (radians) :func:`planar_jacobians` takes ``(th - sin th) / th^2`` from its
 #: series (to th^13: truncated below 1e-15 relative there), where the closed form cancels.
 PLANAR_SERIES_ANGLE = 0.5

@@ -17,8 +17,6 @@ differences).  Each returns ``(F, rounding)``: ``rounding`` is the sum of
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from ._numba import kernel
@@ -329,7 +327,7 @@ def polar_rows(v: np.ndarray, out: np.ndarray, ok: np.ndarray) -> None:
             a22 = g00 * g11 - g01 * g01
             det = g00 * a00 + g01 * a01 + g02 * a02
             tr = (g00 + g11 + g22) / 3.0
-            if not (det > POLAR_SINGULAR * tr * tr * tr) or not math.isfinite(det):
+            if not det > POLAR_SINGULAR * tr * tr * tr:  # NaN and inf blocks too
                 break
             gam = det ** (-1.0 / 6.0) if scaled else 1.0
             h = 0.5 / (gam * det)

@@ -83,7 +83,7 @@ from .errors import HybridPGOError
 from .graph import FloatArray, PoseGraph
 
 __all__ = ["Certificate", "SyncProblem", "certify", "ensure_compiled", "gps_weights",
-           "sesync_certificate", "sesync_weights", "staircase_start"]
+           "sesync_certificate", "sesync_weights", "staircase_start", "sync_problem"]
 
 ComplexArray = npt.NDArray[np.complex128]
 Array = npt.NDArray[Any]

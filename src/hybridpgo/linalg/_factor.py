@@ -18,9 +18,9 @@ its diagonal entry), as :class:`hybridpgo.solvers.gauss_newton` assembles it:
     the factor L.
 ``_SuperLU`` (``linear_solver="splu"``)
     SciPy's SuperLU on the pre-ordered matrix (natural column order, symmetric mode, diagonal
-    pivots).  A full LU (no BLAS-3 supernodes), 2-3x slower than CHOLMOD, but it no longer
-    collapses on dense loop closures now that the pre-ordering is AMD: paris2 with GPS 1.3-2.1 s
-    per factorization, against > 600 s (time limit) with SuperLU's own block MMD ordering.
+    pivots).  A full LU (no BLAS-3 supernodes), 2-3x slower than CHOLMOD; with the AMD
+    pre-ordering it does not collapse on dense loop closures: paris2 with GPS 1.3-2.1 s per
+    factorization, against > 600 s (time limit) with SuperLU's own block MMD ordering.
 
 The fill-reducing ordering (:func:`fill_reducing_order`) is computed once per solve on the 6x6
 *block* graph (36x smaller than A): AMD from :mod:`cvxopt.amd` (15 ms on paris2's 42k blocks), or
