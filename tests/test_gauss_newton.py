@@ -627,23 +627,34 @@ def test_config_is_frozen() -> None:
         cfg.method = "gn"  # type: ignore[misc]
 
 
+def _assembly_case(seed: int, planar: bool, planar_size: tuple[int, int, float],
+                   size: tuple[int, int, float], num_gps: int
+                   ) -> tuple[PoseGraph, _normal.Pattern, np.ndarray, np.ndarray]:
+    """A planar graph (``planar_size``: poses, extra constraints, noise) or a 3D one
+    (``size``, with ``num_gps`` readings), its analyzed pattern and poses; planar exactly
+    when asked."""
+    from test_energy import planar_graph
+
+    rng = np.random.default_rng(seed)
+    if planar:
+        n, extra, noise = planar_size
+        g, *_ = planar_graph(rng, n=n, extra=extra, noise=noise)
+    else:
+        n, extra, noise = size
+        g = random_graph(rng, n=n, extra=extra, noise=noise, init_noise=noise, num_gps=num_gps)
+    pat = _normal.analyze(g, _normal.default_fixed_nodes(g), reorder=True)
+    rot, trans = np.array(g.rotations), np.array(g.translations)
+    assert _normal.is_planar(g, rot, trans) == planar
+    return g, pat, rot, trans
+
+
 @pytest.mark.parametrize("robust", [(0, 1.0), (_cost.robust_kind("huber", 1.0), 1.0)])
 @pytest.mark.parametrize("planar", [False, True])
 def test_the_trial_energy_is_the_assemblys_to_the_bit(robust, planar: bool) -> None:
     """LM reads E at the new poses from its trial and assembles only a step that does not
     converge: the trial's ``(E_rho, E)`` must be the assembly's exactly, in the whole system
     and in the planar one (the same terms summed in the same order)."""
-    from test_energy import planar_graph
-
-    rng = np.random.default_rng(52)
-    if planar:
-        g, *_ = planar_graph(rng, n=30, extra=25, noise=0.2)
-    else:
-        g = random_graph(rng, n=20, extra=15, noise=0.4, init_noise=0.4, num_gps=3)
-    fixed = _normal.default_fixed_nodes(g)
-    pat = _normal.analyze(g, fixed, reorder=True)
-    rot, trans = np.array(g.rotations), np.array(g.translations)
-    assert _normal.is_planar(g, rot, trans) == planar
+    g, pat, rot, trans = _assembly_case(52, planar, (30, 25, 0.2), (20, 15, 0.4), num_gps=3)
     system = _normal.planar_system(pat) if planar else None
     nnz = system.nnz if system is not None else pat.nnz
     data, grad = np.empty(nnz), np.empty(pat.dim)
@@ -657,17 +668,7 @@ def test_assembly_equals_the_full_products_to_the_bit(robust, planar: bool) -> N
     """The assembly sums each product only over the Jacobians' rows that can be non-zero; the
     same products summed over all six rows in order (``ref_kernels.assemble_in_order``, from
     the same Jacobians) give H and g equal to the bit, in the whole and the planar system."""
-    from test_energy import planar_graph
-
-    rng = np.random.default_rng(53)
-    if planar:
-        g, *_ = planar_graph(rng, n=25, extra=20, noise=0.3)
-    else:
-        g = random_graph(rng, n=18, extra=14, noise=0.5, init_noise=0.5, num_gps=0)
-    fixed = _normal.default_fixed_nodes(g)
-    pat = _normal.analyze(g, fixed, reorder=True)
-    rot, trans = np.array(g.rotations), np.array(g.translations)
-    assert _normal.is_planar(g, rot, trans) == planar
+    g, pat, rot, trans = _assembly_case(53, planar, (25, 20, 0.3), (18, 14, 0.5), num_gps=0)
     system = _normal.planar_system(pat) if planar else _normal.full_system(pat)
     m = g.num_edges
     e, ja, jb = np.empty((m, 6)), np.empty((m, 6, 6)), np.empty((m, 6, 6))

@@ -397,9 +397,9 @@ def _staircase(graph: PoseGraph, prob: SyncProblem | None, init: str, cert: Any,
     """The early try's second chance: :func:`hybridpgo.certificate.staircase_start` from the
     rotations the failed certificate refined (its Newton's method starts from the
     certificate's last iterate, on the same :class:`~hybridpgo.certificate.SyncProblem`
-    ``prob``), then the certificate of its
-    rounded, Newton-refined rotations.  Returns the certificate and ``stats["certificate"]``
-    (with ``staircase``: its ranks, seconds, verdict; ``seconds`` counts the staircase)."""
+    ``prob``), then the certificate of its rounded, Newton-refined rotations.  Returns the
+    certificate and ``stats["certificate"]`` (with ``staircase``: its ranks, seconds,
+    verdict; ``seconds`` counts the staircase)."""
     from ..certificate import sesync_certificate, staircase_start
 
     t0 = time.perf_counter()
