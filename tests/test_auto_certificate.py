@@ -244,7 +244,8 @@ def test_the_staircase_certifies_a_start_that_newton_leaves_in_a_local_minimum()
 def test_the_staircase_goes_on_from_the_certificates_point_on_its_problem(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """The early try builds SE-Sync's problem once: the certificate and the staircase share it,
-    the staircase starts from the rotations the failed certificate refined, and the problem's
+    the staircase goes on from the failed certificate (its refined rotations), its certified
+    rounding's certificate is the answer's (no second certificate call), and the problem's
     set-up counts in the certificate's seconds, not in the polish's (a clock that jumps by
     SETUP while the problem is built: no wall time involved)."""
     import types
@@ -287,7 +288,9 @@ def test_the_staircase_goes_on_from_the_certificates_point_on_its_problem(
     res = solve_auto(graph)
     cert = res.stats["certificate"]
     assert cert["certified"] and "staircase" in cert
-    assert len(problems) == 1 and len(stairs) == 1
+    # one problem, one staircase, one certificate call: the staircase's certified rounding
+    # comes with its certificate (not computed again)
+    assert len(problems) == 1 and len(stairs) == 1 and len(certificates) == 1
     rotations, problem = stairs[0]
     assert problem is problems[0] and rotations is certificates[0].rotations
     assert setup + cert["staircase"]["seconds"] <= cert["seconds"] < 2 * setup

@@ -14,6 +14,7 @@ from naive import dense_quadratic_form, schur_certificate, sesync_objective
 from tolerances import CENTRAL_DIFF, FLOAT64_IDENTITY, ORTHONORMAL
 
 from hybridpgo.certificate import (
+    GAP_TOLERANCE,
     SyncProblem,
     certify,
     gps_weights,
@@ -350,6 +351,54 @@ def test_the_staircase_reaches_the_certified_optimum_from_random_rotations(make)
     assert np.abs(rot[0] - start[0]).max() <= FLOAT64_IDENTITY * 10  # the frame of the start
     cert = sesync_certificate(graph, rot, trans)
     assert cert.certified and cert.objective == pytest.approx(ref.objective, rel=1e-9)
+
+
+def test_the_staircase_goes_on_from_a_failed_certificate_and_returns_its_certificate() -> None:
+    """Given the failed certificate of its start, the staircase takes rank d's point and
+    spectrum from it when its Newton's method converged (not computed again), else goes on
+    refining from its point; the certificate it returns is that of its poses
+    (:func:`sesync_certificate` of them certifies the same objective)."""
+    import dataclasses
+
+    graph = generate_grid("m3500b", seed=1, num_poses=300).graph  # a local minimum at rank d
+    problem = SyncProblem(graph)
+    capped = sesync_certificate(graph, *_chordal(graph), problem=problem)
+    assert not capped.certified and capped.lambda_min < 0 and capped.point is not None
+    assert not capped.stats["refine_converged"]  # Newton stopped at its cap
+
+    def seen(prob: SyncProblem) -> list[np.ndarray]:
+        points: list[np.ndarray] = []
+
+        def spy(fn):
+            def call(y, *args, **kwargs):
+                points.append(np.array(y, copy=True))
+                return fn(y, *args, **kwargs)
+            return call
+
+        for name in ("refine", "spectrum"):
+            setattr(prob, name, spy(getattr(prob, name)))
+        return points
+
+    def at(points: list[np.ndarray], y0: np.ndarray) -> bool:
+        return any(y.shape == y0.shape and np.abs(y - y0).max() <= 1e-6 for y in points)
+
+    y0 = problem.to_y(capped.rotations)
+    points = seen(problem)
+    # refined short of F's local minimum (at the cap) Newton goes on from the certificate's
+    # point; converged, the point and spectrum are taken as they are
+    for start, taken in ((capped, False),
+                         (dataclasses.replace(capped, stats={**capped.stats,
+                                                             "refine_converged": True}), True)):
+        points.clear()
+        rot, trans, info = staircase_start(graph, start.rotations, start.translations,
+                                           problem=problem, start=start)
+        assert info["certified"] and at(points, y0) is not taken
+        cert = info["certificate"]
+        assert cert.certified
+        assert np.array_equal(cert.rotations, rot) and np.array_equal(cert.translations, trans)
+        again = sesync_certificate(graph, rot, trans)
+        assert again.certified and again.objective == pytest.approx(cert.objective, rel=1e-9)
+        assert cert.gap <= GAP_TOLERANCE * cert.objective
 
 
 def _chordal(graph: PoseGraph):

@@ -312,6 +312,8 @@ class SyncProblem:
         self._d = SparseSPD(sp.csc_matrix(self.m[keep][:, keep].real))
         self._d.factor(check=True)
         self._newton: dict[str, Any] | None = None
+        self.refine_converged = True
+        """Whether the last :meth:`refine` converged (False: it stopped at its cap)."""
         self._cert: dict[str, Any] | None = None
 
     # ------------------------------------------------------------------ conversions
@@ -616,12 +618,15 @@ class SyncProblem:
         Stops
         after a step whose predicted decrease is below ``_NEWTON_TOLERANCE`` of F, or below
         F's rounding error when a fresh factorization no longer shrinks it ``_CHORD_RATE``
-        times.  Returns ``(Y, F, factorizations)``.
+        times (:attr:`refine_converged` then True), or at ``max_iterations`` factorizations
+        (False).  Returns ``(Y, F, factorizations)``.
         """
         from .linalg import NotPositiveDefinite
 
+        self.refine_converged = True
         if self.n < 2:
             return y, self.cost(y), 0
+        self.refine_converged = False
         nw = self._newton_setup()
         pp, keep, spd = nw["pp"], nw["keep"], nw["spd"]
         mu = 0.0
@@ -674,6 +679,7 @@ class SyncProblem:
                 y, terms = y_new, new_terms
                 g, f = terms["grad"], f_new
                 if small:
+                    self.refine_converged = True
                     break
                 previous = predicted
                 if fresh and mu > 10.0 * _DAMPING_FLOOR:
@@ -865,6 +871,9 @@ class Certificate:
     """(N, 3) their F-optimal positions."""
     stats: dict[str, Any] = field(default_factory=dict)
     """Newton iterations, factorizations, seconds per part, polish energies."""
+    point: tuple[Array, Spectrum] | None = field(repr=False, compare=False, default=None)
+    """The refined rotations in the relaxation's layout (rank d) and the certificate
+    matrix's :class:`Spectrum` there, its eigenvector included (None when not computed)."""
 
     def summary(self) -> str:
         """``"certified global optimum (gap <= ...)"`` or ``"not certified (...)"``."""
@@ -940,6 +949,8 @@ def sesync_certificate(graph: PoseGraph, rotations: FloatArray,
     then the certificate (:meth:`SyncProblem.spectrum`) bounds its gap.  ``certified`` is True
     when ``gap / F <= gap_tolerance``.  The refined poses are returned in the frame of the given
     ones at the gauge pose (``translations`` default: the F-optimal positions as they come).
+    The certificate keeps its refined point and spectrum (:attr:`Certificate.point`), from
+    which :func:`staircase_start` goes on without computing them again.
     """
     t0 = time.perf_counter()
     why = not_applicable(graph)
@@ -952,12 +963,24 @@ def sesync_certificate(graph: PoseGraph, rotations: FloatArray,
             t1 = time.perf_counter()
             y, f, its = prob.refine(prob.to_y(rotations))
             t2 = time.perf_counter()
-            spec = prob.spectrum(y, gap_tolerance)
+            spec = prob.spectrum(y, gap_tolerance, eigenvector=True)
             t3 = time.perf_counter()
     except FloatingPointError as exc:  # measurements of ~1e154: F overflows
         return Certificate(False, float("nan"), float("inf"), float("inf"), float("nan"),
                            time.perf_counter() - t0, f"F overflows float64 ({exc})")
     ref = None if translations is None else (rotations, translations)
+    return _certificate_at(prob, y, f, its, spec, ref, (t1 - t0, t2 - t1, t3 - t2),
+                           prob.cost(prob.to_y(rotations)), time.perf_counter() - t0)
+
+
+def _certificate_at(prob: SyncProblem, y: Array, f: float, its: int, spec: Spectrum,
+                    ref: tuple[FloatArray, FloatArray] | None,
+                    seconds: tuple[float, float, float], before: float,
+                    took: float) -> Certificate:
+    """The :class:`Certificate` of the Newton-refined point ``y`` (F = ``f``, ``its``
+    factorizations) from its spectrum: poses in the frame of ``ref`` at the gauge pose,
+    ``seconds`` of set-up, refinement and spectrum, ``before`` F before the refinement, ``took``
+    the certificate's wall time."""
     rot, trans = prob.poses(y, ref)
     gap = spec.objective - spec.lower_bound
     ok = bool(np.isfinite(gap))  # within gap_tolerance, or at the smallest shift (spectrum)
@@ -977,11 +1000,12 @@ def sesync_certificate(graph: PoseGraph, rotations: FloatArray,
         reason = "the certificate's eigenvalue could not be computed"
     return Certificate(
         ok, spec.lambda_min, gap if ok else float("inf"), rel if ok else float("inf"), f,
-        time.perf_counter() - t0, reason, rot, trans,
+        took, reason, rot, trans,
         {"newton_iterations": its, "factorizations": spec.factorizations, "shift": spec.shift,
-         "shift_floor": spec.floor,
-         "seconds_setup": t1 - t0, "seconds_refine": t2 - t1, "seconds_spectrum": t3 - t2,
-         "objective_before_refine": prob.cost(prob.to_y(rotations))})
+         "shift_floor": spec.floor, "seconds_setup": seconds[0], "seconds_refine": seconds[1],
+         "seconds_spectrum": seconds[2], "objective_before_refine": before,
+         "refine_converged": prob.refine_converged},
+        (y, spec))
 
 
 #: ``polish(rotations, translations) -> (rotations, translations, energy)``.
@@ -1064,7 +1088,8 @@ STAIRCASE_CHUNK = 50
 
 def staircase_start(graph: PoseGraph, rotations: FloatArray, translations: FloatArray, *,
                     max_rank: int | None = None, max_iterations: int = 500,
-                    gap_tolerance: float = GAP_TOLERANCE, problem: SyncProblem | None = None
+                    gap_tolerance: float = GAP_TOLERANCE, problem: SyncProblem | None = None,
+                    start: Certificate | None = None
                     ) -> tuple[FloatArray, FloatArray, dict[str, Any]]:
     """Poses from SE-Sync's Riemannian staircase, started at given poses.
 
@@ -1081,9 +1106,16 @@ def staircase_start(graph: PoseGraph, rotations: FloatArray, translations: Float
     ``lambda_min``, ``rank`` (where it ended), ``ranks`` (per rank: F of the relaxation, F
     rounded and refined, lambda_min of the relaxation's certificate (NaN when its rounding
     certified first), the minimization's iterations), ``max_angle`` (largest rotation
-    difference from the given poses, rad), ``seconds``.  ``problem``: the graph's
-    :class:`SyncProblem` when one was built already (its set-up and factorizations' analysis
-    are reused).
+    difference from the given poses, rad), ``seconds``, and ``certificate``: the
+    :class:`Certificate` of the returned poses when ``certified`` (the certificate of the
+    rounding that certified: :func:`sesync_certificate` of those poses would refine and
+    certify them again).  ``problem``: the graph's :class:`SyncProblem` when one was built
+    already (its set-up and factorizations' analysis are reused).  ``start``: the
+    certificate of these poses (:func:`sesync_certificate`; ``rotations`` and
+    ``translations`` are its refined poses): when its Newton's method converged, rank d's
+    refinement and spectrum are its own (else Newton goes on from there: a refinement
+    stopped at its factorization cap, short of F's local minimum, often ends at the global
+    one).
     """
     t0 = time.perf_counter()
     why = not_applicable(graph)
@@ -1092,12 +1124,26 @@ def staircase_start(graph: PoseGraph, rotations: FloatArray, translations: Float
     prob = problem or SyncProblem(graph)
     d = prob.d
     top = max_rank if max_rank is not None else d + 3
-    y, f, _ = prob.refine(prob.to_y(rotations))
+    cert: Certificate | None = None
+    if start is not None and start.point is not None and start.stats.get("refine_converged"):
+        y, spec = start.point
+        f = start.objective
+        cert = start
+    else:
+        t1 = time.perf_counter()
+        y, f, factorizations = prob.refine(prob.to_y(rotations))
+        t2 = time.perf_counter()
+        spec = prob.spectrum(y, gap_tolerance, eigenvector=True)
+        t3 = time.perf_counter()
+        cert = _certificate_at(prob, y, f, factorizations, spec, (rotations, translations),
+                               (t1 - t0, t2 - t1, t3 - t2), prob.cost(prob.to_y(rotations)),
+                               t3 - t0)
     best_y, best_f = y, f
-    spec = prob.spectrum(y, gap_tolerance, eigenvector=True)
     ranks: list[dict[str, float]] = [{"rank": float(d), "relaxation": f, "rounded": f,
                                       "lambda_min": spec.lambda_min}]
-    certified = np.isfinite(spec.lower_bound)
+    certified = bool(np.isfinite(spec.lower_bound))
+    if not certified:
+        cert = None
     yp = y
     p = d
     while not certified and p < top and spec.vector is not None and spec.lambda_min < 0:
@@ -1121,11 +1167,20 @@ def staircase_start(graph: PoseGraph, rotations: FloatArray, translations: Float
         while True:
             yp, fp, its = prob.minimize(yp, min(chunk, max_iterations - done))
             done += its
-            yr, fr, _ = prob.refine(prob.round(yp))
+            t1 = time.perf_counter()
+            rounded = prob.round(yp)
+            yr, fr, factorizations = prob.refine(rounded)
+            t2 = time.perf_counter()
             if fr < best_f:
                 best_y, best_f = yr, fr
             spec_r = prob.spectrum(yr, gap_tolerance)
             certified = bool(np.isfinite(spec_r.lower_bound) and fr <= best_f)
+            if certified:
+                best_y, best_f = yr, fr
+                t3 = time.perf_counter()
+                cert = _certificate_at(prob, yr, fr, factorizations, spec_r,
+                                       (rotations, translations), (0.0, t2 - t1, t3 - t2),
+                                       prob.cost(rounded), t3 - t1)
             if certified or its < chunk or done >= max_iterations:
                 break
             chunk = done  # the tries at 50, 100, 200, 400, ... iterations
@@ -1146,5 +1201,5 @@ def staircase_start(graph: PoseGraph, rotations: FloatArray, translations: Float
     info = {"certified": bool(certified), "objective": best_f,
             "lambda_min": ranks[-1]["lambda_min"], "rank": p, "ranks": ranks,
             "max_angle": float(np.max(angle)) if angle.size else 0.0,
-            "seconds": time.perf_counter() - t0}
+            "seconds": time.perf_counter() - t0, "certificate": cert}
     return rot, trans, info

@@ -394,19 +394,20 @@ def _certificate_info(cert: Any, start: str) -> dict[str, Any]:
 
 def _staircase(graph: PoseGraph, prob: SyncProblem | None, init: str, cert: Any,
                info: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
-    """The early try's second chance: :func:`hybridpgo.certificate.staircase_start` from the
-    rotations the failed certificate refined (its Newton's method starts from the
-    certificate's last iterate, on the same :class:`~hybridpgo.certificate.SyncProblem`
-    ``prob``), then the certificate of its rounded, Newton-refined rotations.  Returns the
-    certificate and ``stats["certificate"]`` (with ``staircase``: its ranks, seconds,
-    verdict; ``seconds`` counts the staircase)."""
-    from ..certificate import sesync_certificate, staircase_start
+    """The early try's second chance: :func:`hybridpgo.certificate.staircase_start` going on
+    from the failed certificate ``cert`` on the same
+    :class:`~hybridpgo.certificate.SyncProblem` ``prob`` (rank d from its refined rotations;
+    its spectrum reused when its Newton's method converged); the certificate of the poses
+    where the staircase certifies is the answer's.  Returns the certificate
+    and ``stats["certificate"]`` (with ``staircase``: its ranks, seconds, verdict;
+    ``seconds`` counts the staircase)."""
+    from ..certificate import staircase_start
 
     t0 = time.perf_counter()
     try:
         with np.errstate(over="raise", invalid="raise", divide="raise"):
-            rot, trans, stair = staircase_start(graph, cert.rotations, cert.translations,
-                                                problem=prob)
+            _, _, stair = staircase_start(graph, cert.rotations, cert.translations,
+                                          problem=prob, start=cert)
     except (HybridPGOError, ValueError, np.linalg.LinAlgError, RuntimeError,
             FloatingPointError) as exc:
         info["staircase"] = {"certified": False, "error": str(exc),
@@ -418,7 +419,7 @@ def _staircase(graph: PoseGraph, prob: SyncProblem | None, init: str, cert: Any,
                "rank_d_objective": float(info["objective"]),  # where the certificate failed
                "ranks": [{k: float(v) for k, v in r.items()} for r in stair["ranks"]]}
     if stair["certified"]:
-        rounded = sesync_certificate(graph, rot, trans, problem=prob)
+        rounded = stair["certificate"]  # of the staircase's poses, where it certified
         if rounded.certified:
             took = time.perf_counter() - t0
             out = _certificate_info(rounded, init)
