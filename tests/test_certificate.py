@@ -355,12 +355,12 @@ def test_the_staircase_reaches_the_certified_optimum_from_random_rotations(make)
 
 def test_the_staircase_goes_on_from_a_failed_certificate_and_returns_its_certificate() -> None:
     """Given the failed certificate of its start, the staircase takes rank d's point and
-    spectrum from it when its Newton's method converged (not computed again), else goes on
-    refining from its point; the certificate it returns is that of its poses
-    (:func:`sesync_certificate` of them certifies the same objective)."""
+    spectrum from it when its Newton's method converged, else refines from its point; the
+    certificate it returns is that of its poses (:func:`sesync_certificate` of them
+    certifies the same objective), and None when it does not certify."""
     import dataclasses
 
-    graph = generate_grid("m3500b", seed=1, num_poses=300).graph  # a local minimum at rank d
+    graph = generate_grid("m3500b", seed=1, num_poses=300).graph  # large rotation noise
     problem = SyncProblem(graph)
     capped = sesync_certificate(graph, *_chordal(graph), problem=problem)
     assert not capped.certified and capped.lambda_min < 0 and capped.point is not None
@@ -399,6 +399,44 @@ def test_the_staircase_goes_on_from_a_failed_certificate_and_returns_its_certifi
         again = sesync_certificate(graph, rot, trans)
         assert again.certified and again.objective == pytest.approx(cert.objective, rel=1e-9)
         assert cert.gap <= GAP_TOLERANCE * cert.objective
+
+
+def test_a_converged_certificate_starts_the_staircase_as_it_is() -> None:
+    """Newton's method that converges says so (``refine_converged``); a certified start is the
+    staircase's rank d, reported in the frame of the given poses; a start whose rotations or
+    gap tolerance are not the staircase's is not taken; a staircase that cannot certify
+    (no rank to climb) returns no certificate."""
+    graph = read_graph(DATA / "smallGrid3D.g2o")
+    problem = SyncProblem(graph)
+    start = sesync_certificate(graph, *_chordal(graph), problem=problem)
+    assert start.certified and start.stats["refine_converged"] is True
+    assert start.stats["gap_tolerance"] == GAP_TOLERANCE
+    calls: list[str] = []
+    refine = problem.refine
+
+    def counted(*args, **kwargs):
+        calls.append("refine")
+        return refine(*args, **kwargs)
+
+    problem.refine = counted  # type: ignore[method-assign]
+    rot, trans, info = staircase_start(graph, start.rotations, start.translations,
+                                       problem=problem, start=start)
+    assert info["certified"] and info["rank"] == 3 and not calls
+    cert = info["certificate"]
+    assert cert.certified and cert.objective == start.objective and cert.gap == start.gap
+    assert np.array_equal(cert.rotations, rot) and np.array_equal(cert.translations, trans)
+    assert np.abs(rot - start.rotations).max() <= 1e-9
+    # not the staircase's rotations, or another gap tolerance: refined again
+    for rotations, tol in ((start.rotations.copy() @ _random_rotations(graph, 3)[:1],
+                            GAP_TOLERANCE), (start.rotations, 10 * GAP_TOLERANCE)):
+        calls.clear()
+        staircase_start(graph, rotations, start.translations, problem=problem, start=start,
+                        gap_tolerance=tol)
+        assert calls
+    # a local minimum at rank d and no rank to climb to: not certified, no certificate
+    hard = generate_grid("m3500b", seed=1, num_poses=300).graph
+    _, _, failed = staircase_start(hard, *_chordal(hard), max_rank=1)  # d = 1 (planar)
+    assert not failed["certified"] and failed["certificate"] is None
 
 
 def _chordal(graph: PoseGraph):

@@ -312,8 +312,9 @@ class SyncProblem:
         self._d = SparseSPD(sp.csc_matrix(self.m[keep][:, keep].real))
         self._d.factor(check=True)
         self._newton: dict[str, Any] | None = None
-        self.refine_converged = True
-        """Whether the last :meth:`refine` converged (False: it stopped at its cap)."""
+        self.refine_converged = False
+        """Whether the last :meth:`refine` converged (False before any, and when it stopped at
+        its caps)."""
         self._cert: dict[str, Any] | None = None
 
     # ------------------------------------------------------------------ conversions
@@ -618,8 +619,9 @@ class SyncProblem:
         Stops
         after a step whose predicted decrease is below ``_NEWTON_TOLERANCE`` of F, or below
         F's rounding error when a fresh factorization no longer shrinks it ``_CHORD_RATE``
-        times (:attr:`refine_converged` then True), or at ``max_iterations`` factorizations
-        (False).  Returns ``(Y, F, factorizations)``.
+        times (:attr:`refine_converged` then True), or at ``max_iterations`` factorizations,
+        a damping of 1e12, or ``4 max_iterations`` steps (False).  Returns
+        ``(Y, F, factorizations)``.
         """
         from .linalg import NotPositiveDefinite
 
@@ -847,7 +849,8 @@ class SyncProblem:
 # ------------------------------------------------------------------ results
 @dataclass(frozen=True)
 class Certificate:
-    """What :func:`sesync_certificate` / :func:`certify` found at a solution."""
+    """What :func:`sesync_certificate`, :func:`certify` or :func:`staircase_start` found at a
+    solution."""
 
     certified: bool
     """True: the module docstring's "certified" (F's global minimum within ``gap`` at the
@@ -873,7 +876,8 @@ class Certificate:
     """Newton iterations, factorizations, seconds per part, polish energies."""
     point: tuple[Array, Spectrum] | None = field(repr=False, compare=False, default=None)
     """The refined rotations in the relaxation's layout (rank d) and the certificate
-    matrix's :class:`Spectrum` there, its eigenvector included (None when not computed)."""
+    matrix's :class:`Spectrum` there (with its eigenvector from :func:`sesync_certificate`;
+    None when not computed)."""
 
     def summary(self) -> str:
         """``"certified global optimum (gap <= ...)"`` or ``"not certified (...)"``."""
@@ -949,8 +953,8 @@ def sesync_certificate(graph: PoseGraph, rotations: FloatArray,
     then the certificate (:meth:`SyncProblem.spectrum`) bounds its gap.  ``certified`` is True
     when ``gap / F <= gap_tolerance``.  The refined poses are returned in the frame of the given
     ones at the gauge pose (``translations`` default: the F-optimal positions as they come).
-    The certificate keeps its refined point and spectrum (:attr:`Certificate.point`), from
-    which :func:`staircase_start` goes on without computing them again.
+    The certificate keeps its refined point and spectrum (:attr:`Certificate.point`), with
+    which :func:`staircase_start` starts at rank d.
     """
     t0 = time.perf_counter()
     why = not_applicable(graph)
@@ -970,17 +974,19 @@ def sesync_certificate(graph: PoseGraph, rotations: FloatArray,
                            time.perf_counter() - t0, f"F overflows float64 ({exc})")
     ref = None if translations is None else (rotations, translations)
     return _certificate_at(prob, y, f, its, spec, ref, (t1 - t0, t2 - t1, t3 - t2),
-                           prob.cost(prob.to_y(rotations)), time.perf_counter() - t0)
+                           prob.cost(prob.to_y(rotations)), time.perf_counter() - t0,
+                           gap_tolerance, prob.refine_converged)
 
 
 def _certificate_at(prob: SyncProblem, y: Array, f: float, its: int, spec: Spectrum,
                     ref: tuple[FloatArray, FloatArray] | None,
-                    seconds: tuple[float, float, float], before: float,
-                    took: float) -> Certificate:
+                    seconds: tuple[float, float, float], before: float, took: float,
+                    gap_tolerance: float, converged: bool) -> Certificate:
     """The :class:`Certificate` of the Newton-refined point ``y`` (F = ``f``, ``its``
-    factorizations) from its spectrum: poses in the frame of ``ref`` at the gauge pose,
-    ``seconds`` of set-up, refinement and spectrum, ``before`` F before the refinement, ``took``
-    the certificate's wall time."""
+    factorizations, ``converged`` whether that refinement converged) from its spectrum
+    (computed with ``gap_tolerance``): poses in the frame of ``ref`` at the gauge pose,
+    ``seconds`` of set-up, refinement and spectrum, ``before`` F before the refinement,
+    ``took`` the certificate's wall time."""
     rot, trans = prob.poses(y, ref)
     gap = spec.objective - spec.lower_bound
     ok = bool(np.isfinite(gap))  # within gap_tolerance, or at the smallest shift (spectrum)
@@ -1004,7 +1010,7 @@ def _certificate_at(prob: SyncProblem, y: Array, f: float, its: int, spec: Spect
         {"newton_iterations": its, "factorizations": spec.factorizations, "shift": spec.shift,
          "shift_floor": spec.floor, "seconds_setup": seconds[0], "seconds_refine": seconds[1],
          "seconds_spectrum": seconds[2], "objective_before_refine": before,
-         "refine_converged": prob.refine_converged},
+         "refine_converged": converged, "gap_tolerance": gap_tolerance},
         (y, spec))
 
 
@@ -1094,27 +1100,27 @@ def staircase_start(graph: PoseGraph, rotations: FloatArray, translations: Float
     """Poses from SE-Sync's Riemannian staircase, started at given poses.
 
     Rank d (the problem itself): Newton's method on F from the given rotations, then the
-    certificate.  While it fails and the rank is below ``max_rank`` (default d + 3): escape
-    along the eigenvector of the certificate's negative eigenvalue into one more rank
-    (``[Y, alpha v]``, ``alpha`` halved until F falls), minimize there (:meth:`SyncProblem.
-    minimize`, at most ``max_iterations``), round to rotations, refine them with Newton and
-    certify again; the minimization stops after :data:`STAIRCASE_CHUNK` iterations, then each
-    time their number doubled, for a rounding, refinement and certificate, and the staircase
-    ends at the first that certifies.
+    certificate (or those of ``start``).  While it fails and the rank is below ``max_rank``
+    (default d + 3): escape along the eigenvector of the certificate's negative eigenvalue
+    into one more rank (``[Y, alpha v]``, ``alpha`` halved until F falls), minimize there
+    (:meth:`SyncProblem.minimize`, at most ``max_iterations``), round to rotations, refine
+    them with Newton and certify again; the minimization stops after
+    :data:`STAIRCASE_CHUNK` iterations, then each time their number doubled, for a rounding,
+    refinement and certificate, and the staircase ends at the first that certifies.
     Returns the lowest-F rotations found with their optimal positions, in the
     frame of the given poses at the gauge pose, and ``info``: ``certified``, ``objective`` (F),
     ``lambda_min``, ``rank`` (where it ended), ``ranks`` (per rank: F of the relaxation, F
     rounded and refined, lambda_min of the relaxation's certificate (NaN when its rounding
     certified first), the minimization's iterations), ``max_angle`` (largest rotation
     difference from the given poses, rad), ``seconds``, and ``certificate``: the
-    :class:`Certificate` of the returned poses when ``certified`` (the certificate of the
-    rounding that certified: :func:`sesync_certificate` of those poses would refine and
-    certify them again).  ``problem``: the graph's :class:`SyncProblem` when one was built
-    already (its set-up and factorizations' analysis are reused).  ``start``: the
-    certificate of these poses (:func:`sesync_certificate`; ``rotations`` and
-    ``translations`` are its refined poses): when its Newton's method converged, rank d's
-    refinement and spectrum are its own (else Newton goes on from there: a refinement
-    stopped at its factorization cap, short of F's local minimum, often ends at the global
+    :class:`Certificate` of the returned poses, computed where they certified (None when
+    not ``certified``; its ``objective_before_refine`` is F at the rounding it refined).
+    ``problem``: the graph's :class:`SyncProblem` when one was built already (its set-up
+    and factorizations' analysis are reused).  ``start``: the certificate of the given poses
+    (:func:`sesync_certificate`, its refined poses being ``rotations`` and ``translations``):
+    when its Newton's method converged and its gap tolerance is ``gap_tolerance``, rank d's
+    point and spectrum are its own; else Newton goes on from the given rotations (a
+    refinement stopped at its cap, short of F's local minimum, often ends at the global
     one).
     """
     t0 = time.perf_counter()
@@ -1125,25 +1131,36 @@ def staircase_start(graph: PoseGraph, rotations: FloatArray, translations: Float
     d = prob.d
     top = max_rank if max_rank is not None else d + 3
     cert: Certificate | None = None
-    if start is not None and start.point is not None and start.stats.get("refine_converged"):
+    y0 = prob.to_y(rotations)
+    if (start is not None and start.point is not None and start.stats.get("refine_converged")
+            and start.stats.get("gap_tolerance") == gap_tolerance
+            and start.point[0].shape == y0.shape
+            and np.array_equal(start.rotations, rotations)):
         y, spec = start.point
         f = start.objective
-        cert = start
+        certified = bool(np.isfinite(spec.lower_bound))
+        if certified:  # its poses in the frame of the given ones, as the staircase returns
+            st = start.stats
+            cert = _certificate_at(prob, y, f, int(st["newton_iterations"]), spec,
+                                   (rotations, translations),
+                                   (st["seconds_setup"], st["seconds_refine"],
+                                    st["seconds_spectrum"]),
+                                   st["objective_before_refine"], start.seconds,
+                                   gap_tolerance, True)
     else:
         t1 = time.perf_counter()
-        y, f, factorizations = prob.refine(prob.to_y(rotations))
+        y, f, factorizations = prob.refine(y0)
         t2 = time.perf_counter()
         spec = prob.spectrum(y, gap_tolerance, eigenvector=True)
         t3 = time.perf_counter()
-        cert = _certificate_at(prob, y, f, factorizations, spec, (rotations, translations),
-                               (t1 - t0, t2 - t1, t3 - t2), prob.cost(prob.to_y(rotations)),
-                               t3 - t0)
+        certified = bool(np.isfinite(spec.lower_bound))
+        if certified:
+            cert = _certificate_at(prob, y, f, factorizations, spec, (rotations, translations),
+                                   (t1 - t0, t2 - t1, t3 - t2), prob.cost(y0), t3 - t0,
+                                   gap_tolerance, prob.refine_converged)
     best_y, best_f = y, f
     ranks: list[dict[str, float]] = [{"rank": float(d), "relaxation": f, "rounded": f,
                                       "lambda_min": spec.lambda_min}]
-    certified = bool(np.isfinite(spec.lower_bound))
-    if not certified:
-        cert = None
     yp = y
     p = d
     while not certified and p < top and spec.vector is not None and spec.lambda_min < 0:
@@ -1170,6 +1187,7 @@ def staircase_start(graph: PoseGraph, rotations: FloatArray, translations: Float
             t1 = time.perf_counter()
             rounded = prob.round(yp)
             yr, fr, factorizations = prob.refine(rounded)
+            converged = prob.refine_converged
             t2 = time.perf_counter()
             if fr < best_f:
                 best_y, best_f = yr, fr
@@ -1180,7 +1198,8 @@ def staircase_start(graph: PoseGraph, rotations: FloatArray, translations: Float
                 t3 = time.perf_counter()
                 cert = _certificate_at(prob, yr, fr, factorizations, spec_r,
                                        (rotations, translations), (0.0, t2 - t1, t3 - t2),
-                                       prob.cost(rounded), t3 - t1)
+                                       prob.cost(rounded), t3 - t1, gap_tolerance,
+                                       converged)
             if certified or its < chunk or done >= max_iterations:
                 break
             chunk = done  # the tries at 50, 100, 200, 400, ... iterations

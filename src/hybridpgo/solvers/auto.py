@@ -389,7 +389,7 @@ def _certificate_info(cert: Any, start: str) -> dict[str, Any]:
         "start": start, "lambda_min": float(cert.lambda_min), "gap": float(cert.gap),
         "relative_gap": float(cert.relative_gap), "objective": float(cert.objective),
         "seconds": float(cert.seconds), "reason": cert.reason,
-        **{k: float(v) for k, v in cert.stats.items()}}
+        **{k: (v if isinstance(v, bool) else float(v)) for k, v in cert.stats.items()}}
 
 
 def _staircase(graph: PoseGraph, prob: SyncProblem | None, init: str, cert: Any,
@@ -420,15 +420,13 @@ def _staircase(graph: PoseGraph, prob: SyncProblem | None, init: str, cert: Any,
                "ranks": [{k: float(v) for k, v in r.items()} for r in stair["ranks"]]}
     if stair["certified"]:
         rounded = stair["certificate"]  # of the staircase's poses, where it certified
-        if rounded.certified:
-            took = time.perf_counter() - t0
-            out = _certificate_info(rounded, init)
-            out["seconds"] = info["seconds"] + took
-            # the shared problem's set-up, made once before the first certificate
-            out["seconds_setup"] = out.get("seconds_setup", 0.0) + info.get("seconds_setup", 0.0)
-            out["staircase"] = {**summary, "seconds": took, "rank_d": info["summary"]}
-            return rounded, out
-        summary["certified"] = False
+        took = time.perf_counter() - t0
+        out = _certificate_info(rounded, init)
+        out["seconds"] = info["seconds"] + took
+        # the shared problem's set-up, made once before the first certificate
+        out["seconds_setup"] = out.get("seconds_setup", 0.0) + info.get("seconds_setup", 0.0)
+        out["staircase"] = {**summary, "seconds": took, "rank_d": info["summary"]}
+        return rounded, out
     info["staircase"] = {**summary, "seconds": time.perf_counter() - t0}
     info["seconds"] += info["staircase"]["seconds"]
     return cert, info
