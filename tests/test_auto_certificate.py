@@ -342,3 +342,37 @@ def test_an_early_try_that_fails_leaves_the_pipeline_to_the_starts(monkeypatch) 
     assert early["start"] == "chordal" and "the start chordal failed: singular" in early["summary"]
     assert res.stats["init"] != "chordal"
     assert "start: singular" in res.stats["candidates"]["chordal"]["error"]
+
+
+def test_the_early_newton_cap_shrinks_with_the_graph() -> None:
+    from hybridpgo.certificate import NEWTON_FACTORIZATIONS
+    from hybridpgo.solvers.auto import EARLY_NEWTON_MIN, EARLY_NEWTON_WORK, _early_newton_cap
+
+    assert _early_newton_cap(3500) == NEWTON_FACTORIZATIONS
+    assert _early_newton_cap(EARLY_NEWTON_WORK // NEWTON_FACTORIZATIONS) == NEWTON_FACTORIZATIONS
+    assert _early_newton_cap(100_000) == EARLY_NEWTON_WORK // 100_000 < NEWTON_FACTORIZATIONS
+    assert _early_newton_cap(10**7) == EARLY_NEWTON_MIN
+
+
+def test_a_capped_early_newton_polishes_the_start_first_and_certifies_there(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where the early try's Newton method stops at its cap short of F's minimum (here a cap
+    of 4 on a grid whose Newton method needs 16 from the chordal start), LM polishes the start
+    and the certificate is computed at that optimum: certified, one start, the every-start
+    pipeline's energy; without the cap the same answer comes through Newton's method."""
+    import hybridpgo.solvers.auto as auto
+
+    graph = generate_grid("m3500a", seed=1, num_poses=1000).graph
+    every = solve_auto(graph, AutoConfig(certify=False))
+    plain = solve_auto(graph)
+    assert "polished_first" not in plain.stats["certificate"]
+    monkeypatch.setattr(auto, "EARLY_NEWTON_WORK", 4 * graph.num_nodes)
+    res = solve_auto(graph)
+    cert = res.stats["certificate"]
+    first = cert["polished_first"]
+    assert first["newton_cap"] == 4 and first["capped"].startswith("not certified")
+    assert cert["certified"] and res.stats["start"] == "certified start"
+    assert cert["refine_converged"] is True and res.stats["polished_starts"] == 1
+    assert abs(first["energy"] - every.final_energy) <= SAME * every.final_energy
+    for r in (res, plain):
+        assert abs(r.final_energy - every.final_energy) <= SAME * every.final_energy

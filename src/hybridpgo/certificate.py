@@ -102,6 +102,8 @@ FLOOR_GAP_TOLERANCE = 1e-4
 SAME_OPTIMUM = 1e-9
 #: Newton on F stops when the predicted decrease is below this fraction of F.
 _NEWTON_TOLERANCE = 1e-14
+#: Factorizations Newton's method on F makes at most (:meth:`SyncProblem.refine`).
+NEWTON_FACTORIZATIONS = 30
 #: A factorization of F's Hessian is reused while each step's predicted decrease falls at
 #: least this many times below the last one (a chord step costs a solve and a gradient, a
 #: refactorization is then due).  M3500_isam: 13 chord steps at a rate of 3-10 (34 ms), or 2
@@ -602,7 +604,8 @@ class SyncProblem:
         rot = np.swapaxes(y.reshape(self.n, 3, 3), 1, 2) @ exp(delta[:, 3:])
         return np.ascontiguousarray(np.swapaxes(rot, 1, 2).reshape(3 * self.n, 3))
 
-    def refine(self, y: Array, max_iterations: int = 30) -> tuple[Array, float, int]:
+    def refine(self, y: Array, max_iterations: int = NEWTON_FACTORIZATIONS
+               ) -> tuple[Array, float, int]:
         """Newton's method on F over the rotations (rank d) and positions, from ``y``, the
         gauge pose held; the positions are re-optimized after each step.
 
@@ -946,7 +949,8 @@ def sync_problem(graph: PoseGraph) -> tuple[SyncProblem | None, float]:
 def sesync_certificate(graph: PoseGraph, rotations: FloatArray,
                        translations: FloatArray | None = None, *,
                        gap_tolerance: float = GAP_TOLERANCE,
-                       problem: SyncProblem | None = None) -> Certificate:
+                       problem: SyncProblem | None = None,
+                       max_factorizations: int = NEWTON_FACTORIZATIONS) -> Certificate:
     """Certify F's global optimum near given poses (no claim about E).
 
     Newton's method refines the rotations to a stationary point of F (SE-Sync's objective),
@@ -954,7 +958,9 @@ def sesync_certificate(graph: PoseGraph, rotations: FloatArray,
     when ``gap / F <= gap_tolerance``.  The refined poses are returned in the frame of the given
     ones at the gauge pose (``translations`` default: the F-optimal positions as they come).
     The certificate keeps its refined point and spectrum (:attr:`Certificate.point`), with
-    which :func:`staircase_start` starts at rank d.
+    which :func:`staircase_start` starts at rank d.  ``max_factorizations``: Newton's cap
+    (:meth:`SyncProblem.refine`; ``stats["refine_converged"]`` says whether it converged
+    before it).
     """
     t0 = time.perf_counter()
     why = not_applicable(graph)
@@ -965,7 +971,7 @@ def sesync_certificate(graph: PoseGraph, rotations: FloatArray,
         with np.errstate(over="raise", invalid="raise", divide="raise"):
             prob = problem or SyncProblem(graph)
             t1 = time.perf_counter()
-            y, f, its = prob.refine(prob.to_y(rotations))
+            y, f, its = prob.refine(prob.to_y(rotations), max_factorizations)
             t2 = time.perf_counter()
             spec = prob.spectrum(y, gap_tolerance, eigenvector=True)
             t3 = time.perf_counter()

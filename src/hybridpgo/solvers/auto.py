@@ -14,6 +14,9 @@ solver is named (``--solver auto``).  The paper's pure method stays ``--solver h
    eigenvalue: generated grids with large rotation noise), SE-Sync's Riemannian staircase
    (:func:`hybridpgo.certificate.staircase_start`) escapes it through ranks d+1.. d+3 and a
    certified rounding is the certified start (``stats["certificate"]["staircase"]``).
+   On large graphs Newton's method makes fewer factorizations (:data:`EARLY_NEWTON_WORK`);
+   where it stops short of F's minimum, LM polishes the start first and the certificate is
+   computed at that optimum (``stats["certificate"]["polished_first"]``).
    On every benchmark file this is the whole solve (one factorization of F's Newton system on
    most, then LM's usual iterations).  When the certificate fails (or the polish does not
    converge), 1-5 run, the start already computed is reused, and
@@ -432,6 +435,65 @@ def _staircase(graph: PoseGraph, prob: SyncProblem | None, init: str, cert: Any,
     return cert, info
 
 
+#: The early try's Newton method on F makes at most this many factorizations times poses, in
+#: factorizations between :data:`EARLY_NEWTON_MIN` and the certificate's own cap
+#: (:data:`hybridpgo.certificate.NEWTON_FACTORIZATIONS`): up to 20 000 poses the whole cap.  Each
+#: factorization costs in proportion to the graph, and from a start far from F's minimum the
+#: steps are damped and slow (a 100 000-pose city from the chordal start: 30 factorizations in
+#: 15 s, short of the minimum; from LM's optimum of the same start, 2 in 2.2 s).  Where Newton
+#: stops at this cap, the start is polished first and certified there (:func:`_polished_first`).
+EARLY_NEWTON_WORK = 600_000
+#: The early try's fewest Newton factorizations (:data:`EARLY_NEWTON_WORK`).
+EARLY_NEWTON_MIN = 4
+
+
+def _early_newton_cap(poses: int) -> int:
+    """Newton's factorizations in the early try on a graph of ``poses`` poses."""
+    from ..certificate import NEWTON_FACTORIZATIONS
+
+    return int(min(NEWTON_FACTORIZATIONS, max(EARLY_NEWTON_MIN,
+                                              EARLY_NEWTON_WORK // max(poses, 1))))
+
+
+def _polished_first(exact: ExactSolver, cfg: AutoConfig, prob: SyncProblem | None,
+                    cand: _Candidate, cert: Any, info: dict[str, Any], cap: int,
+                    t_origin: float, progress: ProgressCallback | None,
+                    iterate: IterateCallback | None) -> tuple[Any, dict[str, Any]]:
+    """The early try where Newton's method stopped at its cap (:data:`EARLY_NEWTON_WORK`)
+    short of F's minimum: LM polishes the start, and the certificate is computed at that
+    optimum (its rotations are near F's minimum).  Returns that certificate and its
+    ``stats["certificate"]`` (``polished_first``: the capped try's summary, the cap, the
+    polish's seconds and energy; ``seconds`` counts both certificates), or ``cert`` and
+    ``info`` as they were when the polish does not converge or the certificate raises."""
+    from ..certificate import sesync_certificate
+    from ..energy import robust_energy
+
+    graph = exact.graph
+    assert cand.rot is not None and cand.trans is not None
+    first = _Candidate(cand.init, "polished start")
+    first.rot, first.trans = first.start = cand.rot, cand.trans
+    first.history = [robust_energy(graph, first.rot, first.trans)[0]]
+    first.times = [time.perf_counter() - t_origin]
+    t0 = time.perf_counter()
+    _polish(exact, first, progress, cfg.polish.max_iterations, iterate)
+    pol = first.polished
+    took = time.perf_counter() - t0
+    note = {"capped": info["summary"], "newton_cap": cap, "seconds_polish": took}
+    if pol is None or pol.status is not Status.CONVERGED:
+        info["polished_first"] = {**note, "error": first.error or "the polish did not converge"}
+        return cert, info
+    try:
+        again = sesync_certificate(graph, pol.rotations, pol.translations, problem=prob)
+    except (HybridPGOError, ValueError, np.linalg.LinAlgError, RuntimeError) as exc:
+        info["polished_first"] = {**note, "error": f"the certificate failed: {exc}"}
+        return cert, info
+    out = _certificate_info(again, cand.init)
+    out["seconds"] += info["seconds"]  # the capped try's, its problem's set-up included
+    out["seconds_setup"] = out.get("seconds_setup", 0.0) + info.get("seconds_setup", 0.0)
+    out["polished_first"] = {**note, "energy": pol.final_energy}
+    return again, out
+
+
 def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: InitName,
                      t_origin: float, progress: ProgressCallback | None,
                      iterate: IterateCallback | None
@@ -463,15 +525,22 @@ def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: 
         progress(Progress("start", 0, 0, cand.history[0], detail=init))
     if iterate is not None:
         iterate(Progress("start", 0, 0, cand.history[0], detail=init), cand.rot, cand.trans)
+    cap = _early_newton_cap(graph.num_nodes)
     try:
         # one SyncProblem for the certificate and the staircase (set up once)
         prob, setup_s = sync_problem(graph)
-        cert = sesync_certificate(graph, cand.rot, cand.trans, problem=prob)
+        cert = sesync_certificate(graph, cand.rot, cand.trans, problem=prob,
+                                  max_factorizations=cap)
     except (HybridPGOError, ValueError, np.linalg.LinAlgError, RuntimeError) as exc:
         return cand, None, {**_not_computed(f"the certificate failed: {exc}"), "start": init}
     info = _certificate_info(cert, init)
     info["seconds"] += setup_s  # the problem's set-up, made before the certificate's clock
     info["seconds_setup"] = info.get("seconds_setup", 0.0) + setup_s
+    if (not cert.certified and not cert.stats.get("refine_converged", True)
+            and cap < _early_newton_cap(0)):
+        # a large graph whose Newton steps from the start are slow: certified at LM's optimum
+        cert, info = _polished_first(exact, cfg, prob, cand, cert, info, cap, t_origin,
+                                     progress, iterate)
     floor = cert.stats.get("shift_floor", 0.0)
     if not cert.certified and cert.lambda_min < -floor:
         # F's local minimum (a negative eigenvalue): SE-Sync's Riemannian staircase escapes it
