@@ -370,8 +370,10 @@ def test_a_capped_early_newton_polishes_the_start_first_and_certifies_there(
     res = solve_auto(graph)
     cert = res.stats["certificate"]
     first = cert["polished_first"]
-    assert first["newton_cap"] == 4 and first["capped"].startswith("not certified")
+    assert first["newton_cap"] == 4 and first["newton_capped"].startswith("not certified")
     assert cert["certified"] and res.stats["start"] == "certified start"
+    assert cert["newton_iterations"] < 16  # refined from LM's optimum, not from the start
+    assert "LM polished the start first" in res.stats["reason"]
     assert cert["refine_converged"] is True and res.stats["polished_starts"] == 1
     assert abs(first["energy"] - every.final_energy) <= SAME * every.final_energy
     for r in (res, plain):

@@ -14,12 +14,13 @@ solver is named (``--solver auto``).  The paper's pure method stays ``--solver h
    eigenvalue: generated grids with large rotation noise), SE-Sync's Riemannian staircase
    (:func:`hybridpgo.certificate.staircase_start`) escapes it through ranks d+1.. d+3 and a
    certified rounding is the certified start (``stats["certificate"]["staircase"]``).
-   On large graphs Newton's method makes fewer factorizations (:data:`EARLY_NEWTON_WORK`);
-   where it stops short of F's minimum, LM polishes the start first and the certificate is
-   computed at that optimum (``stats["certificate"]["polished_first"]``).
+   Newton's method there makes at most ``EARLY_NEWTON_WORK / N`` factorizations on N poses
+   (:func:`_early_newton_cap`); on a graph where that is below the certificate's own cap and
+   Newton stops without converging and uncertified, LM polishes the start first and the
+   certificate is computed at that optimum (``stats["certificate"]["polished_first"]``).
    On every benchmark file this is the whole solve (one factorization of F's Newton system on
-   most, then LM's usual iterations).  When the certificate fails (or the polish does not
-   converge), 1-5 run, the start already computed is reused, and
+   most, then LM's usual iterations).  When the certificate fails (or the polish from the
+   certified start does not converge), 1-5 run, the start already computed is reused, and
    ``stats["certificate"]["early"]`` keeps the try's verdict and seconds.
 1. **Starts.**  Every start of ``AutoConfig.inits`` that applies is computed: the chordal
    relaxation (one sparse factorization for the rotations, one for the positions), the tree
@@ -429,19 +430,22 @@ def _staircase(graph: PoseGraph, prob: SyncProblem | None, init: str, cert: Any,
         # the shared problem's set-up, made once before the first certificate
         out["seconds_setup"] = out.get("seconds_setup", 0.0) + info.get("seconds_setup", 0.0)
         out["staircase"] = {**summary, "seconds": took, "rank_d": info["summary"]}
+        if "polished_first" in info:  # the rank-d certificate was the polished start's
+            out["polished_first"] = info["polished_first"]
         return rounded, out
     info["staircase"] = {**summary, "seconds": time.perf_counter() - t0}
     info["seconds"] += info["staircase"]["seconds"]
     return cert, info
 
 
-#: The early try's Newton method on F makes at most this many factorizations times poses, in
-#: factorizations between :data:`EARLY_NEWTON_MIN` and the certificate's own cap
-#: (:data:`hybridpgo.certificate.NEWTON_FACTORIZATIONS`): up to 20 000 poses the whole cap.  Each
+#: The early try's Newton method on F makes at most ``EARLY_NEWTON_WORK // N`` factorizations
+#: on a graph of N poses, clipped to :data:`EARLY_NEWTON_MIN` ..
+#: :data:`hybridpgo.certificate.NEWTON_FACTORIZATIONS` (:func:`_early_newton_cap`).  Each
 #: factorization costs in proportion to the graph, and from a start far from F's minimum the
 #: steps are damped and slow (a 100 000-pose city from the chordal start: 30 factorizations in
 #: 15 s, short of the minimum; from LM's optimum of the same start, 2 in 2.2 s).  Where Newton
-#: stops at this cap, the start is polished first and certified there (:func:`_polished_first`).
+#: stops uncertified at a cap below the certificate's own, the start is polished first and
+#: certified there (:func:`_polished_first`).
 EARLY_NEWTON_WORK = 600_000
 #: The early try's fewest Newton factorizations (:data:`EARLY_NEWTON_WORK`).
 EARLY_NEWTON_MIN = 4
@@ -451,8 +455,7 @@ def _early_newton_cap(poses: int) -> int:
     """Newton's factorizations in the early try on a graph of ``poses`` poses."""
     from ..certificate import NEWTON_FACTORIZATIONS
 
-    return int(min(NEWTON_FACTORIZATIONS, max(EARLY_NEWTON_MIN,
-                                              EARLY_NEWTON_WORK // max(poses, 1))))
+    return min(NEWTON_FACTORIZATIONS, max(EARLY_NEWTON_MIN, EARLY_NEWTON_WORK // max(poses, 1)))
 
 
 def _polished_first(exact: ExactSolver, cfg: AutoConfig, prob: SyncProblem | None,
@@ -466,19 +469,18 @@ def _polished_first(exact: ExactSolver, cfg: AutoConfig, prob: SyncProblem | Non
     polish's seconds and energy; ``seconds`` counts both certificates), or ``cert`` and
     ``info`` as they were when the polish does not converge or the certificate raises."""
     from ..certificate import sesync_certificate
-    from ..energy import robust_energy
 
     graph = exact.graph
     assert cand.rot is not None and cand.trans is not None
     first = _Candidate(cand.init, "polished start")
     first.rot, first.trans = first.start = cand.rot, cand.trans
-    first.history = [robust_energy(graph, first.rot, first.trans)[0]]
+    first.history = cand.history[:1]
     first.times = [time.perf_counter() - t_origin]
     t0 = time.perf_counter()
     _polish(exact, first, progress, cfg.polish.max_iterations, iterate)
     pol = first.polished
     took = time.perf_counter() - t0
-    note = {"capped": info["summary"], "newton_cap": cap, "seconds_polish": took}
+    note = {"newton_capped": info["summary"], "newton_cap": cap, "seconds_polish": took}
     if pol is None or pol.status is not Status.CONVERGED:
         info["polished_first"] = {**note, "error": first.error or "the polish did not converge"}
         return cert, info
@@ -506,7 +508,7 @@ def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: 
     Returns the start's candidate (its poses, no sweeps; ``locals`` kept for the sweeps when
     the try fails), the certified start's candidate (None when the certificate failed) and
     the try's ``stats["certificate"]``; ``certified`` there means the polish converged too."""
-    from ..certificate import sesync_certificate, sync_problem
+    from ..certificate import NEWTON_FACTORIZATIONS, sesync_certificate, sync_problem
     from ..energy import robust_energy
 
     graph = exact.graph
@@ -537,7 +539,7 @@ def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: 
     info["seconds"] += setup_s  # the problem's set-up, made before the certificate's clock
     info["seconds_setup"] = info.get("seconds_setup", 0.0) + setup_s
     if (not cert.certified and not cert.stats.get("refine_converged", True)
-            and cap < _early_newton_cap(0)):
+            and cap < NEWTON_FACTORIZATIONS):
         # a large graph whose Newton steps from the start are slow: certified at LM's optimum
         cert, info = _polished_first(exact, cfg, prob, cand, cert, info, cap, t_origin,
                                      progress, iterate)
@@ -689,6 +691,8 @@ def _stats(win: _Candidate, cands: list[_Candidate], ranked: list[_Candidate],
     how = (f"SE-Sync's Riemannian staircase to rank {stair['rank']}, rounded and refined by "
            "Newton's method" if stair.get("certified") and win.label == "certified start"
            else "its rotations refined by Newton's method on SE-Sync's objective")
+    if "polished_first" in certificate and win.label == "certified start":
+        how = f"LM polished the start first, then {how}"
     swept = (f"{win.sweeps} sweep(s) kept of {win.sweeps_run} run" if win.label == win.init
              else f"its certified start ({how})" if win in checks
              else "its own poses, no sweeps")
@@ -818,7 +822,7 @@ def _full_pipeline(graph: PoseGraph, exact: ExactSolver | None, cfg: AutoConfig,
     if early is not None:  # the early try's cost and verdict
         certificate["early"] = {
             "start": early[2]["start"], "summary": early[2]["summary"], "seconds": early_s,
-            **({"staircase": early[2]["staircase"]} if "staircase" in early[2] else {})}
+            **{k: early[2][k] for k in ("staircase", "polished_first") if k in early[2]}}
         certificate["seconds"] += early_s
     return (win, cands + ranked[len(usable):], ranked, finalists, polished, checks,
             certificate, relax, polish_s, relax_s, sum(misfit_s), hybrid_s)
