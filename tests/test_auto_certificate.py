@@ -378,3 +378,33 @@ def test_a_capped_early_newton_polishes_the_start_first_and_certifies_there(
     assert abs(first["energy"] - every.final_energy) <= SAME * every.final_energy
     for r in (res, plain):
         assert abs(r.final_energy - every.final_energy) <= SAME * every.final_energy
+
+
+def test_a_polished_first_certificate_that_raises_leaves_the_capped_try_to_the_staircase(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The polished start's certificate raises: the early try goes on from the capped try's
+    certificate (the staircase's Newton method continues from its point and certifies here),
+    says why in ``polished_first``, and the answer is the every-start pipeline's."""
+    import hybridpgo.certificate as certificate
+    import hybridpgo.solvers.auto as auto
+
+    graph = generate_grid("m3500a", seed=1, num_poses=1000).graph
+    every = solve_auto(graph, AutoConfig(certify=False))
+    monkeypatch.setattr(auto, "EARLY_NEWTON_WORK", 4 * graph.num_nodes)
+    real = certificate.sesync_certificate
+    calls = []
+
+    def second_raises(*args, **kwargs):
+        if args[0] is graph:  # not the kernels' warm-up
+            calls.append(kwargs.get("max_factorizations"))
+            if len(calls) == 2:
+                raise ValueError("no factorization today")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(certificate, "sesync_certificate", second_raises)
+    res = solve_auto(graph)
+    cert = res.stats["certificate"]
+    assert calls == [4, None]
+    assert "no factorization today" in cert["polished_first"]["error"]
+    assert cert["certified"] and cert["staircase"]["certified"]
+    assert abs(res.final_energy - every.final_energy) <= SAME * every.final_energy
