@@ -288,8 +288,8 @@ def test_the_staircase_goes_on_from_the_certificates_point_on_its_problem(
     res = solve_auto(graph)
     cert = res.stats["certificate"]
     assert cert["certified"] and "staircase" in cert
-    # one problem, one staircase, one certificate call: the staircase's certified rounding
-    # comes with its certificate (not computed again)
+    # one problem, one staircase, one certificate call: the certificate of the staircase's
+    # certified rounding comes with it
     assert len(problems) == 1 and len(stairs) == 1 and len(certificates) == 1
     rotations, problem = stairs[0]
     assert problem is problems[0] and rotations is certificates[0].rotations

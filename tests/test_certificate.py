@@ -426,7 +426,7 @@ def test_a_converged_certificate_starts_the_staircase_as_it_is() -> None:
     assert cert.certified and cert.objective == start.objective and cert.gap == start.gap
     assert np.array_equal(cert.rotations, rot) and np.array_equal(cert.translations, trans)
     assert np.abs(rot - start.rotations).max() <= 1e-9
-    # not the staircase's rotations, or another gap tolerance: refined again
+    # not the staircase's rotations, or another gap tolerance: Newton refines the given ones
     for rotations, tol in ((start.rotations.copy() @ _random_rotations(graph, 3)[:1],
                             GAP_TOLERANCE), (start.rotations, 10 * GAP_TOLERANCE)):
         calls.clear()
