@@ -1146,13 +1146,8 @@ def staircase_start(graph: PoseGraph, rotations: FloatArray, translations: Float
         f = start.objective
         certified = bool(np.isfinite(spec.lower_bound))
         if certified:  # its poses in the frame of the given ones, as the staircase returns
-            st = start.stats
-            cert = _certificate_at(prob, y, f, int(st["newton_iterations"]), spec,
-                                   (rotations, translations),
-                                   (st["seconds_setup"], st["seconds_refine"],
-                                    st["seconds_spectrum"]),
-                                   st["objective_before_refine"], start.seconds,
-                                   gap_tolerance, True)
+            rot0, trans0 = prob.poses(y, (rotations, translations))
+            cert = _replace(start, rotations=rot0, translations=trans0)
     else:
         t1 = time.perf_counter()
         y, f, factorizations = prob.refine(y0)
