@@ -226,3 +226,56 @@ def test_shared_patterns_copy_the_matrix_and_keep_values_apart(rng: np.random.Ge
         x = f.solve_factored(b)
         np.testing.assert_allclose(m @ x, b, rtol=0,
                                    atol=FLOAT64_IDENTITY * np.abs(b).max() * np.linalg.cond(m))
+
+
+@pytest.mark.skipif(not cholmod_available(), reason="cvxopt not installed")
+def test_shared_patterns_share_one_analysis_and_each_solves_with_its_own_values(
+        rng: np.random.Generator, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Inside shared_patterns, factorizers of an equal pattern share one symbolic analysis
+    (CHOLMOD's analysis runs once), and whichever factored last, each one's solves, pivot
+    check and inverse blocks are those of its own values (the other's factorization in
+    between is undone by factoring its values again), against the dense inverse."""
+    import cvxopt.cholmod as cm
+
+    from hybridpgo.linalg import shared_patterns
+
+    n = 30
+    a = _sparse_spd(rng, n)
+    c = _sparse_spd(rng, n) + 3.0 * np.eye(n)
+    pat, va = _pattern_of(a)
+    assert np.all(a != 0) and np.all(c != 0)  # dense: c's values fit a's pattern
+    vc = c[pat.indices, np.repeat(np.arange(n), np.diff(pat.indptr))]
+    analyses: list[int] = []
+    numerics: list[int] = []
+    symbolic, numeric = cm.symbolic, cm.numeric
+    monkeypatch.setattr(cm, "symbolic", lambda *x, **k: analyses.append(1) or symbolic(*x, **k))
+    monkeypatch.setattr(cm, "numeric", lambda *x, **k: numerics.append(1) or numeric(*x, **k))
+    with shared_patterns():
+        f1 = make_factorizer(pat, "cholmod")
+        f2 = make_factorizer(Pattern(pat.indptr.copy(), pat.indices.copy(),
+                                     pat.diag_index.copy(), pat.dim), "cholmod")
+    assert len(analyses) == 1
+    assert f1._factor is f2._factor
+    b = rng.normal(size=(n, 2))
+    blocks = np.arange(n).reshape(-1, 3)
+    f1.factor(va)
+    f2.factor(vc)
+    assert len(numerics) == 2
+    for f, m in ((f1, a), (f2, c), (f1, a), (f1, a), (f2, c)):  # each switch factors again
+        x = f.solve_factored(b)
+        np.testing.assert_allclose(m @ x, b, rtol=0,
+                                   atol=FLOAT64_IDENTITY * np.abs(b).max() * np.linalg.cond(m))
+        f.check()
+        inv = np.linalg.inv(m)
+        want = np.stack([inv[np.ix_(r, r)] for r in blocks])
+        np.testing.assert_allclose(f.inverse_blocks(blocks), want, rtol=0,
+                                   atol=FLOAT64_IDENTITY * np.abs(inv).max() * np.linalg.cond(m))
+    assert len(numerics) == 2 + 4  # at each switch of factorizer: f1, f2, f1, (f1: none), f2
+    # a factorizer that never factored does not factor the other's values as its own
+    with shared_patterns():
+        g1 = make_factorizer(pat, "cholmod")
+        g2 = make_factorizer(pat, "cholmod")
+    g1.factor(va)
+    before = len(numerics)
+    g2._mine()
+    assert len(numerics) == before

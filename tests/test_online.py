@@ -1937,3 +1937,58 @@ def test_the_worker_warm_up_loads_every_kernel_of_the_incremental_solver() -> No
                          timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split() == [], f"not loaded by the warm-up: {out.stdout}"
+
+
+@pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
+@pytest.mark.parametrize("kind", ["planar", "3d_gps"])
+def test_the_worker_screens_with_the_outlier_test_of_a_whole_graph(
+        data_dir: Path, monkeypatch: pytest.MonkeyPatch, kind: str) -> None:
+    """The worker's screening tests the χ² it keeps, without building a PoseGraph of its map:
+    its verdict (scales and every constraint's sigmas) is check_consistency's on the graph of
+    the constraints solved (and of all of them, thorough), to the bit; on planar data (3
+    degrees of freedom per constraint) and on a 3D map with GPS readings, each with a false
+    closure that makes it inconsistent."""
+    from hybridpgo.generate import generate_city
+    from hybridpgo.io import read_graph
+    from hybridpgo.solvers import robust
+
+    g = (read_graph(data_dir / "w100_toro.graph") if kind == "planar"
+         else generate_city(None, seed=0, num_poses=300, gps_every=10).graph)
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    _stream(s, g, range(g.num_nodes))
+    mp = _worker_map(s, ("auto", None))
+    mp.solve(50)
+    mp.screen_after()
+    mp.add({"parent": np.zeros(0, np.int32), "rot": np.zeros((0, 3, 3)),
+            "trans": np.zeros((0, 3)), "edge_ab": np.array([[1, mp.n // 2]], np.int32),
+            "edge_rot": np.eye(3)[None], "edge_trans": np.array([[40.0, 0.0, 0.0]]),
+            "edge_info": np.eye(6)[None] * 100.0, "gps_node": np.zeros(0, np.int32),
+            "gps_pos": np.zeros((0, 3)), "gps_info": np.zeros((0, 3, 3))})
+    mp.defer_screening = True
+    mp.solve(50)  # the least-squares answer with the false closure
+    seen: list[Any] = []
+    original = robust.consistency_of
+
+    def recording(*args: Any, **kwargs: Any) -> Any:
+        seen.append(original(*args, **kwargs))
+        return seen[-1]
+
+    monkeypatch.setattr(robust, "consistency_of", recording)
+    n = mp.n
+    for thorough in (False, True):
+        graph = mp._graph(not thorough)
+        assert (graph.gps_nodes.size > 0) == (kind == "3d_gps")
+        want = robust.check_consistency(graph, mp.grot[1: n + 1], mp.gtr[1: n + 1])
+        seen.clear()
+        changed = mp._screen(thorough)
+        got = seen[0]  # the screening's test (a re-solve tests again)
+        assert got.scale == want.scale or (np.isnan(got.scale) and np.isnan(want.scale))
+        assert got.gps_scale == want.gps_scale or (np.isnan(got.gps_scale)
+                                                   and np.isnan(want.gps_scale))
+        np.testing.assert_array_equal(got.sigmas, want.sigmas)
+        np.testing.assert_array_equal(got.gps_sigmas, want.gps_sigmas)
+        assert got.inconsistent == want.inconsistent
+        if not thorough:  # the false closure makes the map inconsistent
+            assert got.inconsistent
+            if kind == "planar":  # and on w100 the re-solve rejects it
+                assert changed and not mp.keep_m[mp.m - 1]

@@ -434,11 +434,19 @@ def planar_data(graph: PoseGraph) -> bool:
     bool
         False for a graph without relative constraints.
     """
-    if graph.num_edges == 0 or not planar_motions(graph.edge_rotations,
-                                                  graph.edge_translations):
+    return planar_arrays(graph.edge_rotations, graph.edge_translations,
+                         graph.edge_information, graph.gps_positions, graph.gps_information)
+
+
+def planar_arrays(edge_rotations: FloatArray, edge_translations: FloatArray,
+                  edge_information: FloatArray, gps_positions: FloatArray,
+                  gps_information: FloatArray) -> bool:
+    """:func:`planar_data` of the constraints given as arrays ((M, 3, 3), (M, 3), (M, 6, 6),
+    (G, 3), (G, 3, 3))."""
+    if edge_rotations.shape[0] == 0 or not planar_motions(edge_rotations, edge_translations):
         return False
-    if not decoupled_information(graph.edge_information):
+    if not decoupled_information(edge_information):
         return False
-    gps = graph.gps_information
-    return bool(np.all(graph.gps_positions[:, 2] == 0.0) and np.all(gps[:, :2, 2] == 0.0)
+    gps = gps_information
+    return bool(np.all(gps_positions[:, 2] == 0.0) and np.all(gps[:, :2, 2] == 0.0)
                 and np.all(gps[:, 2, :2] == 0.0))

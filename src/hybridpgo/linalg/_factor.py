@@ -282,8 +282,8 @@ def _cholmod_options(**options: int) -> Iterator[Any]:
 _CHOLMOD_OPTIONS = {"supernodal": 2, "nmethods": 1}
 
 #: The cvxopt matrices built inside :func:`shared_patterns` (None outside one): ``(indptr,
-#: indices, matrix)`` per pattern.
-_PATTERNS: contextvars.ContextVar[list[tuple[Any, Any, Any]] | None] = contextvars.ContextVar(
+#: indices, matrix, analysis)`` per pattern.
+_PATTERNS: contextvars.ContextVar[list[tuple[Any, Any, Any, Any]] | None] = contextvars.ContextVar(
     "hybridpgo_cholmod_patterns", default=None)
 #: Patterns with more stored entries than this are not kept (their construction is small
 #: beside their factorization, and the copy kept would hold 16 bytes per entry).
@@ -296,8 +296,11 @@ def shared_patterns() -> Iterator[None]:
     earlier in it starts from a copy of that one's cvxopt matrix (0.1 ms) instead of building
     it from triplets (cvxopt sorts and de-duplicates them: 8 ms for garage's 260 000 entries).
     The default pipeline opens one per solve: the certificate's Newton system and the
-    polish's normal equations have the same pattern.  Each factorizer still has its own matrix
-    values and its own symbolic analysis; nothing is kept after the context."""
+    polish's normal equations have the same pattern.  Such factorizers also share one symbolic
+    analysis (garage: 7 ms of CHOLMOD's analysis, and the first factorization's fresh pages),
+    each with its own matrix values: the factor object holds the numeric factorization of the
+    factorizer that factored last, and another one that solves with it first factors its own
+    values again (:class:`_Analysis`).  Nothing is kept after the context."""
     token = _PATTERNS.set([])
     try:
         yield
@@ -305,24 +308,41 @@ def shared_patterns() -> Iterator[None]:
         _PATTERNS.reset(token)
 
 
-def _shared_matrix(pattern: SymmetricPattern) -> Any:
-    """A copy of the matrix built in this :func:`shared_patterns` context for an equal pattern,
-    else None."""
+class _Analysis:
+    """A CHOLMOD factor object shared by the factorizers of one pattern in a
+    :func:`shared_patterns` context: its symbolic analysis is the same for all of them, its
+    numeric factorization is that of ``user``, the factorizer that factored last."""
+
+    __slots__ = ("factor", "user")
+
+    def __init__(self, factor: Any) -> None:
+        self.factor = factor
+        self.user: object = None
+
+
+def _shared_matrix(pattern: SymmetricPattern) -> tuple[Any, _Analysis] | None:
+    """A copy of the matrix built in this :func:`shared_patterns` context for an equal pattern
+    and its analysis, else None."""
     known = _PATTERNS.get()
     if not known:
         return None
-    for indptr, indices, matrix in known:
+    for indptr, indices, matrix, analysis in known:
         if (indptr.shape == pattern.indptr.shape and np.array_equal(indptr, pattern.indptr)
                 and np.array_equal(indices, pattern.indices)):
-            return +matrix  # a copy with the same stored entries (zeros included)
+            return +matrix, analysis  # a copy with the same stored entries (zeros included)
     return None
 
 
-def _remember(pattern: SymmetricPattern, matrix: Any) -> None:
+def _remember(pattern: SymmetricPattern, matrix: Any, analysis: _Analysis) -> bool:
+    """Keep ``matrix`` and its analysis for the factorizers of an equal pattern made later in
+    this :func:`shared_patterns` context; False when none is open or the pattern is too
+    large to keep."""
     known = _PATTERNS.get()
-    if known is not None and int(pattern.indptr[-1]) <= SHARED_PATTERN_MAX:
-        known.append((np.array(pattern.indptr, copy=True), np.array(pattern.indices, copy=True),
-                      matrix))
+    if known is None or int(pattern.indptr[-1]) > SHARED_PATTERN_MAX:
+        return False
+    known.append((np.array(pattern.indptr, copy=True), np.array(pattern.indices, copy=True),
+                  matrix, analysis))
+    return True
 
 
 class _Cholmod(Factorizer):
@@ -341,25 +361,32 @@ class _Cholmod(Factorizer):
         self._perm: Int64Array | None = None
         self._diagonal: FloatArray | None = None
         self._factor: Any = None
+        #: the factor object when shared with factorizers of an equal pattern (None: its own)
+        self._analysis: _Analysis | None = None
         nnz = int(pattern.indptr[-1]) if dim else 0
         #: the values the caller assembles into (numpy view of a cvxopt matrix, no copy)
         self._store = cvxopt.matrix(0.0, (max(nnz, 1), 1))
         self._buffer: FloatArray = np.asarray(self._store)[:nnz, 0]
         if dim == 0:
             return
-        self._matrix = _shared_matrix(pattern)
-        if self._matrix is None:
-            rows = cvxopt.matrix(pattern.indices, tc="i")
-            col = np.repeat(np.arange(dim, dtype=np.int64), np.diff(pattern.indptr))
-            cols = cvxopt.matrix(col, tc="i")
-            del col
-            # values given as a matrix (the zeros of the store): about twice as fast as a scalar
-            self._matrix = cvxopt.spmatrix(self._store, rows, cols, (dim, dim))
-            del rows, cols
-            _remember(pattern, self._matrix)
+        shared = _shared_matrix(pattern)
+        if shared is not None:
+            self._matrix, self._analysis = shared
+            self._factor = self._analysis.factor
+            return
+        rows = cvxopt.matrix(pattern.indices, tc="i")
+        col = np.repeat(np.arange(dim, dtype=np.int64), np.diff(pattern.indptr))
+        cols = cvxopt.matrix(col, tc="i")
+        del col
+        # values given as a matrix (the zeros of the store): about twice as fast as a scalar
+        self._matrix = cvxopt.spmatrix(self._store, rows, cols, (dim, dim))
+        del rows, cols
         natural = cvxopt.matrix(np.arange(dim, dtype=np.int64), tc="i")
         with _cholmod_options(**_CHOLMOD_OPTIONS) as cm:
             self._factor = cm.symbolic(self._matrix, p=natural)
+        analysis = _Analysis(self._factor)
+        if _remember(pattern, self._matrix, analysis):
+            self._analysis = analysis
 
     def values_buffer(self) -> FloatArray:
         """The array to assemble the values into: :meth:`factor` then copies nothing more."""
@@ -371,11 +398,27 @@ class _Cholmod(Factorizer):
             self._buffer[:] = values
         self._matrix.V = self._store  # one copy, into the matrix cvxopt hands to CHOLMOD
         self._diagonal = values[self._diag_index]
+        self._numeric()
+
+    def _numeric(self) -> None:
+        """CHOLMOD's numeric factorization of the matrix's values (those of the last
+        :meth:`factor`), into the factor object."""
+        if self._analysis is not None:
+            self._analysis.user = self
         with _cholmod_options(**_CHOLMOD_OPTIONS) as cm:
             try:
                 cm.numeric(self._matrix, self._factor)
             except ArithmeticError as exc:  # cvxopt: the column where a pivot was <= 0
                 raise not_positive_definite(f"non-positive pivot in column {exc}") from exc
+
+    def _mine(self) -> Any:
+        """The factor object holding this factorizer's last factorization: where another
+        factorizer of the same analysis factored since, this one's values (kept in its
+        matrix) are factored again."""
+        a = self._analysis
+        if a is not None and a.user is not self and self._diagonal is not None:
+            self._numeric()
+        return self._factor
 
     def _permutation(self) -> Int64Array:
         """p with ``(P A P^T)[i, j] = A[p[i], p[j]]``: CHOLMOD's final order (postordered)."""
@@ -390,14 +433,15 @@ class _Cholmod(Factorizer):
         """Raise SolverError when the last factored matrix is singular to rounding."""
         assert self._diagonal is not None
         with _cholmod_options(**_CHOLMOD_OPTIONS) as cm:
-            pivots = np.asarray(cm.diag(self._factor), np.float64).ravel() ** 2  # D of L D L^T
+            pivots = np.asarray(cm.diag(self._mine()), np.float64).ravel() ** 2  # D of L D L^T
         check_pivots(pivots, self._diagonal[self._permutation()])
 
     def solve_factored(self, rhs: FloatArray) -> FloatArray:
         """``A^-1 rhs`` with the last factorization (rhs: (dim,) or (dim, k))."""
         b = self._cvxopt.matrix(np.asfortranarray(rhs, np.float64))
+        factor = self._mine()
         with _cholmod_options(**_CHOLMOD_OPTIONS) as cm:
-            cm.solve(self._factor, b)
+            cm.solve(factor, b)
         out = np.asarray(b, np.float64)
         return out.ravel() if rhs.ndim == 1 else out
 
@@ -421,8 +465,9 @@ class _Cholmod(Factorizer):
             rhs = np.zeros((dim, idx.size), order="F")
             rhs[pinv[idx.ravel()], np.arange(idx.size)] = 1.0
             y = self._cvxopt.matrix(rhs)
+            factor = self._mine()
             with _cholmod_options(**_CHOLMOD_OPTIONS) as cm:
-                cm.solve(self._factor, y, sys=4)  # y := L^-1 y
+                cm.solve(factor, y, sys=4)  # y := L^-1 y
             yy = np.asarray(y, np.float64).reshape(dim, hi - lo, b)
             yt = yy.transpose(1, 2, 0)  # (k, b, dim)
             out[lo:hi] = yt @ yt.transpose(0, 2, 1)

@@ -153,12 +153,16 @@ def _dof(graph: PoseGraph) -> int:
 
 
 def _relative_scale(graph: PoseGraph, s: FloatArray, trim: bool) -> float:
-    """Reduced χ² of the relative constraints ``s`` (of ``graph``'s poses); with ``trim``, of
-    those within the threshold of ``nu = max(1, scale)``: the smallest such fixed point,
-    iterated up from the stated scale, so that a few huge χ² cannot inflate it (nan: no
-    degrees of freedom left)."""
-    d = _dof(graph)
-    free = d * (graph.num_nodes - 1)
+    """:func:`_scale_of` for the relative constraints ``s`` of ``graph``'s poses."""
+    return _scale_of(s, _dof(graph), graph.num_nodes, trim)
+
+
+def _scale_of(s: FloatArray, d: int, num_nodes: int, trim: bool) -> float:
+    """Reduced χ² of the relative constraints ``s`` (``d`` degrees of freedom each, between
+    ``num_nodes`` poses); with ``trim``, of those within the threshold of
+    ``nu = max(1, scale)``: the smallest such fixed point, iterated up from the stated scale,
+    so that a few huge χ² cannot inflate it (nan: no degrees of freedom left)."""
+    free = d * (num_nodes - 1)
     finite = np.isfinite(s)
     if d * int(finite.sum()) - free <= 0:
         return math.nan
@@ -221,8 +225,20 @@ def check_consistency(graph: PoseGraph, rotations: FloatArray, translations: Flo
     Consistency
     """
     s, s_gps = constraint_energies(graph, rotations, translations)
-    scale = _relative_scale(graph, s, trim)
-    gps_scale = _gps_scale(s_gps, _gps_dof(graph))
+    planar = planar_data(graph)
+    return consistency_of(s, s_gps, graph.num_nodes, graph.is_2d or planar, planar, trim=trim)
+
+
+def consistency_of(s: FloatArray, s_gps: FloatArray, num_nodes: int, planar: bool,
+                   planar_gps: bool, *, trim: bool = True) -> Consistency:
+    """:func:`check_consistency` from the constraints' χ² at the poses: ``s`` (M,) of the
+    relative constraints between ``num_nodes`` poses, ``s_gps`` (G,) of the GPS readings;
+    ``planar``: each relative constraint has 3 degrees of freedom (a 2D graph, or planar data:
+    :func:`~hybridpgo.graph.planar_data`), else 6; ``planar_gps``: each reading has 2 (planar
+    data), else 3.  For a caller that keeps the χ² of a map it checked as it grew (the
+    online worker), without building and checking a :class:`PoseGraph` of it."""
+    scale = _scale_of(s, 3 if planar else 6, num_nodes, trim)
+    gps_scale = _gps_scale(s_gps, 2 if planar_gps else 3)
     return Consistency(scale, gps_scale, _sigmas(s, scale, math.isfinite(scale)),
                        _sigmas(s_gps, gps_scale, math.isfinite(gps_scale)))
 
