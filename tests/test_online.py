@@ -1992,3 +1992,38 @@ def test_the_worker_screens_with_the_outlier_test_of_a_whole_graph(
             assert got.inconsistent
             if kind == "planar":  # and on w100 the re-solve rejects it
                 assert changed and not mp.keep_m[mp.m - 1]
+
+
+def test_worker_messages_are_written_from_the_arrays_as_encoded() -> None:
+    """An answer written straight from its arrays (``write_message``) is ``encode``'s bytes,
+    and reads back as the same arrays (dtypes, shapes, byte order and empty arrays included);
+    the answers' pipe is widened to ``PIPE_BYTES`` where the system has the call."""
+    import io
+
+    from hybridpgo.online import worker
+
+    arrays = {"rot": np.arange(18.0).reshape(2, 3, 3), "flags": np.array([True, False]),
+              "none": np.zeros(0, np.int32), "big": np.arange(5, dtype=">i8"),
+              "cols": np.asfortranarray(np.arange(6.0).reshape(2, 3))}
+    buf = io.BytesIO()
+    worker.write_message(buf, {"type": "result", "n": 2}, arrays)
+    assert buf.getvalue() == worker.encode({"type": "result", "n": 2}, arrays)
+    buf.seek(0)
+    msg = worker.read_message(buf)
+    assert msg is not None
+    meta, got = msg
+    assert meta == {"type": "result", "n": 2} and list(got) == list(arrays)
+    for name, arr in arrays.items():
+        assert got[name].dtype == arr.dtype and got[name].shape == arr.shape
+        np.testing.assert_array_equal(got[name], arr)
+    fcntl = pytest.importorskip("fcntl")  # POSIX
+    if hasattr(fcntl, "F_GETPIPE_SZ"):  # Linux
+        r, w = os.pipe()
+        try:
+            worker.widen_pipe(w)
+            limit = int(Path("/proc/sys/fs/pipe-max-size").read_text())
+            if worker.PIPE_BYTES <= limit:
+                assert fcntl.fcntl(w, fcntl.F_GETPIPE_SZ) == worker.PIPE_BYTES
+        finally:
+            os.close(r)
+            os.close(w)

@@ -94,6 +94,9 @@ WORKER_SWITCH_S = 1e-4
 #: Seconds :meth:`BackgroundRefiner.close` waits for the worker to exit before killing it.
 STOP_TIMEOUT_S = 5.0
 _HEADER = struct.Struct("<Q")
+#: Capacity asked for the pipe of the worker's answers (bytes; Linux's default limit for an
+#: unprivileged process is 1 MiB, its default capacity 64 KiB).
+PIPE_BYTES = 1 << 20
 #: Largest JSON header accepted (a corrupted stream otherwise asks for huge buffers).
 _MAX_HEADER = 1 << 20
 
@@ -101,13 +104,19 @@ Arrays = dict[str, np.ndarray]
 
 
 # --------------------------------------------------------------------------- framing
-def encode(meta: dict[str, Any], arrays: Arrays) -> bytes:
-    """One message: header length, JSON header (with the arrays' layout), raw array bytes."""
+def _parts(meta: dict[str, Any], arrays: Arrays) -> list[Any]:
+    """A message as buffers: header length and JSON header (with the arrays' layout), then
+    each array's bytes (the arrays themselves, C-contiguous: no copy)."""
     parts = [np.ascontiguousarray(a) for a in arrays.values()]
     head = dict(meta, arrays=[[k, a.dtype.str, list(a.shape)]
                               for k, a in zip(arrays, parts, strict=True)])
     hb = json.dumps(head).encode()
-    return b"".join([_HEADER.pack(len(hb)), hb, *(a.tobytes() for a in parts)])
+    return [_HEADER.pack(len(hb)) + hb, *(a.data.cast("B") for a in parts if a.nbytes)]
+
+
+def encode(meta: dict[str, Any], arrays: Arrays) -> bytes:
+    """One message (:func:`_parts`) as bytes: a copy of the arrays taken now."""
+    return b"".join(_parts(meta, arrays))
 
 
 def write_all(fh: IO[bytes], data: bytes) -> None:
@@ -118,6 +127,30 @@ def write_all(fh: IO[bytes], data: bytes) -> None:
         if k is None:  # pragma: no cover - only non-blocking files return None
             raise OSError("write would block")
         view = view[k:]
+
+
+def write_message(fh: IO[bytes], meta: dict[str, Any], arrays: Arrays) -> None:
+    """Write one message (:func:`encode`'s bytes) straight from the arrays, copying none of
+    them (an answer on 15 000 poses: 1.4 MB)."""
+    for part in _parts(meta, arrays):
+        write_all(fh, part)
+
+
+def widen_pipe(fd: int) -> None:
+    """Give the pipe ``fd`` :data:`PIPE_BYTES` of capacity where the system lets us (Linux;
+    elsewhere, or above the system's limit, it keeps its own): an answer the pipe holds whole
+    is written at once, and the frames' receiving thread takes it in few reads."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not a POSIX system
+        return
+    op = getattr(fcntl, "F_SETPIPE_SZ", None)
+    if op is None:  # pragma: no cover - not Linux
+        return
+    try:
+        fcntl.fcntl(fd, op, PIPE_BYTES)
+    except OSError:  # pragma: no cover - above /proc/sys/fs/pipe-max-size
+        pass
 
 
 def _read_exact(fh: IO[bytes], buf: memoryview) -> bool:
@@ -1161,6 +1194,7 @@ def _worker(max_iterations: int, robust_spec: str = "none") -> int:
     inp = os.fdopen(os.dup(0), "rb", buffering=0)
     out = os.fdopen(os.dup(1), "wb", buffering=0)
     os.dup2(2, 1)  # stray prints go to stderr, never into the protocol
+    widen_pipe(out.fileno())
     sys.setswitchinterval(WORKER_SWITCH_S)
     try:
         os.nice(WORKER_NICE)
@@ -1235,7 +1269,7 @@ def _worker(max_iterations: int, robust_spec: str = "none") -> int:
         meta["req"] = pending
         answered = pending
         try:
-            write_all(out, encode(meta, arrays))
+            write_message(out, meta, arrays)
         except (BrokenPipeError, OSError):
             break
         # the screening due at this answer, after it: a re-solve that changed the map
