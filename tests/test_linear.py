@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pytest
@@ -11,7 +12,12 @@ from tolerances import FLOAT64_IDENTITY
 
 from hybridpgo.errors import SolverError
 from hybridpgo.linalg import _factor as _linear
-from hybridpgo.linalg._factor import cholmod_available, fill_reducing_order, make_factorizer
+from hybridpgo.linalg._factor import (
+    NotPositiveDefinite,
+    cholmod_available,
+    fill_reducing_order,
+    make_factorizer,
+)
 
 BACKENDS = [
     "splu",
@@ -233,8 +239,10 @@ def test_shared_patterns_share_one_analysis_and_each_solves_with_its_own_values(
         rng: np.random.Generator, monkeypatch: pytest.MonkeyPatch) -> None:
     """Inside shared_patterns, factorizers of an equal pattern share one symbolic analysis
     (CHOLMOD's analysis runs once), and whichever factored last, each one's solves, pivot
-    check and inverse blocks are those of its own values (the other's factorization in
-    between is undone by factoring its values again), against the dense inverse."""
+    check and inverse blocks are those of its own last factored values (the other's
+    factorization in between is undone by factoring them again, not the values buffer the
+    caller may have changed since), against the dense inverse; one that never factored
+    refuses to solve with the other's factorization."""
     import cvxopt.cholmod as cm
 
     from hybridpgo.linalg import shared_patterns
@@ -242,9 +250,11 @@ def test_shared_patterns_share_one_analysis_and_each_solves_with_its_own_values(
     n = 30
     a = _sparse_spd(rng, n)
     c = _sparse_spd(rng, n) + 3.0 * np.eye(n)
+    singular = np.ones((n, n))  # positive semidefinite, rank 1: its factorization fails
     pat, va = _pattern_of(a)
     assert np.all(a != 0) and np.all(c != 0)  # dense: c's values fit a's pattern
-    vc = c[pat.indices, np.repeat(np.arange(n), np.diff(pat.indptr))]
+    lower = (pat.indices, np.repeat(np.arange(n), np.diff(pat.indptr)))
+    vc, vs = c[lower], singular[lower]
     analyses: list[int] = []
     numerics: list[int] = []
     symbolic, numeric = cm.symbolic, cm.numeric
@@ -254,28 +264,41 @@ def test_shared_patterns_share_one_analysis_and_each_solves_with_its_own_values(
         f1 = make_factorizer(pat, "cholmod")
         f2 = make_factorizer(Pattern(pat.indptr.copy(), pat.indices.copy(),
                                      pat.diag_index.copy(), pat.dim), "cholmod")
+        f3 = make_factorizer(pat, "cholmod")
     assert len(analyses) == 1
-    assert f1._factor is f2._factor
+    assert f1._factor is f2._factor is f3._factor
     b = rng.normal(size=(n, 2))
     blocks = np.arange(n).reshape(-1, 3)
     f1.factor(va)
+    f1.values_buffer()[:] = 0.0  # the caller's buffer changes (LM restores its diagonal)
     f2.factor(vc)
-    assert len(numerics) == 2
-    for f, m in ((f1, a), (f2, c), (f1, a), (f1, a), (f2, c)):  # each switch factors again
+    with pytest.raises(NotPositiveDefinite):
+        f3.factor(vs)  # the shared factor object now holds a failed factorization
+    assert len(numerics) == 3
+
+    def solves(f: Any, m: np.ndarray) -> None:
         x = f.solve_factored(b)
         np.testing.assert_allclose(m @ x, b, rtol=0,
                                    atol=FLOAT64_IDENTITY * np.abs(b).max() * np.linalg.cond(m))
+
+    def checks(f: Any, m: np.ndarray) -> None:
         f.check()
+
+    def inverts(f: Any, m: np.ndarray) -> None:
         inv = np.linalg.inv(m)
         want = np.stack([inv[np.ix_(r, r)] for r in blocks])
         np.testing.assert_allclose(f.inverse_blocks(blocks), want, rtol=0,
                                    atol=FLOAT64_IDENTITY * np.abs(inv).max() * np.linalg.cond(m))
-    assert len(numerics) == 2 + 4  # at each switch of factorizer: f1, f2, f1, (f1: none), f2
-    # a factorizer that never factored does not factor the other's values as its own
+
+    # each switch of factorizer factors again, whichever method comes first
+    for f, m, first in ((f1, a, inverts), (f2, c, checks), (f1, a, solves), (f2, c, inverts),
+                        (f1, a, checks)):
+        for use in (first, solves, checks, inverts):
+            use(f, m)
+    assert len(numerics) == 3 + 5
     with shared_patterns():
         g1 = make_factorizer(pat, "cholmod")
         g2 = make_factorizer(pat, "cholmod")
     g1.factor(va)
-    before = len(numerics)
-    g2._mine()
-    assert len(numerics) == before
+    with pytest.raises(SolverError, match="before its first factorization"):
+        g2.solve_factored(b)

@@ -2003,7 +2003,8 @@ def test_worker_messages_are_written_from_the_arrays_as_encoded() -> None:
     from hybridpgo.online import worker
 
     arrays = {"rot": np.arange(18.0).reshape(2, 3, 3), "flags": np.array([True, False]),
-              "none": np.zeros(0, np.int32), "big": np.arange(5, dtype=">i8"),
+              "none": np.zeros(0, np.int32), "no_poses": np.zeros((0, 3, 3)),
+              "big": np.arange(5, dtype=">i8"),
               "cols": np.asfortranarray(np.arange(6.0).reshape(2, 3))}
     buf = io.BytesIO()
     worker.write_message(buf, {"type": "result", "n": 2}, arrays)

@@ -300,7 +300,9 @@ def shared_patterns() -> Iterator[None]:
     analysis (garage: 7 ms of CHOLMOD's analysis, and the first factorization's fresh pages),
     each with its own matrix values: the factor object holds the numeric factorization of the
     factorizer that factored last, and another one that solves with it first factors its own
-    values again (:class:`_Analysis`).  Nothing is kept after the context."""
+    values again (:class:`_Analysis`).  Nothing is kept after the context.  The factorizers
+    made in one context are for one thread: two threads solving with factorizers that share
+    an analysis would factor into the same object."""
     token = _PATTERNS.set([])
     try:
         yield
@@ -311,13 +313,21 @@ def shared_patterns() -> Iterator[None]:
 class _Analysis:
     """A CHOLMOD factor object shared by the factorizers of one pattern in a
     :func:`shared_patterns` context: its symbolic analysis is the same for all of them, its
-    numeric factorization is that of ``user``, the factorizer that factored last."""
+    numeric factorization is that of the factorizer whose token is ``user`` (the one that
+    factored last; -1: none yet)."""
 
-    __slots__ = ("factor", "user")
+    __slots__ = ("factor", "tokens", "user")
 
     def __init__(self, factor: Any) -> None:
         self.factor = factor
-        self.user: object = None
+        self.user = -1
+        self.tokens = 0
+
+    def token(self) -> int:
+        """A new factorizer's token (an integer, so that the analysis keeps no factorizer
+        alive)."""
+        self.tokens += 1
+        return self.tokens
 
 
 def _shared_matrix(pattern: SymmetricPattern) -> tuple[Any, _Analysis] | None:
@@ -361,8 +371,10 @@ class _Cholmod(Factorizer):
         self._perm: Int64Array | None = None
         self._diagonal: FloatArray | None = None
         self._factor: Any = None
-        #: the factor object when shared with factorizers of an equal pattern (None: its own)
+        #: the factor object when shared with factorizers of an equal pattern (None: its own),
+        #: and this factorizer's token there
         self._analysis: _Analysis | None = None
+        self._token = 0
         nnz = int(pattern.indptr[-1]) if dim else 0
         #: the values the caller assembles into (numpy view of a cvxopt matrix, no copy)
         self._store = cvxopt.matrix(0.0, (max(nnz, 1), 1))
@@ -373,6 +385,7 @@ class _Cholmod(Factorizer):
         if shared is not None:
             self._matrix, self._analysis = shared
             self._factor = self._analysis.factor
+            self._token = self._analysis.token()
             return
         rows = cvxopt.matrix(pattern.indices, tc="i")
         col = np.repeat(np.arange(dim, dtype=np.int64), np.diff(pattern.indptr))
@@ -387,6 +400,7 @@ class _Cholmod(Factorizer):
         analysis = _Analysis(self._factor)
         if _remember(pattern, self._matrix, analysis):
             self._analysis = analysis
+            self._token = analysis.token()
 
     def values_buffer(self) -> FloatArray:
         """The array to assemble the values into: :meth:`factor` then copies nothing more."""
@@ -404,7 +418,7 @@ class _Cholmod(Factorizer):
         """CHOLMOD's numeric factorization of the matrix's values (those of the last
         :meth:`factor`), into the factor object."""
         if self._analysis is not None:
-            self._analysis.user = self
+            self._analysis.user = self._token
         with _cholmod_options(**_CHOLMOD_OPTIONS) as cm:
             try:
                 cm.numeric(self._matrix, self._factor)
@@ -414,9 +428,18 @@ class _Cholmod(Factorizer):
     def _mine(self) -> Any:
         """The factor object holding this factorizer's last factorization: where another
         factorizer of the same analysis factored since, this one's values (kept in its
-        matrix) are factored again."""
+        matrix) are factored again.
+
+        Raises
+        ------
+        SolverError
+            This factorizer has not factored yet while another one's factorization is there.
+        """
         a = self._analysis
-        if a is not None and a.user is not self and self._diagonal is not None:
+        if a is not None and a.user != self._token:
+            if self._diagonal is None:
+                raise SolverError("a CHOLMOD factorizer was used before its first "
+                                  "factorization")
             self._numeric()
         return self._factor
 
@@ -424,8 +447,11 @@ class _Cholmod(Factorizer):
         """p with ``(P A P^T)[i, j] = A[p[i], p[j]]``: CHOLMOD's final order (postordered)."""
         if self._perm is None:
             b = self._cvxopt.matrix(np.arange(self._dim, dtype=np.float64))
+            # CHOLMOD refuses any solve, this permutation too, with a factor whose last
+            # factorization failed: another factorizer's, where the analysis is shared
+            factor = self._mine()
             with _cholmod_options(**_CHOLMOD_OPTIONS) as cm:
-                cm.solve(self._factor, b, sys=7)  # b := P b
+                cm.solve(factor, b, sys=7)  # b := P b
             self._perm = np.asarray(b, np.float64).ravel().astype(np.int64)
         return self._perm
 

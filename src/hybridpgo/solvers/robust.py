@@ -85,7 +85,7 @@ if TYPE_CHECKING:
     from .gauss_newton import IterateCallback
 
 __all__ = ["GM_SIGMAS", "LEVEL", "MAX_ROUNDS", "THRESHOLD_SIGMAS", "Consistency",
-           "ResolveFn", "check_consistency", "exact_resolver", "odometry_tree",
+           "ResolveFn", "check_consistency", "consistency_of", "exact_resolver", "odometry_tree",
            "outlier_free_start", "rejected_rows", "resolve", "solve_exact_auto",
            "solve_hybrid_auto"]
 
