@@ -1940,25 +1940,38 @@ def test_the_worker_warm_up_loads_every_kernel_of_the_incremental_solver() -> No
 
 
 @pytest.mark.filterwarnings("ignore:.*EQUIV line:UserWarning")  # the file's EQUIV lines
-@pytest.mark.parametrize("kind", ["planar", "3d_gps"])
+@pytest.mark.parametrize("kind", ["planar", "planar_gps", "3d_gps"])
 def test_the_worker_screens_with_the_outlier_test_of_a_whole_graph(
         data_dir: Path, monkeypatch: pytest.MonkeyPatch, kind: str) -> None:
     """The worker's screening tests the χ² it keeps, without building a PoseGraph of its map:
     its verdict (scales and every constraint's sigmas) is check_consistency's on the graph of
     the constraints solved (and of all of them, thorough), to the bit; on planar data (3
-    degrees of freedom per constraint) and on a 3D map with GPS readings, each with a false
-    closure that makes it inconsistent."""
+    degrees of freedom per constraint, 2 per GPS reading), without and with GPS readings, and
+    on a 3D map with GPS readings, each with a false closure that makes it inconsistent."""
     from hybridpgo.generate import generate_city
+    from hybridpgo.graph import planar_data
     from hybridpgo.io import read_graph
     from hybridpgo.solvers import robust
 
-    g = (read_graph(data_dir / "w100_toro.graph") if kind == "planar"
-         else generate_city(None, seed=0, num_poses=300, gps_every=10).graph)
+    g = (generate_city(None, seed=0, num_poses=300, gps_every=10).graph if kind == "3d_gps"
+         else read_graph(data_dir / "w100_toro.graph"))
     s = OnlineSolver(OnlineConfig(background_refine=False))
     _stream(s, g, range(g.num_nodes))
     mp = _worker_map(s, ("auto", None))
     mp.solve(50)
     mp.screen_after()
+    if kind == "planar_gps":  # readings in the plane, every 10th pose, near its estimate
+        nodes = np.arange(0, mp.n, 10, dtype=np.int32)
+        pos = mp.gtr[1 + nodes].copy()
+        pos[:, :2] += np.random.default_rng(0).normal(scale=0.3, size=(nodes.size, 2))
+        pos[:, 2] = 0.0
+        mp.add({"parent": np.zeros(0, np.int32), "rot": np.zeros((0, 3, 3)),
+                "trans": np.zeros((0, 3)), "edge_ab": np.zeros((0, 2), np.int32),
+                "edge_rot": np.zeros((0, 3, 3)), "edge_trans": np.zeros((0, 3)),
+                "edge_info": np.zeros((0, 6, 6)), "gps_node": nodes, "gps_pos": pos,
+                "gps_info": np.broadcast_to(np.eye(3) * 10.0, (nodes.size, 3, 3)).copy()})
+        mp.solve(50)
+        mp.screen_after()
     mp.add({"parent": np.zeros(0, np.int32), "rot": np.zeros((0, 3, 3)),
             "trans": np.zeros((0, 3)), "edge_ab": np.array([[1, mp.n // 2]], np.int32),
             "edge_rot": np.eye(3)[None], "edge_trans": np.array([[40.0, 0.0, 0.0]]),
@@ -1977,7 +1990,8 @@ def test_the_worker_screens_with_the_outlier_test_of_a_whole_graph(
     n = mp.n
     for thorough in (False, True):
         graph = mp._graph(not thorough)
-        assert (graph.gps_nodes.size > 0) == (kind == "3d_gps")
+        assert (graph.gps_nodes.size > 0) == (kind != "planar")
+        assert planar_data(graph) == (kind != "3d_gps")
         want = robust.check_consistency(graph, mp.grot[1: n + 1], mp.gtr[1: n + 1])
         seen.clear()
         changed = mp._screen(thorough)
