@@ -1014,9 +1014,8 @@ class _Map:
         # pose moved), without a PoseGraph: the frames' add_* checked every datum of the map,
         # and a PoseGraph checks them all again when built (streamed valencia at 8 000-15 000
         # poses: screenings of 9-11 ms with one, 0.3-3 ms without)
-        _, change = self._evaluate(rot, trans)
-        self._commit(change)
-        em, eg = change[3], change[4]
+        self._energy()  # the kept χ² at the current poses (_ce_m, _ce_g)
+        em, eg = self._ce_m, self._ce_g
         e, k = (slice(0, m), slice(0, g)) if thorough else self._kept()
         planar = planar_arrays(self.edge_rot[:m][e], self.edge_trans[:m][e],
                                self.edge_info[:m][e], self.gps_pos[:g][k], self.gps_info[:g][k])

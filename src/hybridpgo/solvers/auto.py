@@ -261,6 +261,20 @@ def _failure(cand: _Candidate) -> str:
     return f"energy {cand.energy:.6g}{overflow} at its best poses"
 
 
+def _polished_at(exact: ExactSolver, cfg: AutoConfig, init: str, label: str,
+                 rot: FloatArray, trans: FloatArray, energy: float, at: float,
+                 progress: ProgressCallback | None,
+                 iterate: IterateCallback | None) -> _Candidate:
+    """A candidate started at the given poses (E ``energy`` there, ``at`` seconds into the
+    solve), polished by LM (:func:`_polish`)."""
+    cand = _Candidate(init, label)
+    cand.rot, cand.trans = cand.start = rot, trans
+    cand.history = [energy]
+    cand.times = [at]
+    _polish(exact, cand, progress, cfg.polish.max_iterations, iterate)
+    return cand
+
+
 def _unswept(cand: _Candidate) -> _Candidate:
     """The start of a swept candidate, as a candidate of its own (no sweeps)."""
     raw = _Candidate(cand.init, f"{cand.init}, no sweeps")
@@ -472,12 +486,9 @@ def _polished_first(exact: ExactSolver, cfg: AutoConfig, prob: SyncProblem | Non
 
     graph = exact.graph
     assert cand.rot is not None and cand.trans is not None
-    first = _Candidate(cand.init, "polished start")
-    first.rot, first.trans = first.start = cand.rot, cand.trans
-    first.history = cand.history[:1]
-    first.times = [time.perf_counter() - t_origin]
     t0 = time.perf_counter()
-    _polish(exact, first, progress, cfg.polish.max_iterations, iterate)
+    first = _polished_at(exact, cfg, cand.init, "polished start", cand.rot, cand.trans,
+                         cand.history[0], t0 - t_origin, progress, iterate)
     pol = first.polished
     took = time.perf_counter() - t0
     note = {"newton_capped": info["summary"], "newton_cap": cap, "seconds_polish": took}
@@ -550,11 +561,10 @@ def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: 
         cert, info = _staircase(graph, prob, init, cert, info)
     if not cert.certified:
         return cand, None, info
-    check = _Candidate(init, "certified start")
-    check.rot, check.trans = check.start = cert.rotations, cert.translations
-    check.history = [robust_energy(graph, check.rot, check.trans)[0]]
-    check.times = [time.perf_counter() - t_origin]
-    _polish(exact, check, progress, cfg.polish.max_iterations, iterate)
+    check = _polished_at(exact, cfg, init, "certified start", cert.rotations,
+                         cert.translations,
+                         robust_energy(graph, cert.rotations, cert.translations)[0],
+                         time.perf_counter() - t_origin, progress, iterate)
     pol = check.polished
     if pol is None or pol.status is not Status.CONVERGED:
         why = check.error or f"its polish ended {pol.status.value if pol else 'nowhere'}"
@@ -580,10 +590,10 @@ def _certify(exact: ExactSolver, cfg: AutoConfig, win: _Candidate,
     def polish(rot: FloatArray, trans: FloatArray) -> tuple[FloatArray, FloatArray, float]:
         from ..energy import robust_energy
 
-        check.rot, check.trans = check.start = rot, trans
-        check.history = [robust_energy(exact.graph, rot, trans)[0]]
-        check.times = [win.times[-1]]
-        _polish(exact, check, progress, cfg.polish.max_iterations, iterate)
+        nonlocal check
+        check = _polished_at(exact, cfg, win.init, "certified start", rot, trans,
+                             robust_energy(exact.graph, rot, trans)[0], win.times[-1],
+                             progress, iterate)
         if check.polished is None:
             raise SolverError(check.error)
         return check.polished.rotations, check.polished.translations, check.polished.final_energy

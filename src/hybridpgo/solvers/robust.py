@@ -152,11 +152,6 @@ def _dof(graph: PoseGraph) -> int:
     return 3 if graph.is_2d or planar_data(graph) else 6
 
 
-def _relative_scale(graph: PoseGraph, s: FloatArray, trim: bool) -> float:
-    """:func:`_scale_of` for the relative constraints ``s`` of ``graph``'s poses."""
-    return _scale_of(s, _dof(graph), graph.num_nodes, trim)
-
-
 def _scale_of(s: FloatArray, d: int, num_nodes: int, trim: bool) -> float:
     """Reduced χ² of the relative constraints ``s`` (``d`` degrees of freedom each, between
     ``num_nodes`` poses); with ``trim``, of those within the threshold of
@@ -509,7 +504,7 @@ def _rescaled(graph: PoseGraph, kept: npt.NDArray[np.int64], kept_gps: npt.NDArr
     """Every constraint's sigmas at the optimum of the kept ones, the scales estimated on the
     kept ones (untrimmed: they are the inliers)."""
     s, s_gps = constraint_energies(graph, rot, trans)
-    scale = _relative_scale(graph, s[kept], False)
+    scale = _scale_of(s[kept], _dof(graph), graph.num_nodes, False)
     gps_scale = _gps_scale(s_gps[kept_gps], _gps_dof(graph))
     return Consistency(scale, gps_scale, _sigmas(s, scale, math.isfinite(scale)),
                        _sigmas(s_gps, gps_scale, math.isfinite(gps_scale)))
