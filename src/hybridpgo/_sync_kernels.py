@@ -1,6 +1,6 @@
 """Kernels of SE-Sync's objective F (:mod:`hybridpgo.certificate`): its value, gradient and
-Newton Hessian summed over the constraints, one pass each; the certificate matrix's pose blocks
-(:func:`pose_blocks`); the staircase's retraction (:func:`polar_rows`).
+Newton Hessian summed over the constraints, one pass each; the staircase's retraction
+(:func:`polar_rows`).
 
 Per constraint ``c = (a, b)`` with weights ``w_r`` (rotation) and ``w_t`` (translation),
 ``F_c = w_r ||R_b - R_a Rm||_F^2 + w_t ||t_b - t_a - R_a tm||^2`` over the parameters
@@ -233,47 +233,6 @@ def sync_terms_2d(z: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray,
         he[5, 5] -= w1 * (r_r.conjugate() * zb).real
         _add_blocks(e, 3, where, he, blocks)
     return f, rounding
-
-
-@kernel
-def _pose_slot(u: int, n: int, d: int) -> tuple[int, int]:
-    """Unknown ``u`` of M as (pose, first slot of its real form; :func:`pose_blocks`)."""
-    if u < n:
-        pose, slot = u, 0
-    else:
-        pose, slot = (u - n) // d, 1 + (u - n) % d
-    return pose, 2 * slot if d == 1 else slot
-
-
-@kernel
-def pose_blocks(indptr: np.ndarray, indices: np.ndarray, re: np.ndarray, im: np.ndarray,
-                n: int, d: int, block_ptr: np.ndarray, block_col: np.ndarray,
-                out: np.ndarray) -> int:
-    """M's entries (CSR, canonical; real and imaginary parts) added into the (4, 4) blocks of
-    its real form pose by pose (:meth:`hybridpgo.certificate.SyncProblem._spectrum_setup`):
-    unknown ``u < n`` is pose ``u``'s position, ``u >= n`` its rotation.  3D (``d = 3``, real):
-    a pose's slots are its position, then its rotation's three rows.  2D (``d = 1``, complex):
-    slots (0, 1) the position's real and imaginary parts, (2, 3) the rotation's, and an entry
-    ``p + i q`` becomes the block ``[[p, -q], [q, p]]``.  ``block_ptr``/``block_col``: the BSR
-    pattern (columns increasing in each block row), ``out`` (blocks, 4, 4).  Returns -1, or
-    the row of an entry outside the pattern."""
-    for r in range(indptr.shape[0] - 1):
-        pr, sr = _pose_slot(r, n, d)
-        lo = block_ptr[pr]
-        hi = block_ptr[pr + 1]
-        for t in range(indptr[r], indptr[r + 1]):
-            pc, sc = _pose_slot(indices[t], n, d)
-            k = lo + np.searchsorted(block_col[lo:hi], pc)
-            if k >= hi or block_col[k] != pc:
-                return r
-            p = re[t]
-            out[k, sr, sc] += p
-            if d == 1:
-                q = im[t]
-                out[k, sr, sc + 1] -= q
-                out[k, sr + 1, sc] += q
-                out[k, sr + 1, sc + 1] += p
-    return -1
 
 
 #: :func:`polar_rows`: a block whose ``det(X X^T)`` is below this times ``(tr(X X^T) / 3)^3`` is

@@ -144,11 +144,29 @@ def sesync_weights(graph: PoseGraph) -> tuple[FloatArray, FloatArray]:
     info = graph.edge_information
     if graph.is_2d:
         kappa = np.array(info[:, 5, 5], np.float64)
-        tau = 2.0 / np.trace(np.linalg.inv(info[:, :2, :2]), axis1=1, axis2=2)
+        tau = 2.0 / _trace_of_inverse(info[:, :2, :2])
     else:
-        kappa = 6.0 / np.trace(np.linalg.inv(info[:, 3:, 3:]), axis1=1, axis2=2)
-        tau = 3.0 / np.trace(np.linalg.inv(info[:, :3, :3]), axis1=1, axis2=2)
+        kappa = 6.0 / _trace_of_inverse(info[:, 3:, 3:])
+        tau = 3.0 / _trace_of_inverse(info[:, :3, :3])
     return kappa, tau
+
+
+def _trace_of_inverse(m: FloatArray) -> FloatArray:
+    """``tr(A^-1)`` of symmetric positive definite (k, 2, 2) or (k, 3, 3) blocks: the sum of
+    the principal cofactors over the determinant (a batched ``inv`` of small blocks is some
+    ten times slower)."""
+    if m.shape[-1] == 2:
+        num = m[:, 0, 0] + m[:, 1, 1]
+        det = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
+        out: FloatArray = num / det
+        return out
+    c00 = m[:, 1, 1] * m[:, 2, 2] - m[:, 1, 2] * m[:, 2, 1]
+    c11 = m[:, 0, 0] * m[:, 2, 2] - m[:, 0, 2] * m[:, 2, 0]
+    c22 = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
+    det = (m[:, 0, 0] * c00 - m[:, 0, 1] * (m[:, 1, 0] * m[:, 2, 2] - m[:, 1, 2] * m[:, 2, 0])
+           + m[:, 0, 2] * (m[:, 1, 0] * m[:, 2, 1] - m[:, 1, 1] * m[:, 2, 0]))
+    out = (c00 + c11 + c22) / det
+    return out
 
 
 def gps_weights(graph: PoseGraph) -> FloatArray:
@@ -157,7 +175,7 @@ def gps_weights(graph: PoseGraph) -> FloatArray:
     (2D)."""
     info = graph.gps_information
     dim = 2 if graph.is_2d else 3
-    out: FloatArray = dim / np.trace(np.linalg.inv(info[:, :dim, :dim]), axis1=1, axis2=2)
+    out: FloatArray = dim / _trace_of_inverse(info[:, :dim, :dim])
     return out
 
 
@@ -262,39 +280,46 @@ class SyncProblem:
         rot_m = np.concatenate([graph.edge_rotations, np.broadcast_to(np.eye(3), (gps, 3, 3))])
         trans_m = np.concatenate([graph.edge_translations, graph.gps_positions])
         one = np.ones((m, 1, 1))
-        # residual = sum_k c_k V_k (V_k: the block rows of one unknown); each term
-        # w ||residual||^2 adds w c_p^H c_q to M at the blocks (p, q)
-        terms: list[tuple[list[tuple[Array, Array]], FloatArray]]
+        # residual = sum_k c_k V_k (V_k: the rows of one unknown, named by its pose, a (0) or b
+        # (1), and its first slot in that pose's block: the position is slot 0, the
+        # rotation's d rows follow); each term w ||residual||^2 adds w c_p^H c_q to M
+        terms: list[tuple[list[tuple[int, int, Array]], FloatArray]]
         if self.complex:
             rz = rot_m[:, 0, 0] + 1j * rot_m[:, 1, 0]
             rz = rz / np.abs(rz)
             tz = trans_m[:, 0] + 1j * trans_m[:, 1]
-            terms = [([(n + b, one), (n + a, -rz[:, None, None])], 2.0 * kappa),
-                     ([(b, one), (a, -one), (n + a, -tz[:, None, None])], tau)]
+            terms = [([(1, 1, one), (0, 1, -rz[:, None, None])], 2.0 * kappa),
+                     ([(1, 0, one), (0, 0, -one), (0, 1, -tz[:, None, None])], tau)]
         else:
             eye = np.broadcast_to(np.eye(3), (m, 3, 3))
-            terms = [([(n + 3 * b, eye), (n + 3 * a, -np.swapaxes(rot_m, 1, 2))], kappa),
-                     ([(b, one), (a, -one), (n + 3 * a, -trans_m[:, None, :])], tau)]
-        dim = n + d * n
-        rows: list[Array] = []
-        cols: list[Array] = []
-        vals: list[Array] = []
-        for blocks, w in terms:
-            for sp_, cp in blocks:
-                for sq, cq in blocks:
-                    blk = w[:, None, None] * (np.conj(np.swapaxes(cp, 1, 2)) @ cq)
-                    ip = np.arange(blk.shape[1])
-                    iq = np.arange(blk.shape[2])
-                    rows.append(np.broadcast_to(sp_[:, None, None] + ip[None, :, None],
-                                                blk.shape).ravel())
-                    cols.append(np.broadcast_to(sq[:, None, None] + iq[None, None, :],
-                                                blk.shape).ravel())
-                    vals.append(blk.ravel())
+            terms = [([(1, 1, eye), (0, 1, -np.swapaxes(rot_m, 1, 2))], kappa),
+                     ([(1, 0, one), (0, 0, -one), (0, 1, -trans_m[:, None, :])], tau)]
         dtype = np.complex128 if self.complex else np.float64
-        self.m = sp.csr_matrix((np.concatenate(vals).astype(dtype),
-                                (np.concatenate(rows), np.concatenate(cols))), shape=(dim, dim))
-        del rows, cols, vals
-        self.m.sum_duplicates()
+        size = 1 + d  # a pose's unknowns: its position, then its rotation's d rows
+        # each constraint's part of the pose blocks (a, a), (a, b), (b, a), (b, b)
+        part = np.zeros((4, m, size, size), dtype)
+        for blocks, w in terms:
+            for end_p, at_p, cp in blocks:
+                for end_q, at_q, cq in blocks:
+                    part[2 * end_p + end_q, :, at_p: at_p + cp.shape[2],
+                         at_q: at_q + cq.shape[2]] += (
+                        w[:, None, None] * (np.conj(np.swapaxes(cp, 1, 2)) @ cq))
+        # M pose by pose: (size, size) blocks on the pose graph (and every diagonal block)
+        i = np.arange(n)
+        keys = np.unique(np.concatenate([a * n + b, b * n + a, i * (n + 1)]))
+        block_ptr = np.zeros(n + 1, np.int64)
+        np.cumsum(np.bincount(keys // max(n, 1), minlength=n), out=block_ptr[1:])
+        block_col = np.ascontiguousarray(keys % max(n, 1))
+        at = np.searchsorted(keys, np.concatenate([a * (n + 1), a * n + b, b * n + a,
+                                                   b * (n + 1)]))
+        order = np.argsort(at, kind="stable")
+        first = np.flatnonzero(np.diff(at[order], prepend=-1))
+        pose = np.zeros((keys.size, size, size), dtype)
+        if m:
+            pose[at[order[first]]] = np.add.reduceat(part.reshape(4 * m, size, size)[order],
+                                                     first, axis=0)
+        del part
+        self._pose = (pose, block_ptr, block_col, np.searchsorted(keys, i * (n + 1)))
         keep = np.flatnonzero(np.arange(n) != self.gauge)
         self._t_keep = keep
         self._edges = (a, b)
@@ -305,19 +330,39 @@ class SyncProblem:
         else:
             self._measured = (np.ascontiguousarray(rot_m, np.float64),
                               np.ascontiguousarray(trans_m, np.float64))
-        rot = np.arange(n, dim)
-        self._a = sp.csr_matrix(self.m[rot][:, rot])
-        self._b = sp.csr_matrix(self.m[rot][:, keep])
+        self._a = sp.csr_matrix(sp.bsr_matrix((pose[:, 1:, 1:], block_col, block_ptr),
+                                              shape=(d * n, d * n)))
+        self._a.eliminate_zeros()
+        b_all = sp.csr_matrix(sp.bsr_matrix((pose[:, 1:, :1], block_col, block_ptr),
+                                            shape=(d * n, n)))
+        self._b = sp.csr_matrix(b_all[:, keep])
+        self._b.eliminate_zeros()
         self._bh = sp.csr_matrix(self._b.conj().T)
+        laplacian = sp.csr_matrix((np.ascontiguousarray(pose[:, 0, 0].real), block_col,
+                                   block_ptr), shape=(n, n))
         from .linalg import SparseSPD
 
-        self._d = SparseSPD(sp.csc_matrix(self.m[keep][:, keep].real))
+        self._d = SparseSPD(sp.csc_matrix(laplacian[keep][:, keep]))
         self._d.factor(check=True)
         self._newton: dict[str, Any] | None = None
         self.refine_converged = False
         """Whether the last :meth:`refine` converged (False before any, and when it stopped at
         its caps)."""
         self._cert: dict[str, Any] | None = None
+
+    @property
+    def m(self) -> sp.csr_matrix:
+        """The data matrix M (module docstring, ``F = tr(V^H M V)``) over ``V = [T; Y]``: the n
+        positions' rows, then the rotations' ``d n`` (pose ``i``'s ``d`` rows at ``n + d i``);
+        built on each access from M's pose blocks, which the problem keeps."""
+        pose, block_ptr, block_col, _ = self._pose
+        n, d = self.n, self.d
+        size = 1 + d
+        whole = sp.csr_matrix(sp.bsr_matrix((pose, block_col, block_ptr),
+                                            shape=(size * n, size * n)))
+        start = size * np.arange(n)
+        order = np.concatenate([start, (start[:, None] + 1 + np.arange(d)[None, :]).ravel()])
+        return sp.csr_matrix(whole[order][:, order])
 
     # ------------------------------------------------------------------ conversions
     def to_y(self, rotations: FloatArray) -> Array:
@@ -719,29 +764,20 @@ class SyncProblem:
         ``S = Q - Lambda`` is."""
         if self._cert is not None:
             return self._cert
-        from ._sync_kernels import pose_blocks
         from .linalg import SparseSPD
 
         n = self.n
         i = np.arange(n)
-        a, b = self._edges
-        # the pose graph's blocks (every entry of M couples the two ends of a constraint)
-        keys = np.unique(np.concatenate([a * n + b, b * n + a, i * (n + 1)]))
-        block_ptr = np.zeros(n + 1, np.int64)
-        np.cumsum(np.bincount(keys // max(n, 1), minlength=n), out=block_ptr[1:])
-        block_col = np.ascontiguousarray(keys % max(n, 1))
-        blocks = np.zeros((keys.size, 4, 4))
-        m = self.m
-        bad = pose_blocks(m.indptr.astype(np.int64), m.indices.astype(np.int64),
-                          np.ascontiguousarray(np.real(m.data), np.float64),
-                          np.ascontiguousarray(np.imag(m.data), np.float64), n, self.d,
-                          block_ptr, block_col, blocks)
-        if bad >= 0:
-            raise RuntimeError(f"internal error: row {bad} of M has an entry outside the "
-                               "pose graph's blocks")
-        diag_block = np.searchsorted(keys, i * (n + 1))
+        pose, block_ptr, block_col, diag_block = self._pose
+        if self.complex:  # an entry p + i q of M becomes [[p, -q], [q, p]]
+            blocks = np.empty((pose.shape[0], 4, 4))
+            blocks[:, 0::2, 0::2] = blocks[:, 1::2, 1::2] = pose.real
+            blocks[:, 1::2, 0::2] = pose.imag
+            blocks[:, 0::2, 1::2] = -pose.imag
+        else:
+            blocks = np.array(pose, np.float64)
         anchor, rot_slots = ([0, 1], [2, 3]) if self.complex else ([0], [1, 2, 3])
-        diag_t = m.diagonal()[:n].real
+        diag_t = pose[diag_block, 0, 0].real
         c_anchor = float(np.mean(diag_t)) if n else 1.0
         for q in anchor:
             blocks[diag_block[self.gauge], q, q] += c_anchor
@@ -754,7 +790,8 @@ class SyncProblem:
                       "diag": diag_block, "slots": rs, "spd": SparseSPD(bsr),
                       "mask": mask.ravel(), "dim": dim,
                       "rot": (4 * i[:, None] + rs[None, :]).ravel(),
-                      "scale": float(np.max(np.abs(self.m.diagonal())))}
+                      "scale": float(np.max(np.abs(np.diagonal(pose[diag_block], axis1=1,
+                                                                axis2=2))))}
         return self._cert
 
     def spectrum(self, y: Array, gap_tolerance: float = GAP_TOLERANCE,
