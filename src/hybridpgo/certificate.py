@@ -144,29 +144,11 @@ def sesync_weights(graph: PoseGraph) -> tuple[FloatArray, FloatArray]:
     info = graph.edge_information
     if graph.is_2d:
         kappa = np.array(info[:, 5, 5], np.float64)
-        tau = 2.0 / _trace_of_inverse(info[:, :2, :2])
+        tau = 2.0 / np.trace(np.linalg.inv(info[:, :2, :2]), axis1=1, axis2=2)
     else:
-        kappa = 6.0 / _trace_of_inverse(info[:, 3:, 3:])
-        tau = 3.0 / _trace_of_inverse(info[:, :3, :3])
+        kappa = 6.0 / np.trace(np.linalg.inv(info[:, 3:, 3:]), axis1=1, axis2=2)
+        tau = 3.0 / np.trace(np.linalg.inv(info[:, :3, :3]), axis1=1, axis2=2)
     return kappa, tau
-
-
-def _trace_of_inverse(m: FloatArray) -> FloatArray:
-    """``tr(A^-1)`` of symmetric positive definite (k, 2, 2) or (k, 3, 3) blocks: the sum of
-    the principal cofactors over the determinant (a batched ``inv`` of small blocks is some
-    ten times slower)."""
-    if m.shape[-1] == 2:
-        num = m[:, 0, 0] + m[:, 1, 1]
-        det = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
-        out: FloatArray = num / det
-        return out
-    c00 = m[:, 1, 1] * m[:, 2, 2] - m[:, 1, 2] * m[:, 2, 1]
-    c11 = m[:, 0, 0] * m[:, 2, 2] - m[:, 0, 2] * m[:, 2, 0]
-    c22 = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
-    det = (m[:, 0, 0] * c00 - m[:, 0, 1] * (m[:, 1, 0] * m[:, 2, 2] - m[:, 1, 2] * m[:, 2, 0])
-           + m[:, 0, 2] * (m[:, 1, 0] * m[:, 2, 1] - m[:, 1, 1] * m[:, 2, 0]))
-    out = (c00 + c11 + c22) / det
-    return out
 
 
 def gps_weights(graph: PoseGraph) -> FloatArray:
@@ -175,7 +157,7 @@ def gps_weights(graph: PoseGraph) -> FloatArray:
     (2D)."""
     info = graph.gps_information
     dim = 2 if graph.is_2d else 3
-    out: FloatArray = dim / _trace_of_inverse(info[:, :dim, :dim])
+    out: FloatArray = dim / np.trace(np.linalg.inv(info[:, :dim, :dim]), axis1=1, axis2=2)
     return out
 
 
@@ -354,7 +336,8 @@ class SyncProblem:
     def m(self) -> sp.csr_matrix:
         """The data matrix M (module docstring, ``F = tr(V^H M V)``) over ``V = [T; Y]``: the n
         positions' rows, then the rotations' ``d n`` (pose ``i``'s ``d`` rows at ``n + d i``);
-        built on each access from M's pose blocks, which the problem keeps."""
+        canonical CSR without stored zeros, built on each access from M's pose blocks, which
+        the problem keeps."""
         pose, block_ptr, block_col, _ = self._pose
         n, d = self.n, self.d
         size = 1 + d
@@ -362,7 +345,10 @@ class SyncProblem:
                                             shape=(size * n, size * n)))
         start = size * np.arange(n)
         order = np.concatenate([start, (start[:, None] + 1 + np.arange(d)[None, :]).ravel()])
-        return sp.csr_matrix(whole[order][:, order])
+        out = sp.csr_matrix(whole[order][:, order])
+        out.eliminate_zeros()
+        out.sort_indices()
+        return out
 
     # ------------------------------------------------------------------ conversions
     def to_y(self, rotations: FloatArray) -> Array:
