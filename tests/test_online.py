@@ -1089,6 +1089,57 @@ def test_background_hold_keeps_an_optimum_that_covers_everything(hold: bool) -> 
         assert rep.new == 1 and rep.old > 0
 
 
+def test_spare_time_waits_for_the_answer_that_holds_a_long_loop(monkeypatch) -> None:
+    """``WorkerLink.awaits_loop``: while a loop closure of at least ``LONG_LOOP`` path nodes,
+    laid after the adopted answer's snapshot, waits for an answer that holds it (for at most
+    ``LONG_LOOP_WAIT`` frames, and while the worker is alive), the frames make no spare-time
+    update; shorter closures, covered ones, or a dead worker leave spare time as it is."""
+    from hybridpgo.online import _link
+    from hybridpgo.online._frame import NO_DEADLINE
+    from hybridpgo.solvers.hybrid.problem import NUM_COUNTS
+
+    class Refiner:
+        alive = True
+        error = None
+
+    g = _graph(seed=21, n=40, extra=20)
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    _stream(s, g, range(g.num_nodes))
+    st = s.store
+    lens = st.ptr[1: st.m_laid + 1] - st.ptr[: st.m_laid]
+    longest = int(np.argmax(lens))
+    assert lens[longest] >= 4  # a loop closure
+    monkeypatch.setattr(_link, "LONG_LOOP", int(lens[longest]))
+    link = _link.WorkerLink.__new__(_link.WorkerLink)  # the bookkeeping only
+    link.refiner = Refiner()
+    link.tail_ok = False  # the adopted optimum does not hold what came after it
+    link._loop_since = -1
+    link.refined = (longest, 0)  # the closure came after the answer's snapshot
+    wait = _link.LONG_LOOP_WAIT
+    assert all(link.awaits_loop(st, f) for f in range(5, 5 + wait))
+    assert not link.awaits_loop(st, 5 + wait)  # waited long enough: spare time goes on
+    link.refined = (longest + 1, 0)  # an answer that holds it
+    assert not link.awaits_loop(st, 6 + wait)
+    link.refined = (longest, 0)
+    assert link.awaits_loop(st, 7 + wait)  # waiting again, counted from now
+    link.refiner.alive = False
+    assert not link.awaits_loop(st, 8 + wait)
+    link.refiner.alive = True
+    monkeypatch.setattr(_link, "LONG_LOOP", int(lens[longest]) + 1)
+    assert not link.awaits_loop(st, 9 + wait)  # no closure that long
+    # the frames' spare time: none while the long closure waits, as usual without it
+    s._link = link
+    try:
+        counts = np.zeros(NUM_COUNTS, np.int64)
+        monkeypatch.setattr(_link, "LONG_LOOP", int(lens[longest]))
+        assert s._spare_time(NO_DEADLINE, counts, 1 << 62, 99) == 0
+        monkeypatch.setattr(_link, "LONG_LOOP", int(lens[longest]) + 1)
+        assert s._spare_time(NO_DEADLINE, counts, 1 << 62, 100) > 0
+    finally:
+        s._link = None
+        s.close()
+
+
 def test_background_hold_keeps_an_optimum_extended_by_new_tree_links() -> None:
     """background_hold also holds while every constraint since the adopted result is the tree
     link of a new pose and the only constraint through it (odometry driving on): that map's

@@ -46,6 +46,20 @@ def adopt_result(store: MapStore, res: Refined, rebase: bool) -> bool:
 #: the map is worse for it than the frames had made it (paris2 back to back, answers 5 000
 #: frames late: 14x the optimum at the end, 2.3x without the worker, 1.48x with this limit).
 MAX_TAIL = 1000
+#: A loop closure whose path has at least this many nodes is long: while one laid after the
+#: adopted answer's snapshot waits for an answer that holds it, the frames make no
+#: spare-time updates (:meth:`WorkerLink.awaits_loop`).  After such a closure the frames'
+#: single steps of the older constraints push the map away from the optimum rather than
+#: settle it: valencia streamed back to back, its 2 936-pose loop at frame 8 497 relaxed to
+#: 3.5x the prefix optimum, then 5.1x after the next frame's spare-time updates, and 1.14x
+#: once the worker's answer came four frames later.  Shorter closures (grid10k, paris2: none
+#: this long waits for an answer) keep the spare-time updates, which settle the constraints
+#: around them (with updates of the tail only, grid10k's worst checkpoint 1.035-1.041x
+#: against 1.011-1.034x).
+LONG_LOOP = 1000
+#: Frames at most that spare-time updates wait for the answer that holds a long closure (the
+#: worker far behind, or its answers refused): then they go on as usual.
+LONG_LOOP_WAIT = 50
 
 
 #: Requests whose round trips :meth:`WorkerLink.settle` takes the median of (the worker's
@@ -81,6 +95,7 @@ class WorkerLink:
         self.join_req = -1
         """The outstanding request (-1: none)."""
         self.adopted = 0
+        self._loop_since = -1  # the first frame that found a long closure waiting (-1: none)
         self.refined = (0, 0)
         """Edges and GPS readings covered by the adopted optimum."""
         # holds(): tree nodes <= tail[0] are the adopted result's; the constraints after it
@@ -292,6 +307,23 @@ class WorkerLink:
                 return False
         self.tail = (tail_n, store.m_laid, store.g_laid)
         return True
+
+    def awaits_loop(self, store: MapStore, frame: int) -> bool:
+        """True while a loop closure of at least :data:`LONG_LOOP` path nodes laid after the
+        adopted answer's snapshot waits for an answer that holds it, for at most
+        :data:`LONG_LOOP_WAIT` frames from the first frame that found it waiting, and the
+        worker is alive.  O(constraints laid since the snapshot)."""
+        fm, laid = self.refined[0], store.m_laid
+        waiting = False
+        if laid > fm and self.refiner.alive and self.refiner.error is None:
+            ptr = store.ptr
+            waiting = int(np.max(ptr[fm + 1: laid + 1] - ptr[fm:laid])) >= LONG_LOOP
+        if not waiting:
+            self._loop_since = -1
+            return False
+        if self._loop_since < 0:
+            self._loop_since = frame
+        return frame - self._loop_since < LONG_LOOP_WAIT
 
     def join(self, store: MapStore, frame: int, timeout: float | None,
              rebase: bool) -> bool:

@@ -761,7 +761,8 @@ class OnlineSolver:
         link = self._link
         # with an adopted background optimum, only the constraints it did not cover
         fm, fg = link.refined if (link is not None and cfg.background_tail_only) else (0, 0)
-        held = cfg.background_hold and link is not None and link.holds(st)
+        held = cfg.background_hold and link is not None and (
+            link.holds(st) or link.awaits_loop(st, self.frame))
         if (not (limit > 0 and self.backlog == 0 and st.m_laid - fm > 1) or held
                 or np.uint64(read_cycles()) >= deadline):  # (past it, nothing would fit)
             return 0
