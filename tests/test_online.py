@@ -1091,50 +1091,77 @@ def test_background_hold_keeps_an_optimum_that_covers_everything(hold: bool) -> 
 
 def test_spare_time_waits_for_the_answer_that_holds_a_long_loop(monkeypatch) -> None:
     """``WorkerLink.awaits_loop``: while a loop closure of at least ``LONG_LOOP`` path nodes,
-    laid after the adopted answer's snapshot, waits for an answer that holds it (for at most
-    ``LONG_LOOP_WAIT`` frames, and while the worker is alive), the frames make no spare-time
-    update; shorter closures, covered ones, or a dead worker leave spare time as it is."""
+    laid after the adopted answer's snapshot and not rejected, waits for an answer that holds
+    it (at most ``LONG_LOOP_WAIT`` frames from the first call that found the newest such
+    closure waiting, and while the worker is alive with no error), the frames make no
+    spare-time update; a newer long closure starts its own wait; shorter closures, covered or
+    rejected ones, closures of a restored map, a dead worker, or the synchronous mode leave
+    spare time as it is."""
+    import dataclasses
+
     from hybridpgo.online import _link
     from hybridpgo.online._frame import NO_DEADLINE
     from hybridpgo.solvers.hybrid.problem import NUM_COUNTS
 
     class Refiner:
         alive = True
-        error = None
+        error: str | None = None
 
     g = _graph(seed=21, n=40, extra=20)
     s = OnlineSolver(OnlineConfig(background_refine=False))
     _stream(s, g, range(g.num_nodes))
     st = s.store
-    lens = st.ptr[1: st.m_laid + 1] - st.ptr[: st.m_laid]
-    longest = int(np.argmax(lens))
-    assert lens[longest] >= 4  # a loop closure
-    monkeypatch.setattr(_link, "LONG_LOOP", int(lens[longest]))
+    laid = st.m_laid
+    lens = st.ptr[1: laid + 1] - st.ptr[:laid]
+    two = np.sort(np.argsort(-lens, kind="stable")[:2])  # the two longest paths, in order
+    first, second = int(two[0]), int(two[1])
+    assert lens[first] >= 4 and lens[second] >= 4  # loop closures
+    monkeypatch.setattr(_link, "LONG_LOOP", int(min(lens[first], lens[second])))
     link = _link.WorkerLink.__new__(_link.WorkerLink)  # the bookkeeping only
     link.refiner = Refiner()
     link.tail_ok = False  # the adopted optimum does not hold what came after it
-    link._loop_since = -1
-    link.refined = (longest, 0)  # the closure came after the answer's snapshot
+    link._loop_edge, link._loop_since, link.loop_floor = -1, (0, 0.0), 0
+    link.refined = (first, 0)  # both closures came after the answer's snapshot
     wait = _link.LONG_LOOP_WAIT
     assert all(link.awaits_loop(st, f) for f in range(5, 5 + wait))
     assert not link.awaits_loop(st, 5 + wait)  # waited long enough: spare time goes on
-    link.refined = (longest + 1, 0)  # an answer that holds it
+    link.refined = (first + 1, 0)  # an answer holding the first: the second still waited long
     assert not link.awaits_loop(st, 6 + wait)
-    link.refined = (longest, 0)
-    assert link.awaits_loop(st, 7 + wait)  # waiting again, counted from now
+    st.rejected[second] = True  # the second rejected: nothing waits
+    st.num_rejected += 1
+    assert not link.awaits_loop(st, 7 + wait)
+    link.refined = (first, 0)
+    assert link.awaits_loop(st, 8 + wait)  # the first, newest now: its own wait begins
+    st.rejected[second] = False  # the second again: a newer closure, a wait of its own
+    st.num_rejected -= 1
+    assert all(link.awaits_loop(st, f) for f in range(wait + 9, 2 * wait + 9))
+    assert not link.awaits_loop(st, 2 * wait + 9)
+    link.refined = (laid, 0)  # an answer that holds everything
+    assert not link.awaits_loop(st, 2 * wait + 10)
+    link.refined = (first, 0)
+    link.loop_floor = laid  # a restored map's closures wait for no answer
+    assert not link.awaits_loop(st, 2 * wait + 11)
+    link.loop_floor = 0
+    link.refiner.error = "the worker reported an error"
+    assert not link.awaits_loop(st, 2 * wait + 12)
+    link.refiner.error = None
     link.refiner.alive = False
-    assert not link.awaits_loop(st, 8 + wait)
+    assert not link.awaits_loop(st, 2 * wait + 13)
     link.refiner.alive = True
-    monkeypatch.setattr(_link, "LONG_LOOP", int(lens[longest]) + 1)
-    assert not link.awaits_loop(st, 9 + wait)  # no closure that long
-    # the frames' spare time: none while the long closure waits, as usual without it
+    monkeypatch.setattr(_link, "LONG_LOOP", int(lens.max()) + 1)
+    assert not link.awaits_loop(st, 2 * wait + 14)  # no closure that long
+    # the frames' spare time: none while a long closure waits, as usual without it and in
+    # the synchronous mode
+    monkeypatch.setattr(_link, "LONG_LOOP", int(min(lens[first], lens[second])))
     s._link = link
     try:
         counts = np.zeros(NUM_COUNTS, np.int64)
-        monkeypatch.setattr(_link, "LONG_LOOP", int(lens[longest]))
         assert s._spare_time(NO_DEADLINE, counts, 1 << 62, 99) == 0
-        monkeypatch.setattr(_link, "LONG_LOOP", int(lens[longest]) + 1)
+        s.config = dataclasses.replace(s.config, background_join=10)
         assert s._spare_time(NO_DEADLINE, counts, 1 << 62, 100) > 0
+        s.config = dataclasses.replace(s.config, background_join=0)
+        monkeypatch.setattr(_link, "LONG_LOOP", int(lens.max()) + 1)
+        assert s._spare_time(NO_DEADLINE, counts, 1 << 62, 101) > 0
     finally:
         s._link = None
         s.close()

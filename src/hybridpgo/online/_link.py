@@ -48,18 +48,22 @@ def adopt_result(store: MapStore, res: Refined, rebase: bool) -> bool:
 MAX_TAIL = 1000
 #: A loop closure whose path has at least this many nodes is long: while one laid after the
 #: adopted answer's snapshot waits for an answer that holds it, the frames make no
-#: spare-time updates (:meth:`WorkerLink.awaits_loop`).  After such a closure the frames'
-#: single steps of the older constraints push the map away from the optimum rather than
-#: settle it: valencia streamed back to back, its 2 936-pose loop at frame 8 497 relaxed to
-#: 3.5x the prefix optimum, then 5.1x after the next frame's spare-time updates, and 1.14x
-#: once the worker's answer came four frames later.  Shorter closures (grid10k, paris2: none
-#: this long waits for an answer) keep the spare-time updates, which settle the constraints
-#: around them (with updates of the tail only, grid10k's worst checkpoint 1.035-1.041x
-#: against 1.011-1.034x).
+#: spare-time updates (:meth:`WorkerLink.awaits_loop`; asynchronous mode, without
+#: ``background_tail_only``).  After such a closure the frames' single steps of the older
+#: constraints push the map away from the optimum rather than settle it: valencia streamed
+#: back to back, its loop at frame 8 497 (2 936 poses around, a path of 1 069 tree nodes)
+#: relaxed to 3.5x the prefix optimum, then 5.1x after the next frame's spare-time updates,
+#: and 1.14x once the worker's answer came four frames later.  Shorter closures keep the
+#: spare-time updates, which settle the constraints around them (grid10k, longest path 382
+#: nodes, with updates of the tail only: worst checkpoint 1.035-1.041x against
+#: 1.011-1.034x; paris2's longest path is 958 nodes).  The odometry edge of a pose linked to
+#: the earth (GPS) has a path through the earth, as long as the two poses' depths: on a map
+#: with readings 1 000 or more poses apart such edges hold spare time too (not measured).
 LONG_LOOP = 1000
-#: Frames at most that spare-time updates wait for the answer that holds a long closure (the
-#: worker far behind, or its answers refused): then they go on as usual.
+#: Frames, and seconds, at most that spare-time updates wait for the answer that holds a long
+#: closure (the worker far behind, or its answers refused): then they go on as usual.
 LONG_LOOP_WAIT = 50
+LONG_LOOP_WAIT_S = 1.0
 
 
 #: Requests whose round trips :meth:`WorkerLink.settle` takes the median of (the worker's
@@ -95,7 +99,12 @@ class WorkerLink:
         self.join_req = -1
         """The outstanding request (-1: none)."""
         self.adopted = 0
-        self._loop_since = -1  # the first frame that found a long closure waiting (-1: none)
+        #: the newest long loop closure found waiting (-1: none), and the frame and time
+        #: its wait began (:meth:`awaits_loop`)
+        self._loop_edge = -1
+        self._loop_since = (0, 0.0)
+        self.loop_floor = 0
+        """Edges laid before this are never counted as waiting (a restored map's)."""
         self.refined = (0, 0)
         """Edges and GPS readings covered by the adopted optimum."""
         # holds(): tree nodes <= tail[0] are the adopted result's; the constraints after it
@@ -309,21 +318,28 @@ class WorkerLink:
         return True
 
     def awaits_loop(self, store: MapStore, frame: int) -> bool:
-        """True while a loop closure of at least :data:`LONG_LOOP` path nodes laid after the
-        adopted answer's snapshot waits for an answer that holds it, for at most
-        :data:`LONG_LOOP_WAIT` frames from the first frame that found it waiting, and the
-        worker is alive.  O(constraints laid since the snapshot)."""
-        fm, laid = self.refined[0], store.m_laid
-        waiting = False
+        """True while a loop closure of at least :data:`LONG_LOOP` path nodes, laid after the
+        adopted answer's snapshot (and after :attr:`loop_floor`) and not rejected, waits for
+        an answer that holds it: for at most :data:`LONG_LOOP_WAIT` frames and
+        :data:`LONG_LOOP_WAIT_S` seconds from the first call that found the newest such
+        closure waiting, and while the worker is alive and has reported no error.
+        O(constraints laid since the snapshot)."""
+        fm, laid = max(self.refined[0], self.loop_floor), store.m_laid
+        newest = -1
         if laid > fm and self.refiner.alive and self.refiner.error is None:
             ptr = store.ptr
-            waiting = int(np.max(ptr[fm + 1: laid + 1] - ptr[fm:laid])) >= LONG_LOOP
-        if not waiting:
-            self._loop_since = -1
+            lens = ptr[fm + 1: laid + 1] - ptr[fm:laid]
+            if store.num_rejected:  # the frames leave a rejected closure alone
+                lens = np.where(store.rejected[fm:laid], 0, lens)
+            long = np.flatnonzero(lens >= LONG_LOOP)
+            newest = fm + int(long[-1]) if long.size else -1
+        if newest < 0:
+            self._loop_edge = -1
             return False
-        if self._loop_since < 0:
-            self._loop_since = frame
-        return frame - self._loop_since < LONG_LOOP_WAIT
+        if newest != self._loop_edge:  # a closure not seen waiting before: its wait begins
+            self._loop_edge, self._loop_since = newest, (frame, time.perf_counter())
+        since, t0 = self._loop_since
+        return frame - since < LONG_LOOP_WAIT and time.perf_counter() - t0 < LONG_LOOP_WAIT_S
 
     def join(self, store: MapStore, frame: int, timeout: float | None,
              rebase: bool) -> bool:

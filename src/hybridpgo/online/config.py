@@ -138,11 +138,12 @@ class OnlineConfig(RobustOptions):
     after it and the only constraint through that pose (the robot drove on with odometry or
     GPS-linked poses and closed no loop: the new poses are placed exactly, nothing else moves),
     in particular when nothing was added (the robot stands still or the stream ended).  Nor
-    are they made while a long loop closure added after the result's snapshot waits for the
-    worker's answer that holds it (:data:`~hybridpgo.online._link.LONG_LOOP` path nodes, for
-    at most :data:`~hybridpgo.online._link.LONG_LOOP_WAIT` frames): after such a closure the
-    single steps of the older constraints push the map away from the optimum.  The checks are
-    O(new constraints) per frame."""
+    are they made, asynchronously (``background_join=0``) and without
+    ``background_tail_only``, while a long loop closure added after the result's snapshot
+    waits for the worker's answer that holds it (:data:`~hybridpgo.online._link.LONG_LOOP`
+    path nodes, for at most :data:`~hybridpgo.online._link.LONG_LOOP_WAIT` frames): after
+    such a closure the single steps of the older constraints push the map away from the
+    optimum.  The checks are O(constraints added since the result's snapshot) per frame."""
     background_rebase: bool = True
     """With ``background_refine``: when a result is adopted, the constraints added after its
     snapshot are queued to be relaxed again as new ones (on top of the optimum, in arrival

@@ -761,10 +761,12 @@ class OnlineSolver:
         link = self._link
         # with an adopted background optimum, only the constraints it did not cover
         fm, fg = link.refined if (link is not None and cfg.background_tail_only) else (0, 0)
-        held = cfg.background_hold and link is not None and (
-            link.holds(st) or link.awaits_loop(st, self.frame))
-        if (not (limit > 0 and self.backlog == 0 and st.m_laid - fm > 1) or held
+        if (not (limit > 0 and self.backlog == 0 and st.m_laid - fm > 1)
                 or np.uint64(read_cycles()) >= deadline):  # (past it, nothing would fit)
+            return 0
+        if cfg.background_hold and link is not None and (
+                link.holds(st) or (cfg.background_join == 0 and not cfg.background_tail_only
+                                   and link.awaits_loop(st, self.frame))):
             return 0
         done0 = int(counts[Count.DONE])
         went_on = -1
@@ -1018,6 +1020,7 @@ class OnlineSolver:
         solver._index = {int(v): i for i, v in enumerate(st.ids[: st.n])}
         if solver._link is not None:  # the new worker gets the whole map
             solver._link.ship(st, solver.frame)
+            solver._link.loop_floor = st.m_laid  # its closures wait for no answer
         return solver
 
 
