@@ -79,7 +79,7 @@ _POOL_ARRAYS: _Spec = (("path_node", (), np.int32), ("path_sign", (), np.int8),
 #: of each region's laid paths by :meth:`MapStore.prefault`, in the frames' spare time: a page
 #: of reserved memory is allocated when first written, and a long loop closure's path would
 #: otherwise fault all of its fresh pages inside the frame that lays it (valencia, frame
-#: 7 784: a 2 936-entry path, 233-255 page faults, 3.2-9.0 ms of CPU).
+#: 7 784: a 3 264-entry path, 233-255 page faults, 3.2-9.0 ms of CPU).
 PREFAULT_AHEAD_BYTES = 4 << 20
 #: Bytes of ``contrib`` one call of :meth:`MapStore.prefault` writes (16 pages, and a page or
 #: two of the pool's other arrays).
