@@ -287,24 +287,20 @@ class SyncProblem:
                          at_q: at_q + cq.shape[2]] += (
                         w[:, None, None] * (np.conj(np.swapaxes(cp, 1, 2)) @ cq))
         # M pose by pose: (size, size) blocks on the pose graph (and every diagonal block)
-        i = np.arange(n)
-        keys = np.unique(np.concatenate([a * n + b, b * n + a, i * (n + 1)]))
-        block_ptr = np.zeros(n + 1, np.int64)
-        np.cumsum(np.bincount(keys // max(n, 1), minlength=n), out=block_ptr[1:])
-        block_col = np.ascontiguousarray(keys % max(n, 1))
-        at = np.searchsorted(keys, np.concatenate([a * (n + 1), a * n + b, b * n + a,
-                                                   b * (n + 1)]))
+        self._edges = (a, b)
+        bm = self._block_map(np.arange(n))
+        at = bm["where"].ravel()
         order = np.argsort(at, kind="stable")
         first = np.flatnonzero(np.diff(at[order], prepend=-1))
-        pose = np.zeros((keys.size, size, size), dtype)
+        pose = np.zeros((bm["nblocks"], size, size), dtype)
         if m:
             pose[at[order[first]]] = np.add.reduceat(part.reshape(4 * m, size, size)[order],
                                                      first, axis=0)
         del part
-        self._pose = (pose, block_ptr, block_col, np.searchsorted(keys, i * (n + 1)))
+        block_ptr, block_col = bm["indptr"], bm["indices"]
+        self._pose = (pose, block_ptr, block_col, bm["diag"])
         keep = np.flatnonzero(np.arange(n) != self.gauge)
         self._t_keep = keep
-        self._edges = (a, b)
         self._weights = (np.ascontiguousarray(2.0 * kappa if self.complex else kappa, np.float64),
                          np.ascontiguousarray(tau, np.float64))
         if self.complex:
@@ -540,16 +536,17 @@ class SyncProblem:
 
     # ------------------------------------------------------------------ Newton on F
     def _block_map(self, free: Array) -> dict[str, Any]:
-        """The block pattern of F's Hessian over the poses with ``free[i] >= 0`` (their new
-        numbers): ``where`` (4, M) gives each constraint's (a, a), (a, b), (b, a), (b, b) block
-        (-1: a held pose), ``indices``/``indptr`` the BSR structure, ``diag`` every pose's
-        diagonal block."""
+        """The block pattern over the poses with ``free[i] >= 0`` (their new numbers) of F's
+        Hessian and of M, pose by pose: ``where`` (4, M) gives each constraint's (a, a),
+        (a, b), (b, a), (b, b) block (-1: a held pose), ``indices``/``indptr`` the BSR
+        structure, ``diag`` every pose's diagonal block (a pose without constraints has one
+        too)."""
         a, b = self._edges
         fa, fb = free[a], free[b]
         nf = int(np.count_nonzero(free >= 0))
         pairs = np.stack([fa * nf + fa, fa * nf + fb, fb * nf + fa, fb * nf + fb])  # (4, m)
         ok = np.stack([fa >= 0, (fa >= 0) & (fb >= 0), (fa >= 0) & (fb >= 0), fb >= 0])
-        keys = np.unique(pairs[ok])
+        keys = np.unique(np.concatenate([pairs[ok], np.arange(nf) * (nf + 1)]))
         where = np.full(pairs.shape, -1, np.int64)
         where[ok] = np.searchsorted(keys, pairs[ok])
         indptr = np.zeros(nf + 1, np.int64)

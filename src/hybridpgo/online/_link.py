@@ -336,10 +336,11 @@ class WorkerLink:
         if newest < 0:
             self._loop_edge = -1
             return False
+        now = time.perf_counter()
         if newest != self._loop_edge:  # a closure not seen waiting before: its wait begins
-            self._loop_edge, self._loop_since = newest, (frame, time.perf_counter())
+            self._loop_edge, self._loop_since = newest, (frame, now)
         since, t0 = self._loop_since
-        return frame - since < LONG_LOOP_WAIT and time.perf_counter() - t0 < LONG_LOOP_WAIT_S
+        return frame - since < LONG_LOOP_WAIT and now - t0 < LONG_LOOP_WAIT_S
 
     def join(self, store: MapStore, frame: int, timeout: float | None,
              rebase: bool) -> bool:
