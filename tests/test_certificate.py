@@ -336,6 +336,39 @@ def test_not_applicable_says_why() -> None:
     assert cert.summary() == f"not certified: {cert.reason}"
 
 
+def test_a_graph_that_is_not_connected_is_refused_with_a_value_error() -> None:
+    import dataclasses
+
+    g = _grid2d(poses=20)
+    SyncProblem(g)  # connected: accepted
+    # one more pose that no constraint names
+    lone = dataclasses.replace(
+        g, node_ids=np.append(g.node_ids, g.node_ids.max() + 1),
+        rotations=np.concatenate([g.rotations, np.eye(3)[None]]),
+        translations=np.concatenate([g.translations, np.zeros((1, 3))]))
+    with pytest.raises(ValueError, match="connected graph"):
+        SyncProblem(lone)
+    # two parts: the constraints between the first 10 poses and the rest dropped
+    a, b = g.edge_nodes[:, 0], g.edge_nodes[:, 1]
+    keep = (a < 10) == (b < 10)
+    split = dataclasses.replace(
+        g, edge_nodes=g.edge_nodes[keep], edge_rotations=g.edge_rotations[keep],
+        edge_translations=g.edge_translations[keep],
+        edge_information=g.edge_information[keep])
+    assert np.unique(split.connected_components()).size == 2
+    with pytest.raises(ValueError, match="connected graph"):
+        SyncProblem(split)
+    # the readings of a pose tie it to the others through the earth
+    city = generate_city(None, seed=0, gps_every=1, num_poses=6)
+    c = city.graph
+    ok = (c.edge_nodes[:, 0] != 5) & (c.edge_nodes[:, 1] != 5)
+    tied = dataclasses.replace(
+        c, edge_nodes=c.edge_nodes[ok], edge_rotations=c.edge_rotations[ok],
+        edge_translations=c.edge_translations[ok], edge_information=c.edge_information[ok])
+    assert np.unique(tied.connected_components()).size == 1
+    SyncProblem(tied)
+
+
 # --------------------------------------------------------------------------- staircase
 @pytest.mark.parametrize("make", [lambda: read_graph(DATA / "smallGrid3D.g2o"),
                                   lambda: _grid2d(poses=120, rot_sigma=0.1)], ids=["3D", "2D"])

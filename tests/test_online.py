@@ -1093,10 +1093,10 @@ def test_spare_time_waits_for_the_answer_that_holds_a_long_loop(monkeypatch) -> 
     """``WorkerLink.awaits_loop``: while a loop closure of at least ``LONG_LOOP`` path nodes,
     laid after the adopted answer's snapshot and not rejected, waits for an answer that holds
     it (at most ``LONG_LOOP_WAIT`` frames from the first call that found the newest such
-    closure waiting, and while the worker is alive with no error), the frames make no
-    spare-time update; a newer long closure starts its own wait; shorter closures, covered or
-    rejected ones, closures of a restored map, a dead worker, or the synchronous mode leave
-    spare time as it is."""
+    closure waiting, and while the worker is alive and its newest message was no error), the
+    frames make no spare-time update; a newer long closure starts its own wait; shorter
+    closures, covered or rejected ones, closures of a restored map, a dead worker, a worker
+    whose newest message was an error, or the synchronous mode leave spare time as it is."""
     import dataclasses
 
     from hybridpgo.online import _link
@@ -1105,7 +1105,7 @@ def test_spare_time_waits_for_the_answer_that_holds_a_long_loop(monkeypatch) -> 
 
     class Refiner:
         alive = True
-        error: str | None = None
+        failing = False
 
     g = _graph(seed=21, n=40, extra=20)
     s = OnlineSolver(OnlineConfig(background_refine=False))
@@ -1142,9 +1142,10 @@ def test_spare_time_waits_for_the_answer_that_holds_a_long_loop(monkeypatch) -> 
     link.loop_floor = laid  # a restored map's closures wait for no answer
     assert not link.awaits_loop(st, 2 * wait + 11)
     link.loop_floor = 0
-    link.refiner.error = "the worker reported an error"
+    link.refiner.failing = True  # the worker's newest message was an error
     assert not link.awaits_loop(st, 2 * wait + 12)
-    link.refiner.error = None
+    link.refiner.failing = False  # a result came after it: the hold acts again
+    assert link.awaits_loop(st, 2 * wait + 12)
     link.refiner.alive = False
     assert not link.awaits_loop(st, 2 * wait + 13)
     link.refiner.alive = True
@@ -1953,6 +1954,44 @@ def test_the_worker_process_answers_again_after_a_screening_that_rejects(
         assert res.status == "screened" and list(res.rejected[0]) == [m]
     finally:
         ref.close()
+
+
+def test_the_receiver_says_whether_the_workers_newest_message_was_an_error() -> None:
+    """``BackgroundRefiner.failing``: True after an error message, False again after a
+    result, True once the worker's output ends; ``error`` keeps the last error's text."""
+    import threading
+    import types
+
+    from hybridpgo.online import worker
+
+    rd, wr = os.pipe()
+    ref = worker.BackgroundRefiner.__new__(worker.BackgroundRefiner)  # no process
+    ref._proc = types.SimpleNamespace(stdout=os.fdopen(rd, "rb", buffering=0))
+    ref._cond = threading.Condition()
+    ref._latest, ref._answered, ref.error, ref.failing = None, -1, None, False
+    ref.results, ref._alive, ref._ready = 0, True, False
+    out = os.fdopen(wr, "wb", buffering=0)
+    recv = threading.Thread(target=ref._recv_loop, daemon=True)
+    recv.start()
+
+    def sent(data: bytes, done: Any) -> None:
+        worker.write_all(out, data)
+        with ref._cond:
+            assert ref._cond.wait_for(done, 60.0)
+
+    sent(worker._error(0, ValueError("no factorization today")), lambda: ref._answered >= 0)
+    assert ref.failing and ref.error == "ValueError: no factorization today"
+    result = {"type": "result", "n": 1, "m": 0, "g": 0, "req": 1, "energy": 0.0,
+              "iterations": 0, "status": "converged", "seconds": 0.0, "m_held": 0,
+              "g_held": 0, "rescreens": 0}
+    arrays = {"rot": np.eye(3)[None], "trans": np.zeros((1, 3)),
+              "rejected_m": np.zeros(0, np.int64), "rejected_g": np.zeros(0, np.int64)}
+    sent(worker.encode(result, arrays), lambda: ref.results >= 1)
+    assert not ref.failing and ref.error == "ValueError: no factorization today"
+    out.close()  # the worker's output ends
+    recv.join(60.0)
+    ref._proc.stdout.close()
+    assert ref.failing and not ref.alive
 
 
 @pytest.mark.parametrize("robust", [("none", None), ("auto", None), ("huber", 1.0)])

@@ -218,7 +218,7 @@ class SyncProblem:
         graphs the real one.  A graph with GPS constraints gets one more unknown pose, the
         earth frame (index ``num_poses``, the gauge), and each GPS reading becomes a relative
         constraint from it with no rotation term (``kappa = 0``, ``tau``: :func:`gps_weights`);
-        such a graph may not also fix a pose.
+        such a graph may not also fix a pose.  It must be connected (ValueError otherwise).
     weights : {"sesync", "planar"}
         ``"sesync"``: :func:`sesync_weights`.  ``"planar"`` (2D only): ``kappa`` the yaw
         information over ``|z_b - z_a r_c|^2`` and ``tau`` the mean of the x and y information
@@ -251,6 +251,12 @@ class SyncProblem:
         b = np.concatenate([graph.edge_nodes[:, 1].astype(np.int64),
                             graph.gps_nodes.astype(np.int64)])
         m = a.size
+        if n > 1 and np.unique(graph.connected_components()).size > 1:
+            # D, the position Laplacian, would be singular (a pose without constraints, or
+            # parts that nothing ties together): F has no unique optimal positions
+            raise ValueError("SE-Sync's model needs a connected graph (every pose tied to "
+                             "the others by constraints); this one is not (see "
+                             "PoseGraph.check_connected)")
         kappa, tau = sesync_weights(graph)
         tau_gps = gps_weights(graph)
         if weights == "planar":

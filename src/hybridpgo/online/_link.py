@@ -322,11 +322,12 @@ class WorkerLink:
         adopted answer's snapshot (and after :attr:`loop_floor`) and not rejected, waits for
         an answer that holds it: for at most :data:`LONG_LOOP_WAIT` frames and
         :data:`LONG_LOOP_WAIT_S` seconds from the first call that found the newest such
-        closure waiting, and while the worker is alive and has reported no error.
+        closure waiting, and while the worker is alive and its newest message was no error
+        (:attr:`~.worker.BackgroundRefiner.failing`).
         O(constraints laid since the snapshot)."""
         fm, laid = max(self.refined[0], self.loop_floor), store.m_laid
         newest = -1
-        if laid > fm and self.refiner.alive and self.refiner.error is None:
+        if laid > fm and self.refiner.alive and not self.refiner.failing:
             ptr = store.ptr
             lens = ptr[fm + 1: laid + 1] - ptr[fm:laid]
             if store.num_rejected:  # the frames leave a rejected closure alone

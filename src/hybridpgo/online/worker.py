@@ -262,6 +262,9 @@ class BackgroundRefiner:
         self._answered = -1
         self.error: str | None = None
         """The last error the worker reported (or why it stopped), None while all is well."""
+        self.failing = False
+        """Whether the worker's newest message was an error (or it stopped): a result
+        received after an error sets it back to False."""
         self.results = 0
         """Results received."""
         self._alive = True
@@ -316,9 +319,11 @@ class BackgroundRefiner:
                             int(meta.get("resets", 0)), bool(meta.get("with_lm", False)),
                             time.perf_counter())
                         self.results += 1
+                        self.failing = False
                         self._answered = max(self._answered, int(meta["req"]))
                     else:
                         self.error = str(meta.get("message", meta))
+                        self.failing = True
                         self._answered = max(self._answered, int(meta.get("req", -1)))
                     self._cond.notify_all()
         except (OSError, ValueError, EOFError, KeyError) as exc:
@@ -328,11 +333,13 @@ class BackgroundRefiner:
                 self._alive = False
                 if self.error is None and self._proc is not None:
                     self.error = "the worker exited"
+                self.failing = True
                 self._cond.notify_all()
 
     def _fail(self, message: str) -> None:
         with self._cond:
             self.error = message
+            self.failing = True
             self._cond.notify_all()
 
     # ----------------------------------------------------------------- API
