@@ -261,7 +261,9 @@ class BackgroundRefiner:
         self._latest: Refined | None = None
         self._answered = -1
         self.error: str | None = None
-        """The last error the worker reported (or why it stopped), None while all is well."""
+        """The last error the worker reported (or why it stopped); None until there is one.
+        It stays when results come after it (:attr:`failing` says whether the newest message
+        was an error)."""
         self.failing = False
         """Whether the worker's newest message was an error (or it stopped): a result
         received after an error sets it back to False."""
