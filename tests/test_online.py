@@ -1096,7 +1096,8 @@ def test_spare_time_waits_for_the_answer_that_holds_a_long_loop(monkeypatch) -> 
     closure waiting, and while the worker is alive and its newest message was no error), the
     frames make no spare-time update; a newer long closure starts its own wait; shorter
     closures, covered or rejected ones, closures of a restored map, a dead worker, a worker
-    whose newest message was an error, or the synchronous mode leave spare time as it is."""
+    whose newest message was an error (the closure's wait runs on meanwhile), or the
+    synchronous mode leave spare time as it is."""
     import dataclasses
 
     from hybridpgo.online import _link
@@ -1146,6 +1147,11 @@ def test_spare_time_waits_for_the_answer_that_holds_a_long_loop(monkeypatch) -> 
     assert not link.awaits_loop(st, 2 * wait + 12)
     link.refiner.failing = False  # a result came after it: the hold acts again
     assert link.awaits_loop(st, 2 * wait + 12)
+    link.refiner.failing = True  # an error while that closure waits: its wait runs on
+    assert not link.awaits_loop(st, 2 * wait + 13)
+    link.refiner.failing = False
+    assert link.awaits_loop(st, 3 * wait + 11)  # the wait's last frame
+    assert not link.awaits_loop(st, 3 * wait + 12)  # waited long enough, the error included
     link.refiner.alive = False
     assert not link.awaits_loop(st, 2 * wait + 13)
     link.refiner.alive = True
@@ -1958,7 +1964,8 @@ def test_the_worker_process_answers_again_after_a_screening_that_rejects(
 
 def test_the_receiver_says_whether_the_workers_newest_message_was_an_error() -> None:
     """``BackgroundRefiner.failing``: True after an error message, False again after a
-    result, True once the worker's output ends; ``error`` keeps the last error's text."""
+    result; True for good once the link failed (a result does not clear it) and once the
+    worker's output ends; ``error`` keeps the last error's text."""
     import threading
     import types
 
@@ -1969,7 +1976,7 @@ def test_the_receiver_says_whether_the_workers_newest_message_was_an_error() -> 
     ref._proc = types.SimpleNamespace(stdout=os.fdopen(rd, "rb", buffering=0))
     ref._cond = threading.Condition()
     ref._latest, ref._answered, ref.error, ref.failing = None, -1, None, False
-    ref.results, ref._alive, ref._ready = 0, True, False
+    ref.results, ref._alive, ref._ready, ref._broken = 0, True, False, False
     out = os.fdopen(wr, "wb", buffering=0)
     recv = threading.Thread(target=ref._recv_loop, daemon=True)
     recv.start()
@@ -1979,18 +1986,24 @@ def test_the_receiver_says_whether_the_workers_newest_message_was_an_error() -> 
         with ref._cond:
             assert ref._cond.wait_for(done, 60.0)
 
-    sent(worker._error(0, ValueError("no factorization today")), lambda: ref._answered >= 0)
-    assert ref.failing and ref.error == "ValueError: no factorization today"
     result = {"type": "result", "n": 1, "m": 0, "g": 0, "req": 1, "energy": 0.0,
               "iterations": 0, "status": "converged", "seconds": 0.0, "m_held": 0,
               "g_held": 0, "rescreens": 0}
     arrays = {"rot": np.eye(3)[None], "trans": np.zeros((1, 3)),
               "rejected_m": np.zeros(0, np.int64), "rejected_g": np.zeros(0, np.int64)}
-    sent(worker.encode(result, arrays), lambda: ref.results >= 1)
-    assert not ref.failing and ref.error == "ValueError: no factorization today"
-    out.close()  # the worker's output ends
-    recv.join(60.0)
-    ref._proc.stdout.close()
+    try:
+        sent(worker._error(0, ValueError("no factorization today")),
+             lambda: ref._answered >= 0)
+        assert ref.failing and ref.error == "ValueError: no factorization today"
+        sent(worker.encode(result, arrays), lambda: ref.results >= 1)
+        assert not ref.failing and ref.error == "ValueError: no factorization today"
+        ref._fail("the worker stopped reading")  # the link failed (the sender's side)
+        sent(worker.encode({**result, "req": 2}, arrays), lambda: ref.results >= 2)
+        assert ref.failing  # a result does not mend a failed link
+    finally:
+        out.close()  # the worker's output ends
+        recv.join(60.0)
+        ref._proc.stdout.close()
     assert ref.failing and not ref.alive
 
 

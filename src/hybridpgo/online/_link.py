@@ -322,12 +322,14 @@ class WorkerLink:
         adopted answer's snapshot (and after :attr:`loop_floor`) and not rejected, waits for
         an answer that holds it: for at most :data:`LONG_LOOP_WAIT` frames and
         :data:`LONG_LOOP_WAIT_S` seconds from the first call that found the newest such
-        closure waiting, and while the worker is alive and its newest message was no error
-        (:attr:`~.worker.BackgroundRefiner.failing`).
-        O(constraints laid since the snapshot)."""
+        closure waiting, and while the worker is alive, its newest message was no error and
+        the link to it works (:attr:`~.worker.BackgroundRefiner.failing`; a closure's wait
+        runs on while it does not).  O(constraints laid since the snapshot)."""
+        if not self.refiner.alive or self.refiner.failing:
+            return False
         fm, laid = max(self.refined[0], self.loop_floor), store.m_laid
         newest = -1
-        if laid > fm and self.refiner.alive and not self.refiner.failing:
+        if laid > fm:
             ptr = store.ptr
             lens = ptr[fm + 1: laid + 1] - ptr[fm:laid]
             if store.num_rejected:  # the frames leave a rejected closure alone

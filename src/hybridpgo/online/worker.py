@@ -265,8 +265,10 @@ class BackgroundRefiner:
         It stays when results come after it (:attr:`failing` says whether the newest message
         was an error)."""
         self.failing = False
-        """Whether the worker's newest message was an error (or it stopped): a result
-        received after an error sets it back to False."""
+        """Whether the worker's newest message was an error, or the link to it failed (it
+        stopped, its output could not be read, or it could not be written to): a result
+        received after an error message sets it back to False; a failed link stays failed."""
+        self._broken = False  # the link failed (_fail): failing for good
         self.results = 0
         """Results received."""
         self._alive = True
@@ -321,7 +323,7 @@ class BackgroundRefiner:
                             int(meta.get("resets", 0)), bool(meta.get("with_lm", False)),
                             time.perf_counter())
                         self.results += 1
-                        self.failing = False
+                        self.failing = self._broken
                         self._answered = max(self._answered, int(meta["req"]))
                     else:
                         self.error = str(meta.get("message", meta))
@@ -341,7 +343,7 @@ class BackgroundRefiner:
     def _fail(self, message: str) -> None:
         with self._cond:
             self.error = message
-            self.failing = True
+            self.failing = self._broken = True
             self._cond.notify_all()
 
     # ----------------------------------------------------------------- API
