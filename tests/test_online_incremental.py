@@ -324,6 +324,46 @@ def test_deadline_slices_give_the_same_answer_bit_for_bit() -> None:
         assert np.array_equal(a, b)
 
 
+def test_the_pool_compacted_in_place_gives_the_copied_pools_answer_bit_for_bit(
+        monkeypatch) -> None:
+    """The factor's pool grows and is compacted in place in its reserved address space
+    (``_compact``, ``compact_pool``): the same answers, bit for bit, as a pool copied into a
+    new array at each growth (the path where no address space can be reserved)."""
+    from hybridpgo.online import incremental
+
+    s = _stream(11, 300, 0.8, 5)
+    inplace = IncrementalExact(capacity=4)
+    assert inplace._pool_var is not None  # reserved (Linux)
+    compactions = []
+    compact = IncrementalExact._compact
+
+    def counted(self: IncrementalExact, cap: int) -> None:
+        compactions.append(self._pool_var is not None and cap <= self._pool_var.shape[0])
+        compact(self, cap)
+
+    monkeypatch.setattr(IncrementalExact, "_compact", counted)
+    for k in range(s.frames):
+        _feed(inplace, s, k)
+        inplace.solve()
+        _check_sorted_rows(inplace)
+    assert len(compactions) >= 3 and all(compactions)  # in place, several times
+    assert np.all(inplace._pool_var[inplace._pool_used[0]:] == 0)  # zeros past the segments
+    monkeypatch.setattr(incremental, "reserved_zeros",
+                        lambda shape, dtype=np.float64: (np.zeros(shape, dtype), False))
+    copied = IncrementalExact(capacity=4)
+    assert copied._pool_var is None
+    for k in range(s.frames):
+        _feed(copied, s, k)
+        copied.solve()
+    assert not all(compactions[-3:])  # the copies
+    for a, b in zip(inplace.estimate(), copied.estimate(), strict=True):
+        assert np.array_equal(a, b)
+    twin = __import__("copy").deepcopy(inplace)  # a copy holds plain arrays, not the reservation
+    assert twin._pool_var is None and twin._row_blk.shape == inplace._row_blk.shape
+    for a, b in zip(twin.estimate(), inplace.estimate(), strict=True):
+        assert np.array_equal(a, b)
+
+
 @pytest.mark.parametrize("count", [0, 1, 2, 5, 32, 33, 100])
 def test_rows_are_sorted_by_position_as_a_plain_sort_does(count: int) -> None:
     """The symbolic phase's row sort (insertion sort up to 32 rows, argsort above) against

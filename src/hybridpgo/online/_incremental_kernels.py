@@ -326,6 +326,36 @@ def link_orphans(orphans: np.ndarray, position: np.ndarray, col_start: np.ndarra
 
 
 @kernel
+def compact_pool(order: np.ndarray, col_start: np.ndarray, col_cap: np.ndarray,
+                 col_len: np.ndarray, used: int, row_var: np.ndarray,
+                 row_blk: np.ndarray) -> int:
+    """Move the columns' segments to the front of the pool, back to back in the order of
+    their old starts (``order``: the columns by increasing ``col_start``), in place; the rows
+    past each segment's length and past the last segment (up to ``used``, the old end) are
+    zeroed, as in a new pool.  Returns the new end.  A segment never moves up (its new start
+    is the sum of the capacities of the segments before it, all of which lay below it), so
+    copying each one row by row from its first row is safe."""
+    p = 0
+    for q in range(order.shape[0]):
+        c = order[q]
+        s = col_start[c]
+        k = col_len[c]
+        if s != p:
+            for t in range(k):
+                row_var[p + t] = row_var[s + t]
+                row_blk[p + t] = row_blk[s + t]
+        for t in range(k, col_cap[c]):
+            row_var[p + t] = 0
+            row_blk[p + t] = 0.0
+        col_start[c] = p
+        p += col_cap[c]
+    for t in range(p, used):
+        row_var[t] = 0
+        row_blk[t] = 0.0
+    return p
+
+
+@kernel
 def symbolic(order: np.ndarray, i0: int, deadline: np.uint64, position: np.ndarray,
              free: np.ndarray,
              in_s: np.ndarray, stamp: int, ab: np.ndarray, inc_head: np.ndarray,

@@ -55,6 +55,7 @@ from ..graph import (
 from ..linalg import fill_reducing_order
 from . import _incremental_kernels as ik
 from ._incremental_kernels import panel_scratch
+from ._reserve import reserved_zeros
 
 IntArray = npt.NDArray[np.int64]
 _NO_DEADLINE = np.uint64(np.iinfo(np.uint64).max)
@@ -145,6 +146,14 @@ def _check_measurements(rot: FloatArray | None, trans: FloatArray, info: FloatAr
 
 #: The factor's pool may always hold this many blocks (``IncrementalConfig.max_fill``).
 POOL_FLOOR = 1 << 20
+#: Blocks of address space reserved for the factor's pool (:mod:`._reserve`: pages are
+#: allocated when first written), so that the pool grows and is compacted in place, its pages
+#: written a few at a time as it fills.  A pool that doubled into a new array copied its live
+#: rows into fresh memory at once: paris2 with GPS fed into a solver in chunks of 50 frames,
+#: 135, 256, 429 and 547 ms at 10 300, 15 400, 21 400 and 29 700 frames (the worker's answers
+#: waited, and the host took time from both CPUs in the frames' process).  Beyond it (or where
+#: address space cannot be reserved) the pool grows into a new array, reserved likewise.
+POOL_RESERVE = 1 << 24
 
 
 class IncrementalExact:
@@ -164,14 +173,17 @@ class IncrementalExact:
         self._alloc_edges(2 * cap)
         self._alloc_gps(max(cap // 16, 8))
         self._pool_cap = 8 * cap
-        self._row_var = np.zeros(self._pool_cap, np.int64)
         # the factor's coordinates: tangent coordinates perm[:nd] (module doc: the planar
         # system), its blocks (nd, nd); _planar_lost: a datum that is not planar was added to
         # a planar solver
         self._nd = 3 if self.config.planar else 6
         self._perm = _PLANAR_PERM.copy() if self.config.planar else np.arange(6)
         self._planar_lost = False
-        self._row_blk = np.zeros((self._pool_cap, self._nd, self._nd))
+        # the pool: _row_var and _row_blk are its first _pool_cap rows, views of the
+        # reserved arrays _pool_var and _pool_blk (None: not reserved)
+        self._pool_var: npt.NDArray[np.int64] | None = None
+        self._pool_blk: npt.NDArray[np.float64] | None = None
+        self._row_var, self._row_blk = self._new_pool(self._pool_cap, self._nd)
         # the supernodes of the cycle's S and their panels (ik.supernodes, ik.numeric)
         self._sn_ptr = np.zeros(1, np.int64)
         self._sn_count = 0
@@ -342,9 +354,52 @@ class IncrementalExact:
                               f"constraint ({limit})")
         self._compact(cap)
 
+    def _new_pool(self, cap: int, nd: int) -> tuple[npt.NDArray[np.int64],
+                                                     npt.NDArray[np.float64]]:
+        """Zero pool arrays of ``cap`` rows with (nd, nd) blocks: views of arrays of
+        :data:`POOL_RESERVE` rows (at least ``4 cap``) reserved as address space, kept in
+        ``_pool_var`` / ``_pool_blk``, or plain zeros where that cannot be done."""
+        rows = max(POOL_RESERVE, 4 * cap)
+        var, reserved = reserved_zeros((rows,), np.int64)
+        blk, reserved_blk = reserved_zeros((rows, nd, nd)) if reserved else (None, False)
+        if not (reserved and reserved_blk):
+            self._pool_var = self._pool_blk = None
+            return np.zeros(cap, np.int64), np.zeros((cap, nd, nd))
+        assert blk is not None
+        self._pool_var, self._pool_blk = var, blk
+        return var[:cap], blk[:cap]
+
+    def __deepcopy__(self, memo: dict[int, Any]) -> IncrementalExact:
+        """A copy whose pool is plain arrays of its current rows (the reservation is not
+        copied: its untouched address space would be written)."""
+        import copy
+
+        out = self.__class__.__new__(self.__class__)
+        memo[id(self)] = out
+        for key, value in self.__dict__.items():
+            if key in ("_pool_var", "_pool_blk"):
+                value = None
+            elif key in ("_row_var", "_row_blk"):
+                value = np.array(value, copy=True)
+            else:
+                value = copy.deepcopy(value, memo)
+            setattr(out, key, value)
+        return out
+
     def _compact(self, cap: int) -> None:
-        """Copy every column's segment into a new pool of ``cap`` rows, back to back."""
+        """Lay every column's segment back to back in a pool of ``cap`` rows: in place where
+        the reservation holds ``cap`` rows (:func:`~._incremental_kernels.compact_pool`), else
+        copied into a new pool."""
         n = self._n_in
+        pv, pb = self._pool_var, self._pool_blk
+        if pv is not None and pb is not None and cap <= pv.shape[0]:
+            order = np.argsort(self._col_start[:n], kind="stable")
+            end = ik.compact_pool(order, self._col_start, self._col_cap, self._col_len,
+                                  int(self._pool_used[0]), pv, pb)
+            self._row_var, self._row_blk = pv[:cap], pb[:cap]
+            self._pool_used[0] = end
+            self._pool_cap = cap
+            return
         caps = self._col_cap[:n]
         lens = self._col_len[:n]
         new_start = np.zeros(n, np.int64)
@@ -354,8 +409,7 @@ class IncrementalExact:
         offs = np.arange(total_len) - np.repeat(np.cumsum(lens) - lens, lens)
         src = np.repeat(self._col_start[:n], lens) + offs
         dst = np.repeat(new_start, lens) + offs
-        row_var = np.zeros(cap, np.int64)
-        row_blk = np.zeros((cap, self._nd, self._nd))
+        row_var, row_blk = self._new_pool(cap, self._nd)
         row_var[dst] = self._row_var[src]
         row_blk[dst] = self._row_blk[src]
         self._row_var, self._row_blk = row_var, row_blk
@@ -603,7 +657,9 @@ class IncrementalExact:
         full = np.zeros(0, np.int64)
         if self._planar_lost and self._nd == 3:
             self._nd, self._perm = 6, np.arange(6)
-            self._row_blk = np.zeros((self._pool_cap, 6, 6))
+            rows = self._row_var
+            self._row_var, self._row_blk = self._new_pool(self._pool_cap, 6)
+            self._row_var[:] = rows  # the pool's structure stays; its blocks grow to 6x6
             full = np.arange(n0)
         # 1. new poses and constraints
         if n1 > n0:

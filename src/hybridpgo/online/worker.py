@@ -1147,8 +1147,9 @@ def warm_up(robust: tuple[str, float | None]) -> _Map:
     kernel is loaded from Numba's cache (or compiled into it) before the worker says it is
     ready: the incremental solve (a set of :data:`WARM_UP_POSES` new poses, which the solver
     orders by AMD, and the cycles after it, which relinearize), LM in the plane (``is_2d``),
-    the gauge switch to three GPS readings (LM in 3D, a new incremental solver), and with
-    ``robust="auto"`` the outlier test and the robust re-solve of a map with a false closure.
+    the gauge switch to three GPS readings (LM in 3D, a new incremental solver), the
+    compaction of the factor's pool, and with ``robust="auto"`` the outlier test and the
+    robust re-solve of a map with a false closure.
     A kernel first needed in the middle of a stream holds the answers back while it loads or
     compiles (from a cold cache, seconds per kernel).  The requests here have no time cap
     and run every cycle (:attr:`_Map.cap_s`, :attr:`_Map.more_cycles_s`): on a cold cache
@@ -1192,6 +1193,8 @@ def warm_up(robust: tuple[str, float | None]) -> _Map:
             "gps_info": np.tile(np.eye(3), (GPS_GAUGE, 1, 1))})
     mp.solve(5, thorough=True)  # LM in 3D with GPS; "auto": the test, the robust re-solve
     mp.solve(5)  # the incremental solver on the earth's gauge
+    if mp.inc is not None:  # the pool compacted in place, as when it grows
+        mp.inc._compact(mp.inc._pool_cap)
     return mp
 
 
