@@ -333,7 +333,8 @@ def test_the_pool_compacted_in_place_gives_the_copied_pools_answer_bit_for_bit(
 
     s = _stream(11, 300, 0.8, 5)
     inplace = IncrementalExact(capacity=4)
-    assert inplace._pool_var is not None  # reserved (Linux)
+    if inplace._pool_var is None:
+        pytest.skip("no address space can be reserved here (not Linux, or a strict limit)")
     compactions = []
     compact = IncrementalExact._compact
 
@@ -348,8 +349,7 @@ def test_the_pool_compacted_in_place_gives_the_copied_pools_answer_bit_for_bit(
         _check_sorted_rows(inplace)
     assert len(compactions) >= 3 and all(compactions)  # in place, several times
     assert np.all(inplace._pool_var[inplace._pool_used[0]:] == 0)  # zeros past the segments
-    monkeypatch.setattr(incremental, "reserved_zeros",
-                        lambda shape, dtype=np.float64: (np.zeros(shape, dtype), False))
+    monkeypatch.setattr(incremental, "reserved_only", lambda shape, dtype=np.float64: None)
     copied = IncrementalExact(capacity=4)
     assert copied._pool_var is None
     for k in range(s.frames):

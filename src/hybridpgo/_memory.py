@@ -33,6 +33,16 @@ def mapped_zeros(shape: tuple[int, ...], dtype: Any = np.float64,
                  overcommit: bool = False) -> tuple[np.ndarray, bool]:
     """``(array, mapped)``: a zero array of ``shape``; ``mapped`` is True when it is a view of
     an anonymous memory map (module docstring), False when it is ``numpy.zeros``."""
+    arr = map_only(shape, dtype, overcommit)
+    if arr is not None:
+        return arr, True
+    return np.zeros(shape, np.dtype(dtype)), False
+
+
+def map_only(shape: tuple[int, ...], dtype: Any = np.float64,
+             overcommit: bool = False) -> np.ndarray | None:
+    """A zero array of ``shape`` on an anonymous memory map (as :func:`mapped_zeros`), or
+    None where no map can be made (then nothing is allocated)."""
     dt = np.dtype(dtype)
     nbytes = int(np.prod(shape, dtype=np.int64)) * dt.itemsize
     if sys.platform.startswith("linux") and nbytes >= mmap.PAGESIZE:
@@ -40,7 +50,6 @@ def mapped_zeros(shape: tuple[int, ...], dtype: Any = np.float64,
         try:
             m = mmap.mmap(-1, nbytes, flags=flags)
         except (OSError, ValueError, OverflowError):
-            pass
-        else:
-            return np.frombuffer(m, dtype=dt).reshape(shape), True
-    return np.zeros(shape, dt), False
+            return None
+        return np.frombuffer(m, dtype=dt).reshape(shape)
+    return None

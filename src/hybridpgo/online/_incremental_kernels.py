@@ -333,8 +333,9 @@ def compact_pool(order: np.ndarray, col_start: np.ndarray, col_cap: np.ndarray,
     their old starts (``order``: the columns by increasing ``col_start``), in place; the rows
     past each segment's length and past the last segment (up to ``used``, the old end) are
     zeroed, as in a new pool.  Returns the new end.  A segment never moves up (its new start
-    is the sum of the capacities of the segments before it, all of which lay below it), so
-    copying each one row by row from its first row is safe."""
+    is the sum of the capacities of the segments before it, and those of nonzero capacity
+    lay below it, disjoint), so copying each one row by row from its first row is safe; a
+    column of zero capacity has no rows to move."""
     p = 0
     for q in range(order.shape[0]):
         c = order[q]

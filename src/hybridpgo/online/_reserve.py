@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from .._memory import mapped_zeros
+from .._memory import map_only, mapped_zeros
 
 
 def reserved_zeros(shape: tuple[int, ...], dtype: Any = np.float64) -> tuple[np.ndarray, bool]:
@@ -23,6 +23,12 @@ def reserved_zeros(shape: tuple[int, ...], dtype: Any = np.float64) -> tuple[np.
     of a memory map that costs address space only until written
     (:func:`hybridpgo._memory.mapped_zeros` with ``overcommit=True``)."""
     return mapped_zeros(shape, dtype, overcommit=True)
+
+
+def reserved_only(shape: tuple[int, ...], dtype: Any = np.float64) -> np.ndarray | None:
+    """A zero array of ``shape`` reserved as address space only (as :func:`reserved_zeros`),
+    or None where that cannot be done (then nothing is allocated)."""
+    return map_only(shape, dtype, overcommit=True)
 
 
 def grown(arr: np.ndarray, size: int, fill: float = 0) -> np.ndarray:

@@ -55,7 +55,7 @@ from ..graph import (
 from ..linalg import fill_reducing_order
 from . import _incremental_kernels as ik
 from ._incremental_kernels import panel_scratch
-from ._reserve import reserved_zeros
+from ._reserve import reserved_only
 
 IntArray = npt.NDArray[np.int64]
 _NO_DEADLINE = np.uint64(np.iinfo(np.uint64).max)
@@ -148,11 +148,12 @@ def _check_measurements(rot: FloatArray | None, trans: FloatArray, info: FloatAr
 POOL_FLOOR = 1 << 20
 #: Blocks of address space reserved for the factor's pool (:mod:`._reserve`: pages are
 #: allocated when first written), so that the pool grows and is compacted in place, its pages
-#: written a few at a time as it fills.  A pool that doubled into a new array copied its live
-#: rows into fresh memory at once: paris2 with GPS fed into a solver in chunks of 50 frames,
-#: 135, 256, 429 and 547 ms at 10 300, 15 400, 21 400 and 29 700 frames (the worker's answers
-#: waited, and the host took time from both CPUs in the frames' process).  Beyond it (or where
-#: address space cannot be reserved) the pool grows into a new array, reserved likewise.
+#: written a few at a time as it fills, rather than copied into a new array whose live rows
+#: are all written at once (paris2 with GPS fed into a solver in chunks of 50 frames: the
+#: doubling to 2 M blocks at frame 29 700 takes 48 ms in place, 547 ms as a copy, during
+#: which the worker answers nothing).  A pool that outgrows its reservation is copied into a
+#: new one (of 4 times its capacity); where no address space can be reserved the pool is
+#: plain arrays of its capacity, copied at each growth.
 POOL_RESERVE = 1 << 24
 
 
@@ -358,14 +359,14 @@ class IncrementalExact:
                                                      npt.NDArray[np.float64]]:
         """Zero pool arrays of ``cap`` rows with (nd, nd) blocks: views of arrays of
         :data:`POOL_RESERVE` rows (at least ``4 cap``) reserved as address space, kept in
-        ``_pool_var`` / ``_pool_blk``, or plain zeros where that cannot be done."""
+        ``_pool_var`` / ``_pool_blk``, or plain zeros of ``cap`` rows where that cannot be
+        done (``_pool_var`` None)."""
         rows = max(POOL_RESERVE, 4 * cap)
-        var, reserved = reserved_zeros((rows,), np.int64)
-        blk, reserved_blk = reserved_zeros((rows, nd, nd)) if reserved else (None, False)
-        if not (reserved and reserved_blk):
+        var = reserved_only((rows,), np.int64)
+        blk = reserved_only((rows, nd, nd)) if var is not None else None
+        if var is None or blk is None:
             self._pool_var = self._pool_blk = None
             return np.zeros(cap, np.int64), np.zeros((cap, nd, nd))
-        assert blk is not None
         self._pool_var, self._pool_blk = var, blk
         return var[:cap], blk[:cap]
 
@@ -656,10 +657,11 @@ class IncrementalExact:
         # re-eliminated (the solver's steps so far have no out-of-plane part)
         full = np.zeros(0, np.int64)
         if self._planar_lost and self._nd == 3:
-            self._nd, self._perm = 6, np.arange(6)
             rows = self._row_var
-            self._row_var, self._row_blk = self._new_pool(self._pool_cap, 6)
-            self._row_var[:] = rows  # the pool's structure stays; its blocks grow to 6x6
+            row_var, row_blk = self._new_pool(self._pool_cap, 6)
+            row_var[:] = rows  # the pool's structure stays; its blocks grow to 6x6
+            self._row_var, self._row_blk = row_var, row_blk
+            self._nd, self._perm = 6, np.arange(6)
             full = np.arange(n0)
         # 1. new poses and constraints
         if n1 > n0:
