@@ -251,7 +251,7 @@ class SyncProblem:
         b = np.concatenate([graph.edge_nodes[:, 1].astype(np.int64),
                             graph.gps_nodes.astype(np.int64)])
         m = a.size
-        if n > 1 and np.unique(graph.connected_components()).size > 1:
+        if np.unique(graph.connected_components()).size > 1:
             # D, the position Laplacian, would be singular (a pose without constraints, or
             # parts that nothing ties together): F has no unique optimal positions
             raise ValueError("SE-Sync's model needs a connected graph (every pose tied to "

@@ -371,20 +371,16 @@ class IncrementalExact:
         return var[:cap], blk[:cap]
 
     def __deepcopy__(self, memo: dict[int, Any]) -> IncrementalExact:
-        """A copy whose pool is plain arrays of its current rows (the reservation is not
-        copied: its untouched address space would be written)."""
+        """A copy whose pool is plain arrays of its current rows (a view's copy holds the
+        view's rows only; the reservation is not copied: its untouched address space would
+        be written)."""
         import copy
 
         out = self.__class__.__new__(self.__class__)
         memo[id(self)] = out
         for key, value in self.__dict__.items():
-            if key in ("_pool_var", "_pool_blk"):
-                value = None
-            elif key in ("_row_var", "_row_blk"):
-                value = np.array(value, copy=True)
-            else:
-                value = copy.deepcopy(value, memo)
-            setattr(out, key, value)
+            keep = key not in ("_pool_var", "_pool_blk")
+            setattr(out, key, copy.deepcopy(value, memo) if keep else None)
         return out
 
     def _compact(self, cap: int) -> None:
