@@ -1174,6 +1174,79 @@ def test_spare_time_waits_for_the_answer_that_holds_a_long_loop(monkeypatch) -> 
         s.close()
 
 
+def test_a_frame_that_adds_nothing_waits_for_the_answer_that_holds_everything(
+        monkeypatch) -> None:
+    """``WorkerLink.awaits_all``: while the outstanding request holds everything placed and
+    laid (at most ``LONG_LOOP_WAIT`` frames and ``LONG_LOOP_WAIT_S`` seconds after it was
+    made, and while the worker is alive and its newest message was no error), a frame that
+    adds nothing (the robot stands, or the stream ended) makes no spare-time update: the
+    single steps would only move the map away from the optimum the answer brings.  A frame
+    that adds a constraint, no request outstanding, a request that does not hold
+    everything, a long wait, a dead or failing worker, or the synchronous mode leave spare
+    time as it is."""
+    import dataclasses
+    import time
+
+    from hybridpgo.online import _link
+
+    class Refiner:
+        alive = True
+        failing = False
+
+    g = _graph(seed=21, n=40, extra=20)
+    s = OnlineSolver(OnlineConfig(background_refine=False))
+    _stream(s, g, range(g.num_nodes))
+    st = s.store
+    everything = (st.placed, st.m_laid, st.g_laid)
+    link = _link.WorkerLink.__new__(_link.WorkerLink)  # the bookkeeping only
+    link.refiner = Refiner()
+    link.tail_ok = False  # the adopted optimum does not hold what came after it
+    link._loop_edge, link._loop_since, link.loop_floor = -1, (0, 0.0), 0
+    link.refined = (0, 0)
+    link.sent = link._req_sent = everything
+    link.join_req, link._req_frame, link._req_at = 7, 5, time.perf_counter()
+    wait = _link.LONG_LOOP_WAIT
+    assert all(link.awaits_all(st, f) for f in range(5, 5 + wait))
+    assert not link.awaits_all(st, 5 + wait)  # waited long enough: spare time goes on
+    link._req_at = time.perf_counter() - _link.LONG_LOOP_WAIT_S
+    assert not link.awaits_all(st, 6)  # likewise in seconds
+    link._req_at = time.perf_counter()
+    link.refiner.failing = True
+    assert not link.awaits_all(st, 6)
+    link.refiner.failing = False
+    link.refiner.alive = False
+    assert not link.awaits_all(st, 6)
+    link.refiner.alive = True
+    link._req_sent = (everything[0], everything[1] - 1, everything[2])
+    assert not link.awaits_all(st, 6)  # the request misses a constraint
+    link._req_sent = everything
+    link.join_req = -1
+    assert not link.awaits_all(st, 6)  # answered: nothing is awaited
+    link.join_req = 7
+    assert link.awaits_all(st, 6)
+    # the frames: none with no new data, as usual with a new constraint and in the
+    # synchronous mode
+    monkeypatch.setattr(link, "step", lambda *args: None, raising=False)
+    s._link = link
+    try:
+        s.frame = 6
+        rep = s.update(None, UPDATES)
+        assert rep.old == 0 and not s._quiet
+        s.config = dataclasses.replace(s.config, background_join=10)
+        assert s.update(None, UPDATES).old > 0
+        s.config = dataclasses.replace(s.config, background_join=0)
+        s.frame = 6
+        assert s.update(None, UPDATES).old == 0
+        s.add_constraint(int(s.pose_ids()[0]), int(s.pose_ids()[-1]),
+                         s.pose(int(s.pose_ids()[-1])), np.eye(6))
+        s.frame = 6
+        rep = s.update(None, UPDATES)  # a constraint the request does not hold
+        assert rep.new == 1 and rep.old > 0
+    finally:
+        s._link = None
+        s.close()
+
+
 def test_background_hold_keeps_an_optimum_extended_by_new_tree_links() -> None:
     """background_hold also holds while every constraint since the adopted result is the tree
     link of a new pose and the only constraint through it (odometry driving on): that map's

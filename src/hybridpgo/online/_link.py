@@ -138,6 +138,7 @@ class WorkerLink:
         self.settled = 0
         """Answers adopted inside the frame that requested them (:meth:`settle`)."""
         self._req_at = 0.0  # when the outstanding request was made
+        self._req_frame = 0  # and in which frame
         self._req_new = False  # whether it brought new data
         self._req_sent = (-1, -1, -1)  # self.sent at the last request
 
@@ -196,6 +197,7 @@ class WorkerLink:
         self.ship(store, frame)
         self.join_req = self.refiner.request(thorough, defer)
         self._req_at = time.perf_counter()
+        self._req_frame = frame
         self._req_new = self.sent != self._req_sent
         self._req_sent = self.sent
 
@@ -344,6 +346,19 @@ class WorkerLink:
             self._loop_edge, self._loop_since = newest, (frame, now)
         since, t0 = self._loop_since
         return frame - since < LONG_LOOP_WAIT and now - t0 < LONG_LOOP_WAIT_S
+
+    def awaits_all(self, store: MapStore, frame: int) -> bool:
+        """True while the outstanding request holds everything placed and laid (the frames
+        added nothing since it was made, so its answer is the optimum of the whole map), for
+        at most :data:`LONG_LOOP_WAIT` frames and :data:`LONG_LOOP_WAIT_S` seconds after it
+        was made, and while the worker is alive, its newest message was no error and the link
+        to it works.  O(1)."""
+        if self.join_req < 0 or not self.refiner.alive or self.refiner.failing:
+            return False
+        if self._req_sent != (store.placed, store.m_laid, store.g_laid):
+            return False
+        return (frame - self._req_frame < LONG_LOOP_WAIT
+                and time.perf_counter() - self._req_at < LONG_LOOP_WAIT_S)
 
     def join(self, store: MapStore, frame: int, timeout: float | None,
              rebase: bool) -> bool:

@@ -177,6 +177,7 @@ class OnlineSolver:
         self._gps_cursor = 0
         self._stamp = 0  # one per call of the relaxation loops (junction groups: once each)
         self._input_cycles = 0  # cycles spent in add_* since the last update (its frame's)
+        self._quiet = False  # inside update(): the frame added nothing (_spare_time)
         # the update in slices under way (_slices: progress arrays, its workspace, the
         # worker's adoptions when it began), and the counts stats() reports
         self._sliced: _Sliced | None = None
@@ -391,9 +392,12 @@ class OnlineSolver:
         deadline = self._keep_for_read(deadline)
         if self._link is not None:
             cfg = self.config
-            self._link.step(self._store, self.frame, cfg.background_join,
-                            cfg.background_rebase)
+            st = self._store
+            # nothing added since the last frame (the robot stands, or the stream ended)
+            self._quiet = self._link.sent == (st.placed, st.m_laid, st.g_laid)
+            self._link.step(st, self.frame, cfg.background_join, cfg.background_rebase)
         report = self._work(deadline, limit, time.perf_counter() - t0, first=True)
+        self._quiet = False
         if deadline == NO_DEADLINE or not _late(deadline,
                                                 PREFAULT_CYCLES_S * cycles_per_second()):
             self._store.prefault()  # fresh pages of the path pool, while there is time
@@ -766,7 +770,8 @@ class OnlineSolver:
             return 0
         if cfg.background_hold and link is not None and (
                 link.holds(st) or (cfg.background_join == 0 and not cfg.background_tail_only
-                                   and link.awaits_loop(st, self.frame))):
+                                   and (link.awaits_loop(st, self.frame)
+                                        or (self._quiet and link.awaits_all(st, self.frame))))):
             return 0
         done0 = int(counts[Count.DONE])
         went_on = -1
