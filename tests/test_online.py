@@ -1177,71 +1177,87 @@ def test_spare_time_waits_for_the_answer_that_holds_a_long_loop(monkeypatch) -> 
 def test_a_frame_that_adds_nothing_waits_for_the_answer_that_holds_everything(
         monkeypatch) -> None:
     """``WorkerLink.awaits_all``: while the outstanding request holds everything placed and
-    laid (at most ``LONG_LOOP_WAIT`` frames and ``LONG_LOOP_WAIT_S`` seconds after it was
-    made, and while the worker is alive and its newest message was no error), a frame that
-    adds nothing (the robot stands, or the stream ended) makes no spare-time update: the
-    single steps would only move the map away from the optimum the answer brings.  A frame
-    that adds a constraint, no request outstanding, a request that does not hold
-    everything, a long wait, a dead or failing worker, or the synchronous mode leave spare
-    time as it is."""
+    laid (at most ``LONG_LOOP_WAIT`` frames and ``LONG_LOOP_WAIT_S`` seconds from the first
+    frame that found the map as it stands awaited, requests made again meanwhile included,
+    and while the worker is alive and its newest message was no error), a frame that adds
+    nothing (the robot stands, or the stream ended) makes no spare-time update: the single
+    steps would only move the map away from the optimum the answer brings.  The frame that
+    ships new data, a frame that adds a constraint, no request outstanding, a request that
+    does not hold everything, a long wait, a dead or failing worker, or the synchronous mode
+    leave spare time as it is."""
     import dataclasses
-    import time
 
     from hybridpgo.online import _link
 
-    class Refiner:
+    class Refiner:  # answers every request at once, with nothing to adopt
         alive = True
         failing = False
+        error = ""
+        results = 0
 
+        def __init__(self, *args: object) -> None:
+            self.req = -1
+
+        def ship(self, meta: object, arrays: object) -> None:
+            pass
+
+        def request(self, thorough: bool = False, defer: bool = True) -> int:
+            self.req += 1
+            return self.req
+
+        def answered(self, req: int) -> bool:
+            return True
+
+        def take(self) -> None:
+            return None
+
+        def close(self) -> None:
+            pass
+
+    monkeypatch.setattr(_link, "BackgroundRefiner", Refiner)
+    monkeypatch.setattr(_link, "LONG_LOOP_WAIT", 4)
+    monkeypatch.setattr(_link, "LONG_LOOP_WAIT_S", 1e9)  # frames bound the wait here
     g = _graph(seed=21, n=40, extra=20)
     s = OnlineSolver(OnlineConfig(background_refine=False))
     _stream(s, g, range(g.num_nodes))
     st = s.store
-    everything = (st.placed, st.m_laid, st.g_laid)
-    link = _link.WorkerLink.__new__(_link.WorkerLink)  # the bookkeeping only
-    link.refiner = Refiner()
-    link.tail_ok = False  # the adopted optimum does not hold what came after it
-    link._loop_edge, link._loop_since, link.loop_floor = -1, (0, 0.0), 0
-    link.refined = (0, 0)
-    link.sent = link._req_sent = everything
-    link.join_req, link._req_frame, link._req_at = 7, 5, time.perf_counter()
-    wait = _link.LONG_LOOP_WAIT
-    assert all(link.awaits_all(st, f) for f in range(5, 5 + wait))
-    assert not link.awaits_all(st, 5 + wait)  # waited long enough: spare time goes on
-    link._req_at = time.perf_counter() - _link.LONG_LOOP_WAIT_S
-    assert not link.awaits_all(st, 6)  # likewise in seconds
-    link._req_at = time.perf_counter()
-    link.refiner.failing = True
-    assert not link.awaits_all(st, 6)
-    link.refiner.failing = False
-    link.refiner.alive = False
-    assert not link.awaits_all(st, 6)
-    link.refiner.alive = True
-    link._req_sent = (everything[0], everything[1] - 1, everything[2])
-    assert not link.awaits_all(st, 6)  # the request misses a constraint
-    link._req_sent = everything
-    link.join_req = -1
-    assert not link.awaits_all(st, 6)  # answered: nothing is awaited
-    link.join_req = 7
-    assert link.awaits_all(st, 6)
-    # the frames: none with no new data, as usual with a new constraint and in the
-    # synchronous mode
-    monkeypatch.setattr(link, "step", lambda *args: None, raising=False)
+    link = _link.WorkerLink(20)
     s._link = link
     try:
-        s.frame = 6
-        rep = s.update(None, UPDATES)
-        assert rep.old == 0 and not s._quiet
-        s.config = dataclasses.replace(s.config, background_join=10)
+        # the frame that ships everything: spare time as usual
         assert s.update(None, UPDATES).old > 0
+        # frames that add nothing, each asking again: held for LONG_LOOP_WAIT frames
+        assert [s.update(None, UPDATES).old for _ in range(4)] == [0] * 4
+        assert link.awaits_all(st, s.frame - 1)
+        assert s.update(None, UPDATES).old > 0  # waited long enough: spare time goes on
+        s.config = dataclasses.replace(s.config, background_join=10)
+        assert s.update(None, UPDATES).old > 0  # the synchronous mode
         s.config = dataclasses.replace(s.config, background_join=0)
-        s.frame = 6
-        assert s.update(None, UPDATES).old == 0
         s.add_constraint(int(s.pose_ids()[0]), int(s.pose_ids()[-1]),
                          s.pose(int(s.pose_ids()[-1])), np.eye(6))
-        s.frame = 6
-        rep = s.update(None, UPDATES)  # a constraint the request does not hold
+        rep = s.update(None, UPDATES)  # a frame that adds a constraint
         assert rep.new == 1 and rep.old > 0
+        assert s.update(None, UPDATES).old == 0  # the map as it stands now: a wait of its own
+        # the conditions, one at a time
+        frame = s.frame
+        assert link.awaits_all(st, frame)
+        link.refiner.failing = True
+        assert not link.awaits_all(st, frame)
+        link.refiner.failing = False
+        link.refiner.alive = False
+        assert not link.awaits_all(st, frame)
+        link.refiner.alive = True
+        sent = link._req_sent
+        link._req_sent = (sent[0], sent[1] - 1, sent[2])
+        assert not link.awaits_all(st, frame)  # the request misses a constraint
+        link._req_sent = sent
+        req, link.join_req = link.join_req, -1
+        assert not link.awaits_all(st, frame)  # answered: nothing is awaited
+        link.join_req = req
+        assert link.awaits_all(st, frame)
+        assert not link.awaits_all(st, frame + 3)  # LONG_LOOP_WAIT frames since it began
+        monkeypatch.setattr(_link, "LONG_LOOP_WAIT_S", 0.0)
+        assert not link.awaits_all(st, frame)  # likewise in seconds
     finally:
         s._link = None
         s.close()

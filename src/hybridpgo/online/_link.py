@@ -61,7 +61,9 @@ MAX_TAIL = 1000
 #: with readings 1 000 or more poses apart such edges hold spare time too (not measured).
 LONG_LOOP = 1000
 #: Frames, and seconds, at most that spare-time updates wait for the answer that holds a long
-#: closure (the worker far behind, or its answers refused): then they go on as usual.
+#: closure, or in frames that add nothing for the answer that holds everything
+#: (:meth:`WorkerLink.awaits_all`; the worker far behind, or its answers refused): then they go
+#: on as usual.
 LONG_LOOP_WAIT = 50
 LONG_LOOP_WAIT_S = 1.0
 
@@ -138,7 +140,10 @@ class WorkerLink:
         self.settled = 0
         """Answers adopted inside the frame that requested them (:meth:`settle`)."""
         self._req_at = 0.0  # when the outstanding request was made
-        self._req_frame = 0  # and in which frame
+        #: the map's (placed, laid, GPS laid) found awaited last, and the frame and time its
+        #: wait began (:meth:`awaits_all`)
+        self._all_state = (-1, -1, -1)
+        self._all_since = (0, 0.0)
         self._req_new = False  # whether it brought new data
         self._req_sent = (-1, -1, -1)  # self.sent at the last request
 
@@ -197,7 +202,6 @@ class WorkerLink:
         self.ship(store, frame)
         self.join_req = self.refiner.request(thorough, defer)
         self._req_at = time.perf_counter()
-        self._req_frame = frame
         self._req_new = self.sent != self._req_sent
         self._req_sent = self.sent
 
@@ -348,17 +352,22 @@ class WorkerLink:
         return frame - since < LONG_LOOP_WAIT and now - t0 < LONG_LOOP_WAIT_S
 
     def awaits_all(self, store: MapStore, frame: int) -> bool:
-        """True while the outstanding request holds everything placed and laid (the frames
-        added nothing since it was made, so its answer is the optimum of the whole map), for
-        at most :data:`LONG_LOOP_WAIT` frames and :data:`LONG_LOOP_WAIT_S` seconds after it
-        was made, and while the worker is alive, its newest message was no error and the link
-        to it works.  O(1)."""
+        """True while the outstanding request holds everything placed and laid (its answer
+        is the optimum of the whole map as it stands), for at most :data:`LONG_LOOP_WAIT`
+        frames and :data:`LONG_LOOP_WAIT_S` seconds from the first call that found the map
+        as it stands awaited (requests made again meanwhile, their answers refused, do not
+        lengthen the wait), and while the worker is alive, its newest message was no error
+        and the link to it works.  O(1)."""
         if self.join_req < 0 or not self.refiner.alive or self.refiner.failing:
             return False
-        if self._req_sent != (store.placed, store.m_laid, store.g_laid):
+        state = (store.placed, store.m_laid, store.g_laid)
+        if self._req_sent != state:
             return False
-        return (frame - self._req_frame < LONG_LOOP_WAIT
-                and time.perf_counter() - self._req_at < LONG_LOOP_WAIT_S)
+        now = time.perf_counter()
+        if state != self._all_state:  # the map as it stands, found awaited: its wait begins
+            self._all_state, self._all_since = state, (frame, now)
+        since, t0 = self._all_since
+        return frame - since < LONG_LOOP_WAIT and now - t0 < LONG_LOOP_WAIT_S
 
     def join(self, store: MapStore, frame: int, timeout: float | None,
              rebase: bool) -> bool:

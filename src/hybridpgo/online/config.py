@@ -146,10 +146,9 @@ class OnlineConfig(RobustOptions):
     optimum.  Nor, likewise, in an :meth:`~OnlineSolver.update` that adds nothing while the
     request outstanding holds everything added (the robot stopped or the stream ended: the
     answer on its way is the optimum of the whole map, and the single steps meanwhile only
-    push the map away from it; grid10k back to back, in the frames after its last: E rose
-    by 0.03-0.04 % of the optimum a frame with them, and stayed as it was without, until
-    the answer came).  The checks are O(constraints added since the result's snapshot) per
-    frame."""
+    push the map away from it), for at most as many frames and seconds;
+    :meth:`~OnlineSolver.idle` keeps its spare time (it also adopts the answer when it
+    comes).  The checks are O(constraints added since the result's snapshot) per frame."""
     background_rebase: bool = True
     """With ``background_refine``: when a result is adopted, the constraints added after its
     snapshot are queued to be relaxed again as new ones (on top of the optimum, in arrival

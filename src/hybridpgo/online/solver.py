@@ -177,7 +177,6 @@ class OnlineSolver:
         self._gps_cursor = 0
         self._stamp = 0  # one per call of the relaxation loops (junction groups: once each)
         self._input_cycles = 0  # cycles spent in add_* since the last update (its frame's)
-        self._quiet = False  # inside update(): the frame added nothing (_spare_time)
         # the update in slices under way (_slices: progress arrays, its workspace, the
         # worker's adoptions when it began), and the counts stats() reports
         self._sliced: _Sliced | None = None
@@ -390,14 +389,15 @@ class OnlineSolver:
         limit = (1 << 62) if max_updates is None else max_updates
         self._integrate()
         deadline = self._keep_for_read(deadline)
+        quiet = False
         if self._link is not None:
             cfg = self.config
             st = self._store
-            # nothing added since the last frame (the robot stands, or the stream ended)
-            self._quiet = self._link.sent == (st.placed, st.m_laid, st.g_laid)
+            # nothing placed or laid since the link last shipped (the robot stands, or the
+            # stream ended)
+            quiet = self._link.sent == (st.placed, st.m_laid, st.g_laid)
             self._link.step(st, self.frame, cfg.background_join, cfg.background_rebase)
-        report = self._work(deadline, limit, time.perf_counter() - t0, first=True)
-        self._quiet = False
+        report = self._work(deadline, limit, time.perf_counter() - t0, first=True, quiet=quiet)
         if deadline == NO_DEADLINE or not _late(deadline,
                                                 PREFAULT_CYCLES_S * cycles_per_second()):
             self._store.prefault()  # fresh pages of the path pool, while there is time
@@ -455,11 +455,12 @@ class OnlineSolver:
         keep = int(st.depth[st.placed]) * READ_LEVEL_S * cycles_per_second()
         return np.uint64(max(int(deadline) - int(keep), 0))
 
-    def _work(self, deadline: np.uint64, limit: int, elapsed: float, first: bool = False
-              ) -> FrameReport:
+    def _work(self, deadline: np.uint64, limit: int, elapsed: float, first: bool = False,
+              quiet: bool = False) -> FrameReport:
         """Requeued constraints, new constraints in arrival order, the local solve, then spare
         time (one call of the relaxation loop each, under the admission policy; ``first``: the
-        frame's own work, :meth:`_requeued`)."""
+        frame's own work, :meth:`_requeued`; ``quiet``: the frame added nothing,
+        :meth:`_spare_time`)."""
         cfg = self.config
         st = self._store
         counts = np.zeros(NUM_COUNTS, np.int64)
@@ -506,7 +507,7 @@ class OnlineSolver:
             until = (time.perf_counter()
                      + (int(deadline) - int(read_cycles())) / cycles_per_second())
             link.settle(st, self.frame, cfg.background_rebase, until)
-        old = n_re + self._spare_time(deadline, counts, limit, stamp)
+        old = n_re + self._spare_time(deadline, counts, limit, stamp, quiet)
         return FrameReport(n_new, self.backlog, old, local_nodes, int(counts[Count.CAPPED]),
                            int(counts[Count.REJECTED]), int(counts[Count.SKIPPED]), elapsed)
 
@@ -755,8 +756,11 @@ class OnlineSolver:
                                        st.depth)), 0)
 
     def _spare_time(self, deadline: np.uint64, counts: npt.NDArray[np.int64], limit: int,
-                    stamp: int) -> int:
+                    stamp: int, quiet: bool = False) -> int:
         """Older constraints, largest last χ² first, while time remains; the updates made.
+        None while ``background_hold`` holds (the adopted optimum holds everything, a long loop
+        closure waits for its answer, or in a frame that added nothing (``quiet``) the answer
+        to everything is on its way).
         Under a deadline the long relative ones among them (:data:`MIN_SLICED` domain nodes)
         are relaxed in slices, one at a time: the one under way goes on first, and the
         others begin, largest χ² first, once the short ones were admitted or skipped."""
@@ -771,7 +775,7 @@ class OnlineSolver:
         if cfg.background_hold and link is not None and (
                 link.holds(st) or (cfg.background_join == 0 and not cfg.background_tail_only
                                    and (link.awaits_loop(st, self.frame)
-                                        or (self._quiet and link.awaits_all(st, self.frame))))):
+                                        or (quiet and link.awaits_all(st, self.frame))))):
             return 0
         done0 = int(counts[Count.DONE])
         went_on = -1
