@@ -46,8 +46,15 @@ the worker's, up to :data:`GROWTH_ISAM2_S` seconds of updates): ``isam2_ms_mean`
 period leaves the worker behind the stream: its answers then come less often than the
 frames, each covering more of them.
 
-``HYBRIDPGO_BENCH_WORKER_PARTS``: ``requests``, ``large``, ``growth`` (comma-separated; the
-default ``requests,large``).
+Growth of the per-pose and per-edge arrays (``worker.arrays.*``): paris2, all its frames, fed to
+an incremental solver in requests of :data:`ARRAYS_STEP` frames (one update cycle each), in a
+child process with the worker's environment, once with the arrays reserved as address space
+(grown in place) and once as where nothing can be reserved (copied at each doubling); each
+growth's ``add_*`` call, less the median call: ``<arrays>_<rows>.in_place_ms`` /
+``copied_ms``.
+
+``HYBRIDPGO_BENCH_WORKER_PARTS``: ``requests``, ``large``, ``growth``, ``arrays``
+(comma-separated; the default ``requests,large``).
 
 Graphs: the valencia city preset (all 15 031 frames) and paris2's first 12 000 frames
 (:func:`hybridpgo.generate.generate_city`, seed 0; both 3D, so the planar system is left at
@@ -207,10 +214,11 @@ def _large_numbers() -> dict[str, float]:
             "after": float(k - LARGE_TIMED * LARGE_STEP)}
 
 
-def _in_worker_env(name: str) -> Any:
-    """The JSON result of this module's function ``name`` run in a child process with the
-    worker's environment (:data:`hybridpgo.online.worker.WORKER_THREADS`)."""
-    code = f"import json, benchmarks.worker as w; print(json.dumps(w.{name}()))"
+def _in_worker_env(name: str, args: str = "") -> Any:
+    """The JSON result of this module's function ``name`` called with ``args`` (Python source)
+    in a child process with the worker's environment
+    (:data:`hybridpgo.online.worker.WORKER_THREADS`)."""
+    code = f"import json, benchmarks.worker as w; print(json.dumps(w.{name}({args})))"
     env = {**os.environ, **WORKER_THREADS}
     out = subprocess.run([sys.executable, "-c", code], env=env, check=True,
                          capture_output=True, text=True).stdout
@@ -323,6 +331,74 @@ def _growth() -> tuple[list[Metric], str]:
     return metrics, table
 
 
+#: Frames per request of the arrays part (paris2 streamed as a worker's requests).
+ARRAYS_STEP = 50
+
+
+def _arrays_numbers(reserve: bool = True) -> dict[str, Any]:
+    """Every growth of the per-pose and per-edge arrays of an incremental solver fed all of
+    paris2 in requests of :data:`ARRAYS_STEP` frames (one update cycle each), timed: the
+    ``add_*`` call that grows them (its time less the median of those that do not).
+    ``reserve`` False: as where no address space can be reserved (each growth a copy)."""
+    from hybridpgo.generate import generate_city
+    from hybridpgo.online import incremental
+
+    stream = make_stream(generate_city("paris2", seed=0).graph)
+    g = stream.graph
+    rank = np.empty(g.num_nodes, np.int64)
+    rank[stream.order] = np.arange(g.num_nodes)
+    saved = incremental.reserved_only
+    if not reserve:
+        incremental.reserved_only = lambda shape, dtype=np.float64: None
+    try:
+        inc = IncrementalExact(IncrementalConfig(**INCREMENTAL))  # type: ignore[arg-type]
+        nf = stream.num_frames
+        sec = np.zeros(nf)
+        grew: list[tuple[int, str, int, int]] = []
+        for k in range(nf):
+            caps = (inc._cap_n, inc._cap_m)
+            t0 = time.perf_counter()
+            _feed(inc, stream, rank, k)
+            sec[k] = time.perf_counter() - t0
+            if inc._cap_n != caps[0]:
+                grew.append((k, "poses", caps[0], inc._cap_n))
+            if inc._cap_m != caps[1]:
+                grew.append((k, "edges", caps[1], inc._cap_m))
+            if (k + 1) % ARRAYS_STEP == 0 or k + 1 == nf:
+                inc.solve(max_cycles=1, polish=False)
+    finally:
+        incremental.reserved_only = saved
+    base = float(np.median(sec))
+    return {"growths": [{"frame": k + 1, "arrays": what, "from": a, "to": b,
+                         "ms": float((sec[k] - base) * 1e3)} for k, what, a, b in grew],
+            "frames": int(stream.num_frames)}
+
+
+def _arrays() -> tuple[list[Metric], str]:
+    """:func:`_arrays_numbers` in place and copied, each in a child process with the worker's
+    environment."""
+    runs = {mode: _in_worker_env("_arrays_numbers", flag)
+            for mode, flag in (("in_place", "True"), ("copied", "False"))}
+    metrics: list[Metric] = []
+    rows = []
+    for a, b in zip(runs["in_place"]["growths"], runs["copied"]["growths"], strict=True):
+        if a["to"] < 4096:
+            continue
+        key = f"worker.arrays.{a['arrays']}_{a['to']}"
+        metrics += [timing(f"{key}.in_place_ms", a["ms"], "ms"),
+                    timing(f"{key}.copied_ms", b["ms"], "ms")]
+        rows.append([a["arrays"], f"{a['from']} -> {a['to']}", str(a["frame"]),
+                     f"{a['ms']:.2f}", f"{b['ms']:.2f}"])
+    table = markdown_table(
+        f"Growth of the per-pose and per-edge arrays: paris2 ({runs['in_place']['frames']} "
+        f"frames) fed to an incremental solver in requests of {ARRAYS_STEP} frames (one update "
+        "cycle each), in a child process with the worker's environment; the add_* call that "
+        "grows them, less the median call (ms), with the arrays reserved as address space "
+        "(grown in place) and without (copied at each doubling); growths to 4 096 rows and more",
+        ["arrays", "rows", "frame", "in place ms", "copied ms"], rows)
+    return metrics, table
+
+
 def run(ctx: Context) -> Result:
     parts = os.environ.get("HYBRIDPGO_BENCH_WORKER_PARTS", "requests,large").split(",")
     metrics: list[Metric] = []
@@ -330,6 +406,10 @@ def run(ctx: Context) -> Result:
     tables = []
     if "growth" in parts:
         m, t = _growth()
+        metrics += m
+        tables.append(t)
+    if "arrays" in parts:
+        m, t = _arrays()
         metrics += m
         tables.append(t)
     if "large" in parts:

@@ -327,8 +327,9 @@ def test_deadline_slices_give_the_same_answer_bit_for_bit() -> None:
 def test_the_pool_compacted_in_place_gives_the_copied_pools_answer_bit_for_bit(
         monkeypatch) -> None:
     """The factor's pool grows and is compacted in place in its reserved address space
-    (``_compact``, ``compact_pool``): the same answers, bit for bit, as a pool copied into a
-    new array at each growth (the path where no address space can be reserved)."""
+    (``_compact``, ``compact_pool``), and the per-pose, per-edge and per-reading arrays grow
+    in theirs (``_grow``): the same answers, bit for bit, as arrays copied into new ones at
+    each growth (the path where no address space can be reserved)."""
     from hybridpgo.online import incremental
 
     s = _stream(11, 300, 0.8, 5)
@@ -349,19 +350,38 @@ def test_the_pool_compacted_in_place_gives_the_copied_pools_answer_bit_for_bit(
         _check_sorted_rows(inplace)
     assert len(compactions) >= 3 and all(compactions)  # in place, several times
     assert np.all(inplace._pool_var[inplace._pool_used[0]:] == 0)  # zeros past the segments
+    assert inplace._cap_n >= 256 and inplace._cap_m >= 256  # grown from 4 poses, 8 edges
+    for name, arrays in (("_diag", "_POSE_ARRAYS"), ("_parent", "_POSE_ARRAYS"),
+                         ("_haa", "_EDGE_ARRAYS"), ("_inc_next", "_EDGE_ARRAYS")):
+        base = inplace._bases[name]
+        arr = getattr(inplace, name)
+        assert base is not None and np.shares_memory(arr, base)  # views: grown in place
+        assert arr.shape[0] == getattr(IncrementalExact, arrays)[name][3] * (
+            inplace._cap_n if arrays == "_POSE_ARRAYS" else inplace._cap_m)
+    assert np.all(inplace._parent[inplace._n:] == -1)  # the rows past the poses: their fill
+    assert np.all(inplace._e_stamp[inplace._m:] == -1)
     monkeypatch.setattr(incremental, "reserved_only", lambda shape, dtype=np.float64: None)
     copied = IncrementalExact(capacity=4)
-    assert copied._pool_var is None
+    assert copied._pool_var is None and not any(b is not None for b in copied._bases.values())
     for k in range(s.frames):
         _feed(copied, s, k)
         copied.solve()
     assert not all(compactions[-3:])  # the copies
     for a, b in zip(inplace.estimate(), copied.estimate(), strict=True):
         assert np.array_equal(a, b)
+    for name in (*IncrementalExact._POSE_ARRAYS, *IncrementalExact._EDGE_ARRAYS,
+                 *IncrementalExact._GPS_ARRAYS):
+        if name != "_col_start":  # the pool's layout (in place: the segments' old order)
+            assert np.array_equal(getattr(inplace, name), getattr(copied, name)), name
     twin = __import__("copy").deepcopy(inplace)  # a copy holds plain arrays, not the reservation
     assert twin._pool_var is None and twin._row_blk.shape == inplace._row_blk.shape
+    assert twin._bases == {} and not np.shares_memory(twin._diag, inplace._diag)
     for a, b in zip(twin.estimate(), inplace.estimate(), strict=True):
         assert np.array_equal(a, b)
+    n = twin._n
+    parent = twin._parent.copy()
+    twin._grow_poses(2 * twin._cap_n)  # a copy grows by copying
+    assert np.array_equal(twin._parent[:n], parent[:n]) and np.all(twin._parent[n:] == -1)
 
 
 @pytest.mark.parametrize("count", [0, 1, 2, 5, 32, 33, 100])

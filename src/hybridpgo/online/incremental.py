@@ -155,6 +155,13 @@ POOL_FLOOR = 1 << 20
 #: new one (of 4 times its capacity); where no address space can be reserved the pool is
 #: plain arrays of its capacity, copied at each growth.
 POOL_RESERVE = 1 << 24
+#: Rows of address space reserved for each per-pose, per-edge and per-GPS-reading array (at
+#: least 4 times its first capacity), so that they grow in place, writing only the new rows'
+#: fill, rather than being copied into arrays of twice the size at each doubling (paris2 with
+#: GPS fed into the worker's map: the edge arrays' doubling to 128 K edges took tens of ms,
+#: in which the worker answers nothing).  Beyond it, or where nothing can be reserved, an
+#: array is copied into a plain one at each doubling.
+ROWS_RESERVE = 1 << 22
 
 
 class IncrementalExact:
@@ -168,6 +175,8 @@ class IncrementalExact:
         self.config = config or IncrementalConfig()
         cap = max(int(capacity), 4)
         self._n = self._n_in = 0  # poses added / integrated
+        # the reservations the pose, edge and GPS arrays are views of (None: plain arrays)
+        self._bases: dict[str, np.ndarray | None] = {}
         self._m = self._m_in = 0  # edges
         self._g = self._g_in = 0  # GPS readings
         self._alloc_poses(cap)
@@ -214,50 +223,76 @@ class IncrementalExact:
         substituting."""
 
     # ----------------------------------------------------------------- storage
+    #: The per-pose, per-edge and per-GPS-reading arrays: name -> (shape of a row, dtype,
+    #: fill, rows per pose / edge / reading).
+    _POSE_ARRAYS: ClassVar[dict[str, tuple[tuple[int, ...], Any, int, int]]] = {
+        "_ref": ((), np.int64, -1, 1), "_rel_r": ((3, 3), np.float64, 0, 1),
+        "_rel_t": ((3,), np.float64, 0, 1), "_th_r": ((3, 3), np.float64, 0, 1),
+        "_th_t": ((3,), np.float64, 0, 1), "_est_r": ((3, 3), np.float64, 0, 1),
+        "_est_t": ((3,), np.float64, 0, 1), "_x": ((6,), np.float64, 0, 1),
+        "_y": ((6,), np.float64, 0, 1), "_diag": ((6, 6), np.float64, 0, 1),
+        "_free": ((), np.bool_, 0, 1), "_position": ((), np.int64, -1, 1),
+        "_parent": ((), np.int64, -1, 1), "_ch_head": ((), np.int64, -1, 1),
+        "_ch_next": ((), np.int64, -1, 1), "_ch_prev": ((), np.int64, -1, 1),
+        "_col_start": ((), np.int64, 0, 1), "_col_len": ((), np.int64, 0, 1),
+        "_col_cap": ((), np.int64, 0, 1), "_inc_head": ((), np.int64, -1, 1),
+        "_gps_head": ((), np.int64, -1, 1), "_in_s": ((), np.int64, -1, 1),
+        "_changed": ((), np.int64, -1, 1), "_mark": ((), np.int64, -1, 1),
+        "_walk": ((), np.int64, -1, 1), "_slot": ((), np.int64, -1, 1),
+        "_sn_of": ((), np.int64, 0, 1), "_src": ((), np.int64, 0, 1),
+        "_local": ((), np.int64, 0, 1), "_stack": ((), np.int64, 0, 1),
+        "_touched": ((), np.int64, 0, 1), "_pol_flag": ((), np.bool_, 0, 1),
+        "_pol_list": ((), np.int64, 0, 1), "_chg_flag": ((), np.bool_, 0, 1),
+        "_chg_list": ((), np.int64, 0, 1)}
+    _EDGE_ARRAYS: ClassVar[dict[str, tuple[tuple[int, ...], Any, int, int]]] = {
+        "_ab": ((2,), np.int64, 0, 1), "_zr": ((3, 3), np.float64, 0, 1),
+        "_zt": ((3,), np.float64, 0, 1), "_info": ((6, 6), np.float64, 0, 1),
+        "_haa": ((6, 6), np.float64, 0, 1), "_hbb": ((6, 6), np.float64, 0, 1),
+        "_hab": ((6, 6), np.float64, 0, 1), "_ga": ((6,), np.float64, 0, 1),
+        "_gb": ((6,), np.float64, 0, 1), "_chi": ((), np.float64, 0, 1),
+        "_inc_next": ((), np.int64, -1, 2), "_e_stamp": ((), np.int64, -1, 1)}
+    _GPS_ARRAYS: ClassVar[dict[str, tuple[tuple[int, ...], Any, int, int]]] = {
+        "_gnode": ((), np.int64, 0, 1), "_gpos": ((3,), np.float64, 0, 1),
+        "_ginfo": ((3, 3), np.float64, 0, 1), "_hgg": ((3, 3), np.float64, 0, 1),
+        "_gg": ((3,), np.float64, 0, 1), "_gchi": ((), np.float64, 0, 1),
+        "_gps_next": ((), np.int64, -1, 1), "_g_stamp": ((), np.int64, -1, 1)}
+
+    def _alloc(self, arrays: dict[str, tuple[tuple[int, ...], Any, int, int]],
+               cap: int) -> None:
+        """Each of ``arrays`` with room for ``cap`` poses, edges or readings: the first rows
+        of an array of :data:`ROWS_RESERVE` (at least ``4 cap``) reserved as address space,
+        kept in ``_bases``, or a plain array where none can be reserved."""
+        for name, (row, dtype, fill, per) in arrays.items():
+            base = reserved_only((max(ROWS_RESERVE, 4 * cap) * per, *row), dtype)
+            self._bases[name] = base
+            arr = base[: cap * per] if base is not None else np.zeros((cap * per, *row), dtype)
+            if fill:
+                arr[:] = fill
+            setattr(self, name, arr)
+
+    def _grow(self, arrays: dict[str, tuple[tuple[int, ...], Any, int, int]], old: int,
+              cap: int) -> None:
+        """Each of ``arrays`` from room for ``old`` to ``cap`` poses, edges or readings: in
+        place within its reservation (only the new rows are written, where their fill is
+        not 0), else copied into a plain array."""
+        for name, (row, dtype, fill, per) in arrays.items():
+            arr = getattr(self, name)
+            base = self._bases.get(name)
+            if base is not None and cap * per <= base.shape[0]:
+                new = base[: cap * per]
+            else:
+                new = np.zeros((cap * per, *row), dtype)
+                new[: old * per] = arr[: old * per]
+                self._bases[name] = None
+            if fill:
+                new[old * per:] = fill
+            setattr(self, name, new)
+
     def _alloc_poses(self, cap: int) -> None:
         self._cap_n = cap
-        self._ref = np.full(cap, -1, np.int64)
-        self._rel_r = np.zeros((cap, 3, 3))
-        self._rel_t = np.zeros((cap, 3))
-        self._th_r = np.zeros((cap, 3, 3))
-        self._th_t = np.zeros((cap, 3))
-        self._est_r = np.zeros((cap, 3, 3))
-        self._est_t = np.zeros((cap, 3))
-        self._x = np.zeros((cap, 6))
-        self._y = np.zeros((cap, 6))
-        self._diag = np.zeros((cap, 6, 6))
-        self._free = np.zeros(cap, np.bool_)
-        self._position = np.full(cap, -1, np.int64)
-        self._parent = np.full(cap, -1, np.int64)
-        self._ch_head = np.full(cap, -1, np.int64)
-        self._ch_next = np.full(cap, -1, np.int64)
-        self._ch_prev = np.full(cap, -1, np.int64)
-        self._col_start = np.zeros(cap, np.int64)
-        self._col_len = np.zeros(cap, np.int64)
-        self._col_cap = np.zeros(cap, np.int64)
-        self._inc_head = np.full(cap, -1, np.int64)
-        self._gps_head = np.full(cap, -1, np.int64)
-        self._in_s = np.full(cap, -1, np.int64)
-        self._changed = np.full(cap, -1, np.int64)
-        self._mark = np.full(cap, -1, np.int64)
-        self._walk = np.full(cap, -1, np.int64)
-        self._slot = np.full(cap, -1, np.int64)
-        self._sn_of = np.zeros(cap, np.int64)
-        self._src = np.zeros(cap, np.int64)
-        self._local = np.zeros(cap, np.int64)
-        self._stack = np.zeros(cap, np.int64)
-        self._touched = np.zeros(cap, np.int64)
-        self._pol_flag = np.zeros(cap, np.bool_)
-        self._pol_list = np.zeros(cap, np.int64)
+        self._alloc(self._POSE_ARRAYS, cap)
         self._pol_count = np.zeros(1, np.int64)
-        self._chg_flag = np.zeros(cap, np.bool_)
-        self._chg_list = np.zeros(cap, np.int64)
         self._chg_count = np.zeros(1, np.int64)
-
-    _POSE_FILL: ClassVar[dict[str, int]] = {
-        "_ref": -1, "_position": -1, "_parent": -1, "_ch_head": -1, "_ch_next": -1,
-        "_ch_prev": -1, "_inc_head": -1, "_gps_head": -1, "_in_s": -1, "_changed": -1,
-        "_mark": -1, "_walk": -1, "_slot": -1}
 
     def _grow_poses(self, need: int) -> None:
         if need <= self._cap_n:
@@ -265,33 +300,12 @@ class IncrementalExact:
         cap = self._cap_n
         while cap < need:
             cap *= 2
-        for name in ("_ref", "_rel_r", "_rel_t", "_th_r", "_th_t", "_est_r", "_est_t", "_x",
-                     "_y", "_diag", "_free", "_position", "_parent", "_ch_head", "_ch_next",
-                     "_ch_prev", "_col_start", "_col_len", "_col_cap", "_inc_head",
-                     "_gps_head", "_in_s", "_changed", "_mark", "_walk", "_slot", "_sn_of",
-                     "_src", "_local", "_stack", "_touched", "_pol_flag", "_pol_list", "_chg_flag",
-                     "_chg_list"):
-            old = getattr(self, name)
-            fill = self._POSE_FILL.get(name, 0)
-            new = np.full((cap, *old.shape[1:]), fill, old.dtype)
-            new[: self._cap_n] = old
-            setattr(self, name, new)
+        self._grow(self._POSE_ARRAYS, self._cap_n, cap)
         self._cap_n = cap
 
     def _alloc_edges(self, cap: int) -> None:
         self._cap_m = cap
-        self._ab = np.zeros((cap, 2), np.int64)
-        self._zr = np.zeros((cap, 3, 3))
-        self._zt = np.zeros((cap, 3))
-        self._info = np.zeros((cap, 6, 6))
-        self._haa = np.zeros((cap, 6, 6))
-        self._hbb = np.zeros((cap, 6, 6))
-        self._hab = np.zeros((cap, 6, 6))
-        self._ga = np.zeros((cap, 6))
-        self._gb = np.zeros((cap, 6))
-        self._chi = np.zeros(cap)
-        self._inc_next = np.full(2 * cap, -1, np.int64)
-        self._e_stamp = np.full(cap, -1, np.int64)
+        self._alloc(self._EDGE_ARRAYS, cap)
 
     def _grow_edges(self, need: int) -> None:
         if need <= self._cap_m:
@@ -299,27 +313,12 @@ class IncrementalExact:
         cap = self._cap_m
         while cap < need:
             cap *= 2
-        for name in ("_ab", "_zr", "_zt", "_info", "_haa", "_hbb", "_hab", "_ga", "_gb",
-                     "_chi", "_e_stamp"):
-            old = getattr(self, name)
-            new = np.full((cap, *old.shape[1:]), -1 if name == "_e_stamp" else 0, old.dtype)
-            new[: self._cap_m] = old
-            setattr(self, name, new)
-        nxt = np.full(2 * cap, -1, np.int64)
-        nxt[: 2 * self._cap_m] = self._inc_next
-        self._inc_next = nxt
+        self._grow(self._EDGE_ARRAYS, self._cap_m, cap)
         self._cap_m = cap
 
     def _alloc_gps(self, cap: int) -> None:
         self._cap_g = cap
-        self._gnode = np.zeros(cap, np.int64)
-        self._gpos = np.zeros((cap, 3))
-        self._ginfo = np.zeros((cap, 3, 3))
-        self._hgg = np.zeros((cap, 3, 3))
-        self._gg = np.zeros((cap, 3))
-        self._gchi = np.zeros(cap)
-        self._gps_next = np.full(cap, -1, np.int64)
-        self._g_stamp = np.full(cap, -1, np.int64)
+        self._alloc(self._GPS_ARRAYS, cap)
 
     def _grow_gps(self, need: int) -> None:
         if need <= self._cap_g:
@@ -327,13 +326,7 @@ class IncrementalExact:
         cap = self._cap_g
         while cap < need:
             cap *= 2
-        for name in ("_gnode", "_gpos", "_ginfo", "_hgg", "_gg", "_gchi", "_gps_next",
-                     "_g_stamp"):
-            old = getattr(self, name)
-            fill = -1 if name in ("_gps_next", "_g_stamp") else 0
-            new = np.full((cap, *old.shape[1:]), fill, old.dtype)
-            new[: self._cap_g] = old
-            setattr(self, name, new)
+        self._grow(self._GPS_ARRAYS, self._cap_g, cap)
         self._cap_g = cap
 
     def _grow_pool(self, need: int) -> None:
@@ -371,16 +364,17 @@ class IncrementalExact:
         return var[:cap], blk[:cap]
 
     def __deepcopy__(self, memo: dict[int, Any]) -> IncrementalExact:
-        """A copy whose pool is plain arrays of its current rows (a view's copy holds the
-        view's rows only; the reservation is not copied: its untouched address space would
-        be written)."""
+        """A copy whose pool and per-pose, per-edge and per-reading arrays are plain arrays
+        of their current rows (a view's copy holds the view's rows only; the reservations
+        are not copied: their untouched address space would be written)."""
         import copy
 
         out = self.__class__.__new__(self.__class__)
         memo[id(self)] = out
         for key, value in self.__dict__.items():
-            keep = key not in ("_pool_var", "_pool_blk")
+            keep = key not in ("_pool_var", "_pool_blk", "_bases")
             setattr(out, key, copy.deepcopy(value, memo) if keep else None)
+        out._bases = {}
         return out
 
     def _compact(self, cap: int) -> None:
