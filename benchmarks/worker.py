@@ -50,8 +50,7 @@ Growth of the per-pose and per-edge arrays (``worker.arrays.*``): paris2, all it
 an incremental solver in requests of :data:`ARRAYS_STEP` frames (one update cycle each), in a
 child process with the worker's environment, once with the arrays reserved as address space
 (grown in place) and once as where nothing can be reserved (copied at each doubling); each
-growth's ``add_*`` call, less the median call: ``<arrays>_<rows>.in_place_ms`` /
-``copied_ms``.
+growth timed (``IncrementalExact._grow``): ``<arrays>_<rows>.in_place_ms`` / ``copied_ms``.
 
 ``HYBRIDPGO_BENCH_WORKER_PARTS``: ``requests``, ``large``, ``growth``, ``arrays``
 (comma-separated; the default ``requests,large``).
@@ -337,9 +336,9 @@ ARRAYS_STEP = 50
 
 def _arrays_numbers(reserve: bool = True) -> dict[str, Any]:
     """Every growth of the per-pose and per-edge arrays of an incremental solver fed all of
-    paris2 in requests of :data:`ARRAYS_STEP` frames (one update cycle each), timed: the
-    ``add_*`` call that grows them (its time less the median of those that do not).
-    ``reserve`` False: as where no address space can be reserved (each growth a copy)."""
+    paris2 in requests of :data:`ARRAYS_STEP` frames (one update cycle each), timed
+    (``IncrementalExact._grow``).  ``reserve`` False: as where no address space can be
+    reserved (each growth a copy into a plain array)."""
     from hybridpgo.generate import generate_city
     from hybridpgo.online import incremental
 
@@ -347,31 +346,37 @@ def _arrays_numbers(reserve: bool = True) -> dict[str, Any]:
     g = stream.graph
     rank = np.empty(g.num_nodes, np.int64)
     rank[stream.order] = np.arange(g.num_nodes)
+    grew: list[dict[str, Any]] = []
+    grow = IncrementalExact._grow
+    kinds = {id(IncrementalExact._POSE_ARRAYS): "poses", id(IncrementalExact._EDGE_ARRAYS): "edges",
+             id(IncrementalExact._GPS_ARRAYS): "gps"}
+
+    def timed(self: IncrementalExact, arrays: Any, old: int, cap: int) -> None:
+        t0 = time.perf_counter()
+        grow(self, arrays, old, cap)
+        grew.append({"arrays": kinds[id(arrays)], "from": old, "to": cap,
+                     "ms": (time.perf_counter() - t0) * 1e3})
+
     saved = incremental.reserved_only
     if not reserve:
         incremental.reserved_only = lambda shape, dtype=np.float64: None
+    IncrementalExact._grow = timed  # type: ignore[method-assign]
     try:
         inc = IncrementalExact(IncrementalConfig(**INCREMENTAL))  # type: ignore[arg-type]
         nf = stream.num_frames
-        sec = np.zeros(nf)
-        grew: list[tuple[int, str, int, int]] = []
         for k in range(nf):
-            caps = (inc._cap_n, inc._cap_m)
-            t0 = time.perf_counter()
+            n0 = len(grew)
             _feed(inc, stream, rank, k)
-            sec[k] = time.perf_counter() - t0
-            if inc._cap_n != caps[0]:
-                grew.append((k, "poses", caps[0], inc._cap_n))
-            if inc._cap_m != caps[1]:
-                grew.append((k, "edges", caps[1], inc._cap_m))
+            for d in grew[n0:]:
+                d["frame"] = k + 1
             if (k + 1) % ARRAYS_STEP == 0 or k + 1 == nf:
                 inc.solve(max_cycles=1, polish=False)
+                for d in grew[n0:]:
+                    d.setdefault("frame", k + 1)
     finally:
         incremental.reserved_only = saved
-    base = float(np.median(sec))
-    return {"growths": [{"frame": k + 1, "arrays": what, "from": a, "to": b,
-                         "ms": float((sec[k] - base) * 1e3)} for k, what, a, b in grew],
-            "frames": int(stream.num_frames)}
+        IncrementalExact._grow = grow  # type: ignore[method-assign]
+    return {"growths": grew, "frames": int(stream.num_frames)}
 
 
 def _arrays() -> tuple[list[Metric], str]:
@@ -392,8 +397,8 @@ def _arrays() -> tuple[list[Metric], str]:
     table = markdown_table(
         f"Growth of the per-pose and per-edge arrays: paris2 ({runs['in_place']['frames']} "
         f"frames) fed to an incremental solver in requests of {ARRAYS_STEP} frames (one update "
-        "cycle each), in a child process with the worker's environment; the add_* call that "
-        "grows them, less the median call (ms), with the arrays reserved as address space "
+        "cycle each), in a child process with the worker's environment; each growth "
+        "(IncrementalExact._grow) timed, with the arrays reserved as address space "
         "(grown in place) and without (copied at each doubling); growths to 4 096 rows and more",
         ["arrays", "rows", "frame", "in place ms", "copied ms"], rows)
     return metrics, table

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from graphs import random_graph
 
-from hybridpgo._memory import mapped_zeros
+from hybridpgo._memory import can_overcommit, map_only, mapped_zeros
 from hybridpgo.solvers import HybridConfig
 from hybridpgo.solvers.hybrid import HybridSolver, _init_blocks, _sweep
 from hybridpgo.solvers.hybrid.problem import State
@@ -108,11 +108,42 @@ def test_the_blocks_live_on_an_anonymous_map_not_numpys_huge_pages() -> None:
         assert a.flags.writeable and a.flags.c_contiguous
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Linux's overcommit")
+@pytest.mark.parametrize("case", ["strict", "limited"])
+def test_no_reservation_where_it_would_not_cost_address_space_only(monkeypatch, case) -> None:
+    """``overcommit=True`` maps only where ``MAP_NORESERVE`` costs address space only: under
+    the strict overcommit policy (2) or an address-space limit nothing is mapped (the callers
+    fall back to plain arrays of their capacity); a committed map is made as usual."""
+    import builtins
+    import io
+    import resource
+
+    if case == "strict":
+        real_open = builtins.open
+
+        def strict_open(path, *args, **kwargs):  # type: ignore[no-untyped-def]
+            if str(path) == "/proc/sys/vm/overcommit_memory":
+                return io.StringIO("2\n")
+            return real_open(path, *args, **kwargs)
+
+        monkeypatch.setattr(builtins, "open", strict_open)
+    else:
+        monkeypatch.setattr(resource, "getrlimit", lambda what: (1 << 34, 1 << 34))
+    can_overcommit.cache_clear()
+    try:
+        assert not can_overcommit()
+        assert map_only((1 << 16,), np.uint8, overcommit=True) is None
+        assert map_only((1 << 16,), np.uint8, overcommit=False) is not None
+    finally:
+        monkeypatch.undo()
+        can_overcommit.cache_clear()
+
+
 @pytest.mark.parametrize("overcommit", [False, True])
 def test_mapped_zeros_are_zero_writable_and_fall_back_to_numpy(monkeypatch, overcommit) -> None:
     a, mapped = mapped_zeros((300, 6, 6), np.float64, overcommit)
     assert a.shape == (300, 6, 6) and a.dtype == np.float64 and not a.any()
-    assert mapped == sys.platform.startswith("linux")
+    assert mapped == (sys.platform.startswith("linux") and (not overcommit or can_overcommit()))
     a[-1] = 2.0
     assert a.sum() == 72.0
 

@@ -336,6 +336,9 @@ def test_the_pool_compacted_in_place_gives_the_copied_pools_answer_bit_for_bit(
     inplace = IncrementalExact(capacity=4)
     if inplace._pool_var is None:
         pytest.skip("no address space can be reserved here (not Linux, or a strict limit)")
+    names = (*IncrementalExact._POSE_ARRAYS, *IncrementalExact._EDGE_ARRAYS,
+             *IncrementalExact._GPS_ARRAYS)
+    where = {name: getattr(inplace, name).ctypes.data for name in names}
     compactions = []
     compact = IncrementalExact._compact
 
@@ -358,6 +361,7 @@ def test_the_pool_compacted_in_place_gives_the_copied_pools_answer_bit_for_bit(
         assert base is not None and np.shares_memory(arr, base)  # views: grown in place
         assert arr.shape[0] == getattr(IncrementalExact, arrays)[name][3] * (
             inplace._cap_n if arrays == "_POSE_ARRAYS" else inplace._cap_m)
+    assert all(getattr(inplace, name).ctypes.data == where[name] for name in names)  # unmoved
     assert np.all(inplace._parent[inplace._n:] == -1)  # the rows past the poses: their fill
     assert np.all(inplace._e_stamp[inplace._m:] == -1)
     monkeypatch.setattr(incremental, "reserved_only", lambda shape, dtype=np.float64: None)
@@ -369,8 +373,7 @@ def test_the_pool_compacted_in_place_gives_the_copied_pools_answer_bit_for_bit(
     assert not all(compactions[-3:])  # the copies
     for a, b in zip(inplace.estimate(), copied.estimate(), strict=True):
         assert np.array_equal(a, b)
-    for name in (*IncrementalExact._POSE_ARRAYS, *IncrementalExact._EDGE_ARRAYS,
-                 *IncrementalExact._GPS_ARRAYS):
+    for name in names:
         if name != "_col_start":  # the pool's layout (in place: the segments' old order)
             assert np.array_equal(getattr(inplace, name), getattr(copied, name)), name
     twin = __import__("copy").deepcopy(inplace)  # a copy holds plain arrays, not the reservation

@@ -13,11 +13,16 @@ every map, ``enabled=always``).
 ``overcommit=False`` (the default) commits the memory up front like any allocation, so a
 machine short of memory refuses it with :class:`MemoryError`; ``overcommit=True``
 (``MAP_NORESERVE``) costs address space only until written, for capacities that may never be
-used.  Elsewhere than on Linux, or where no map can be made, the arrays are ``numpy.zeros``.
+used.  Such a map is made only where the kernel honours ``MAP_NORESERVE`` and the address
+space is not limited (:func:`can_overcommit`): under a strict overcommit policy every byte of
+it would be committed, and under an address-space limit it would use up the room of every
+other allocation.  Elsewhere than on Linux, or where no map can be made, the arrays are
+``numpy.zeros``.
 """
 
 from __future__ import annotations
 
+import functools
 import mmap
 import sys
 from typing import Any
@@ -39,12 +44,33 @@ def mapped_zeros(shape: tuple[int, ...], dtype: Any = np.float64,
     return np.zeros(shape, np.dtype(dtype)), False
 
 
+@functools.cache
+def can_overcommit() -> bool:
+    """True where a ``MAP_NORESERVE`` map costs address space only: Linux with an overcommit
+    policy other than 2 (strict: every map is committed in full) and no limit on the process's
+    address space (``RLIMIT_AS``).  Read once per process."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        import resource
+
+        with open("/proc/sys/vm/overcommit_memory", encoding="ascii") as fh:
+            strict = fh.read().strip() == "2"
+        limited = resource.getrlimit(resource.RLIMIT_AS)[0] != resource.RLIM_INFINITY
+    except (OSError, ValueError, ImportError):
+        return False
+    return not (strict or limited)
+
+
 def map_only(shape: tuple[int, ...], dtype: Any = np.float64,
              overcommit: bool = False) -> np.ndarray | None:
     """A zero array of ``shape`` on an anonymous memory map (as :func:`mapped_zeros`), or
-    None where no map can be made (then nothing is allocated)."""
+    None where no map can be made, or with ``overcommit`` where it would not cost address
+    space only (:func:`can_overcommit`); then nothing is allocated."""
     dt = np.dtype(dtype)
     nbytes = int(np.prod(shape, dtype=np.int64)) * dt.itemsize
+    if overcommit and not can_overcommit():
+        return None
     if sys.platform.startswith("linux") and nbytes >= mmap.PAGESIZE:
         flags = mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | (_MAP_NORESERVE if overcommit else 0)
         try:

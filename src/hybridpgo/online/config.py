@@ -143,10 +143,10 @@ class OnlineConfig(RobustOptions):
     waits for the worker's answer that holds it (:data:`~hybridpgo.online._link.LONG_LOOP`
     path nodes, for at most :data:`~hybridpgo.online._link.LONG_LOOP_WAIT` frames): after
     such a closure the single steps of the older constraints push the map away from the
-    optimum.  Nor, likewise, in an :meth:`~OnlineSolver.update` that adds nothing while the
-    request outstanding holds everything added (the robot stopped or the stream ended: the
-    answer on its way is the optimum of the whole map, and the single steps meanwhile only
-    push the map away from it), for at most as many frames and seconds;
+    optimum.  Nor, likewise, in an :meth:`~OnlineSolver.update` with nothing new to ship to
+    the worker while the request outstanding holds everything added (the robot stopped or
+    the stream ended: the answer on its way is the optimum of the whole map, and the single
+    steps meanwhile only push the map away from it), for at most as many frames and seconds;
     :meth:`~OnlineSolver.idle` keeps its spare time (it also adopts the answer when it
     comes).  The checks are O(constraints added since the result's snapshot) per frame."""
     background_rebase: bool = True

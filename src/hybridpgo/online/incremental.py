@@ -157,10 +157,12 @@ POOL_FLOOR = 1 << 20
 POOL_RESERVE = 1 << 24
 #: Rows of address space reserved for each per-pose, per-edge and per-GPS-reading array (at
 #: least 4 times its first capacity), so that they grow in place, writing only the new rows'
-#: fill, rather than being copied into arrays of twice the size at each doubling (paris2 with
-#: GPS fed into the worker's map: the edge arrays' doubling to 128 K edges took tens of ms,
-#: in which the worker answers nothing).  Beyond it, or where nothing can be reserved, an
-#: array is copied into a plain one at each doubling.
+#: fill, rather than being copied into arrays of twice the size at each doubling, in which the
+#: worker answers nothing (paris2 fed in requests of 50 frames, ``2026-12-01-worker-arrays``:
+#: the edge arrays' doubling to 65 536 rows 0.55 ms in place, 50 ms copied; the pose arrays'
+#: to 65 536 rows 1.8 ms against 5.0 ms).  Beyond it an array is copied once into a new
+#: reservation of 4 times its capacity; where nothing can be reserved
+#: (:func:`hybridpgo._memory.can_overcommit`) it is copied into a plain one at each doubling.
 ROWS_RESERVE = 1 << 22
 
 
@@ -223,6 +225,62 @@ class IncrementalExact:
         substituting."""
 
     # ----------------------------------------------------------------- storage
+    # the arrays of the tables below, set by _alloc and _grow
+    _ref: npt.NDArray[Any]
+    _rel_r: npt.NDArray[Any]
+    _rel_t: npt.NDArray[Any]
+    _th_r: npt.NDArray[Any]
+    _th_t: npt.NDArray[Any]
+    _est_r: npt.NDArray[Any]
+    _est_t: npt.NDArray[Any]
+    _x: npt.NDArray[Any]
+    _y: npt.NDArray[Any]
+    _diag: npt.NDArray[Any]
+    _free: npt.NDArray[Any]
+    _position: npt.NDArray[Any]
+    _parent: npt.NDArray[Any]
+    _ch_head: npt.NDArray[Any]
+    _ch_next: npt.NDArray[Any]
+    _ch_prev: npt.NDArray[Any]
+    _col_start: npt.NDArray[Any]
+    _col_len: npt.NDArray[Any]
+    _col_cap: npt.NDArray[Any]
+    _inc_head: npt.NDArray[Any]
+    _gps_head: npt.NDArray[Any]
+    _in_s: npt.NDArray[Any]
+    _changed: npt.NDArray[Any]
+    _mark: npt.NDArray[Any]
+    _walk: npt.NDArray[Any]
+    _slot: npt.NDArray[Any]
+    _sn_of: npt.NDArray[Any]
+    _src: npt.NDArray[Any]
+    _local: npt.NDArray[Any]
+    _stack: npt.NDArray[Any]
+    _touched: npt.NDArray[Any]
+    _pol_flag: npt.NDArray[Any]
+    _pol_list: npt.NDArray[Any]
+    _chg_flag: npt.NDArray[Any]
+    _chg_list: npt.NDArray[Any]
+    _ab: npt.NDArray[Any]
+    _zr: npt.NDArray[Any]
+    _zt: npt.NDArray[Any]
+    _info: npt.NDArray[Any]
+    _haa: npt.NDArray[Any]
+    _hbb: npt.NDArray[Any]
+    _hab: npt.NDArray[Any]
+    _ga: npt.NDArray[Any]
+    _gb: npt.NDArray[Any]
+    _chi: npt.NDArray[Any]
+    _inc_next: npt.NDArray[Any]
+    _e_stamp: npt.NDArray[Any]
+    _gnode: npt.NDArray[Any]
+    _gpos: npt.NDArray[Any]
+    _ginfo: npt.NDArray[Any]
+    _hgg: npt.NDArray[Any]
+    _gg: npt.NDArray[Any]
+    _gchi: npt.NDArray[Any]
+    _gps_next: npt.NDArray[Any]
+    _g_stamp: npt.NDArray[Any]
     #: The per-pose, per-edge and per-GPS-reading arrays: name -> (shape of a row, dtype,
     #: fill, rows per pose / edge / reading).
     _POSE_ARRAYS: ClassVar[dict[str, tuple[tuple[int, ...], Any, int, int]]] = {
@@ -274,16 +332,19 @@ class IncrementalExact:
               cap: int) -> None:
         """Each of ``arrays`` from room for ``old`` to ``cap`` poses, edges or readings: in
         place within its reservation (only the new rows are written, where their fill is
-        not 0), else copied into a plain array."""
+        not 0), else copied into a new reservation of ``4 cap`` rows (a plain array where
+        none can be made)."""
         for name, (row, dtype, fill, per) in arrays.items():
             arr = getattr(self, name)
             base = self._bases.get(name)
             if base is not None and cap * per <= base.shape[0]:
                 new = base[: cap * per]
-            else:
-                new = np.zeros((cap * per, *row), dtype)
+            else:  # copied once into a new reservation of 4 cap rows, or a plain array
+                base = reserved_only((4 * cap * per, *row), dtype)
+                self._bases[name] = base
+                new = (base[: cap * per] if base is not None
+                       else np.zeros((cap * per, *row), dtype))
                 new[: old * per] = arr[: old * per]
-                self._bases[name] = None
             if fill:
                 new[old * per:] = fill
             setattr(self, name, new)
