@@ -159,8 +159,8 @@ POOL_RESERVE = 1 << 24
 #: least 4 times its first capacity), so that they grow in place, writing only the new rows'
 #: fill, rather than being copied into arrays of twice the size at each doubling, in which the
 #: worker answers nothing (paris2 fed in requests of 50 frames, ``2026-12-01-worker-arrays``:
-#: the edge arrays' doubling to 65 536 rows 0.55 ms in place, 50 ms copied; the pose arrays'
-#: to 65 536 rows 1.8 ms against 5.0 ms).  Beyond it an array is copied once into a new
+#: the edge arrays' doubling to 65 536 rows 0.39 ms in place, 62 ms copied; the pose arrays'
+#: to 65 536 rows 1.7 ms against 4.8 ms).  Beyond it an array is copied once into a new
 #: reservation of 4 times its capacity; where nothing can be reserved
 #: (:func:`hybridpgo._memory.can_overcommit`) it is copied into a plain one at each doubling.
 ROWS_RESERVE = 1 << 22
