@@ -376,7 +376,9 @@ def _arrays_numbers(reserve: bool = True) -> dict[str, Any]:
     finally:
         incremental.reserved_only = saved
         IncrementalExact._grow = grow  # type: ignore[method-assign]
-    return {"growths": grew, "frames": int(stream.num_frames)}
+    from hybridpgo._memory import can_overcommit
+
+    return {"growths": grew, "frames": int(stream.num_frames), "reserved": can_overcommit()}
 
 
 def _arrays() -> tuple[list[Metric], str]:
@@ -384,6 +386,9 @@ def _arrays() -> tuple[list[Metric], str]:
     environment."""
     runs = {mode: _in_worker_env("_arrays_numbers", flag)
             for mode, flag in (("in_place", "True"), ("copied", "False"))}
+    if not runs["in_place"]["reserved"]:
+        raise RuntimeError("no address space can be reserved here (_memory.can_overcommit): "
+                           "both modes would copy")
     metrics: list[Metric] = []
     rows = []
     for a, b in zip(runs["in_place"]["growths"], runs["copied"]["growths"], strict=True):

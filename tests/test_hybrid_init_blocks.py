@@ -139,6 +139,19 @@ def test_no_reservation_where_it_would_not_cost_address_space_only(monkeypatch, 
         can_overcommit.cache_clear()
 
 
+def test_the_online_store_starts_small_where_nothing_can_be_reserved(monkeypatch) -> None:
+    """Where a reservation would not cost address space only, the online store starts at
+    1 024 poses (its arrays then double when full) instead of reserving a million."""
+    from hybridpgo import _memory
+    from hybridpgo.online.store import RESERVE_POSES, MapStore
+
+    big = MapStore(None)
+    assert big.cap_n == (RESERVE_POSES if _memory.can_overcommit() else 1024) + 2
+    monkeypatch.setattr(_memory, "can_overcommit", lambda: False)
+    small = MapStore(None)
+    assert small.cap_n == 1024 + 2 and small.cap_pe == 16 * 1024
+
+
 @pytest.mark.parametrize("overcommit", [False, True])
 def test_mapped_zeros_are_zero_writable_and_fall_back_to_numpy(monkeypatch, overcommit) -> None:
     a, mapped = mapped_zeros((300, 6, 6), np.float64, overcommit)

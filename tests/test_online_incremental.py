@@ -376,6 +376,7 @@ def test_the_pool_compacted_in_place_gives_the_copied_pools_answer_bit_for_bit(
     for name in names:
         if name != "_col_start":  # the pool's layout (in place: the segments' old order)
             assert np.array_equal(getattr(inplace, name), getattr(copied, name)), name
+    monkeypatch.undo()  # address space can be reserved again
     twin = __import__("copy").deepcopy(inplace)  # a copy holds plain arrays, not the reservation
     assert twin._pool_var is None and twin._row_blk.shape == inplace._row_blk.shape
     assert twin._bases == {} and not np.shares_memory(twin._diag, inplace._diag)
@@ -383,8 +384,13 @@ def test_the_pool_compacted_in_place_gives_the_copied_pools_answer_bit_for_bit(
         assert np.array_equal(a, b)
     n = twin._n
     parent = twin._parent.copy()
-    twin._grow_poses(2 * twin._cap_n)  # a copy grows by copying
+    twin._grow_poses(2 * twin._cap_n)  # copied into a new reservation...
     assert np.array_equal(twin._parent[:n], parent[:n]) and np.all(twin._parent[n:] == -1)
+    base = twin._bases["_parent"]
+    assert base is not None and np.shares_memory(twin._parent, base)
+    at = twin._parent.ctypes.data
+    twin._grow_poses(2 * twin._cap_n)  # ...where it grows in place from then on
+    assert twin._parent.ctypes.data == at and np.all(twin._parent[n:] == -1)
 
 
 @pytest.mark.parametrize("count", [0, 1, 2, 5, 32, 33, 100])

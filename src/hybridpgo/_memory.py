@@ -46,17 +46,19 @@ def mapped_zeros(shape: tuple[int, ...], dtype: Any = np.float64,
 
 @functools.cache
 def can_overcommit() -> bool:
-    """True where a ``MAP_NORESERVE`` map costs address space only: Linux with an overcommit
-    policy other than 2 (strict: every map is committed in full) and no limit on the process's
-    address space (``RLIMIT_AS``).  Read once per process."""
-    if not sys.platform.startswith("linux"):
+    """True where a ``MAP_NORESERVE`` map costs address space only: 64-bit Linux with an
+    overcommit policy other than 2 (strict: every map is committed in full) and no limit on
+    the process's address space or data (``RLIMIT_AS``, ``RLIMIT_DATA``: a private map counts
+    against both).  False where any of these cannot be read.  Read once per process."""
+    if not (sys.platform.startswith("linux") and sys.maxsize > 2**32):
         return False
     try:
         import resource
 
         with open("/proc/sys/vm/overcommit_memory", encoding="ascii") as fh:
             strict = fh.read().strip() == "2"
-        limited = resource.getrlimit(resource.RLIMIT_AS)[0] != resource.RLIM_INFINITY
+        limited = any(resource.getrlimit(what)[0] != resource.RLIM_INFINITY
+                      for what in (resource.RLIMIT_AS, resource.RLIMIT_DATA))
     except (OSError, ValueError, ImportError):
         return False
     return not (strict or limited)

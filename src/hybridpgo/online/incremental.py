@@ -160,8 +160,8 @@ POOL_RESERVE = 1 << 24
 #: fill, rather than being copied into arrays of twice the size at each doubling, in which the
 #: worker answers nothing (paris2 fed in requests of 50 frames, ``2026-12-01-worker-arrays``:
 #: the edge arrays' doubling to 65 536 rows 0.39 ms in place, 62 ms copied; the pose arrays'
-#: to 65 536 rows 1.7 ms against 4.8 ms).  Beyond it an array is copied once into a new
-#: reservation of 4 times its capacity; where nothing can be reserved
+#: to 65 536 rows 1.7 ms against 4.8 ms).  Beyond it an array is copied into a new
+#: reservation of 4 times its capacity (once per fourfold growth); where nothing can be reserved
 #: (:func:`hybridpgo._memory.can_overcommit`) it is copied into a plain one at each doubling.
 ROWS_RESERVE = 1 << 22
 
@@ -332,15 +332,15 @@ class IncrementalExact:
               cap: int) -> None:
         """Each of ``arrays`` from room for ``old`` to ``cap`` poses, edges or readings: in
         place within its reservation (only the new rows are written, where their fill is
-        not 0), else copied into a new reservation of ``4 cap`` rows (a plain array where
-        none can be made)."""
+        not 0), else copied into a new reservation as :meth:`_alloc` makes one (a plain
+        array where none can be made)."""
         for name, (row, dtype, fill, per) in arrays.items():
             arr = getattr(self, name)
             base = self._bases.get(name)
             if base is not None and cap * per <= base.shape[0]:
                 new = base[: cap * per]
-            else:  # copied once into a new reservation of 4 cap rows, or a plain array
-                base = reserved_only((4 * cap * per, *row), dtype)
+            else:  # copied into a new reservation, or a plain array
+                base = reserved_only((max(ROWS_RESERVE, 4 * cap) * per, *row), dtype)
                 self._bases[name] = base
                 new = (base[: cap * per] if base is not None
                        else np.zeros((cap * per, *row), dtype))

@@ -26,8 +26,9 @@ Problem`, :class:`~..solvers.hybrid.problem.State`) for a map that grows pose by
 * **Junction groups**: the constraints that joined a pose to the map in its frame, when their
   stiffness differs by more than :data:`JUNCTION_RATIO`, are relaxed together as one batch.
 
-Capacity is reserved up front (:mod:`._reserve`: address space only on Linux), so a frame never
-copies the map; beyond the reservation an array doubles.
+Capacity is reserved up front (:mod:`._reserve`: address space only, on Linux where
+:func:`hybridpgo._memory.can_overcommit`), so a frame never copies the map; elsewhere the
+capacity starts at 1 024 poses, and beyond it an array doubles.
 """
 
 from __future__ import annotations
