@@ -68,6 +68,13 @@ LONG_LOOP_WAIT = 50
 LONG_LOOP_WAIT_S = 1.0
 
 
+def _within_wait(since: tuple[int, float], frame: int, now: float) -> bool:
+    """Whether a wait that began at ``since`` (frame, :func:`time.perf_counter` time) is
+    within :data:`LONG_LOOP_WAIT` frames and :data:`LONG_LOOP_WAIT_S` seconds at ``frame``,
+    ``now``."""
+    return frame - since[0] < LONG_LOOP_WAIT and now - since[1] < LONG_LOOP_WAIT_S
+
+
 #: Requests whose round trips :meth:`WorkerLink.settle` takes the median of (the worker's
 #: time per request has a long tail: M3500_isam back to back, median 3.7 ms, mean 8.2 ms).
 ANSWER_WINDOW = 16
@@ -348,8 +355,7 @@ class WorkerLink:
         now = time.perf_counter()
         if newest != self._loop_edge:  # a closure not seen waiting before: its wait begins
             self._loop_edge, self._loop_since = newest, (frame, now)
-        since, t0 = self._loop_since
-        return frame - since < LONG_LOOP_WAIT and now - t0 < LONG_LOOP_WAIT_S
+        return _within_wait(self._loop_since, frame, now)
 
     def awaits_all(self, store: MapStore, frame: int) -> bool:
         """True while the outstanding request holds everything placed and laid (its answer
@@ -366,8 +372,7 @@ class WorkerLink:
         now = time.perf_counter()
         if state != self._all_state:  # the map as it stands, found awaited: its wait begins
             self._all_state, self._all_since = state, (frame, now)
-        since, t0 = self._all_since
-        return frame - since < LONG_LOOP_WAIT and now - t0 < LONG_LOOP_WAIT_S
+        return _within_wait(self._all_since, frame, now)
 
     def join(self, store: MapStore, frame: int, timeout: float | None,
              rebase: bool) -> bool:

@@ -55,7 +55,7 @@ from ..graph import (
 from ..linalg import fill_reducing_order
 from . import _incremental_kernels as ik
 from ._incremental_kernels import panel_scratch
-from ._reserve import reserved_only
+from ._reserve import capacity, reserved_only
 
 IntArray = npt.NDArray[np.int64]
 _NO_DEADLINE = np.uint64(np.iinfo(np.uint64).max)
@@ -321,12 +321,18 @@ class IncrementalExact:
         of an array of :data:`ROWS_RESERVE` (at least ``4 cap``) reserved as address space,
         kept in ``_bases``, or a plain array where none can be reserved."""
         for name, (row, dtype, fill, per) in arrays.items():
-            base = reserved_only((max(ROWS_RESERVE, 4 * cap) * per, *row), dtype)
-            self._bases[name] = base
-            arr = base[: cap * per] if base is not None else np.zeros((cap * per, *row), dtype)
+            arr = self._reserve(name, row, dtype, cap * per)
             if fill:
                 arr[:] = fill
             setattr(self, name, arr)
+
+    def _reserve(self, name: str, row: tuple[int, ...], dtype: Any, rows: int) -> np.ndarray:
+        """Zero array ``name`` of ``rows`` rows: the first rows of a reservation of
+        :data:`ROWS_RESERVE` rows (at least ``4 rows``), kept in ``_bases``, or a plain array
+        (``_bases[name]`` None) where none can be made."""
+        base = reserved_only((max(ROWS_RESERVE, 4 * rows), *row), dtype)
+        self._bases[name] = base
+        return base[:rows] if base is not None else np.zeros((rows, *row), dtype)
 
     def _grow(self, arrays: dict[str, tuple[tuple[int, ...], Any, int, int]], old: int,
               cap: int) -> None:
@@ -340,10 +346,7 @@ class IncrementalExact:
             if base is not None and cap * per <= base.shape[0]:
                 new = base[: cap * per]
             else:  # copied into a new reservation, or a plain array
-                base = reserved_only((max(ROWS_RESERVE, 4 * cap) * per, *row), dtype)
-                self._bases[name] = base
-                new = (base[: cap * per] if base is not None
-                       else np.zeros((cap * per, *row), dtype))
+                new = self._reserve(name, row, dtype, cap * per)
                 new[: old * per] = arr[: old * per]
             if fill:
                 new[old * per:] = fill
@@ -358,9 +361,7 @@ class IncrementalExact:
     def _grow_poses(self, need: int) -> None:
         if need <= self._cap_n:
             return
-        cap = self._cap_n
-        while cap < need:
-            cap *= 2
+        cap = capacity(need, self._cap_n)
         self._grow(self._POSE_ARRAYS, self._cap_n, cap)
         self._cap_n = cap
 
@@ -371,9 +372,7 @@ class IncrementalExact:
     def _grow_edges(self, need: int) -> None:
         if need <= self._cap_m:
             return
-        cap = self._cap_m
-        while cap < need:
-            cap *= 2
+        cap = capacity(need, self._cap_m)
         self._grow(self._EDGE_ARRAYS, self._cap_m, cap)
         self._cap_m = cap
 
@@ -384,9 +383,7 @@ class IncrementalExact:
     def _grow_gps(self, need: int) -> None:
         if need <= self._cap_g:
             return
-        cap = self._cap_g
-        while cap < need:
-            cap *= 2
+        cap = capacity(need, self._cap_g)
         self._grow(self._GPS_ARRAYS, self._cap_g, cap)
         self._cap_g = cap
 
