@@ -125,15 +125,16 @@ def _no_sweeps(*inits: str) -> AutoConfig:
 
 def test_a_start_in_a_local_minimum_is_not_certified_and_the_others_run() -> None:
     """The file's vertices (a local minimum, lower than the tree start without sweeps) rank
-    first; F refined from there is not F's minimum: its certificate fails with a negative
-    eigenvalue, the tree start is polished too and the winner is certified."""
+    first; F refined from there is not F's minimum: its certificate fails (Newton's method
+    stops at its cap short of a stationary point of F), the tree start is polished too and
+    the winner is certified."""
     trapped, optimum, local = _trapped(120, 0.15)
     late = dataclasses.replace(_no_sweeps("file", "tree"), certify_first=False)
     res = solve_auto(trapped, late)
     cert = res.stats["certificate"]
     assert res.stats["finalists"] == ["file", "tree"]  # the trapped start ranks first
     assert cert["first"]["start"] == "file"
-    assert cert["first"]["summary"].startswith("not certified (λ_min = -")
+    assert cert["first"]["summary"].startswith("not certified: Newton's method on F stopped")
     assert res.stats["polished_starts"] == 2
     assert cert["certified"] and cert["start"] == "tree" and res.stats["start"] == "tree"
     assert abs(res.final_energy - optimum) <= SAME * optimum
@@ -223,19 +224,19 @@ def test_a_graph_without_loops_says_why_it_is_not_certified() -> None:
 
 
 def test_the_staircase_certifies_a_start_that_newton_leaves_in_a_local_minimum() -> None:
-    """Large rotation noise: Newton's method on F from the chordal start ends in a local
-    minimum of F (a negative eigenvalue); SE-Sync's staircase escapes it at rank 2 and its
-    certified rounding is the certified start, reaching what every start polished reaches.
-    (On some grids the certificate's Newton steps stop before a minimum and the staircase's,
-    going on from there, reach the optimum at rank d: seed 1 of 300 poses is a true local
-    minimum.)"""
+    """Large rotation noise: Newton's method on F from the chordal start stops at its cap
+    short of a stationary point; the staircase's Newton steps go on from there to a local
+    minimum of F at rank d (a negative eigenvalue), SE-Sync's staircase escapes it at rank 2
+    and its certified rounding is the certified start, reaching what every start polished
+    reaches."""
     graph = generate_grid("m3500b", seed=1, num_poses=300).graph
     res = solve_auto(graph)
     cert = res.stats["certificate"]
     assert cert["certified"] and res.stats["start"] == "certified start", cert["summary"]
     stair = cert["staircase"]
     assert stair["certified"] and stair["rank"] == 2
-    assert stair["rank_d"].startswith("not certified (λ_min = -")  # rank d: a local minimum
+    assert stair["rank_d"].startswith("not certified: Newton's method on F stopped")
+    assert stair["ranks"][0]["rank"] == 1 and stair["ranks"][0]["lambda_min"] < 0  # F's local min
     assert "Riemannian staircase to rank 2" in res.stats["reason"]
     every = solve_auto(graph, AutoConfig(certify=False))
     assert res.final_energy <= every.final_energy * (1.0 + SAME)
@@ -301,7 +302,7 @@ def test_a_failed_staircase_leaves_the_pipeline_to_the_starts() -> None:
     graph = generate_grid("m3500c", seed=1, num_poses=400).graph
     res = solve_auto(graph)
     early = res.stats["certificate"]["early"]
-    assert early["summary"].startswith("not certified (λ_min = -")
+    assert early["summary"].startswith("not certified: Newton's method on F stopped")
     assert early["staircase"]["certified"] is False and early["staircase"]["rank"] > 2
     assert res.stats["start"] != "certified start" and res.stats["polished_starts"] > 1
     every = solve_auto(graph, AutoConfig(certify=False))

@@ -232,6 +232,31 @@ def test_smallest_eigenvalue_matches_a_dense_decomposition(make) -> None:
     assert spec.objective == pytest.approx(prob.cost(y), rel=FLOAT64_IDENTITY * 1e3)
 
 
+@pytest.mark.parametrize("make", [_tiny3d, lambda: read_graph(bundled_path("intel.g2o"))],
+                         ids=["3D", "2D"])
+def test_the_verdict_alone_costs_no_eigenvalue_where_it_fails(make) -> None:
+    """``eigenvalue=False``: the same verdict, lower bound and shift as the full spectrum;
+    where Y does not certify no eigenvalue, no eigenvector and fewer factorizations (the
+    ladder stops at the last rung that could certify); where it certifies, the same
+    eigenvalue."""
+    graph = make()
+    prob = SyncProblem(graph)
+    far = prob.to_y(_random_rotations(graph, 4))  # far from stationary: not certified
+    optimum = prob.refine(prob.to_y(_chordal(graph)[0]))[0]
+    for y, certified in ((far, False), (optimum, True)):
+        full = prob.spectrum(y, eigenvector=True)
+        verdict = prob.spectrum(y, eigenvector=True, eigenvalue=False)
+        assert bool(np.isfinite(full.lower_bound)) is certified
+        assert verdict.shift == full.shift and verdict.lower_bound == full.lower_bound
+        if certified:
+            assert verdict.lambda_min == full.lambda_min
+            assert verdict.factorizations == full.factorizations
+        else:
+            assert full.lambda_min < 0 and full.vector is not None
+            assert np.isnan(verdict.lambda_min) and verdict.vector is None
+            assert verdict.factorizations < full.factorizations
+
+
 @pytest.mark.parametrize("make", [_tiny3d, _grid2d, *_GPS_CASES],
                          ids=["3D", "2D", "3D+GPS", "2D+GPS"])
 def test_certificate_matrix_is_the_data_matrix_pose_by_pose(make) -> None:
@@ -286,13 +311,14 @@ def test_published_optima_are_certified() -> None:
 
 def test_a_local_minimum_is_not_certified() -> None:
     """LM from scrambled yaws stops in a local minimum of E, and the certificate refuses it
-    either way Newton's method on F goes from there: to a local minimum of F (seed 7: the
-    certificate matrix has a negative eigenvalue) or to F's global minimum (seed 5: certified,
-    but LM from there ends at the global optimum, below the solution)."""
+    either way Newton's method on F goes from there: nowhere near a stationary point of F
+    within its cap (seed 7: no eigenvalue is computed there, the reason says why) or to F's
+    global minimum (seed 5: certified, but LM from there ends at the global optimum, below
+    the solution)."""
     made = generate_grid("m3500", seed=0, num_poses=120, rot_sigma_rad=0.05)
     graph = made.graph
     best = solve_exact(graph, made.truth_rotations, made.truth_translations)
-    for seed, newton_ends in ((7, "local"), (5, "global")):
+    for seed, newton_ends in ((7, "short"), (5, "global")):
         rng = np.random.default_rng(seed)
         rot = made.truth_rotations.copy()
         rot[1:] = planar_rotations(rng.uniform(-np.pi, np.pi, graph.num_nodes))[1:]
@@ -300,9 +326,10 @@ def test_a_local_minimum_is_not_certified() -> None:
         assert local.final_energy > 1.5 * best.final_energy  # a local minimum of E indeed
         cert = certify(graph, local.rotations, local.translations)
         assert not cert.certified
-        if newton_ends == "local":
-            assert cert.lambda_min < 0.0
-            assert cert.summary().startswith("not certified (λ_min = -")
+        if newton_ends == "short":
+            assert not cert.stats["refine_converged"]
+            assert np.isnan(cert.lambda_min) and "short of a stationary point" in cert.reason
+            assert cert.summary().startswith("not certified: Newton's method on F stopped")
         else:
             assert np.isfinite(cert.gap) and "below the solution's" in cert.reason
             assert cert.stats["polish_energy"] == pytest.approx(best.final_energy, rel=1e-9)
@@ -397,8 +424,16 @@ def test_the_staircase_goes_on_from_a_failed_certificate_and_returns_its_certifi
     graph = generate_grid("m3500b", seed=1, num_poses=300).graph  # large rotation noise
     problem = SyncProblem(graph)
     capped = sesync_certificate(graph, *_chordal(graph), problem=problem)
-    assert not capped.certified and capped.lambda_min < 0 and capped.point is not None
-    assert not capped.stats["refine_converged"]  # Newton stopped at its cap
+    assert not capped.certified and capped.point is not None
+    assert not capped.stats["refine_converged"]  # Newton stopped at its cap: no eigenvalue
+    assert np.isnan(capped.lambda_min) and capped.point[1].vector is None
+    # the same point as if Newton had converged there: its spectrum with the eigenvector
+    y_capped = capped.point[0]
+    spec_capped = problem.spectrum(y_capped, eigenvector=True)
+    assert spec_capped.lambda_min < 0 and spec_capped.vector is not None
+    converged = dataclasses.replace(capped, lambda_min=spec_capped.lambda_min,
+                                    stats={**capped.stats, "refine_converged": True},
+                                    point=(y_capped, spec_capped))
 
     def seen(prob: SyncProblem) -> list[np.ndarray]:
         points: list[np.ndarray] = []
@@ -420,9 +455,7 @@ def test_the_staircase_goes_on_from_a_failed_certificate_and_returns_its_certifi
     points = seen(problem)
     # refined short of F's local minimum (at the cap) Newton goes on from the certificate's
     # point; converged, the point and spectrum are taken as they are
-    for start, taken in ((capped, False),
-                         (dataclasses.replace(capped, stats={**capped.stats,
-                                                             "refine_converged": True}), True)):
+    for start, taken in ((capped, False), (converged, True)):
         points.clear()
         rot, trans, info = staircase_start(graph, start.rotations, start.translations,
                                            problem=problem, start=start)

@@ -784,7 +784,7 @@ class SyncProblem:
         return self._cert
 
     def spectrum(self, y: Array, gap_tolerance: float = GAP_TOLERANCE,
-                 eigenvector: bool = False) -> Spectrum:
+                 eigenvector: bool = False, eigenvalue: bool = True) -> Spectrum:
         """The certificate at Y (any rank): the smallest shift ``sigma`` of a ladder (from
         ``_SHIFT_FLOOR`` of M's largest diagonal entry, x100 per rung) with ``S + sigma I``
         positive definite, then ``lambda_min(S)`` from ``(S + sigma I)^-1`` (power iterations
@@ -795,7 +795,10 @@ class SyncProblem:
         (d n)`` (which could not certify) only serve to find a shift for the eigenvalue, up to
         the bound ``max lambda(Lambda_i)`` above which S + sigma I is always definite.  The
         first rung certifies also when its gap bound is within ``FLOOR_GAP_TOLERANCE`` of F
-        (a smaller shift is below what the factorization resolves).
+        (a smaller shift is below what the factorization resolves).  With ``eigenvalue``
+        False the ladder stops where no rung could certify: an uncertified Y then gets no
+        eigenvalue (NaN) and costs no more factorizations nor Lanczos iterations (a
+        certified one gets its eigenvalue as always).
         """
         from scipy.sparse.linalg import ArpackNoConvergence, LinearOperator, eigsh
 
@@ -834,6 +837,8 @@ class SyncProblem:
             if sigma > max(top, 0.0) + scale * 1e-6:
                 break
             sigma *= 100.0 if sigma < cap else 10.0
+            if not eigenvalue and sigma > cap:  # no rung left that could certify
+                break
         certified = shift <= cap
         lam_min = float("nan")
         vec: Array | None = None
@@ -986,7 +991,8 @@ def sesync_certificate(graph: PoseGraph, rotations: FloatArray,
     The certificate keeps its refined point and spectrum (:attr:`Certificate.point`), with
     which :func:`staircase_start` starts at rank d.  ``max_factorizations``: Newton's cap
     (:meth:`SyncProblem.refine`; ``stats["refine_converged"]`` says whether it converged
-    before it).
+    before it).  Where it did not and the point does not certify, ``lambda_min`` is NaN (the
+    eigenvalue of a point short of a stationary point is not computed).
     """
     t0 = time.perf_counter()
     why = not_applicable(graph)
@@ -999,7 +1005,10 @@ def sesync_certificate(graph: PoseGraph, rotations: FloatArray,
             t1 = time.perf_counter()
             y, f, its = prob.refine(prob.to_y(rotations), max_factorizations)
             t2 = time.perf_counter()
-            spec = prob.spectrum(y, gap_tolerance, eigenvector=True)
+            # the eigenvalue of a point short of F's stationary points says nothing of F's
+            # minima: computed only where Newton's method converged (or where it certifies)
+            spec = prob.spectrum(y, gap_tolerance, eigenvector=True,
+                                 eigenvalue=prob.refine_converged)
             t3 = time.perf_counter()
     except FloatingPointError as exc:  # measurements of ~1e154: F overflows
         return Certificate(False, float("nan"), float("inf"), float("inf"), float("nan"),
@@ -1034,6 +1043,9 @@ def _certificate_at(prob: SyncProblem, y: Array, f: float, its: int, spec: Spect
     elif np.isfinite(spec.lambda_min):
         reason = (f"the certificate matrix has a negative eigenvalue {spec.lambda_min:.3g}: "
                   "the refined rotations are not F's global minimum")
+    elif not converged:
+        reason = (f"Newton's method on F stopped after {its} factorizations short of a "
+                  "stationary point, where the certificate does not hold")
     else:
         reason = "the certificate's eigenvalue could not be computed"
     return Certificate(
@@ -1218,7 +1230,7 @@ def staircase_start(graph: PoseGraph, rotations: FloatArray, translations: Float
             t2 = time.perf_counter()
             if fr < best_f:
                 best_y, best_f = yr, fr
-            spec_r = prob.spectrum(yr, gap_tolerance)
+            spec_r = prob.spectrum(yr, gap_tolerance, eigenvalue=False)  # only the verdict
             certified = bool(np.isfinite(spec_r.lower_bound) and fr <= best_f)
             if certified:
                 best_y, best_f = yr, fr

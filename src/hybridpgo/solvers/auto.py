@@ -555,9 +555,11 @@ def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: 
         cert, info = _polished_first(exact, cfg, prob, cand, cert, info, cap, t_origin,
                                      progress, iterate)
     floor = cert.stats.get("shift_floor", 0.0)
-    if not cert.certified and cert.lambda_min < -floor:
-        # F's local minimum (a negative eigenvalue): SE-Sync's Riemannian staircase escapes it
-        # through higher ranks; a certified rounding is the certified start
+    if not cert.certified and (cert.lambda_min < -floor
+                               or not cert.stats.get("refine_converged", True)):
+        # F's local minimum (a negative eigenvalue), or Newton stopped short of one: SE-Sync's
+        # Riemannian staircase (Newton goes on at rank d) escapes it through higher ranks; a
+        # certified rounding is the certified start
         cert, info = _staircase(graph, prob, init, cert, info)
     if not cert.certified:
         return cand, None, info
