@@ -9,7 +9,7 @@ import pathlib
 import numpy as np
 import pytest
 import scipy.sparse as sp
-from graphs import planar_rotations, with_gps
+from graphs import planar_rotations, random_graph, with_gps
 from naive import dense_quadratic_form, schur_certificate, sesync_objective
 from tolerances import CENTRAL_DIFF, FLOAT64_IDENTITY, ORTHONORMAL
 
@@ -257,6 +257,20 @@ def test_the_verdict_alone_costs_no_eigenvalue_where_it_fails(make) -> None:
             assert verdict.factorizations < full.factorizations
 
 
+def test_the_verdict_alone_computes_no_eigenvalue_where_the_first_shift_cannot_certify() -> None:
+    """A graph without loops: F = 0 at its minimum, no shift certifies a relative gap, yet
+    the ladder's first shift factors; the full spectrum computes the eigenvalue there, the
+    verdict alone does not."""
+    graph, rot, _ = random_graph(np.random.default_rng(2), n=8, extra=0)
+    prob = SyncProblem(graph)
+    y = prob.refine(prob.to_y(rot))[0]
+    full = prob.spectrum(y)
+    verdict = prob.spectrum(y, eigenvalue=False)
+    assert full.factorizations == verdict.factorizations == 1  # the first rung factors
+    assert not np.isfinite(full.lower_bound) and not np.isfinite(verdict.lower_bound)
+    assert np.isfinite(full.lambda_min) and np.isnan(verdict.lambda_min)
+
+
 @pytest.mark.parametrize("make", [_tiny3d, _grid2d], ids=["3D", "2D"])
 def test_the_preconditioner_is_the_shifted_certificate_matrix_inverse(make) -> None:
     """At a point of rank d + 1: ``apply(G) = (S + shift I)^-1 G`` against a dense solve,
@@ -292,8 +306,8 @@ def test_the_preconditioner_is_the_shifted_certificate_matrix_inverse(make) -> N
 @pytest.mark.parametrize("make", [_tiny3d, _grid2d], ids=["3D", "2D"])
 def test_preconditioned_conjugate_gradients_descend_on_the_relaxation(make) -> None:
     """The relaxation at rank d + 1 minimized from the same start with and without the
-    preconditioner: both lower F monotonically to the same minimum (within the stopping
-    tolerance's reach); the preconditioned run takes fewer iterations."""
+    preconditioner: both lower F to the same minimum (within the stopping tolerance's
+    reach); the preconditioned run takes fewer iterations."""
     graph = make()
     prob = SyncProblem(graph)
     n, d = prob.n, prob.d
@@ -370,8 +384,8 @@ def test_published_optima_are_certified() -> None:
 
 def test_a_local_minimum_is_not_certified() -> None:
     """LM from scrambled yaws stops in a local minimum of E, and the certificate refuses it
-    either way Newton's method on F goes from there: nowhere near a stationary point of F
-    within its cap (seed 7: no eigenvalue is computed there, the reason says why) or to F's
+    either way Newton's method on F goes from there: short of a stationary point of F at its
+    cap (seed 7: no eigenvalue is computed there, the reason says why) or to F's
     global minimum (seed 5: certified, but LM from there ends at the global optimum, below
     the solution)."""
     made = generate_grid("m3500", seed=0, num_poses=120, rot_sigma_rad=0.05)

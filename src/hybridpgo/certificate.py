@@ -538,7 +538,8 @@ class SyncProblem:
         ``sigma, 10 sigma, ...`` (from the ladder's floor at least) with ``S + shift I``
         positive definite.  Near a minimum of the relaxation S is F's Riemannian Hessian
         there (up to the projection), so the map is Newton's.  ``(None, inf)`` when no shift up
-        to ``max lambda(Lambda_i)`` (where S + shift I is always definite) factors."""
+        to ``max lambda(Lambda_i)`` (where S + shift I is always definite) factors.  ``apply``
+        solves with the factorization of the latest call: a new call replaces it."""
         from .linalg import NotPositiveDefinite, SparseSPD
 
         cs = self._spectrum_setup()
@@ -559,7 +560,9 @@ class SyncProblem:
         else:
             blocks[cs["diag"][:, None, None], rs[None, :, None], rs[None, None, :]] -= lam
         top = float(np.max(np.linalg.eigvalsh(lam))) if self.n else 0.0
-        shift = max(float(sigma), _SHIFT_FLOOR * cs["scale"])
+        shift = _SHIFT_FLOOR * cs["scale"]
+        if np.isfinite(sigma) and sigma > shift:
+            shift = float(sigma)
         while True:
             try:
                 spd.factor(shift * mask, values=values)
@@ -908,7 +911,7 @@ class SyncProblem:
         certified = shift <= cap
         lam_min = float("nan")
         vec: Array | None = None
-        if np.isfinite(shift):
+        if np.isfinite(shift) and (certified or eigenvalue):
             def apply(v: FloatArray) -> FloatArray:
                 rhs = np.zeros(dim)
                 rhs[rot] = np.ravel(v)
@@ -1111,7 +1114,8 @@ def _certificate_at(prob: SyncProblem, y: Array, f: float, its: int, spec: Spect
                   "the refined rotations are not F's global minimum")
     elif not converged:
         reason = (f"Newton's method on F stopped after {its} factorizations short of a "
-                  "stationary point, where the certificate does not hold")
+                  "stationary point; S + σI is not positive definite for any shift within "
+                  "the gap tolerance there (its eigenvalue is not computed)")
     else:
         reason = "the certificate's eigenvalue could not be computed"
     return Certificate(
@@ -1286,11 +1290,11 @@ def staircase_start(graph: PoseGraph, rotations: FloatArray, translations: Float
         # minimized often rounds into the certified optimum already; the chunks double, so a
         # relaxation that never certifies (m3500c) pays few tries.  Each chunk is
         # preconditioned by the shifted certificate matrix at its start (Newton's map near a
-        # minimum): m3500 with 20 degrees of yaw noise certified after one chunk of 50
-        # iterations at rank 2 (0.12 s) where the plain gradients took two (0.24 s); the 3 500
-        # poses of m3500b seed 2 after one, against two (its whole solve 1.23 -> 0.96 s)
+        # minimum): m3500 with 20 degrees of yaw noise and m3500b seed 2 (3 500 poses) certify
+        # after the first chunk of 50 iterations at rank 2, unpreconditioned gradients after
+        # the second (``stats["certificate"]["staircase"]["ranks"]`` of their default solves)
         yp, done, chunk = trial, 0, STAIRCASE_CHUNK
-        sigma = 2.0 * abs(spec.lambda_min)  # where S + sigma I is definite at the escape
+        sigma = 2.0 * abs(spec.lambda_min)  # the ladder's first guess (raised until definite)
         while True:
             pre, sigma = prob.preconditioner(yp, sigma)
             yp, fp, its = prob.minimize(yp, min(chunk, max_iterations - done),

@@ -513,8 +513,9 @@ def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: 
                      ) -> tuple[_Candidate, _Candidate | None, dict[str, Any]]:
     """The early try (``AutoConfig.certify_first``): start ``init``, its rotations refined by
     Newton's method on SE-Sync's objective and certified (when that finds a local minimum of
-    the objective: SE-Sync's Riemannian staircase from there, :func:`_staircase`), and, when
-    certified, LM from the certified start.
+    the objective, or stops at its cap short of a stationary point:
+    SE-Sync's Riemannian staircase from there, :func:`_staircase`), and, when certified, LM
+    from the certified start.
 
     Returns the start's candidate (its poses, no sweeps; ``locals`` kept for the sweeps when
     the try fails), the certified start's candidate (None when the certificate failed) and
@@ -557,9 +558,9 @@ def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: 
     floor = cert.stats.get("shift_floor", 0.0)
     if not cert.certified and (cert.lambda_min < -floor
                                or not cert.stats.get("refine_converged", True)):
-        # F's local minimum (a negative eigenvalue), or Newton stopped short of one: SE-Sync's
-        # Riemannian staircase (Newton goes on at rank d) escapes it through higher ranks; a
-        # certified rounding is the certified start
+        # F's local minimum (a negative eigenvalue), or Newton stopped short of one (where no
+        # eigenvalue is computed): SE-Sync's Riemannian staircase (Newton goes on at rank d)
+        # escapes it through higher ranks; a certified rounding is the certified start
         cert, info = _staircase(graph, prob, init, cert, info)
     if not cert.certified:
         return cand, None, info
