@@ -301,6 +301,11 @@ def test_the_preconditioner_is_the_shifted_certificate_matrix_inverse(make) -> N
     want = np.linalg.solve(s_dense + shift * np.eye(d * n), g)
     scale = np.abs(want).max()
     assert np.abs(apply(g) - want).max() <= 1e-9 * scale
+    # a sigma that is no finite number above the floor starts the ladder at the floor
+    floor_start = prob.preconditioner(y, 0.0)[1]
+    assert lam[0] + floor_start > 0.0
+    for bad in (float("nan"), float("inf"), -1.0):
+        assert prob.preconditioner(y, bad)[1] == floor_start
 
 
 @pytest.mark.parametrize("make", [_tiny3d, _grid2d], ids=["3D", "2D"])

@@ -535,9 +535,10 @@ class SyncProblem:
         """``(apply, shift)``: ``apply(G) = (S(Y) + shift I)^-1 G`` for (d n, p) arrays G, with
         the certificate matrix at Y (any rank) factored once (its own copy of the
         certificate's sparse matrix, :meth:`_spectrum_setup`); ``shift`` is the first of
-        ``sigma, 10 sigma, ...`` (from the ladder's floor at least) with ``S + shift I``
-        positive definite.  Near a minimum of the relaxation S is F's Riemannian Hessian
-        there (up to the projection), so the map is Newton's.  ``(None, inf)`` when no shift up
+        ``sigma, 10 sigma, ...`` (from the ladder's floor at least; a ``sigma`` that is not a
+        finite number above it starts at the floor) with ``S + shift I`` positive definite.
+        Near a minimum of the relaxation S is F's Riemannian Hessian there (up to the
+        projection), so the map is Newton's.  ``(None, inf)`` when no shift up
         to ``max lambda(Lambda_i)`` (where S + shift I is always definite) factors.  ``apply``
         solves with the factorization of the latest call: a new call replaces it."""
         from .linalg import NotPositiveDefinite, SparseSPD
@@ -1114,8 +1115,8 @@ def _certificate_at(prob: SyncProblem, y: Array, f: float, its: int, spec: Spect
                   "the refined rotations are not F's global minimum")
     elif not converged:
         reason = (f"Newton's method on F stopped after {its} factorizations short of a "
-                  "stationary point; S + σI is not positive definite for any shift within "
-                  "the gap tolerance there (its eigenvalue is not computed)")
+                  "stationary point; S + σI is not positive definite for any shift of the "
+                  "ladder up to the gap tolerance's there (its eigenvalue is not computed)")
     else:
         reason = "the certificate's eigenvalue could not be computed"
     return Certificate(
@@ -1291,8 +1292,8 @@ def staircase_start(graph: PoseGraph, rotations: FloatArray, translations: Float
         # relaxation that never certifies (m3500c) pays few tries.  Each chunk is
         # preconditioned by the shifted certificate matrix at its start (Newton's map near a
         # minimum): m3500 with 20 degrees of yaw noise and m3500b seed 2 (3 500 poses) certify
-        # after the first chunk of 50 iterations at rank 2, unpreconditioned gradients after
-        # the second (``stats["certificate"]["staircase"]["ranks"]`` of their default solves)
+        # after the first chunk of 50 iterations at rank 2
+        # (``stats["certificate"]["staircase"]["ranks"]`` of their default solves)
         yp, done, chunk = trial, 0, STAIRCASE_CHUNK
         sigma = 2.0 * abs(spec.lambda_min)  # the ladder's first guess (raised until definite)
         while True:

@@ -11,7 +11,8 @@ solver is named (``--solver auto``).  The paper's pure method stays ``--solver h
    is the answer: no sweep, no other start, no relaxation check (``stats["start"]`` is
    ``"certified start"``; certified by construction: the polish from F's certified minimum).
    When Newton's method ends in a local minimum of F (the certificate matrix has a negative
-   eigenvalue: generated grids with large rotation noise), SE-Sync's Riemannian staircase
+   eigenvalue: generated grids with large rotation noise), or stops at its cap short of a
+   stationary point (no eigenvalue is computed there), SE-Sync's Riemannian staircase
    (:func:`hybridpgo.certificate.staircase_start`) escapes it through ranks d+1.. d+3 and a
    certified rounding is the certified start (``stats["certificate"]["staircase"]``).
    Newton's method there makes at most ``EARLY_NEWTON_WORK / N`` factorizations on N poses
