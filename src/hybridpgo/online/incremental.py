@@ -193,7 +193,7 @@ class IncrementalExact:
         self._perm = _PLANAR_PERM.copy() if self.config.planar else np.arange(6)
         self._planar_lost = False
         # the pool: _row_var and _row_blk are its first _pool_cap rows, views of their
-        # reservations in _bases where both can be reserved
+        # reservations in _bases where address space can be reserved
         self._row_var, self._row_blk = self._new_pool(self._pool_cap, self._nd)
         # the supernodes of the cycle's S and their panels (ik.supernodes, ik.numeric)
         self._sn_ptr = np.zeros(1, np.int64)
