@@ -324,29 +324,6 @@ def test_deadline_slices_give_the_same_answer_bit_for_bit() -> None:
         assert np.array_equal(a, b)
 
 
-def test_the_pools_two_arrays_are_reserved_both_or_neither(monkeypatch) -> None:
-    """Where the pool's block array cannot be reserved, neither of its arrays is a view of a
-    reservation: both are plain arrays of the pool's rows, and the pool is compacted by
-    copies."""
-    from hybridpgo.online import incremental
-
-    real = incremental.reserved_only
-
-    def no_blocks(shape, dtype=np.float64):  # the (rows, nd, nd) block array fails
-        return None if len(shape) == 3 else real(shape, dtype)
-
-    monkeypatch.setattr(incremental, "reserved_only", no_blocks)
-    inc = IncrementalExact(capacity=4)
-    assert inc._bases["_row_var"] is None and inc._bases["_row_blk"] is None
-    assert inc._row_var.shape[0] == inc._pool_cap == inc._row_blk.shape[0]
-    s = _stream(11, 60, 0.8, 5)
-    for k in range(s.frames):
-        _feed(inc, s, k)
-        inc.solve()
-        _check_sorted_rows(inc)
-    assert inc._bases["_row_var"] is None and inc._row_var.shape[0] == inc._pool_cap
-
-
 def test_the_pool_compacted_in_place_gives_the_copied_pools_answer_bit_for_bit(
         monkeypatch) -> None:
     """The factor's pool grows and is compacted in place in its reserved address space
@@ -357,7 +334,7 @@ def test_the_pool_compacted_in_place_gives_the_copied_pools_answer_bit_for_bit(
 
     s = _stream(11, 300, 0.8, 5)
     inplace = IncrementalExact(capacity=4)
-    if inplace._bases["_row_var"] is None:
+    if inplace._pool_var is None:
         pytest.skip("no address space can be reserved here (not Linux, or a strict limit)")
     names = (*IncrementalExact._POSE_ARRAYS, *IncrementalExact._EDGE_ARRAYS,
              *IncrementalExact._GPS_ARRAYS)
@@ -366,8 +343,7 @@ def test_the_pool_compacted_in_place_gives_the_copied_pools_answer_bit_for_bit(
     compact = IncrementalExact._compact
 
     def counted(self: IncrementalExact, cap: int) -> None:
-        pool = self._bases["_row_var"]
-        compactions.append(pool is not None and cap <= pool.shape[0])
+        compactions.append(self._pool_var is not None and cap <= self._pool_var.shape[0])
         compact(self, cap)
 
     monkeypatch.setattr(IncrementalExact, "_compact", counted)
@@ -376,9 +352,7 @@ def test_the_pool_compacted_in_place_gives_the_copied_pools_answer_bit_for_bit(
         inplace.solve()
         _check_sorted_rows(inplace)
     assert len(compactions) >= 3 and all(compactions)  # in place, several times
-    pool = inplace._bases["_row_var"]
-    assert pool is not None and np.shares_memory(inplace._row_var, pool)
-    assert np.all(pool[inplace._pool_used[0]:] == 0)  # zeros past the segments
+    assert np.all(inplace._pool_var[inplace._pool_used[0]:] == 0)  # zeros past the segments
     assert inplace._cap_n >= 256 and inplace._cap_m >= 256  # grown from 4 poses, 8 edges
     for name, arrays in (("_diag", "_POSE_ARRAYS"), ("_parent", "_POSE_ARRAYS"),
                          ("_haa", "_EDGE_ARRAYS"), ("_inc_next", "_EDGE_ARRAYS")):
@@ -392,7 +366,7 @@ def test_the_pool_compacted_in_place_gives_the_copied_pools_answer_bit_for_bit(
     assert np.all(inplace._e_stamp[inplace._m:] == -1)
     monkeypatch.setattr(incremental, "reserved_only", lambda shape, dtype=np.float64: None)
     copied = IncrementalExact(capacity=4)
-    assert not any(b is not None for b in copied._bases.values())  # the pool's included
+    assert copied._pool_var is None and not any(b is not None for b in copied._bases.values())
     for k in range(s.frames):
         _feed(copied, s, k)
         copied.solve()
@@ -404,7 +378,7 @@ def test_the_pool_compacted_in_place_gives_the_copied_pools_answer_bit_for_bit(
             assert np.array_equal(getattr(inplace, name), getattr(copied, name)), name
     monkeypatch.undo()  # address space can be reserved again
     twin = __import__("copy").deepcopy(inplace)  # a copy holds plain arrays, not the reservation
-    assert twin._row_blk.shape == inplace._row_blk.shape
+    assert twin._pool_var is None and twin._row_blk.shape == inplace._row_blk.shape
     assert twin._bases == {} and not np.shares_memory(twin._diag, inplace._diag)
     for a, b in zip(twin.estimate(), inplace.estimate(), strict=True):
         assert np.array_equal(a, b)

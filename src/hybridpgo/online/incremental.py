@@ -177,8 +177,7 @@ class IncrementalExact:
         self.config = config or IncrementalConfig()
         cap = max(int(capacity), 4)
         self._n = self._n_in = 0  # poses added / integrated
-        # the reservations the pose, edge and GPS arrays and the pool's two arrays are views of
-        # (None: plain arrays)
+        # the reservations the pose, edge and GPS arrays are views of (None: plain arrays)
         self._bases: dict[str, np.ndarray | None] = {}
         self._m = self._m_in = 0  # edges
         self._g = self._g_in = 0  # GPS readings
@@ -192,8 +191,10 @@ class IncrementalExact:
         self._nd = 3 if self.config.planar else 6
         self._perm = _PLANAR_PERM.copy() if self.config.planar else np.arange(6)
         self._planar_lost = False
-        # the pool: _row_var and _row_blk are its first _pool_cap rows, views of their
-        # reservations in _bases where address space can be reserved
+        # the pool: _row_var and _row_blk are its first _pool_cap rows, views of the
+        # reserved arrays _pool_var and _pool_blk (None: not reserved)
+        self._pool_var: npt.NDArray[np.int64] | None = None
+        self._pool_blk: npt.NDArray[np.float64] | None = None
         self._row_var, self._row_blk = self._new_pool(self._pool_cap, self._nd)
         # the supernodes of the cycle's S and their panels (ik.supernodes, ik.numeric)
         self._sn_ptr = np.zeros(1, np.int64)
@@ -325,12 +326,11 @@ class IncrementalExact:
                 arr[:] = fill
             setattr(self, name, arr)
 
-    def _reserve(self, name: str, row: tuple[int, ...], dtype: Any, rows: int,
-                 reserve: int = ROWS_RESERVE) -> np.ndarray:
+    def _reserve(self, name: str, row: tuple[int, ...], dtype: Any, rows: int) -> np.ndarray:
         """Zero array ``name`` of ``rows`` rows: the first rows of a reservation of
-        ``reserve`` rows (at least ``4 rows``), kept in ``_bases``, or a plain array
+        :data:`ROWS_RESERVE` rows (at least ``4 rows``), kept in ``_bases``, or a plain array
         (``_bases[name]`` None) where none can be made."""
-        base = reserved_only((max(reserve, 4 * rows), *row), dtype)
+        base = reserved_only((max(ROWS_RESERVE, 4 * rows), *row), dtype)
         self._bases[name] = base
         return base[:rows] if base is not None else np.zeros((rows, *row), dtype)
 
@@ -408,15 +408,18 @@ class IncrementalExact:
 
     def _new_pool(self, cap: int, nd: int) -> tuple[npt.NDArray[np.int64],
                                                      npt.NDArray[np.float64]]:
-        """Zero pool arrays of ``cap`` rows with (nd, nd) blocks (:meth:`_reserve`, of
-        :data:`POOL_RESERVE` rows): both views of their reservations in ``_bases``, or both
-        plain arrays where either cannot be reserved."""
-        var = self._reserve("_row_var", (), np.int64, cap, POOL_RESERVE)
-        blk = self._reserve("_row_blk", (nd, nd), np.float64, cap, POOL_RESERVE)
-        if self._bases["_row_var"] is None or self._bases["_row_blk"] is None:
-            self._bases["_row_var"] = self._bases["_row_blk"] = None
+        """Zero pool arrays of ``cap`` rows with (nd, nd) blocks: views of arrays of
+        :data:`POOL_RESERVE` rows (at least ``4 cap``) reserved as address space, kept in
+        ``_pool_var`` / ``_pool_blk``, or plain zeros of ``cap`` rows where that cannot be
+        done (``_pool_var`` None)."""
+        rows = max(POOL_RESERVE, 4 * cap)
+        var = reserved_only((rows,), np.int64)
+        blk = reserved_only((rows, nd, nd)) if var is not None else None
+        if var is None or blk is None:
+            self._pool_var = self._pool_blk = None
             return np.zeros(cap, np.int64), np.zeros((cap, nd, nd))
-        return var, blk
+        self._pool_var, self._pool_blk = var, blk
+        return var[:cap], blk[:cap]
 
     def __deepcopy__(self, memo: dict[int, Any]) -> IncrementalExact:
         """A copy whose pool and per-pose, per-edge and per-reading arrays are plain arrays
@@ -427,7 +430,7 @@ class IncrementalExact:
         out = self.__class__.__new__(self.__class__)
         memo[id(self)] = out
         for key, value in self.__dict__.items():
-            keep = key != "_bases"
+            keep = key not in ("_pool_var", "_pool_blk", "_bases")
             setattr(out, key, copy.deepcopy(value, memo) if keep else None)
         out._bases = {}
         return out
@@ -437,7 +440,7 @@ class IncrementalExact:
         the reservation holds ``cap`` rows (:func:`~._incremental_kernels.compact_pool`), else
         copied into a new pool."""
         n = self._n_in
-        pv, pb = self._bases.get("_row_var"), self._bases.get("_row_blk")
+        pv, pb = self._pool_var, self._pool_blk
         if pv is not None and pb is not None and cap <= pv.shape[0]:
             order = np.argsort(self._col_start[:n], kind="stable")
             end = ik.compact_pool(order, self._col_start, self._col_cap, self._col_len,
