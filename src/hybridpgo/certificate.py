@@ -551,15 +551,7 @@ class SyncProblem:
             cs["pre"] = SparseSPD(bsr)
         spd, dim, rot, mask = cs["pre"], cs["dim"], cs["rot"], cs["mask"]
         lam = self.lambda_blocks(y)
-        values = cs["values"].copy()
-        blocks = values.reshape(-1, 4, 4)
-        rs = cs["slots"]
-        if self.complex:
-            lr = np.real(lam[:, 0, 0])
-            blocks[cs["diag"], 2, 2] -= lr
-            blocks[cs["diag"], 3, 3] -= lr
-        else:
-            blocks[cs["diag"][:, None, None], rs[None, :, None], rs[None, None, :]] -= lam
+        values = self._certificate_values(lam)
         top = float(np.max(np.linalg.eigvalsh(lam))) if self.n else 0.0
         shift = _SHIFT_FLOOR * cs["scale"]
         if np.isfinite(sigma) and sigma > shift:
@@ -853,6 +845,21 @@ class SyncProblem:
                                                                 axis2=2))))}
         return self._cert
 
+    def _certificate_values(self, lam: Array) -> FloatArray:
+        """The values of the certificate's matrix K (:meth:`_spectrum_setup`) with the blocks
+        ``lam`` of Lambda subtracted from each pose's rotation entries (a copy)."""
+        cs = self._spectrum_setup()
+        values: FloatArray = cs["values"].copy()
+        blocks = values.reshape(-1, 4, 4)
+        rs = cs["slots"]
+        if self.complex:
+            lr = np.real(lam[:, 0, 0])
+            blocks[cs["diag"], 2, 2] -= lr
+            blocks[cs["diag"], 3, 3] -= lr
+        else:
+            blocks[cs["diag"][:, None, None], rs[None, :, None], rs[None, None, :]] -= lam
+        return values
+
     def spectrum(self, y: Array, gap_tolerance: float = GAP_TOLERANCE,
                  eigenvector: bool = False, eigenvalue: bool = True) -> Spectrum:
         """The certificate at Y (any rank): the smallest shift ``sigma`` of a ladder (from
@@ -878,15 +885,7 @@ class SyncProblem:
         cs = self._spectrum_setup()
         lam = self.lambda_blocks(y)
         objective = float(np.sum(np.real(np.trace(lam, axis1=1, axis2=2))))
-        values = cs["values"].copy()
-        rs = cs["slots"]
-        blocks = values.reshape(-1, 4, 4)
-        if self.complex:
-            lr = np.real(lam[:, 0, 0])
-            blocks[cs["diag"], 2, 2] -= lr
-            blocks[cs["diag"], 3, 3] -= lr
-        else:
-            blocks[cs["diag"][:, None, None], rs[None, :, None], rs[None, None, :]] -= lam
+        values = self._certificate_values(lam)
         spd, mask, dim, rot = cs["spd"], cs["mask"], cs["dim"], cs["rot"]
         scale = cs["scale"]
         cap = gap_tolerance * abs(objective) / (d * n)
