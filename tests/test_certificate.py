@@ -221,10 +221,13 @@ def test_smallest_eigenvalue_matches_a_dense_decomposition(make) -> None:
     prob = SyncProblem(graph)
     n, d = prob.n, prob.d
     eye = np.eye(d * n)
+    # 3D with GPS: at rank d the certificate holds the earth's rotation (its rows deleted)
+    keep = np.repeat(np.arange(n) != prob.earth, d) if graph.num_gps and d == 3 else ...
     for y in (prob.to_y(_random_rotations(graph, 4)),  # far from stationary: negative
               prob.refine(prob.to_y(graph.rotations))[0]):  # F's minimum: ~0
         s_dense = prob.certificate_product(y, eye.astype(y.dtype))
-        exact = float(np.linalg.eigvalsh(0.5 * (s_dense + s_dense.conj().T))[0])
+        s_dense = 0.5 * (s_dense + s_dense.conj().T)[keep][:, keep]
+        exact = float(np.linalg.eigvalsh(s_dense)[0])
         spec = prob.spectrum(y)
         norm = float(np.abs(np.linalg.eigvalsh(s_dense)).max())
         assert spec.lambda_min == pytest.approx(exact, abs=1e-9 * norm)
@@ -435,10 +438,64 @@ def test_the_polish_must_reach_the_solution() -> None:
 
 
 def test_not_applicable_says_why() -> None:
+    import dataclasses
+
     city = generate_city(None, seed=0, gps_every=50, num_poses=50)
-    cert = sesync_certificate(city.graph, city.truth_rotations, city.truth_translations)
+    graph = dataclasses.replace(city.graph, fixed_nodes=np.zeros(1, np.int32))
+    cert = sesync_certificate(graph, city.truth_rotations, city.truth_translations)
     assert not cert.certified and "GPS" in cert.reason
     assert cert.summary() == f"not certified: {cert.reason}"
+
+
+def test_a_3d_graph_with_gps_is_certified_with_the_earth_held() -> None:
+    """3D with GPS at rank d: the certificate matrix without the earth's rotation rows and
+    columns (a dense twin) gives the eigenvalue; the lower bound is the minimum of F's form
+    with Lambda - shift I over unconstrained rotations, the earth's at the identity (a dense
+    twin), below F at the point and at random rotations (weak duality) and within the gap
+    tolerance of F at its minimum, where the relaxation with the earth lifted (every row of
+    S) has a lower eigenvalue."""
+    city = generate_city(None, seed=0, gps_every=20, num_poses=200)
+    graph = city.graph
+    prob = SyncProblem(graph)
+    n, d, e = prob.n, prob.d, prob.earth
+    y = prob.refine(prob.to_y(city.truth_rotations))[0]
+    assert prob.refine_converged
+    spec = prob.spectrum(y, eigenvector=True)
+    q = prob.q(np.eye(d * n))
+    q = 0.5 * (q + q.T)
+    lam = prob.lambda_blocks(y)
+    s_all = q - sp.block_diag(list(lam)).toarray()
+    keep = np.repeat(np.arange(n) != e, d)
+    s_held = s_all[keep][:, keep]
+    assert spec.lambda_min == pytest.approx(np.linalg.eigvalsh(s_held)[0],
+                                            abs=1e-9 * np.abs(s_held).max())
+    assert np.linalg.eigvalsh(s_all)[0] < spec.lambda_min
+    assert spec.vector is not None and not np.any(spec.vector[~keep])
+    q_re = q[keep][:, ~keep]
+
+    def twin_bound(shift: float) -> float:
+        shifted = s_held + shift * np.eye(s_held.shape[0])
+        return float(np.trace(lam, axis1=1, axis2=2).sum() - np.trace(lam[e])
+                     + np.trace(q[~keep][:, ~keep])
+                     - np.trace(q_re.T @ np.linalg.solve(shifted, q_re)) - shift * d * (n - 1))
+
+    # at the certified shift the bound is F to rounding (clipped to F); at a larger one the
+    # factorization's bound is the twin's, well below F
+    assert spec.lower_bound == pytest.approx(min(twin_bound(spec.shift), spec.objective),
+                                             rel=1e-9)
+    cs = prob._spectrum_setup()
+    big = 1e-2
+    cs["spd"].factor(big * cs["mask_fixed"], values=prob._certificate_values(lam, True))
+    wide = prob._earth_fixed_bound(lam, big)
+    # the bound subtracts terms of the size of tr(Q_ee) (the readings' positions squared)
+    assert wide == pytest.approx(twin_bound(big), abs=1e-10 * np.trace(q[~keep][:, ~keep]))
+    assert wide < spec.objective - 1e-3 * big * d * n
+    assert spec.objective == pytest.approx(prob.cost(y), rel=FLOAT64_IDENTITY * 1e3)
+    assert 0.0 <= spec.objective - spec.lower_bound <= GAP_TOLERANCE * spec.objective
+    for seed in range(5):  # any rotations, the earth's at the identity: F above the bound
+        assert prob.cost(prob.to_y(_random_rotations(graph, seed))) >= spec.lower_bound
+    cert = sesync_certificate(graph, city.truth_rotations, city.truth_translations)
+    assert cert.certified and cert.relative_gap <= GAP_TOLERANCE
 
 
 def test_a_graph_that_is_not_connected_is_refused_with_a_value_error() -> None:

@@ -80,10 +80,14 @@ def test_iterate_of_the_default_pipeline_sees_every_start_and_the_winner() -> No
     from hybridpgo.energy import energy
     from hybridpgo.solvers.auto import solve_auto
 
+    from hybridpgo.solvers.config import AutoConfig
+
     graph, _, _ = random_graph(np.random.default_rng(24), n=10, extra=6, gps=2)
-    plain = solve_auto(graph)
+    # without the early try (which certifies this graph at its first start), every start runs
+    cfg = AutoConfig(certify_first=False)
+    plain = solve_auto(graph, cfg)
     seen = _Frames()
-    res = solve_auto(graph, iterate=seen)
+    res = solve_auto(graph, cfg, iterate=seen)
     np.testing.assert_array_equal(res.translations, plain.translations)
     starts = [f[0].detail for f in seen.frames if f[0].phase == "start"]
     cands = res.stats["candidates"]

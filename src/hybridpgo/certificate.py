@@ -22,11 +22,22 @@ translation) and no rotation term.  F is then invariant under a rigid motion of 
 the earth, so the earth is the gauge (held at the identity); at ``R_e = I, t_e = 0`` the term is
 ``tau_g ||t_i - g||^2``, E's GPS term with isotropic information.  On planar graphs this
 relaxation certifies as SE-Sync's does (M3500 and intel with a GPS reading every 100 poses:
-gaps <= 1e-7).  On 3D graphs it is not tight: the relaxation lifts the earth's rotation into
-more dimensions than 3, where its columns are constrained by the readings alone and fit them
-better than any rotation (sphere2500 and the generated 3D cities with GPS: the certificate
-matrix has eigenvalues of -0.3 to -5 at F's minimum), so :func:`not_applicable` declines 3D
-graphs with GPS.
+gaps <= 1e-7).  In 3D, S is ill-conditioned along the earth's rotation: its rows answer to the
+readings alone, and where S restricted to the graph's rotations has an eigenvalue barely below
+0, S itself has one of -0.3 to -5 (valencia with GPS: -6e-4 and -4.7), so no small shift makes
+``S + sigma I`` definite.  At rank d the certificate of a 3D graph with GPS therefore holds the
+earth's rotation at the identity (the *earth-fixed form*): with ``Y_e = I`` F is a quadratic
+``tr(Y_r^T Q_rr Y_r) + 2 tr(Y_r^T Q_re) + tr(Q_ee)`` in the graph's rotations ``Y_r``.  With
+``S_rr`` (S without the earth's rows and columns) and ``P = S_rr + sigma I`` positive definite,
+every ``Y_r`` with orthonormal blocks has ``F = tr(Y_r^T P Y_r) + 2 tr(Y_r^T Q_re) + tr(Q_ee) +
+sum_(i != e) tr(Lambda_i) - sigma d (n - 1)``; its minimum over unconstrained ``Y_r`` gives
+``F >= sum_(i != e) tr(Lambda_i) + tr(Q_ee) - tr(Q_er P^-1 Q_re) - sigma d (n - 1)``.  At a
+stationary point with ``S_rr`` semidefinite the bound is F there; it is the dual bound of the
+same relaxation (the best earth multiplier for the graph's ones), computed where S_rr, not S,
+is factored.  Generated 3D cities with a reading every 100 poses: paris2 and the 2 000-pose
+city are certified (gaps 2.5e-10 and 1.1e-8), valencia is not (S_rr has the eigenvalue -6e-4
+at F's refined minimum; the staircase, whose higher ranks lift the earth's rotation, did not
+certify it either).  Planar graphs keep the lifted form, which certifies them.
 
 ``F`` is **not** the energy E the solvers minimize (E uses geodesic ``Log`` errors and the full
 information): it is the objective that SE-Sync's certificate and its published optimal values
@@ -199,7 +210,8 @@ class Spectrum:
     vector: Array | None
     """Its eigenvector (d n, one column of Y's layout), or None."""
     lower_bound: float
-    """``objective - shift d n``: a lower bound of F's global minimum (-inf: none)."""
+    """A lower bound of F's global minimum (-inf: none): ``objective - shift d n``, or with
+    the earth-fixed form (:meth:`SyncProblem.spectrum`) its own bound."""
     factorizations: int
     """Sparse factorizations spent (one per shift tried)."""
     floor: float = 0.0
@@ -837,17 +849,29 @@ class SyncProblem:
         rs = np.asarray(rot_slots)
         mask = np.zeros((n, 4))
         mask[:, rs] = 1.0
+        rot = (4 * i[:, None] + rs[None, :]).ravel()
         self._cert = {"values": np.asarray(bsr.data, np.float64).ravel().copy(),
                       "diag": diag_block, "slots": rs, "spd": SparseSPD(bsr),
-                      "mask": mask.ravel(), "dim": dim,
-                      "rot": (4 * i[:, None] + rs[None, :]).ravel(),
+                      "mask": mask.ravel(), "dim": dim, "rot": rot,
                       "scale": float(np.max(np.abs(np.diagonal(pose[diag_block], axis1=1,
                                                                 axis2=2))))}
+        if self.earth >= 0:  # the earth-fixed form (:meth:`spectrum`)
+            e = self.earth
+            fixed = mask.copy()
+            fixed[e] = 0.0
+            self._cert.update(
+                earth_rows=np.arange(block_ptr[e], block_ptr[e + 1]),
+                earth_cols=np.flatnonzero(block_col == e), mask_fixed=fixed.ravel(),
+                rot_fixed=rot[(rot // 4) != e],
+                y_fixed=np.flatnonzero(np.repeat(np.arange(n) != e, self.d)))
         return self._cert
 
-    def _certificate_values(self, lam: Array) -> FloatArray:
+    def _certificate_values(self, lam: Array, fixed_earth: bool = False) -> FloatArray:
         """The values of the certificate's matrix K (:meth:`_spectrum_setup`) with the blocks
-        ``lam`` of Lambda subtracted from each pose's rotation entries (a copy)."""
+        ``lam`` of Lambda subtracted from each pose's rotation entries (a copy).  With
+        ``fixed_earth`` the earth frame's rotation rows and columns are those of the identity
+        (its rotation is no unknown: K's Schur complement onto the rotations is then S with
+        the earth's rows and columns deleted, beside an identity block)."""
         cs = self._spectrum_setup()
         values: FloatArray = cs["values"].copy()
         blocks = values.reshape(-1, 4, 4)
@@ -858,7 +882,31 @@ class SyncProblem:
             blocks[cs["diag"], 3, 3] -= lr
         else:
             blocks[cs["diag"][:, None, None], rs[None, :, None], rs[None, None, :]] -= lam
+        if fixed_earth:
+            blocks[cs["earth_rows"][:, None], rs[None, :], :] = 0.0
+            blocks[cs["earth_cols"][:, None], :, rs[None, :]] = 0.0
+            blocks[cs["diag"][self.earth], rs, rs] = 1.0
         return values
+
+    def _earth_fixed_bound(self, lam: Array, shift: float) -> float:
+        """The lower bound of F's minimum over the graph's rotations with the earth frame's
+        held at the identity, from the factorization of the earth-fixed K shifted by ``shift``
+        (:meth:`spectrum`; rank d, 3D):
+        ``sum_(i != e) tr(Lambda_i) + tr(Q_ee) - tr(Q_er P^-1 Q_re) - shift d (n - 1)`` with
+        ``P = S_rr + shift I`` (docs/mathematics.md, the certificate with GPS)."""
+        cs = self._spectrum_setup()
+        n, d, e = self.n, self.d, self.earth
+        unit = np.zeros((d * n, d))
+        unit[d * e: d * e + d] = np.eye(d)
+        q_e = self.q(unit)  # Q's columns of the earth's rotation
+        q_ee = q_e[d * e: d * e + d].copy()
+        q_e[d * e: d * e + d] = 0.0
+        rhs = np.zeros((cs["dim"], d))
+        rhs[cs["rot"]] = q_e
+        solved = np.asarray(cs["spd"].solve(rhs), np.float64)[cs["rot"]]
+        trace = np.real(np.trace(lam, axis1=1, axis2=2))
+        return float(np.sum(trace) - trace[e] + np.trace(q_ee) - np.sum(q_e * solved)
+                     - shift * d * (n - 1))
 
     def spectrum(self, y: Array, gap_tolerance: float = GAP_TOLERANCE,
                  eigenvector: bool = False, eigenvalue: bool = True) -> Spectrum:
@@ -876,6 +924,12 @@ class SyncProblem:
         False the ladder stops where no rung could certify: an uncertified Y then gets no
         eigenvalue (NaN) and costs no more factorizations nor Lanczos iterations (a
         certified one gets its eigenvalue as always).
+
+        A 3D graph with GPS at rank d is certified with the earth frame's rotation held at
+        the identity (the earth-fixed form, module docstring): S loses the earth's rows and
+        columns, the lower bound is :meth:`_earth_fixed_bound` at the first definite rung, and
+        the point is certified when F less that bound is within the gap tolerance; the
+        eigenvalue and its vector are those of that S (the vector's earth rows 0).
         """
         from scipy.sparse.linalg import ArpackNoConvergence, LinearOperator, eigsh
 
@@ -885,11 +939,13 @@ class SyncProblem:
         cs = self._spectrum_setup()
         lam = self.lambda_blocks(y)
         objective = float(np.sum(np.real(np.trace(lam, axis1=1, axis2=2))))
-        values = self._certificate_values(lam)
-        spd, mask, dim, rot = cs["spd"], cs["mask"], cs["dim"], cs["rot"]
-        scale = cs["scale"]
-        cap = gap_tolerance * abs(objective) / (d * n)
-        if _SHIFT_FLOOR * scale <= FLOOR_GAP_TOLERANCE * abs(objective) / (d * n):
+        fixed = self.earth >= 0 and not self.complex and y.shape[1] == d
+        values = self._certificate_values(lam, fixed)
+        spd, dim, scale = cs["spd"], cs["dim"], cs["scale"]
+        mask, rot = (cs["mask_fixed"], cs["rot_fixed"]) if fixed else (cs["mask"], cs["rot"])
+        size = rot.size  # S's order: d n, or d (n - 1) without the earth's rotation
+        cap = gap_tolerance * abs(objective) / size
+        if _SHIFT_FLOOR * scale <= FLOOR_GAP_TOLERANCE * abs(objective) / size:
             cap = max(cap, _SHIFT_FLOOR * scale)  # the smallest shift float64 resolves
         top = float(np.max(np.linalg.eigvalsh(lam))) if n else 0.0
         sigma = _SHIFT_FLOOR * scale
@@ -909,6 +965,13 @@ class SyncProblem:
             if not eigenvalue and sigma > cap:  # no rung left that could certify
                 break
         certified = shift <= cap
+        lower = objective - shift * size if certified else -np.inf
+        if fixed and certified:
+            # the bound of a tight point is F to rounding, on either side (the earth's terms
+            # are large next to F): above F it is F
+            lower = min(self._earth_fixed_bound(lam, shift), objective)
+            certified = objective - lower <= cap * size
+            lower = lower if certified else -np.inf
         lam_min = float("nan")
         vec: Array | None = None
         if np.isfinite(shift) and (certified or eigenvalue):
@@ -942,11 +1005,13 @@ class SyncProblem:
                     pass
             if converged and theta > 0:
                 lam_min = 1.0 / theta - shift
+                if fixed:  # the earth's rotation rows: 0
+                    full = np.zeros(d * n)
+                    full[cs["y_fixed"]] = x
+                    x = full
                 vec = (x[0::2] + 1j * x[1::2])[:, None] if self.complex else x[:, None]
         return Spectrum(objective, shift if certified else float("inf"), lam_min,
-                        vec if eigenvector else None,
-                        objective - shift * d * n if certified else -np.inf, tries,
-                        _SHIFT_FLOOR * scale)
+                        vec if eigenvector else None, lower, tries, _SHIFT_FLOOR * scale)
 
 
 # ------------------------------------------------------------------ results
@@ -959,8 +1024,9 @@ class Certificate:
     """True: the module docstring's "certified" (F's global minimum within ``gap`` at the
     refined start, and, for :func:`certify`, the polish from there reaches the solution)."""
     lambda_min: float
-    """Smallest eigenvalue of the certificate matrix S at the F-refined rotations (nan when it
-    could not be computed)."""
+    """Smallest eigenvalue of the certificate matrix S at the F-refined rotations (3D with
+    GPS: of S without the earth's rows and columns, the earth-fixed form; nan when it could
+    not be computed)."""
     gap: float
     """Upper bound of F(refined) - min F, absolute (inf when not certified)."""
     relative_gap: float
@@ -1015,9 +1081,6 @@ def ensure_compiled(planar: bool) -> float:
 
 def not_applicable(graph: PoseGraph, robust: str = "none") -> str:
     """Why SE-Sync's model does not describe ``graph`` ("" when it does)."""
-    if graph.num_gps and not graph.is_2d:
-        return ("GPS constraints on a 3D graph (the relaxation of the earth frame's rotation is "
-                "not tight there)")
     if graph.num_gps and graph.fixed_nodes.size:
         return "GPS constraints and a fixed pose (not in SE-Sync's model)"
     if robust != "none":

@@ -121,8 +121,8 @@ def _optimize(sub: Any) -> None:
         "optimize", help="optimize a graph and write the result",
         description="Optimize a pose graph and write the optimized graph.  The default "
                     "(--solver auto) polishes with Levenberg-Marquardt from a certified start "
-                    "where SE-Sync's certificate holds at the chordal start (no robust kernel, "
-                    "GPS only on planar graphs); otherwise it "
+                    "where SE-Sync's certificate holds at the chordal start (no robust "
+                    "kernel); otherwise it "
                     "chooses the start (chordal, tree or the file's vertices), "
                     "runs hybrid sweeps while they lower the energy by "
                     f"{au.sweep_tolerance:.0%} or more per sweep, and polishes with "

@@ -55,8 +55,8 @@ solver is named (``--solver auto``).  The paper's pure method stays ``--solver h
    certificate of E's global optimum.
 
 5. **Certificate** (``AutoConfig.certify``; graphs SE-Sync's model describes: no robust
-   kernel, at most one FIX node and none with GPS, GPS only on planar graphs: the readings are
-   constraints from an earth frame, :mod:`hybridpgo.certificate`): the first polished
+   kernel, at most one FIX node and none with GPS; GPS readings are constraints from an
+   earth frame, :mod:`hybridpgo.certificate`): the first polished
    finalist is certified (:func:`hybridpgo.certificate.certify`: SE-Sync's objective refined
    from its rotations by Newton's method, its global minimum certified by the smallest
    eigenvalue of the certificate matrix, and LM from that certified start ends at the same
@@ -557,8 +557,12 @@ def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: 
         cert, info = _polished_first(exact, cfg, prob, cand, cert, info, cap, t_origin,
                                      progress, iterate)
     floor = cert.stats.get("shift_floor", 0.0)
-    if not cert.certified and (cert.lambda_min < -floor
-                               or not cert.stats.get("refine_converged", True)):
+    # a 3D graph with GPS: the staircase's higher ranks lift the earth frame's rotation,
+    # where S is ill-conditioned (certificate.py); on valencia + GPS it took 14.6 s and did
+    # not certify, so it is not run
+    lifted_earth = graph.num_gps > 0 and not graph.is_2d
+    if not cert.certified and not lifted_earth and (
+            cert.lambda_min < -floor or not cert.stats.get("refine_converged", True)):
         # F's local minimum (a negative eigenvalue), or Newton stopped short of one (where no
         # eigenvalue is computed): SE-Sync's Riemannian staircase (Newton goes on at rank d)
         # escapes it through higher ranks; a certified rounding is the certified start

@@ -361,7 +361,7 @@ class AutoConfig:
     other finalist is polished and the relaxation check is skipped.  Not certified: the other
     finalists are polished as with ``False`` and the winner is certified.  Applies where
     SE-Sync's model describes the graph (no robust kernel, at most one FIX node and none
-    with GPS, GPS only on planar graphs, connected) and not under the large-graph policy.
+    with GPS, connected) and not under the large-graph policy.
     ``stats["certificate"]`` says what was certified, or why not.  False: every finalist is
     polished, no certificate."""
     certify_first: bool = True
