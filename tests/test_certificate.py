@@ -231,6 +231,9 @@ def test_smallest_eigenvalue_matches_a_dense_decomposition(make) -> None:
         spec = prob.spectrum(y)
         norm = float(np.abs(np.linalg.eigvalsh(s_dense)).max())
         assert spec.lambda_min == pytest.approx(exact, abs=1e-9 * norm)
+        if np.isfinite(spec.lower_bound) and not spec.earth_held:  # sigma d n below F
+            assert spec.lower_bound == pytest.approx(spec.objective - spec.shift * d * n,
+                                                     rel=FLOAT64_IDENTITY)
     assert spec.lower_bound <= spec.objective
     assert spec.objective == pytest.approx(prob.cost(y), rel=FLOAT64_IDENTITY * 1e3)
 
@@ -449,11 +452,11 @@ def test_not_applicable_says_why() -> None:
 
 def test_a_3d_graph_with_gps_is_certified_with_the_earth_held() -> None:
     """3D with GPS at rank d: the certificate matrix without the earth's rotation rows and
-    columns (a dense twin) gives the eigenvalue; the lower bound is the minimum of F's form
-    with Lambda - shift I over unconstrained rotations, the earth's at the identity (a dense
-    twin), below F at the point and at random rotations (weak duality) and within the gap
-    tolerance of F at its minimum, where the relaxation with the earth lifted (every row of
-    S) has a lower eigenvalue."""
+    columns (a dense twin) gives the eigenvalue and its vector; F less the gap is the value
+    of a feasible point of the relaxation's dual (``Lambda_i - shift I`` for the graph's
+    rotations, ``Q_ee - Q_er P^-1 Q_re`` for the earth's, with ``Q - Lambda`` positive
+    semidefinite: dense twins), and within the gap tolerance of F at F's minimum, where the
+    whole S (the earth's rows too) has a lower eigenvalue."""
     city = generate_city(None, seed=0, gps_every=20, num_poses=200)
     graph = city.graph
     prob = SyncProblem(graph)
@@ -461,41 +464,38 @@ def test_a_3d_graph_with_gps_is_certified_with_the_earth_held() -> None:
     y = prob.refine(prob.to_y(city.truth_rotations))[0]
     assert prob.refine_converged
     spec = prob.spectrum(y, eigenvector=True)
+    assert spec.earth_held
     q = prob.q(np.eye(d * n))
     q = 0.5 * (q + q.T)
     lam = prob.lambda_blocks(y)
     s_all = q - sp.block_diag(list(lam)).toarray()
     keep = np.repeat(np.arange(n) != e, d)
     s_held = s_all[keep][:, keep]
-    assert spec.lambda_min == pytest.approx(np.linalg.eigvalsh(s_held)[0],
-                                            abs=1e-9 * np.abs(s_held).max())
+    scale = np.abs(s_held).max()
+    assert spec.lambda_min == pytest.approx(np.linalg.eigvalsh(s_held)[0], abs=1e-9 * scale)
     assert np.linalg.eigvalsh(s_all)[0] < spec.lambda_min
     assert spec.vector is not None and not np.any(spec.vector[~keep])
-    q_re = q[keep][:, ~keep]
-
-    def twin_bound(shift: float) -> float:
-        shifted = s_held + shift * np.eye(s_held.shape[0])
-        return float(np.trace(lam, axis1=1, axis2=2).sum() - np.trace(lam[e])
-                     + np.trace(q[~keep][:, ~keep])
-                     - np.trace(q_re.T @ np.linalg.solve(shifted, q_re)) - shift * d * (n - 1))
-
-    # at the certified shift the bound is F to rounding (clipped to F); at a larger one the
-    # factorization's bound is the twin's, well below F
-    assert spec.lower_bound == pytest.approx(min(twin_bound(spec.shift), spec.objective),
-                                             rel=1e-9)
-    cs = prob._spectrum_setup()
-    big = 1e-2
-    cs["spd"].factor(big * cs["mask_fixed"], values=prob._certificate_values(lam, True))
-    wide = prob._earth_fixed_bound(lam, big)
-    # the bound subtracts terms of the size of tr(Q_ee) (the readings' positions squared)
-    assert wide == pytest.approx(twin_bound(big), abs=1e-10 * np.trace(q[~keep][:, ~keep]))
-    assert wide < spec.objective - 1e-3 * big * d * n
+    v = spec.vector[keep, 0]
+    assert np.linalg.norm(s_held @ v - spec.lambda_min * v) <= 1e-6 * scale
     assert spec.objective == pytest.approx(prob.cost(y), rel=FLOAT64_IDENTITY * 1e3)
     assert 0.0 <= spec.objective - spec.lower_bound <= GAP_TOLERANCE * spec.objective
-    for seed in range(5):  # any rotations, the earth's at the identity: F above the bound
-        assert prob.cost(prob.to_y(_random_rotations(graph, seed))) >= spec.lower_bound
+    # the dual point at a shift where the bound lies well below F
+    big = 1e-2
+    cs = prob._spectrum_setup()
+    cs["spd"].factor(big * cs["mask_fixed"], values=prob._certificate_values(lam, True))
+    bound = spec.objective - prob._earth_fixed_gap(y, lam, big)
+    shifted = s_held + big * np.eye(s_held.shape[0])
+    q_re = q[keep][:, ~keep]
+    dual = sp.block_diag(list(lam)).toarray()
+    dual[keep] -= big * np.eye(d * n)[keep]
+    dual[np.ix_(~keep, ~keep)] = q[~keep][:, ~keep] - q_re.T @ np.linalg.solve(shifted, q_re)
+    # the twin's trace cancels terms of the size of tr(Q_ee) (the readings' positions squared)
+    assert np.trace(dual) == pytest.approx(bound, abs=1e-10 * np.trace(q[~keep][:, ~keep]))
+    assert bound < spec.objective - 1e-3 * big * d * n
+    assert np.linalg.eigvalsh(q - dual)[0] >= -1e-9 * scale  # dual feasible
     cert = sesync_certificate(graph, city.truth_rotations, city.truth_translations)
     assert cert.certified and cert.relative_gap <= GAP_TOLERANCE
+    assert cert.reason.startswith("S without the earth's rotation rows + ")
 
 
 def test_a_graph_that_is_not_connected_is_refused_with_a_value_error() -> None:

@@ -76,15 +76,15 @@ def test_recorder_abort_leaves_nothing(tmp_path: Path) -> None:
     assert [p.name for p in tmp_path.iterdir()] == ["y.rrd"] and rec.frames == 1
 
 
-def test_iterate_of_the_default_pipeline_sees_every_start_and_the_winner() -> None:
+@pytest.mark.parametrize("early", [True, False], ids=["early try", "every start"])
+def test_iterate_of_the_default_pipeline_sees_every_start_and_the_winner(early: bool) -> None:
     from hybridpgo.energy import energy
     from hybridpgo.solvers.auto import solve_auto
-
     from hybridpgo.solvers.config import AutoConfig
 
     graph, _, _ = random_graph(np.random.default_rng(24), n=10, extra=6, gps=2)
-    # without the early try (which certifies this graph at its first start), every start runs
-    cfg = AutoConfig(certify_first=False)
+    # the early try certifies this graph at its first start; without it every start runs
+    cfg = AutoConfig(certify_first=early)
     plain = solve_auto(graph, cfg)
     seen = _Frames()
     res = solve_auto(graph, cfg, iterate=seen)
@@ -92,7 +92,9 @@ def test_iterate_of_the_default_pipeline_sees_every_start_and_the_winner() -> No
     starts = [f[0].detail for f in seen.frames if f[0].phase == "start"]
     cands = res.stats["candidates"]
     assert starts == [k for k, v in cands.items() if ", no sweeps" not in k
+                      and k != "certified start"
                       and not str(v.get("error", "")).startswith("start:")]
+    assert len(starts) == (1 if early else 3)
     for p, rot, trans in seen.frames:
         assert energy(graph, rot, trans) == pytest.approx(p.energy, rel=1e-12)
     winner = [f for f in seen.frames if f[0].phase == "polish"

@@ -22,22 +22,21 @@ translation) and no rotation term.  F is then invariant under a rigid motion of 
 the earth, so the earth is the gauge (held at the identity); at ``R_e = I, t_e = 0`` the term is
 ``tau_g ||t_i - g||^2``, E's GPS term with isotropic information.  On planar graphs this
 relaxation certifies as SE-Sync's does (M3500 and intel with a GPS reading every 100 poses:
-gaps <= 1e-7).  In 3D, S is ill-conditioned along the earth's rotation: its rows answer to the
-readings alone, and where S restricted to the graph's rotations has an eigenvalue barely below
-0, S itself has one of -0.3 to -5 (valencia with GPS: -6e-4 and -4.7), so no small shift makes
-``S + sigma I`` definite.  At rank d the certificate of a 3D graph with GPS therefore holds the
-earth's rotation at the identity (the *earth-fixed form*): with ``Y_e = I`` F is a quadratic
+gaps <= 1e-7).  In 3D, S is ill-conditioned along the earth's rotation, whose rows answer to
+the readings alone: S can have eigenvalues far below those of S without those rows, so that the
+shift that makes ``S + sigma I`` definite bounds the gap loosely or not at all.  At rank d the
+certificate of a 3D graph with GPS therefore holds the earth's rotation at the identity (the
+*earth-fixed form*): with ``Y_e = I`` F is a quadratic
 ``tr(Y_r^T Q_rr Y_r) + 2 tr(Y_r^T Q_re) + tr(Q_ee)`` in the graph's rotations ``Y_r``.  With
 ``S_rr`` (S without the earth's rows and columns) and ``P = S_rr + sigma I`` positive definite,
 every ``Y_r`` with orthonormal blocks has ``F = tr(Y_r^T P Y_r) + 2 tr(Y_r^T Q_re) + tr(Q_ee) +
-sum_(i != e) tr(Lambda_i) - sigma d (n - 1)``; its minimum over unconstrained ``Y_r`` gives
-``F >= sum_(i != e) tr(Lambda_i) + tr(Q_ee) - tr(Q_er P^-1 Q_re) - sigma d (n - 1)``.  At a
-stationary point with ``S_rr`` semidefinite the bound is F there; it is the dual bound of the
-same relaxation (the best earth multiplier for the graph's ones), computed where S_rr, not S,
-is factored.  Generated 3D cities with a reading every 100 poses: paris2 and the 2 000-pose
-city are certified (gaps 2.5e-10 and 1.1e-8), valencia is not (S_rr has the eigenvalue -6e-4
-at F's refined minimum; the staircase, whose higher ranks lift the earth's rotation, did not
-certify it either).  Planar graphs keep the lifted form, which certifies them.
+sum_(i != e) tr(Lambda_i) - sigma d (n - 1)``, and its minimum over unconstrained ``Y_r`` is a
+lower bound of F's global minimum, ``tr(G^T P^-1 G)`` below F at the point
+(``G = P Y_r + Q_re``, :meth:`SyncProblem._earth_fixed_gap`).  It is the value of a feasible
+point of the same relaxation's dual (``Lambda_i - sigma I`` for the graph's rotations,
+``Q_ee - Q_er P^-1 Q_re`` for the earth's): the form changes which dual point is tested, not
+the relaxation.  Planar graphs keep the lifted form, which certifies them; the staircase's
+ranks above d lift the earth's rotation (:func:`staircase_start`).
 
 ``F`` is **not** the energy E the solvers minimize (E uses geodesic ``Log`` errors and the full
 information): it is the objective that SE-Sync's certificate and its published optimal values
@@ -216,6 +215,8 @@ class Spectrum:
     """Sparse factorizations spent (one per shift tried)."""
     floor: float = 0.0
     """The ladder's smallest shift (below it a factorization does not resolve the sign)."""
+    earth_held: bool = False
+    """The earth-fixed form (3D with GPS, rank d): S is the graph's rotations' part."""
 
 
 class SyncProblem:
@@ -888,25 +889,24 @@ class SyncProblem:
             blocks[cs["diag"][self.earth], rs, rs] = 1.0
         return values
 
-    def _earth_fixed_bound(self, lam: Array, shift: float) -> float:
-        """The lower bound of F's minimum over the graph's rotations with the earth frame's
-        held at the identity, from the factorization of the earth-fixed K shifted by ``shift``
-        (:meth:`spectrum`; rank d, 3D):
-        ``sum_(i != e) tr(Lambda_i) + tr(Q_ee) - tr(Q_er P^-1 Q_re) - shift d (n - 1)`` with
-        ``P = S_rr + shift I`` (docs/mathematics.md, the certificate with GPS)."""
+    def _earth_fixed_gap(self, y: Array, lam: Array, shift: float) -> float:
+        """How far F at the rank-d ``y`` lies above the earth-fixed lower bound of F's minimum
+        (module docstring), from the factorization of the earth-fixed K shifted by ``shift``
+        (:meth:`spectrum`; 3D): ``tr(G^T P^-1 G)`` with ``P = S_rr + shift I`` and
+        ``G = P Y_r + Q_re = (Q Y)_r - Lambda_r Y_r + shift Y_r`` (Y turned so that the earth's
+        block is the identity; Lambda and F do not change).  Nonnegative by construction, and
+        free of the cancellation of the bound's large terms (``tr(Q_ee)``: the readings'
+        positions squared)."""
         cs = self._spectrum_setup()
         n, d, e = self.n, self.d, self.earth
-        unit = np.zeros((d * n, d))
-        unit[d * e: d * e + d] = np.eye(d)
-        q_e = self.q(unit)  # Q's columns of the earth's rotation
-        q_ee = q_e[d * e: d * e + d].copy()
-        q_e[d * e: d * e + d] = 0.0
+        y = y @ y[d * e: d * e + d].T  # the earth's block: the identity
+        yb = y.reshape(n, d, d)
+        g = (self.q(y).reshape(n, d, d) - lam @ yb + shift * yb).reshape(d * n, d)
+        g[d * e: d * e + d] = 0.0  # the earth's rows: P's identity block
         rhs = np.zeros((cs["dim"], d))
-        rhs[cs["rot"]] = q_e
+        rhs[cs["rot"]] = g
         solved = np.asarray(cs["spd"].solve(rhs), np.float64)[cs["rot"]]
-        trace = np.real(np.trace(lam, axis1=1, axis2=2))
-        return float(np.sum(trace) - trace[e] + np.trace(q_ee) - np.sum(q_e * solved)
-                     - shift * d * (n - 1))
+        return max(float(np.sum(g * solved)), 0.0)
 
     def spectrum(self, y: Array, gap_tolerance: float = GAP_TOLERANCE,
                  eigenvector: bool = False, eigenvalue: bool = True) -> Spectrum:
@@ -927,8 +927,8 @@ class SyncProblem:
 
         A 3D graph with GPS at rank d is certified with the earth frame's rotation held at
         the identity (the earth-fixed form, module docstring): S loses the earth's rows and
-        columns, the lower bound is :meth:`_earth_fixed_bound` at the first definite rung, and
-        the point is certified when F less that bound is within the gap tolerance; the
+        columns, the lower bound is F less :meth:`_earth_fixed_gap` at the first definite
+        rung, and the point is certified when that gap is within the gap tolerance; the
         eigenvalue and its vector are those of that S (the vector's earth rows 0).
         """
         from scipy.sparse.linalg import ArpackNoConvergence, LinearOperator, eigsh
@@ -943,7 +943,7 @@ class SyncProblem:
         values = self._certificate_values(lam, fixed)
         spd, dim, scale = cs["spd"], cs["dim"], cs["scale"]
         mask, rot = (cs["mask_fixed"], cs["rot_fixed"]) if fixed else (cs["mask"], cs["rot"])
-        size = rot.size  # S's order: d n, or d (n - 1) without the earth's rotation
+        size = d * (n - 1) if fixed else d * n  # the rotation blocks' rows
         cap = gap_tolerance * abs(objective) / size
         if _SHIFT_FLOOR * scale <= FLOOR_GAP_TOLERANCE * abs(objective) / size:
             cap = max(cap, _SHIFT_FLOOR * scale)  # the smallest shift float64 resolves
@@ -967,9 +967,7 @@ class SyncProblem:
         certified = shift <= cap
         lower = objective - shift * size if certified else -np.inf
         if fixed and certified:
-            # the bound of a tight point is F to rounding, on either side (the earth's terms
-            # are large next to F): above F it is F
-            lower = min(self._earth_fixed_bound(lam, shift), objective)
+            lower = objective - self._earth_fixed_gap(y, lam, shift)
             certified = objective - lower <= cap * size
             lower = lower if certified else -np.inf
         lam_min = float("nan")
@@ -1011,7 +1009,8 @@ class SyncProblem:
                     x = full
                 vec = (x[0::2] + 1j * x[1::2])[:, None] if self.complex else x[:, None]
         return Spectrum(objective, shift if certified else float("inf"), lam_min,
-                        vec if eigenvector else None, lower, tries, _SHIFT_FLOOR * scale)
+                        vec if eigenvector else None, lower, tries, _SHIFT_FLOOR * scale,
+                        fixed)
 
 
 # ------------------------------------------------------------------ results
@@ -1164,9 +1163,16 @@ def _certificate_at(prob: SyncProblem, y: Array, f: float, its: int, spec: Spect
     gap = spec.objective - spec.lower_bound
     ok = bool(np.isfinite(gap))  # within gap_tolerance, or at the smallest shift (spectrum)
     rel = gap / abs(spec.objective) if spec.objective else (0.0 if gap == 0.0 else np.inf)
+    s_name = "S without the earth's rotation rows" if spec.earth_held else "S"
     if ok:
-        reason = (f"S + {spec.shift:.2g} I is positive definite: F is within {gap:.3g} of its "
-                  f"global minimum ({rel:.2g} relative)")
+        reason = (f"{s_name} + {spec.shift:.2g} I is positive definite: F is within {gap:.3g} "
+                  f"of its global minimum ({rel:.2g} relative)")
+    elif (spec.earth_held and np.isfinite(spec.lambda_min)
+          and spec.lambda_min >= -spec.floor):
+        reason = (f"{s_name} is positive semidefinite as far as float64 resolves (λ_min = "
+                  f"{spec.lambda_min:.3g}), but at the smallest definite shift F lies more than "
+                  "the gap tolerance above the dual bound (the refined rotations are not close "
+                  "enough to a stationary point of F)")
     elif np.isfinite(spec.lambda_min) and spec.lambda_min >= -spec.floor:
         reason = (f"the certificate matrix is positive semidefinite as far as float64 resolves "
                   f"(λ_min = {spec.lambda_min:.3g}), but F = {f:.3g} is too small next to the "
@@ -1299,7 +1305,9 @@ def staircase_start(graph: PoseGraph, rotations: FloatArray, translations: Float
     when its Newton's method converged and its gap tolerance is ``gap_tolerance``, rank d's
     point and spectrum are its own; else Newton goes on from the given rotations (a
     refinement stopped at its cap, short of F's local minimum, often ends at the global
-    one).
+    one).  On a 3D graph with GPS the ranks above d lift the earth frame's rotation too: their
+    certificates are those of the whole S, which is ill-conditioned there (module docstring),
+    while the roundings at rank d are certified in the earth-fixed form.
     """
     t0 = time.perf_counter()
     why = not_applicable(graph)

@@ -14,7 +14,9 @@ solver is named (``--solver auto``).  The paper's pure method stays ``--solver h
    eigenvalue: generated grids with large rotation noise), or stops at its cap short of a
    stationary point (no eigenvalue is computed there), SE-Sync's Riemannian staircase
    (:func:`hybridpgo.certificate.staircase_start`) escapes it through ranks d+1.. d+3 and a
-   certified rounding is the certified start (``stats["certificate"]["staircase"]``).
+   certified rounding is the certified start (``stats["certificate"]["staircase"]``); on a 3D
+   graph with GPS it stays at rank d (above it the earth frame's rotation is lifted, where
+   the certificate matrix is ill-conditioned).
    Newton's method there makes at most ``EARLY_NEWTON_WORK / N`` factorizations on N poses
    (:func:`_early_newton_cap`); on a graph where that is below the certificate's own cap and
    Newton stops without converging and uncertified, LM polishes the start first and the
@@ -412,12 +414,14 @@ def _certificate_info(cert: Any, start: str) -> dict[str, Any]:
 
 
 def _staircase(graph: PoseGraph, prob: SyncProblem | None, init: str, cert: Any,
-               info: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
+               info: dict[str, Any], max_rank: int | None = None
+               ) -> tuple[Any, dict[str, Any]]:
     """The early try's second chance: :func:`hybridpgo.certificate.staircase_start` going on
     from the failed certificate ``cert`` on the same
     :class:`~hybridpgo.certificate.SyncProblem` ``prob`` (rank d from its refined rotations;
     its spectrum reused when its Newton's method converged); the certificate of the poses
-    where the staircase certifies is the answer's.  Returns the certificate
+    where the staircase certifies is the answer's (``max_rank``: the staircase's).  Returns
+    the certificate
     and ``stats["certificate"]`` (with ``staircase``: its ranks, seconds, verdict;
     ``seconds`` counts the staircase)."""
     from ..certificate import staircase_start
@@ -426,7 +430,7 @@ def _staircase(graph: PoseGraph, prob: SyncProblem | None, init: str, cert: Any,
     try:
         with np.errstate(over="raise", invalid="raise", divide="raise"):
             _, _, stair = staircase_start(graph, cert.rotations, cert.translations,
-                                          problem=prob, start=cert)
+                                          problem=prob, start=cert, max_rank=max_rank)
     except (HybridPGOError, ValueError, np.linalg.LinAlgError, RuntimeError,
             FloatingPointError) as exc:
         info["staircase"] = {"certified": False, "error": str(exc),
@@ -557,16 +561,16 @@ def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: 
         cert, info = _polished_first(exact, cfg, prob, cand, cert, info, cap, t_origin,
                                      progress, iterate)
     floor = cert.stats.get("shift_floor", 0.0)
-    # a 3D graph with GPS: the staircase's higher ranks lift the earth frame's rotation,
-    # where S is ill-conditioned (certificate.py); on valencia + GPS it took 14.6 s and did
-    # not certify, so it is not run
-    lifted_earth = graph.num_gps > 0 and not graph.is_2d
-    if not cert.certified and not lifted_earth and (
-            cert.lambda_min < -floor or not cert.stats.get("refine_converged", True)):
+    if not cert.certified and (cert.lambda_min < -floor
+                               or not cert.stats.get("refine_converged", True)):
         # F's local minimum (a negative eigenvalue), or Newton stopped short of one (where no
         # eigenvalue is computed): SE-Sync's Riemannian staircase (Newton goes on at rank d)
-        # escapes it through higher ranks; a certified rounding is the certified start
-        cert, info = _staircase(graph, prob, init, cert, info)
+        # escapes it through higher ranks; a certified rounding is the certified start.  A 3D
+        # graph with GPS stays at rank d: above it the earth frame's rotation is lifted,
+        # where S is ill-conditioned (certificate.py), and the escape did not certify
+        # valencia + GPS (ranks 4-6 in 14.6 s)
+        held = graph.num_gps > 0 and not graph.is_2d
+        cert, info = _staircase(graph, prob, init, cert, info, 3 if held else None)
     if not cert.certified:
         return cand, None, info
     check = _polished_at(exact, cfg, init, "certified start", cert.rotations,
