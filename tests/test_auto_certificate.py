@@ -408,3 +408,27 @@ def test_a_polished_first_certificate_that_raises_leaves_the_capped_try_to_the_s
     assert "no factorization today" in cert["polished_first"]["error"]
     assert cert["certified"] and cert["staircase"]["certified"]
     assert abs(res.final_energy - every.final_energy) <= SAME * every.final_energy
+
+
+def test_a_winner_at_the_first_finalists_optimum_is_not_certified_again(monkeypatch) -> None:
+    """A 3D city with GPS that the certificate does not hold for: every start is polished to
+    the same optimum, and the winner (another start, at the first polished finalist's
+    energy within the tie) keeps the first finalist's verdict instead of a certificate of its
+    own (the same rotations refine to the same point of F)."""
+    import hybridpgo.certificate as certificate
+
+    calls: list[str] = []
+    real = certificate.certify
+
+    def counted(*args, **kwargs):
+        calls.append("certify")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(certificate, "certify", counted)
+    res = solve_auto(generate_city(None, seed=0, gps_every=10, num_poses=100).graph)
+    cert = res.stats["certificate"]
+    assert not cert["certified"] and cert["lambda_min"] < 0
+    assert cert["start"] != res.stats["start"]  # the first finalist's verdict, another start's
+    energies = [c["final_energy"] for c in res.stats["candidates"].values()]
+    assert max(energies) - min(energies) <= 1e-9 * min(energies)
+    assert calls == ["certify"] and "first" not in cert

@@ -65,7 +65,9 @@ solver is named (``--solver auto``).  The paper's pure method stays ``--solver h
    energy).  When it is,
    the other finalists are not polished and the relaxation check (4) is skipped; when LM from
    the certified start converges lower, that polish is the result.  Otherwise the other
-   finalists are polished as in 3 and the winner is certified.  ``stats["certificate"]``:
+   finalists are polished as in 3 and the winner is certified (a winner at the first
+   finalist's energy, within the tie, keeps that verdict: the same rotations refine to the same
+   point of F).  ``stats["certificate"]``:
    ``certified``, ``summary`` ("certified global optimum (gap ≤ ...)" or "not certified ..."),
    ``lambda_min``, ``relative_gap``, ``objective`` (SE-Sync's), ``seconds``, or ``why`` it
    was not computed; ``stats["polished_starts"]`` counts the finalists polished.
@@ -798,8 +800,12 @@ def _full_pipeline(graph: PoseGraph, exact: ExactSolver | None, cfg: AutoConfig,
         raise SolverError("the polish failed from every start: "
                           + "; ".join(f"{c.label}: {_failure(c)}" for c in finalists))
     win = min(polished, key=lambda c: c.energy)
-    if first is not None and not (first["computed"] and not first["certified"]
-                                  and first["start"] != win.label):
+    # the first polished finalist's certificate holds for a winner at its optimum (the same
+    # E within the tie: the same rotations, refined to the same point of F, the same verdict)
+    same = first is not None and any(c.label == first.get("start") and abs(
+        c.energy - win.energy) <= _TIE * abs(c.energy) for c in polished)
+    if first is not None and (same or not (first["computed"] and not first["certified"]
+                                           and first["start"] != win.label)):
         certificate = first
     else:  # certify the winner
         certificate, check = _certify(exact, cfg, win, progress, iterate)
