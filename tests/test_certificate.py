@@ -452,11 +452,11 @@ def test_not_applicable_says_why() -> None:
 
 def test_a_3d_graph_with_gps_is_certified_with_the_earth_held() -> None:
     """3D with GPS at rank d: the certificate matrix without the earth's rotation rows and
-    columns (a dense twin) gives the eigenvalue and its vector; F less the gap is the value
-    of a feasible point of the relaxation's dual (``Lambda_i - shift I`` for the graph's
-    rotations, ``Q_ee - Q_er P^-1 Q_re`` for the earth's, with ``Q - Lambda`` positive
-    semidefinite: dense twins), and within the gap tolerance of F at F's minimum, where the
-    whole S (the earth's rows too) has a lower eigenvalue."""
+    columns (a dense twin) gives the eigenvalue and its vector; F's excess over the bound is
+    ``tr(G^T P^-1 G)`` (a dense twin), the same for Y turned by any rotation, and F less it is
+    the value of a feasible point of the relaxation's dual (``Lambda_i - shift I`` for the
+    graph's rotations, ``Q_ee - Q_er P^-1 Q_re`` for the earth's, ``Q - Lambda`` positive
+    semidefinite: a dense twin); at F's minimum within the gap tolerance."""
     city = generate_city(None, seed=0, gps_every=20, num_poses=200)
     graph = city.graph
     prob = SyncProblem(graph)
@@ -468,31 +468,41 @@ def test_a_3d_graph_with_gps_is_certified_with_the_earth_held() -> None:
     q = prob.q(np.eye(d * n))
     q = 0.5 * (q + q.T)
     lam = prob.lambda_blocks(y)
-    s_all = q - sp.block_diag(list(lam)).toarray()
     keep = np.repeat(np.arange(n) != e, d)
-    s_held = s_all[keep][:, keep]
+    s_held = (q - sp.block_diag(list(lam)).toarray())[keep][:, keep]
+    values, vectors = np.linalg.eigh(s_held)
     scale = np.abs(s_held).max()
-    assert spec.lambda_min == pytest.approx(np.linalg.eigvalsh(s_held)[0], abs=1e-9 * scale)
-    assert np.linalg.eigvalsh(s_all)[0] < spec.lambda_min
+    assert spec.lambda_min == pytest.approx(values[0], abs=1e-9 * scale)
+    assert values[1] - values[0] > 1e-3 * abs(values[0])  # a simple eigenvalue: its vector
     assert spec.vector is not None and not np.any(spec.vector[~keep])
-    v = spec.vector[keep, 0]
-    assert np.linalg.norm(s_held @ v - spec.lambda_min * v) <= 1e-6 * scale
+    assert abs(spec.vector[keep, 0] @ vectors[:, 0]) == pytest.approx(1.0, abs=1e-6)
     assert spec.objective == pytest.approx(prob.cost(y), rel=FLOAT64_IDENTITY * 1e3)
     assert 0.0 <= spec.objective - spec.lower_bound <= GAP_TOLERANCE * spec.objective
-    # the dual point at a shift where the bound lies well below F
-    big = 1e-2
-    cs = prob._spectrum_setup()
-    cs["spd"].factor(big * cs["mask_fixed"], values=prob._certificate_values(lam, True))
-    bound = spec.objective - prob._earth_fixed_gap(y, lam, big)
-    shifted = s_held + big * np.eye(s_held.shape[0])
     q_re = q[keep][:, ~keep]
+    y_r = y[keep]
+
+    def twin_excess(shift: float) -> float:
+        shifted = s_held + shift * np.eye(s_held.shape[0])
+        g = shifted @ y_r + q_re
+        return float(np.trace(g.T @ np.linalg.solve(shifted, g)))
+
+    cs = prob._spectrum_setup()
+    big = 1e-2
+    cs["spd"].factor(big * cs["mask_fixed"], values=prob._certificate_values(lam, True))
+    excess = prob._earth_fixed_gap(y, lam, big)
+    assert excess == pytest.approx(twin_excess(big), rel=1e-6)
+    assert excess > 1e-3 * big * d * n  # well away from 0: the comparison means something
+    turn = np.asarray(_random_rotations(graph, 7)[0])
+    assert prob._earth_fixed_gap(y @ turn, lam, big) == pytest.approx(excess, rel=1e-6)
+    # the dual point: its value F - excess, Q minus it positive semidefinite
+    shifted = s_held + big * np.eye(s_held.shape[0])
     dual = sp.block_diag(list(lam)).toarray()
     dual[keep] -= big * np.eye(d * n)[keep]
     dual[np.ix_(~keep, ~keep)] = q[~keep][:, ~keep] - q_re.T @ np.linalg.solve(shifted, q_re)
     # the twin's trace cancels terms of the size of tr(Q_ee) (the readings' positions squared)
-    assert np.trace(dual) == pytest.approx(bound, abs=1e-10 * np.trace(q[~keep][:, ~keep]))
-    assert bound < spec.objective - 1e-3 * big * d * n
-    assert np.linalg.eigvalsh(q - dual)[0] >= -1e-9 * scale  # dual feasible
+    assert np.trace(dual) == pytest.approx(spec.objective - excess,
+                                           abs=1e-10 * np.trace(q[~keep][:, ~keep]))
+    assert np.linalg.eigvalsh(q - dual)[0] >= -1e-9 * scale
     cert = sesync_certificate(graph, city.truth_rotations, city.truth_translations)
     assert cert.certified and cert.relative_gap <= GAP_TOLERANCE
     assert cert.reason.startswith("S without the earth's rotation rows + ")

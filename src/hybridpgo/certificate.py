@@ -217,6 +217,12 @@ class Spectrum:
     """The ladder's smallest shift (below it a factorization does not resolve the sign)."""
     earth_held: bool = False
     """The earth-fixed form (3D with GPS, rank d): S is the graph's rotations' part."""
+    definite: float = float("inf")
+    """The first shift of the ladder with ``S + sigma I`` positive definite, whether or not
+    it certifies (inf: none tried was)."""
+    excess: float = float("nan")
+    """The earth-fixed form: F less its lower bound at :attr:`definite`
+    (:meth:`SyncProblem._earth_fixed_gap`; NaN: not computed)."""
 
 
 class SyncProblem:
@@ -860,7 +866,10 @@ class SyncProblem:
             e = self.earth
             fixed = mask.copy()
             fixed[e] = 0.0
+            diag_e = np.diagonal(pose[diag_block], axis1=1, axis2=2).real.copy()
+            diag_e[e, 1:] = 0.0  # the earth's rotation entries: an identity when it is held
             self._cert.update(
+                scale_fixed=float(np.max(np.abs(diag_e))),
                 earth_rows=np.arange(block_ptr[e], block_ptr[e + 1]),
                 earth_cols=np.flatnonzero(block_col == e), mask_fixed=fixed.ravel(),
                 rot_fixed=rot[(rot // 4) != e],
@@ -927,9 +936,11 @@ class SyncProblem:
 
         A 3D graph with GPS at rank d is certified with the earth frame's rotation held at
         the identity (the earth-fixed form, module docstring): S loses the earth's rows and
-        columns, the lower bound is F less :meth:`_earth_fixed_gap` at the first definite
-        rung, and the point is certified when that gap is within the gap tolerance; the
-        eigenvalue and its vector are those of that S (the vector's earth rows 0).
+        columns (the ladder starts from the largest diagonal entry without the earth's
+        rotation), the lower bound is F less :meth:`_earth_fixed_gap` at the first definite
+        rung (whether or not it is below the gap tolerance's shift), and the point is certified
+        when that excess is within the gap tolerance; the eigenvalue and its vector are those
+        of that S (the vector's earth rows 0).
         """
         from scipy.sparse.linalg import ArpackNoConvergence, LinearOperator, eigsh
 
@@ -941,7 +952,8 @@ class SyncProblem:
         objective = float(np.sum(np.real(np.trace(lam, axis1=1, axis2=2))))
         fixed = self.earth >= 0 and not self.complex and y.shape[1] == d
         values = self._certificate_values(lam, fixed)
-        spd, dim, scale = cs["spd"], cs["dim"], cs["scale"]
+        spd, dim = cs["spd"], cs["dim"]
+        scale = cs["scale_fixed"] if fixed else cs["scale"]
         mask, rot = (cs["mask_fixed"], cs["rot_fixed"]) if fixed else (cs["mask"], cs["rot"])
         size = d * (n - 1) if fixed else d * n  # the rotation blocks' rows
         cap = gap_tolerance * abs(objective) / size
@@ -966,10 +978,11 @@ class SyncProblem:
                 break
         certified = shift <= cap
         lower = objective - shift * size if certified else -np.inf
-        if fixed and certified:
-            lower = objective - self._earth_fixed_gap(y, lam, shift)
-            certified = objective - lower <= cap * size
-            lower = lower if certified else -np.inf
+        excess = float("nan")
+        if fixed and np.isfinite(shift):  # the bound holds at any definite shift
+            excess = self._earth_fixed_gap(y, lam, shift)
+            certified = excess <= cap * size
+            lower = objective - excess if certified else -np.inf
         lam_min = float("nan")
         vec: Array | None = None
         if np.isfinite(shift) and (certified or eigenvalue):
@@ -1010,7 +1023,7 @@ class SyncProblem:
                 vec = (x[0::2] + 1j * x[1::2])[:, None] if self.complex else x[:, None]
         return Spectrum(objective, shift if certified else float("inf"), lam_min,
                         vec if eigenvector else None, lower, tries, _SHIFT_FLOOR * scale,
-                        fixed)
+                        fixed, shift, excess)
 
 
 # ------------------------------------------------------------------ results
@@ -1164,27 +1177,31 @@ def _certificate_at(prob: SyncProblem, y: Array, f: float, its: int, spec: Spect
     ok = bool(np.isfinite(gap))  # within gap_tolerance, or at the smallest shift (spectrum)
     rel = gap / abs(spec.objective) if spec.objective else (0.0 if gap == 0.0 else np.inf)
     s_name = "S without the earth's rotation rows" if spec.earth_held else "S"
+    m_name = ("the certificate matrix without the earth's rotation rows" if spec.earth_held
+              else "the certificate matrix")
     if ok:
         reason = (f"{s_name} + {spec.shift:.2g} I is positive definite: F is within {gap:.3g} "
                   f"of its global minimum ({rel:.2g} relative)")
-    elif (spec.earth_held and np.isfinite(spec.lambda_min)
-          and spec.lambda_min >= -spec.floor):
-        reason = (f"{s_name} is positive semidefinite as far as float64 resolves (λ_min = "
-                  f"{spec.lambda_min:.3g}), but at the smallest definite shift F lies more than "
-                  "the gap tolerance above the dual bound (the refined rotations are not close "
-                  "enough to a stationary point of F)")
+    elif spec.earth_held and np.isfinite(spec.excess) and not (
+            np.isfinite(spec.lambda_min) and spec.lambda_min < -spec.floor):
+        reason = (f"{s_name} + {spec.definite:.2g} I is positive definite, but F lies "
+                  f"{spec.excess:.3g} above the dual bound there, more than the gap tolerance "
+                  "(the refined rotations are not close enough to a stationary point of F"
+                  + ("" if converged else f": Newton's method stopped after {its} "
+                     "factorizations") + ")")
     elif np.isfinite(spec.lambda_min) and spec.lambda_min >= -spec.floor:
-        reason = (f"the certificate matrix is positive semidefinite as far as float64 resolves "
+        reason = (f"{m_name} is positive semidefinite as far as float64 resolves "
                   f"(λ_min = {spec.lambda_min:.3g}), but F = {f:.3g} is too small next to the "
                   f"information for a gap bound within {FLOOR_GAP_TOLERANCE:g} of it (a graph "
                   "with few loops or little noise)")
     elif np.isfinite(spec.lambda_min):
-        reason = (f"the certificate matrix has a negative eigenvalue {spec.lambda_min:.3g}: "
-                  "the refined rotations are not F's global minimum")
+        reason = (f"{m_name} has a negative eigenvalue {spec.lambda_min:.3g}: the refined "
+                  "rotations are not certified as F's global minimum (a local minimum of F, "
+                  "or a point where the relaxation is not tight)")
     elif not converged:
         reason = (f"Newton's method on F stopped after {its} factorizations short of a "
-                  "stationary point; S + σI is not positive definite for any shift of the "
-                  "ladder up to the gap tolerance's there (its eigenvalue is not computed)")
+                  f"stationary point; {s_name} + σI is not positive definite for any shift of "
+                  "the ladder up to the gap tolerance's there (its eigenvalue is not computed)")
     else:
         reason = "the certificate's eigenvalue could not be computed"
     return Certificate(

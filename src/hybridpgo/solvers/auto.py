@@ -66,8 +66,9 @@ solver is named (``--solver auto``).  The paper's pure method stays ``--solver h
    the other finalists are not polished and the relaxation check (4) is skipped; when LM from
    the certified start converges lower, that polish is the result.  Otherwise the other
    finalists are polished as in 3 and the winner is certified (a winner at the first
-   finalist's energy, within the tie, keeps that verdict: the same rotations refine to the same
-   point of F).  ``stats["certificate"]``:
+   finalist's energy, within the tie, keeps the first finalist's verdict: the same rotations
+   refine to the same point of F; ``stats["certificate"]["start"]`` names the finalist
+   certified).  ``stats["certificate"]``:
    ``certified``, ``summary`` ("certified global optimum (gap ≤ ...)" or "not certified ..."),
    ``lambda_min``, ``relative_gap``, ``objective`` (SE-Sync's), ``seconds``, or ``why`` it
    was not computed; ``stats["polished_starts"]`` counts the finalists polished.
@@ -563,15 +564,15 @@ def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: 
         cert, info = _polished_first(exact, cfg, prob, cand, cert, info, cap, t_origin,
                                      progress, iterate)
     floor = cert.stats.get("shift_floor", 0.0)
-    if not cert.certified and (cert.lambda_min < -floor
-                               or not cert.stats.get("refine_converged", True)):
+    # a 3D graph with GPS: the staircase stays at rank d = 3 (above it the earth frame's
+    # rotation is lifted, where S is ill-conditioned, certificate.py; the escape did not
+    # certify valencia + GPS), so it runs only to let Newton go on where it stopped short
+    held = graph.num_gps > 0 and not graph.is_2d
+    converged = cert.stats.get("refine_converged", True)
+    if not cert.certified and ((cert.lambda_min < -floor and not held) or not converged):
         # F's local minimum (a negative eigenvalue), or Newton stopped short of one (where no
         # eigenvalue is computed): SE-Sync's Riemannian staircase (Newton goes on at rank d)
-        # escapes it through higher ranks; a certified rounding is the certified start.  A 3D
-        # graph with GPS stays at rank d: above it the earth frame's rotation is lifted,
-        # where S is ill-conditioned (certificate.py), and the escape did not certify
-        # valencia + GPS (ranks 4-6 in 14.6 s)
-        held = graph.num_gps > 0 and not graph.is_2d
+        # escapes it through higher ranks; a certified rounding is the certified start
         cert, info = _staircase(graph, prob, init, cert, info, 3 if held else None)
     if not cert.certified:
         return cand, None, info
@@ -753,6 +754,16 @@ def _stats(win: _Candidate, cands: list[_Candidate], ranked: list[_Candidate],
     }
 
 
+def _same_optimum(first: dict[str, Any], polished: list[_Candidate], win: _Candidate
+                  ) -> bool:
+    """Whether the winner ends at the energy of the first polished finalist, whose
+    certificate is ``first`` (``first["start"]``: its label), within the tie: the same
+    rotations, refined to the same point of F, get the same verdict, so the winner keeps
+    that one (``stats["certificate"]["start"]`` then names the first finalist)."""
+    return any(c.label == first.get("start")
+               and abs(c.energy - win.energy) <= _TIE * abs(c.energy) for c in polished)
+
+
 def _full_pipeline(graph: PoseGraph, exact: ExactSolver | None, cfg: AutoConfig,
                    tree: PoseTree, inits: list[InitName], why: str, large: bool,
                    early: tuple[_Candidate, _Candidate | None, dict[str, Any]] | None,
@@ -800,12 +811,8 @@ def _full_pipeline(graph: PoseGraph, exact: ExactSolver | None, cfg: AutoConfig,
         raise SolverError("the polish failed from every start: "
                           + "; ".join(f"{c.label}: {_failure(c)}" for c in finalists))
     win = min(polished, key=lambda c: c.energy)
-    # the first polished finalist's certificate holds for a winner at its optimum (the same
-    # E within the tie: the same rotations, refined to the same point of F, the same verdict)
-    same = first is not None and any(c.label == first.get("start") and abs(
-        c.energy - win.energy) <= _TIE * abs(c.energy) for c in polished)
-    if first is not None and (same or not (first["computed"] and not first["certified"]
-                                           and first["start"] != win.label)):
+    if first is not None and (_same_optimum(first, polished, win) or not (
+            first["computed"] and not first["certified"] and first["start"] != win.label)):
         certificate = first
     else:  # certify the winner
         certificate, check = _certify(exact, cfg, win, progress, iterate)

@@ -359,8 +359,9 @@ class AutoConfig:
     method on SE-Sync's objective from its rotations, the certificate of that objective's
     global minimum, and LM from the certified start back to the same energy).  Certified: no
     other finalist is polished and the relaxation check is skipped.  Not certified: the other
-    finalists are polished as with ``False`` and the winner is certified (unless it ends at
-    the first one's energy: that verdict is its own).  Applies where
+    finalists are polished as with ``False`` and the winner is certified (a winner at the
+    first finalist's energy keeps the first finalist's verdict; ``stats["certificate"]["start"]``
+    names the finalist certified).  Applies where
     SE-Sync's model describes the graph (no robust kernel, at most one FIX node and none
     with GPS, connected) and not under the large-graph policy.
     ``stats["certificate"]`` says what was certified, or why not.  False: every finalist is
