@@ -713,8 +713,10 @@ def _stats(win: _Candidate, cands: list[_Candidate], ranked: list[_Candidate],
     others = ", ".join(f"{c.label} {c.energy:.6g}" for c in polished if c is not win)
     cut = [c.label for c in finalists if c.cut]
     stair = certificate.get("staircase", {})
+    lifted = bool(stair.get("ranks")) and stair["rank"] > stair["ranks"][0]["rank"]
     how = (f"SE-Sync's Riemannian staircase to rank {stair['rank']}, rounded and refined by "
-           "Newton's method" if stair.get("certified") and win.label == "certified start"
+           "Newton's method" if stair.get("certified") and lifted
+           and win.label == "certified start"
            else "its rotations refined by Newton's method on SE-Sync's objective")
     if "polished_first" in certificate and win.label == "certified start":
         how = f"LM polished the start first, then {how}"
