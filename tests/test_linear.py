@@ -302,3 +302,35 @@ def test_shared_patterns_share_one_analysis_and_each_solves_with_its_own_values(
     g1.factor(va)
     with pytest.raises(SolverError, match="before its first factorization"):
         g2.solve_factored(b)
+
+
+@pytest.mark.skipif(not cholmod_available(), reason="cvxopt not installed")
+def test_shared_patterns_keep_larger_patterns_only_for_factorizers_made_to_share(
+        rng: np.random.Generator, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A pattern above SHARED_PATTERN_MAX is kept only from a factorizer made with
+    ``share=True`` (up to SHARED_PATTERN_MAX_SHARED): a later factorizer of it then starts from
+    the kept matrix; from one made without, each builds its own."""
+    import cvxopt
+
+    from hybridpgo.linalg import shared_patterns
+
+    pat, _ = _pattern_of(_sparse_spd(rng, 40))
+    entries = int(pat.indptr[-1])
+    monkeypatch.setattr(_linear, "SHARED_PATTERN_MAX", entries - 1)
+    monkeypatch.setattr(_linear, "SHARED_PATTERN_MAX_SHARED", entries)
+    built: list[int] = []
+    original = cvxopt.spmatrix
+    monkeypatch.setattr(cvxopt, "spmatrix", lambda *a, **k: built.append(1) or original(*a, **k))
+    with shared_patterns():
+        make_factorizer(pat, "cholmod")
+        make_factorizer(pat, "cholmod")
+    assert len(built) == 2  # not kept: each from triplets
+    with shared_patterns():
+        first = make_factorizer(pat, "cholmod", share=True)
+        second = make_factorizer(pat, "cholmod")
+    assert len(built) == 3 and second._factor is first._factor  # kept, and shared
+    monkeypatch.setattr(_linear, "SHARED_PATTERN_MAX_SHARED", entries - 1)
+    with shared_patterns():
+        make_factorizer(pat, "cholmod", share=True)
+        make_factorizer(pat, "cholmod")
+    assert len(built) == 5  # above both limits: not kept

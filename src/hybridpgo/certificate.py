@@ -658,7 +658,8 @@ class SyncProblem:
         dim = pp * nf
         pattern = sp.bsr_matrix((np.zeros((bm["nblocks"], pp, pp)), bm["indices"],
                                  bm["indptr"]), shape=(dim, dim))
-        self._newton = {**bm, "pp": pp, "spd": SparseSPD(pattern) if nf else None,
+        # LM's normal equations have this pattern (shared_patterns: one construction)
+        self._newton = {**bm, "pp": pp, "spd": SparseSPD(pattern, share=True) if nf else None,
                         "keep": np.flatnonzero(np.repeat(free >= 0, pp))}
         return self._newton
 

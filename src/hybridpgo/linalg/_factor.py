@@ -285,12 +285,15 @@ _CHOLMOD_OPTIONS = {"supernodal": 2, "nmethods": 1}
 #: indices, matrix, analysis)`` per pattern.
 _PATTERNS: contextvars.ContextVar[list[tuple[Any, Any, Any, Any]] | None] = contextvars.ContextVar(
     "hybridpgo_cholmod_patterns", default=None)
-#: Patterns with more stored entries than this are not kept (the copy kept holds some 24 bytes
-#: per entry: its indices twice and its values; the 1M-pose graphs' patterns, of 10^7 entries
-#: and more, stay out).  The 42 000-pose paris2 with GPS: its Newton system and LM's normal
-#: equations share a pattern of 2.9 M entries, whose construction and analysis cost 0.2 s of a
-#: 3.4 s default solve.
-SHARED_PATTERN_MAX = 1 << 22
+#: Patterns with more stored entries than this are not kept (their construction is small
+#: beside their factorization, and what is kept, the matrix's copy and its analysis with the
+#: numeric factor, lives until the context ends).
+SHARED_PATTERN_MAX = 1 << 20
+#: The same for factorizers made to be shared (``share=True``: the certificate's Newton
+#: system and LM's normal equations, whose pattern is the same).  The 42 000-pose paris2 with
+#: GPS: a pattern of 2.9 M entries, its construction and analysis made once instead of twice
+#: (``benchmarks/results/2026-12-01-auto-ac.md``); the million-pose graphs' patterns stay out.
+SHARED_PATTERN_MAX_SHARED = 1 << 22
 
 
 @contextlib.contextmanager
@@ -346,12 +349,15 @@ def _shared_matrix(pattern: SymmetricPattern) -> tuple[Any, _Analysis] | None:
     return None
 
 
-def _remember(pattern: SymmetricPattern, matrix: Any, analysis: _Analysis) -> bool:
+def _remember(pattern: SymmetricPattern, matrix: Any, analysis: _Analysis,
+              share: bool = False) -> bool:
     """Keep ``matrix`` and its analysis for the factorizers of an equal pattern made later in
     this :func:`shared_patterns` context; False when none is open or the pattern is too
-    large to keep."""
+    large to keep (:data:`SHARED_PATTERN_MAX`, or with ``share``
+    :data:`SHARED_PATTERN_MAX_SHARED`)."""
     known = _PATTERNS.get()
-    if known is None or int(pattern.indptr[-1]) > SHARED_PATTERN_MAX:
+    limit = SHARED_PATTERN_MAX_SHARED if share else SHARED_PATTERN_MAX
+    if known is None or int(pattern.indptr[-1]) > limit:
         return False
     known.append((np.array(pattern.indptr, copy=True), np.array(pattern.indices, copy=True),
                   matrix, analysis))
@@ -363,7 +369,7 @@ class _Cholmod(Factorizer):
 
     name = "cholmod"
 
-    def __init__(self, pattern: SymmetricPattern) -> None:
+    def __init__(self, pattern: SymmetricPattern, share: bool = False) -> None:
         import cvxopt
 
         _check_lower(pattern)
@@ -401,7 +407,7 @@ class _Cholmod(Factorizer):
         with _cholmod_options(**_CHOLMOD_OPTIONS) as cm:
             self._factor = cm.symbolic(self._matrix, p=natural)
         analysis = _Analysis(self._factor)
-        if _remember(pattern, self._matrix, analysis):
+        if _remember(pattern, self._matrix, analysis, share):
             self._analysis = analysis
             self._token = analysis.token()
 
@@ -503,14 +509,17 @@ class _Cholmod(Factorizer):
         return out
 
 
-def make_factorizer(pattern: SymmetricPattern, backend: str) -> _SuperLU | _Cholmod:
-    """The factorizer for ``linear_solver`` (see :data:`config.LINEAR_SOLVERS`)."""
+def make_factorizer(pattern: SymmetricPattern, backend: str, share: bool = False
+                    ) -> _SuperLU | _Cholmod:
+    """The factorizer for ``linear_solver`` (see :data:`config.LINEAR_SOLVERS`); ``share``: one
+    made to be shared with a later factorizer of its pattern in a :func:`shared_patterns`
+    context (kept up to :data:`SHARED_PATTERN_MAX_SHARED` entries)."""
     if backend == "cholmod" or (backend == "auto" and cholmod_available()):
         if not cholmod_available():
             raise SolverError("linear_solver='cholmod' needs cvxopt (pip install "
                               "'hybridpgo[cholmod]', or pip install cvxopt: its wheels bundle "
                               "SuiteSparse's CHOLMOD)")
-        return _Cholmod(pattern)
+        return _Cholmod(pattern, share)
     return _SuperLU(pattern)
 
 
@@ -624,9 +633,10 @@ class SparseSPD:
     diagonal entry stored (as it is for a matrix whose diagonal is positive); its lower
     triangle in the new order is laid out block by block (:func:`permuted_lower`: a BSR
     matrix's blocks are permuted whole, 36 times fewer items than its 6x6 blocks' entries).
+    ``share``: :func:`make_factorizer`'s.
     """
 
-    def __init__(self, a: sp.spmatrix, block: int = 1) -> None:
+    def __init__(self, a: sp.spmatrix, block: int = 1, share: bool = False) -> None:
         if not sp.issparse(a) or a.format not in _ENTRY_FORMATS or not a.has_canonical_format:
             raise ValueError("SparseSPD needs a sparse CSR, CSC, COO or BSR matrix in canonical "
                              "format (sorted indices, no duplicates)")
@@ -671,7 +681,7 @@ class SparseSPD:
         pattern = CscPattern.from_arrays(indptr, indices)
         del rows, cols
         self._diag = pattern.diag_index
-        self._factorizer = make_factorizer(pattern, "auto") if dim else None
+        self._factorizer = make_factorizer(pattern, "auto", share) if dim else None
 
     @property
     def backend(self) -> str:

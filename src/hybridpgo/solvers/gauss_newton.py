@@ -122,7 +122,8 @@ class _Backend:
             system = System(pat.indptr, np.zeros(0, np.int64), None, ALL_DOFS, pat.dim)
         else:
             system = planar_system(pat) if planar else full_system(pat)
-            solver = make_factorizer(system, linear_solver)
+            # the certificate's Newton system has this pattern (shared_patterns)
+            solver = make_factorizer(system, linear_solver, share=True)
         if solver.name == "cholmod":  # CHOLMOD holds the pattern: drop our copy of the rows
             system = dataclasses.replace(system, indices=np.zeros(0, np.int64))
         buffer = solver.values_buffer()
