@@ -452,12 +452,19 @@ class SyncProblem:
         out[self._t_keep] = -self._dsolve(self._bh @ y)
         return out
 
-    def lambda_blocks(self, y: Array) -> Array:
-        """``Lambda``: the (n, d, d) Hermitian diagonal blocks of ``Q Y Y^H``."""
+    def lambda_blocks(self, y: Array, qy: Array | None = None) -> Array:
+        """``Lambda``: the (n, d, d) Hermitian diagonal blocks of ``Q Y Y^H`` (``qy``: ``Q Y``
+        when computed already)."""
         n, d = self.n, self.d
-        qy = self.q(y).reshape(n, d, -1)
+        qyb = (self.q(y) if qy is None else qy).reshape(n, d, -1)
         yb = y.reshape(n, d, -1)
-        return _herm(qy @ np.conj(np.swapaxes(yb, 1, 2)))
+        return _herm(qyb @ np.conj(np.swapaxes(yb, 1, 2)))
+
+    @property
+    def holds_earth(self) -> bool:
+        """Whether rank-d certificates hold the earth frame's rotation at the identity (the
+        earth-fixed form, module docstring: a 3D graph with GPS)."""
+        return self.earth >= 0 and not self.complex
 
     def certificate_product(self, y: Array, x: Array) -> Array:
         """``S X = Q X - Lambda(Y) X`` for X (d n, k)."""
@@ -899,19 +906,22 @@ class SyncProblem:
             blocks[cs["diag"][self.earth], rs, rs] = 1.0
         return values
 
-    def _earth_fixed_gap(self, y: Array, lam: Array, shift: float) -> float:
+    def _earth_fixed_gap(self, y: Array, lam: Array, shift: float,
+                         qy: Array | None = None) -> float:
         """How far F at the rank-d ``y`` lies above the earth-fixed lower bound of F's minimum
         (module docstring), from the factorization of the earth-fixed K shifted by ``shift``
         (:meth:`spectrum`; 3D): ``tr(G^T P^-1 G)`` with ``P = S_rr + shift I`` and
         ``G = P Y_r + Q_re = (Q Y)_r - Lambda_r Y_r + shift Y_r`` (Y turned so that the earth's
         block is the identity; Lambda and F do not change).  Nonnegative by construction, and
         free of the cancellation of the bound's large terms (``tr(Q_ee)``: the readings'
-        positions squared)."""
+        positions squared; ``qy``: ``Q Y`` when computed already)."""
         cs = self._spectrum_setup()
         n, d, e = self.n, self.d, self.earth
-        y = y @ y[d * e: d * e + d].T  # the earth's block: the identity
+        turn = y[d * e: d * e + d].T  # the earth's block becomes the identity
+        y = y @ turn
+        qy = self.q(y) if qy is None else qy @ turn
         yb = y.reshape(n, d, d)
-        g = (self.q(y).reshape(n, d, d) - lam @ yb + shift * yb).reshape(d * n, d)
+        g = (qy.reshape(n, d, d) - lam @ yb + shift * yb).reshape(d * n, d)
         g[d * e: d * e + d] = 0.0  # the earth's rows: P's identity block
         rhs = np.zeros((cs["dim"], d))
         rhs[cs["rot"]] = g
@@ -949,9 +959,10 @@ class SyncProblem:
 
         n, d = self.n, self.d
         cs = self._spectrum_setup()
-        lam = self.lambda_blocks(y)
+        qy = self.q(y)
+        lam = self.lambda_blocks(y, qy)
         objective = float(np.sum(np.real(np.trace(lam, axis1=1, axis2=2))))
-        fixed = self.earth >= 0 and not self.complex and y.shape[1] == d
+        fixed = self.holds_earth and y.shape[1] == d
         values = self._certificate_values(lam, fixed)
         spd, dim = cs["spd"], cs["dim"]
         scale = cs["scale_fixed"] if fixed else cs["scale"]
@@ -981,7 +992,7 @@ class SyncProblem:
         lower = objective - shift * size if certified else -np.inf
         excess = float("nan")
         if fixed and np.isfinite(shift):  # the bound holds at any definite shift
-            excess = self._earth_fixed_gap(y, lam, shift)
+            excess = self._earth_fixed_gap(y, lam, shift, qy)
             certified = excess <= cap * size
             lower = objective - excess if certified else -np.inf
         lam_min = float("nan")

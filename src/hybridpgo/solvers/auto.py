@@ -564,16 +564,17 @@ def _certified_start(exact: ExactSolver, cfg: AutoConfig, tree: PoseTree, init: 
         cert, info = _polished_first(exact, cfg, prob, cand, cert, info, cap, t_origin,
                                      progress, iterate)
     floor = cert.stats.get("shift_floor", 0.0)
-    # a 3D graph with GPS: the staircase stays at rank d = 3 (above it the earth frame's
+    # a 3D graph with GPS: the staircase stays at rank d (above it the earth frame's
     # rotation is lifted, where S is ill-conditioned, certificate.py; the escape did not
     # certify valencia + GPS), so it runs only to let Newton go on where it stopped short
-    held = graph.num_gps > 0 and not graph.is_2d
+    held = prob is not None and prob.holds_earth
     converged = cert.stats.get("refine_converged", True)
     if not cert.certified and ((cert.lambda_min < -floor and not held) or not converged):
         # F's local minimum (a negative eigenvalue), or Newton stopped short of one (where no
         # eigenvalue is computed): SE-Sync's Riemannian staircase (Newton goes on at rank d)
         # escapes it through higher ranks; a certified rounding is the certified start
-        cert, info = _staircase(graph, prob, init, cert, info, 3 if held else None)
+        cert, info = _staircase(graph, prob, init, cert, info,
+                                prob.d if prob is not None and held else None)
     if not cert.certified:
         return cand, None, info
     check = _polished_at(exact, cfg, init, "certified start", cert.rotations,
